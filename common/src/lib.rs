@@ -1,0 +1,25 @@
+//! Shared by every rotorloop role: SO(3) helpers for the per-tick math, the parameter
+//! types of a body with rotors and of the control law, and scenario files.
+//!
+//! # Conventions (stated once, used everywhere)
+//!
+//! - `R ∈ SO(3)` maps body-frame components to inertial-frame components: `v_N = R v_B`.
+//! - `Ω` is the body angular velocity in the body frame: `Ṙ = R hat(Ω)`.
+//! - Rotor `i` spins about body axis `e_i`; `Ω_r` are rotor rates relative to the body.
+//! - Matrices in files and traces are written row-major (`R11, R12, R13, R21, …`).
+//!
+//! # nalgebra and glam
+//!
+//! glam (`DMat3`, `DVec3`, f64) carries every number that changes per tick: it is small,
+//! `Copy`, and has no generic machinery in the hot path. nalgebra does the set-up work
+//! that glam cannot: eigenvalues, symmetry and positive-definiteness checks of the
+//! scenario's matrices, and the roots of the closed-loop characteristic polynomials.
+//! The conversion happens once, when a scenario is validated ([`scenario`]); nothing
+//! inside a tick converts between them.
+
+pub mod params;
+pub mod scenario;
+pub mod so3;
+
+pub use params::{BodyParams, Gains, RotorBodyState};
+pub use scenario::{Actuation, Scenario, ScenarioError, TorqueProfile};

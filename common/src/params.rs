@@ -1,0 +1,78 @@
+//! Parameter and state types of a body with rotors and of the control law, in the glam
+//! types the per-tick math uses. Built once from a validated [`crate::Scenario`].
+
+use glam::{DMat3, DVec3};
+
+/// Inertia parameters of a rigid body with three rotors on its principal body axes
+/// (spec "Conventions"). A body without rotors (the gas-jet comparison body) has
+/// `rotor_inertia = 0`.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct BodyParams {
+    /// `I`: inertia of everything but the rotors' spin about their own axes (kg m²).
+    pub inertia: DMat3,
+    /// `I⁻¹`, precomputed.
+    pub inertia_inv: DMat3,
+    /// Diagonal of `K`: the rotors' spin inertia about their axes (kg m²).
+    pub rotor_inertia: DVec3,
+}
+
+impl BodyParams {
+    /// Parameters from `I` and the diagonal of `K`. `I` must be invertible (the scenario
+    /// loader checks it is symmetric positive definite).
+    pub fn new(inertia: DMat3, rotor_inertia: DVec3) -> Self {
+        Self { inertia, inertia_inv: inertia.inverse(), rotor_inertia }
+    }
+
+    /// The same body with its rotors locked out of the model (`K = 0`): the externally
+    /// actuated (gas-jet) body of the spec.
+    pub fn without_rotors(&self) -> Self {
+        Self { rotor_inertia: DVec3::ZERO, ..*self }
+    }
+
+    /// Body angular momentum `Π = (I+K) Ω + K Ω_r` (spec, "The plant").
+    #[inline]
+    pub fn body_momentum(&self, omega: DVec3, omega_r: DVec3) -> DVec3 {
+        self.inertia * omega + self.rotor_inertia * (omega + omega_r)
+    }
+
+    /// Kinetic energy `T = ½ Ω·IΩ + ½ (Ω+Ω_r)·K(Ω+Ω_r)` (spec, "Conventions").
+    #[inline]
+    pub fn kinetic_energy(&self, omega: DVec3, omega_r: DVec3) -> f64 {
+        let w = omega + omega_r;
+        0.5 * omega.dot(self.inertia * omega) + 0.5 * w.dot(self.rotor_inertia * w)
+    }
+}
+
+/// Gains of the geometric PID law (spec, "The control law").
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Gains {
+    /// Proportional gain `k_p` (> 0).
+    pub kp: f64,
+    /// Derivative gain `k_d` (> 0).
+    pub kd: f64,
+    /// Integral gain `k_I` (≥ 0; 0 is the PD law).
+    pub ki: f64,
+    /// `P`: symmetric positive definite weight of the navigation function `ψ`.
+    pub p: DMat3,
+}
+
+/// The kinematic state of a body with rotors at one instant.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct RotorBodyState {
+    /// Attitude `R` (body → inertial).
+    pub r: DMat3,
+    /// Body angular velocity `Ω` (rad/s, body frame).
+    pub omega: DVec3,
+    /// Rotor rates relative to the body `Ω_r = Θ̇` (rad/s).
+    pub omega_r: DVec3,
+    /// Rotor angles relative to the body `Θ` (rad).
+    pub theta: DVec3,
+}
+
+impl RotorBodyState {
+    /// Spatial angular momentum `h = R Π` (inertial frame).
+    #[inline]
+    pub fn spatial_momentum(&self, body: &BodyParams) -> DVec3 {
+        self.r * body.body_momentum(self.omega, self.omega_r)
+    }
+}
