@@ -21,5 +21,5 @@ pub mod params;
 pub mod scenario;
 pub mod so3;
 
-pub use params::{BodyParams, Gains, RotorBodyState};
+pub use params::{BodyParams, Gains, ReferenceState, RotorBodyState};
 pub use scenario::{Actuation, Scenario, ScenarioError, TorqueProfile};

@@ -20,13 +20,20 @@ impl BodyParams {
     /// Parameters from `I` and the diagonal of `K`. `I` must be invertible (the scenario
     /// loader checks it is symmetric positive definite).
     pub fn new(inertia: DMat3, rotor_inertia: DVec3) -> Self {
-        Self { inertia, inertia_inv: inertia.inverse(), rotor_inertia }
+        Self {
+            inertia,
+            inertia_inv: inertia.inverse(),
+            rotor_inertia,
+        }
     }
 
     /// The same body with its rotors locked out of the model (`K = 0`): the externally
     /// actuated (gas-jet) body of the spec.
     pub fn without_rotors(&self) -> Self {
-        Self { rotor_inertia: DVec3::ZERO, ..*self }
+        Self {
+            rotor_inertia: DVec3::ZERO,
+            ..*self
+        }
     }
 
     /// Body angular momentum `Π = (I+K) Ω + K Ω_r` (spec, "The plant").
@@ -75,4 +82,16 @@ impl RotorBodyState {
     pub fn spatial_momentum(&self, body: &BodyParams) -> DVec3 {
         self.r * body.body_momentum(self.omega, self.omega_r)
     }
+}
+
+/// What the reference generator hands the controller each tick (spec, "The reference
+/// generator"): the desired attitude and its body rates.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ReferenceState {
+    /// `R_d`.
+    pub r_d: DMat3,
+    /// `Ω_d` (rad/s, the reference body's frame).
+    pub omega_d: DVec3,
+    /// `Ω̇_d` (rad/s²) from the dummy body's own dynamics at the same instant.
+    pub omega_d_dot: DVec3,
 }

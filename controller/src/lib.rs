@@ -1,1 +1,111 @@
-//! stub
+//! The geometric PID almost-global tracking law (spec, "The control law"), for the
+//! internally actuated body (rotor torque `u`, Theorem 2) and the externally actuated
+//! one (body torque `τ`). No IPC and no clock: the caller passes the state, the reference
+//! and `dt`.
+//!
+//! Discrete time (spec): at tick `k` the law uses `ξ_I,k`, then advances
+//! `ξ_I,k+1 = ξ_I,k + dt · s_k` (forward Euler over the tick).
+
+use glam::DVec3;
+use rotorloop_common::so3::vee;
+use rotorloop_common::{BodyParams, Gains, ReferenceState, RotorBodyState};
+
+/// Everything the law computes in one tick.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct ControlOutput {
+    /// Rotor torque `u = K(Ω+Ω_r)×Ω − τ` (N m).
+    pub rotor_torque: DVec3,
+    /// Body torque `τ = IΩ̇* − (IΩ)×Ω` (N m): what a gas-jet body would apply.
+    pub body_torque: DVec3,
+    /// `s = vee(PE − EᵀP)`, the gradient of ψ.
+    pub s: DVec3,
+    /// `η = R(Ω_d − Ω)`, the error velocity.
+    pub eta: DVec3,
+    /// `ψ(E) = tr(P(I − E))`.
+    pub psi: f64,
+    /// The integral state used at this tick, `ξ_I,k`.
+    pub xi_i: DVec3,
+}
+
+/// The law of the spec for given gains and body model, evaluated with integral state `xi_i`.
+/// Pure: it changes nothing. `body` is the controller's model of the plant.
+#[inline]
+pub fn control_law(
+    gains: &Gains,
+    body: &BodyParams,
+    x: &RotorBodyState,
+    reference: &ReferenceState,
+    xi_i: DVec3,
+) -> ControlOutput {
+    let r = x.r;
+    let e = reference.r_d * r.transpose(); // E = R_d Rᵀ
+    let p = gains.p;
+    let pe = p * e;
+    let psi = (p.col(0).x + p.col(1).y + p.col(2).z) - (pe.col(0).x + pe.col(1).y + pe.col(2).z);
+    let eta = r * (reference.omega_d - x.omega);
+    let s = vee(pe - e.transpose() * p); // PE − EᵀP is skew: vee is exact
+    let a = -gains.kp * s - gains.kd * eta - gains.ki * xi_i;
+    let omega_dot_star =
+        reference.omega_d_dot + x.omega.cross(reference.omega_d) - r.transpose() * a;
+    let i_omega = body.inertia * x.omega;
+    let tau = body.inertia * omega_dot_star - i_omega.cross(x.omega);
+    let u = (body.rotor_inertia * (x.omega + x.omega_r)).cross(x.omega) - tau;
+    ControlOutput {
+        rotor_torque: u,
+        body_torque: tau,
+        s,
+        eta,
+        psi,
+        xi_i,
+    }
+}
+
+/// The law with its integral state.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct GeometricPid {
+    gains: Gains,
+    model: BodyParams,
+    xi_i: DVec3,
+}
+
+impl GeometricPid {
+    /// A controller with zero integral state. `model` is its model of the plant's
+    /// inertia (`I`, `K`).
+    pub fn new(gains: Gains, model: BodyParams) -> Self {
+        Self {
+            gains,
+            model,
+            xi_i: DVec3::ZERO,
+        }
+    }
+
+    /// Continue from a known integral state (bumpless restart).
+    pub fn with_integral_state(mut self, xi_i: DVec3) -> Self {
+        self.xi_i = xi_i;
+        self
+    }
+
+    /// The current integral state `ξ_I`.
+    pub fn integral_state(&self) -> DVec3 {
+        self.xi_i
+    }
+
+    /// The gains.
+    pub fn gains(&self) -> &Gains {
+        &self.gains
+    }
+
+    /// Computes the tick's torques from the state and reference at tick `k`, then
+    /// advances `ξ_I` over the tick.
+    #[inline]
+    pub fn step(
+        &mut self,
+        x: &RotorBodyState,
+        reference: &ReferenceState,
+        dt: f64,
+    ) -> ControlOutput {
+        let out = control_law(&self.gains, &self.model, x, reference, self.xi_i);
+        self.xi_i += dt * out.s;
+        out
+    }
+}

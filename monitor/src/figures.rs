@@ -1,0 +1,231 @@
+//! The tracking figures of a run (the paper's plots and the invariant checks), drawn
+//! from a decimated [`Recorder`] of trace rows.
+
+use std::path::Path;
+
+use crate::metrics::TraceRow;
+use crate::plot::{PlotError, Series, YScale, line_chart, panel_grid};
+
+/// Most points kept per series for figures.
+pub const MAX_POINTS: u64 = 6000;
+
+/// Trace rows decimated for plotting. Capacity is reserved up front, so recording does
+/// not allocate during a run of the announced length.
+#[derive(Debug, Clone, Default)]
+pub struct Recorder {
+    every: u64,
+    /// Time (s).
+    pub t: Vec<f64>,
+    /// Entries (1,1), (1,2), (2,1), (2,2) of `R`.
+    pub r: Vec<[f64; 4]>,
+    /// The same entries of `R_d`.
+    pub r_d: Vec<[f64; 4]>,
+    /// Attitude error (deg).
+    pub err_deg: Vec<f64>,
+    /// Rotor rates (rad/s).
+    pub omega_r: Vec<[f64; 3]>,
+    /// Relative momentum drift.
+    pub h_drift_rel: Vec<f64>,
+    /// Energy residual (J).
+    pub energy_residual: Vec<f64>,
+    /// `‖u‖`.
+    pub u_norm: Vec<f64>,
+    /// `‖τ‖`.
+    pub tau_norm: Vec<f64>,
+}
+
+impl Recorder {
+    /// A recorder for a run of `rows` rows.
+    pub fn new(rows: u64) -> Self {
+        let every = rows.div_ceil(MAX_POINTS).max(1);
+        let n = (rows / every + 2) as usize;
+        Self {
+            every,
+            t: Vec::with_capacity(n),
+            r: Vec::with_capacity(n),
+            r_d: Vec::with_capacity(n),
+            err_deg: Vec::with_capacity(n),
+            omega_r: Vec::with_capacity(n),
+            h_drift_rel: Vec::with_capacity(n),
+            energy_residual: Vec::with_capacity(n),
+            u_norm: Vec::with_capacity(n),
+            tau_norm: Vec::with_capacity(n),
+        }
+    }
+
+    /// Keeps the row if it falls on the decimation grid (or `force`, for the last row).
+    pub fn record(&mut self, row: &TraceRow, force: bool) {
+        if row.tick % self.every != 0 && !force {
+            return;
+        }
+        let pick = |m: &[f64; 9]| [m[0], m[1], m[3], m[4]];
+        self.t.push(row.t);
+        self.r.push(pick(&row.r));
+        self.r_d.push(pick(&row.r_d));
+        self.err_deg.push(row.err_deg);
+        self.omega_r.push(row.omega_r);
+        self.h_drift_rel.push(row.h_drift_rel);
+        self.energy_residual.push(row.energy_residual);
+        self.u_norm.push(row.u_norm());
+        self.tau_norm.push(row.tau_norm());
+    }
+
+    fn xy(&self, f: impl Fn(usize) -> f64) -> Vec<(f64, f64)> {
+        self.t.iter().enumerate().map(|(i, &t)| (t, f(i))).collect()
+    }
+}
+
+/// Writes the tracking figures into `dir` and returns their file names.
+///
+/// `effort` is the control-effort comparison: the internally actuated run (`‖u‖`) and
+/// the externally actuated run (`‖τ‖`) tracking the same reference.
+pub fn tracking_figures(
+    dir: &Path,
+    name: &str,
+    rec: &Recorder,
+    effort: Option<(&Recorder, &Recorder)>,
+) -> Result<Vec<String>, PlotError> {
+    let mut files = Vec::new();
+
+    let labels = ["(1,1)", "(1,2)", "(2,1)", "(2,2)"];
+    let entries: Vec<(Vec<(f64, f64)>, Vec<(f64, f64)>)> = (0..4)
+        .map(|j| (rec.xy(|i| rec.r[i][j]), rec.xy(|i| rec.r_d[i][j])))
+        .collect();
+    let series: Vec<[Series<'_>; 2]> = entries
+        .iter()
+        .map(|(r, rd)| {
+            [
+                Series {
+                    label: "R (plant)",
+                    points: r,
+                    dashed: false,
+                },
+                Series {
+                    label: "R_d (reference)",
+                    points: rd,
+                    dashed: true,
+                },
+            ]
+        })
+        .collect();
+    let panels: Vec<(String, &[Series<'_>])> = labels
+        .iter()
+        .zip(&series)
+        .map(|(l, s)| (format!("entry {l}"), &s[..]))
+        .collect();
+    let panels: Vec<(&str, &str, &[Series<'_>])> =
+        panels.iter().map(|(t, s)| (t.as_str(), "", *s)).collect();
+    let file = "attitude_entries.png";
+    panel_grid(
+        &dir.join(file),
+        &format!("{name}: attitude R(t) against R_d(t)"),
+        (2, 2),
+        &panels,
+    )?;
+    files.push(file.to_owned());
+
+    let err = rec.xy(|i| rec.err_deg[i]);
+    let file = "attitude_error.png";
+    line_chart(
+        &dir.join(file),
+        &format!("{name}: attitude error angle"),
+        "t (s)",
+        "error (deg, log)",
+        &[Series {
+            label: "",
+            points: &err,
+            dashed: false,
+        }],
+        YScale::Log { floor: 1e-12 },
+    )?;
+    files.push(file.to_owned());
+
+    let rates: Vec<Vec<(f64, f64)>> = (0..3).map(|j| rec.xy(|i| rec.omega_r[i][j])).collect();
+    let file = "rotor_rates.png";
+    line_chart(
+        &dir.join(file),
+        &format!("{name}: rotor rates relative to the body"),
+        "t (s)",
+        "rad/s",
+        &[
+            Series {
+                label: "Wr1",
+                points: &rates[0],
+                dashed: false,
+            },
+            Series {
+                label: "Wr2",
+                points: &rates[1],
+                dashed: false,
+            },
+            Series {
+                label: "Wr3",
+                points: &rates[2],
+                dashed: false,
+            },
+        ],
+        YScale::Linear,
+    )?;
+    files.push(file.to_owned());
+
+    let drift = rec.xy(|i| rec.h_drift_rel[i]);
+    let file = "momentum_drift.png";
+    line_chart(
+        &dir.join(file),
+        &format!("{name}: spatial momentum drift |h(t) - h(0)| / |h(0)|"),
+        "t (s)",
+        "relative drift",
+        &[Series {
+            label: "",
+            points: &drift,
+            dashed: false,
+        }],
+        YScale::Linear,
+    )?;
+    files.push(file.to_owned());
+
+    if rec.energy_residual.iter().any(|v| v.is_finite()) {
+        let res = rec.xy(|i| rec.energy_residual[i]);
+        let file = "energy_residual.png";
+        line_chart(
+            &dir.join(file),
+            &format!("{name}: energy change minus rotor work"),
+            "t (s)",
+            "J",
+            &[Series {
+                label: "",
+                points: &res,
+                dashed: false,
+            }],
+            YScale::Linear,
+        )?;
+        files.push(file.to_owned());
+    }
+
+    if let Some((internal, external)) = effort {
+        let u = internal.xy(|i| internal.u_norm[i]);
+        let tau = external.xy(|i| external.tau_norm[i]);
+        let file = "control_effort.png";
+        line_chart(
+            &dir.join(file),
+            &format!("{name}: control effort, rotors vs gas jets (same reference)"),
+            "t (s)",
+            "N m",
+            &[
+                Series {
+                    label: "|u| rotor torque (internal)",
+                    points: &u,
+                    dashed: false,
+                },
+                Series {
+                    label: "|tau| body torque (external)",
+                    points: &tau,
+                    dashed: false,
+                },
+            ],
+            YScale::Linear,
+        )?;
+        files.push(file.to_owned());
+    }
+    Ok(files)
+}

@@ -1,0 +1,134 @@
+//! Per-tick metrics of a run: attitude error angle, rate error, control effort, spatial
+//! momentum and its drift, and the residual of energy change minus rotor work.
+
+use glam::DVec3;
+use rotorloop_common::so3::{rotation_angle, to_row_major};
+use rotorloop_common::{BodyParams, ReferenceState, RotorBodyState};
+
+/// One row of `trace.csv`: the state, reference and torques at tick `k`, and metrics.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct TraceRow {
+    /// Tick index `k`.
+    pub tick: u64,
+    /// Simulated time `t_k = k dt` (s).
+    pub t: f64,
+    /// `R`, row-major.
+    pub r: [f64; 9],
+    /// `R_d`, row-major.
+    pub r_d: [f64; 9],
+    /// `Ω` (rad/s).
+    pub omega: [f64; 3],
+    /// `Ω_d` (rad/s).
+    pub omega_d: [f64; 3],
+    /// `Ω_r` (rad/s).
+    pub omega_r: [f64; 3],
+    /// Rotor torque `u` computed at this tick (N m); applied over `[t_k, t_k+1]` when
+    /// the actuation is internal.
+    pub u: [f64; 3],
+    /// Body torque `τ` computed at this tick (N m); applied when the actuation is external.
+    pub tau: [f64; 3],
+    /// Attitude error angle of `E = R_d Rᵀ` (degrees).
+    pub err_deg: f64,
+    /// `‖Ω − Ω_d‖` (rad/s).
+    pub werr: f64,
+    /// Spatial angular momentum `h = RΠ` (N m s), from the reported state.
+    pub h: [f64; 3],
+    /// `‖h − h(0)‖ / ‖h(0)‖`.
+    pub h_drift_rel: f64,
+    /// `T_k − T_0 − Σ u·ΔΘ` (J): zero for exact dynamics; NaN for a body without rotors.
+    pub energy_residual: f64,
+}
+
+impl TraceRow {
+    /// `‖u‖`.
+    pub fn u_norm(&self) -> f64 {
+        DVec3::from_array(self.u).length()
+    }
+    /// `‖τ‖`.
+    pub fn tau_norm(&self) -> f64 {
+        DVec3::from_array(self.tau).length()
+    }
+}
+
+/// Running metrics of one plant. Feed it every tick, in order, with the torque that was
+/// applied over the following tick.
+#[derive(Debug, Clone)]
+pub struct Metrics {
+    body: BodyParams,
+    has_rotors: bool,
+    h0: DVec3,
+    h0_norm: f64,
+    energy0: f64,
+    work: f64,
+    prev: Option<(DVec3, DVec3)>,
+}
+
+impl Metrics {
+    /// Metrics for a plant with these parameters; `initial` is its state at tick 0.
+    pub fn new(body: BodyParams, initial: &RotorBodyState) -> Self {
+        let h0 = initial.spatial_momentum(&body);
+        Self {
+            body,
+            has_rotors: body.rotor_inertia.cmpgt(DVec3::ZERO).all(),
+            h0,
+            h0_norm: h0.length(),
+            energy0: body.kinetic_energy(initial.omega, initial.omega_r),
+            work: 0.0,
+            prev: None,
+        }
+    }
+
+    /// The row for tick `k`. `applied_rotor_torque` is the rotor torque the plant holds
+    /// over `[t_k, t_k+1]` (zero for a gas-jet body), used for the rotor work.
+    #[inline]
+    #[allow(clippy::too_many_arguments)]
+    pub fn observe(
+        &mut self,
+        tick: u64,
+        t: f64,
+        x: &RotorBodyState,
+        reference: &ReferenceState,
+        u: DVec3,
+        tau: DVec3,
+        applied_rotor_torque: DVec3,
+    ) -> TraceRow {
+        let e = reference.r_d * x.r.transpose();
+        let h = x.spatial_momentum(&self.body);
+        let energy_residual = if self.has_rotors {
+            // Rotor work over the previous tick with u held: u · (Θ_k − Θ_k−1), exact for
+            // zero-order hold.
+            if let Some((theta_prev, u_prev)) = self.prev {
+                self.work += u_prev.dot(x.theta - theta_prev);
+            }
+            self.body.kinetic_energy(x.omega, x.omega_r) - self.energy0 - self.work
+        } else {
+            f64::NAN
+        };
+        self.prev = Some((x.theta, applied_rotor_torque));
+        TraceRow {
+            tick,
+            t,
+            r: to_row_major(&x.r),
+            r_d: to_row_major(&reference.r_d),
+            omega: x.omega.to_array(),
+            omega_d: reference.omega_d.to_array(),
+            omega_r: x.omega_r.to_array(),
+            u: u.to_array(),
+            tau: tau.to_array(),
+            err_deg: rotation_angle(&e).to_degrees(),
+            werr: (x.omega - reference.omega_d).length(),
+            h: h.to_array(),
+            h_drift_rel: if self.h0_norm > 0.0 {
+                (h - self.h0).length() / self.h0_norm
+            } else {
+                0.0
+            },
+            energy_residual,
+        }
+    }
+
+    /// Kinetic energy at tick 0 (J), the scale of the energy residual.
+    pub fn initial_energy(&self) -> f64 {
+        self.energy0
+    }
+}

@@ -1,0 +1,216 @@
+//! The `rotorloop` command line: argument types (clap derive) and the dispatch to the
+//! library. `main.rs` only calls [`main`].
+
+use std::path::PathBuf;
+use std::process::ExitCode;
+
+use anyhow::Context;
+use clap::{Parser, Subcommand};
+use glam::DVec3;
+use rotorloop_common::Actuation;
+
+use crate::UsageError;
+use crate::gains;
+use crate::montecarlo::{self, McOptions};
+use crate::sim::{self, SimOptions, scenario_with_overrides, summary_table};
+
+/// Attitude tracking of a rigid body with three internal rotors (geometric PID,
+/// almost-global), simulated and analysed.
+#[derive(Debug, Parser)]
+#[command(name = "rotorloop", version, about)]
+pub struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Debug, Subcommand)]
+enum Command {
+    /// Run one scenario in one process, faster than real time.
+    Sim(SimArgs),
+    /// The paper's three tracking runs and the control-effort comparison, with a report.
+    Paper {
+        /// Output directory: one sub-directory per run, plus report.md.
+        #[arg(long, default_value = "out/paper")]
+        out: PathBuf,
+        /// Simulated seconds per run.
+        #[arg(long, default_value_t = 30.0)]
+        duration: f64,
+        /// Tick rate (Hz).
+        #[arg(long, default_value_t = 1000.0)]
+        rate: f64,
+    },
+    /// The paper's Appendix A gain bounds and the linearised closed-loop poles.
+    Gains {
+        /// Built-in scenario name or TOML path.
+        #[arg(long, default_value = "paper-zero")]
+        scenario: String,
+        /// Print JSON instead of text.
+        #[arg(long)]
+        json: bool,
+    },
+    /// Random initial attitudes and rates, including errors within 2° of 180°.
+    Montecarlo(McArgs),
+}
+
+#[derive(Debug, clap::Args)]
+struct SimArgs {
+    /// `paper-zero`, `paper-constant`, `paper-sinusoid`, or the path of a TOML file.
+    #[arg(long)]
+    scenario: String,
+    /// Simulated seconds [default: the scenario's, 30].
+    #[arg(long)]
+    duration: Option<f64>,
+    /// Tick rate in Hz [default: the scenario's, 1000].
+    #[arg(long)]
+    rate: Option<f64>,
+    /// `internal` (rotors) or `external` (gas jets) [default: the scenario's].
+    #[arg(long)]
+    actuation: Option<Actuation>,
+    /// Switch the controller off and hold this rotor torque (N m): U1,U2,U3.
+    #[arg(long, value_parser = parse_vec3, allow_hyphen_values = true)]
+    open_loop: Option<DVec3>,
+    /// Write every N-th tick to trace.csv (the last tick always).
+    #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u64).range(1..))]
+    trace_every: u64,
+    /// Skip the PNG figures.
+    #[arg(long)]
+    no_figures: bool,
+    /// Output directory.
+    #[arg(long)]
+    out: PathBuf,
+}
+
+#[derive(Debug, clap::Args)]
+struct McArgs {
+    /// Number of runs.
+    #[arg(long, default_value_t = 100, value_parser = clap::value_parser!(u64).range(1..=100_000))]
+    runs: u64,
+    /// RNG seed.
+    #[arg(long, default_value_t = 1)]
+    seed: u64,
+    /// Base scenario (bodies, reference, gains).
+    #[arg(long, default_value = "paper-zero")]
+    scenario: String,
+    /// Simulated seconds per run.
+    #[arg(long, default_value_t = 60.0)]
+    duration: f64,
+    /// Tick rate (Hz).
+    #[arg(long, default_value_t = 1000.0)]
+    rate: f64,
+    /// Every N-th run starts within 2° of a 180° error.
+    #[arg(long, default_value_t = 3, value_parser = clap::value_parser!(u64).range(1..))]
+    near_pi_every: u64,
+    /// Largest |IΩ(0)| and |Ω_r(0)| component drawn.
+    #[arg(long, default_value_t = 3.0)]
+    max_rate: f64,
+    /// Output directory.
+    #[arg(long)]
+    out: PathBuf,
+}
+
+fn parse_vec3(s: &str) -> Result<DVec3, String> {
+    let parts: Vec<&str> = s.split(',').collect();
+    let vals: Result<Vec<f64>, _> = parts.iter().map(|p| p.trim().parse::<f64>()).collect();
+    match vals {
+        Ok(v) if v.len() == 3 && v.iter().all(|x| x.is_finite() && x.abs() <= 1e6) => {
+            Ok(DVec3::new(v[0], v[1], v[2]))
+        }
+        _ => Err(format!(
+            "`{s}` is not allowed: three finite numbers of magnitude ≤ 1e6 separated by commas, e.g. 0.1,-0.2,0"
+        )),
+    }
+}
+
+/// Parses the command line, runs, prints errors with their chain, and returns the exit
+/// code: 0 success, 1 failure, 2 bad arguments or scenario.
+pub fn main() -> ExitCode {
+    let cli = Cli::parse();
+    match run(cli) {
+        Ok(()) => ExitCode::SUCCESS,
+        Err(e) => {
+            eprintln!("error: {e:#}");
+            if e.downcast_ref::<UsageError>().is_some() {
+                ExitCode::from(2)
+            } else {
+                ExitCode::FAILURE
+            }
+        }
+    }
+}
+
+fn print_warnings(w: &[String]) {
+    for w in w {
+        eprintln!("warning: {w}");
+    }
+}
+
+/// Runs a parsed command line.
+pub fn run(cli: Cli) -> anyhow::Result<()> {
+    match cli.command {
+        Command::Sim(a) => {
+            let scenario = scenario_with_overrides(&a.scenario, a.duration, a.rate, a.actuation)?;
+            print_warnings(&scenario.warnings);
+            let opts = SimOptions {
+                scenario,
+                open_loop: a.open_loop,
+                trace_every: a.trace_every,
+                out: a.out.clone(),
+                figures: !a.no_figures,
+                progress: true,
+            };
+            let (summary, _) = sim::run(&opts).with_context(|| format!("sim of {}", a.scenario))?;
+            print!("{}", summary_table(&summary));
+            println!("  {:<28} {}", "output", a.out.display());
+        }
+        Command::Paper {
+            out,
+            duration,
+            rate,
+        } => crate::paper::run(&out, duration, rate)?,
+        Command::Gains { scenario, json } => {
+            let s = rotorloop_common::Scenario::load(&scenario).map_err(UsageError::from)?;
+            print_warnings(&s.warnings);
+            let r = gains::analyse(&s);
+            if json {
+                println!("{}", serde_json::to_string_pretty(&r)?);
+            } else {
+                print!("{}", gains::render(&r));
+            }
+        }
+        Command::Montecarlo(a) => {
+            let scenario =
+                scenario_with_overrides(&a.scenario, Some(a.duration), Some(a.rate), None)?;
+            if !(a.max_rate.is_finite() && a.max_rate > 0.0 && a.max_rate <= 1e3) {
+                return Err(UsageError(format!(
+                    "--max-rate {} is not allowed: a number > 0 and ≤ 1000",
+                    a.max_rate
+                ))
+                .into());
+            }
+            let opts = McOptions {
+                scenario,
+                runs: a.runs as usize,
+                seed: a.seed,
+                near_pi_every: a.near_pi_every as usize,
+                max_rate: a.max_rate,
+                threads: std::thread::available_parallelism().map_or(1, |n| n.get()),
+                out: Some(a.out.clone()),
+            };
+            let (s, _) = montecarlo::run(&opts)?;
+            println!(
+                "{} runs ({} within 2° of 180°, closest {:.3}° from it), {} s each at {} Hz\n\
+                 converged (final error < {}°): {:.1} %\nworst final error: {:.3e}°\noutput: {}",
+                s.runs,
+                s.near_pi_runs,
+                s.closest_to_pi_deg,
+                s.duration_s,
+                s.rate_hz,
+                montecarlo::CONVERGED_DEG,
+                100.0 * s.fraction_converged,
+                s.worst_final_err_deg,
+                a.out.display()
+            );
+        }
+    }
+    Ok(())
+}

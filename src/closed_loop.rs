@@ -1,0 +1,128 @@
+//! The closed loop in one process: plant, reference, control law and metrics, stepped
+//! together. The same algorithm structs run in the four-process loop; this is the
+//! in-process simulator's core and the unit the benchmark measures.
+
+use glam::DVec3;
+use rotorloop_common::{Actuation, Scenario};
+use rotorloop_controller::{ControlOutput, GeometricPid};
+use rotorloop_monitor::{Metrics, TraceRow};
+use rotorloop_plant::{Body, BodyInput};
+use rotorloop_reference::Reference;
+
+/// Where the plant's torque comes from.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum Control {
+    /// The geometric PID law.
+    ClosedLoop(GeometricPid),
+    /// The controller switched off and a constant rotor torque held (N m): for checking
+    /// the physics against other simulators.
+    OpenLoop(DVec3),
+}
+
+/// Plant + reference + controller + metrics at a fixed tick.
+#[derive(Debug, Clone)]
+pub struct ClosedLoop {
+    plant: Body,
+    reference: Reference,
+    control: Control,
+    metrics: Metrics,
+    actuation: Actuation,
+    dt: f64,
+    tick: u64,
+}
+
+impl ClosedLoop {
+    /// The loop of a validated scenario. The reference is momentum-matched to the
+    /// rotor-actuated plant in both actuations, so an internal and an external run track
+    /// the same reference. `open_loop` replaces the controller by a constant rotor torque.
+    pub fn new(scenario: &Scenario, actuation: Actuation, open_loop: Option<DVec3>) -> Self {
+        let h = scenario.plant_init.spatial_momentum(&scenario.plant);
+        let reference = Reference::matched(
+            scenario.reference,
+            scenario.reference_attitude,
+            scenario.reference_omega,
+            scenario.reference_torque,
+            h,
+        );
+        let body = match actuation {
+            Actuation::Internal => scenario.plant,
+            Actuation::External => scenario.plant.without_rotors(),
+        };
+        let plant = Body::new(body, scenario.plant_init);
+        let control = match open_loop {
+            Some(u) => Control::OpenLoop(u),
+            None => Control::ClosedLoop(GeometricPid::new(scenario.gains, body)),
+        };
+        let metrics = Metrics::new(body, &plant.state());
+        Self {
+            plant,
+            reference,
+            control,
+            metrics,
+            actuation,
+            dt: scenario.dt(),
+            tick: 0,
+        }
+    }
+
+    /// The next tick index.
+    pub fn tick_index(&self) -> u64 {
+        self.tick
+    }
+
+    /// The plant.
+    pub fn plant(&self) -> &Body {
+        &self.plant
+    }
+
+    /// The reference generator.
+    pub fn reference(&self) -> &Reference {
+        &self.reference
+    }
+
+    /// The metrics.
+    pub fn metrics(&self) -> &Metrics {
+        &self.metrics
+    }
+
+    /// One tick `k`: read the state and reference at `t_k = k dt`, compute the torques,
+    /// record the row, then advance plant (torque held) and reference to `t_k+1`.
+    /// Allocation-free.
+    #[inline]
+    pub fn tick(&mut self) -> TraceRow {
+        let k = self.tick;
+        let t = k as f64 * self.dt;
+        let x = self.plant.state();
+        let rd = self.reference.sample(t);
+        let out = match &mut self.control {
+            Control::ClosedLoop(pid) => pid.step(&x, &rd, self.dt),
+            Control::OpenLoop(u) => ControlOutput {
+                rotor_torque: *u,
+                ..ControlOutput::default()
+            },
+        };
+        let (input, u_traced) = match self.actuation {
+            Actuation::Internal => (
+                BodyInput {
+                    rotor_torque: out.rotor_torque,
+                    body_torque: DVec3::ZERO,
+                },
+                out.rotor_torque,
+            ),
+            Actuation::External => (
+                BodyInput {
+                    rotor_torque: DVec3::ZERO,
+                    body_torque: out.body_torque,
+                },
+                DVec3::ZERO,
+            ),
+        };
+        let row =
+            self.metrics
+                .observe(k, t, &x, &rd, u_traced, out.body_torque, input.rotor_torque);
+        self.plant.step(input, self.dt);
+        self.reference.step(t, self.dt);
+        self.tick += 1;
+        row
+    }
+}

@@ -1,0 +1,418 @@
+//! `rotorloop sim`: one scenario in one process, faster than real time, with its trace,
+//! summary and figures.
+
+use std::fs::File;
+use std::io::{BufWriter, IsTerminal, Write};
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use anyhow::Context;
+use glam::DVec3;
+use rotorloop_common::scenario::RunFile;
+use rotorloop_common::so3::orthonormality_error;
+use rotorloop_common::{Actuation, Scenario};
+use rotorloop_monitor::figures::tracking_figures;
+use rotorloop_monitor::{Recorder, TraceRow, TraceWriter};
+use serde::Serialize;
+
+use crate::ClosedLoop;
+
+/// What to simulate.
+#[derive(Debug, Clone)]
+pub struct SimOptions {
+    /// The validated scenario, with duration, rate and actuation as run.
+    pub scenario: Scenario,
+    /// Constant rotor torque instead of the controller.
+    pub open_loop: Option<DVec3>,
+    /// Write every N-th row to `trace.csv` (the last row always).
+    pub trace_every: u64,
+    /// Output directory.
+    pub out: PathBuf,
+    /// Draw figures.
+    pub figures: bool,
+    /// Show progress on a terminal.
+    pub progress: bool,
+}
+
+/// The effort comparison of the internally and externally actuated runs.
+#[derive(Debug, Clone, Serialize)]
+pub struct EffortComparison {
+    /// RMS of `‖u‖` over the run, internal actuation (N m).
+    pub internal_u_rms: f64,
+    /// Peak `‖u‖`, internal actuation (N m).
+    pub internal_u_max: f64,
+    /// RMS of `‖τ‖`, external actuation (N m).
+    pub external_tau_rms: f64,
+    /// Peak `‖τ‖`, external actuation (N m).
+    pub external_tau_max: f64,
+    /// Largest difference of the two runs' attitude error angles (deg).
+    pub err_deg_max_difference: f64,
+}
+
+/// `summary.json`.
+#[derive(Debug, Clone, Serialize)]
+pub struct SimSummary {
+    /// Scenario name.
+    pub name: String,
+    /// The scenario as run (TOML fields).
+    pub scenario: rotorloop_common::scenario::ScenarioFile,
+    /// Actuation of the traced run.
+    pub actuation: Actuation,
+    /// Open-loop rotor torque, if the controller was off.
+    pub open_loop: Option<[f64; 3]>,
+    /// Plant steps taken.
+    pub ticks: u64,
+    /// Rows in `trace.csv`.
+    pub trace_rows: u64,
+    /// Tick period (s).
+    pub dt: f64,
+    /// Attitude error at t = 0 (deg).
+    pub err_deg_initial: f64,
+    /// Attitude error at the end (deg).
+    pub err_deg_final: f64,
+    /// `‖Ω − Ω_d‖` at the end (rad/s).
+    pub werr_final: f64,
+    /// First time after which the error stays below 0.1° (s), if it does.
+    pub settle_time_0p1deg_s: Option<f64>,
+    /// Largest `‖h − h(0)‖/‖h(0)‖` (an invariant only for internal actuation).
+    pub momentum_drift_rel_max: f64,
+    /// Largest `|ΔT − rotor work|` (J); null for a body without rotors.
+    pub energy_residual_max_abs: Option<f64>,
+    /// The same relative to the initial kinetic energy.
+    pub energy_residual_rel_max: Option<f64>,
+    /// Largest `‖RᵀR − I‖_F`.
+    pub orthonormality_error_max: f64,
+    /// Largest `|det R − 1|`.
+    pub det_error_max: f64,
+    /// Largest `‖u‖` (N m).
+    pub u_norm_max: f64,
+    /// Largest `‖τ‖` (N m).
+    pub tau_norm_max: f64,
+    /// Internal vs external actuation on the same reference (closed loop only).
+    pub effort: Option<EffortComparison>,
+    /// Wall time of the traced run, including trace I/O (s).
+    pub wall_seconds: f64,
+    /// Plant steps per wall-clock second of the traced run.
+    pub ticks_per_second: f64,
+    /// Scenario warnings.
+    pub warnings: Vec<String>,
+    /// Figures written.
+    pub figures: Vec<String>,
+}
+
+/// Running statistics of one run.
+#[derive(Debug, Clone)]
+struct Stats {
+    first: TraceRow,
+    last: TraceRow,
+    settle: Option<f64>,
+    drift_max: f64,
+    energy_max: f64,
+    ortho_max: f64,
+    det_max: f64,
+    u_max: f64,
+    tau_max: f64,
+    u_sq: f64,
+    tau_sq: f64,
+    rows: u64,
+}
+
+impl Stats {
+    fn new(first: TraceRow) -> Self {
+        Self {
+            first,
+            last: first,
+            settle: None,
+            drift_max: 0.0,
+            energy_max: 0.0,
+            ortho_max: 0.0,
+            det_max: 0.0,
+            u_max: 0.0,
+            tau_max: 0.0,
+            u_sq: 0.0,
+            tau_sq: 0.0,
+            rows: 0,
+        }
+    }
+
+    fn add(&mut self, row: &TraceRow, lp: &ClosedLoop) {
+        self.last = *row;
+        self.rows += 1;
+        if row.err_deg < 0.1 {
+            self.settle.get_or_insert(row.t);
+        } else {
+            self.settle = None;
+        }
+        self.drift_max = self.drift_max.max(row.h_drift_rel);
+        if row.energy_residual.is_finite() {
+            self.energy_max = self.energy_max.max(row.energy_residual.abs());
+        }
+        let (o, d) = orthonormality_error(&lp.plant().state().r);
+        self.ortho_max = self.ortho_max.max(o);
+        self.det_max = self.det_max.max(d);
+        let (u, tau) = (row.u_norm(), row.tau_norm());
+        self.u_max = self.u_max.max(u);
+        self.tau_max = self.tau_max.max(tau);
+        self.u_sq += u * u;
+        self.tau_sq += tau * tau;
+    }
+}
+
+/// Runs a loop for the scenario's ticks (`ticks + 1` rows: the last state gets a row
+/// too), calling `each` per row. Returns the statistics.
+fn drive(
+    lp: &mut ClosedLoop,
+    ticks: u64,
+    mut each: impl FnMut(&TraceRow, bool) -> anyhow::Result<()>,
+) -> anyhow::Result<Stats> {
+    let mut stats: Option<Stats> = None;
+    for k in 0..=ticks {
+        let row = lp.tick();
+        let st = stats.get_or_insert_with(|| Stats::new(row));
+        st.add(&row, lp);
+        each(&row, k == ticks)?;
+    }
+    stats.context("a run has at least one row")
+}
+
+/// Runs `sim` and writes `trace.csv`, `summary.json` and the figures into `opts.out`.
+/// `summary.json` is written last: a directory without it is an unfinished run.
+pub fn run(opts: &SimOptions) -> anyhow::Result<(SimSummary, Recorder)> {
+    let s = &opts.scenario;
+    std::fs::create_dir_all(&opts.out)
+        .with_context(|| format!("cannot create output directory {}", opts.out.display()))?;
+    let summary_path = opts.out.join("summary.json");
+    if summary_path.exists() {
+        std::fs::remove_file(&summary_path)
+            .with_context(|| format!("cannot replace {}", summary_path.display()))?;
+    }
+    let ticks = s.ticks();
+    let actuation = s.actuation();
+    let trace_path = opts.out.join("trace.csv");
+    let file = File::create(&trace_path)
+        .with_context(|| format!("cannot create {}", trace_path.display()))?;
+    let mut trace = TraceWriter::new(BufWriter::with_capacity(1 << 20, file))?;
+    let mut rec = Recorder::new(ticks + 1);
+    let mut progress = Progress::new(opts.progress && ticks >= 200_000, ticks);
+    let every = opts.trace_every.max(1);
+    let mut trace_rows = 0u64;
+
+    let mut lp = ClosedLoop::new(s, actuation, opts.open_loop);
+    let start = Instant::now();
+    let stats = drive(&mut lp, ticks, |row, last| {
+        if row.tick % every == 0 || last {
+            trace
+                .write(row)
+                .with_context(|| format!("cannot write {}", trace_path.display()))?;
+            trace_rows += 1;
+        }
+        rec.record(row, last);
+        progress.update(row);
+        Ok(())
+    })?;
+    trace
+        .finish()
+        .with_context(|| format!("cannot write {}", trace_path.display()))?;
+    let wall = start.elapsed().as_secs_f64();
+    progress.done();
+
+    // The effort comparison: the other actuation on the same reference.
+    let mut effort = None;
+    let mut other_rec = None;
+    if opts.open_loop.is_none() {
+        let other = match actuation {
+            Actuation::Internal => Actuation::External,
+            Actuation::External => Actuation::Internal,
+        };
+        let mut olp = ClosedLoop::new(s, other, None);
+        let mut orec = Recorder::new(ticks + 1);
+        let mut err_diff = 0.0f64;
+        let mut main_err = rec.err_deg.iter();
+        let ostats = drive(&mut olp, ticks, |row, last| {
+            let before = orec.t.len();
+            orec.record(row, last);
+            if orec.t.len() > before {
+                if let Some(e) = main_err.next() {
+                    err_diff = err_diff.max((e - row.err_deg).abs());
+                }
+            }
+            Ok(())
+        })?;
+        let (int, ext) = match actuation {
+            Actuation::Internal => (&stats, &ostats),
+            Actuation::External => (&ostats, &stats),
+        };
+        let n = (ticks + 1) as f64;
+        effort = Some(EffortComparison {
+            internal_u_rms: (int.u_sq / n).sqrt(),
+            internal_u_max: int.u_max,
+            external_tau_rms: (ext.tau_sq / n).sqrt(),
+            external_tau_max: ext.tau_max,
+            err_deg_max_difference: err_diff,
+        });
+        other_rec = Some(orec);
+    }
+
+    let mut figures = Vec::new();
+    if opts.figures {
+        let pair = other_rec.as_ref().map(|o| match actuation {
+            Actuation::Internal => (&rec, o),
+            Actuation::External => (o, &rec),
+        });
+        figures = tracking_figures(&opts.out, &s.file.name, &rec, pair)?;
+    }
+
+    let has_rotors = actuation == Actuation::Internal;
+    let e0 = lp.metrics().initial_energy();
+    let summary = SimSummary {
+        name: s.file.name.clone(),
+        scenario: s.file.clone(),
+        actuation,
+        open_loop: opts.open_loop.map(|u| u.to_array()),
+        ticks,
+        trace_rows,
+        dt: s.dt(),
+        err_deg_initial: stats.first.err_deg,
+        err_deg_final: stats.last.err_deg,
+        werr_final: stats.last.werr,
+        settle_time_0p1deg_s: stats.settle,
+        momentum_drift_rel_max: stats.drift_max,
+        energy_residual_max_abs: has_rotors.then_some(stats.energy_max),
+        energy_residual_rel_max: has_rotors.then_some(stats.energy_max / e0),
+        orthonormality_error_max: stats.ortho_max,
+        det_error_max: stats.det_max,
+        u_norm_max: stats.u_max,
+        tau_norm_max: stats.tau_max,
+        effort,
+        wall_seconds: wall,
+        ticks_per_second: ticks as f64 / wall.max(1e-12),
+        warnings: s.warnings.clone(),
+        figures,
+    };
+    write_json(&summary_path, &summary)?;
+    Ok((summary, rec))
+}
+
+/// Writes `value` as pretty JSON.
+pub fn write_json(path: &Path, value: &impl Serialize) -> anyhow::Result<()> {
+    let text = serde_json::to_string_pretty(value).context("cannot serialise summary")?;
+    std::fs::write(path, text + "\n").with_context(|| format!("cannot write {}", path.display()))
+}
+
+/// The short summary table printed after a run.
+pub fn summary_table(s: &SimSummary) -> String {
+    let mut t = String::new();
+    let opt = |v: Option<f64>, unit: &str| v.map_or("n/a".to_owned(), |v| format!("{v:.3e}{unit}"));
+    let lines = [
+        (
+            "scenario",
+            format!(
+                "{} ({} actuation{})",
+                s.name,
+                s.actuation,
+                if s.open_loop.is_some() {
+                    ", open loop"
+                } else {
+                    ""
+                }
+            ),
+        ),
+        ("ticks", format!("{} at dt = {} s", s.ticks, s.dt)),
+        (
+            "attitude error",
+            format!("{:.4}° → {:.3e}°", s.err_deg_initial, s.err_deg_final),
+        ),
+        (
+            "settled below 0.1°",
+            s.settle_time_0p1deg_s
+                .map_or("no".into(), |t| format!("at t = {t:.3} s")),
+        ),
+        (
+            "momentum drift (max, rel.)",
+            format!("{:.3e}", s.momentum_drift_rel_max),
+        ),
+        (
+            "energy − rotor work (max)",
+            opt(s.energy_residual_max_abs, " J"),
+        ),
+        (
+            "‖RᵀR − I‖ (max)",
+            format!("{:.3e}", s.orthonormality_error_max),
+        ),
+        (
+            "speed",
+            format!(
+                "{:.0} ticks/s ({:.3} s wall, incl. trace I/O)",
+                s.ticks_per_second, s.wall_seconds
+            ),
+        ),
+    ];
+    for (k, v) in lines {
+        t.push_str(&format!("  {k:<28} {v}\n"));
+    }
+    if let Some(e) = &s.effort {
+        t.push_str(&format!(
+            "  {:<28} rotors ‖u‖ rms {:.4} (max {:.4}) | gas jets ‖τ‖ rms {:.4} (max {:.4}) N m\n",
+            "control effort",
+            e.internal_u_rms,
+            e.internal_u_max,
+            e.external_tau_rms,
+            e.external_tau_max
+        ));
+    }
+    t
+}
+
+/// A progress line on stderr for long runs, updated a few times per second.
+struct Progress {
+    on: bool,
+    total: u64,
+    last: Instant,
+}
+
+impl Progress {
+    fn new(on: bool, total: u64) -> Self {
+        Self {
+            on: on && std::io::stderr().is_terminal(),
+            total,
+            last: Instant::now(),
+        }
+    }
+
+    fn update(&mut self, row: &TraceRow) {
+        if !self.on || row.tick % 8192 != 0 || self.last.elapsed().as_millis() < 250 {
+            return;
+        }
+        self.last = Instant::now();
+        let pct = 100.0 * row.tick as f64 / self.total as f64;
+        let mut e = std::io::stderr().lock();
+        let _ = write!(
+            e,
+            "\r  {pct:5.1}%  t = {:.2} s  error {:.3e}°   ",
+            row.t, row.err_deg
+        );
+        let _ = e.flush();
+    }
+
+    fn done(&self) {
+        if self.on {
+            eprint!("\r{:60}\r", "");
+        }
+    }
+}
+
+/// Builds the scenario to run from a name or path and command-line overrides.
+pub fn scenario_with_overrides(
+    name_or_path: &str,
+    duration_s: Option<f64>,
+    rate_hz: Option<f64>,
+    actuation: Option<Actuation>,
+) -> Result<Scenario, crate::UsageError> {
+    let base = Scenario::load(name_or_path)?;
+    let run = RunFile {
+        duration_s: duration_s.unwrap_or(base.file.run.duration_s),
+        rate_hz: rate_hz.unwrap_or(base.file.run.rate_hz),
+        actuation: actuation.unwrap_or(base.file.run.actuation),
+    };
+    Ok(base.with_run(run)?)
+}
