@@ -58,10 +58,10 @@ struct SimArgs {
     #[arg(long)]
     scenario: String,
     /// Simulated seconds [default: the scenario's, 30].
-    #[arg(long)]
+    #[arg(long, allow_negative_numbers = true)]
     duration: Option<f64>,
     /// Tick rate in Hz [default: the scenario's, 1000].
-    #[arg(long)]
+    #[arg(long, allow_negative_numbers = true)]
     rate: Option<f64>,
     /// `internal` (rotors) or `external` (gas jets) [default: the scenario's].
     #[arg(long)]
