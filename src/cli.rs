@@ -162,11 +162,7 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
             print!("{}", summary_table(&summary));
             println!("  {:<28} {}", "output", a.out.display());
         }
-        Command::Paper {
-            out,
-            duration,
-            rate,
-        } => crate::paper::run(&out, duration, rate)?,
+        Command::Paper { out, duration, rate } => crate::paper::run(&out, duration, rate)?,
         Command::Gains { scenario, json } => {
             let s = rotorloop_common::Scenario::load(&scenario).map_err(UsageError::from)?;
             print_warnings(&s.warnings);

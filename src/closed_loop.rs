@@ -9,22 +9,15 @@ use rotorloop_monitor::{Metrics, TraceRow};
 use rotorloop_plant::{Body, BodyInput};
 use rotorloop_reference::Reference;
 
-/// Where the plant's torque comes from.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub enum Control {
-    /// The geometric PID law.
-    ClosedLoop(GeometricPid),
-    /// The controller switched off and a constant rotor torque held (N m): for checking
-    /// the physics against other simulators.
-    OpenLoop(DVec3),
-}
-
 /// Plant + reference + controller + metrics at a fixed tick.
 #[derive(Debug, Clone)]
 pub struct ClosedLoop {
     plant: Body,
     reference: Reference,
-    control: Control,
+    pid: GeometricPid,
+    /// The controller switched off and this rotor torque held (N m): for checking the
+    /// physics against other simulators.
+    open_loop: Option<DVec3>,
     metrics: Metrics,
     actuation: Actuation,
     dt: f64,
@@ -49,20 +42,9 @@ impl ClosedLoop {
             Actuation::External => scenario.plant.without_rotors(),
         };
         let plant = Body::new(body, scenario.plant_init);
-        let control = match open_loop {
-            Some(u) => Control::OpenLoop(u),
-            None => Control::ClosedLoop(GeometricPid::new(scenario.gains, body)),
-        };
+        let pid = GeometricPid::new(scenario.gains, body);
         let metrics = Metrics::new(body, &plant.state());
-        Self {
-            plant,
-            reference,
-            control,
-            metrics,
-            actuation,
-            dt: scenario.dt(),
-            tick: 0,
-        }
+        Self { plant, reference, pid, open_loop, metrics, actuation, dt: scenario.dt(), tick: 0 }
     }
 
     /// The next tick index.
@@ -94,32 +76,21 @@ impl ClosedLoop {
         let t = k as f64 * self.dt;
         let x = self.plant.state();
         let rd = self.reference.sample(t);
-        let out = match &mut self.control {
-            Control::ClosedLoop(pid) => pid.step(&x, &rd, self.dt),
-            Control::OpenLoop(u) => ControlOutput {
-                rotor_torque: *u,
-                ..ControlOutput::default()
-            },
+        let out = match self.open_loop {
+            None => self.pid.step(&x, &rd, self.dt),
+            Some(u) => ControlOutput { rotor_torque: u, ..ControlOutput::default() },
         };
         let (input, u_traced) = match self.actuation {
             Actuation::Internal => (
-                BodyInput {
-                    rotor_torque: out.rotor_torque,
-                    body_torque: DVec3::ZERO,
-                },
+                BodyInput { rotor_torque: out.rotor_torque, body_torque: DVec3::ZERO },
                 out.rotor_torque,
             ),
-            Actuation::External => (
-                BodyInput {
-                    rotor_torque: DVec3::ZERO,
-                    body_torque: out.body_torque,
-                },
-                DVec3::ZERO,
-            ),
+            Actuation::External => {
+                (BodyInput { rotor_torque: DVec3::ZERO, body_torque: out.body_torque }, DVec3::ZERO)
+            }
         };
         let row =
-            self.metrics
-                .observe(k, t, &x, &rd, u_traced, out.body_torque, input.rotor_torque);
+            self.metrics.observe(k, t, &x, &rd, u_traced, out.body_torque, input.rotor_torque);
         self.plant.step(input, self.dt);
         self.reference.step(t, self.dt);
         self.tick += 1;

@@ -122,20 +122,12 @@ pub fn analyse(s: &Scenario) -> GainReport {
         .collect();
     modes.sort_by(|a, b| a.m.total_cmp(&b.m));
 
-    let (b1, b2, bi) = (
-        g.kp > kp_bound_1,
-        g.kp > kp_bound_2,
-        g.ki > 0.0 && g.ki < ki_bound,
-    );
+    let (b1, b2, bi) = (g.kp > kp_bound_1, g.kp > kp_bound_2, g.ki > 0.0 && g.ki < ki_bound);
     let hurwitz = modes.iter().all(|m| m.hurwitz);
     let sufficient = b1 && b2 && bi;
     let verdict = format!(
         "{}; linearisation {}; {}",
-        if sufficient {
-            "sufficient bounds met"
-        } else {
-            "sufficient bound not met"
-        },
+        if sufficient { "sufficient bounds met" } else { "sufficient bound not met" },
         if hurwitz { "Hurwitz" } else { "NOT Hurwitz" },
         match (sufficient, hurwitz) {
             (true, true) => "almost-global convergence guaranteed by the paper's theorem",
@@ -146,10 +138,11 @@ pub fn analyse(s: &Scenario) -> GainReport {
     let mut notes = vec![format!(
         "paper prints μ = {PAPER_MU}, λ = {PAPER_LAMBDA}; the formulas give μ = {mu:.4}, λ = {lambda:.4}"
     )];
-    notes.push(format!(
+    notes.push(
         "σ = 2 − 2μκ is negative on the whole interval κ ∈ (1/μ, 2/μ) although the paper \
          assumes σ > 0; the k_I bound uses σ² and is evaluated at κ → 1/μ (σ → 0)"
-    ));
+            .to_owned(),
+    );
     GainReport {
         scenario: s.file.name.clone(),
         kp: g.kp,
@@ -218,17 +211,13 @@ pub fn render(r: &GainReport) -> String {
         yes(r.ki_bound_met),
     );
     for m in &r.modes {
-        let poles: Vec<String> = m
-            .poles
-            .iter()
-            .map(|[re, im]| {
-                if im.abs() < 1e-12 {
-                    format!("{re:.4}")
-                } else {
-                    format!("{re:.4}{im:+.4}i")
-                }
-            })
-            .collect();
+        let poles: Vec<String> =
+            m.poles
+                .iter()
+                .map(|[re, im]| {
+                    if im.abs() < 1e-12 { format!("{re:.4}") } else { format!("{re:.4}{im:+.4}i") }
+                })
+                .collect();
         t.push_str(&format!(
             "  mode m = {:.4}: poles {}  ({})\n",
             m.m,
@@ -254,10 +243,7 @@ mod tests {
         let r = analyse(&s);
         assert!((r.mu - 6.849).abs() < 1e-3, "μ = {}", r.mu);
         assert!((r.lambda - 1.419).abs() < 1e-3, "λ = {}", r.lambda);
-        assert!(
-            !r.kp_bound_1_met,
-            "k_p = 1 does not meet k_p > 2κk_d² for any κ"
-        );
+        assert!(!r.kp_bound_1_met, "k_p = 1 does not meet k_p > 2κk_d² for any κ");
         assert!(r.modes.iter().all(|m| m.hurwitz));
         assert!(r.verdict.contains("not met") && r.verdict.contains("Hurwitz"));
     }
@@ -273,11 +259,9 @@ mod tests {
 
     #[test]
     fn hurwitz_iff_kd_kp_exceeds_ki() {
-        for (kp, kd, ki, want) in [
-            (1.0, 3.0, 1.0, true),
-            (1.0, 1.0, 2.5, false),
-            (2.0, 0.5, 0.9, true),
-        ] {
+        for (kp, kd, ki, want) in
+            [(1.0, 3.0, 1.0, true), (1.0, 1.0, 2.5, false), (2.0, 0.5, 0.9, true)]
+        {
             let m = 2.0;
             let stable = cubic_roots(kd, kp * m, ki * m).iter().all(|z| z.re < 0.0);
             assert_eq!(stable, want, "kp={kp} kd={kd} ki={ki}");

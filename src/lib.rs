@@ -12,7 +12,7 @@ pub mod montecarlo;
 pub mod paper;
 pub mod sim;
 
-pub use closed_loop::{ClosedLoop, Control};
+pub use closed_loop::ClosedLoop;
 
 /// An error the user caused (bad argument or scenario value): exit code 2.
 #[derive(Debug, thiserror::Error)]

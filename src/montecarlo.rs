@@ -115,17 +115,11 @@ fn draw(base: &Scenario, opts: &McOptions, i: usize) -> (Scenario, bool) {
         glam::DMat3::from_quat(q)
     };
     let m = opts.max_rate;
-    let i_omega = DVec3::new(
-        rng.random_range(-m..m),
-        rng.random_range(-m..m),
-        rng.random_range(-m..m),
-    );
+    let i_omega =
+        DVec3::new(rng.random_range(-m..m), rng.random_range(-m..m), rng.random_range(-m..m));
     s.plant_init.omega = s.plant.inertia_inv * i_omega;
-    s.plant_init.omega_r = DVec3::new(
-        rng.random_range(-m..m),
-        rng.random_range(-m..m),
-        rng.random_range(-m..m),
-    );
+    s.plant_init.omega_r =
+        DVec3::new(rng.random_range(-m..m), rng.random_range(-m..m), rng.random_range(-m..m));
     (s, near_pi)
 }
 
@@ -167,22 +161,13 @@ pub fn run(opts: &McOptions) -> anyhow::Result<(McSummary, Vec<McRun>)> {
         let handles: Vec<_> = (0..threads)
             .map(|w| {
                 scope.spawn(move || {
-                    (w..opts.runs)
-                        .step_by(threads)
-                        .map(|i| run_one(opts, i))
-                        .collect::<Vec<_>>()
+                    (w..opts.runs).step_by(threads).map(|i| run_one(opts, i)).collect::<Vec<_>>()
                 })
             })
             .collect();
-        handles
-            .into_iter()
-            .flat_map(|h| h.join().unwrap_or_default())
-            .collect()
+        handles.into_iter().flat_map(|h| h.join().unwrap_or_default()).collect()
     });
-    anyhow::ensure!(
-        results.len() == opts.runs,
-        "a Monte Carlo worker thread panicked"
-    );
+    anyhow::ensure!(results.len() == opts.runs, "a Monte Carlo worker thread panicked");
     results.sort_by_key(|r| r.run);
     let n = results.len().max(1) as f64;
     let summary = McSummary {
@@ -225,16 +210,10 @@ fn write_outputs(dir: &Path, summary: &McSummary, runs: &[McRun]) -> anyhow::Res
     }
     let path = dir.join("runs.csv");
     std::fs::write(&path, csv).with_context(|| format!("cannot write {}", path.display()))?;
-    let log_final: Vec<f64> = runs
-        .iter()
-        .map(|r| r.err_deg_final.max(1e-16).log10())
-        .collect();
+    let log_final: Vec<f64> = runs.iter().map(|r| r.err_deg_final.max(1e-16).log10()).collect();
     histogram(
         &dir.join("final_error_histogram.png"),
-        &format!(
-            "{} runs: final attitude error (converged: error < 0.1° = 10^-1)",
-            runs.len()
-        ),
+        &format!("{} runs: final attitude error (converged: error < 0.1° = 10^-1)", runs.len()),
         "log10(final error / deg)",
         &log_final,
         30,

@@ -32,17 +32,13 @@ pub fn run(out: &Path, duration: f64, rate: f64) -> anyhow::Result<()> {
         })
         .with_context(|| format!("sim of {name}"))?;
         print!("{}", summary_table(&s));
-        let e = s
-            .effort
-            .as_ref()
-            .context("closed-loop runs have an effort comparison")?;
+        let e = s.effort.as_ref().context("closed-loop runs have an effort comparison")?;
         let _ = writeln!(
             rows,
             "| {name} | {:.2} | {:.3e} | {} | {:.3e} | {:.4} | {:.4} | {:.4} | {:.4} |",
             s.err_deg_initial,
             s.err_deg_final,
-            s.settle_time_0p1deg_s
-                .map_or("—".into(), |t| format!("{t:.2}")),
+            s.settle_time_0p1deg_s.map_or("—".into(), |t| format!("{t:.2}")),
             s.momentum_drift_rel_max,
             e.internal_u_rms,
             e.internal_u_max,

@@ -201,18 +201,14 @@ pub fn run(opts: &SimOptions) -> anyhow::Result<(SimSummary, Recorder)> {
     let start = Instant::now();
     let stats = drive(&mut lp, ticks, |row, last| {
         if row.tick % every == 0 || last {
-            trace
-                .write(row)
-                .with_context(|| format!("cannot write {}", trace_path.display()))?;
+            trace.write(row).with_context(|| format!("cannot write {}", trace_path.display()))?;
             trace_rows += 1;
         }
         rec.record(row, last);
         progress.update(row);
         Ok(())
     })?;
-    trace
-        .finish()
-        .with_context(|| format!("cannot write {}", trace_path.display()))?;
+    trace.finish().with_context(|| format!("cannot write {}", trace_path.display()))?;
     let wall = start.elapsed().as_secs_f64();
     progress.done();
 
@@ -310,35 +306,18 @@ pub fn summary_table(s: &SimSummary) -> String {
                 "{} ({} actuation{})",
                 s.name,
                 s.actuation,
-                if s.open_loop.is_some() {
-                    ", open loop"
-                } else {
-                    ""
-                }
+                if s.open_loop.is_some() { ", open loop" } else { "" }
             ),
         ),
         ("ticks", format!("{} at dt = {} s", s.ticks, s.dt)),
-        (
-            "attitude error",
-            format!("{:.4}° → {:.3e}°", s.err_deg_initial, s.err_deg_final),
-        ),
+        ("attitude error", format!("{:.4}° → {:.3e}°", s.err_deg_initial, s.err_deg_final)),
         (
             "settled below 0.1°",
-            s.settle_time_0p1deg_s
-                .map_or("no".into(), |t| format!("at t = {t:.3} s")),
+            s.settle_time_0p1deg_s.map_or("no".into(), |t| format!("at t = {t:.3} s")),
         ),
-        (
-            "momentum drift (max, rel.)",
-            format!("{:.3e}", s.momentum_drift_rel_max),
-        ),
-        (
-            "energy − rotor work (max)",
-            opt(s.energy_residual_max_abs, " J"),
-        ),
-        (
-            "‖RᵀR − I‖ (max)",
-            format!("{:.3e}", s.orthonormality_error_max),
-        ),
+        ("momentum drift (max, rel.)", format!("{:.3e}", s.momentum_drift_rel_max)),
+        ("energy − rotor work (max)", opt(s.energy_residual_max_abs, " J")),
+        ("‖RᵀR − I‖ (max)", format!("{:.3e}", s.orthonormality_error_max)),
         (
             "speed",
             format!(
@@ -372,11 +351,7 @@ struct Progress {
 
 impl Progress {
     fn new(on: bool, total: u64) -> Self {
-        Self {
-            on: on && std::io::stderr().is_terminal(),
-            total,
-            last: Instant::now(),
-        }
+        Self { on: on && std::io::stderr().is_terminal(), total, last: Instant::now() }
     }
 
     fn update(&mut self, row: &TraceRow) {
@@ -386,11 +361,7 @@ impl Progress {
         self.last = Instant::now();
         let pct = 100.0 * row.tick as f64 / self.total as f64;
         let mut e = std::io::stderr().lock();
-        let _ = write!(
-            e,
-            "\r  {pct:5.1}%  t = {:.2} s  error {:.3e}°   ",
-            row.t, row.err_deg
-        );
+        let _ = write!(e, "\r  {pct:5.1}%  t = {:.2} s  error {:.3e}°   ", row.t, row.err_deg);
         let _ = e.flush();
     }
 

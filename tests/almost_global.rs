@@ -24,12 +24,7 @@ fn error_converges_from_random_and_near_pi_initial_conditions() {
     assert_eq!(runs.len(), 120);
     assert_eq!(summary.near_pi_runs, 40);
     for r in runs.iter().filter(|r| r.near_pi) {
-        assert!(
-            r.err_deg_initial >= 178.0 - 1e-9,
-            "run {}: {}°",
-            r.run,
-            r.err_deg_initial
-        );
+        assert!(r.err_deg_initial >= 178.0 - 1e-9, "run {}: {}°", r.run, r.err_deg_initial);
     }
     let failed: Vec<_> = runs.iter().filter(|r| !r.converged).collect();
     assert!(failed.is_empty(), "not converged: {failed:?}");

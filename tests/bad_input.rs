@@ -10,17 +10,12 @@ const PAPER: &str = include_str!("../scenarios/paper-zero.toml");
 
 /// The paper scenario with one line replaced (the line must exist).
 fn with(find: &str, replace: &str) -> String {
-    assert!(
-        PAPER.contains(find),
-        "test bug: `{find}` not in the paper scenario"
-    );
+    assert!(PAPER.contains(find), "test bug: `{find}` not in the paper scenario");
     PAPER.replacen(find, replace, 1)
 }
 
 fn refused(text: &str, field: &str, allowed_hint: &str) {
-    let err = Scenario::from_toml(text, "test.toml")
-        .expect_err("must be refused")
-        .to_string();
+    let err = Scenario::from_toml(text, "test.toml").expect_err("must be refused").to_string();
     assert!(err.contains(field), "error does not name `{field}`: {err}");
     assert!(
         err.contains(allowed_hint),
@@ -41,10 +36,7 @@ fn inertia_not_symmetric_positive_definite_is_refused() {
         "not symmetric",
     );
     refused(
-        &with(
-            "[[1.0, 0.0, 0.0], [0.0, 1.2, 0.0]",
-            "[[1.0, 0.0, 0.0], [0.0, 0.0, 0.0]",
-        ),
+        &with("[[1.0, 0.0, 0.0], [0.0, 1.2, 0.0]", "[[1.0, 0.0, 0.0], [0.0, 0.0, 0.0]"),
         "reference.inertia",
         "positive definite",
     );
@@ -53,18 +45,12 @@ fn inertia_not_symmetric_positive_definite_is_refused() {
 #[test]
 fn rotor_inertia_not_positive_diagonal_is_refused() {
     refused(
-        &with(
-            "rotor_inertia = [5.0, 6.0, 7.0]",
-            "rotor_inertia = [5.0, 0.0, 7.0]",
-        ),
+        &with("rotor_inertia = [5.0, 6.0, 7.0]", "rotor_inertia = [5.0, 0.0, 7.0]"),
         "plant.rotor_inertia",
         "positive diagonal",
     );
     refused(
-        &with(
-            "rotor_inertia = [4.0, 3.0, 2.0]",
-            "rotor_inertia = [4.0, -3.0, 2.0]",
-        ),
+        &with("rotor_inertia = [4.0, 3.0, 2.0]", "rotor_inertia = [4.0, -3.0, 2.0]"),
         "reference.rotor_inertia",
         "positive diagonal",
     );
@@ -73,23 +59,12 @@ fn rotor_inertia_not_positive_diagonal_is_refused() {
 #[test]
 fn initial_attitude_off_so3_is_refused() {
     // not orthonormal
-    refused(
-        &with("[[0.36, 0.48, -0.8]", "[[0.36, 0.48, -0.81]"),
-        "plant.attitude",
-        "det +1",
-    );
+    refused(&with("[[0.36, 0.48, -0.8]", "[[0.36, 0.48, -0.81]"), "plant.attitude", "det +1");
     // a reflection: orthonormal, det −1
-    refused(
-        &with("[[0.36, 0.48, -0.8]", "[[-0.36, -0.48, 0.8]"),
-        "plant.attitude",
-        "det +1",
-    );
+    refused(&with("[[0.36, 0.48, -0.8]", "[[-0.36, -0.48, 0.8]"), "plant.attitude", "det +1");
     // within 1e-6: accepted and projected onto SO(3)
-    let s = Scenario::from_toml(
-        &with("[[0.36, 0.48, -0.8]", "[[0.3600000004, 0.48, -0.8]"),
-        "t",
-    )
-    .expect("within tolerance");
+    let s = Scenario::from_toml(&with("[[0.36, 0.48, -0.8]", "[[0.3600000004, 0.48, -0.8]"), "t")
+        .expect("within tolerance");
     let (o, d) = rotorloop_common::so3::orthonormality_error(&s.plant_init.r);
     assert!(o < 1e-14 && d < 1e-14);
 }
@@ -112,55 +87,33 @@ fn p_not_symmetric_positive_definite_is_refused() {
         "controller.p",
         "positive definite",
     );
-    refused(
-        &with("p = [[0.9, 0.0, 0.0]", "p = [[0.9, 0.2, 0.0]"),
-        "controller.p",
-        "symmetric",
-    );
+    refused(&with("p = [[0.9, 0.0, 0.0]", "p = [[0.9, 0.2, 0.0]"), "controller.p", "symmetric");
 }
 
 #[test]
 fn rate_or_duration_out_of_range_is_refused() {
-    refused(
-        &with("rate_hz = 1000.0", "rate_hz = 0.0"),
-        "run.rate_hz",
-        "from 1 to 100000",
-    );
-    refused(
-        &with("rate_hz = 1000.0", "rate_hz = 1e9"),
-        "run.rate_hz",
-        "from 1 to 100000",
-    );
+    refused(&with("rate_hz = 1000.0", "rate_hz = 0.0"), "run.rate_hz", "from 1 to 100000");
+    refused(&with("rate_hz = 1000.0", "rate_hz = 1e9"), "run.rate_hz", "from 1 to 100000");
     refused(
         &with("duration_s = 30.0", "duration_s = -1.0"),
         "run.duration_s",
         "from 0.001 to 86400",
     );
-    refused(
-        &with("duration_s = 30.0", "duration_s = nan"),
-        "run.duration_s",
-        "finite",
-    );
+    refused(&with("duration_s = 30.0", "duration_s = nan"), "run.duration_s", "finite");
 }
 
 #[test]
 fn unknown_scenario_profile_or_field_is_refused() {
-    let err = Scenario::load("paper-zeroo")
-        .expect_err("unknown")
-        .to_string();
-    assert!(
-        err.contains("paper-zeroo") && err.contains("paper-sinusoid"),
-        "{err}"
-    );
+    let err = Scenario::load("paper-zeroo").expect_err("unknown").to_string();
+    assert!(err.contains("paper-zeroo") && err.contains("paper-sinusoid"), "{err}");
     refused(
         &with("profile = \"zero\"", "profile = \"square\""),
         "reference.torque.profile",
         "`sinusoid`",
     );
     // A misspelt key must not silently fall back to a default.
-    let err = Scenario::from_toml(&with("kp = 1.0", "kpp = 1.0"), "t")
-        .expect_err("misspelt")
-        .to_string();
+    let err =
+        Scenario::from_toml(&with("kp = 1.0", "kpp = 1.0"), "t").expect_err("misspelt").to_string();
     assert!(err.contains("kpp"), "{err}");
     let err = Scenario::from_toml(&with("duration_s = 30.0", "duration = 30.0"), "t")
         .expect_err("misspelt")
@@ -172,10 +125,7 @@ fn unknown_scenario_profile_or_field_is_refused() {
     assert!(err.contains("plantt"), "{err}");
     // a profile field that does not belong to the profile
     refused(
-        &with(
-            "profile = \"zero\"",
-            "profile = \"zero\"\nvalue = [1.0, 2.0, 3.0]",
-        ),
+        &with("profile = \"zero\"", "profile = \"zero\"\nvalue = [1.0, 2.0, 3.0]"),
         "reference.torque.value",
         "only with",
     );
@@ -200,10 +150,7 @@ fn unknown_scenario_profile_or_field_is_refused() {
 fn odd_but_valid_inputs_warn_and_run() {
     let paper = Scenario::from_toml(PAPER, "t").expect("valid");
     assert!(
-        paper
-            .warnings
-            .iter()
-            .any(|w| w.contains("triangle inequality")),
+        paper.warnings.iter().any(|w| w.contains("triangle inequality")),
         "{:?}",
         paper.warnings
     );
@@ -215,26 +162,13 @@ fn odd_but_valid_inputs_warn_and_run() {
         "t",
     )
     .expect("valid");
-    assert!(
-        s.warnings
-            .iter()
-            .any(|w| w.contains("repeated eigenvalues")),
-        "{:?}",
-        s.warnings
-    );
+    assert!(s.warnings.iter().any(|w| w.contains("repeated eigenvalues")), "{:?}", s.warnings);
     let s = Scenario::from_toml(&with("ki = 1.0", "ki = 5.0"), "t").expect("valid");
-    assert!(
-        s.warnings.iter().any(|w| w.contains("not Hurwitz")),
-        "{:?}",
-        s.warnings
-    );
+    assert!(s.warnings.iter().any(|w| w.contains("not Hurwitz")), "{:?}", s.warnings);
 }
 
 fn rotorloop(args: &[&str]) -> std::process::Output {
-    Command::new(env!("CARGO_BIN_EXE_rotorloop"))
-        .args(args)
-        .output()
-        .expect("run rotorloop")
+    Command::new(env!("CARGO_BIN_EXE_rotorloop")).args(args).output().expect("run rotorloop")
 }
 
 /// The CLI turns every refusal into exit code 2 with the message on stderr, and leaves
@@ -247,97 +181,33 @@ fn cli_refuses_bad_input_with_exit_code_2() {
     let out_dir = dir.path().join("out");
     let out_s = out_dir.to_str().expect("utf8");
     let cases: Vec<(Vec<&str>, &str)> = vec![
+        (vec!["sim", "--scenario", bad.to_str().expect("utf8"), "--out", out_s], "controller.kp"),
+        (vec!["sim", "--scenario", "nope", "--out", out_s], "unknown scenario"),
+        (vec!["sim", "--scenario", "paper-zero", "--rate", "0", "--out", out_s], "run.rate_hz"),
         (
-            vec![
-                "sim",
-                "--scenario",
-                bad.to_str().expect("utf8"),
-                "--out",
-                out_s,
-            ],
-            "controller.kp",
-        ),
-        (
-            vec!["sim", "--scenario", "nope", "--out", out_s],
-            "unknown scenario",
-        ),
-        (
-            vec![
-                "sim",
-                "--scenario",
-                "paper-zero",
-                "--rate",
-                "0",
-                "--out",
-                out_s,
-            ],
-            "run.rate_hz",
-        ),
-        (
-            vec![
-                "sim",
-                "--scenario",
-                "paper-zero",
-                "--duration",
-                "-5",
-                "--out",
-                out_s,
-            ],
+            vec!["sim", "--scenario", "paper-zero", "--duration", "-5", "--out", out_s],
             "run.duration_s",
         ),
         (
-            vec![
-                "sim",
-                "--scenario",
-                "paper-zero",
-                "--open-loop",
-                "1,2",
-                "--out",
-                out_s,
-            ],
+            vec!["sim", "--scenario", "paper-zero", "--open-loop", "1,2", "--out", out_s],
             "three finite numbers",
         ),
         (
-            vec![
-                "sim",
-                "--scenario",
-                "paper-zero",
-                "--actuation",
-                "jets",
-                "--out",
-                out_s,
-            ],
+            vec!["sim", "--scenario", "paper-zero", "--actuation", "jets", "--out", out_s],
             "actuation",
         ),
         (
-            vec![
-                "sim",
-                "--scenario",
-                "paper-zero",
-                "--trace-every",
-                "0",
-                "--out",
-                out_s,
-            ],
+            vec!["sim", "--scenario", "paper-zero", "--trace-every", "0", "--out", out_s],
             "trace-every",
         ),
         (vec!["montecarlo", "--runs", "0", "--out", out_s], "runs"),
-        (
-            vec!["gains", "--scenario", bad.to_str().expect("utf8")],
-            "controller.kp",
-        ),
+        (vec!["gains", "--scenario", bad.to_str().expect("utf8")], "controller.kp"),
     ];
     for (args, needle) in cases {
         let o = rotorloop(&args);
         let stderr = String::from_utf8_lossy(&o.stderr);
         assert_eq!(o.status.code(), Some(2), "{args:?}: {stderr}");
-        assert!(
-            stderr.contains(needle),
-            "{args:?}: stderr does not mention `{needle}`: {stderr}"
-        );
-        assert!(
-            !out_dir.join("summary.json").exists(),
-            "{args:?} left a summary.json"
-        );
+        assert!(stderr.contains(needle), "{args:?}: stderr does not mention `{needle}`: {stderr}");
+        assert!(!out_dir.join("summary.json").exists(), "{args:?} left a summary.json");
     }
 }

@@ -5,27 +5,16 @@ use std::path::Path;
 use std::process::Command;
 
 fn rotorloop(args: &[&str]) -> String {
-    let o = Command::new(env!("CARGO_BIN_EXE_rotorloop"))
-        .args(args)
-        .output()
-        .expect("run rotorloop");
-    assert!(
-        o.status.success(),
-        "{args:?} failed: {}",
-        String::from_utf8_lossy(&o.stderr)
-    );
+    let o =
+        Command::new(env!("CARGO_BIN_EXE_rotorloop")).args(args).output().expect("run rotorloop");
+    assert!(o.status.success(), "{args:?} failed: {}", String::from_utf8_lossy(&o.stderr));
     String::from_utf8_lossy(&o.stdout).into_owned()
 }
 
 /// A PNG's width and height from its IHDR chunk, after checking the signature.
 fn png_size(path: &Path) -> (u32, u32) {
     let b = std::fs::read(path).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
-    assert_eq!(
-        &b[..8],
-        b"\x89PNG\r\n\x1a\n",
-        "{} is not a PNG",
-        path.display()
-    );
+    assert_eq!(&b[..8], b"\x89PNG\r\n\x1a\n", "{} is not a PNG", path.display());
     assert_eq!(&b[12..16], b"IHDR");
     let be = |i: usize| u32::from_be_bytes([b[i], b[i + 1], b[i + 2], b[i + 3]]);
     (be(16), be(20))
@@ -52,10 +41,7 @@ fn sim_writes_trace_summary_and_figures() {
         "--out",
         out.to_str().expect("utf8"),
     ]);
-    assert!(
-        stdout.contains("attitude error") && stdout.contains("ticks/s"),
-        "{stdout}"
-    );
+    assert!(stdout.contains("attitude error") && stdout.contains("ticks/s"), "{stdout}");
 
     let trace = std::fs::read_to_string(out.join("trace.csv")).expect("trace");
     let mut lines = trace.lines();
@@ -124,13 +110,8 @@ fn sim_open_loop_external_and_trace_every() {
     assert_eq!(s["open_loop"], serde_json::json!([0.1, -0.2, 0.3]));
     assert!(s["effort"].is_null());
     // u column holds the open-loop torque
-    let row: Vec<f64> = trace
-        .lines()
-        .nth(1)
-        .expect("row")
-        .split(',')
-        .map(|v| v.parse().expect("f64"))
-        .collect();
+    let row: Vec<f64> =
+        trace.lines().nth(1).expect("row").split(',').map(|v| v.parse().expect("f64")).collect();
     assert_eq!(&row[28..31], &[0.1, -0.2, 0.3]);
 
     let ext = dir.path().join("ext");
@@ -148,10 +129,7 @@ fn sim_open_loop_external_and_trace_every() {
     ]);
     let s = json(&ext.join("summary.json"));
     assert_eq!(s["actuation"], "external");
-    assert!(
-        s["energy_residual_max_abs"].is_null(),
-        "no rotor work for a gas-jet body"
-    );
+    assert!(s["energy_residual_max_abs"].is_null(), "no rotor work for a gas-jet body");
 }
 
 #[test]
@@ -201,13 +179,7 @@ fn montecarlo_writes_runs_summary_and_histograms() {
 fn paper_runs_the_three_scenarios_and_writes_a_report() {
     let dir = tempfile::tempdir().expect("tempdir");
     let out = dir.path().join("paper");
-    rotorloop(&[
-        "paper",
-        "--duration",
-        "1",
-        "--out",
-        out.to_str().expect("utf8"),
-    ]);
+    rotorloop(&["paper", "--duration", "1", "--out", out.to_str().expect("utf8")]);
     let report = std::fs::read_to_string(out.join("report.md")).expect("report");
     for name in ["paper-zero", "paper-constant", "paper-sinusoid"] {
         assert!(report.contains(name));

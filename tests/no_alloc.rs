@@ -39,20 +39,13 @@ fn a_tick_does_not_allocate() {
     let mut loops = [
         ClosedLoop::new(&s, Actuation::Internal, None),
         ClosedLoop::new(&s, Actuation::External, None),
-        ClosedLoop::new(
-            &s,
-            Actuation::Internal,
-            Some(glam::DVec3::new(0.1, 0.2, 0.3)),
-        ),
+        ClosedLoop::new(&s, Actuation::Internal, Some(glam::DVec3::new(0.1, 0.2, 0.3))),
     ];
     // The counter works: an allocation is seen.
     let before = ALLOCATIONS.load(Ordering::Relaxed);
     let v = std::hint::black_box(vec![1u8; 16]);
     drop(v);
-    assert!(
-        ALLOCATIONS.load(Ordering::Relaxed) > before,
-        "allocation counter is not wired"
-    );
+    assert!(ALLOCATIONS.load(Ordering::Relaxed) > before, "allocation counter is not wired");
 
     for lp in &mut loops {
         let before = ALLOCATIONS.load(Ordering::Relaxed);
@@ -62,11 +55,6 @@ fn a_tick_does_not_allocate() {
         }
         let after = ALLOCATIONS.load(Ordering::Relaxed);
         std::hint::black_box(sum);
-        assert_eq!(
-            after - before,
-            0,
-            "{} allocations in 10 000 ticks",
-            after - before
-        );
+        assert_eq!(after - before, 0, "{} allocations in 10 000 ticks", after - before);
     }
 }

@@ -37,13 +37,7 @@ fn drive_random(seed: u64, ticks: u64, dt: f64, u_max: f64) -> (f64, f64, f64, f
         let (o, d) = orthonormality_error(&x.r);
         ortho = ortho.max(o);
         det = det.max(d);
-        body.step(
-            BodyInput {
-                rotor_torque: u,
-                body_torque: DVec3::ZERO,
-            },
-            dt,
-        );
+        body.step(BodyInput { rotor_torque: u, body_torque: DVec3::ZERO }, dt);
     }
     (drift, energy, ortho, det, metrics.initial_energy())
 }
@@ -64,10 +58,7 @@ fn spatial_momentum_is_conserved_under_arbitrary_torque_history() {
 #[test]
 fn rotor_work_equals_energy_change() {
     let (_, e1, _, _, t0) = drive_random(12, 10_000, 1e-3, 2.0);
-    assert!(
-        e1 < 1e-8 * t0.max(1.0),
-        "energy residual {e1:e} J vs T(0) = {t0}"
-    );
+    assert!(e1 < 1e-8 * t0.max(1.0), "energy residual {e1:e} J vs T(0) = {t0}");
     // Same torque function of time at two step sizes: use a smooth torque.
     let residual_at = |n: u64| {
         let s = paper();
@@ -84,13 +75,7 @@ fn rotor_work_equals_energy_change() {
             let u = DVec3::new(3.0, -2.0, 1.0); // held: work is exact, only truncation remains
             let row = m.observe(k, k as f64 * dt, &body.state(), &dummy, u, DVec3::ZERO, u);
             last = row.energy_residual;
-            body.step(
-                BodyInput {
-                    rotor_torque: u,
-                    body_torque: DVec3::ZERO,
-                },
-                dt,
-            );
+            body.step(BodyInput { rotor_torque: u, body_torque: DVec3::ZERO }, dt);
         }
         last.abs()
     };
@@ -133,13 +118,7 @@ fn plant_matches_direct_integration_of_the_spec_equations() {
             for _ in 0..4 {
                 direct.step(&u, &V3::zeros(), dt / 4.0);
             }
-            body.step(
-                BodyInput {
-                    rotor_torque: from_na_v(&u),
-                    body_torque: DVec3::ZERO,
-                },
-                dt,
-            );
+            body.step(BodyInput { rotor_torque: from_na_v(&u), body_torque: DVec3::ZERO }, dt);
         }
     }
     let x = body.state();
@@ -175,22 +154,11 @@ fn gas_jet_body_matches_direct_integration_of_euler_equations() {
             for _ in 0..4 {
                 direct.step(&V3::zeros(), &tau, dt / 4.0);
             }
-            body.step(
-                BodyInput {
-                    rotor_torque: DVec3::ZERO,
-                    body_torque: from_na_v(&tau),
-                },
-                dt,
-            );
+            body.step(BodyInput { rotor_torque: DVec3::ZERO, body_torque: from_na_v(&tau) }, dt);
         }
     }
     let x = body.state();
-    let err = (to_na(&x.r) - direct.r)
-        .amax()
-        .max((to_na_v(x.omega) - direct.w).amax());
-    assert!(
-        err < 1e-8,
-        "gas-jet body differs from Euler's equations by {err:e}"
-    );
+    let err = (to_na(&x.r) - direct.r).amax().max((to_na_v(x.omega) - direct.w).amax());
+    assert!(err < 1e-8, "gas-jet body differs from Euler's equations by {err:e}");
     assert_eq!(x.omega_r, DVec3::ZERO);
 }

@@ -26,10 +26,7 @@ fn scenario_at(name: &str, duration: f64, rate_hz: f64) -> Scenario {
 
 /// Largest difference (deg) between two error histories sampled at the same ticks.
 fn max_diff(a: &[f64], b: &[f64]) -> f64 {
-    a.iter()
-        .zip(b)
-        .map(|(x, y)| (x - y).abs())
-        .fold(0.0, f64::max)
+    a.iter().zip(b).map(|(x, y)| (x - y).abs()).fold(0.0, f64::max)
 }
 
 /// Error history (deg) of a run, one entry per tick.
@@ -43,11 +40,7 @@ fn error_history(s: &Scenario, actuation: Actuation) -> Vec<f64> {
 fn paper_runs_converge_within_60_s() {
     for name in PAPER {
         let e = error_history(&scenario(name, 60.0), Actuation::Internal);
-        assert!(
-            (e[0] - 73.74).abs() < 0.01,
-            "{name}: initial error {}",
-            e[0]
-        );
+        assert!((e[0] - 73.74).abs() < 0.01, "{name}: initial error {}", e[0]);
         let last = *e.last().expect("rows");
         assert!(last < 0.1, "{name}: error {last}° at 60 s");
     }
@@ -64,18 +57,12 @@ fn paper_error_histories_nearly_coincide() {
             .iter()
             .map(|n| error_history(&scenario_at(n, 10.0, rate), Actuation::Internal))
             .collect();
-        h[1..]
-            .iter()
-            .map(|o| max_diff(&h[0], o))
-            .fold(0.0, f64::max)
+        h[1..].iter().map(|o| max_diff(&h[0], o)).fold(0.0, f64::max)
     };
     let (w1, w4) = (worst_at(1000.0), worst_at(4000.0));
     eprintln!("error histories over 10 s differ by ≤ {w1:e}° at 1 kHz, {w4:e}° at 4 kHz");
     assert!(w1 < 0.2, "histories differ by up to {w1}° at 1 kHz");
-    assert!(
-        w4 < w1 / 3.0,
-        "difference does not vanish with dt: {w1:e}° → {w4:e}°"
-    );
+    assert!(w4 < w1 / 3.0, "difference does not vanish with dt: {w1:e}° → {w4:e}°");
 }
 
 /// Internal (rotor) and external (gas-jet) actuation tracking the same reference give
@@ -94,10 +81,7 @@ fn internal_and_external_actuation_give_nearly_the_same_attitude_history() {
         let (w1, w4) = (worst_at(1000.0), worst_at(4000.0));
         eprintln!("{name}: internal vs external differ by ≤ {w1:e}° at 1 kHz, {w4:e}° at 4 kHz");
         assert!(w1 < 0.2, "{name}: {w1}°");
-        assert!(
-            w4 < w1 / 3.0,
-            "{name}: difference does not vanish with dt: {w1:e}° → {w4:e}°"
-        );
+        assert!(w4 < w1 / 3.0, "{name}: difference does not vanish with dt: {w1:e}° → {w4:e}°");
     }
 }
 
@@ -139,19 +123,10 @@ fn controller_output_equals_independent_derivation_on_random_inputs() {
             &xi,
         );
         let scale = 1.0 + u.amax().max(tau.amax());
-        assert!(
-            (to_na_v(out.rotor_torque) - u).amax() < 1e-12 * scale,
-            "case {case}: u"
-        );
-        assert!(
-            (to_na_v(out.body_torque) - tau).amax() < 1e-12 * scale,
-            "case {case}: τ"
-        );
+        assert!((to_na_v(out.rotor_torque) - u).amax() < 1e-12 * scale, "case {case}: u");
+        assert!((to_na_v(out.body_torque) - tau).amax() < 1e-12 * scale, "case {case}: τ");
         // ξ_I advanced by dt·s over the tick
-        assert!(
-            (to_na_v(pid.integral_state()) - (xi + sv * dt)).amax() < 1e-14,
-            "case {case}: ξ"
-        );
+        assert!((to_na_v(pid.integral_state()) - (xi + sv * dt)).amax() < 1e-14, "case {case}: ξ");
     }
 }
 
@@ -184,10 +159,7 @@ fn closed_loop_realises_the_commanded_error_dynamics() {
         prev = Some((out.eta, a));
         lp.tick();
     }
-    assert!(
-        worst < 1e-3,
-        "η̇ differs from a by up to {worst:e} (relative)"
-    );
+    assert!(worst < 1e-3, "η̇ differs from a by up to {worst:e} (relative)");
 }
 
 /// The error angle reported equals acos((tr E − 1)/2) of the paper's initial condition.

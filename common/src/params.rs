@@ -20,20 +20,13 @@ impl BodyParams {
     /// Parameters from `I` and the diagonal of `K`. `I` must be invertible (the scenario
     /// loader checks it is symmetric positive definite).
     pub fn new(inertia: DMat3, rotor_inertia: DVec3) -> Self {
-        Self {
-            inertia,
-            inertia_inv: inertia.inverse(),
-            rotor_inertia,
-        }
+        Self { inertia, inertia_inv: inertia.inverse(), rotor_inertia }
     }
 
     /// The same body with its rotors locked out of the model (`K = 0`): the externally
     /// actuated (gas-jet) body of the spec.
     pub fn without_rotors(&self) -> Self {
-        Self {
-            rotor_inertia: DVec3::ZERO,
-            ..*self
-        }
+        Self { rotor_inertia: DVec3::ZERO, ..*self }
     }
 
     /// Body angular momentum `Π = (I+K) Ω + K Ω_r` (spec, "The plant").

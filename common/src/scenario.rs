@@ -19,18 +19,9 @@ use crate::so3;
 
 /// Scenarios that ship with rotorloop, by name: the paper's three reference torques.
 pub const BUILTIN: [(&str, &str); 3] = [
-    (
-        "paper-zero",
-        include_str!("../../scenarios/paper-zero.toml"),
-    ),
-    (
-        "paper-constant",
-        include_str!("../../scenarios/paper-constant.toml"),
-    ),
-    (
-        "paper-sinusoid",
-        include_str!("../../scenarios/paper-sinusoid.toml"),
-    ),
+    ("paper-zero", include_str!("../../scenarios/paper-zero.toml")),
+    ("paper-constant", include_str!("../../scenarios/paper-constant.toml")),
+    ("paper-sinusoid", include_str!("../../scenarios/paper-sinusoid.toml")),
 ];
 
 /// Allowed tick rates (Hz).
@@ -47,10 +38,7 @@ pub const MAX_MAGNITUDE: f64 = 1e6;
 pub enum ScenarioError {
     /// The file could not be read.
     #[error("cannot read scenario file {path}: {source}")]
-    Io {
-        path: PathBuf,
-        source: std::io::Error,
-    },
+    Io { path: PathBuf, source: std::io::Error },
     /// The TOML did not parse or did not match the schema (includes unknown keys).
     #[error("scenario {origin}: {message}")]
     Parse { origin: String, message: String },
@@ -61,11 +49,7 @@ pub enum ScenarioError {
     Unknown { name: String, allowed: String },
     /// A value out of its allowed set.
     #[error("{field} = {value} is not allowed: {allowed}")]
-    Invalid {
-        field: String,
-        value: String,
-        allowed: String,
-    },
+    Invalid { field: String, value: String, allowed: String },
 }
 
 impl ScenarioError {
@@ -104,11 +88,7 @@ impl std::str::FromStr for Actuation {
         match s {
             "internal" => Ok(Self::Internal),
             "external" => Ok(Self::External),
-            other => Err(ScenarioError::invalid(
-                "actuation",
-                other,
-                "`internal` or `external`",
-            )),
+            other => Err(ScenarioError::invalid("actuation", other, "`internal` or `external`")),
         }
     }
 }
@@ -121,11 +101,7 @@ pub enum TorqueProfile {
     /// `u_d = value`.
     Constant(DVec3),
     /// `u_d,i = amplitude_i sin(frequency_i t + phase_i)` (frequency in rad/s).
-    Sinusoid {
-        amplitude: DVec3,
-        frequency: DVec3,
-        phase: DVec3,
-    },
+    Sinusoid { amplitude: DVec3, frequency: DVec3, phase: DVec3 },
 }
 
 impl TorqueProfile {
@@ -135,11 +111,7 @@ impl TorqueProfile {
         match *self {
             Self::Zero => DVec3::ZERO,
             Self::Constant(u) => u,
-            Self::Sinusoid {
-                amplitude,
-                frequency,
-                phase,
-            } => DVec3::new(
+            Self::Sinusoid { amplitude, frequency, phase } => DVec3::new(
                 amplitude.x * (frequency.x * t + phase.x).sin(),
                 amplitude.y * (frequency.y * t + phase.y).sin(),
                 amplitude.z * (frequency.z * t + phase.z).sin(),
@@ -348,10 +320,7 @@ impl Scenario {
             "reference.rotor_inertia",
             &file.reference.rotor_inertia,
         )?;
-        for (field, m) in [
-            ("plant.inertia", plant_moments),
-            ("reference.inertia", ref_moments),
-        ] {
+        for (field, m) in [("plant.inertia", plant_moments), ("reference.inertia", ref_moments)] {
             if m[0] + m[1] < m[2] {
                 warnings.push(format!(
                     "{field}: principal moments {:.4}, {:.4}, {:.4} violate the triangle inequality \
@@ -362,20 +331,9 @@ impl Scenario {
         }
 
         let r0 = rotation("plant.attitude", &file.plant.attitude)?;
-        let omega0 = rate_pair(
-            "plant",
-            file.plant.omega,
-            file.plant.i_omega,
-            &plant.inertia_inv,
-        )?;
-        let omega_r0 = finite_vec(
-            "plant.rotor_rates",
-            file.plant.rotor_rates.unwrap_or_default(),
-        )?;
-        let theta0 = finite_vec(
-            "plant.rotor_angles",
-            file.plant.rotor_angles.unwrap_or_default(),
-        )?;
+        let omega0 = rate_pair("plant", file.plant.omega, file.plant.i_omega, &plant.inertia_inv)?;
+        let omega_r0 = finite_vec("plant.rotor_rates", file.plant.rotor_rates.unwrap_or_default())?;
+        let theta0 = finite_vec("plant.rotor_angles", file.plant.rotor_angles.unwrap_or_default())?;
         let rd0 = rotation("reference.attitude", &file.reference.attitude)?;
         let omega_d0 = rate_pair(
             "reference",
@@ -426,22 +384,12 @@ impl Scenario {
 
         Ok(Self {
             plant,
-            plant_init: RotorBodyState {
-                r: r0,
-                omega: omega0,
-                omega_r: omega_r0,
-                theta: theta0,
-            },
+            plant_init: RotorBodyState { r: r0, omega: omega0, omega_r: omega_r0, theta: theta0 },
             reference,
             reference_attitude: rd0,
             reference_omega: omega_d0,
             reference_torque,
-            gains: Gains {
-                kp: c.kp,
-                kd: c.kd,
-                ki: c.ki,
-                p,
-            },
+            gains: Gains { kp: c.kp, kd: c.kd, ki: c.ki, p },
             plant_principal_moments: plant_moments,
             p_eigenvalues: p_eig,
             warnings,
@@ -482,24 +430,16 @@ impl ScenarioFile {
         if !path.exists() {
             return Err(ScenarioError::Unknown {
                 name: name_or_path.to_owned(),
-                allowed: BUILTIN
-                    .iter()
-                    .map(|(n, _)| *n)
-                    .collect::<Vec<_>>()
-                    .join(", ")
+                allowed: BUILTIN.iter().map(|(n, _)| *n).collect::<Vec<_>>().join(", ")
                     + ", or the path of a .toml file",
             });
         }
-        let text = std::fs::read_to_string(path).map_err(|source| ScenarioError::Io {
-            path: path.to_owned(),
-            source,
-        })?;
+        let text = std::fs::read_to_string(path)
+            .map_err(|source| ScenarioError::Io { path: path.to_owned(), source })?;
         let mut file = Self::parse(&text, &path.display().to_string())?;
         if file.name.is_empty() {
-            file.name = path
-                .file_stem()
-                .map(|s| s.to_string_lossy().into_owned())
-                .unwrap_or_default();
+            file.name =
+                path.file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_default();
         }
         Ok(file)
     }
@@ -525,24 +465,14 @@ impl ScenarioFile {
 fn fmt_rows(m: &Mat3Rows) -> String {
     let mut s = String::from("[");
     for (i, r) in m.iter().enumerate() {
-        let _ = write!(
-            s,
-            "{}[{}, {}, {}]",
-            if i > 0 { ", " } else { "" },
-            r[0],
-            r[1],
-            r[2]
-        );
+        let _ = write!(s, "{}[{}, {}, {}]", if i > 0 { ", " } else { "" }, r[0], r[1], r[2]);
     }
     s.push(']');
     s
 }
 
 fn finite_mat(field: &str, m: &Mat3Rows) -> Result<Matrix3<f64>, ScenarioError> {
-    if m.iter()
-        .flatten()
-        .any(|v| !v.is_finite() || v.abs() > MAX_MAGNITUDE)
-    {
+    if m.iter().flatten().any(|v| !v.is_finite() || v.abs() > MAX_MAGNITUDE) {
         return Err(ScenarioError::Invalid {
             field: field.to_owned(),
             value: fmt_rows(m),
@@ -554,11 +484,7 @@ fn finite_mat(field: &str, m: &Mat3Rows) -> Result<Matrix3<f64>, ScenarioError> 
 
 fn finite_vec(field: &str, v: Row3) -> Result<DVec3, ScenarioError> {
     if v.iter().any(|x| !x.is_finite() || x.abs() > MAX_MAGNITUDE) {
-        return Err(ScenarioError::invalid(
-            field,
-            v,
-            "three finite numbers of magnitude ≤ 1e6",
-        ));
+        return Err(ScenarioError::invalid(field, v, "three finite numbers of magnitude ≤ 1e6"));
     }
     Ok(DVec3::from_array(v))
 }
@@ -604,10 +530,7 @@ fn body_params(
     rotor: &Row3,
 ) -> Result<(BodyParams, [f64; 3]), ScenarioError> {
     let (i, moments) = spd(inertia_field, inertia)?;
-    if rotor
-        .iter()
-        .any(|k| !k.is_finite() || *k <= 0.0 || *k > MAX_MAGNITUDE)
-    {
+    if rotor.iter().any(|k| !k.is_finite() || *k <= 0.0 || *k > MAX_MAGNITUDE) {
         return Err(ScenarioError::invalid(
             rotor_field,
             rotor,
@@ -637,11 +560,7 @@ fn rotation(field: &str, rows: &Mat3Rows) -> Result<DMat3, ScenarioError> {
     }
     let svd = m.svd(true, true);
     let (Some(u), Some(v_t)) = (svd.u, svd.v_t) else {
-        return Err(ScenarioError::invalid(
-            field,
-            rows,
-            "a rotation matrix (its SVD failed)",
-        ));
+        return Err(ScenarioError::invalid(field, rows, "a rotation matrix (its SVD failed)"));
     };
     Ok(to_glam(&(u * v_t)))
 }
@@ -671,10 +590,7 @@ fn torque_profile(t: &TorqueFile) -> Result<TorqueProfile, ScenarioError> {
             Err(ScenarioError::invalid(
                 &format!("{field}.{name}"),
                 "given",
-                format!(
-                    "only with the profiles that use it, not with `{}`",
-                    t.profile
-                ),
+                format!("only with the profiles that use it, not with `{}`", t.profile),
             ))
         } else {
             Ok(())
@@ -722,11 +638,7 @@ fn torque_profile(t: &TorqueFile) -> Result<TorqueProfile, ScenarioError> {
 
 fn in_range(field: &str, v: f64, (lo, hi): (f64, f64)) -> Result<(), ScenarioError> {
     if !(v.is_finite() && v >= lo && v <= hi) {
-        return Err(ScenarioError::invalid(
-            field,
-            v,
-            format!("a finite number from {lo} to {hi}"),
-        ));
+        return Err(ScenarioError::invalid(field, v, format!("a finite number from {lo} to {hi}")));
     }
     Ok(())
 }
@@ -744,16 +656,9 @@ mod tests {
             assert_eq!(s.gains.kd, 3.0);
             assert_eq!(s.gains.ki, 1.0);
             // The paper's I violates the triangle inequality: a warning, not an error.
-            assert!(
-                s.warnings.iter().any(|w| w.contains("triangle")),
-                "{:?}",
-                s.warnings
-            );
+            assert!(s.warnings.iter().any(|w| w.contains("triangle")), "{:?}", s.warnings);
             let m = s.plant_principal_moments;
-            assert!(
-                (m[0] - 3.42).abs() < 0.01 && (m[2] - 8.28).abs() < 0.01,
-                "{m:?}"
-            );
+            assert!((m[0] - 3.42).abs() < 0.01 && (m[2] - 8.28).abs() < 0.01, "{m:?}");
             // Ω(0) = I⁻¹ (1, 2.2, 5.1)
             let iw = s.plant.inertia * s.plant_init.omega;
             assert!((iw - DVec3::new(1.0, 2.2, 5.1)).length() < 1e-12);

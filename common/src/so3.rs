@@ -56,10 +56,7 @@ pub fn exp(theta: DVec3) -> DMat3 {
     let a2 = theta.length_squared();
     let (s, c) = if a2 < 1e-8 {
         // sin a / a and (1 - cos a) / a², to O(a^6): exact to rounding for a < 1e-4.
-        (
-            1.0 - a2 / 6.0 + a2 * a2 / 120.0,
-            0.5 - a2 / 24.0 + a2 * a2 / 720.0,
-        )
+        (1.0 - a2 / 6.0 + a2 * a2 / 120.0, 0.5 - a2 / 24.0 + a2 * a2 / 720.0)
     } else {
         let a = a2.sqrt();
         let (sin, cos) = a.sin_cos();
@@ -130,10 +127,7 @@ mod tests {
         assert_eq!(entry(&m, 0, 1), 2.0);
         assert_eq!(entry(&m, 2, 0), 7.0);
         assert_eq!(to_rows(&m), rows);
-        assert_eq!(
-            to_row_major(&m),
-            [1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 7.0, 8.0, 9.0]
-        );
+        assert_eq!(to_row_major(&m), [1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 7.0, 8.0, 9.0]);
     }
 
     #[test]
@@ -185,10 +179,7 @@ mod tests {
         let axis = DVec3::new(1.0, 2.0, -0.5).normalize();
         for angle in [1e-12, 1e-6, 0.5, std::f64::consts::PI - 1e-7] {
             let got = rotation_angle(&axis_angle(axis, angle));
-            assert!(
-                (got - angle).abs() <= 1e-12 * angle.max(1e-3),
-                "{angle}: {got}"
-            );
+            assert!((got - angle).abs() <= 1e-12 * angle.max(1e-3), "{angle}: {got}");
         }
     }
 }

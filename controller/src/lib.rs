@@ -50,14 +50,7 @@ pub fn control_law(
     let i_omega = body.inertia * x.omega;
     let tau = body.inertia * omega_dot_star - i_omega.cross(x.omega);
     let u = (body.rotor_inertia * (x.omega + x.omega_r)).cross(x.omega) - tau;
-    ControlOutput {
-        rotor_torque: u,
-        body_torque: tau,
-        s,
-        eta,
-        psi,
-        xi_i,
-    }
+    ControlOutput { rotor_torque: u, body_torque: tau, s, eta, psi, xi_i }
 }
 
 /// The law with its integral state.
@@ -72,11 +65,7 @@ impl GeometricPid {
     /// A controller with zero integral state. `model` is its model of the plant's
     /// inertia (`I`, `K`).
     pub fn new(gains: Gains, model: BodyParams) -> Self {
-        Self {
-            gains,
-            model,
-            xi_i: DVec3::ZERO,
-        }
+        Self { gains, model, xi_i: DVec3::ZERO }
     }
 
     /// Continue from a known integral state (bumpless restart).

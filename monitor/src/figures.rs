@@ -6,6 +6,9 @@ use std::path::Path;
 use crate::metrics::TraceRow;
 use crate::plot::{PlotError, Series, YScale, line_chart, panel_grid};
 
+/// `(t, value)` points of one series.
+type Points = Vec<(f64, f64)>;
+
 /// Most points kept per series for figures.
 pub const MAX_POINTS: u64 = 6000;
 
@@ -88,40 +91,23 @@ pub fn tracking_figures(
     let mut files = Vec::new();
 
     let labels = ["(1,1)", "(1,2)", "(2,1)", "(2,2)"];
-    let entries: Vec<(Vec<(f64, f64)>, Vec<(f64, f64)>)> = (0..4)
-        .map(|j| (rec.xy(|i| rec.r[i][j]), rec.xy(|i| rec.r_d[i][j])))
-        .collect();
+    let entries: Vec<(Points, Points)> =
+        (0..4).map(|j| (rec.xy(|i| rec.r[i][j]), rec.xy(|i| rec.r_d[i][j]))).collect();
     let series: Vec<[Series<'_>; 2]> = entries
         .iter()
         .map(|(r, rd)| {
             [
-                Series {
-                    label: "R (plant)",
-                    points: r,
-                    dashed: false,
-                },
-                Series {
-                    label: "R_d (reference)",
-                    points: rd,
-                    dashed: true,
-                },
+                Series { label: "R (plant)", points: r, dashed: false },
+                Series { label: "R_d (reference)", points: rd, dashed: true },
             ]
         })
         .collect();
-    let panels: Vec<(String, &[Series<'_>])> = labels
-        .iter()
-        .zip(&series)
-        .map(|(l, s)| (format!("entry {l}"), &s[..]))
-        .collect();
+    let panels: Vec<(String, &[Series<'_>])> =
+        labels.iter().zip(&series).map(|(l, s)| (format!("entry {l}"), &s[..])).collect();
     let panels: Vec<(&str, &str, &[Series<'_>])> =
         panels.iter().map(|(t, s)| (t.as_str(), "", *s)).collect();
     let file = "attitude_entries.png";
-    panel_grid(
-        &dir.join(file),
-        &format!("{name}: attitude R(t) against R_d(t)"),
-        (2, 2),
-        &panels,
-    )?;
+    panel_grid(&dir.join(file), &format!("{name}: attitude R(t) against R_d(t)"), (2, 2), &panels)?;
     files.push(file.to_owned());
 
     let err = rec.xy(|i| rec.err_deg[i]);
@@ -131,11 +117,7 @@ pub fn tracking_figures(
         &format!("{name}: attitude error angle"),
         "t (s)",
         "error (deg, log)",
-        &[Series {
-            label: "",
-            points: &err,
-            dashed: false,
-        }],
+        &[Series { label: "", points: &err, dashed: false }],
         YScale::Log { floor: 1e-12 },
     )?;
     files.push(file.to_owned());
@@ -148,21 +130,9 @@ pub fn tracking_figures(
         "t (s)",
         "rad/s",
         &[
-            Series {
-                label: "Wr1",
-                points: &rates[0],
-                dashed: false,
-            },
-            Series {
-                label: "Wr2",
-                points: &rates[1],
-                dashed: false,
-            },
-            Series {
-                label: "Wr3",
-                points: &rates[2],
-                dashed: false,
-            },
+            Series { label: "Wr1", points: &rates[0], dashed: false },
+            Series { label: "Wr2", points: &rates[1], dashed: false },
+            Series { label: "Wr3", points: &rates[2], dashed: false },
         ],
         YScale::Linear,
     )?;
@@ -175,11 +145,7 @@ pub fn tracking_figures(
         &format!("{name}: spatial momentum drift |h(t) - h(0)| / |h(0)|"),
         "t (s)",
         "relative drift",
-        &[Series {
-            label: "",
-            points: &drift,
-            dashed: false,
-        }],
+        &[Series { label: "", points: &drift, dashed: false }],
         YScale::Linear,
     )?;
     files.push(file.to_owned());
@@ -192,11 +158,7 @@ pub fn tracking_figures(
             &format!("{name}: energy change minus rotor work"),
             "t (s)",
             "J",
-            &[Series {
-                label: "",
-                points: &res,
-                dashed: false,
-            }],
+            &[Series { label: "", points: &res, dashed: false }],
             YScale::Linear,
         )?;
         files.push(file.to_owned());
@@ -212,16 +174,8 @@ pub fn tracking_figures(
             "t (s)",
             "N m",
             &[
-                Series {
-                    label: "|u| rotor torque (internal)",
-                    points: &u,
-                    dashed: false,
-                },
-                Series {
-                    label: "|tau| body torque (external)",
-                    points: &tau,
-                    dashed: false,
-                },
+                Series { label: "|u| rotor torque (internal)", points: &u, dashed: false },
+                Series { label: "|tau| body torque (external)", points: &tau, dashed: false },
             ],
             YScale::Linear,
         )?;

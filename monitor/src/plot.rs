@@ -67,10 +67,7 @@ fn register_font() {
 }
 
 fn err(path: &Path, e: impl std::fmt::Display) -> PlotError {
-    PlotError {
-        path: path.display().to_string(),
-        message: e.to_string(),
-    }
+    PlotError { path: path.display().to_string(), message: e.to_string() }
 }
 
 fn bounds(series: &[Series<'_>], scale: YScale) -> ((f64, f64), (f64, f64)) {
@@ -101,9 +98,7 @@ fn bounds(series: &[Series<'_>], scale: YScale) -> ((f64, f64), (f64, f64)) {
     match scale {
         YScale::Linear => {
             // 5 % headroom; a flat series still gets a visible band.
-            let pad = ((y.1 - y.0) * 0.05)
-                .max(y.1.abs().max(y.0.abs()) * 1e-3)
-                .max(1e-300);
+            let pad = ((y.1 - y.0) * 0.05).max(y.1.abs().max(y.0.abs()) * 1e-3).max(1e-300);
             y = (y.0 - pad, y.1 + pad);
         }
         YScale::Log { .. } => {
@@ -160,11 +155,7 @@ where
                 .map_err(|e| err(path, e))?;
             for (i, s) in series.iter().enumerate() {
                 let color = PALETTE[i % PALETTE.len()];
-                let pts = s
-                    .points
-                    .iter()
-                    .filter(|p| p.0.is_finite() && p.1.is_finite())
-                    .map($map);
+                let pts = s.points.iter().filter(|p| p.0.is_finite() && p.1.is_finite()).map($map);
                 let style = color.stroke_width(2);
                 if s.dashed {
                     chart
@@ -193,17 +184,10 @@ where
     }
     match scale {
         YScale::Linear => {
-            finish!(
-                builder
-                    .build_cartesian_2d(x0..x1, y0..y1)
-                    .map_err(|e| err(path, e))?,
-                |&p| p
-            )
+            finish!(builder.build_cartesian_2d(x0..x1, y0..y1).map_err(|e| err(path, e))?, |&p| p)
         }
         YScale::Log { floor } => finish!(
-            builder
-                .build_cartesian_2d(x0..x1, (y0..y1).log_scale())
-                .map_err(|e| err(path, e))?,
+            builder.build_cartesian_2d(x0..x1, (y0..y1).log_scale()).map_err(|e| err(path, e))?,
             move |&(x, y): &(f64, f64)| (x, y.max(floor))
         ),
     }
@@ -220,20 +204,10 @@ pub fn panel_grid(
     register_font();
     let root = BitMapBackend::new(path, (1200, 900)).into_drawing_area();
     root.fill(&WHITE).map_err(|e| err(path, e))?;
-    let root = root
-        .titled(title, ("sans-serif", 26))
-        .map_err(|e| err(path, e))?;
+    let root = root.titled(title, ("sans-serif", 26)).map_err(|e| err(path, e))?;
     for (area, (panel_title, y_label, series)) in root.split_evenly((rows, cols)).iter().zip(panels)
     {
-        draw_lines(
-            area,
-            path,
-            panel_title,
-            "t (s)",
-            y_label,
-            series,
-            YScale::Linear,
-        )?;
+        draw_lines(area, path, panel_title, "t (s)", y_label, series, YScale::Linear)?;
     }
     root.present().map_err(|e| err(path, e))
 }
@@ -250,11 +224,8 @@ pub fn histogram(
     let finite: Vec<f64> = values.iter().copied().filter(|v| v.is_finite()).collect();
     let lo = finite.iter().copied().fold(f64::INFINITY, f64::min);
     let hi = finite.iter().copied().fold(f64::NEG_INFINITY, f64::max);
-    let (lo, hi) = if lo.is_finite() && hi > lo {
-        (lo, hi)
-    } else {
-        (lo.min(0.0), lo.max(0.0) + 1.0)
-    };
+    let (lo, hi) =
+        if lo.is_finite() && hi > lo { (lo, hi) } else { (lo.min(0.0), lo.max(0.0) + 1.0) };
     let bins = bins.max(1);
     let width = (hi - lo) / bins as f64;
     let mut counts = vec![0u32; bins];

@@ -28,13 +28,7 @@ impl<W: Write> TraceWriter<W> {
     pub fn write(&mut self, row: &TraceRow) -> io::Result<()> {
         let o = &mut self.out;
         write!(o, "{}", row.t)?;
-        for v in row
-            .r
-            .iter()
-            .chain(&row.r_d)
-            .chain(&row.omega)
-            .chain(&row.omega_d)
-        {
+        for v in row.r.iter().chain(&row.r_d).chain(&row.omega).chain(&row.omega_d) {
             write!(o, ",{v}")?;
         }
         for v in row.omega_r.iter().chain(&row.u).chain(&row.tau) {
@@ -44,11 +38,7 @@ impl<W: Write> TraceWriter<W> {
         for v in &row.h {
             write!(o, ",{v}")?;
         }
-        writeln!(
-            o,
-            ",{},{},{}",
-            row.h_drift_rel, row.energy_residual, row.tick
-        )
+        writeln!(o, ",{},{},{}", row.h_drift_rel, row.energy_residual, row.tick)
     }
 
     /// Flushes and returns the inner writer.
@@ -67,17 +57,7 @@ mod tests {
         let row = TraceRow {
             tick: 7,
             t: 0.007,
-            r: [
-                0.1 + 0.2,
-                -1e-300,
-                1.0 / 3.0,
-                2.0f64.sqrt(),
-                0.0,
-                -0.0,
-                1e17,
-                5e-324,
-                1.0,
-            ],
+            r: [0.1 + 0.2, -1e-300, 1.0 / 3.0, 2.0f64.sqrt(), 0.0, -0.0, 1e17, 5e-324, 1.0],
             err_deg: std::f64::consts::PI,
             ..TraceRow::default()
         };

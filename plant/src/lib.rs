@@ -67,16 +67,9 @@ impl Body {
     /// rotor torques are ignored and `Ω_r`, `Θ` stay zero.
     pub fn new(params: BodyParams, state: RotorBodyState) -> Self {
         let has_rotors = params.rotor_inertia.cmpgt(DVec3::ZERO).all();
-        let rotor_inertia_inv = if has_rotors {
-            params.rotor_inertia.recip()
-        } else {
-            DVec3::ZERO
-        };
-        let (omega_r, theta) = if has_rotors {
-            (state.omega_r, state.theta)
-        } else {
-            (DVec3::ZERO, DVec3::ZERO)
-        };
+        let rotor_inertia_inv = if has_rotors { params.rotor_inertia.recip() } else { DVec3::ZERO };
+        let (omega_r, theta) =
+            if has_rotors { (state.omega_r, state.theta) } else { (DVec3::ZERO, DVec3::ZERO) };
         Self {
             params,
             rotor_inertia_inv,
@@ -112,29 +105,16 @@ impl Body {
         } else {
             (DVec3::ZERO, DVec3::ZERO)
         };
-        Rates {
-            omega,
-            h_dot: *r * input.body_torque,
-            p_dot,
-            theta_dot,
-        }
+        Rates { omega, h_dot: *r * input.body_torque, p_dot, theta_dot }
     }
 
     /// The current state `(R, Ω, Ω_r, Θ)`.
     #[inline]
     pub fn state(&self) -> RotorBodyState {
         let omega = self.omega_of(&self.r, self.h, self.p);
-        let omega_r = if self.has_rotors {
-            self.rotor_inertia_inv * self.p - omega
-        } else {
-            DVec3::ZERO
-        };
-        RotorBodyState {
-            r: self.r,
-            omega,
-            omega_r,
-            theta: self.theta,
-        }
+        let omega_r =
+            if self.has_rotors { self.rotor_inertia_inv * self.p - omega } else { DVec3::ZERO };
+        RotorBodyState { r: self.r, omega, omega_r, theta: self.theta }
     }
 
     /// Spatial angular momentum `h = RΠ` as carried by the integrator.
@@ -147,11 +127,7 @@ impl Body {
     pub fn omega_dot(&self, input: &BodyInput) -> DVec3 {
         let pi = self.r.transpose() * self.h;
         let omega = self.params.inertia_inv * (pi - self.p);
-        let u = if self.has_rotors {
-            input.rotor_torque
-        } else {
-            DVec3::ZERO
-        };
+        let u = if self.has_rotors { input.rotor_torque } else { DVec3::ZERO };
         self.params.inertia_inv * (pi.cross(omega) - u + input.body_torque)
     }
 
@@ -235,19 +211,12 @@ mod tests {
         let reference = run(3200);
         let err = |n| {
             let s = run(n);
-            (s.r - reference.r)
-                .to_cols_array()
-                .iter()
-                .map(|d| d.abs())
-                .fold(0.0, f64::max)
+            (s.r - reference.r).to_cols_array().iter().map(|d| d.abs()).fold(0.0, f64::max)
                 + (s.omega - reference.omega).length()
         };
         let (e1, e2) = (err(25), err(50));
         let ratio = e1 / e2;
-        assert!(
-            ratio > 12.0 && ratio < 20.0,
-            "e(25)={e1:e} e(50)={e2:e} ratio={ratio}"
-        );
+        assert!(ratio > 12.0 && ratio < 20.0, "e(25)={e1:e} e(50)={e2:e} ratio={ratio}");
     }
 
     #[test]

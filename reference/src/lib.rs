@@ -35,37 +35,22 @@ impl Reference {
         let omega_r = matched_rotor_rates(&params, &r_d0, omega_d0, plant_momentum);
         Self::resume(
             params,
-            RotorBodyState {
-                r: r_d0,
-                omega: omega_d0,
-                omega_r,
-                theta: DVec3::ZERO,
-            },
+            RotorBodyState { r: r_d0, omega: omega_d0, omega_r, theta: DVec3::ZERO },
             profile,
         )
     }
 
     /// A reference continuing from a full dummy-body state (e.g. the last one published).
     pub fn resume(params: BodyParams, state: RotorBodyState, profile: TorqueProfile) -> Self {
-        Self {
-            body: Body::new(params, state),
-            profile,
-        }
+        Self { body: Body::new(params, state), profile }
     }
 
     /// The desired attitude at time `t` (the time of the current state).
     #[inline]
     pub fn sample(&self, t: f64) -> ReferenceState {
         let s = self.body.state();
-        let input = BodyInput {
-            rotor_torque: self.profile.at(t),
-            body_torque: DVec3::ZERO,
-        };
-        ReferenceState {
-            r_d: s.r,
-            omega_d: s.omega,
-            omega_d_dot: self.body.omega_dot(&input),
-        }
+        let input = BodyInput { rotor_torque: self.profile.at(t), body_torque: DVec3::ZERO };
+        ReferenceState { r_d: s.r, omega_d: s.omega, omega_d_dot: self.body.omega_dot(&input) }
     }
 
     /// The full dummy-body state (for resuming and for momentum checks).
@@ -83,10 +68,7 @@ impl Reference {
     pub fn step(&mut self, t: f64, dt: f64) {
         let profile = self.profile;
         self.body.step_with(
-            |s| BodyInput {
-                rotor_torque: profile.at(t + s),
-                body_torque: DVec3::ZERO,
-            },
+            |s| BodyInput { rotor_torque: profile.at(t + s), body_torque: DVec3::ZERO },
             dt,
         );
     }
@@ -115,19 +97,13 @@ mod tests {
                 let st = r.body_state();
                 st.spatial_momentum(&s.reference)
             };
-            assert!(
-                (check(&reference) - h).length() <= 1e-12 * h.length(),
-                "{name} at t=0"
-            );
+            assert!((check(&reference) - h).length() <= 1e-12 * h.length(), "{name} at t=0");
             // The rotors are internal: it stays matched while the profile drives them.
             let dt = 1e-3;
             for k in 0..5000 {
                 reference.step(k as f64 * dt, dt);
             }
-            assert!(
-                (check(&reference) - h).length() <= 1e-11 * h.length(),
-                "{name} at t=5"
-            );
+            assert!((check(&reference) - h).length() <= 1e-11 * h.length(), "{name} at t=5");
         }
     }
 

@@ -15,11 +15,7 @@ pub fn rng(seed: u64) -> ChaCha8Rng {
 }
 
 pub fn vec_in(rng: &mut ChaCha8Rng, m: f64) -> V3 {
-    V3::new(
-        rng.random_range(-m..m),
-        rng.random_range(-m..m),
-        rng.random_range(-m..m),
-    )
+    V3::new(rng.random_range(-m..m), rng.random_range(-m..m), rng.random_range(-m..m))
 }
 
 /// A random rotation (exponential of a random vector of norm < π).
@@ -76,11 +72,7 @@ impl DirectPlant {
         let i_inv = self.i.try_inverse().expect("SPD");
         let w_dot = i_inv * (pi.cross(w) - u + tau);
         let kinv_u = V3::new(u.x / self.k.x, u.y / self.k.y, u.z / self.k.z);
-        let wr_dot = if self.k.iter().all(|k| *k > 0.0) {
-            kinv_u - w_dot
-        } else {
-            V3::zeros()
-        };
+        let wr_dot = if self.k.iter().all(|k| *k > 0.0) { kinv_u - w_dot } else { V3::zeros() };
         (r * hat(w), w_dot, wr_dot, *wr)
     }
 
@@ -101,13 +93,8 @@ impl DirectPlant {
             u,
             tau,
         );
-        let (d_r, d_w, d_wr, d_th) = self.deriv(
-            &(r0 + c_r * dt),
-            &(w0 + c_w * dt),
-            &(wr0 + c_wr * dt),
-            u,
-            tau,
-        );
+        let (d_r, d_w, d_wr, d_th) =
+            self.deriv(&(r0 + c_r * dt), &(w0 + c_w * dt), &(wr0 + c_wr * dt), u, tau);
         self.r = r0 + (a_r + (b_r + c_r) * 2.0 + d_r) * (dt / 6.0);
         self.w = w0 + (a_w + (b_w + c_w) * 2.0 + d_w) * (dt / 6.0);
         self.wr = wr0 + (a_wr + (b_wr + c_wr) * 2.0 + d_wr) * (dt / 6.0);
