@@ -22,6 +22,7 @@ pub struct ClosedLoop {
     actuation: Actuation,
     dt: f64,
     tick: u64,
+    held: DVec3,
 }
 
 impl ClosedLoop {
@@ -44,7 +45,17 @@ impl ClosedLoop {
         let plant = Body::new(body, scenario.plant_init);
         let pid = GeometricPid::new(scenario.gains, body);
         let metrics = Metrics::new(body, &plant.state());
-        Self { plant, reference, pid, open_loop, metrics, actuation, dt: scenario.dt(), tick: 0 }
+        Self {
+            plant,
+            reference,
+            pid,
+            open_loop,
+            metrics,
+            actuation,
+            dt: scenario.dt(),
+            tick: 0,
+            held: DVec3::ZERO,
+        }
     }
 
     /// The next tick index.
@@ -89,8 +100,8 @@ impl ClosedLoop {
                 (BodyInput { rotor_torque: DVec3::ZERO, body_torque: out.body_torque }, DVec3::ZERO)
             }
         };
-        let row =
-            self.metrics.observe(k, t, &x, &rd, u_traced, out.body_torque, input.rotor_torque);
+        let row = self.metrics.observe(k, t, &x, &rd, u_traced, out.body_torque, self.held);
+        self.held = input.rotor_torque;
         self.plant.step(input, self.dt);
         self.reference.step(t, self.dt);
         self.tick += 1;

@@ -28,10 +28,12 @@ fn drive_random(seed: u64, ticks: u64, dt: f64, u_max: f64) -> (f64, f64, f64, f
         omega_d_dot: DVec3::ZERO,
     };
     let (mut drift, mut energy, mut ortho, mut det) = (0.0f64, 0.0f64, 0.0f64, 0.0f64);
+    let mut held = DVec3::ZERO;
     for k in 0..=ticks {
         let u = from_na_v(&vec_in(&mut rng, u_max));
         let x = body.state();
-        let row = metrics.observe(k, k as f64 * dt, &x, &dummy, u, DVec3::ZERO, u);
+        let row = metrics.observe(k, k as f64 * dt, &x, &dummy, u, DVec3::ZERO, held);
+        held = u;
         drift = drift.max(row.h_drift_rel);
         energy = energy.max(row.energy_residual.abs());
         let (o, d) = orthonormality_error(&x.r);

@@ -17,9 +17,11 @@
 //! The conversion happens once, when a scenario is validated ([`scenario`]); nothing
 //! inside a tick converts between them.
 
+pub mod ipc;
 pub mod params;
 pub mod scenario;
 pub mod so3;
+pub mod wire;
 
 pub use params::{BodyParams, Gains, ReferenceState, RotorBodyState};
 pub use scenario::{Actuation, Scenario, ScenarioError, TorqueProfile};

@@ -50,8 +50,8 @@ impl TraceRow {
     }
 }
 
-/// Running metrics of one plant. Feed it every tick, in order, with the torque that was
-/// applied over the following tick.
+/// Running metrics of one plant. Feed it every tick, in order, with the rotor torque that
+/// was held over the tick before (what a state sample carries).
 #[derive(Debug, Clone)]
 pub struct Metrics {
     body: BodyParams,
@@ -60,7 +60,7 @@ pub struct Metrics {
     h0_norm: f64,
     energy0: f64,
     work: f64,
-    prev: Option<(DVec3, DVec3)>,
+    prev_theta: Option<DVec3>,
 }
 
 impl Metrics {
@@ -74,12 +74,12 @@ impl Metrics {
             h0_norm: h0.length(),
             energy0: body.kinetic_energy(initial.omega, initial.omega_r),
             work: 0.0,
-            prev: None,
+            prev_theta: None,
         }
     }
 
-    /// The row for tick `k`. `applied_rotor_torque` is the rotor torque the plant holds
-    /// over `[t_k, t_k+1]` (zero for a gas-jet body), used for the rotor work.
+    /// The row for tick `k`. `held_before` is the rotor torque the plant held over
+    /// `[t_k−1, t_k]` (ignored at the first row; zero for a gas-jet body), for the rotor work.
     #[inline]
     #[allow(clippy::too_many_arguments)]
     pub fn observe(
@@ -90,21 +90,21 @@ impl Metrics {
         reference: &ReferenceState,
         u: DVec3,
         tau: DVec3,
-        applied_rotor_torque: DVec3,
+        held_before: DVec3,
     ) -> TraceRow {
         let e = reference.r_d * x.r.transpose();
         let h = x.spatial_momentum(&self.body);
         let energy_residual = if self.has_rotors {
             // Rotor work over the previous tick with u held: u · (Θ_k − Θ_k−1), exact for
             // zero-order hold.
-            if let Some((theta_prev, u_prev)) = self.prev {
-                self.work += u_prev.dot(x.theta - theta_prev);
+            if let Some(theta_prev) = self.prev_theta {
+                self.work += held_before.dot(x.theta - theta_prev);
             }
             self.body.kinetic_energy(x.omega, x.omega_r) - self.energy0 - self.work
         } else {
             f64::NAN
         };
-        self.prev = Some((x.theta, applied_rotor_torque));
+        self.prev_theta = Some(x.theta);
         TraceRow {
             tick,
             t,

@@ -1,0 +1,462 @@
+//! The process side shared by the four roles: run domains and their iceoryx2 services,
+//! publishers that notify, subscribers that wait (event, spin or hybrid), the monotonic
+//! clock, absolute-deadline sleep, core pinning, SCHED_FIFO, mlock, and termination
+//! signals. The algorithms never see any of this.
+
+use std::fmt::Debug;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::time::Duration;
+
+use iceoryx2::port::listener::Listener;
+use iceoryx2::port::notifier::Notifier;
+use iceoryx2::port::publisher::Publisher;
+use iceoryx2::port::subscriber::Subscriber;
+use iceoryx2::port::update_connections::UpdateConnections;
+use iceoryx2::prelude::*;
+use iceoryx2::service::port_factory::publish_subscribe::PortFactory as PubSubFactory;
+
+/// An IPC failure, with what was being done.
+#[derive(Debug, thiserror::Error)]
+pub enum IpcError {
+    /// A bad domain name.
+    #[error("--domain `{0}` is not allowed: 1 to 48 characters from A-Z a-z 0-9 - _")]
+    Domain(String),
+    /// iceoryx2 refused something.
+    #[error("{what}: {detail}")]
+    Iceoryx { what: String, detail: String },
+}
+
+fn iox(what: impl Into<String>) -> impl FnOnce(&dyn Debug) -> IpcError {
+    move |e| IpcError::Iceoryx { what: what.into(), detail: format!("{e:?}") }
+}
+
+/// The topics of a run. Each is a publish-subscribe service and an event service of the
+/// same name (the publisher notifies after each send).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Topic {
+    /// Plant → everyone: [`crate::wire::StateSample`].
+    State,
+    /// Reference → controller, monitor: [`crate::wire::ReferenceSample`].
+    Reference,
+    /// Controller → plant, monitor: [`crate::wire::TorqueSample`].
+    Torque,
+}
+
+/// How many reference samples the generator may publish ahead of the newest state.
+pub const REFERENCE_LEAD: u64 = 16;
+/// Largest subscriber buffer a service allows (the monitor's).
+pub const MAX_BUFFER: usize = 4096;
+
+impl Topic {
+    fn name(self) -> &'static str {
+        match self {
+            Self::State => "state",
+            Self::Reference => "reference",
+            Self::Torque => "torque",
+        }
+    }
+    /// History kept for late subscribers: the reference keeps its whole lead.
+    fn history(self) -> usize {
+        match self {
+            Self::Reference => 2 * REFERENCE_LEAD as usize,
+            _ => 1,
+        }
+    }
+}
+
+/// A run domain: every service and node name of a run lives under it, and its shared
+/// memory files carry its own prefix, so two runs on one machine never see each other.
+#[derive(Debug)]
+pub struct Domain {
+    name: String,
+    config: Config,
+}
+
+impl Domain {
+    /// A domain by name (1–48 of `A-Z a-z 0-9 - _`).
+    pub fn new(name: &str) -> Result<Self, IpcError> {
+        let ok = !name.is_empty()
+            && name.len() <= 48
+            && name.bytes().all(|b| b.is_ascii_alphanumeric() || b == b'-' || b == b'_');
+        if !ok {
+            return Err(IpcError::Domain(name.to_owned()));
+        }
+        let mut config = Config::global_config().clone();
+        let prefix = Self::prefix_of(name);
+        config.global.prefix = FileName::new(prefix.as_bytes()).map_err(|e| IpcError::Iceoryx {
+            what: format!("file prefix `{prefix}`"),
+            detail: format!("{e:?}"),
+        })?;
+        Ok(Self { name: name.to_owned(), config })
+    }
+
+    /// The shared-memory file prefix of a domain.
+    pub fn prefix_of(name: &str) -> String {
+        format!("rl_{name}_")
+    }
+
+    /// The domain's name.
+    pub fn name(&self) -> &str {
+        &self.name
+    }
+
+    /// The iceoryx2 root directory (static service and node files).
+    pub fn root_path(&self) -> String {
+        self.config.global.root_path().to_string()
+    }
+
+    /// A node for `role`. Creating it removes what dead nodes left behind.
+    pub fn node(&self, role: &str) -> Result<Node<ipc::Service>, IpcError> {
+        let name = format!("rotorloop/{}/{role}", self.name);
+        let node_name = NodeName::new(&name).map_err(|e| iox(format!("node name {name}"))(&e))?;
+        NodeBuilder::new()
+            .name(&node_name)
+            .config(&self.config)
+            .signal_handling_mode(SignalHandlingMode::Disabled)
+            .create::<ipc::Service>()
+            .map_err(|e| iox(format!("cannot create node {name}"))(&e))
+    }
+
+    fn service_name(&self, topic: Topic) -> Result<ServiceName, IpcError> {
+        let name = format!("rotorloop/{}/{}", self.name, topic.name());
+        ServiceName::new(&name).map_err(|e| iox(format!("service name {name}"))(&e))
+    }
+
+    fn pubsub<T: ZeroCopySend + Debug + Copy + 'static>(
+        &self,
+        node: &Node<ipc::Service>,
+        topic: Topic,
+    ) -> Result<PubSubFactory<ipc::Service, T, ()>, IpcError> {
+        let name = self.service_name(topic)?;
+        // Every role opens with the same QoS, so the start order does not matter.
+        node.service_builder(&name)
+            .publish_subscribe::<T>()
+            .max_publishers(1)
+            .max_subscribers(8)
+            .max_nodes(16)
+            .history_size(topic.history())
+            .subscriber_max_buffer_size(MAX_BUFFER)
+            .subscriber_max_borrowed_samples(2)
+            .enable_safe_overflow(true)
+            .open_or_create()
+            .map_err(|e| iox(format!("cannot open service {name} ({})", topic.name()))(&e))
+    }
+
+    fn event(
+        &self,
+        node: &Node<ipc::Service>,
+        topic: Topic,
+    ) -> Result<iceoryx2::service::port_factory::event::PortFactory<ipc::Service>, IpcError> {
+        let name = self.service_name(topic)?;
+        node.service_builder(&name)
+            .event()
+            .max_notifiers(4)
+            .max_listeners(8)
+            .max_nodes(16)
+            .event_id_max_value(8)
+            .open_or_create()
+            .map_err(|e| iox(format!("cannot open event service {name}"))(&e))
+    }
+
+    /// The publishing end of `topic`. Fails if another process already publishes it
+    /// (one publisher per topic and domain).
+    pub fn outbox<T: ZeroCopySend + Debug + Copy + 'static>(
+        &self,
+        node: &Node<ipc::Service>,
+        topic: Topic,
+    ) -> Result<Outbox<T>, IpcError> {
+        let service = self.pubsub::<T>(node, topic)?;
+        let publisher =
+            service.publisher_builder().max_loaned_samples(2).create().map_err(|e| {
+                iox(format!(
+                    "cannot publish `{}` in domain `{}` (is another process of this role running?)",
+                    topic.name(),
+                    self.name
+                ))(&e)
+            })?;
+        let notifier = self
+            .event(node, topic)?
+            .notifier_builder()
+            .create()
+            .map_err(|e| iox(format!("cannot notify `{}`", topic.name()))(&e))?;
+        Ok(Outbox { service, publisher, notifier })
+    }
+
+    /// The receiving end of `topic` with a buffer of `buffer` samples (newest overwrite
+    /// oldest). `listen` adds an event listener for [`Wait::Event`] and [`Wait::Hybrid`].
+    pub fn inbox<T: ZeroCopySend + Debug + Copy + 'static>(
+        &self,
+        node: &Node<ipc::Service>,
+        topic: Topic,
+        buffer: usize,
+        listen: bool,
+    ) -> Result<Inbox<T>, IpcError> {
+        let service = self.pubsub::<T>(node, topic)?;
+        let subscriber = service
+            .subscriber_builder()
+            .buffer_size(buffer.clamp(1, MAX_BUFFER))
+            .history_request(topic.history())
+            .create()
+            .map_err(|e| iox(format!("cannot subscribe to `{}`", topic.name()))(&e))?;
+        let listener = if listen {
+            Some(
+                self.event(node, topic)?
+                    .listener_builder()
+                    .create()
+                    .map_err(|e| iox(format!("cannot listen to `{}`", topic.name()))(&e))?,
+            )
+        } else {
+            None
+        };
+        Ok(Inbox { subscriber, listener })
+    }
+}
+
+/// A publisher and the notifier that wakes its subscribers.
+#[derive(Debug)]
+pub struct Outbox<T: ZeroCopySend + Debug + Copy + 'static> {
+    service: PubSubFactory<ipc::Service, T, ()>,
+    publisher: Publisher<ipc::Service, T, ()>,
+    notifier: Notifier<ipc::Service>,
+}
+
+impl<T: ZeroCopySend + Debug + Copy + 'static> Outbox<T> {
+    /// Publishes `value` (written in place into shared memory) and notifies listeners.
+    /// `stamp` is called just before the send to set the publish timestamp.
+    #[inline]
+    pub fn send(&self, mut value: T, stamp: impl FnOnce(&mut T)) -> Result<(), IpcError> {
+        let sample = self.publisher.loan_uninit().map_err(|e| iox("cannot loan a sample")(&e))?;
+        stamp(&mut value);
+        sample.write_payload(value).send().map_err(|e| iox("cannot send a sample")(&e))?;
+        self.notifier.notify().map_err(|e| iox("cannot notify")(&e))?;
+        Ok(())
+    }
+
+    /// Connects subscribers that appeared since the last send (and gives them history).
+    pub fn update_connections(&self) {
+        let _ = self.publisher.update_connections();
+    }
+
+    /// Subscribers currently connected to this topic.
+    pub fn subscribers(&self) -> usize {
+        self.service.dynamic_config().number_of_subscribers()
+    }
+}
+
+/// A subscriber and, optionally, the listener that wakes it.
+#[derive(Debug)]
+pub struct Inbox<T: ZeroCopySend + Debug + Copy + 'static> {
+    subscriber: Subscriber<ipc::Service, T, ()>,
+    listener: Option<Listener<ipc::Service>>,
+}
+
+impl<T: ZeroCopySend + Debug + Copy + 'static> Inbox<T> {
+    /// Takes the oldest waiting sample, if any.
+    #[inline]
+    pub fn take(&self) -> Result<Option<T>, IpcError> {
+        match self.subscriber.receive() {
+            Ok(Some(s)) => Ok(Some(*s.payload())),
+            Ok(None) => Ok(None),
+            Err(e) => Err(iox("cannot receive")(&e)),
+        }
+    }
+
+    /// Waits until `ready()` returns something, the monotonic deadline passes, or a
+    /// termination signal arrives. `ready` is polled first, after every wake-up, and in
+    /// spin mode continuously; it should drain the inbox.
+    #[inline]
+    pub fn wait_for<R>(
+        &self,
+        wait: Wait,
+        deadline_ns: u64,
+        mut ready: impl FnMut(&Self) -> Result<Option<R>, IpcError>,
+    ) -> Result<Option<R>, IpcError> {
+        let start = now_ns();
+        loop {
+            if let Some(r) = ready(self)? {
+                return Ok(Some(r));
+            }
+            let now = now_ns();
+            if now >= deadline_ns || shutdown_requested() {
+                return Ok(None);
+            }
+            let spin = match wait {
+                Wait::Spin => true,
+                Wait::Event => false,
+                Wait::Hybrid { spin_ns } => now - start < spin_ns,
+            };
+            match (&self.listener, spin) {
+                (Some(l), false) => {
+                    // Bounded so that signals are seen; wake-ups merge, so drain after.
+                    let left = (deadline_ns - now).min(10_000_000);
+                    l.timed_wait(|_| {}, Duration::from_nanos(left))
+                        .map_err(|e| iox("cannot wait for an event")(&e))?;
+                }
+                _ => std::hint::spin_loop(),
+            }
+        }
+    }
+}
+
+/// How a process waits for its input.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Wait {
+    /// Block on an event (the default: four processes can share two cores).
+    Event,
+    /// Busy-poll (for dedicated cores).
+    Spin,
+    /// Spin for `spin_ns`, then block.
+    Hybrid {
+        /// How long to spin before blocking (ns).
+        spin_ns: u64,
+    },
+}
+
+impl Wait {
+    /// Whether this strategy needs an event listener.
+    pub fn listens(self) -> bool {
+        !matches!(self, Self::Spin)
+    }
+}
+
+impl std::str::FromStr for Wait {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        match s {
+            "event" => Ok(Self::Event),
+            "spin" => Ok(Self::Spin),
+            "hybrid" => Ok(Self::Hybrid { spin_ns: 50_000 }),
+            other => Err(format!("`{other}` is not allowed: event, spin or hybrid")),
+        }
+    }
+}
+
+impl std::fmt::Display for Wait {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Self::Event => f.write_str("event"),
+            Self::Spin => f.write_str("spin"),
+            Self::Hybrid { .. } => f.write_str("hybrid"),
+        }
+    }
+}
+
+/// `CLOCK_MONOTONIC` in nanoseconds.
+#[inline]
+pub fn now_ns() -> u64 {
+    let mut ts = libc::timespec { tv_sec: 0, tv_nsec: 0 };
+    // SAFETY: clock_gettime writes into the timespec we own.
+    unsafe { libc::clock_gettime(libc::CLOCK_MONOTONIC, &mut ts) };
+    ts.tv_sec as u64 * 1_000_000_000 + ts.tv_nsec as u64
+}
+
+/// Sleeps until the absolute `CLOCK_MONOTONIC` time `deadline_ns` (no drift from
+/// relative sleeps). With `spin_last_ns > 0`, sleeps until that much before the deadline
+/// and spins the rest.
+#[inline]
+pub fn sleep_until_ns(deadline_ns: u64, spin_last_ns: u64) {
+    let wake = deadline_ns.saturating_sub(spin_last_ns);
+    let ts = libc::timespec {
+        tv_sec: (wake / 1_000_000_000) as libc::time_t,
+        tv_nsec: (wake % 1_000_000_000) as libc::c_long,
+    };
+    loop {
+        // SAFETY: ts is a valid timespec; the remaining-time pointer may be null with
+        // TIMER_ABSTIME.
+        let rc = unsafe {
+            libc::clock_nanosleep(
+                libc::CLOCK_MONOTONIC,
+                libc::TIMER_ABSTIME,
+                &ts,
+                std::ptr::null_mut(),
+            )
+        };
+        if rc != libc::EINTR || shutdown_requested() {
+            break;
+        }
+    }
+    while now_ns() < deadline_ns {
+        std::hint::spin_loop();
+    }
+}
+
+static SHUTDOWN: AtomicBool = AtomicBool::new(false);
+
+extern "C" fn on_signal(_: libc::c_int) {
+    SHUTDOWN.store(true, Ordering::SeqCst);
+}
+
+/// Installs SIGINT/SIGTERM handlers that set the flag read by [`shutdown_requested`].
+pub fn install_signal_handlers() {
+    for sig in [libc::SIGINT, libc::SIGTERM] {
+        // SAFETY: the handler only stores to an atomic, which is async-signal-safe.
+        unsafe {
+            let mut sa: libc::sigaction = std::mem::zeroed();
+            sa.sa_sigaction = on_signal as *const () as usize;
+            libc::sigemptyset(&mut sa.sa_mask);
+            libc::sigaction(sig, &sa, std::ptr::null_mut());
+        }
+    }
+}
+
+/// Whether SIGINT or SIGTERM arrived.
+#[inline]
+pub fn shutdown_requested() -> bool {
+    SHUTDOWN.load(Ordering::Relaxed)
+}
+
+/// Requests shutdown from inside the process (as a signal would).
+pub fn request_shutdown() {
+    SHUTDOWN.store(true, Ordering::SeqCst);
+}
+
+/// Real-time set-up of a process. Each step that the OS refuses gives a one-line warning
+/// and the process runs on.
+#[derive(Debug, Clone, Copy, Default)]
+pub struct RtSetup {
+    /// Pin to this core.
+    pub core: Option<usize>,
+    /// SCHED_FIFO priority (1–99).
+    pub rt_priority: Option<i32>,
+    /// Lock all memory (mlockall).
+    pub mlock: bool,
+}
+
+impl RtSetup {
+    /// Applies the set-up; returns the warnings.
+    pub fn apply(&self, role: &str) -> Vec<String> {
+        let mut warnings = Vec::new();
+        if let Some(core) = self.core {
+            let ids = core_affinity::get_core_ids().unwrap_or_default();
+            match ids.into_iter().find(|c| c.id == core) {
+                Some(id) if core_affinity::set_for_current(id) => {}
+                _ => warnings.push(format!("{role}: cannot pin to core {core}; running unpinned")),
+            }
+        }
+        if let Some(p) = self.rt_priority {
+            let param = libc::sched_param { sched_priority: p };
+            // SAFETY: plain syscall on the calling thread with a valid param.
+            if unsafe { libc::sched_setscheduler(0, libc::SCHED_FIFO, &param) } != 0 {
+                warnings.push(format!(
+                    "{role}: SCHED_FIFO priority {p} not permitted ({}); running with the default policy",
+                    std::io::Error::last_os_error()
+                ));
+            }
+        }
+        if self.mlock {
+            // SAFETY: plain syscall.
+            if unsafe { libc::mlockall(libc::MCL_CURRENT | libc::MCL_FUTURE) } != 0 {
+                warnings.push(format!(
+                    "{role}: mlockall failed ({}); memory may be paged",
+                    std::io::Error::last_os_error()
+                ));
+            }
+        }
+        warnings
+    }
+}
+
+/// Quiets iceoryx2's own console logging unless `IOX2_LOG_LEVEL` says otherwise.
+pub fn quiet_iceoryx_logs() {
+    set_log_level_from_env_or(LogLevel::Error);
+}

@@ -1,0 +1,207 @@
+//! Every sample that crosses a process boundary, in one place.
+//!
+//! Each is `#[repr(C)]`, `Copy`, `ZeroCopySend`, made of fixed-size fields only, with an
+//! explicit iceoryx2 type name that carries [`LAYOUT_VERSION`] and a compile-time size
+//! assert. iceoryx2 compares type name, size and alignment between processes but not
+//! field order: bump the version in every name whenever a layout changes, so a process
+//! of another build is refused instead of reading garbage.
+//!
+//! Units are in the field names; timestamps are `u64` ns of `CLOCK_MONOTONIC`;
+//! matrices are row-major.
+
+use glam::{DMat3, DVec3};
+use iceoryx2::prelude::ZeroCopySend;
+
+use crate::so3::{from_rows, to_row_major};
+use crate::{ReferenceState, RotorBodyState};
+
+/// The layout version carried in every type name.
+pub const LAYOUT_VERSION: u32 = 1;
+
+/// "No torque sample" in [`StateSample::applied_torque_tick`].
+pub const NO_TICK: u64 = u64::MAX;
+
+/// [`StateSample::flags`]: this is the run's last tick.
+pub const FLAG_LAST: u64 = 1;
+/// [`StateSample::flags`]: the plant runs on a real-time grid.
+pub const FLAG_REALTIME: u64 = 1 << 1;
+
+/// The plant's state at tick `tick`, published once per tick.
+#[derive(Debug, Clone, Copy, PartialEq, ZeroCopySend)]
+#[type_name("rotorloop::StateSample_v1")]
+#[repr(C)]
+pub struct StateSample {
+    /// Tick index `k`.
+    pub tick: u64,
+    /// `t_k = k dt` (s).
+    pub t_s: f64,
+    /// `R` (row-major).
+    pub r_row_major: [f64; 9],
+    /// `Ω` (rad/s, body frame).
+    pub omega_body_rad_s: [f64; 3],
+    /// `Ω_r` (rad/s, relative to the body).
+    pub omega_rotor_rad_s: [f64; 3],
+    /// `Θ` (rad).
+    pub theta_rotor_rad: [f64; 3],
+    /// Rotor torque held over `[t_k−1, t_k]` (N m).
+    pub applied_rotor_torque_nm: [f64; 3],
+    /// Body torque held over `[t_k−1, t_k]` (N m).
+    pub applied_body_torque_nm: [f64; 3],
+    /// Tick of the torque sample held over `[t_k−1, t_k]`, or [`NO_TICK`].
+    pub applied_torque_tick: u64,
+    /// When the plant received that torque sample (ns), 0 if none.
+    pub applied_torque_recv_ns: u64,
+    /// The tick's grid time in real-time mode (ns), 0 in lockstep.
+    pub deadline_ns: u64,
+    /// When the plant woke for this tick (ns).
+    pub wake_ns: u64,
+    /// When the sample was published (ns).
+    pub publish_ns: u64,
+    /// Ticks so far on which no fresh torque had arrived in time (cumulative).
+    pub misses: u64,
+    /// Torque samples received so far.
+    pub torques_received: u64,
+    /// Torque samples known lost (gaps in their tick sequence) so far.
+    pub torques_lost: u64,
+    /// [`FLAG_LAST`], [`FLAG_REALTIME`].
+    pub flags: u64,
+}
+const _: () = assert!(size_of::<StateSample>() == 280);
+
+/// The desired attitude for tick `tick`, published ahead of the plant.
+#[derive(Debug, Clone, Copy, PartialEq, ZeroCopySend)]
+#[type_name("rotorloop::ReferenceSample_v1")]
+#[repr(C)]
+pub struct ReferenceSample {
+    /// Tick index `k`.
+    pub tick: u64,
+    /// `t_k` (s).
+    pub t_s: f64,
+    /// `R_d` (row-major).
+    pub r_d_row_major: [f64; 9],
+    /// `Ω_d` (rad/s).
+    pub omega_d_rad_s: [f64; 3],
+    /// `Ω̇_d` (rad/s²).
+    pub omega_d_dot_rad_s2: [f64; 3],
+    /// The dummy body's rotor rates (rad/s): with `R_d`, `Ω_d` enough to resume it.
+    pub omega_rotor_rad_s: [f64; 3],
+    /// The dummy body's rotor angles (rad).
+    pub theta_rotor_rad: [f64; 3],
+    /// When the sample was published (ns).
+    pub publish_ns: u64,
+}
+const _: () = assert!(size_of::<ReferenceSample>() == 192);
+
+/// The controller's answer to state sample `tick`.
+#[derive(Debug, Clone, Copy, PartialEq, ZeroCopySend)]
+#[type_name("rotorloop::TorqueSample_v1")]
+#[repr(C)]
+pub struct TorqueSample {
+    /// The state tick this answers.
+    pub tick: u64,
+    /// Rotor torque `u` (N m).
+    pub rotor_torque_nm: [f64; 3],
+    /// Body torque `τ` (N m).
+    pub body_torque_nm: [f64; 3],
+    /// The integral state `ξ_I` after this tick (for a bumpless restart).
+    pub xi_i: [f64; 3],
+    /// When the controller received the state sample (ns).
+    pub state_recv_ns: u64,
+    /// When this sample was published (ns).
+    pub publish_ns: u64,
+    /// State samples received so far.
+    pub states_received: u64,
+    /// State samples known lost so far.
+    pub states_lost: u64,
+    /// Ticks whose reference sample was not there when the state arrived.
+    pub reference_misses: u64,
+}
+const _: () = assert!(size_of::<TorqueSample>() == 120);
+
+impl StateSample {
+    /// The kinematic state carried.
+    pub fn body_state(&self) -> RotorBodyState {
+        RotorBodyState {
+            r: mat(&self.r_row_major),
+            omega: DVec3::from_array(self.omega_body_rad_s),
+            omega_r: DVec3::from_array(self.omega_rotor_rad_s),
+            theta: DVec3::from_array(self.theta_rotor_rad),
+        }
+    }
+
+    /// A sample of `x` at tick `tick` with every other field zero.
+    pub fn of(tick: u64, t_s: f64, x: &RotorBodyState) -> Self {
+        Self {
+            tick,
+            t_s,
+            r_row_major: to_row_major(&x.r),
+            omega_body_rad_s: x.omega.to_array(),
+            omega_rotor_rad_s: x.omega_r.to_array(),
+            theta_rotor_rad: x.theta.to_array(),
+            applied_rotor_torque_nm: [0.0; 3],
+            applied_body_torque_nm: [0.0; 3],
+            applied_torque_tick: NO_TICK,
+            applied_torque_recv_ns: 0,
+            deadline_ns: 0,
+            wake_ns: 0,
+            publish_ns: 0,
+            misses: 0,
+            torques_received: 0,
+            torques_lost: 0,
+            flags: 0,
+        }
+    }
+}
+
+impl ReferenceSample {
+    /// What the controller needs.
+    pub fn reference_state(&self) -> ReferenceState {
+        ReferenceState {
+            r_d: mat(&self.r_d_row_major),
+            omega_d: DVec3::from_array(self.omega_d_rad_s),
+            omega_d_dot: DVec3::from_array(self.omega_d_dot_rad_s2),
+        }
+    }
+
+    /// The dummy body's full state (to resume the generator).
+    pub fn body_state(&self) -> RotorBodyState {
+        RotorBodyState {
+            r: mat(&self.r_d_row_major),
+            omega: DVec3::from_array(self.omega_d_rad_s),
+            omega_r: DVec3::from_array(self.omega_rotor_rad_s),
+            theta: DVec3::from_array(self.theta_rotor_rad),
+        }
+    }
+}
+
+fn mat(m: &[f64; 9]) -> DMat3 {
+    from_rows([[m[0], m[1], m[2]], [m[3], m[4], m[5]], [m[6], m[7], m[8]]])
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn state_sample_round_trips_the_body_state_exactly() {
+        let x = RotorBodyState {
+            r: crate::so3::exp(DVec3::new(0.3, -0.2, 1.1)),
+            omega: DVec3::new(0.1, 0.2, 0.3),
+            omega_r: DVec3::new(-1.0, 2.0, 1.0 / 3.0),
+            theta: DVec3::new(5.0, 6.0, 7.0),
+        };
+        assert_eq!(StateSample::of(3, 0.003, &x).body_state(), x);
+    }
+
+    #[test]
+    fn type_names_carry_the_layout_version() {
+        use iceoryx2::prelude::ZeroCopySend;
+        let v = format!("_v{LAYOUT_VERSION}");
+        // SAFETY: type_name only returns the static name.
+        for name in unsafe {
+            [StateSample::type_name(), ReferenceSample::type_name(), TorqueSample::type_name()]
+        } {
+            assert!(name.ends_with(&v), "{name}");
+        }
+    }
+}
