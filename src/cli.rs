@@ -50,6 +50,27 @@ enum Command {
     },
     /// Random initial attitudes and rates, including errors within 2° of 180°.
     Montecarlo(McArgs),
+    /// The four processes over iceoryx2 shared memory, with the monitor's report.
+    Run(crate::launch::RunArgs),
+    /// Remove what dead processes of a domain left in shared memory (and, when none of
+    /// its processes is alive, the domain's last iceoryx2 file).
+    Clean {
+        /// The run domain.
+        #[arg(long, default_value = "default")]
+        domain: String,
+    },
+    /// Run one role of the loop in this process (what `run` starts; the `plant`,
+    /// `reference`, `controller` and `monitor` binaries do the same).
+    #[command(subcommand, hide = true)]
+    Role(RoleCommand),
+}
+
+#[derive(Debug, Subcommand)]
+enum RoleCommand {
+    Plant(crate::process::plant::PlantArgs),
+    Reference(crate::process::reference::ReferenceArgs),
+    Controller(crate::process::controller::ControllerArgs),
+    Monitor(crate::process::monitor::MonitorArgs),
 }
 
 #[derive(Debug, clap::Args)]
@@ -124,7 +145,17 @@ fn parse_vec3(s: &str) -> Result<DVec3, String> {
 /// Parses the command line, runs, prints errors with their chain, and returns the exit
 /// code: 0 success, 1 failure, 2 bad arguments or scenario.
 pub fn main() -> ExitCode {
+    use crate::process::{controller, monitor, plant, reference, run_role};
+    rotorloop_common::ipc::quiet_iceoryx_logs();
     let cli = Cli::parse();
+    if let Command::Role(role) = &cli.command {
+        return match role {
+            RoleCommand::Plant(a) => run_role("plant", a, plant::run),
+            RoleCommand::Reference(a) => run_role("reference", a, reference::run),
+            RoleCommand::Controller(a) => run_role("controller", a, controller::run),
+            RoleCommand::Monitor(a) => run_role("monitor", a, monitor::run),
+        };
+    }
     match run(cli) {
         Ok(()) => ExitCode::SUCCESS,
         Err(e) => {
@@ -172,6 +203,13 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
             } else {
                 print!("{}", gains::render(&r));
             }
+        }
+        Command::Run(a) => crate::launch::run(&a)?,
+        Command::Role(_) => unreachable!("handled in main"),
+        Command::Clean { domain } => {
+            let d = rotorloop_common::ipc::Domain::new(&domain).map_err(|e| UsageError(e.to_string()))?;
+            let (cleaned, alive) = d.cleanup()?;
+            println!("domain {domain}: {cleaned} dead node(s) cleaned, {alive} alive");
         }
         Command::Montecarlo(a) => {
             let scenario =

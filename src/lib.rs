@@ -10,6 +10,8 @@ pub mod closed_loop;
 pub mod gains;
 pub mod montecarlo;
 pub mod paper;
+pub mod process;
+pub mod launch;
 pub mod sim;
 
 pub use closed_loop::ClosedLoop;

@@ -82,6 +82,13 @@ impl Domain {
             return Err(IpcError::Domain(name.to_owned()));
         }
         let mut config = Config::global_config().clone();
+        // Static files under a root of the domain's own, shared memory with its prefix.
+        let root = format!("{}{}/", config.global.root_path(), Self::prefix_of(name));
+        let root_path = Path::new(root.as_bytes()).map_err(|e| IpcError::Iceoryx {
+            what: format!("root path `{root}`"),
+            detail: format!("{e:?}"),
+        })?;
+        config.global.set_root_path(&root_path);
         let prefix = Self::prefix_of(name);
         config.global.prefix = FileName::new(prefix.as_bytes()).map_err(|e| IpcError::Iceoryx {
             what: format!("file prefix `{prefix}`"),
@@ -115,6 +122,47 @@ impl Domain {
             .signal_handling_mode(SignalHandlingMode::Disabled)
             .create::<ipc::Service>()
             .map_err(|e| iox(format!("cannot create node {name}"))(&e))
+    }
+
+    /// Removes what dead nodes of this domain left behind and, when no node of the
+    /// domain is alive any more, the domain's global management segment (the one
+    /// shared-memory file iceoryx2 keeps after every node is gone). Returns
+    /// `(dead nodes cleaned, nodes still alive)`.
+    pub fn cleanup(&self) -> Result<(usize, usize), IpcError> {
+        use iceoryx2::node::NodeView;
+        let ours = format!("rotorloop/{}/", self.name);
+        let mine = |d: &Option<iceoryx2::node::NodeDetails>| {
+            d.as_ref().is_some_and(|d| d.name().as_str().starts_with(&ours))
+        };
+        let (mut cleaned, mut alive) = (0, 0);
+        Node::<ipc::Service>::list(&self.config, |state| {
+            match state {
+                NodeState::Alive(v) if mine(v.details()) => alive += 1,
+                NodeState::Dead(v) if mine(v.details()) => {
+                    if v.try_remove_stale_resources().is_ok() {
+                        cleaned += 1;
+                    }
+                }
+                _ => {}
+            }
+            CallbackProgression::Continue
+        })
+        .map_err(|e| iox("cannot list nodes")(&e))?;
+        if alive == 0 {
+            // SAFETY: no node of this domain is alive, and the segment's name carries the
+            // domain's own prefix, so no other process uses it.
+            unsafe { iceoryx2::testing::remove_global_mgmt_segment::<ipc::Service>(&self.config) }
+                .map_err(|e| iox("cannot remove the global management segment")(&e))?;
+            // The domain's root holds only (now empty) directories: remove them.
+            let root = std::path::PathBuf::from(self.root_path());
+            if let Ok(entries) = std::fs::read_dir(&root) {
+                for e in entries.flatten() {
+                    let _ = std::fs::remove_dir(e.path());
+                }
+            }
+            let _ = std::fs::remove_dir(&root);
+        }
+        Ok((cleaned, alive))
     }
 
     fn service_name(&self, topic: Topic) -> Result<ServiceName, IpcError> {
@@ -426,6 +474,9 @@ impl RtSetup {
     /// Applies the set-up; returns the warnings.
     pub fn apply(&self, role: &str) -> Vec<String> {
         let mut warnings = Vec::new();
+        // Timer slack (50 µs by default) delays every timed wake-up; ask for 1 ns.
+        // SAFETY: plain prctl on the calling thread.
+        unsafe { libc::prctl(libc::PR_SET_TIMERSLACK, 1 as libc::c_ulong, 0, 0, 0) };
         if let Some(core) = self.core {
             let ids = core_affinity::get_core_ids().unwrap_or_default();
             match ids.into_iter().find(|c| c.id == core) {

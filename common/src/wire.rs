@@ -113,10 +113,15 @@ pub struct TorqueSample {
     pub states_received: u64,
     /// State samples known lost so far.
     pub states_lost: u64,
+    /// State samples taken but not answered because a newer one was already there.
+    pub states_skipped: u64,
     /// Ticks whose reference sample was not there when the state arrived.
     pub reference_misses: u64,
+    /// Torque samples published so far, this one included (so a subscriber's losses
+    /// are `published − received`, whatever ticks the controller skipped).
+    pub published: u64,
 }
-const _: () = assert!(size_of::<TorqueSample>() == 120);
+const _: () = assert!(size_of::<TorqueSample>() == 136);
 
 impl StateSample {
     /// The kinematic state carried.

@@ -4,6 +4,7 @@
 //! are comparable column for column.
 
 pub mod figures;
+pub mod latency;
 pub mod metrics;
 pub mod plot;
 pub mod trace;

@@ -1,0 +1,371 @@
+//! Per-hop latency histograms of the multi-process loop (HdrHistogram, nanoseconds): the
+//! whole-run histogram, a `.hgrm` percentile distribution per hop, and a V2-compressed
+//! interval log per hop with one histogram per second of run time, flushed as it goes,
+//! so a run that dies still leaves its data.
+
+use std::fs::File;
+use std::io::{self, BufWriter, Write};
+use std::path::{Path, PathBuf};
+use std::time::Duration;
+
+use hdrhistogram::Histogram;
+use hdrhistogram::serialization::V2DeflateSerializer;
+use hdrhistogram::serialization::interval_log::IntervalLogWriterBuilder;
+use serde::Serialize;
+
+use crate::plot::{PlotError, Series, YScale, line_chart};
+
+/// The hops of one loop tick.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Hop {
+    /// Plant publishes state k → controller receives it.
+    StateTransport,
+    /// Controller receives state k → publishes torque k.
+    ControllerCompute,
+    /// Controller publishes torque k → plant receives it.
+    TorqueTransport,
+    /// Plant publishes state k → plant holds torque k: the loop.
+    SenseToActuate,
+    /// Plant wake-up minus its absolute grid time (real-time mode; cyclictest-style).
+    TickLateness,
+    /// How long before state k the reference sample k was published.
+    ReferenceLead,
+}
+
+impl Hop {
+    /// Every hop, in report order.
+    pub const ALL: [Hop; 6] = [
+        Hop::SenseToActuate,
+        Hop::StateTransport,
+        Hop::ControllerCompute,
+        Hop::TorqueTransport,
+        Hop::TickLateness,
+        Hop::ReferenceLead,
+    ];
+
+    /// File and JSON name.
+    pub fn name(self) -> &'static str {
+        match self {
+            Hop::StateTransport => "state_transport",
+            Hop::ControllerCompute => "controller_compute",
+            Hop::TorqueTransport => "torque_transport",
+            Hop::SenseToActuate => "sense_to_actuate",
+            Hop::TickLateness => "tick_lateness",
+            Hop::ReferenceLead => "reference_lead",
+        }
+    }
+}
+
+/// Summary statistics of one hop (ns).
+#[derive(Debug, Clone, Copy, Serialize, Default)]
+pub struct HopStats {
+    /// Samples recorded.
+    pub count: u64,
+    /// Minimum.
+    pub min: u64,
+    /// Mean.
+    pub mean: f64,
+    /// Percentiles.
+    pub p50: u64,
+    /// 90th percentile.
+    pub p90: u64,
+    /// 99th percentile.
+    pub p99: u64,
+    /// 99.9th percentile.
+    pub p99_9: u64,
+    /// 99.99th percentile.
+    pub p99_99: u64,
+    /// Maximum.
+    pub max: u64,
+}
+
+impl HopStats {
+    /// The statistics of a histogram.
+    pub fn of(h: &Histogram<u64>) -> Self {
+        if h.is_empty() {
+            return Self::default();
+        }
+        Self {
+            count: h.len(),
+            min: h.min(),
+            mean: h.mean(),
+            p50: h.value_at_quantile(0.5),
+            p90: h.value_at_quantile(0.9),
+            p99: h.value_at_quantile(0.99),
+            p99_9: h.value_at_quantile(0.999),
+            p99_99: h.value_at_quantile(0.9999),
+            max: h.max(),
+        }
+    }
+}
+
+/// One point of the latency-over-time plot: `(second, p50, p99, max)` in µs.
+pub type IntervalPoint = (f64, f64, f64, f64);
+
+struct HopRecorder {
+    total: Histogram<u64>,
+    interval: Histogram<u64>,
+    log: BufWriter<File>,
+    serializer: V2DeflateSerializer,
+    series: Vec<IntervalPoint>,
+}
+
+fn histogram() -> Histogram<u64> {
+    // 1 ns to 1 h at 3 significant digits.
+    Histogram::new_with_bounds(1, 3_600_000_000_000, 3).expect("constant bounds are valid")
+}
+
+/// The latency recorder of a run.
+pub struct Latency {
+    hops: Vec<HopRecorder>,
+    dir: PathBuf,
+    start_ns: u64,
+    interval_index: u64,
+}
+
+impl std::fmt::Debug for Latency {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Latency").field("dir", &self.dir).field("start_ns", &self.start_ns).finish()
+    }
+}
+
+impl Latency {
+    /// A recorder writing interval logs `DIR/<hop>.hlog`. With `append`, existing logs are
+    /// continued (a restarted monitor). Run time counts from `start_ns`.
+    pub fn new(dir: &Path, start_ns: u64, append: bool) -> io::Result<Self> {
+        let mut hops = Vec::new();
+        for hop in Hop::ALL {
+            let path = dir.join(format!("{}.hlog", hop.name()));
+            let fresh = !append || !path.exists();
+            let file = std::fs::OpenOptions::new()
+                .create(true)
+                .append(append)
+                .write(true)
+                .truncate(!append)
+                .open(&path)?;
+            let mut log = BufWriter::new(file);
+            if fresh {
+                let mut ser = V2DeflateSerializer::new();
+                IntervalLogWriterBuilder::new()
+                    .add_comment(&format!("rotorloop {} latency (ns), 1 s intervals", hop.name()))
+                    .with_start_time(std::time::SystemTime::now())
+                    .begin_log_with(&mut log, &mut ser)?;
+                writeln!(
+                    log,
+                    "\"StartTimestamp\",\"Interval_Length\",\"Interval_Max\",\"Interval_Compressed_Histogram\""
+                )?;
+                log.flush()?;
+            }
+            hops.push(HopRecorder {
+                total: histogram(),
+                interval: histogram(),
+                log,
+                serializer: V2DeflateSerializer::new(),
+                series: Vec::new(),
+            });
+        }
+        Ok(Self { hops, dir: dir.to_owned(), start_ns, interval_index: 0 })
+    }
+
+    fn index(hop: Hop) -> usize {
+        Hop::ALL.iter().position(|h| *h == hop).unwrap_or(0)
+    }
+
+    /// Records `value_ns` for `hop`, observed at monotonic time `at_ns`.
+    #[inline]
+    pub fn record(&mut self, hop: Hop, value_ns: u64, at_ns: u64) -> io::Result<()> {
+        let idx = at_ns.saturating_sub(self.start_ns) / 1_000_000_000;
+        if idx > self.interval_index {
+            self.rotate()?;
+            self.interval_index = idx;
+        }
+        let h = &mut self.hops[Self::index(hop)];
+        let v = value_ns.max(1);
+        h.total.saturating_record(v);
+        h.interval.saturating_record(v);
+        Ok(())
+    }
+
+    /// Writes the current interval of every hop to its log and flushes it.
+    pub fn rotate(&mut self) -> io::Result<()> {
+        let start = Duration::from_secs(self.interval_index);
+        for h in &mut self.hops {
+            if h.interval.is_empty() {
+                continue;
+            }
+            IntervalLogWriterBuilder::new()
+                .begin_log_with(&mut h.log, &mut h.serializer)?
+                .write_histogram(&h.interval, start, Duration::from_secs(1), None)
+                .map_err(|e| io::Error::other(format!("{e:?}")))?;
+            h.log.flush()?;
+            let us = |q: f64| h.interval.value_at_quantile(q) as f64 / 1e3;
+            h.series.push((
+                self.interval_index as f64,
+                us(0.5),
+                us(0.99),
+                h.interval.max() as f64 / 1e3,
+            ));
+            h.interval.reset();
+        }
+        Ok(())
+    }
+
+    /// The whole-run histogram of a hop.
+    pub fn histogram(&self, hop: Hop) -> &Histogram<u64> {
+        &self.hops[Self::index(hop)].total
+    }
+
+    /// Statistics of a hop.
+    pub fn stats(&self, hop: Hop) -> HopStats {
+        HopStats::of(self.histogram(hop))
+    }
+
+    /// Flushes the last interval and writes `DIR/<hop>.hgrm` for every hop.
+    pub fn finish(&mut self) -> io::Result<Vec<String>> {
+        self.rotate()?;
+        let mut files = Vec::new();
+        for hop in Hop::ALL {
+            let name = format!("{}.hgrm", hop.name());
+            let mut out = BufWriter::new(File::create(self.dir.join(&name))?);
+            write_percentile_distribution(self.histogram(hop), &mut out)?;
+            out.flush()?;
+            files.push(name);
+        }
+        Ok(files)
+    }
+
+    /// `latency_percentiles.png` (percentile spectrum per hop) and
+    /// `latency_over_time.png` (per-second p50/p99/max of sense-to-actuate and the
+    /// transport hops).
+    pub fn plots(&self, title: &str) -> Result<Vec<String>, PlotError> {
+        let mut files = Vec::new();
+        let mut spectra = Vec::new();
+        for hop in Hop::ALL {
+            let h = self.histogram(hop);
+            if h.is_empty() {
+                continue;
+            }
+            // x = log10(1/(1 − q)), so 1 = p90, 2 = p99, 3 = p99.9 …
+            let pts: Vec<(f64, f64)> = h
+                .iter_quantiles(5)
+                .filter(|v| v.quantile_iterated_to() < 1.0)
+                .map(|v| {
+                    ((1.0 / (1.0 - v.quantile_iterated_to())).log10(), v.value_iterated_to() as f64 / 1e3)
+                })
+                .collect();
+            spectra.push((hop.name(), pts));
+        }
+        let series: Vec<Series<'_>> =
+            spectra.iter().map(|(n, p)| Series { label: n, points: p, dashed: false }).collect();
+        let file = "latency_percentiles.png";
+        line_chart(
+            &self.dir.join(file),
+            &format!("{title}: latency percentile spectrum (x: 1 = p90, 2 = p99, 3 = p99.9)"),
+            "log10(1 / (1 - percentile))",
+            "µs (log)",
+            &series,
+            YScale::Log { floor: 0.01 },
+        )?;
+        files.push(file.to_owned());
+
+        let s2a = &self.hops[Self::index(Hop::SenseToActuate)].series;
+        let p50: Vec<(f64, f64)> = s2a.iter().map(|p| (p.0, p.1)).collect();
+        let p99: Vec<(f64, f64)> = s2a.iter().map(|p| (p.0, p.2)).collect();
+        let max: Vec<(f64, f64)> = s2a.iter().map(|p| (p.0, p.3)).collect();
+        let file = "latency_over_time.png";
+        line_chart(
+            &self.dir.join(file),
+            &format!("{title}: sense-to-actuate per 1 s interval"),
+            "run time (s)",
+            "µs (log)",
+            &[
+                Series { label: "p50", points: &p50, dashed: false },
+                Series { label: "p99", points: &p99, dashed: false },
+                Series { label: "max", points: &max, dashed: true },
+            ],
+            YScale::Log { floor: 0.01 },
+        )?;
+        files.push(file.to_owned());
+        Ok(files)
+    }
+}
+
+/// Writes HdrHistogram's percentile-distribution text format (values in µs, 5 ticks per
+/// half distance), as `outputPercentileDistribution` does.
+pub fn write_percentile_distribution(h: &Histogram<u64>, out: &mut impl Write) -> io::Result<()> {
+    writeln!(out, "{:>12} {:>14} {:>10} {:>14}\n", "Value", "Percentile", "TotalCount", "1/(1-Percentile)")?;
+    let mut total = 0u64;
+    if !h.is_empty() {
+        for v in h.iter_quantiles(5) {
+            total += v.count_since_last_iteration();
+            let q = v.quantile_iterated_to();
+            let value = v.value_iterated_to() as f64 / 1e3;
+            if q < 1.0 {
+                writeln!(out, "{value:12.3} {q:2.12} {total:10} {:14.2}", 1.0 / (1.0 - q))?;
+            } else {
+                writeln!(out, "{value:12.3} {q:2.12} {total:10}")?;
+            }
+        }
+    }
+    let (mean, sd, max) = if h.is_empty() {
+        (0.0, 0.0, 0.0)
+    } else {
+        (h.mean() / 1e3, h.stdev() / 1e3, h.max() as f64 / 1e3)
+    };
+    writeln!(out, "#[Mean    = {mean:12.3}, StdDeviation   = {sd:12.3}]")?;
+    writeln!(out, "#[Max     = {max:12.3}, Total count    = {:12}]", h.len())?;
+    writeln!(out, "#[Buckets = {:12}, SubBuckets     = {:12}]", h.buckets(), h.distinct_values())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use hdrhistogram::serialization::Deserializer;
+    use hdrhistogram::serialization::interval_log::{IntervalLogIterator, LogEntry};
+
+    #[test]
+    fn interval_logs_read_back_and_hgrm_is_well_formed() {
+        let dir = std::env::temp_dir().join(format!("rl-latency-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).expect("dir");
+        let mut lat = Latency::new(&dir, 0, false).expect("new");
+        for i in 0..3000u64 {
+            lat.record(Hop::SenseToActuate, 10_000 + i, i * 1_000_000).expect("record");
+        }
+        let files = lat.finish().expect("finish");
+        assert_eq!(files.len(), Hop::ALL.len());
+        let text = std::fs::read(dir.join("sense_to_actuate.hlog")).expect("log");
+        let mut total = 0;
+        let mut intervals = 0;
+        for entry in IntervalLogIterator::new(&text) {
+            if let Ok(LogEntry::Interval(ilh)) = entry {
+                let bytes = base64_decode(ilh.encoded_histogram());
+                let h: Histogram<u64> =
+                    Deserializer::new().deserialize(&mut &bytes[..]).expect("decode");
+                total += h.len();
+                intervals += 1;
+            }
+        }
+        assert_eq!(intervals, 3, "one interval per second of run time");
+        assert_eq!(total, 3000);
+        let hgrm = std::fs::read_to_string(dir.join("sense_to_actuate.hgrm")).expect("hgrm");
+        assert!(hgrm.contains("Percentile") && hgrm.contains("Total count    =         3000"), "{hgrm}");
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    fn base64_decode(s: &str) -> Vec<u8> {
+        const A: &[u8] = b"ABCDEFGHIJKLMNOPQRSTUVWXYZabcdefghijklmnopqrstuvwxyz0123456789+/";
+        let mut out = Vec::new();
+        let mut buf = 0u32;
+        let mut bits = 0;
+        for c in s.bytes().filter(|c| *c != b'=') {
+            let v = A.iter().position(|a| *a == c).expect("base64") as u32;
+            buf = (buf << 6) | v;
+            bits += 6;
+            if bits >= 8 {
+                bits -= 8;
+                out.push((buf >> bits) as u8);
+            }
+        }
+        out
+    }
+}

@@ -1,0 +1,339 @@
+//! The `monitor` process: subscribes to state, reference and torque, joins them by tick
+//! into the same `trace.csv` rows as `rotorloop sim`, and records the per-hop latency
+//! histograms.
+//!
+//! It is passive: it has no event listener (publishers never wait for it or wake it), it
+//! polls its large ring buffers every `--poll-us`, and if it falls behind the oldest
+//! samples are overwritten: it counts the ticks lost and says so in the report.
+
+use std::fs::File;
+use std::io::{BufWriter, IsTerminal, Write};
+use std::path::PathBuf;
+use std::time::Duration;
+
+use anyhow::Context;
+use clap::Args;
+use glam::DVec3;
+use rotorloop_common::Actuation;
+use rotorloop_common::ipc::{MAX_BUFFER, Topic, now_ns, shutdown_requested};
+use rotorloop_common::wire::{
+    FLAG_LAST, FLAG_REALTIME, ReferenceSample, StateSample, TorqueSample,
+};
+use rotorloop_monitor::figures::tracking_figures;
+use rotorloop_monitor::latency::{Hop, HopStats, Latency};
+use rotorloop_monitor::{Metrics, Recorder, TraceWriter};
+use serde::Serialize;
+
+use super::{Mode, RoleArgs, SeqCounter};
+use crate::sim::write_json;
+
+/// `monitor` arguments.
+#[derive(Debug, Clone, Args)]
+pub struct MonitorArgs {
+    #[command(flatten)]
+    pub role: RoleArgs,
+    /// Output directory for trace, histograms, logs, plots and summary.
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Print a live status line on stderr.
+    #[arg(long)]
+    pub status: bool,
+    /// Poll period (µs).
+    #[arg(long, default_value_t = 2000, value_parser = clap::value_parser!(u64).range(50..=100_000))]
+    pub poll_us: u64,
+}
+
+const RING: usize = 16_384;
+
+#[derive(Debug, Clone, Copy, Default)]
+struct Slot {
+    state: Option<StateSample>,
+    reference: Option<ReferenceSample>,
+    torque: Option<TorqueSample>,
+}
+
+/// Received and lost samples of one subscriber.
+#[derive(Debug, Clone, Copy, Serialize, Default)]
+pub struct SubscriberCounts {
+    /// Samples taken.
+    pub received: u64,
+    /// Samples known lost (gaps in the tick sequence).
+    pub lost: u64,
+}
+
+impl From<SeqCounter> for SubscriberCounts {
+    fn from(s: SeqCounter) -> Self {
+        Self { received: s.received, lost: s.lost }
+    }
+}
+
+/// `summary.json` of a multi-process run.
+#[derive(Debug, Clone, Serialize)]
+pub struct RunSummary {
+    /// Scenario name.
+    pub name: String,
+    /// The scenario as run.
+    pub scenario: rotorloop_common::scenario::ScenarioFile,
+    /// `lockstep` or `realtime`.
+    pub mode: String,
+    /// Wait strategy.
+    pub wait: String,
+    /// Plant steps in the run.
+    pub ticks: u64,
+    /// Rows written to `trace.csv` (ticks + 1 when complete).
+    pub trace_rows: u64,
+    /// Rows the monitor could not assemble (samples lost or never published).
+    pub rows_lost: u64,
+    /// Whether the monitor saw every tick.
+    pub monitor_kept_up: bool,
+    /// Ticks on which the plant had no fresh torque in time (real time).
+    pub misses: u64,
+    /// Ticks answered without a reference sample at hand (controller).
+    pub reference_misses: u64,
+    /// State samples the controller took but did not answer (a newer one was there).
+    pub states_skipped_by_controller: u64,
+    /// Requested rate (Hz).
+    pub rate_hz: f64,
+    /// Achieved tick rate (Hz): ticks over the plant's wall time from tick 0 to the last.
+    pub achieved_rate_hz: f64,
+    /// Per subscriber: samples received and lost.
+    pub subscribers: std::collections::BTreeMap<String, SubscriberCounts>,
+    /// Per hop (ns).
+    pub hops: std::collections::BTreeMap<String, HopStats>,
+    /// Attitude error at the first and last row (deg).
+    pub err_deg_initial: f64,
+    /// See `err_deg_initial`.
+    pub err_deg_final: f64,
+    /// Largest relative spatial-momentum drift.
+    pub momentum_drift_rel_max: f64,
+    /// Whether the run reached its last tick (false after a signal).
+    pub completed: bool,
+    /// Files written.
+    pub files: Vec<String>,
+}
+
+/// Runs the monitor until it has the last row, or a termination signal.
+pub fn run(args: &MonitorArgs) -> anyhow::Result<()> {
+    let role = &args.role;
+    let scenario = role.scenario()?;
+    role.setup("monitor");
+    let domain = role.open_domain()?;
+    let node = domain.node("monitor").context("monitor")?;
+    let states = domain.inbox::<StateSample>(&node, Topic::State, MAX_BUFFER, false).context("monitor")?;
+    let refs = domain.inbox::<ReferenceSample>(&node, Topic::Reference, MAX_BUFFER, false).context("monitor")?;
+    let torques = domain.inbox::<TorqueSample>(&node, Topic::Torque, MAX_BUFFER, false).context("monitor")?;
+
+    let out = &args.out;
+    std::fs::create_dir_all(out).with_context(|| format!("cannot create {}", out.display()))?;
+    let summary_path = out.join("summary.json");
+    let _ = std::fs::remove_file(&summary_path);
+    let trace_path = out.join("trace.csv");
+    let file = File::create(&trace_path).with_context(|| format!("cannot create {}", trace_path.display()))?;
+    let mut trace = TraceWriter::new(BufWriter::with_capacity(1 << 20, file))?;
+
+    let actuation = scenario.actuation();
+    let params = match actuation {
+        Actuation::Internal => scenario.plant,
+        Actuation::External => scenario.plant.without_rotors(),
+    };
+    let init = rotorloop_plant::Body::new(params, scenario.plant_init).state();
+    let mut metrics = Metrics::new(params, &init);
+    let ticks = scenario.ticks();
+    let mut rec = Recorder::new(ticks + 1);
+    let mut latency = Latency::new(out, now_ns(), false).context("monitor: interval logs")?;
+
+    let mut slots = vec![Slot::default(); RING];
+    let (mut s_seq, mut r_seq, mut t_seq) = (SeqCounter::default(), SeqCounter::default(), SeqCounter::default());
+    let mut next = 0u64;
+    let mut rows = 0u64;
+    let mut rows_lost = 0u64;
+    let (mut first_err, mut last_err, mut drift_max) = (f64::NAN, f64::NAN, 0.0f64);
+    let mut first_wake: Option<u64> = None;
+    let mut last_state: Option<StateSample> = None;
+    let mut last_torque: Option<TorqueSample> = None;
+    let mut last_status = now_ns();
+    let status = args.status && std::io::stderr().is_terminal();
+
+    loop {
+        while let Some(s) = states.take()? {
+            s_seq.see(s.tick);
+            first_wake.get_or_insert(s.wake_ns);
+            slots[s.tick as usize % RING].state = Some(s);
+            if last_state.is_none_or(|l| s.tick >= l.tick) {
+                last_state = Some(s);
+            }
+        }
+        while let Some(r) = refs.take()? {
+            r_seq.see(r.tick);
+            slots[r.tick as usize % RING].reference = Some(r);
+        }
+        while let Some(t) = torques.take()? {
+            t_seq.see(t.tick);
+            slots[t.tick as usize % RING].torque = Some(t);
+            last_torque = Some(t);
+        }
+        let newest = s_seq.last().unwrap_or(0);
+        let ended = last_state.is_some_and(|s| s.flags & FLAG_LAST != 0);
+        let stopping = shutdown_requested();
+        // Emit every row that is complete, in tick order.
+        while next <= ticks {
+            let slot = slots[next as usize % RING];
+            let s = slot.state.filter(|s| s.tick == next);
+            let r = slot.reference.filter(|r| r.tick == next);
+            let t = slot.torque.filter(|t| t.tick == next);
+            let following = if next < ticks {
+                slots[(next + 1) as usize % RING].state.filter(|s| s.tick == next + 1)
+            } else {
+                None
+            };
+            let torque_settled = t.is_some() || newest >= next + 2 || stopping;
+            let next_settled = following.is_some() || next == ticks || newest > next + 1 || stopping;
+            let (Some(s), Some(r)) = (s, r) else {
+                if newest >= next + (RING as u64) / 2 || (ended && newest > next) || stopping {
+                    rows_lost += 1;
+                    next += 1;
+                    continue;
+                }
+                break;
+            };
+            if !(torque_settled && next_settled) || (next == ticks && t.is_none() && !stopping && !ended) {
+                break;
+            }
+            let x = s.body_state();
+            let rd = r.reference_state();
+            let nan = DVec3::splat(f64::NAN);
+            let (u, tau) = match t {
+                Some(t) => (
+                    if actuation == Actuation::Internal { DVec3::from_array(t.rotor_torque_nm) } else { DVec3::ZERO },
+                    DVec3::from_array(t.body_torque_nm),
+                ),
+                None => (nan, nan),
+            };
+            let row = metrics.observe(next, s.t_s, &x, &rd, u, tau, DVec3::from_array(s.applied_rotor_torque_nm));
+            trace.write(&row).with_context(|| format!("cannot write {}", trace_path.display()))?;
+            rec.record(&row, next == ticks);
+            if rows == 0 {
+                first_err = row.err_deg;
+            }
+            last_err = row.err_deg;
+            drift_max = drift_max.max(row.h_drift_rel);
+            rows += 1;
+
+            let at = s.publish_ns;
+            if let Some(t) = t {
+                latency.record(Hop::StateTransport, t.state_recv_ns.saturating_sub(s.publish_ns), at)?;
+                latency.record(Hop::ControllerCompute, t.publish_ns.saturating_sub(t.state_recv_ns), at)?;
+                if let Some(f) = following.filter(|f| f.applied_torque_tick == next) {
+                    latency.record(Hop::TorqueTransport, f.applied_torque_recv_ns.saturating_sub(t.publish_ns), at)?;
+                    latency.record(Hop::SenseToActuate, f.applied_torque_recv_ns.saturating_sub(s.publish_ns), at)?;
+                }
+            }
+            if s.flags & FLAG_REALTIME != 0 {
+                latency.record(Hop::TickLateness, s.wake_ns.saturating_sub(s.deadline_ns), at)?;
+            }
+            latency.record(Hop::ReferenceLead, s.publish_ns.saturating_sub(r.publish_ns), at)?;
+            next += 1;
+        }
+        if status && now_ns() - last_status > 500_000_000 {
+            last_status = now_ns();
+            let p99 = latency.histogram(Hop::SenseToActuate).value_at_quantile(0.99) as f64 / 1e3;
+            let misses = last_state.map_or(0, |s| s.misses);
+            let t = last_state.map_or(0.0, |s| s.t_s);
+            let mut e = std::io::stderr().lock();
+            let _ = write!(e, "\r  t = {t:8.3} s   error {last_err:.3e}°   sense-to-actuate p99 {p99:9.1} µs   misses {misses}   ");
+            let _ = e.flush();
+        }
+        if next > ticks || stopping {
+            break;
+        }
+        std::thread::sleep(Duration::from_micros(args.poll_us));
+    }
+    if status {
+        eprint!("\r{:100}\r", "");
+    }
+    trace.finish().with_context(|| format!("cannot write {}", trace_path.display()))?;
+    let mut files = vec!["trace.csv".to_owned()];
+    files.extend(latency.finish().context("monitor: histograms")?);
+    files.extend(Hop::ALL.iter().map(|h| format!("{}.hlog", h.name())));
+    files.extend(latency.plots(&scenario.file.name)?);
+    files.extend(tracking_figures(out, &scenario.file.name, &rec, None)?);
+
+    let last = last_state;
+    let achieved = match (first_wake, last) {
+        (Some(w0), Some(l)) if l.tick > 0 && l.wake_ns > w0 => l.tick as f64 / ((l.wake_ns - w0) as f64 / 1e9),
+        _ => 0.0,
+    };
+    let mut subscribers = std::collections::BTreeMap::new();
+    subscribers.insert("monitor.state".to_owned(), s_seq.into());
+    subscribers.insert("monitor.reference".to_owned(), r_seq.into());
+    // Torque ticks the controller skipped are not losses: count against what it published.
+    let monitor_torque_lost = last_torque.map_or(0, |t| t.published.saturating_sub(t_seq.received));
+    subscribers.insert(
+        "monitor.torque".to_owned(),
+        SubscriberCounts { received: t_seq.received, lost: monitor_torque_lost },
+    );
+    if let (Some(l), Some(t)) = (last, last_torque) {
+        // The plant's counters are as of its last state sample, before the last torque.
+        let published_before = t.published - u64::from(t.tick == l.tick);
+        subscribers.insert(
+            "plant.torque".to_owned(),
+            SubscriberCounts {
+                received: l.torques_received,
+                lost: published_before.saturating_sub(l.torques_received),
+            },
+        );
+    }
+    if let Some(t) = last_torque {
+        subscribers.insert("controller.state".to_owned(), SubscriberCounts { received: t.states_received, lost: t.states_lost });
+    }
+    let summary = RunSummary {
+        name: scenario.file.name.clone(),
+        scenario: scenario.file.clone(),
+        mode: match role.mode {
+            Mode::Lockstep => "lockstep".into(),
+            Mode::Realtime => "realtime".into(),
+        },
+        wait: role.wait.to_string(),
+        ticks,
+        trace_rows: rows,
+        rows_lost,
+        monitor_kept_up: rows_lost == 0
+            && s_seq.lost == 0
+            && r_seq.lost == 0
+            && monitor_torque_lost == 0
+            && rows == ticks + 1,
+        states_skipped_by_controller: last_torque.map_or(0, |t| t.states_skipped),
+        misses: last.map_or(0, |s| s.misses),
+        reference_misses: last_torque.map_or(0, |t| t.reference_misses),
+        rate_hz: scenario.file.run.rate_hz,
+        achieved_rate_hz: achieved,
+        subscribers,
+        hops: Hop::ALL.iter().map(|h| (h.name().to_owned(), latency.stats(*h))).collect(),
+        err_deg_initial: first_err,
+        err_deg_final: last_err,
+        momentum_drift_rel_max: drift_max,
+        completed: next > ticks,
+        files,
+    };
+    println!("{}", console_summary(&summary));
+    write_json(&summary_path, &summary)?;
+    Ok(())
+}
+
+/// A cyclictest-like summary: one line per hop with count/min/avg/p99/max in µs.
+pub fn console_summary(s: &RunSummary) -> String {
+    let mut t = format!(
+        "{} ({}, {} wait): {} ticks, {} rows, {} lost, {} misses, achieved {:.3} Hz of {} Hz, error {:.4}° → {:.3e}°\n",
+        s.name, s.mode, s.wait, s.ticks, s.trace_rows, s.rows_lost, s.misses, s.achieved_rate_hz, s.rate_hz,
+        s.err_deg_initial, s.err_deg_final
+    );
+    for hop in Hop::ALL {
+        let h = s.hops.get(hop.name()).copied().unwrap_or_default();
+        let us = |v: u64| v as f64 / 1e3;
+        t.push_str(&format!(
+            "T:{:<20} C:{:>9} Min:{:>9.1} Avg:{:>9.1} P99:{:>9.1} Max:{:>10.1} (µs)\n",
+            hop.name(), h.count, us(h.min), h.mean / 1e3, us(h.p99), us(h.max)
+        ));
+    }
+    t
+}
