@@ -207,7 +207,8 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Run(a) => crate::launch::run(&a)?,
         Command::Role(_) => unreachable!("handled in main"),
         Command::Clean { domain } => {
-            let d = rotorloop_common::ipc::Domain::new(&domain).map_err(|e| UsageError(e.to_string()))?;
+            let d = rotorloop_common::ipc::Domain::new(&domain)
+                .map_err(|e| UsageError(e.to_string()))?;
             let (cleaned, alive) = d.cleanup()?;
             println!("domain {domain}: {cleaned} dead node(s) cleaned, {alive} alive");
         }

@@ -47,7 +47,10 @@ pub fn parse_pins(s: &str) -> Result<BTreeMap<String, usize>, UsageError> {
             )));
         }
         let core: usize = core.parse().ok().filter(|c| *c < cores).ok_or_else(|| {
-            UsageError(format!("--pin {role}=`{core}` is not allowed: a core from 0 to {}", cores - 1))
+            UsageError(format!(
+                "--pin {role}=`{core}` is not allowed: a core from 0 to {}",
+                cores - 1
+            ))
         })?;
         pins.insert(role.to_owned(), core);
     }
@@ -85,7 +88,8 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
         Some(p) => parse_pins(p)?,
         None => BTreeMap::new(),
     };
-    std::fs::create_dir_all(&args.out).with_context(|| format!("cannot create {}", args.out.display()))?;
+    std::fs::create_dir_all(&args.out)
+        .with_context(|| format!("cannot create {}", args.out.display()))?;
     let exe = std::env::current_exe().context("cannot find the rotorloop executable")?;
     install_signal_handlers();
 

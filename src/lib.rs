@@ -8,10 +8,10 @@
 pub mod cli;
 pub mod closed_loop;
 pub mod gains;
+pub mod launch;
 pub mod montecarlo;
 pub mod paper;
 pub mod process;
-pub mod launch;
 pub mod sim;
 
 pub use closed_loop::ClosedLoop;

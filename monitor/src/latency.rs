@@ -250,7 +250,10 @@ impl Latency {
                 .iter_quantiles(5)
                 .filter(|v| v.quantile_iterated_to() < 1.0)
                 .map(|v| {
-                    ((1.0 / (1.0 - v.quantile_iterated_to())).log10(), v.value_iterated_to() as f64 / 1e3)
+                    (
+                        (1.0 / (1.0 - v.quantile_iterated_to())).log10(),
+                        v.value_iterated_to() as f64 / 1e3,
+                    )
                 })
                 .collect();
             spectra.push((hop.name(), pts));
@@ -293,7 +296,11 @@ impl Latency {
 /// Writes HdrHistogram's percentile-distribution text format (values in µs, 5 ticks per
 /// half distance), as `outputPercentileDistribution` does.
 pub fn write_percentile_distribution(h: &Histogram<u64>, out: &mut impl Write) -> io::Result<()> {
-    writeln!(out, "{:>12} {:>14} {:>10} {:>14}\n", "Value", "Percentile", "TotalCount", "1/(1-Percentile)")?;
+    writeln!(
+        out,
+        "{:>12} {:>14} {:>10} {:>14}\n",
+        "Value", "Percentile", "TotalCount", "1/(1-Percentile)"
+    )?;
     let mut total = 0u64;
     if !h.is_empty() {
         for v in h.iter_quantiles(5) {
@@ -348,7 +355,10 @@ mod tests {
         assert_eq!(intervals, 3, "one interval per second of run time");
         assert_eq!(total, 3000);
         let hgrm = std::fs::read_to_string(dir.join("sense_to_actuate.hgrm")).expect("hgrm");
-        assert!(hgrm.contains("Percentile") && hgrm.contains("Total count    =         3000"), "{hgrm}");
+        assert!(
+            hgrm.contains("Percentile") && hgrm.contains("Total count    =         3000"),
+            "{hgrm}"
+        );
         let _ = std::fs::remove_dir_all(&dir);
     }
 

@@ -32,9 +32,13 @@ pub fn run(args: &ControllerArgs) -> anyhow::Result<()> {
     let domain = role.open_domain()?;
     let node = domain.node("controller").context("controller")?;
     let out = domain.outbox::<TorqueSample>(&node, Topic::Torque).context("controller")?;
-    let states =
-        domain.inbox::<StateSample>(&node, Topic::State, 8, role.wait.listens()).context("controller")?;
-    let refs = domain.inbox::<ReferenceSample>(&node, Topic::Reference, 128, false).context("controller")?;
+    // Subscribe to the state last: the plant starts when it sees its state subscribers.
+    let refs = domain
+        .inbox::<ReferenceSample>(&node, Topic::Reference, 128, false)
+        .context("controller")?;
+    let states = domain
+        .inbox::<StateSample>(&node, Topic::State, 8, role.wait.listens())
+        .context("controller")?;
 
     let model = match scenario.actuation() {
         Actuation::Internal => scenario.plant,

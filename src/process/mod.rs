@@ -190,7 +190,11 @@ pub fn role_main<A: clap::Args + clap::FromArgMatches>(
 
 /// Runs a role with signal handling and error reporting (shared by the role binaries
 /// and `rotorloop role`).
-pub fn run_role<A>(name: &str, args: &A, run: fn(&A) -> anyhow::Result<()>) -> std::process::ExitCode {
+pub fn run_role<A>(
+    name: &str,
+    args: &A,
+    run: fn(&A) -> anyhow::Result<()>,
+) -> std::process::ExitCode {
     rotorloop_common::ipc::install_signal_handlers();
     rotorloop_common::ipc::quiet_iceoryx_logs();
     match run(args) {

@@ -119,16 +119,23 @@ pub fn run(args: &MonitorArgs) -> anyhow::Result<()> {
     role.setup("monitor");
     let domain = role.open_domain()?;
     let node = domain.node("monitor").context("monitor")?;
-    let states = domain.inbox::<StateSample>(&node, Topic::State, MAX_BUFFER, false).context("monitor")?;
-    let refs = domain.inbox::<ReferenceSample>(&node, Topic::Reference, MAX_BUFFER, false).context("monitor")?;
-    let torques = domain.inbox::<TorqueSample>(&node, Topic::Torque, MAX_BUFFER, false).context("monitor")?;
+    // Subscribe to the state last: the plant starts when it sees its state subscribers,
+    // so everything else must already be connected by then.
+    let refs = domain
+        .inbox::<ReferenceSample>(&node, Topic::Reference, MAX_BUFFER, false)
+        .context("monitor")?;
+    let torques =
+        domain.inbox::<TorqueSample>(&node, Topic::Torque, MAX_BUFFER, false).context("monitor")?;
+    let states =
+        domain.inbox::<StateSample>(&node, Topic::State, MAX_BUFFER, false).context("monitor")?;
 
     let out = &args.out;
     std::fs::create_dir_all(out).with_context(|| format!("cannot create {}", out.display()))?;
     let summary_path = out.join("summary.json");
     let _ = std::fs::remove_file(&summary_path);
     let trace_path = out.join("trace.csv");
-    let file = File::create(&trace_path).with_context(|| format!("cannot create {}", trace_path.display()))?;
+    let file = File::create(&trace_path)
+        .with_context(|| format!("cannot create {}", trace_path.display()))?;
     let mut trace = TraceWriter::new(BufWriter::with_capacity(1 << 20, file))?;
 
     let actuation = scenario.actuation();
@@ -143,7 +150,8 @@ pub fn run(args: &MonitorArgs) -> anyhow::Result<()> {
     let mut latency = Latency::new(out, now_ns(), false).context("monitor: interval logs")?;
 
     let mut slots = vec![Slot::default(); RING];
-    let (mut s_seq, mut r_seq, mut t_seq) = (SeqCounter::default(), SeqCounter::default(), SeqCounter::default());
+    let (mut s_seq, mut r_seq, mut t_seq) =
+        (SeqCounter::default(), SeqCounter::default(), SeqCounter::default());
     let mut next = 0u64;
     let mut rows = 0u64;
     let mut rows_lost = 0u64;
@@ -187,16 +195,20 @@ pub fn run(args: &MonitorArgs) -> anyhow::Result<()> {
                 None
             };
             let torque_settled = t.is_some() || newest >= next + 2 || stopping;
-            let next_settled = following.is_some() || next == ticks || newest > next + 1 || stopping;
+            let next_settled =
+                following.is_some() || next == ticks || newest > next + 1 || stopping;
             let (Some(s), Some(r)) = (s, r) else {
-                if newest >= next + (RING as u64) / 2 || (ended && newest > next) || stopping {
+                // Lost for good: newer states exist and the ring moved on, or the run ended.
+                if newest >= next + (RING as u64) / 2 || ((ended || stopping) && newest > next) {
                     rows_lost += 1;
                     next += 1;
                     continue;
                 }
                 break;
             };
-            if !(torque_settled && next_settled) || (next == ticks && t.is_none() && !stopping && !ended) {
+            if !(torque_settled && next_settled)
+                || (next == ticks && t.is_none() && !stopping && !ended)
+            {
                 break;
             }
             let x = s.body_state();
@@ -204,12 +216,24 @@ pub fn run(args: &MonitorArgs) -> anyhow::Result<()> {
             let nan = DVec3::splat(f64::NAN);
             let (u, tau) = match t {
                 Some(t) => (
-                    if actuation == Actuation::Internal { DVec3::from_array(t.rotor_torque_nm) } else { DVec3::ZERO },
+                    if actuation == Actuation::Internal {
+                        DVec3::from_array(t.rotor_torque_nm)
+                    } else {
+                        DVec3::ZERO
+                    },
                     DVec3::from_array(t.body_torque_nm),
                 ),
                 None => (nan, nan),
             };
-            let row = metrics.observe(next, s.t_s, &x, &rd, u, tau, DVec3::from_array(s.applied_rotor_torque_nm));
+            let row = metrics.observe(
+                next,
+                s.t_s,
+                &x,
+                &rd,
+                u,
+                tau,
+                DVec3::from_array(s.applied_rotor_torque_nm),
+            );
             trace.write(&row).with_context(|| format!("cannot write {}", trace_path.display()))?;
             rec.record(&row, next == ticks);
             if rows == 0 {
@@ -221,11 +245,27 @@ pub fn run(args: &MonitorArgs) -> anyhow::Result<()> {
 
             let at = s.publish_ns;
             if let Some(t) = t {
-                latency.record(Hop::StateTransport, t.state_recv_ns.saturating_sub(s.publish_ns), at)?;
-                latency.record(Hop::ControllerCompute, t.publish_ns.saturating_sub(t.state_recv_ns), at)?;
+                latency.record(
+                    Hop::StateTransport,
+                    t.state_recv_ns.saturating_sub(s.publish_ns),
+                    at,
+                )?;
+                latency.record(
+                    Hop::ControllerCompute,
+                    t.publish_ns.saturating_sub(t.state_recv_ns),
+                    at,
+                )?;
                 if let Some(f) = following.filter(|f| f.applied_torque_tick == next) {
-                    latency.record(Hop::TorqueTransport, f.applied_torque_recv_ns.saturating_sub(t.publish_ns), at)?;
-                    latency.record(Hop::SenseToActuate, f.applied_torque_recv_ns.saturating_sub(s.publish_ns), at)?;
+                    latency.record(
+                        Hop::TorqueTransport,
+                        f.applied_torque_recv_ns.saturating_sub(t.publish_ns),
+                        at,
+                    )?;
+                    latency.record(
+                        Hop::SenseToActuate,
+                        f.applied_torque_recv_ns.saturating_sub(s.publish_ns),
+                        at,
+                    )?;
                 }
             }
             if s.flags & FLAG_REALTIME != 0 {
@@ -240,7 +280,10 @@ pub fn run(args: &MonitorArgs) -> anyhow::Result<()> {
             let misses = last_state.map_or(0, |s| s.misses);
             let t = last_state.map_or(0.0, |s| s.t_s);
             let mut e = std::io::stderr().lock();
-            let _ = write!(e, "\r  t = {t:8.3} s   error {last_err:.3e}°   sense-to-actuate p99 {p99:9.1} µs   misses {misses}   ");
+            let _ = write!(
+                e,
+                "\r  t = {t:8.3} s   error {last_err:.3e}°   sense-to-actuate p99 {p99:9.1} µs   misses {misses}   "
+            );
             let _ = e.flush();
         }
         if next > ticks || stopping {
@@ -260,7 +303,9 @@ pub fn run(args: &MonitorArgs) -> anyhow::Result<()> {
 
     let last = last_state;
     let achieved = match (first_wake, last) {
-        (Some(w0), Some(l)) if l.tick > 0 && l.wake_ns > w0 => l.tick as f64 / ((l.wake_ns - w0) as f64 / 1e9),
+        (Some(w0), Some(l)) if l.tick > 0 && l.wake_ns > w0 => {
+            l.tick as f64 / ((l.wake_ns - w0) as f64 / 1e9)
+        }
         _ => 0.0,
     };
     let mut subscribers = std::collections::BTreeMap::new();
@@ -284,7 +329,10 @@ pub fn run(args: &MonitorArgs) -> anyhow::Result<()> {
         );
     }
     if let Some(t) = last_torque {
-        subscribers.insert("controller.state".to_owned(), SubscriberCounts { received: t.states_received, lost: t.states_lost });
+        subscribers.insert(
+            "controller.state".to_owned(),
+            SubscriberCounts { received: t.states_received, lost: t.states_lost },
+        );
     }
     let summary = RunSummary {
         name: scenario.file.name.clone(),
@@ -324,15 +372,29 @@ pub fn run(args: &MonitorArgs) -> anyhow::Result<()> {
 pub fn console_summary(s: &RunSummary) -> String {
     let mut t = format!(
         "{} ({}, {} wait): {} ticks, {} rows, {} lost, {} misses, achieved {:.3} Hz of {} Hz, error {:.4}° → {:.3e}°\n",
-        s.name, s.mode, s.wait, s.ticks, s.trace_rows, s.rows_lost, s.misses, s.achieved_rate_hz, s.rate_hz,
-        s.err_deg_initial, s.err_deg_final
+        s.name,
+        s.mode,
+        s.wait,
+        s.ticks,
+        s.trace_rows,
+        s.rows_lost,
+        s.misses,
+        s.achieved_rate_hz,
+        s.rate_hz,
+        s.err_deg_initial,
+        s.err_deg_final
     );
     for hop in Hop::ALL {
         let h = s.hops.get(hop.name()).copied().unwrap_or_default();
         let us = |v: u64| v as f64 / 1e3;
         t.push_str(&format!(
             "T:{:<20} C:{:>9} Min:{:>9.1} Avg:{:>9.1} P99:{:>9.1} Max:{:>10.1} (µs)\n",
-            hop.name(), h.count, us(h.min), h.mean / 1e3, us(h.p99), us(h.max)
+            hop.name(),
+            h.count,
+            us(h.min),
+            h.mean / 1e3,
+            us(h.p99),
+            us(h.max)
         ));
     }
     t

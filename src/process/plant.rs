@@ -39,8 +39,9 @@ pub fn run(args: &PlantArgs) -> anyhow::Result<()> {
     let domain = role.open_domain()?;
     let node = domain.node("plant").context("plant")?;
     let states = domain.outbox::<StateSample>(&node, Topic::State).context("plant")?;
-    let torques =
-        domain.inbox::<TorqueSample>(&node, Topic::Torque, 16, role.wait.listens()).context("plant")?;
+    let torques = domain
+        .inbox::<TorqueSample>(&node, Topic::Torque, 16, role.wait.listens())
+        .context("plant")?;
 
     let actuation = scenario.actuation();
     let params = match actuation {
@@ -89,7 +90,8 @@ pub fn run(args: &PlantArgs) -> anyhow::Result<()> {
         sample.misses = misses;
         sample.torques_received = seq.received;
         sample.torques_lost = seq.lost;
-        sample.flags = if k == ticks { FLAG_LAST } else { 0 } | if realtime { FLAG_REALTIME } else { 0 };
+        sample.flags =
+            if k == ticks { FLAG_LAST } else { 0 } | if realtime { FLAG_REALTIME } else { 0 };
         states.send(sample, |s| s.publish_ns = now_ns()).context("plant: publishing state")?;
 
         let wait_until = if realtime { grid(k + 1).saturating_sub(spin_last) } else { u64::MAX };

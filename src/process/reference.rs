@@ -26,8 +26,9 @@ pub fn run(args: &ReferenceArgs) -> anyhow::Result<()> {
     let domain = role.open_domain()?;
     let node = domain.node("reference").context("reference")?;
     let out = domain.outbox::<ReferenceSample>(&node, Topic::Reference).context("reference")?;
-    let states =
-        domain.inbox::<StateSample>(&node, Topic::State, 8, role.wait.listens()).context("reference")?;
+    let states = domain
+        .inbox::<StateSample>(&node, Topic::State, 8, role.wait.listens())
+        .context("reference")?;
 
     let h = scenario.plant_init.spatial_momentum(&scenario.plant);
     let mut generator = Reference::matched(

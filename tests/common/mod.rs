@@ -3,6 +3,8 @@
 //! `shared/spec/dynamics-and-control.md`, not by calling the library).
 #![allow(dead_code)]
 
+pub mod harness;
+
 use nalgebra::{Matrix3, Vector3};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;

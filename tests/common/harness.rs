@@ -1,0 +1,171 @@
+//! Harness for tests that spawn real processes: a unique domain and temp dir per test,
+//! children killed on drop, waits bounded by a deadline, and the check that a run left
+//! nothing in shared memory.
+#![allow(dead_code)]
+
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, ExitStatus, Output, Stdio};
+use std::time::{Duration, Instant};
+
+pub const ROTORLOOP: &str = env!("CARGO_BIN_EXE_rotorloop");
+
+/// One test's domain, directory and children.
+pub struct Harness {
+    pub domain: String,
+    pub dir: tempfile::TempDir,
+    children: Vec<Child>,
+}
+
+impl Harness {
+    pub fn new(test: &str) -> Self {
+        let domain = format!("t-{test}-{}", std::process::id());
+        Self { domain, dir: tempfile::tempdir().expect("tempdir"), children: Vec::new() }
+    }
+
+    pub fn path(&self, name: &str) -> PathBuf {
+        self.dir.path().join(name)
+    }
+
+    /// Runs `rotorloop args…` to completion (at most `limit`), returning its output.
+    pub fn rotorloop(&self, args: &[&str], limit: Duration) -> Output {
+        let child = Command::new(ROTORLOOP)
+            .args(args)
+            .stdin(Stdio::null())
+            .stdout(Stdio::piped())
+            .stderr(Stdio::piped())
+            .spawn()
+            .expect("spawn rotorloop");
+        wait_output(child, limit)
+    }
+
+    /// Starts a process in the background; it is killed when the harness drops.
+    pub fn spawn(&mut self, program: &str, args: &[String]) -> usize {
+        let child = Command::new(program)
+            .args(args)
+            .stdin(Stdio::null())
+            .stdout(Stdio::null())
+            .stderr(Stdio::piped())
+            .spawn()
+            .expect("spawn");
+        self.children.push(child);
+        self.children.len() - 1
+    }
+
+    pub fn child(&mut self, i: usize) -> &mut Child {
+        &mut self.children[i]
+    }
+
+    /// Waits for every background child to exit, at most `limit`; panics otherwise.
+    pub fn wait_all(&mut self, limit: Duration) -> Vec<ExitStatus> {
+        let until = Instant::now() + limit;
+        let mut out = Vec::new();
+        for (i, c) in self.children.iter_mut().enumerate() {
+            loop {
+                if let Some(st) = c.try_wait().expect("try_wait") {
+                    out.push(st);
+                    break;
+                }
+                assert!(Instant::now() < until, "child {i} did not exit within {limit:?}");
+                std::thread::sleep(Duration::from_millis(10));
+            }
+        }
+        out
+    }
+
+    /// Nothing of this domain remains in /dev/shm or iceoryx2's root directory.
+    pub fn assert_no_leftovers(&self) {
+        let prefix = format!("rl_{}_", self.domain);
+        let shm: Vec<String> = std::fs::read_dir("/dev/shm")
+            .map(|d| {
+                d.flatten()
+                    .map(|e| e.file_name().to_string_lossy().into_owned())
+                    .filter(|n| n.starts_with(&prefix))
+                    .collect()
+            })
+            .unwrap_or_default();
+        assert!(shm.is_empty(), "left in /dev/shm: {shm:?}");
+        let root = Path::new("/tmp/iceoryx2").join(&prefix);
+        let files = files_under(&root);
+        assert!(files.is_empty(), "left under {}: {files:?}", root.display());
+    }
+}
+
+fn files_under(p: &Path) -> Vec<PathBuf> {
+    let mut out = Vec::new();
+    if let Ok(d) = std::fs::read_dir(p) {
+        for e in d.flatten() {
+            let path = e.path();
+            if path.is_dir() {
+                out.extend(files_under(&path));
+            } else {
+                out.push(path);
+            }
+        }
+    }
+    out
+}
+
+impl Drop for Harness {
+    fn drop(&mut self) {
+        for c in &mut self.children {
+            let _ = c.kill();
+            let _ = c.wait();
+        }
+    }
+}
+
+/// Waits for a child with a deadline, killing it if it overruns.
+pub fn wait_output(mut child: Child, limit: Duration) -> Output {
+    let until = Instant::now() + limit;
+    loop {
+        if child.try_wait().expect("try_wait").is_some() {
+            return child.wait_with_output().expect("output");
+        }
+        if Instant::now() > until {
+            let _ = child.kill();
+            let out = child.wait_with_output().expect("output");
+            panic!(
+                "process did not finish within {limit:?}; stderr:\n{}",
+                String::from_utf8_lossy(&out.stderr)
+            );
+        }
+        std::thread::sleep(Duration::from_millis(10));
+    }
+}
+
+pub fn ok(out: &Output) -> String {
+    assert!(
+        out.status.success(),
+        "failed ({}): {}",
+        out.status,
+        String::from_utf8_lossy(&out.stderr)
+    );
+    String::from_utf8_lossy(&out.stdout).into_owned()
+}
+
+pub fn json(path: &Path) -> serde_json::Value {
+    serde_json::from_str(&std::fs::read_to_string(path).expect("read json")).expect("json")
+}
+
+/// Asserts two traces are byte-identical, naming the first differing row and columns.
+pub fn assert_same_trace(what: &str, got: &[u8], want: &[u8]) {
+    if got == want {
+        return;
+    }
+    let (g, w) = (String::from_utf8_lossy(got), String::from_utf8_lossy(want));
+    let header: Vec<&str> = w.lines().next().unwrap_or("").split(',').collect();
+    for (i, (a, b)) in g.lines().zip(w.lines()).enumerate() {
+        if a != b {
+            let cols: Vec<String> = a
+                .split(',')
+                .zip(b.split(','))
+                .enumerate()
+                .filter(|(_, (x, y))| x != y)
+                .take(6)
+                .map(|(j, (x, y))| format!("{}: {x} vs {y}", header.get(j).unwrap_or(&"?")))
+                .collect();
+            panic!("{what}: row {i} differs from the simulator's: {cols:?}");
+        }
+    }
+    panic!("{what}: {} rows vs the simulator's {}", g.lines().count(), w.lines().count());
+}
