@@ -27,7 +27,8 @@ pub struct Cli {
 enum Command {
     /// Run one scenario in one process, faster than real time.
     Sim(SimArgs),
-    /// The paper's three tracking runs and the control-effort comparison, with a report.
+    /// The paper's three runs through the four processes (real time) and in process
+    /// (control-effort comparison), with a report.
     Paper {
         /// Output directory: one sub-directory per run, plus report.md.
         #[arg(long, default_value = "out/paper")]
@@ -38,6 +39,9 @@ enum Command {
         /// Tick rate (Hz).
         #[arg(long, default_value_t = 1000.0)]
         rate: f64,
+        /// Only the in-process simulator (no four-process runs).
+        #[arg(long)]
+        in_process: bool,
     },
     /// The paper's Appendix A gain bounds and the linearised closed-loop poles.
     Gains {
@@ -193,7 +197,9 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
             print!("{}", summary_table(&summary));
             println!("  {:<28} {}", "output", a.out.display());
         }
-        Command::Paper { out, duration, rate } => crate::paper::run(&out, duration, rate)?,
+        Command::Paper { out, duration, rate, in_process } => {
+            crate::paper::run(&out, duration, rate, in_process)?
+        }
         Command::Gains { scenario, json } => {
             let s = rotorloop_common::Scenario::load(&scenario).map_err(UsageError::from)?;
             print_warnings(&s.warnings);

@@ -1,6 +1,8 @@
 //! `rotorloop paper`: the paper's three tracking runs (reference torques zero, constant,
-//! sinusoid), each with the rotor vs gas-jet effort comparison, the gain analysis, and a
-//! one-page `report.md`.
+//! sinusoid). Each runs as the four-process loop over iceoryx2 in real time (trace,
+//! latency histograms, figures in `DIR/<name>/`) and in process for the rotor vs gas-jet
+//! effort comparison (`DIR/<name>/sim/`); then the gain analysis and a one-page
+//! `report.md`. `--in-process` skips the four processes.
 
 use std::fmt::Write as _;
 use std::path::Path;
@@ -14,14 +16,55 @@ use crate::{UsageError, gains};
 pub const PAPER_SCENARIOS: [&str; 3] = ["paper-zero", "paper-constant", "paper-sinusoid"];
 
 /// Runs the three scenarios into `out/<name>/` and writes `out/report.md`.
-pub fn run(out: &Path, duration: f64, rate: f64) -> anyhow::Result<()> {
+pub fn run(out: &Path, duration: f64, rate: f64, in_process: bool) -> anyhow::Result<()> {
     let mut md = String::from("# The paper's scenario, three reference torques\n\n");
     let mut errs = Vec::new();
     let mut rows = String::new();
+    let mut loop_rows = String::new();
     for name in PAPER_SCENARIOS {
         let scenario = scenario_with_overrides(name, Some(duration), Some(rate), None)?;
-        let dir = out.join(name);
-        println!("{name}:");
+        let dir = if in_process { out.join(name) } else { out.join(name).join("sim") };
+        if !in_process {
+            println!("{name}: four processes, real time");
+            let run_dir = out.join(name);
+            let role = crate::process::RoleArgs {
+                domain: None,
+                scenario: name.to_owned(),
+                duration: Some(duration),
+                rate: Some(rate),
+                actuation: None,
+                mode: crate::process::Mode::Realtime,
+                wait: rotorloop_common::ipc::Wait::Event,
+                core: None,
+                rt_priority: None,
+                mlock: false,
+            };
+            crate::launch::run(&crate::launch::RunArgs {
+                role,
+                pin: None,
+                out: run_dir.clone(),
+                no_monitor: false,
+            })
+            .with_context(|| format!("four-process run of {name}"))?;
+            let j: serde_json::Value = serde_json::from_str(
+                &std::fs::read_to_string(run_dir.join("summary.json"))
+                    .with_context(|| format!("no summary of the {name} run"))?,
+            )?;
+            let us = |hop: &str, q: &str| j["hops"][hop][q].as_f64().unwrap_or(f64::NAN) / 1e3;
+            let _ = writeln!(
+                loop_rows,
+                "| {name} | {} | {} | {:.3} | {:.1} | {:.1} | {:.1} | {:.1} | {:.3e} |",
+                j["ticks"],
+                j["misses"],
+                j["achieved_rate_hz"].as_f64().unwrap_or(f64::NAN),
+                us("sense_to_actuate", "p50"),
+                us("sense_to_actuate", "p99"),
+                us("sense_to_actuate", "max"),
+                us("tick_lateness", "p99"),
+                j["err_deg_final"].as_f64().unwrap_or(f64::NAN),
+            );
+        }
+        println!("{name}: in process");
         let (s, rec) = sim::run(&SimOptions {
             scenario,
             open_loop: None,
@@ -49,10 +92,20 @@ pub fn run(out: &Path, duration: f64, rate: f64) -> anyhow::Result<()> {
     }
     let _ = writeln!(
         md,
-        "{duration} s at {rate} Hz. Figures and traces per run in the sub-directories.\n\n\
+        "## In process: tracking and control effort\n\n\
+         {duration} s at {rate} Hz. Figures and traces in `<run>/sim/` (`<run>/` with `--in-process`).\n\n\
          | run | error at 0 (deg) | final error (deg) | below 0.1° from (s) | momentum drift | ‖u‖ rms | ‖u‖ max | ‖τ‖ rms | ‖τ‖ max |\n\
          |---|---|---|---|---|---|---|---|---|\n{rows}"
     );
+    if !in_process {
+        let _ = writeln!(
+            md,
+            "## Four processes over iceoryx2, real time\n\n\
+             Latency figures, histograms (`.hgrm`, `.hlog`) and traces in `<run>/`.\n\n\
+             | run | ticks | misses | achieved Hz | sense-to-actuate p50 (µs) | p99 | max | tick lateness p99 (µs) | final error (deg) |\n\
+             |---|---|---|---|---|---|---|---|---|\n{loop_rows}"
+        );
+    }
     // In continuous time the error history is the same for all three profiles (spec).
     let mut diff = 0.0f64;
     for other in &errs[1..] {

@@ -175,6 +175,8 @@ fn montecarlo_writes_runs_summary_and_histograms() {
     png_size(&out.join("initial_error_histogram.png"));
 }
 
+/// `paper` runs each scenario through the four processes (report, latency files) and in
+/// process (effort comparison), and writes one report.
 #[test]
 fn paper_runs_the_three_scenarios_and_writes_a_report() {
     let dir = tempfile::tempdir().expect("tempdir");
@@ -183,8 +185,12 @@ fn paper_runs_the_three_scenarios_and_writes_a_report() {
     let report = std::fs::read_to_string(out.join("report.md")).expect("report");
     for name in ["paper-zero", "paper-constant", "paper-sinusoid"] {
         assert!(report.contains(name));
-        assert!(out.join(name).join("summary.json").exists());
-        png_size(&out.join(name).join("control_effort.png"));
+        let run = json(&out.join(name).join("summary.json"));
+        assert_eq!(run["mode"], "realtime");
+        assert_eq!(run["completed"], true);
+        assert!(out.join(name).join("sense_to_actuate.hgrm").exists());
+        assert!(out.join(name).join("sim").join("summary.json").exists());
+        png_size(&out.join(name).join("sim").join("control_effort.png"));
     }
-    assert!(report.contains("verdict"));
+    assert!(report.contains("verdict") && report.contains("sense-to-actuate"));
 }

@@ -139,9 +139,7 @@ impl Domain {
             match state {
                 NodeState::Alive(v) if mine(v.details()) => alive += 1,
                 NodeState::Dead(v) if mine(v.details()) => {
-                    if v.try_remove_stale_resources().is_ok() {
-                        cleaned += 1;
-                    }
+                    cleaned += usize::from(v.try_remove_stale_resources().is_ok());
                 }
                 _ => {}
             }
