@@ -56,6 +56,8 @@ enum Command {
     Montecarlo(McArgs),
     /// The four processes over iceoryx2 shared memory, with the monitor's report.
     Run(crate::launch::RunArgs),
+    /// The latency study: the loop against same-invocation baselines, per cell.
+    Bench(crate::bench::BenchArgs),
     /// Remove what dead processes of a domain left in shared memory (and, when none of
     /// its processes is alive, the domain's last iceoryx2 file).
     Clean {
@@ -75,6 +77,8 @@ enum RoleCommand {
     Reference(crate::process::reference::ReferenceArgs),
     Controller(crate::process::controller::ControllerArgs),
     Monitor(crate::process::monitor::MonitorArgs),
+    Pingpong(crate::process::pingpong::PingPongArgs),
+    Hog(crate::process::pingpong::HogArgs),
 }
 
 #[derive(Debug, clap::Args)]
@@ -158,6 +162,8 @@ pub fn main() -> ExitCode {
             RoleCommand::Reference(a) => run_role("reference", a, reference::run),
             RoleCommand::Controller(a) => run_role("controller", a, controller::run),
             RoleCommand::Monitor(a) => run_role("monitor", a, monitor::run),
+            RoleCommand::Pingpong(a) => run_role("pingpong", a, crate::process::pingpong::run),
+            RoleCommand::Hog(a) => run_role("hog", a, crate::process::pingpong::hog),
         };
     }
     match run(cli) {
@@ -211,6 +217,7 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
             }
         }
         Command::Run(a) => crate::launch::run(&a)?,
+        Command::Bench(a) => crate::bench::run(&a)?,
         Command::Role(_) => unreachable!("handled in main"),
         Command::Clean { domain } => {
             let d = rotorloop_common::ipc::Domain::new(&domain)

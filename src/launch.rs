@@ -31,6 +31,9 @@ pub struct RunArgs {
     /// Run without the monitor (no report; for measuring what the monitor costs).
     #[arg(long)]
     pub no_monitor: bool,
+    /// No status line and no per-run console summary.
+    #[arg(long)]
+    pub quiet: bool,
 }
 
 /// Parses `--pin`: `role=core` pairs separated by commas.
@@ -102,9 +105,15 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
         r.core = pins.get(role).copied();
         let mut cmd = Command::new(&exe);
         cmd.arg("role").arg(role).args(r.to_args()).stdin(Stdio::null());
+        if args.quiet {
+            cmd.stdout(Stdio::null());
+        }
         match role {
             "monitor" => {
-                cmd.arg("--out").arg(&args.out).arg("--status");
+                cmd.arg("--out").arg(&args.out);
+                if !args.quiet {
+                    cmd.arg("--status");
+                }
             }
             "plant" => {
                 cmd.arg("--subscribers").arg(if args.no_monitor { "2" } else { "3" });
@@ -158,7 +167,7 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
     }
     if shutdown_requested() {
         eprintln!("stopped by signal; partial report in {}", args.out.display());
-    } else if !args.no_monitor {
+    } else if !args.no_monitor && !args.quiet {
         println!("report: {}", args.out.display());
     }
     Ok(())

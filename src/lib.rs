@@ -9,6 +9,7 @@ pub mod cli;
 pub mod closed_loop;
 pub mod gains;
 pub mod launch;
+pub mod bench;
 pub mod montecarlo;
 pub mod paper;
 pub mod process;

@@ -19,7 +19,7 @@ use iceoryx2::service::port_factory::publish_subscribe::PortFactory as PubSubFac
 #[derive(Debug, thiserror::Error)]
 pub enum IpcError {
     /// A bad domain name.
-    #[error("--domain `{0}` is not allowed: 1 to 48 characters from A-Z a-z 0-9 - _")]
+    #[error("--domain `{0}` is not allowed: 1 to 24 characters from A-Z a-z 0-9 - _")]
     Domain(String),
     /// iceoryx2 refused something.
     #[error("{what}: {detail}")]
@@ -73,10 +73,12 @@ pub struct Domain {
 }
 
 impl Domain {
-    /// A domain by name (1–48 of `A-Z a-z 0-9 - _`).
+    /// A domain by name (1–24 of `A-Z a-z 0-9 - _`). The limit keeps iceoryx2's event
+    /// socket paths (`<root>/rl_<domain>_/rl_<domain>_<id>.event`) within the 107 bytes a
+    /// Unix socket path may have.
     pub fn new(name: &str) -> Result<Self, IpcError> {
         let ok = !name.is_empty()
-            && name.len() <= 48
+            && name.len() <= 24
             && name.bytes().all(|b| b.is_ascii_alphanumeric() || b == b'-' || b == b'_');
         if !ok {
             return Err(IpcError::Domain(name.to_owned()));

@@ -8,6 +8,7 @@
 
 pub mod controller;
 pub mod monitor;
+pub mod pingpong;
 pub mod plant;
 pub mod reference;
 

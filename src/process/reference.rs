@@ -4,7 +4,7 @@
 
 use anyhow::Context;
 use clap::Args;
-use rotorloop_common::ipc::{REFERENCE_LEAD, Topic, now_ns, shutdown_requested};
+use rotorloop_common::ipc::{REFERENCE_LEAD, Topic, Wait, now_ns, shutdown_requested};
 use rotorloop_common::so3::to_row_major;
 use rotorloop_common::wire::{FLAG_LAST, ReferenceSample, StateSample};
 use rotorloop_reference::Reference;
@@ -26,9 +26,9 @@ pub fn run(args: &ReferenceArgs) -> anyhow::Result<()> {
     let domain = role.open_domain()?;
     let node = domain.node("reference").context("reference")?;
     let out = domain.outbox::<ReferenceSample>(&node, Topic::Reference).context("reference")?;
-    let states = domain
-        .inbox::<StateSample>(&node, Topic::State, 8, role.wait.listens())
-        .context("reference")?;
+    // Off the hot path: always block on events, whatever --wait says, so a spinning
+    // loop does not get a third busy process.
+    let states = domain.inbox::<StateSample>(&node, Topic::State, 8, true).context("reference")?;
 
     let h = scenario.plant_init.spatial_momentum(&scenario.plant);
     let mut generator = Reference::matched(
@@ -66,7 +66,7 @@ pub fn run(args: &ReferenceArgs) -> anyhow::Result<()> {
             break;
         }
         let deadline = now_ns() + 100_000_000;
-        states.wait_for(role.wait, deadline, |inbox| {
+        states.wait_for(Wait::Event, deadline, |inbox| {
             let mut any = None;
             while let Some(s) = inbox.take()? {
                 newest_state = newest_state.max(s.tick);

@@ -1,0 +1,424 @@
+//! `rotorloop bench`: the latency study. For every cell (rate × wait strategy × core
+//! placement × load) it runs the real four-process loop in real time and, in the same
+//! invocation with the same placement, wait strategy and pacing (one exchange per tick at
+//! the cell's rate), the baselines it should be judged against: shared-memory atomics
+//! (the hardware floor), bare iceoryx2, and Unix domain sockets.
+//!
+//! Output: `bench.csv` (a row per cell and baseline, appended as cells finish, so an
+//! interrupted bench keeps what it measured), `bench.md` (the table with ratios to the
+//! baselines), one `.hgrm` per measurement, and plots.
+
+use std::fmt::Write as _;
+use std::io::{IsTerminal, Write};
+use std::path::{Path, PathBuf};
+use std::process::{Command, Stdio};
+
+use anyhow::Context;
+use clap::Args;
+use rotorloop_common::ipc::{Domain, Wait, shutdown_requested};
+use rotorloop_monitor::plot::{Series, YScale, line_chart};
+
+use crate::UsageError;
+use crate::launch::RunArgs;
+use crate::process::pingpong::Kind;
+use crate::process::{Mode, RoleArgs};
+
+/// `rotorloop bench` arguments.
+#[derive(Debug, Clone, Args)]
+pub struct BenchArgs {
+    /// Tick rates (Hz).
+    #[arg(long, value_delimiter = ',', default_value = "1000,2000,5000,10000,20000")]
+    pub rates: Vec<f64>,
+    /// Wait strategies.
+    #[arg(long, value_delimiter = ',', default_value = "event,spin,hybrid")]
+    pub wait: Vec<Wait>,
+    /// Core placements of plant and controller: same-core, cross-core, unpinned.
+    #[arg(long, value_delimiter = ',', default_value = "same-core,cross-core,unpinned")]
+    pub placement: Vec<String>,
+    /// Seconds per measurement.
+    #[arg(long, default_value_t = 3.0)]
+    pub seconds: f64,
+    /// Load: none, or other-core (a CPU hog on the core the loop is not pinned to).
+    #[arg(long, value_delimiter = ',', default_value = "none")]
+    pub load: Vec<String>,
+    /// Baselines: atomic, iceoryx2, uds.
+    #[arg(long, value_delimiter = ',', default_value = "atomic,iceoryx2,uds")]
+    pub baselines: Vec<String>,
+    /// Scenario the loop runs.
+    #[arg(long, default_value = "paper-sinusoid")]
+    pub scenario: String,
+    /// Output directory.
+    #[arg(long)]
+    pub out: PathBuf,
+}
+
+/// One measurement (a loop cell or a baseline), as a row of `bench.csv`.
+#[derive(Debug, Clone, Default)]
+pub struct Row {
+    /// Cell identifier.
+    pub cell: String,
+    /// `loop`, `atomic`, `iceoryx2`, `uds`.
+    pub kind: String,
+    /// Rate (Hz).
+    pub rate: f64,
+    /// Wait strategy.
+    pub wait: String,
+    /// Placement.
+    pub placement: String,
+    /// Load.
+    pub load: String,
+    /// Samples.
+    pub count: u64,
+    /// µs.
+    pub p50: f64,
+    /// µs.
+    pub p99: f64,
+    /// µs.
+    pub p99_9: f64,
+    /// µs.
+    pub max: f64,
+    /// Ticks without a fresh answer in time.
+    pub misses: u64,
+    /// Achieved rate (Hz).
+    pub achieved: f64,
+    /// Tick lateness p99 (µs), loop only.
+    pub lateness_p99: f64,
+    /// Why the measurement was skipped, if it was.
+    pub skipped: String,
+    /// Cell number (for short domain names).
+    pub index: usize,
+}
+
+const CSV_HEADER: &str = "cell,kind,rate_hz,wait,placement,load,count,p50_us,p99_us,p99_9_us,max_us,misses,achieved_rate_hz,tick_lateness_p99_us,skipped";
+
+impl Row {
+    fn csv(&self) -> String {
+        format!(
+            "{},{},{},{},{},{},{},{},{},{},{},{},{},{},{}",
+            self.cell, self.kind, self.rate, self.wait, self.placement, self.load, self.count,
+            self.p50, self.p99, self.p99_9, self.max, self.misses, self.achieved, self.lateness_p99,
+            self.skipped.replace(',', ";")
+        )
+    }
+}
+
+/// Cores of plant/controller (and ping/pong) for a placement; `None` = unpinned.
+fn cores(placement: &str) -> Option<(usize, usize)> {
+    match placement {
+        "same-core" => Some((0, 0)),
+        "cross-core" => Some((0, 1)),
+        _ => None,
+    }
+}
+
+/// Why a combination cannot work on this machine, if it cannot.
+pub fn skip_reason(kind: &str, wait: Wait, placement: &str, load: &str, ncores: usize) -> Option<String> {
+    let spins = matches!(wait, Wait::Spin) || kind == "atomic";
+    if spins && placement == "same-core" {
+        return Some("busy-wait with both ends on one core: each hand-off waits for a scheduler time slice".into());
+    }
+    if spins && ncores < 2 {
+        return Some(format!("busy-wait needs 2 dedicated cores; this machine has {ncores}"));
+    }
+    if load == "other-core" && placement != "same-core" {
+        return Some("other-core load needs the loop on one core (same-core placement)".into());
+    }
+    None
+}
+
+fn validate(a: &BenchArgs) -> Result<(), UsageError> {
+    for r in &a.rates {
+        if !(r.is_finite() && (1.0..=100_000.0).contains(r)) {
+            return Err(UsageError(format!("--rates {r} is not allowed: 1 to 100000 Hz")));
+        }
+    }
+    for p in &a.placement {
+        if !["same-core", "cross-core", "unpinned"].contains(&p.as_str()) {
+            return Err(UsageError(format!("--placement `{p}` is not allowed: same-core, cross-core or unpinned")));
+        }
+    }
+    for l in &a.load {
+        if !["none", "other-core"].contains(&l.as_str()) {
+            return Err(UsageError(format!("--load `{l}` is not allowed: none or other-core")));
+        }
+    }
+    for b in &a.baselines {
+        if !["atomic", "iceoryx2", "uds"].contains(&b.as_str()) {
+            return Err(UsageError(format!("--baselines `{b}` is not allowed: atomic, iceoryx2, uds")));
+        }
+    }
+    if !(a.seconds.is_finite() && a.seconds >= 0.05 && a.seconds <= 3600.0) {
+        return Err(UsageError(format!("--seconds {} is not allowed: 0.05 to 3600", a.seconds)));
+    }
+    Ok(())
+}
+
+/// Runs the bench.
+pub fn run(a: &BenchArgs) -> anyhow::Result<()> {
+    validate(a)?;
+    crate::sim::scenario_with_overrides(&a.scenario, Some(a.seconds), Some(a.rates[0]), None)?;
+    std::fs::create_dir_all(&a.out).with_context(|| format!("cannot create {}", a.out.display()))?;
+    let exe = std::env::current_exe().context("cannot find the rotorloop executable")?;
+    let ncores = std::thread::available_parallelism().map_or(1, |n| n.get());
+    rotorloop_common::ipc::install_signal_handlers();
+
+    let csv_path = a.out.join("bench.csv");
+    std::fs::write(&csv_path, format!("{CSV_HEADER}\n"))?;
+    let mut rows: Vec<Row> = Vec::new();
+    let mut cells = Vec::new();
+    for &rate in &a.rates {
+        for &wait in &a.wait {
+            for placement in &a.placement {
+                for load in &a.load {
+                    cells.push((rate, wait, placement.clone(), load.clone()));
+                }
+            }
+        }
+    }
+    let tty = std::io::stderr().is_terminal();
+    for (i, (rate, wait, placement, load)) in cells.iter().enumerate() {
+        if shutdown_requested() {
+            eprintln!("interrupted: {} of {} cells measured", i, cells.len());
+            break;
+        }
+        let cell = format!("r{rate}-{wait}-{placement}-{load}");
+        let bar = "#".repeat(20 * i / cells.len()) + &" ".repeat(20 - 20 * i / cells.len());
+        eprint!("{}[{bar}] {}/{} {cell}{}", if tty { "\r" } else { "" }, i + 1, cells.len(), if tty { "        " } else { "\n" });
+        let base = Row { index: i, cell: cell.clone(), rate: *rate, wait: wait.to_string(), placement: placement.clone(), load: load.clone(), ..Row::default() };
+        let dir = a.out.join("cells").join(&cell);
+        std::fs::create_dir_all(&dir)?;
+        let hog = if load == "other-core" && skip_reason("loop", *wait, placement, load, ncores).is_none() {
+            let core = cores(placement).map(|(p, _)| (p + 1) % ncores);
+            let mut cmd = Command::new(&exe);
+            cmd.args(["role", "hog"]).stdin(Stdio::null());
+            if let Some(c) = core {
+                cmd.args(["--core", &c.to_string()]);
+            }
+            Some(cmd.spawn().context("cannot start the CPU hog")?)
+        } else {
+            None
+        };
+        let mut measured = vec![measure_loop(a, &base, *wait, placement, ncores, &dir)?];
+        for b in &a.baselines {
+            measured.push(measure_baseline(&exe, a, &base, b, *wait, placement, ncores, &dir)?);
+        }
+        if let Some(mut h) = hog {
+            // SAFETY: signals our own child.
+            unsafe { libc::kill(h.id() as libc::pid_t, libc::SIGTERM) };
+            let _ = h.wait();
+        }
+        let mut f = std::fs::OpenOptions::new().append(true).open(&csv_path)?;
+        for r in &measured {
+            writeln!(f, "{}", r.csv())?;
+        }
+        rows.extend(measured);
+        write_markdown(a, &rows)?;
+    }
+    if tty {
+        eprintln!();
+    }
+    write_markdown(a, &rows)?;
+    plots(a, &rows)?;
+    println!("bench: {} measurements in {}", rows.len(), a.out.display());
+    Ok(())
+}
+
+fn measure_loop(a: &BenchArgs, base: &Row, wait: Wait, placement: &str, ncores: usize, dir: &Path) -> anyhow::Result<Row> {
+    let mut row = Row { kind: "loop".into(), ..base.clone() };
+    if let Some(why) = skip_reason("loop", wait, placement, &base.load, ncores) {
+        row.skipped = why;
+        return Ok(row);
+    }
+    let pin = cores(placement).map(|(p, c)| {
+        let other = |x: usize| (x + 1) % ncores;
+        format!("plant={p},controller={c},reference={},monitor={}", other(p), other(c))
+    });
+    let out = dir.join("loop");
+    let role = RoleArgs {
+        domain: Some(format!("bl{}-{}", std::process::id(), base.index)),
+        scenario: a.scenario.clone(),
+        duration: Some(a.seconds),
+        rate: Some(base.rate),
+        actuation: None,
+        mode: Mode::Realtime,
+        wait,
+        core: None,
+        rt_priority: None,
+        mlock: false,
+    };
+    crate::launch::run(&RunArgs { role, pin, out: out.clone(), no_monitor: false, quiet: true })?;
+    let j: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(out.join("summary.json"))?)?;
+    let h = &j["hops"]["sense_to_actuate"];
+    let us = |v: &serde_json::Value| v.as_f64().unwrap_or(f64::NAN) / 1e3;
+    row.count = h["count"].as_u64().unwrap_or(0);
+    row.p50 = us(&h["p50"]);
+    row.p99 = us(&h["p99"]);
+    row.p99_9 = us(&h["p99_9"]);
+    row.max = us(&h["max"]);
+    row.misses = j["misses"].as_u64().unwrap_or(0);
+    row.achieved = j["achieved_rate_hz"].as_f64().unwrap_or(0.0);
+    row.lateness_p99 = us(&j["hops"]["tick_lateness"]["p99"]);
+    std::fs::copy(out.join("sense_to_actuate.hgrm"), dir.join("loop.hgrm"))?;
+    Ok(row)
+}
+
+#[allow(clippy::too_many_arguments)]
+fn measure_baseline(
+    exe: &Path,
+    a: &BenchArgs,
+    base: &Row,
+    kind: &str,
+    wait: Wait,
+    placement: &str,
+    ncores: usize,
+    dir: &Path,
+) -> anyhow::Result<Row> {
+    let mut row = Row { kind: kind.into(), ..base.clone() };
+    if let Some(why) = skip_reason(kind, wait, placement, &base.load, ncores) {
+        row.skipped = why;
+        return Ok(row);
+    }
+    let k = match kind {
+        "atomic" => Kind::Atomic,
+        "iceoryx2" => Kind::Iceoryx2,
+        _ => Kind::Uds,
+    };
+    let w = if k == Kind::Atomic { Wait::Spin } else { wait };
+    let name = format!("bb{}-{kind}", std::process::id());
+    let (ping_core, pong_core) = cores(placement).map_or((None, None), |(p, c)| (Some(p), Some(c)));
+    let side = |side: &str, core: Option<usize>| {
+        let mut cmd = Command::new(exe);
+        cmd.args(["role", "pingpong", "--kind", kind, "--side", side, "--name", &name])
+            .args(["--rate", &base.rate.to_string(), "--seconds", &a.seconds.to_string(), "--wait", &w.to_string()])
+            .stdin(Stdio::null());
+        if let Some(c) = core {
+            cmd.args(["--core", &c.to_string()]);
+        }
+        cmd
+    };
+    let mut pong = side("pong", pong_core).spawn().context("cannot start the pong side")?;
+    let stem = dir.join(kind);
+    let ping = side("ping", ping_core).arg("--out").arg(&stem).status().context("cannot run the ping side")?;
+    let _ = pong.wait();
+    if k == Kind::Iceoryx2 {
+        let _ = Domain::new(&name).map(|d| d.cleanup());
+    }
+    if !ping.success() {
+        row.skipped = format!("baseline failed ({ping})");
+        return Ok(row);
+    }
+    let j: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(stem.with_extension("json"))?)?;
+    let us = |v: &serde_json::Value| v.as_f64().unwrap_or(f64::NAN) / 1e3;
+    let r = &j["rtt"];
+    row.count = r["count"].as_u64().unwrap_or(0);
+    row.p50 = us(&r["p50"]);
+    row.p99 = us(&r["p99"]);
+    row.p99_9 = us(&r["p99_9"]);
+    row.max = us(&r["max"]);
+    row.misses = j["misses"].as_u64().unwrap_or(0);
+    row.achieved = j["achieved_rate_hz"].as_f64().unwrap_or(0.0);
+    row.lateness_p99 = f64::NAN;
+    if k == Kind::Atomic {
+        row.wait = "spin".into();
+    }
+    Ok(row)
+}
+
+fn write_markdown(a: &BenchArgs, rows: &[Row]) -> anyhow::Result<()> {
+    let mut md = format!(
+        "# rotorloop bench\n\n{} s per measurement; scenario {}. Loop: sense-to-actuate (plant publishes \
+         state k → plant holds torque k), real time. Baselines: paced round trip, one per tick, same \
+         placement and wait strategy (atomic: always spin). Latencies in µs.\n\n\
+         | cell | kind | p50 | p99 | p99.9 | max | misses | achieved Hz | tick lateness p99 | loop/iceoryx2 p50 | loop/iceoryx2 p99.9 | loop/uds p50 | loop/atomic p50 |\n\
+         |---|---|---|---|---|---|---|---|---|---|---|---|---|\n",
+        a.seconds, a.scenario
+    );
+    for r in rows {
+        if !r.skipped.is_empty() {
+            let _ = writeln!(md, "| {} | {} | skipped: {} | | | | | | | | | | |", r.cell, r.kind, r.skipped);
+            continue;
+        }
+        let find = |k: &str| rows.iter().find(|x| x.cell == r.cell && x.kind == k && x.skipped.is_empty());
+        let ratio = |k: &str, f: fn(&Row) -> f64| {
+            if r.kind != "loop" {
+                return String::new();
+            }
+            find(k).map_or("—".into(), |b| format!("{:.2}", f(r) / f(b)))
+        };
+        let _ = writeln!(
+            md,
+            "| {} | {} | {:.1} | {:.1} | {:.1} | {:.1} | {} | {:.3} | {} | {} | {} | {} | {} |",
+            r.cell, r.kind, r.p50, r.p99, r.p99_9, r.max, r.misses, r.achieved,
+            if r.lateness_p99.is_finite() { format!("{:.1}", r.lateness_p99) } else { String::new() },
+            ratio("iceoryx2", |x| x.p50),
+            ratio("iceoryx2", |x| x.p99_9),
+            ratio("uds", |x| x.p50),
+            ratio("atomic", |x| x.p50),
+        );
+    }
+    let _ = writeln!(md, "\n## Highest rate with zero misses (loop)\n");
+    for w in &a.wait {
+        let best = rows
+            .iter()
+            .filter(|r| r.kind == "loop" && r.skipped.is_empty() && r.wait == w.to_string() && r.misses == 0)
+            .map(|r| r.rate)
+            .fold(f64::NAN, f64::max);
+        let _ = writeln!(md, "- {w}: {}", if best.is_finite() { format!("{best} Hz") } else { "none of the rates measured".into() });
+    }
+    std::fs::write(a.out.join("bench.md"), md)?;
+    Ok(())
+}
+
+/// Reads `(log10(1/(1−q)), value µs)` points from a `.hgrm` file.
+pub fn read_hgrm(path: &Path) -> Vec<(f64, f64)> {
+    let text = std::fs::read_to_string(path).unwrap_or_default();
+    text.lines()
+        .filter_map(|l| {
+            let v: Vec<f64> = l.split_whitespace().filter_map(|x| x.parse().ok()).collect();
+            (v.len() == 4 && v[1] < 1.0).then(|| ((1.0 / (1.0 - v[1])).log10(), v[0]))
+        })
+        .collect()
+}
+
+fn plots(a: &BenchArgs, rows: &[Row]) -> anyhow::Result<()> {
+    for placement in &a.placement {
+        let mut data = Vec::new();
+        for r in rows.iter().filter(|r| &r.placement == placement && r.skipped.is_empty() && r.load == "none") {
+            let pts = read_hgrm(&a.out.join("cells").join(&r.cell).join(format!("{}.hgrm", r.kind)));
+            if !pts.is_empty() {
+                data.push((format!("{} {} Hz {}", r.kind, r.rate, r.wait), pts));
+            }
+        }
+        if data.is_empty() {
+            continue;
+        }
+        let series: Vec<Series<'_>> = data.iter().map(|(l, p)| Series { label: l, points: p, dashed: !l.starts_with("loop") }).collect();
+        line_chart(
+            &a.out.join(format!("spectrum_{placement}.png")),
+            &format!("{placement}: loop sense-to-actuate vs paced round-trip baselines"),
+            "log10(1 / (1 - percentile))",
+            "µs (log)",
+            &series,
+            YScale::Log { floor: 0.1 },
+        )?;
+    }
+    let mut per_wait = Vec::new();
+    for w in &a.wait {
+        let pts: Vec<(f64, f64)> = rows
+            .iter()
+            .filter(|r| r.kind == "loop" && r.skipped.is_empty() && r.wait == w.to_string())
+            .map(|r| (r.rate, r.misses as f64 + 0.5))
+            .collect();
+        per_wait.push((format!("{w} (misses + 0.5)"), pts));
+    }
+    let series: Vec<Series<'_>> = per_wait.iter().map(|(l, p)| Series { label: l, points: p, dashed: false }).collect();
+    line_chart(
+        &a.out.join("misses_by_rate.png"),
+        "loop misses by rate and wait strategy (0.5 = no miss)",
+        "rate (Hz)",
+        "misses + 0.5 (log)",
+        &series,
+        YScale::Log { floor: 0.5 },
+    )?;
+    Ok(())
+}
