@@ -44,6 +44,16 @@ pub struct BenchArgs {
     /// Baselines: atomic, iceoryx2, uds.
     #[arg(long, value_delimiter = ',', default_value = "atomic,iceoryx2,uds")]
     pub baselines: Vec<String>,
+    /// The plant sleeps until this many µs before each tick and spins the rest.
+    #[arg(long, default_value_t = 0)]
+    pub spin_before_tick_us: u64,
+    /// Also run each loop cell without the monitor and report the change of the
+    /// plant-measured sense-to-actuate p50 (`loop-nomon` rows).
+    #[arg(long)]
+    pub monitor_cost: bool,
+    /// Rebuild bench.md and the plots from an existing `--out` directory, measuring nothing.
+    #[arg(long)]
+    pub replot: bool,
     /// Scenario the loop runs.
     #[arg(long, default_value = "paper-sinusoid")]
     pub scenario: String,
@@ -92,11 +102,49 @@ pub struct Row {
 const CSV_HEADER: &str = "cell,kind,rate_hz,wait,placement,load,count,p50_us,p99_us,p99_9_us,max_us,misses,achieved_rate_hz,tick_lateness_p99_us,skipped";
 
 impl Row {
+    fn parse(line: &str) -> Option<Self> {
+        let f: Vec<&str> = line.split(',').collect();
+        if f.len() != 15 {
+            return None;
+        }
+        let num = |i: usize| f[i].parse::<f64>().unwrap_or(f64::NAN);
+        Some(Self {
+            cell: f[0].into(),
+            kind: f[1].into(),
+            rate: num(2),
+            wait: f[3].into(),
+            placement: f[4].into(),
+            load: f[5].into(),
+            count: f[6].parse().unwrap_or(0),
+            p50: num(7),
+            p99: num(8),
+            p99_9: num(9),
+            max: num(10),
+            misses: f[11].parse().unwrap_or(0),
+            achieved: num(12),
+            lateness_p99: num(13),
+            skipped: f[14].into(),
+            index: 0,
+        })
+    }
+
     fn csv(&self) -> String {
         format!(
             "{},{},{},{},{},{},{},{},{},{},{},{},{},{},{}",
-            self.cell, self.kind, self.rate, self.wait, self.placement, self.load, self.count,
-            self.p50, self.p99, self.p99_9, self.max, self.misses, self.achieved, self.lateness_p99,
+            self.cell,
+            self.kind,
+            self.rate,
+            self.wait,
+            self.placement,
+            self.load,
+            self.count,
+            self.p50,
+            self.p99,
+            self.p99_9,
+            self.max,
+            self.misses,
+            self.achieved,
+            self.lateness_p99,
             self.skipped.replace(',', ";")
         )
     }
@@ -112,10 +160,19 @@ fn cores(placement: &str) -> Option<(usize, usize)> {
 }
 
 /// Why a combination cannot work on this machine, if it cannot.
-pub fn skip_reason(kind: &str, wait: Wait, placement: &str, load: &str, ncores: usize) -> Option<String> {
+pub fn skip_reason(
+    kind: &str,
+    wait: Wait,
+    placement: &str,
+    load: &str,
+    ncores: usize,
+) -> Option<String> {
     let spins = matches!(wait, Wait::Spin) || kind == "atomic";
     if spins && placement == "same-core" {
-        return Some("busy-wait with both ends on one core: each hand-off waits for a scheduler time slice".into());
+        return Some(
+            "busy-wait with both ends on one core: each hand-off waits for a scheduler time slice"
+                .into(),
+        );
     }
     if spins && ncores < 2 {
         return Some(format!("busy-wait needs 2 dedicated cores; this machine has {ncores}"));
@@ -134,7 +191,9 @@ fn validate(a: &BenchArgs) -> Result<(), UsageError> {
     }
     for p in &a.placement {
         if !["same-core", "cross-core", "unpinned"].contains(&p.as_str()) {
-            return Err(UsageError(format!("--placement `{p}` is not allowed: same-core, cross-core or unpinned")));
+            return Err(UsageError(format!(
+                "--placement `{p}` is not allowed: same-core, cross-core or unpinned"
+            )));
         }
     }
     for l in &a.load {
@@ -144,7 +203,9 @@ fn validate(a: &BenchArgs) -> Result<(), UsageError> {
     }
     for b in &a.baselines {
         if !["atomic", "iceoryx2", "uds"].contains(&b.as_str()) {
-            return Err(UsageError(format!("--baselines `{b}` is not allowed: atomic, iceoryx2, uds")));
+            return Err(UsageError(format!(
+                "--baselines `{b}` is not allowed: atomic, iceoryx2, uds"
+            )));
         }
     }
     if !(a.seconds.is_finite() && a.seconds >= 0.05 && a.seconds <= 3600.0) {
@@ -156,8 +217,18 @@ fn validate(a: &BenchArgs) -> Result<(), UsageError> {
 /// Runs the bench.
 pub fn run(a: &BenchArgs) -> anyhow::Result<()> {
     validate(a)?;
+    if a.replot {
+        let text = std::fs::read_to_string(a.out.join("bench.csv"))
+            .with_context(|| format!("no bench.csv in {}", a.out.display()))?;
+        let rows: Vec<Row> = text.lines().skip(1).filter_map(Row::parse).collect();
+        write_markdown(a, &rows)?;
+        plots(a, &rows)?;
+        println!("bench: {} measurements re-plotted in {}", rows.len(), a.out.display());
+        return Ok(());
+    }
     crate::sim::scenario_with_overrides(&a.scenario, Some(a.seconds), Some(a.rates[0]), None)?;
-    std::fs::create_dir_all(&a.out).with_context(|| format!("cannot create {}", a.out.display()))?;
+    std::fs::create_dir_all(&a.out)
+        .with_context(|| format!("cannot create {}", a.out.display()))?;
     let exe = std::env::current_exe().context("cannot find the rotorloop executable")?;
     let ncores = std::thread::available_parallelism().map_or(1, |n| n.get());
     rotorloop_common::ipc::install_signal_handlers();
@@ -183,11 +254,27 @@ pub fn run(a: &BenchArgs) -> anyhow::Result<()> {
         }
         let cell = format!("r{rate}-{wait}-{placement}-{load}");
         let bar = "#".repeat(20 * i / cells.len()) + &" ".repeat(20 - 20 * i / cells.len());
-        eprint!("{}[{bar}] {}/{} {cell}{}", if tty { "\r" } else { "" }, i + 1, cells.len(), if tty { "        " } else { "\n" });
-        let base = Row { index: i, cell: cell.clone(), rate: *rate, wait: wait.to_string(), placement: placement.clone(), load: load.clone(), ..Row::default() };
+        eprint!(
+            "{}[{bar}] {}/{} {cell}{}",
+            if tty { "\r" } else { "" },
+            i + 1,
+            cells.len(),
+            if tty { "        " } else { "\n" }
+        );
+        let base = Row {
+            index: i,
+            cell: cell.clone(),
+            rate: *rate,
+            wait: wait.to_string(),
+            placement: placement.clone(),
+            load: load.clone(),
+            ..Row::default()
+        };
         let dir = a.out.join("cells").join(&cell);
         std::fs::create_dir_all(&dir)?;
-        let hog = if load == "other-core" && skip_reason("loop", *wait, placement, load, ncores).is_none() {
+        let hog = if load == "other-core"
+            && skip_reason("loop", *wait, placement, load, ncores).is_none()
+        {
             let core = cores(placement).map(|(p, _)| (p + 1) % ncores);
             let mut cmd = Command::new(&exe);
             cmd.args(["role", "hog"]).stdin(Stdio::null());
@@ -198,7 +285,10 @@ pub fn run(a: &BenchArgs) -> anyhow::Result<()> {
         } else {
             None
         };
-        let mut measured = vec![measure_loop(a, &base, *wait, placement, ncores, &dir)?];
+        let mut measured = vec![measure_loop(a, &base, *wait, placement, ncores, &dir, false)?];
+        if a.monitor_cost {
+            measured.push(measure_loop(a, &base, *wait, placement, ncores, &dir, true)?);
+        }
         for b in &a.baselines {
             measured.push(measure_baseline(&exe, a, &base, b, *wait, placement, ncores, &dir)?);
         }
@@ -223,8 +313,17 @@ pub fn run(a: &BenchArgs) -> anyhow::Result<()> {
     Ok(())
 }
 
-fn measure_loop(a: &BenchArgs, base: &Row, wait: Wait, placement: &str, ncores: usize, dir: &Path) -> anyhow::Result<Row> {
-    let mut row = Row { kind: "loop".into(), ..base.clone() };
+fn measure_loop(
+    a: &BenchArgs,
+    base: &Row,
+    wait: Wait,
+    placement: &str,
+    ncores: usize,
+    dir: &Path,
+    without_monitor: bool,
+) -> anyhow::Result<Row> {
+    let kind = if without_monitor { "loop-nomon" } else { "loop" };
+    let mut row = Row { kind: kind.into(), ..base.clone() };
     if let Some(why) = skip_reason("loop", wait, placement, &base.load, ncores) {
         row.skipped = why;
         return Ok(row);
@@ -233,9 +332,14 @@ fn measure_loop(a: &BenchArgs, base: &Row, wait: Wait, placement: &str, ncores: 
         let other = |x: usize| (x + 1) % ncores;
         format!("plant={p},controller={c},reference={},monitor={}", other(p), other(c))
     });
-    let out = dir.join("loop");
+    let out = dir.join(kind);
     let role = RoleArgs {
-        domain: Some(format!("bl{}-{}", std::process::id(), base.index)),
+        domain: Some(format!(
+            "bl{}-{}{}",
+            std::process::id(),
+            base.index,
+            if without_monitor { "n" } else { "" }
+        )),
         scenario: a.scenario.clone(),
         duration: Some(a.seconds),
         rate: Some(base.rate),
@@ -246,8 +350,30 @@ fn measure_loop(a: &BenchArgs, base: &Row, wait: Wait, placement: &str, ncores: 
         rt_priority: None,
         mlock: false,
     };
-    crate::launch::run(&RunArgs { role, pin, out: out.clone(), no_monitor: false, quiet: true })?;
-    let j: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(out.join("summary.json"))?)?;
+    crate::launch::run(&RunArgs {
+        role,
+        pin,
+        out: out.clone(),
+        no_monitor: without_monitor,
+        quiet: true,
+        spin_before_tick_us: a.spin_before_tick_us,
+    })?;
+    if without_monitor {
+        // No monitor, no summary: the plant's own histogram of the loop.
+        let hgrm = out.join("plant_sense_to_actuate.hgrm");
+        let pts = read_hgrm_values(&hgrm);
+        let at = |q: f64| pts.iter().find(|(p, _)| *p >= q).map_or(f64::NAN, |(_, v)| *v);
+        row.p50 = at(0.5);
+        row.p99 = at(0.99);
+        row.p99_9 = at(0.999);
+        row.max = pts.last().map_or(f64::NAN, |(_, v)| *v);
+        row.count = hgrm_count(&hgrm);
+        row.lateness_p99 = f64::NAN;
+        std::fs::copy(&hgrm, dir.join("loop-nomon.hgrm"))?;
+        return Ok(row);
+    }
+    let j: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("summary.json"))?)?;
     let h = &j["hops"]["sense_to_actuate"];
     let us = |v: &serde_json::Value| v.as_f64().unwrap_or(f64::NAN) / 1e3;
     row.count = h["count"].as_u64().unwrap_or(0);
@@ -289,7 +415,14 @@ fn measure_baseline(
     let side = |side: &str, core: Option<usize>| {
         let mut cmd = Command::new(exe);
         cmd.args(["role", "pingpong", "--kind", kind, "--side", side, "--name", &name])
-            .args(["--rate", &base.rate.to_string(), "--seconds", &a.seconds.to_string(), "--wait", &w.to_string()])
+            .args([
+                "--rate",
+                &base.rate.to_string(),
+                "--seconds",
+                &a.seconds.to_string(),
+                "--wait",
+                &w.to_string(),
+            ])
             .stdin(Stdio::null());
         if let Some(c) = core {
             cmd.args(["--core", &c.to_string()]);
@@ -298,7 +431,11 @@ fn measure_baseline(
     };
     let mut pong = side("pong", pong_core).spawn().context("cannot start the pong side")?;
     let stem = dir.join(kind);
-    let ping = side("ping", ping_core).arg("--out").arg(&stem).status().context("cannot run the ping side")?;
+    let ping = side("ping", ping_core)
+        .arg("--out")
+        .arg(&stem)
+        .status()
+        .context("cannot run the ping side")?;
     let _ = pong.wait();
     if k == Kind::Iceoryx2 {
         let _ = Domain::new(&name).map(|d| d.cleanup());
@@ -307,7 +444,8 @@ fn measure_baseline(
         row.skipped = format!("baseline failed ({ping})");
         return Ok(row);
     }
-    let j: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(stem.with_extension("json"))?)?;
+    let j: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(stem.with_extension("json"))?)?;
     let us = |v: &serde_json::Value| v.as_f64().unwrap_or(f64::NAN) / 1e3;
     let r = &j["rtt"];
     row.count = r["count"].as_u64().unwrap_or(0);
@@ -335,12 +473,17 @@ fn write_markdown(a: &BenchArgs, rows: &[Row]) -> anyhow::Result<()> {
     );
     for r in rows {
         if !r.skipped.is_empty() {
-            let _ = writeln!(md, "| {} | {} | skipped: {} | | | | | | | | | | |", r.cell, r.kind, r.skipped);
+            let _ = writeln!(
+                md,
+                "| {} | {} | skipped: {} | | | | | | | | | | |",
+                r.cell, r.kind, r.skipped
+            );
             continue;
         }
-        let find = |k: &str| rows.iter().find(|x| x.cell == r.cell && x.kind == k && x.skipped.is_empty());
+        let find =
+            |k: &str| rows.iter().find(|x| x.cell == r.cell && x.kind == k && x.skipped.is_empty());
         let ratio = |k: &str, f: fn(&Row) -> f64| {
-            if r.kind != "loop" {
+            if !r.kind.starts_with("loop") {
                 return String::new();
             }
             find(k).map_or("—".into(), |b| format!("{:.2}", f(r) / f(b)))
@@ -348,55 +491,140 @@ fn write_markdown(a: &BenchArgs, rows: &[Row]) -> anyhow::Result<()> {
         let _ = writeln!(
             md,
             "| {} | {} | {:.1} | {:.1} | {:.1} | {:.1} | {} | {:.3} | {} | {} | {} | {} | {} |",
-            r.cell, r.kind, r.p50, r.p99, r.p99_9, r.max, r.misses, r.achieved,
-            if r.lateness_p99.is_finite() { format!("{:.1}", r.lateness_p99) } else { String::new() },
+            r.cell,
+            r.kind,
+            r.p50,
+            r.p99,
+            r.p99_9,
+            r.max,
+            r.misses,
+            r.achieved,
+            if r.lateness_p99.is_finite() {
+                format!("{:.1}", r.lateness_p99)
+            } else {
+                String::new()
+            },
             ratio("iceoryx2", |x| x.p50),
             ratio("iceoryx2", |x| x.p99_9),
             ratio("uds", |x| x.p50),
             ratio("atomic", |x| x.p50),
         );
     }
+    if rows.iter().any(|r| r.kind == "loop-nomon") {
+        let _ = writeln!(
+            md,
+            "\n## What the monitor costs\n\nSense-to-actuate p50 measured by the plant itself, \
+             with and without the monitor attached (separate runs, same cell).\n"
+        );
+        for r in rows.iter().filter(|r| r.kind == "loop-nomon" && r.skipped.is_empty()) {
+            let with = hgrm_p50(
+                &a.out.join("cells").join(&r.cell).join("loop").join("plant_sense_to_actuate.hgrm"),
+            );
+            let _ = writeln!(
+                md,
+                "- {}: {:.1} µs with the monitor, {:.1} µs without ({:+.1} %)",
+                r.cell,
+                with,
+                r.p50,
+                100.0 * (with / r.p50 - 1.0)
+            );
+        }
+    }
     let _ = writeln!(md, "\n## Highest rate with zero misses (loop)\n");
     for w in &a.wait {
         let best = rows
             .iter()
-            .filter(|r| r.kind == "loop" && r.skipped.is_empty() && r.wait == w.to_string() && r.misses == 0)
+            .filter(|r| {
+                r.kind == "loop" && r.skipped.is_empty() && r.wait == w.to_string() && r.misses == 0
+            })
             .map(|r| r.rate)
             .fold(f64::NAN, f64::max);
-        let _ = writeln!(md, "- {w}: {}", if best.is_finite() { format!("{best} Hz") } else { "none of the rates measured".into() });
+        let _ = writeln!(
+            md,
+            "- {w}: {}",
+            if best.is_finite() {
+                format!("{best} Hz")
+            } else {
+                "none of the rates measured".into()
+            }
+        );
     }
     std::fs::write(a.out.join("bench.md"), md)?;
     Ok(())
 }
 
-/// Reads `(log10(1/(1−q)), value µs)` points from a `.hgrm` file.
-pub fn read_hgrm(path: &Path) -> Vec<(f64, f64)> {
+/// `(percentile, value µs)` rows of a `.hgrm` file.
+pub fn read_hgrm_values(path: &Path) -> Vec<(f64, f64)> {
     let text = std::fs::read_to_string(path).unwrap_or_default();
     text.lines()
         .filter_map(|l| {
             let v: Vec<f64> = l.split_whitespace().filter_map(|x| x.parse().ok()).collect();
-            (v.len() == 4 && v[1] < 1.0).then(|| ((1.0 / (1.0 - v[1])).log10(), v[0]))
+            (v.len() >= 3 && !l.starts_with('#')).then(|| (v[1], v[0]))
         })
         .collect()
 }
 
+fn hgrm_p50(path: &Path) -> f64 {
+    read_hgrm_values(path).iter().find(|(q, _)| *q >= 0.5).map_or(f64::NAN, |(_, v)| *v)
+}
+
+/// The total count of a `.hgrm` file.
+fn hgrm_count(path: &Path) -> u64 {
+    let text = std::fs::read_to_string(path).unwrap_or_default();
+    text.split("Total count    =")
+        .nth(1)
+        .and_then(|r| r.split(']').next())
+        .and_then(|n| n.trim().parse().ok())
+        .unwrap_or(0)
+}
+
+/// Reads `(log10(1/(1−q)), value µs)` points from a `.hgrm` file.
+pub fn read_hgrm(path: &Path) -> Vec<(f64, f64)> {
+    read_hgrm_values(path)
+        .into_iter()
+        .filter(|(q, _)| *q < 1.0)
+        .map(|(q, v)| ((1.0 / (1.0 - q)).log10(), v))
+        .collect()
+}
+
 fn plots(a: &BenchArgs, rows: &[Row]) -> anyhow::Result<()> {
-    for placement in &a.placement {
+    // One chart per placement, rate and wait strategy: the loop and its baselines.
+    let mut groups: Vec<(String, f64, String)> = Vec::new();
+    for r in rows.iter().filter(|r| r.skipped.is_empty() && r.load == "none") {
+        let key = (
+            r.placement.clone(),
+            r.rate,
+            if r.kind == "atomic" { String::new() } else { r.wait.clone() },
+        );
+        if !key.2.is_empty() && !groups.contains(&key) {
+            groups.push(key);
+        }
+    }
+    for (placement, rate, wait) in groups {
         let mut data = Vec::new();
-        for r in rows.iter().filter(|r| &r.placement == placement && r.skipped.is_empty() && r.load == "none") {
-            let pts = read_hgrm(&a.out.join("cells").join(&r.cell).join(format!("{}.hgrm", r.kind)));
-            if !pts.is_empty() {
-                data.push((format!("{} {} Hz {}", r.kind, r.rate, r.wait), pts));
+        for r in rows.iter().filter(|r| {
+            r.placement == placement
+                && r.rate == rate
+                && r.skipped.is_empty()
+                && r.load == "none"
+                && (r.wait == wait || r.kind == "atomic")
+        }) {
+            let pts =
+                read_hgrm(&a.out.join("cells").join(&r.cell).join(format!("{}.hgrm", r.kind)));
+            if !pts.is_empty()
+                && !data.iter().any(|(l, _): &(String, Vec<(f64, f64)>)| l.starts_with(&r.kind))
+            {
+                data.push((format!("{} ({})", r.kind, r.wait), pts));
             }
         }
-        if data.is_empty() {
-            continue;
-        }
-        let series: Vec<Series<'_>> = data.iter().map(|(l, p)| Series { label: l, points: p, dashed: !l.starts_with("loop") }).collect();
+        let series: Vec<Series<'_>> = data
+            .iter()
+            .map(|(l, p)| Series { label: l, points: p, dashed: !l.starts_with("loop") })
+            .collect();
         line_chart(
-            &a.out.join(format!("spectrum_{placement}.png")),
-            &format!("{placement}: loop sense-to-actuate vs paced round-trip baselines"),
-            "log10(1 / (1 - percentile))",
+            &a.out.join(format!("spectrum_{placement}_{rate}hz_{wait}.png")),
+            &format!("{placement}, {rate} Hz, {wait}: loop sense-to-actuate vs paced round trips"),
+            "log10(1 / (1 - percentile))   (1 = p90, 2 = p99, 3 = p99.9)",
             "µs (log)",
             &series,
             YScale::Log { floor: 0.1 },
@@ -411,7 +639,8 @@ fn plots(a: &BenchArgs, rows: &[Row]) -> anyhow::Result<()> {
             .collect();
         per_wait.push((format!("{w} (misses + 0.5)"), pts));
     }
-    let series: Vec<Series<'_>> = per_wait.iter().map(|(l, p)| Series { label: l, points: p, dashed: false }).collect();
+    let series: Vec<Series<'_>> =
+        per_wait.iter().map(|(l, p)| Series { label: l, points: p, dashed: false }).collect();
     line_chart(
         &a.out.join("misses_by_rate.png"),
         "loop misses by rate and wait strategy (0.5 = no miss)",

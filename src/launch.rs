@@ -34,6 +34,10 @@ pub struct RunArgs {
     /// No status line and no per-run console summary.
     #[arg(long)]
     pub quiet: bool,
+    /// Real time: the plant sleeps until this many µs before each grid time and spins
+    /// the rest (sharper ticks, one core busier).
+    #[arg(long, default_value_t = 0)]
+    pub spin_before_tick_us: u64,
 }
 
 /// Parses `--pin`: `role=core` pairs separated by commas.
@@ -117,6 +121,8 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
             }
             "plant" => {
                 cmd.arg("--subscribers").arg(if args.no_monitor { "2" } else { "3" });
+                cmd.arg("--spin-before-tick-us").arg(args.spin_before_tick_us.to_string());
+                cmd.arg("--latency-out").arg(&args.out);
             }
             _ => {}
         }

@@ -5,11 +5,11 @@
 //! its report ([`sim`]), the paper's gain analysis ([`gains`]) and the Monte Carlo study
 //! of almost-global convergence ([`montecarlo`]).
 
+pub mod bench;
 pub mod cli;
 pub mod closed_loop;
 pub mod gains;
 pub mod launch;
-pub mod bench;
 pub mod montecarlo;
 pub mod paper;
 pub mod process;

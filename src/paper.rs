@@ -45,6 +45,7 @@ pub fn run(out: &Path, duration: f64, rate: f64, in_process: bool) -> anyhow::Re
                 out: run_dir.clone(),
                 no_monitor: false,
                 quiet: false,
+                spin_before_tick_us: 0,
             })
             .with_context(|| format!("four-process run of {name}"))?;
             let j: serde_json::Value = serde_json::from_str(

@@ -309,7 +309,18 @@ fn launcher_refuses_bad_arguments() {
         (vec!["run", "--scenario", "paper-zero", "--pin", "plant=99", "--out", o], "plant="),
         (vec!["run", "--scenario", "paper-zero", "--pin", "pump=0", "--out", o], "pump"),
         (vec!["run", "--scenario", "paper-zero", "--domain", "a b", "--out", o], "--domain"),
-        (vec!["run", "--scenario", "paper-zero", "--domain", "abcdefghijklmnopqrstuvwxy", "--out", o], "1 to 24"),
+        (
+            vec![
+                "run",
+                "--scenario",
+                "paper-zero",
+                "--domain",
+                "abcdefghijklmnopqrstuvwxy",
+                "--out",
+                o,
+            ],
+            "1 to 24",
+        ),
         (vec!["run", "--scenario", "paper-zero", "--wait", "nap", "--out", o], "nap"),
     ] {
         let r = h.rotorloop(&args, LIMIT);

@@ -16,7 +16,9 @@ use std::sync::atomic::{AtomicU64, Ordering};
 use anyhow::{Context, bail};
 use clap::{Args, ValueEnum};
 use hdrhistogram::Histogram;
-use rotorloop_common::ipc::{Domain, RtSetup, Topic, Wait, now_ns, shutdown_requested, sleep_until_ns};
+use rotorloop_common::ipc::{
+    Domain, RtSetup, Topic, Wait, now_ns, shutdown_requested, sleep_until_ns,
+};
 use rotorloop_common::wire::StateSample;
 use rotorloop_monitor::latency::{HopStats, write_percentile_distribution};
 use serde::Serialize;
@@ -136,7 +138,8 @@ pub fn run(a: &PingPongArgs) -> anyhow::Result<()> {
                 kind: a.kind,
                 ticks,
                 misses,
-                achieved_rate_hz: (ticks - 1) as f64 / ((last_wake - start - period as u64) as f64 / 1e9),
+                achieved_rate_hz: (ticks - 1) as f64
+                    / ((last_wake - start - period as u64) as f64 / 1e9),
                 rtt: HopStats::of(&h),
             };
             crate::sim::write_json(&out.with_extension("json"), &summary)
@@ -160,12 +163,24 @@ struct AtomicLink {
 impl AtomicLink {
     fn open(name: &str, side: Side) -> anyhow::Result<Self> {
         let path = PathBuf::from(format!("/dev/shm/rl_bench_{name}"));
-        let f = std::fs::OpenOptions::new().read(true).write(true).create(true).truncate(false).open(&path)?;
+        let f = std::fs::OpenOptions::new()
+            .read(true)
+            .write(true)
+            .create(true)
+            .truncate(false)
+            .open(&path)?;
         f.set_len(4096)?;
         use std::os::fd::AsRawFd;
         // SAFETY: maps 4 KiB of a file we just sized; checked for MAP_FAILED below.
         let map = unsafe {
-            libc::mmap(std::ptr::null_mut(), 4096, libc::PROT_READ | libc::PROT_WRITE, libc::MAP_SHARED, f.as_raw_fd(), 0)
+            libc::mmap(
+                std::ptr::null_mut(),
+                4096,
+                libc::PROT_READ | libc::PROT_WRITE,
+                libc::MAP_SHARED,
+                f.as_raw_fd(),
+                0,
+            )
         };
         if map == libc::MAP_FAILED {
             bail!("cannot map {}", path.display());
@@ -257,12 +272,16 @@ impl IoxLink {
 
 impl Link for IoxLink {
     fn send(&mut self, seq: u64) -> anyhow::Result<()> {
-        let mut s = StateSample::of(seq, 0.0, &rotorloop_common::RotorBodyState {
-            r: glam::DMat3::IDENTITY,
-            omega: glam::DVec3::ZERO,
-            omega_r: glam::DVec3::ZERO,
-            theta: glam::DVec3::ZERO,
-        });
+        let mut s = StateSample::of(
+            seq,
+            0.0,
+            &rotorloop_common::RotorBodyState {
+                r: glam::DMat3::IDENTITY,
+                omega: glam::DVec3::ZERO,
+                omega_r: glam::DVec3::ZERO,
+                theta: glam::DVec3::ZERO,
+            },
+        );
         s.tick = seq;
         self.out.send(s, |s| s.publish_ns = now_ns())?;
         Ok(())
@@ -286,7 +305,8 @@ impl UdsLink {
         let (stream, own) = match side {
             Side::Pong => {
                 let _ = std::fs::remove_file(&path);
-                let l = UnixListener::bind(&path).with_context(|| format!("bind {}", path.display()))?;
+                let l = UnixListener::bind(&path)
+                    .with_context(|| format!("bind {}", path.display()))?;
                 (l.accept()?.0, Some(path))
             }
             Side::Ping => {
@@ -329,10 +349,8 @@ impl Link for UdsLink {
         let start = now_ns();
         while got < PAYLOAD {
             let now = now_ns();
-            if now >= deadline_ns || shutdown_requested() {
-                if got == 0 {
-                    return Ok(None);
-                }
+            if (now >= deadline_ns || shutdown_requested()) && got == 0 {
+                return Ok(None);
             }
             let blocking = match self.wait {
                 Wait::Spin => false,
@@ -349,7 +367,12 @@ impl Link for UdsLink {
             match self.stream.read(&mut self.buf[got..]) {
                 Ok(0) => return Ok(None),
                 Ok(n) => got += n,
-                Err(e) if matches!(e.kind(), std::io::ErrorKind::WouldBlock | std::io::ErrorKind::TimedOut) => {
+                Err(e)
+                    if matches!(
+                        e.kind(),
+                        std::io::ErrorKind::WouldBlock | std::io::ErrorKind::TimedOut
+                    ) =>
+                {
                     std::hint::spin_loop()
                 }
                 Err(e) => return Err(e.into()),

@@ -29,6 +29,10 @@ pub struct PlantArgs {
     /// In real time, sleep until this many µs before each grid time and spin the rest.
     #[arg(long, default_value_t = 0)]
     pub spin_before_tick_us: u64,
+    /// Also record sense-to-actuate in the plant itself and write
+    /// `DIR/plant_sense_to_actuate.hgrm` at the end (works without a monitor).
+    #[arg(long)]
+    pub latency_out: Option<std::path::PathBuf>,
 }
 
 /// Runs the plant until its last tick or a termination signal.
@@ -73,6 +77,8 @@ pub fn run(args: &PlantArgs) -> anyhow::Result<()> {
     let mut seq = SeqCounter::default();
     let mut misses = 0u64;
     let mut last_update = now_ns();
+    let mut s2a = hdrhistogram::Histogram::<u64>::new_with_bounds(1, 3_600_000_000_000, 3)?;
+    let mut publish_ns = 0u64;
 
     for k in 0..=ticks {
         let deadline = if realtime { grid(k) } else { 0 };
@@ -92,7 +98,12 @@ pub fn run(args: &PlantArgs) -> anyhow::Result<()> {
         sample.torques_lost = seq.lost;
         sample.flags =
             if k == ticks { FLAG_LAST } else { 0 } | if realtime { FLAG_REALTIME } else { 0 };
-        states.send(sample, |s| s.publish_ns = now_ns()).context("plant: publishing state")?;
+        states
+            .send(sample, |s| {
+                s.publish_ns = now_ns();
+                publish_ns = s.publish_ns;
+            })
+            .context("plant: publishing state")?;
 
         let wait_until = if realtime { grid(k + 1).saturating_sub(spin_last) } else { u64::MAX };
         let got = torques.wait_for(role.wait, wait_until, |inbox| {
@@ -124,6 +135,7 @@ pub fn run(args: &PlantArgs) -> anyhow::Result<()> {
                 };
                 held_tick = t.tick;
                 held_recv_ns = recv;
+                s2a.saturating_record(recv.saturating_sub(publish_ns).max(1));
             }
             None if shutdown_requested() => break,
             None => misses += 1, // hold the last torque
@@ -133,6 +145,12 @@ pub fn run(args: &PlantArgs) -> anyhow::Result<()> {
         }
     }
     drop(torques);
+    if let Some(dir) = &args.latency_out {
+        let path = dir.join("plant_sense_to_actuate.hgrm");
+        let mut f = std::fs::File::create(&path)
+            .with_context(|| format!("plant: cannot write {}", path.display()))?;
+        rotorloop_monitor::latency::write_percentile_distribution(&s2a, &mut f)?;
+    }
     linger(|| states.subscribers() == 0);
     Ok(())
 }
