@@ -369,6 +369,7 @@ fn measure_loop(
         row.max = pts.last().map_or(f64::NAN, |(_, v)| *v);
         row.count = hgrm_count(&hgrm);
         row.lateness_p99 = f64::NAN;
+        row.achieved = f64::NAN;
         std::fs::copy(&hgrm, dir.join("loop-nomon.hgrm"))?;
         return Ok(row);
     }
@@ -488,17 +489,23 @@ fn write_markdown(a: &BenchArgs, rows: &[Row]) -> anyhow::Result<()> {
             }
             find(k).map_or("—".into(), |b| format!("{:.2}", f(r) / f(b)))
         };
+        // Without the monitor nobody counts misses or the achieved rate.
+        let (misses, achieved) = if r.kind == "loop-nomon" {
+            ("n/a".to_owned(), "n/a".to_owned())
+        } else {
+            (r.misses.to_string(), format!("{:.3}", r.achieved))
+        };
         let _ = writeln!(
             md,
-            "| {} | {} | {:.1} | {:.1} | {:.1} | {:.1} | {} | {:.3} | {} | {} | {} | {} | {} |",
+            "| {} | {} | {:.1} | {:.1} | {:.1} | {:.1} | {} | {} | {} | {} | {} | {} | {} |",
             r.cell,
             r.kind,
             r.p50,
             r.p99,
             r.p99_9,
             r.max,
-            r.misses,
-            r.achieved,
+            misses,
+            achieved,
             if r.lateness_p99.is_finite() {
                 format!("{:.1}", r.lateness_p99)
             } else {
