@@ -357,6 +357,8 @@ fn measure_loop(
         no_monitor: without_monitor,
         quiet: true,
         spin_before_tick_us: a.spin_before_tick_us,
+        hold_ticks: 50,
+        fault: Vec::new(),
     })?;
     if without_monitor {
         // No monitor, no summary: the plant's own histogram of the loop.

@@ -3,6 +3,7 @@
 //! cleanly at the end or on Ctrl-C/SIGTERM, and leaves the report in `--out`.
 
 use std::collections::BTreeMap;
+use std::os::unix::process::ExitStatusExt;
 use std::path::PathBuf;
 use std::process::{Child, Command, Stdio};
 use std::time::Duration;
@@ -38,6 +39,65 @@ pub struct RunArgs {
     /// the rest (sharper ticks, one core busier).
     #[arg(long, default_value_t = 0)]
     pub spin_before_tick_us: u64,
+    /// Real time: ticks the plant holds the last torque before safe mode.
+    #[arg(long, default_value_t = 50)]
+    pub hold_ticks: u64,
+    /// Inject a fault: `ROLE:kill@T[:restart@T2]` (seconds since the processes started;
+    /// ROLE is plant, reference, controller or monitor). Repeatable.
+    #[arg(long)]
+    pub fault: Vec<String>,
+}
+
+/// One `--fault`.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Fault {
+    /// The role to kill.
+    pub role: String,
+    /// When to SIGKILL it (s after the start).
+    pub kill_s: f64,
+    /// When to start it again (s), if at all.
+    pub restart_s: Option<f64>,
+    killed: bool,
+    restarted: bool,
+}
+
+/// A fault as it happened (monotonic ns).
+#[derive(Debug, Clone, PartialEq)]
+pub struct FaultEvent {
+    /// The role killed.
+    pub role: String,
+    /// When it was killed.
+    pub kill_ns: u64,
+    /// When it was started again.
+    pub restart_ns: Option<u64>,
+}
+
+/// Parses `ROLE:kill@T[:restart@T2]`.
+pub fn parse_fault(s: &str) -> Result<Fault, UsageError> {
+    let bad = |why: &str| {
+        UsageError(format!(
+            "--fault `{s}` is not allowed: {why} (form ROLE:kill@T[:restart@T2], e.g. controller:kill@2:restart@2.5)"
+        ))
+    };
+    let parts: Vec<&str> = s.split(':').collect();
+    if parts.len() < 2 || parts.len() > 3 {
+        return Err(bad("two or three parts"));
+    }
+    if !ROLES.contains(&parts[0]) {
+        return Err(bad("ROLE is plant, reference, controller or monitor"));
+    }
+    let time = |p: &str, key: &str| -> Result<f64, UsageError> {
+        p.strip_prefix(key)
+            .and_then(|t| t.parse::<f64>().ok())
+            .filter(|t| t.is_finite() && *t >= 0.0)
+            .ok_or_else(|| bad(&format!("`{p}` must be {key}SECONDS with SECONDS ≥ 0")))
+    };
+    let kill_s = time(parts[1], "kill@")?;
+    let restart_s = parts.get(2).map(|p| time(p, "restart@")).transpose()?;
+    if restart_s.is_some_and(|r| r <= kill_s) {
+        return Err(bad("the restart must come after the kill"));
+    }
+    Ok(Fault { role: parts[0].to_owned(), kill_s, restart_s, killed: false, restarted: false })
 }
 
 /// Parses `--pin`: `role=core` pairs separated by commas.
@@ -88,6 +148,7 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
     for w in &scenario.warnings {
         eprintln!("warning: {w}");
     }
+    let faults = args.fault.iter().map(|f| parse_fault(f)).collect::<Result<Vec<_>, _>>()?;
     let mut role_args = args.role.clone();
     role_args.domain.get_or_insert_with(|| format!("run-{}", std::process::id()));
     let domain = role_args.open_domain()?;
@@ -99,12 +160,18 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
         .with_context(|| format!("cannot create {}", args.out.display()))?;
     let exe = std::env::current_exe().context("cannot find the rotorloop executable")?;
     install_signal_handlers();
+    // Nothing of this domain may be alive: clear what an earlier, killed run left
+    // (including resume slots, which would otherwise be taken for a restart).
+    let (_, alive) = domain.cleanup()?;
+    if alive > 0 {
+        return Err(UsageError(format!(
+            "domain `{}` is in use by {alive} running process(es); choose another --domain",
+            domain.name()
+        ))
+        .into());
+    }
 
-    let mut children = Children(Vec::new());
-    for role in ROLES {
-        if role == "monitor" && args.no_monitor {
-            continue;
-        }
+    let command = |role: &str| {
         let mut r = role_args.clone();
         r.core = pins.get(role).copied();
         let mut cmd = Command::new(&exe);
@@ -122,23 +189,75 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
             "plant" => {
                 cmd.arg("--subscribers").arg(if args.no_monitor { "2" } else { "3" });
                 cmd.arg("--spin-before-tick-us").arg(args.spin_before_tick_us.to_string());
+                cmd.arg("--hold-ticks").arg(args.hold_ticks.to_string());
                 cmd.arg("--latency-out").arg(&args.out);
             }
             _ => {}
         }
-        let child = cmd.spawn().with_context(|| format!("cannot start {role}"))?;
+        cmd
+    };
+    let mut children = Children(Vec::new());
+    for role in ROLES {
+        if role == "monitor" && args.no_monitor {
+            continue;
+        }
+        let child = command(role).spawn().with_context(|| format!("cannot start {role}"))?;
         children.0.push((role.to_owned(), child));
     }
+    let t0 = now_ns();
+    let mut events: Vec<FaultEvent> = Vec::new();
+    let mut pending = faults.clone();
 
     // Wait for all to finish; on a signal, forward SIGTERM, then SIGKILL after 10 s.
     let mut term_sent_at: Option<u64> = None;
     let mut failures = Vec::new();
     loop {
+        // Fault injection: SIGKILL at `kill`, the same command again at `restart`.
+        let elapsed = (now_ns() - t0) as f64 / 1e9;
+        for f in pending.iter_mut() {
+            if !f.killed && elapsed >= f.kill_s && term_sent_at.is_none() {
+                if let Some((_, c)) = children.0.iter_mut().find(|(r, _)| *r == f.role) {
+                    signal(c, libc::SIGKILL);
+                    let _ = c.wait(); // reap: an unreaped zombie can delay dead-node detection
+                    events.push(FaultEvent {
+                        role: f.role.clone(),
+                        kill_ns: now_ns(),
+                        restart_ns: None,
+                    });
+                    eprintln!("launcher: killed {} (SIGKILL) at {elapsed:.3} s", f.role);
+                }
+                f.killed = true;
+            }
+            if f.killed
+                && !f.restarted
+                && f.restart_s.is_some_and(|r| elapsed >= r)
+                && term_sent_at.is_none()
+            {
+                let child = command(&f.role)
+                    .spawn()
+                    .with_context(|| format!("cannot restart {}", f.role))?;
+                if let Some(entry) = children.0.iter_mut().find(|(r, _)| *r == f.role) {
+                    entry.1 = child;
+                }
+                if let Some(e) = events.iter_mut().rev().find(|e| e.role == f.role) {
+                    e.restart_ns = Some(now_ns());
+                }
+                eprintln!("launcher: restarted {} at {elapsed:.3} s", f.role);
+                f.restarted = true;
+            }
+        }
+        let waiting_restart =
+            pending.iter().any(|f| f.killed && !f.restarted && f.restart_s.is_some());
         let mut running = 0;
         for (role, c) in &mut children.0 {
             match c.try_wait() {
                 Ok(None) => running += 1,
                 Ok(Some(st)) if !st.success() && term_sent_at.is_none() => {
+                    // A child we killed on purpose is not a failure.
+                    if st.signal() == Some(libc::SIGKILL) && events.iter().any(|e| e.role == *role)
+                    {
+                        continue;
+                    }
                     let msg = format!("{role} exited with {st}");
                     if !failures.contains(&msg) {
                         failures.push(msg);
@@ -147,7 +266,7 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
                 _ => {}
             }
         }
-        if running == 0 {
+        if running == 0 && !waiting_restart {
             break;
         }
         if (shutdown_requested() || !failures.is_empty()) && term_sent_at.is_none() {
@@ -161,7 +280,10 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
                 let _ = c.kill();
             }
         }
-        std::thread::sleep(Duration::from_millis(5));
+        if term_sent_at.is_some() && running == 0 {
+            break;
+        }
+        std::thread::sleep(Duration::from_millis(2));
     }
     drop(children);
     // Everything of this domain is gone now: remove what iceoryx2 keeps after its nodes.
@@ -170,6 +292,10 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
     }
     if let Some(f) = failures.first() {
         anyhow::bail!("{f}; the run was stopped ({} failed)", failures.join(", "));
+    }
+    if !events.is_empty() && !args.no_monitor {
+        crate::faults::report(&args.out, &role_args.scenario()?, &events)
+            .context("fault report")?;
     }
     if shutdown_requested() {
         eprintln!("stopped by signal; partial report in {}", args.out.display());

@@ -8,6 +8,7 @@
 pub mod bench;
 pub mod cli;
 pub mod closed_loop;
+pub mod faults;
 pub mod gains;
 pub mod launch;
 pub mod montecarlo;

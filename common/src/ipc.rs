@@ -153,6 +153,7 @@ impl Domain {
             // domain's own prefix, so no other process uses it.
             unsafe { iceoryx2::testing::remove_global_mgmt_segment::<ipc::Service>(&self.config) }
                 .map_err(|e| iox("cannot remove the global management segment")(&e))?;
+            crate::resume::remove_slots(self);
             // The domain's root holds only (now empty) directories: remove them.
             let root = std::path::PathBuf::from(self.root_path());
             if let Ok(entries) = std::fs::read_dir(&root) {
@@ -277,6 +278,17 @@ impl<T: ZeroCopySend + Debug + Copy + 'static> Outbox<T> {
         stamp(&mut value);
         sample.write_payload(value).send().map_err(|e| iox("cannot send a sample")(&e))?;
         self.notifier.notify().map_err(|e| iox("cannot notify")(&e))?;
+        Ok(())
+    }
+
+    /// Loans a sample and never sends it, until a termination signal: a test hook for
+    /// "killed while holding a loan" (iceoryx2 must reclaim the loan after the kill).
+    pub fn stall_holding_a_loan(&self) -> Result<(), IpcError> {
+        let sample = self.publisher.loan_uninit().map_err(|e| iox("cannot loan a sample")(&e))?;
+        while !shutdown_requested() {
+            std::thread::sleep(Duration::from_millis(5));
+        }
+        drop(sample);
         Ok(())
     }
 

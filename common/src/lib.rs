@@ -19,6 +19,7 @@
 
 pub mod ipc;
 pub mod params;
+pub mod resume;
 pub mod scenario;
 pub mod so3;
 pub mod wire;

@@ -16,7 +16,7 @@ use crate::so3::{from_rows, to_row_major};
 use crate::{ReferenceState, RotorBodyState};
 
 /// The layout version carried in every type name.
-pub const LAYOUT_VERSION: u32 = 1;
+pub const LAYOUT_VERSION: u32 = 2;
 
 /// "No torque sample" in [`StateSample::applied_torque_tick`].
 pub const NO_TICK: u64 = u64::MAX;
@@ -25,10 +25,12 @@ pub const NO_TICK: u64 = u64::MAX;
 pub const FLAG_LAST: u64 = 1;
 /// [`StateSample::flags`]: the plant runs on a real-time grid.
 pub const FLAG_REALTIME: u64 = 1 << 1;
+/// [`StateSample::flags`]: safe mode (no fresh torque for too long: rotors coast).
+pub const FLAG_SAFE_MODE: u64 = 1 << 2;
 
 /// The plant's state at tick `tick`, published once per tick.
 #[derive(Debug, Clone, Copy, PartialEq, ZeroCopySend)]
-#[type_name("rotorloop::StateSample_v1")]
+#[type_name("rotorloop::StateSample_v2")]
 #[repr(C)]
 pub struct StateSample {
     /// Tick index `k`.
@@ -63,14 +65,20 @@ pub struct StateSample {
     pub torques_received: u64,
     /// Torque samples known lost (gaps in their tick sequence) so far.
     pub torques_lost: u64,
-    /// [`FLAG_LAST`], [`FLAG_REALTIME`].
+    /// Ticks so far spent in safe mode (cumulative).
+    pub safe_mode_ticks: u64,
+    /// [`FLAG_LAST`], [`FLAG_REALTIME`], [`FLAG_SAFE_MODE`].
     pub flags: u64,
+    /// The integrator's `h` (N m s, inertial): with `p` and `R`, an exact resume point.
+    pub internal_h: [f64; 3],
+    /// The integrator's rotor momenta `p = K(Ω+Ω_r)` (N m s).
+    pub internal_p: [f64; 3],
 }
-const _: () = assert!(size_of::<StateSample>() == 280);
+const _: () = assert!(size_of::<StateSample>() == 336);
 
 /// The desired attitude for tick `tick`, published ahead of the plant.
 #[derive(Debug, Clone, Copy, PartialEq, ZeroCopySend)]
-#[type_name("rotorloop::ReferenceSample_v1")]
+#[type_name("rotorloop::ReferenceSample_v2")]
 #[repr(C)]
 pub struct ReferenceSample {
     /// Tick index `k`.
@@ -89,12 +97,16 @@ pub struct ReferenceSample {
     pub theta_rotor_rad: [f64; 3],
     /// When the sample was published (ns).
     pub publish_ns: u64,
+    /// The dummy body's integrator `h` (exact resume point).
+    pub internal_h: [f64; 3],
+    /// The dummy body's integrator rotor momenta `p`.
+    pub internal_p: [f64; 3],
 }
-const _: () = assert!(size_of::<ReferenceSample>() == 192);
+const _: () = assert!(size_of::<ReferenceSample>() == 240);
 
 /// The controller's answer to state sample `tick`.
 #[derive(Debug, Clone, Copy, PartialEq, ZeroCopySend)]
-#[type_name("rotorloop::TorqueSample_v1")]
+#[type_name("rotorloop::TorqueSample_v2")]
 #[repr(C)]
 pub struct TorqueSample {
     /// The state tick this answers.
@@ -153,7 +165,10 @@ impl StateSample {
             misses: 0,
             torques_received: 0,
             torques_lost: 0,
+            safe_mode_ticks: 0,
             flags: 0,
+            internal_h: [0.0; 3],
+            internal_p: [0.0; 3],
         }
     }
 }

@@ -61,7 +61,12 @@ pub struct Metrics {
     energy0: f64,
     work: f64,
     prev_theta: Option<DVec3>,
+    last_residual: f64,
+    rebase: bool,
 }
+
+/// Length of [`Metrics::save`].
+pub const METRICS_STATE_LEN: usize = 10;
 
 impl Metrics {
     /// Metrics for a plant with these parameters; `initial` is its state at tick 0.
@@ -75,6 +80,8 @@ impl Metrics {
             energy0: body.kinetic_energy(initial.omega, initial.omega_r),
             work: 0.0,
             prev_theta: None,
+            last_residual: 0.0,
+            rebase: false,
         }
     }
 
@@ -95,12 +102,19 @@ impl Metrics {
         let e = reference.r_d * x.r.transpose();
         let h = x.spatial_momentum(&self.body);
         let energy_residual = if self.has_rotors {
-            // Rotor work over the previous tick with u held: u · (Θ_k − Θ_k−1), exact for
-            // zero-order hold.
-            if let Some(theta_prev) = self.prev_theta {
+            let energy = self.body.kinetic_energy(x.omega, x.omega_r);
+            if self.rebase {
+                // After a gap the rotor work of the missing ticks is unknown: continue
+                // the residual from where it was.
+                self.work = energy - self.energy0 - self.last_residual;
+                self.rebase = false;
+            } else if let Some(theta_prev) = self.prev_theta {
+                // Rotor work over the previous tick with u held: u · (Θ_k − Θ_k−1), exact
+                // for zero-order hold.
                 self.work += held_before.dot(x.theta - theta_prev);
             }
-            self.body.kinetic_energy(x.omega, x.omega_r) - self.energy0 - self.work
+            self.last_residual = energy - self.energy0 - self.work;
+            self.last_residual
         } else {
             f64::NAN
         };
@@ -124,6 +138,40 @@ impl Metrics {
                 0.0
             },
             energy_residual,
+        }
+    }
+
+    /// The running state, to continue in another process ([`Metrics::restore`]).
+    pub fn save(&self) -> [f64; METRICS_STATE_LEN] {
+        let t = self.prev_theta.unwrap_or(DVec3::NAN);
+        [
+            self.h0.x,
+            self.h0.y,
+            self.h0.z,
+            self.energy0,
+            self.work,
+            self.last_residual,
+            t.x,
+            t.y,
+            t.z,
+            f64::from(u8::from(self.prev_theta.is_some())),
+        ]
+    }
+
+    /// Metrics continuing from [`Metrics::save`], after a gap of unknown ticks: the energy
+    /// residual is carried over rather than recomputed across the gap.
+    pub fn restore(body: BodyParams, s: &[f64; METRICS_STATE_LEN]) -> Self {
+        let h0 = DVec3::new(s[0], s[1], s[2]);
+        Self {
+            body,
+            has_rotors: body.rotor_inertia.cmpgt(DVec3::ZERO).all(),
+            h0,
+            h0_norm: h0.length(),
+            energy0: s[3],
+            work: s[4],
+            last_residual: s[5],
+            prev_theta: (s[9] > 0.5).then(|| DVec3::new(s[6], s[7], s[8])),
+            rebase: true,
         }
     }
 

@@ -24,6 +24,11 @@ impl<W: Write> TraceWriter<W> {
         Ok(Self { out })
     }
 
+    /// A writer that appends to an existing trace (no header).
+    pub fn append(out: W) -> Self {
+        Self { out }
+    }
+
     /// Appends one row.
     pub fn write(&mut self, row: &TraceRow) -> io::Result<()> {
         let o = &mut self.out;
@@ -39,6 +44,11 @@ impl<W: Write> TraceWriter<W> {
             write!(o, ",{v}")?;
         }
         writeln!(o, ",{},{},{}", row.h_drift_rel, row.energy_residual, row.tick)
+    }
+
+    /// Flushes what was written so far to the file.
+    pub fn flush(&mut self) -> io::Result<()> {
+        self.out.flush()
     }
 
     /// Flushes and returns the inner writer.

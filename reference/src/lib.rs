@@ -53,6 +53,20 @@ impl Reference {
         ReferenceState { r_d: s.r, omega_d: s.omega, omega_d_dot: self.body.omega_dot(&input) }
     }
 
+    /// The dummy body's integrator state (see `Body::internal`), for an exact resume.
+    pub fn internal(&self) -> (DMat3, DVec3, DVec3, DVec3) {
+        self.body.internal()
+    }
+
+    /// A reference continuing bit for bit from a saved integrator state.
+    pub fn from_internal(
+        params: BodyParams,
+        (r, h, p, theta): (DMat3, DVec3, DVec3, DVec3),
+        profile: TorqueProfile,
+    ) -> Self {
+        Self { body: Body::from_internal(params, r, h, p, theta), profile }
+    }
+
     /// The full dummy-body state (for resuming and for momentum checks).
     pub fn body_state(&self) -> RotorBodyState {
         self.body.state()

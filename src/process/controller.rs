@@ -1,16 +1,26 @@
 //! The `controller` process: answers each state sample with rotor and body torques from
 //! the geometric PID law, pairing it with the reference sample of the same tick.
 //!
-//! The reference is published ahead, so it is normally there when the state arrives.
-//! When it is not (a reference miss, counted): in lockstep the controller waits for it,
-//! so the run stays deterministic; in real time it skips the tick (the plant holds the
-//! last torque), because a late answer is useless to it.
+//! **Missing reference.** The reference is published ahead, so it is normally there when
+//! the state arrives. When it is not (counted as a reference miss): in lockstep the
+//! controller waits for it, so the run stays deterministic; in real time it holds the
+//! last reference sample and propagates it (`R_d ← R_d exp(Δt Ω_d)`, `Ω_d` and `Ω̇_d`
+//! held) for at most `--reference-hold-ticks` ticks, then stops answering, so the plant
+//! holds its torque and then enters safe mode.
+//!
+//! **Restart.** A controller started while its resume slot holds an unfinished run
+//! continues bumplessly: the integral state `ξ_I` and the counters come from the last
+//! torque sample it published. A state it has already answered (a restarted plant
+//! re-publishes its last state) gets the same answer again, not a second integration.
 
 use anyhow::Context;
 use clap::Args;
-use rotorloop_common::Actuation;
+use glam::DVec3;
 use rotorloop_common::ipc::{Topic, now_ns, shutdown_requested};
+use rotorloop_common::resume::ResumeSlot;
+use rotorloop_common::so3::exp;
 use rotorloop_common::wire::{FLAG_LAST, ReferenceSample, StateSample, TorqueSample};
+use rotorloop_common::{Actuation, ReferenceState};
 use rotorloop_controller::GeometricPid;
 
 use super::{Mode, RoleArgs, SeqCounter, linger};
@@ -20,6 +30,9 @@ use super::{Mode, RoleArgs, SeqCounter, linger};
 pub struct ControllerArgs {
     #[command(flatten)]
     pub role: RoleArgs,
+    /// Real time: ticks to propagate the last reference when it is missing.
+    #[arg(long, default_value_t = 1000)]
+    pub reference_hold_ticks: u64,
 }
 
 const RING: usize = 256;
@@ -39,11 +52,13 @@ pub fn run(args: &ControllerArgs) -> anyhow::Result<()> {
     let states = domain
         .inbox::<StateSample>(&node, Topic::State, 8, role.wait.listens())
         .context("controller")?;
+    let slot = ResumeSlot::<TorqueSample>::open(&domain, "controller").context("controller")?;
 
     let model = match scenario.actuation() {
         Actuation::Internal => scenario.plant,
         Actuation::External => scenario.plant.without_rotors(),
     };
+    let ticks = scenario.ticks();
     let mut pid = GeometricPid::new(scenario.gains, model);
     let dt = scenario.dt();
     let lockstep = role.mode == Mode::Lockstep;
@@ -52,6 +67,21 @@ pub fn run(args: &ControllerArgs) -> anyhow::Result<()> {
     let mut reference_misses = 0u64;
     let mut skipped = 0u64;
     let mut published = 0u64;
+    let mut last: Option<TorqueSample> = None;
+    let mut last_ref: Option<ReferenceSample> = None;
+    let mut held_refs = 0u64;
+    if let Some(t) = slot.load().filter(|t| t.tick < ticks) {
+        pid = pid.with_integral_state(DVec3::from_array(t.xi_i));
+        published = t.published;
+        reference_misses = t.reference_misses;
+        skipped = t.states_skipped;
+        state_seq = SeqCounter::resume(t.states_received, t.states_lost, t.tick);
+        last = Some(t);
+        eprintln!(
+            "controller: resuming after tick {} with the integral state it last published",
+            t.tick
+        );
+    }
 
     let drain_refs = |ring: &mut Vec<Option<ReferenceSample>>| -> anyhow::Result<()> {
         while let Some(r) = refs.take()? {
@@ -62,11 +92,19 @@ pub fn run(args: &ControllerArgs) -> anyhow::Result<()> {
     let lookup = |ring: &Vec<Option<ReferenceSample>>, k: u64| {
         ring[k as usize % RING].filter(|r| r.tick == k)
     };
+    // Test hook: a first-incarnation controller loans a torque sample at this tick and
+    // stalls holding it, so that a test can kill it with the loan outstanding.
+    let stall_at: Option<u64> = std::env::var("ROTORLOOP_TEST_STALL_WITH_LOAN_AT")
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .filter(|_| last.is_none());
+    let mut last_state_ns = now_ns();
+    let mut plant_gone = false;
 
     loop {
         let deadline = now_ns() + 100_000_000;
         let state = states.wait_for(role.wait, deadline, |inbox| {
-            let mut newest = None;
+            let mut newest: Option<(StateSample, u64)> = None;
             while let Some(s) = inbox.take()? {
                 state_seq.see(s.tick);
                 if newest.is_some() {
@@ -80,20 +118,53 @@ pub fn run(args: &ControllerArgs) -> anyhow::Result<()> {
             if shutdown_requested() {
                 break;
             }
+            if !plant_gone && now_ns() - last_state_ns > 1_000_000_000 {
+                eprintln!("controller: no state from the plant for 1 s (plant gone?)");
+                plant_gone = true;
+            }
             continue;
         };
+        last_state_ns = now_ns();
+        if plant_gone {
+            eprintln!("controller: plant back at tick {}", state.tick);
+            plant_gone = false;
+        }
         let k = state.tick;
+        if stall_at == Some(k) {
+            out.stall_holding_a_loan()?;
+            break;
+        }
+        if let Some(prev) = last.filter(|t| t.tick >= k) {
+            // Already answered (a restarted plant re-published it): same answer again.
+            if prev.tick == k {
+                out.send(prev, |s| s.publish_ns = now_ns()).context("controller: re-publishing")?;
+            }
+            continue;
+        }
         drain_refs(&mut ring)?;
-        let mut rd = lookup(&ring, k);
+        let mut rd = lookup(&ring, k).map(|r| r.reference_state());
         if rd.is_none() {
             reference_misses += 1;
             if lockstep {
                 while rd.is_none() && !shutdown_requested() {
                     std::thread::sleep(std::time::Duration::from_micros(100));
                     drain_refs(&mut ring)?;
-                    rd = lookup(&ring, k);
+                    rd = lookup(&ring, k).map(|r| r.reference_state());
+                }
+            } else if let Some(r) = last_ref.filter(|r| r.tick < k) {
+                held_refs += 1;
+                if held_refs <= args.reference_hold_ticks {
+                    // Hold and propagate the last reference sample.
+                    let x = r.reference_state();
+                    let gap = (k - r.tick) as f64 * dt;
+                    rd = Some(ReferenceState { r_d: x.r_d * exp(gap * x.omega_d), ..x });
                 }
             }
+        } else {
+            held_refs = 0;
+        }
+        if let Some(r) = lookup(&ring, k) {
+            last_ref = Some(r);
         }
         let Some(rd) = rd else {
             if shutdown_requested() {
@@ -101,7 +172,7 @@ pub fn run(args: &ControllerArgs) -> anyhow::Result<()> {
             }
             continue; // real time: no answer this tick; the plant holds the last torque
         };
-        let out_k = pid.step(&state.body_state(), &rd.reference_state(), dt);
+        let out_k = pid.step(&state.body_state(), &rd, dt);
         published += 1;
         let sample = TorqueSample {
             tick: k,
@@ -117,6 +188,8 @@ pub fn run(args: &ControllerArgs) -> anyhow::Result<()> {
             published,
         };
         out.send(sample, |s| s.publish_ns = now_ns()).context("controller: publishing torque")?;
+        slot.store(&sample);
+        last = Some(sample);
         if state.flags & FLAG_LAST != 0 {
             break;
         }

@@ -143,29 +143,37 @@ pub fn linger(mut done: impl FnMut() -> bool) {
 /// Counts samples received and samples lost (gaps in the tick sequence) on one subscriber.
 #[derive(Debug, Clone, Copy, Default)]
 pub struct SeqCounter {
-    /// Samples taken.
+    /// Samples of new ticks taken.
     pub received: u64,
     /// Ticks skipped between consecutive samples.
     pub lost: u64,
+    /// Samples of a tick already seen (a restarted publisher repeating its last one).
+    pub repeated: u64,
     last: Option<u64>,
 }
 
 impl SeqCounter {
     /// Accounts for a sample of tick `tick`. Repeated or older ticks (a restarted
-    /// publisher's history) count as received but not as a gap.
+    /// publisher re-sending its last sample) count as repeated, not received.
     #[inline]
     pub fn see(&mut self, tick: u64) {
-        self.received += 1;
-        if let Some(last) = self.last {
-            if tick > last + 1 {
+        match self.last {
+            Some(last) if tick <= last => self.repeated += 1,
+            Some(last) => {
+                self.received += 1;
                 self.lost += tick - last - 1;
-            }
-            if tick > last {
                 self.last = Some(tick);
             }
-        } else {
-            self.last = Some(tick);
+            None => {
+                self.received += 1;
+                self.last = Some(tick);
+            }
         }
+    }
+
+    /// Continue counting after `last` (a restarted subscriber).
+    pub fn resume(received: u64, lost: u64, last: u64) -> Self {
+        Self { received, lost, repeated: 0, last: Some(last) }
     }
 
     /// The newest tick seen.

@@ -14,8 +14,10 @@ use std::time::Duration;
 use anyhow::Context;
 use clap::Args;
 use glam::DVec3;
+use iceoryx2::prelude::ZeroCopySend;
 use rotorloop_common::Actuation;
 use rotorloop_common::ipc::{MAX_BUFFER, Topic, now_ns, shutdown_requested};
+use rotorloop_common::resume::ResumeSlot;
 use rotorloop_common::wire::{
     FLAG_LAST, FLAG_REALTIME, ReferenceSample, StateSample, TorqueSample,
 };
@@ -44,6 +46,24 @@ pub struct MonitorArgs {
 }
 
 const RING: usize = 16_384;
+const MAX_GAPS: usize = 8;
+
+/// What a restarted monitor needs to continue the same report.
+#[derive(Debug, Clone, Copy, ZeroCopySend)]
+#[type_name("rotorloop::MonitorResume_v2")]
+#[repr(C)]
+struct MonitorResume {
+    next_row: u64,
+    rows: u64,
+    rows_lost: u64,
+    restarts: u64,
+    first_err: f64,
+    drift_max: f64,
+    metrics: [f64; rotorloop_monitor::metrics::METRICS_STATE_LEN],
+    counts: [u64; 6],
+    gaps: [[u64; 2]; MAX_GAPS],
+    n_gaps: u64,
+}
 
 #[derive(Debug, Clone, Copy, Default)]
 struct Slot {
@@ -108,6 +128,14 @@ pub struct RunSummary {
     pub momentum_drift_rel_max: f64,
     /// Whether the run reached its last tick (false after a signal).
     pub completed: bool,
+    /// Ticks the monitor missed while it was down, `[first, last]` (restarted monitor).
+    pub monitor_gaps: Vec<[u64; 2]>,
+    /// How often the monitor was restarted during the run.
+    pub monitor_restarts: u64,
+    /// Ticks the plant spent in safe mode.
+    pub safe_mode_ticks: u64,
+    /// Faults injected by the launcher (filled in by `rotorloop run --fault`).
+    pub faults: Vec<serde_json::Value>,
     /// Files written.
     pub files: Vec<String>,
 }
@@ -129,14 +157,34 @@ pub fn run(args: &MonitorArgs) -> anyhow::Result<()> {
     let states =
         domain.inbox::<StateSample>(&node, Topic::State, MAX_BUFFER, false).context("monitor")?;
 
+    let resume_slot = ResumeSlot::<MonitorResume>::open(&domain, "monitor").context("monitor")?;
+    let ticks = scenario.ticks();
     let out = &args.out;
     std::fs::create_dir_all(out).with_context(|| format!("cannot create {}", out.display()))?;
     let summary_path = out.join("summary.json");
     let _ = std::fs::remove_file(&summary_path);
     let trace_path = out.join("trace.csv");
-    let file = File::create(&trace_path)
-        .with_context(|| format!("cannot create {}", trace_path.display()))?;
-    let mut trace = TraceWriter::new(BufWriter::with_capacity(1 << 20, file))?;
+    let timing_path = out.join("timing.csv");
+    // A restart continues the report in the same directory.
+    let resumed = resume_slot.load().filter(|r| r.next_row <= ticks && trace_path.exists());
+    let open = |path: &std::path::Path| {
+        std::fs::OpenOptions::new()
+            .create(true)
+            .append(resumed.is_some())
+            .write(true)
+            .truncate(resumed.is_none())
+            .open(path)
+            .with_context(|| format!("cannot open {}", path.display()))
+    };
+    let buffered = |f: File| BufWriter::with_capacity(1 << 20, f);
+    let mut trace = match resumed {
+        Some(_) => TraceWriter::append(buffered(open(&trace_path)?)),
+        None => TraceWriter::new(buffered(open(&trace_path)?))?,
+    };
+    let mut timing = buffered(open(&timing_path)?);
+    if resumed.is_none() {
+        writeln!(timing, "tick,state_publish_ns,applied_torque_tick,flags")?;
+    }
 
     let actuation = scenario.actuation();
     let params = match actuation {
@@ -144,10 +192,13 @@ pub fn run(args: &MonitorArgs) -> anyhow::Result<()> {
         Actuation::External => scenario.plant.without_rotors(),
     };
     let init = rotorloop_plant::Body::new(params, scenario.plant_init).state();
-    let mut metrics = Metrics::new(params, &init);
-    let ticks = scenario.ticks();
+    let mut metrics = match &resumed {
+        Some(r) => Metrics::restore(params, &r.metrics),
+        None => Metrics::new(params, &init),
+    };
     let mut rec = Recorder::new(ticks + 1);
-    let mut latency = Latency::new(out, now_ns(), false).context("monitor: interval logs")?;
+    let mut latency =
+        Latency::new(out, now_ns(), resumed.is_some()).context("monitor: interval logs")?;
 
     let mut slots = vec![Slot::default(); RING];
     let (mut s_seq, mut r_seq, mut t_seq) =
@@ -156,6 +207,26 @@ pub fn run(args: &MonitorArgs) -> anyhow::Result<()> {
     let mut rows = 0u64;
     let mut rows_lost = 0u64;
     let (mut first_err, mut last_err, mut drift_max) = (f64::NAN, f64::NAN, 0.0f64);
+    let mut gaps: Vec<[u64; 2]> = Vec::new();
+    let mut restarts = 0u64;
+    let mut gap_pending = false;
+    let mut rows_at_flush = 0u64;
+    if let Some(r) = resumed {
+        next = r.next_row;
+        rows = r.rows;
+        rows_lost = r.rows_lost;
+        first_err = r.first_err;
+        drift_max = r.drift_max;
+        restarts = r.restarts + 1;
+        gaps = r.gaps[..(r.n_gaps as usize).min(MAX_GAPS)].to_vec();
+        let c = r.counts;
+        let last = next.saturating_sub(1);
+        s_seq = SeqCounter::resume(c[0], c[1], last);
+        r_seq = SeqCounter::resume(c[2], c[3], last);
+        t_seq = SeqCounter::resume(c[4], c[5], last);
+        gap_pending = true;
+        eprintln!("monitor: restarted; continuing the report from tick {next}");
+    }
     let mut first_wake: Option<u64> = None;
     let mut last_state: Option<StateSample> = None;
     let mut last_torque: Option<TorqueSample> = None;
@@ -179,6 +250,23 @@ pub fn run(args: &MonitorArgs) -> anyhow::Result<()> {
             t_seq.see(t.tick);
             slots[t.tick as usize % RING].torque = Some(t);
             last_torque = Some(t);
+        }
+        if gap_pending {
+            // The first state a restarted monitor sees tells how much it missed.
+            let first = slots
+                .iter()
+                .filter_map(|sl| sl.state)
+                .map(|st| st.tick)
+                .filter(|t| *t >= next)
+                .min();
+            if let Some(first) = first {
+                if first > next {
+                    gaps.push([next, first - 1]);
+                    rows_lost += first - next;
+                    next = first;
+                }
+                gap_pending = false;
+            }
         }
         let newest = s_seq.last().unwrap_or(0);
         let ended = last_state.is_some_and(|s| s.flags & FLAG_LAST != 0);
@@ -235,6 +323,11 @@ pub fn run(args: &MonitorArgs) -> anyhow::Result<()> {
                 DVec3::from_array(s.applied_rotor_torque_nm),
             );
             trace.write(&row).with_context(|| format!("cannot write {}", trace_path.display()))?;
+            writeln!(
+                timing,
+                "{next},{},{},{}",
+                s.publish_ns, s.applied_torque_tick as i64, s.flags
+            )?;
             rec.record(&row, next == ticks);
             if rows == 0 {
                 first_err = row.err_deg;
@@ -274,6 +367,36 @@ pub fn run(args: &MonitorArgs) -> anyhow::Result<()> {
             latency.record(Hop::ReferenceLead, s.publish_ns.saturating_sub(r.publish_ns), at)?;
             next += 1;
         }
+        if rows > rows_at_flush {
+            // Durable first, then recorded: a monitor killed now loses nothing that its
+            // resume slot claims was written.
+            trace.flush().with_context(|| format!("cannot write {}", trace_path.display()))?;
+            timing.flush()?;
+            rows_at_flush = rows;
+            let mut g = [[0u64; 2]; MAX_GAPS];
+            for (d, src) in g.iter_mut().zip(&gaps) {
+                *d = *src;
+            }
+            resume_slot.store(&MonitorResume {
+                next_row: next,
+                rows,
+                rows_lost,
+                restarts,
+                first_err,
+                drift_max,
+                metrics: metrics.save(),
+                counts: [
+                    s_seq.received,
+                    s_seq.lost,
+                    r_seq.received,
+                    r_seq.lost,
+                    t_seq.received,
+                    t_seq.lost,
+                ],
+                gaps: g,
+                n_gaps: gaps.len().min(MAX_GAPS) as u64,
+            });
+        }
         if status && now_ns() - last_status > 500_000_000 {
             last_status = now_ns();
             let p99 = latency.histogram(Hop::SenseToActuate).value_at_quantile(0.99) as f64 / 1e3;
@@ -295,7 +418,11 @@ pub fn run(args: &MonitorArgs) -> anyhow::Result<()> {
         eprint!("\r{:100}\r", "");
     }
     trace.finish().with_context(|| format!("cannot write {}", trace_path.display()))?;
-    let mut files = vec!["trace.csv".to_owned()];
+    timing.flush()?;
+    if next > ticks {
+        resume_slot.clear(); // finished: a later monitor in this domain starts a new report
+    }
+    let mut files = vec!["trace.csv".to_owned(), "timing.csv".to_owned()];
     files.extend(latency.finish().context("monitor: histograms")?);
     files.extend(Hop::ALL.iter().map(|h| format!("{}.hlog", h.name())));
     files.extend(latency.plots(&scenario.file.name)?);
@@ -361,6 +488,10 @@ pub fn run(args: &MonitorArgs) -> anyhow::Result<()> {
         err_deg_final: last_err,
         momentum_drift_rel_max: drift_max,
         completed: next > ticks,
+        monitor_gaps: gaps.clone(),
+        monitor_restarts: restarts,
+        safe_mode_ticks: last.map_or(0, |s| s.safe_mode_ticks),
+        faults: Vec::new(),
         files,
     };
     println!("{}", console_summary(&summary));

@@ -4,15 +4,23 @@
 //! Lockstep: publish state k, wait for torque k, step. Real time: wake at the absolute
 //! grid time of tick k, publish state k, then wait for torque k until the next grid time;
 //! step as soon as it arrives (so sense-to-actuate measures the loop, not the period).
-//! If it does not arrive in time, hold the last torque, count a miss and step at the
-//! next grid time.
+//! If it does not arrive in time, hold the last torque and count a miss; after
+//! `--hold-ticks` ticks without a fresh torque, enter safe mode: zero torque (the rotors
+//! coast and momentum is conserved) until a fresh torque arrives.
+//!
+//! Restart: a plant started while its resume slot holds an unfinished run (its
+//! predecessor was killed) continues from the last state it published, at the same tick
+//! index, bit for bit (the slot carries the integrator's own state).
 
 use anyhow::Context;
 use clap::Args;
 use glam::DVec3;
 use rotorloop_common::Actuation;
 use rotorloop_common::ipc::{Topic, now_ns, shutdown_requested, sleep_until_ns};
-use rotorloop_common::wire::{FLAG_LAST, FLAG_REALTIME, NO_TICK, StateSample, TorqueSample};
+use rotorloop_common::resume::ResumeSlot;
+use rotorloop_common::wire::{
+    FLAG_LAST, FLAG_REALTIME, FLAG_SAFE_MODE, NO_TICK, StateSample, TorqueSample,
+};
 use rotorloop_plant::{Body, BodyInput};
 
 use super::{Mode, RoleArgs, SeqCounter, linger};
@@ -29,10 +37,26 @@ pub struct PlantArgs {
     /// In real time, sleep until this many µs before each grid time and spin the rest.
     #[arg(long, default_value_t = 0)]
     pub spin_before_tick_us: u64,
+    /// Real time: ticks to hold the last torque without a fresh one before safe mode.
+    #[arg(long, default_value_t = 50)]
+    pub hold_ticks: u64,
     /// Also record sense-to-actuate in the plant itself and write
     /// `DIR/plant_sense_to_actuate.hgrm` at the end (works without a monitor).
     #[arg(long)]
     pub latency_out: Option<std::path::PathBuf>,
+}
+
+fn input_of(t: &TorqueSample, actuation: Actuation) -> BodyInput {
+    match actuation {
+        Actuation::Internal => BodyInput {
+            rotor_torque: DVec3::from_array(t.rotor_torque_nm),
+            body_torque: DVec3::ZERO,
+        },
+        Actuation::External => BodyInput {
+            rotor_torque: DVec3::ZERO,
+            body_torque: DVec3::from_array(t.body_torque_nm),
+        },
+    }
 }
 
 /// Runs the plant until its last tick or a termination signal.
@@ -46,47 +70,82 @@ pub fn run(args: &PlantArgs) -> anyhow::Result<()> {
     let torques = domain
         .inbox::<TorqueSample>(&node, Topic::Torque, 16, role.wait.listens())
         .context("plant")?;
+    let slot = ResumeSlot::<StateSample>::open(&domain, "plant").context("plant")?;
 
     let actuation = scenario.actuation();
     let params = match actuation {
         Actuation::Internal => scenario.plant,
         Actuation::External => scenario.plant.without_rotors(),
     };
-    let mut body = Body::new(params, scenario.plant_init);
     let ticks = scenario.ticks();
     let dt = scenario.dt();
     let realtime = role.mode == Mode::Realtime;
     let period_ns = 1e9 / scenario.file.run.rate_hz;
 
-    // Wait for the subscribers that must see tick 0.
-    while states.subscribers() < args.subscribers {
-        if shutdown_requested() {
-            return Ok(());
-        }
-        states.update_connections();
-        std::thread::sleep(std::time::Duration::from_millis(1));
-    }
-    states.update_connections();
-
-    let start_ns = now_ns() + 20_000_000;
-    let grid = |k: u64| start_ns + (k as f64 * period_ns).round() as u64;
-    let spin_last = args.spin_before_tick_us * 1000;
+    let mut body = Body::new(params, scenario.plant_init);
+    let mut first = 0u64;
     let mut held = BodyInput::default();
     let mut held_tick = NO_TICK;
     let mut held_recv_ns = 0u64;
     let mut seq = SeqCounter::default();
     let mut misses = 0u64;
+    let mut safe_ticks = 0u64;
+    let resumed = slot.load().filter(|s| s.flags & FLAG_LAST == 0 && s.tick <= ticks);
+    if let Some(s) = resumed {
+        let x = s.body_state();
+        body = Body::from_internal(
+            params,
+            x.r,
+            DVec3::from_array(s.internal_h),
+            DVec3::from_array(s.internal_p),
+            x.theta,
+        );
+        first = s.tick;
+        held = BodyInput {
+            rotor_torque: DVec3::from_array(s.applied_rotor_torque_nm),
+            body_torque: DVec3::from_array(s.applied_body_torque_nm),
+        };
+        held_tick = s.applied_torque_tick;
+        held_recv_ns = s.applied_torque_recv_ns;
+        misses = s.misses;
+        safe_ticks = s.safe_mode_ticks;
+        seq = match s.applied_torque_tick {
+            NO_TICK => SeqCounter { received: s.torques_received, lost: s.torques_lost, ..seq },
+            t => SeqCounter::resume(s.torques_received, s.torques_lost, t),
+        };
+        eprintln!("plant: resuming at tick {first} from the last state published before a restart");
+    } else {
+        // Wait for the subscribers that must see tick 0.
+        while states.subscribers() < args.subscribers {
+            if shutdown_requested() {
+                return Ok(());
+            }
+            states.update_connections();
+            std::thread::sleep(std::time::Duration::from_millis(1));
+        }
+    }
+    states.update_connections();
+
+    let start_ns = now_ns() + 20_000_000;
+    let grid = |k: u64| start_ns + ((k - first) as f64 * period_ns).round() as u64;
+    let spin_last = args.spin_before_tick_us * 1000;
     let mut last_update = now_ns();
     let mut s2a = hdrhistogram::Histogram::<u64>::new_with_bounds(1, 3_600_000_000_000, 3)?;
     let mut publish_ns = 0u64;
+    let mut stale = 0u64; // ticks since the last fresh torque
+    let mut safe = resumed.is_some_and(|s| s.flags & FLAG_SAFE_MODE != 0);
+    let mut waiting_logged = false;
 
-    for k in 0..=ticks {
+    for k in first..=ticks {
         let deadline = if realtime { grid(k) } else { 0 };
         if realtime {
             sleep_until_ns(deadline, spin_last);
         }
         let wake = now_ns();
         let mut sample = StateSample::of(k, k as f64 * dt, &body.state());
+        let (_, h, p, _) = body.internal();
+        sample.internal_h = h.to_array();
+        sample.internal_p = p.to_array();
         sample.applied_rotor_torque_nm = held.rotor_torque.to_array();
         sample.applied_body_torque_nm = held.body_torque.to_array();
         sample.applied_torque_tick = held_tick;
@@ -94,18 +153,22 @@ pub fn run(args: &PlantArgs) -> anyhow::Result<()> {
         sample.deadline_ns = deadline;
         sample.wake_ns = wake;
         sample.misses = misses;
+        sample.safe_mode_ticks = safe_ticks;
         sample.torques_received = seq.received;
         sample.torques_lost = seq.lost;
-        sample.flags =
-            if k == ticks { FLAG_LAST } else { 0 } | if realtime { FLAG_REALTIME } else { 0 };
+        sample.flags = if k == ticks { FLAG_LAST } else { 0 }
+            | if realtime { FLAG_REALTIME } else { 0 }
+            | if safe { FLAG_SAFE_MODE } else { 0 };
         states
             .send(sample, |s| {
                 s.publish_ns = now_ns();
                 publish_ns = s.publish_ns;
             })
             .context("plant: publishing state")?;
+        slot.store(&sample);
 
         let wait_until = if realtime { grid(k + 1).saturating_sub(spin_last) } else { u64::MAX };
+        let since = now_ns();
         let got = torques.wait_for(role.wait, wait_until, |inbox| {
             let mut found = None;
             while let Some(t) = inbox.take()? {
@@ -114,31 +177,47 @@ pub fn run(args: &PlantArgs) -> anyhow::Result<()> {
                     found = Some((t, now_ns()));
                 }
             }
-            // Late joiners (a controller started after us) get the state from history.
             if found.is_none() && now_ns() - last_update > 5_000_000 {
+                // Late joiners (a controller started after us) get the state from history.
                 states.update_connections();
                 last_update = now_ns();
+                if !realtime && !waiting_logged && now_ns() - since > 1_000_000_000 {
+                    eprintln!("plant: no torque for tick {k} for 1 s (controller gone?); waiting");
+                    waiting_logged = true;
+                }
             }
             Ok(found)
         })?;
         match got {
             Some((t, recv)) => {
-                held = match actuation {
-                    Actuation::Internal => BodyInput {
-                        rotor_torque: DVec3::from_array(t.rotor_torque_nm),
-                        body_torque: DVec3::ZERO,
-                    },
-                    Actuation::External => BodyInput {
-                        rotor_torque: DVec3::ZERO,
-                        body_torque: DVec3::from_array(t.body_torque_nm),
-                    },
-                };
+                if waiting_logged || safe {
+                    eprintln!("plant: fresh torque at tick {k}; control resumed");
+                }
+                waiting_logged = false;
+                safe = false;
+                stale = 0;
+                held = input_of(&t, actuation);
                 held_tick = t.tick;
                 held_recv_ns = recv;
                 s2a.saturating_record(recv.saturating_sub(publish_ns).max(1));
             }
             None if shutdown_requested() => break,
-            None => misses += 1, // hold the last torque
+            None => {
+                misses += 1;
+                stale += 1;
+                if stale > args.hold_ticks && !safe {
+                    safe = true;
+                    eprintln!(
+                        "plant: no fresh torque for {} ticks at tick {k}: safe mode (zero torque, rotors coast)",
+                        args.hold_ticks
+                    );
+                }
+                if safe {
+                    safe_ticks += 1;
+                    held = BodyInput::default();
+                    held_tick = NO_TICK;
+                }
+            }
         }
         if k < ticks {
             body.step(held, dt);

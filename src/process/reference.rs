@@ -1,15 +1,32 @@
 //! The `reference` process: runs the dummy body and publishes `R_d, Ω_d, Ω̇_d` up to
 //! [`REFERENCE_LEAD`] ticks ahead of the newest state, so the controller never waits for
-//! it. The samples also carry the dummy's rotor state, enough to resume it.
+//! it. The samples also carry the dummy's integrator state: a restarted reference
+//! continues from the last sample it published, bit for bit, as if it had never died.
 
 use anyhow::Context;
 use clap::Args;
+use glam::DVec3;
+use iceoryx2::prelude::ZeroCopySend;
 use rotorloop_common::ipc::{REFERENCE_LEAD, Topic, Wait, now_ns, shutdown_requested};
+use rotorloop_common::resume::ResumeSlot;
 use rotorloop_common::so3::to_row_major;
 use rotorloop_common::wire::{FLAG_LAST, ReferenceSample, StateSample};
 use rotorloop_reference::Reference;
 
 use super::{RoleArgs, linger};
+
+/// Samples a restarted reference can re-publish: its whole lead and history.
+const RESUME_RING: usize = 2 * REFERENCE_LEAD as usize + 2;
+
+/// The reference's resume slot: its last [`RESUME_RING`] published samples.
+#[derive(Debug, Clone, Copy, ZeroCopySend)]
+#[type_name("rotorloop::ReferenceResume_v2")]
+#[repr(C)]
+struct ReferenceResume {
+    samples: [ReferenceSample; RESUME_RING],
+    /// Newest tick stored + 1 (0: none).
+    next: u64,
+}
 
 /// `reference` arguments.
 #[derive(Debug, Clone, Args)]
@@ -29,25 +46,73 @@ pub fn run(args: &ReferenceArgs) -> anyhow::Result<()> {
     // Off the hot path: always block on events, whatever --wait says, so a spinning
     // loop does not get a third busy process.
     let states = domain.inbox::<StateSample>(&node, Topic::State, 8, true).context("reference")?;
+    let slot = ResumeSlot::<ReferenceResume>::open(&domain, "reference").context("reference")?;
 
-    let h = scenario.plant_init.spatial_momentum(&scenario.plant);
-    let mut generator = Reference::matched(
-        scenario.reference,
-        scenario.reference_attitude,
-        scenario.reference_omega,
-        scenario.reference_torque,
-        h,
-    );
     let ticks = scenario.ticks();
     let dt = scenario.dt();
-    let mut next = 0u64;
-    let mut newest_state = 0u64;
+    let mut ring = slot.load().filter(|r| r.next > 0 && r.next <= ticks);
+    let (mut generator, mut next) = match &ring {
+        Some(r) => {
+            let s = r.samples[((r.next - 1) as usize) % RESUME_RING];
+            let x = s.body_state();
+            let mut g = Reference::from_internal(
+                scenario.reference,
+                (x.r, DVec3::from_array(s.internal_h), DVec3::from_array(s.internal_p), x.theta),
+                scenario.reference_torque,
+            );
+            g.step(s.tick as f64 * dt, dt);
+            // What the dead predecessor published may be gone with its shared memory:
+            // publish the stored window again (subscribers take repeats as repeats).
+            let first = r.next.saturating_sub(RESUME_RING as u64);
+            for tick in first..r.next {
+                let again = r.samples[tick as usize % RESUME_RING];
+                if again.tick == tick {
+                    out.send(again, |x| x.publish_ns = now_ns())
+                        .context("reference: re-publishing")?;
+                }
+            }
+            eprintln!(
+                "reference: resuming after tick {} from the samples published before a restart",
+                s.tick
+            );
+            (g, r.next)
+        }
+        None => {
+            let h = scenario.plant_init.spatial_momentum(&scenario.plant);
+            let g = Reference::matched(
+                scenario.reference,
+                scenario.reference_attitude,
+                scenario.reference_omega,
+                scenario.reference_torque,
+                h,
+            );
+            (g, 0)
+        }
+    };
+    let mut window = ring.take().unwrap_or(ReferenceResume {
+        samples: [ReferenceSample {
+            tick: u64::MAX,
+            t_s: 0.0,
+            r_d_row_major: [0.0; 9],
+            omega_d_rad_s: [0.0; 3],
+            omega_d_dot_rad_s2: [0.0; 3],
+            omega_rotor_rad_s: [0.0; 3],
+            theta_rotor_rad: [0.0; 3],
+            publish_ns: 0,
+            internal_h: [0.0; 3],
+            internal_p: [0.0; 3],
+        }; RESUME_RING],
+        next: 0,
+    });
+    let mut newest_state = next.saturating_sub(REFERENCE_LEAD + 1);
     let mut saw_last = false;
+    let mut published_batch = false;
     loop {
         while next <= ticks.min(newest_state + REFERENCE_LEAD) {
             let t = next as f64 * dt;
             let rd = generator.sample(t);
             let body = generator.body_state();
+            let (_, h, p, _) = generator.internal();
             let sample = ReferenceSample {
                 tick: next,
                 t_s: t,
@@ -57,10 +122,19 @@ pub fn run(args: &ReferenceArgs) -> anyhow::Result<()> {
                 omega_rotor_rad_s: body.omega_r.to_array(),
                 theta_rotor_rad: body.theta.to_array(),
                 publish_ns: 0,
+                internal_h: h.to_array(),
+                internal_p: p.to_array(),
             };
             out.send(sample, |s| s.publish_ns = now_ns()).context("reference: publishing")?;
+            window.samples[next as usize % RESUME_RING] = sample;
+            window.next = next + 1;
             generator.step(t, dt);
             next += 1;
+            published_batch = true;
+        }
+        if published_batch {
+            slot.store(&window); // once per batch: the window is a few KiB
+            published_batch = false;
         }
         if saw_last || shutdown_requested() {
             break;

@@ -1,0 +1,186 @@
+//! Resume slots: where a role keeps a copy of the last sample it published, so that a
+//! restarted process (after `kill -9`) continues where its predecessor stopped.
+//!
+//! iceoryx2's history cannot serve here: it lives in the publisher's data segment, which
+//! is removed when the dead node is cleaned up. A slot is a small file in `/dev/shm`
+//! named `rl_<domain>_resume_<role>` (so domain clean-up and leftover checks cover it),
+//! mapped into memory and written with two copies and a generation counter: a process
+//! killed in the middle of a write leaves the previous copy valid. Writing is a `memcpy`
+//! and an atomic store, no system call.
+
+use std::marker::PhantomData;
+use std::os::fd::AsRawFd;
+use std::path::PathBuf;
+use std::sync::atomic::{AtomicU64, Ordering, fence};
+
+use iceoryx2::prelude::ZeroCopySend;
+
+use crate::ipc::{Domain, IpcError};
+use crate::wire::LAYOUT_VERSION;
+
+const MAGIC: u64 = 0x726c_7265_7375_6d65; // "rlresume"
+const HEADER: usize = 64;
+
+/// A mapped resume slot for samples of type `T`.
+#[derive(Debug)]
+pub struct ResumeSlot<T: Copy + ZeroCopySend> {
+    map: *mut u8,
+    len: usize,
+    path: PathBuf,
+    _t: PhantomData<T>,
+}
+
+impl<T: Copy + ZeroCopySend> ResumeSlot<T> {
+    /// The slot file of `role` in `domain`.
+    pub fn path(domain: &Domain, role: &str) -> PathBuf {
+        PathBuf::from(format!("/dev/shm/{}resume_{role}", Domain::prefix_of(domain.name())))
+    }
+
+    /// Opens (or creates) the slot of `role` in `domain`.
+    pub fn open(domain: &Domain, role: &str) -> Result<Self, IpcError> {
+        let path = Self::path(domain, role);
+        let err = |what: &str, e: std::io::Error| IpcError::Iceoryx {
+            what: format!("resume slot {}: {what}", path.display()),
+            detail: e.to_string(),
+        };
+        let len = HEADER + 2 * size_of::<T>().next_multiple_of(64);
+        let file = std::fs::OpenOptions::new()
+            .read(true)
+            .write(true)
+            .create(true)
+            .truncate(false)
+            .open(&path)
+            .map_err(|e| err("open", e))?;
+        // Owner only, like iceoryx2's own files.
+        use std::os::unix::fs::PermissionsExt;
+        let _ = file.set_permissions(std::fs::Permissions::from_mode(0o600));
+        if file.metadata().map_err(|e| err("stat", e))?.len() != len as u64 {
+            file.set_len(len as u64).map_err(|e| err("size", e))?;
+        }
+        // SAFETY: maps `len` bytes of a file of exactly that size; checked for failure.
+        let map = unsafe {
+            libc::mmap(
+                std::ptr::null_mut(),
+                len,
+                libc::PROT_READ | libc::PROT_WRITE,
+                libc::MAP_SHARED,
+                file.as_raw_fd(),
+                0,
+            )
+        };
+        if map == libc::MAP_FAILED {
+            return Err(err("mmap", std::io::Error::last_os_error()));
+        }
+        let slot = Self { map: map.cast(), len, path, _t: PhantomData };
+        let (magic, size, version) = (slot.word(0), slot.word(1), slot.word(2));
+        if magic.load(Ordering::Acquire) != MAGIC
+            || size.load(Ordering::Relaxed) != size_of::<T>() as u64
+            || version.load(Ordering::Relaxed) != u64::from(LAYOUT_VERSION)
+        {
+            // Fresh, or written by another layout: start empty.
+            slot.word(3).store(0, Ordering::Relaxed);
+            size.store(size_of::<T>() as u64, Ordering::Relaxed);
+            version.store(u64::from(LAYOUT_VERSION), Ordering::Relaxed);
+            magic.store(MAGIC, Ordering::Release);
+        }
+        Ok(slot)
+    }
+
+    fn word(&self, i: usize) -> &AtomicU64 {
+        // SAFETY: the header's first 8 words lie in the mapping, 8-byte aligned (page
+        // aligned base); the mapping lives as long as self.
+        unsafe { &*(self.map.add(8 * i) as *const AtomicU64) }
+    }
+
+    fn copy_ptr(&self, generation: u64) -> *mut T {
+        let stride = size_of::<T>().next_multiple_of(64);
+        // SAFETY: both copies lie within the mapping (len = HEADER + 2 strides).
+        unsafe { self.map.add(HEADER + (generation % 2) as usize * stride) as *mut T }
+    }
+
+    /// The last sample stored, if any.
+    pub fn load(&self) -> Option<T> {
+        let generation = self.word(3).load(Ordering::Acquire);
+        if generation == 0 {
+            return None;
+        }
+        // SAFETY: the copy of generation `generation` was completely written before `generation` was
+        // published (release/acquire); T is plain old data of the recorded size and
+        // layout version, valid for any bit pattern of its f64/u64 fields.
+        Some(unsafe { std::ptr::read_volatile(self.copy_ptr(generation)) })
+    }
+
+    /// Stores `value` (allocation- and syscall-free).
+    #[inline]
+    pub fn store(&self, value: &T) {
+        let generation = self.word(3).load(Ordering::Relaxed) + 1;
+        // SAFETY: writes the copy not currently published; only this process writes.
+        unsafe { std::ptr::write_volatile(self.copy_ptr(generation), *value) };
+        fence(Ordering::Release);
+        self.word(3).store(generation, Ordering::Release);
+    }
+
+    /// Forgets the stored sample (a finished run is not resumed).
+    pub fn clear(&self) {
+        self.word(3).store(0, Ordering::Release);
+    }
+}
+
+impl<T: Copy + ZeroCopySend> Drop for ResumeSlot<T> {
+    fn drop(&mut self) {
+        // SAFETY: unmaps what open() mapped.
+        unsafe { libc::munmap(self.map.cast(), self.len) };
+        let _ = &self.path;
+    }
+}
+
+/// Removes every resume slot of a domain.
+pub fn remove_slots(domain: &Domain) {
+    let prefix = format!("{}resume_", Domain::prefix_of(domain.name()));
+    if let Ok(d) = std::fs::read_dir("/dev/shm") {
+        for e in d.flatten() {
+            if e.file_name().to_string_lossy().starts_with(&prefix) {
+                let _ = std::fs::remove_file(e.path());
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::wire::TorqueSample;
+
+    #[test]
+    fn a_slot_returns_the_last_stored_sample_across_reopen() {
+        let domain = Domain::new(&format!("slot{}", std::process::id())).expect("domain");
+        let mut t = TorqueSample {
+            tick: 0,
+            rotor_torque_nm: [1.0, 2.0, 3.0],
+            body_torque_nm: [0.0; 3],
+            xi_i: [0.5; 3],
+            state_recv_ns: 0,
+            publish_ns: 0,
+            states_received: 0,
+            states_lost: 0,
+            states_skipped: 0,
+            reference_misses: 0,
+            published: 0,
+        };
+        {
+            let slot = ResumeSlot::<TorqueSample>::open(&domain, "controller").expect("open");
+            assert!(slot.load().is_none());
+            for k in 0..5 {
+                t.tick = k;
+                slot.store(&t);
+            }
+        }
+        let slot = ResumeSlot::<TorqueSample>::open(&domain, "controller").expect("reopen");
+        assert_eq!(slot.load().map(|s| s.tick), Some(4));
+        slot.clear();
+        assert!(slot.load().is_none());
+        drop(slot);
+        remove_slots(&domain);
+        assert!(!ResumeSlot::<TorqueSample>::path(&domain, "controller").exists());
+    }
+}

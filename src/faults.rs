@@ -1,0 +1,181 @@
+//! The fault report of `rotorloop run --fault`: for each fault, what it cost, computed
+//! after the run from the monitor's `trace.csv` and `timing.csv` and an in-process
+//! no-fault run of the same scenario; added to `summary.json` as `faults`, and drawn in
+//! `faults.png`.
+
+use std::collections::BTreeMap;
+use std::path::Path;
+
+use anyhow::Context;
+use rotorloop_common::Scenario;
+use rotorloop_monitor::plot::{Series, YScale, line_chart};
+use serde::Serialize;
+
+use crate::ClosedLoop;
+use crate::launch::FaultEvent;
+
+/// How far from the no-fault error a run counts as recovered (deg).
+pub const RECOVERED_DEG: f64 = 0.1;
+
+/// One fault's cost.
+#[derive(Debug, Clone, Serialize)]
+pub struct FaultReport {
+    /// The role killed.
+    pub role: String,
+    /// Kill time (s after the first tick was published).
+    pub kill_s: f64,
+    /// Restart time (s), if restarted.
+    pub restart_s: Option<f64>,
+    /// Newest tick published before the kill.
+    pub kill_tick: Option<u64>,
+    /// Ticks after the kill whose preceding torque was not fresh (held or safe mode).
+    pub ticks_without_fresh_torque: u64,
+    /// Ticks from the restart to the first fresh torque applied.
+    pub ticks_to_first_fresh_torque: Option<u64>,
+    /// Worst attitude error from the kill to the end of the run (deg).
+    pub worst_err_deg_after: f64,
+    /// Time from the kill until the error stays within 0.1° of the no-fault run's (s).
+    pub time_to_recover_s: Option<f64>,
+}
+
+struct Timing {
+    publish_ns: u64,
+    applied: i64,
+}
+
+fn read_timing(path: &Path) -> anyhow::Result<BTreeMap<u64, Timing>> {
+    let text =
+        std::fs::read_to_string(path).with_context(|| format!("cannot read {}", path.display()))?;
+    let mut m = BTreeMap::new();
+    for line in text.lines().skip(1) {
+        let f: Vec<&str> = line.split(',').collect();
+        if let (Some(k), Some(p), Some(a)) = (f.first(), f.get(1), f.get(2)) {
+            if let (Ok(k), Ok(p), Ok(a)) = (k.parse(), p.parse(), a.parse()) {
+                m.insert(k, Timing { publish_ns: p, applied: a });
+            }
+        }
+    }
+    Ok(m)
+}
+
+fn read_errors(path: &Path) -> anyhow::Result<BTreeMap<u64, (f64, f64)>> {
+    let text =
+        std::fs::read_to_string(path).with_context(|| format!("cannot read {}", path.display()))?;
+    let mut lines = text.lines();
+    let header: Vec<&str> = lines.next().unwrap_or("").split(',').collect();
+    let col = |n: &str| header.iter().position(|h| *h == n);
+    let (Some(ct), Some(ce), Some(ck)) = (col("t"), col("err_deg"), col("tick")) else {
+        anyhow::bail!("{} lacks the t, err_deg or tick column", path.display());
+    };
+    let mut m = BTreeMap::new();
+    for line in lines {
+        let f: Vec<&str> = line.split(',').collect();
+        if let (Some(t), Some(e), Some(k)) = (f.get(ct), f.get(ce), f.get(ck)) {
+            if let (Ok(t), Ok(e), Ok(k)) = (t.parse(), e.parse(), k.parse()) {
+                m.insert(k, (t, e));
+            }
+        }
+    }
+    Ok(m)
+}
+
+/// Computes the fault reports, adds them to `out/summary.json`, draws `out/faults.png`.
+pub fn report(
+    out: &Path,
+    scenario: &Scenario,
+    events: &[FaultEvent],
+) -> anyhow::Result<Vec<FaultReport>> {
+    let timing = read_timing(&out.join("timing.csv"))?;
+    let errors = read_errors(&out.join("trace.csv"))?;
+    let Some(t0) = timing.values().map(|t| t.publish_ns).min() else {
+        return Ok(Vec::new());
+    };
+    // The no-fault run: the same scenario in process.
+    let mut lp = ClosedLoop::new(scenario, scenario.actuation(), None);
+    let nofault: Vec<f64> = (0..=scenario.ticks()).map(|_| lp.tick().err_deg).collect();
+    let last_tick = timing.keys().next_back().copied().unwrap_or(0);
+    let fresh = |k: u64| timing.get(&k).is_some_and(|t| k > 0 && t.applied == k as i64 - 1);
+
+    let mut reports = Vec::new();
+    for e in events {
+        let kill_tick =
+            timing.iter().filter(|(_, t)| t.publish_ns <= e.kill_ns).map(|(k, _)| *k).next_back();
+        let restart_tick = e
+            .restart_ns
+            .and_then(|r| timing.iter().find(|(_, t)| t.publish_ns >= r).map(|(k, _)| *k));
+        let from = kill_tick.unwrap_or(0);
+        let first_fresh_after_restart =
+            restart_tick.and_then(|r| (r..=last_tick).find(|k| fresh(*k)));
+        let until = first_fresh_after_restart.unwrap_or(last_tick);
+        let without =
+            ((from + 1)..=until).filter(|k| timing.contains_key(k) && !fresh(*k)).count() as u64;
+        let worst = errors.range(from..).map(|(_, (_, e))| *e).fold(0.0f64, f64::max);
+        // Recovered: from some tick on, every row is within 0.1° of the no-fault error.
+        let mut recovered_at: Option<f64> = None;
+        for (k, (t, err)) in errors.range(from..) {
+            let within = nofault.get(*k as usize).is_some_and(|n| (err - n).abs() < RECOVERED_DEG);
+            if !within {
+                recovered_at = None;
+            } else if recovered_at.is_none() {
+                recovered_at = Some(*t);
+            }
+        }
+        let kill_t = errors.get(&from).map_or(0.0, |(t, _)| *t);
+        reports.push(FaultReport {
+            role: e.role.clone(),
+            kill_s: e.kill_ns.saturating_sub(t0) as f64 / 1e9,
+            restart_s: e.restart_ns.map(|r| r.saturating_sub(t0) as f64 / 1e9),
+            kill_tick,
+            ticks_without_fresh_torque: without,
+            ticks_to_first_fresh_torque: match (restart_tick, first_fresh_after_restart) {
+                (Some(r), Some(f)) => Some(f.saturating_sub(r)),
+                _ => None,
+            },
+            worst_err_deg_after: worst,
+            time_to_recover_s: recovered_at.map(|t| (t - kill_t).max(0.0)),
+        });
+    }
+
+    let summary_path = out.join("summary.json");
+    if let Ok(text) = std::fs::read_to_string(&summary_path) {
+        let mut j: serde_json::Value = serde_json::from_str(&text)?;
+        j["faults"] = serde_json::to_value(&reports)?;
+        crate::sim::write_json(&summary_path, &j)?;
+    }
+
+    // faults.png: the error of this run and of the no-fault run, faults marked.
+    let run: Vec<(f64, f64)> = errors.values().copied().collect();
+    let dt = scenario.dt();
+    let every = (nofault.len() / 6000).max(1);
+    let reference: Vec<(f64, f64)> =
+        nofault.iter().enumerate().step_by(every).map(|(k, e)| (k as f64 * dt, *e)).collect();
+    let top = run.iter().map(|p| p.1).fold(1.0f64, f64::max);
+    let mut markers: Vec<(String, Vec<(f64, f64)>)> = Vec::new();
+    for r in &reports {
+        let at = |k: Option<u64>| k.and_then(|k| errors.get(&k)).map(|(t, _)| *t);
+        if let Some(t) = at(r.kill_tick) {
+            markers.push((format!("kill {}", r.role), vec![(t, 1e-6), (t, top)]));
+        }
+        let restart_tick =
+            r.restart_s.and_then(|_| r.kill_tick.map(|k| k + r.ticks_without_fresh_torque));
+        if let (Some(_), Some(t)) = (r.restart_s, at(restart_tick)) {
+            markers.push((format!("{} fresh again", r.role), vec![(t, 1e-6), (t, top)]));
+        }
+    }
+    let mut series = vec![
+        Series { label: "this run", points: &run, dashed: false },
+        Series { label: "no-fault run (in process)", points: &reference, dashed: true },
+    ];
+    for (label, pts) in &markers {
+        series.push(Series { label, points: pts, dashed: true });
+    }
+    line_chart(
+        &out.join("faults.png"),
+        &format!("{}: attitude error with faults marked", scenario.file.name),
+        "t (s)",
+        "error (deg, log)",
+        &series,
+        YScale::Log { floor: 1e-6 },
+    )?;
+    Ok(reports)
+}
