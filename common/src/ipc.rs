@@ -345,10 +345,13 @@ impl<T: ZeroCopySend + Debug + Copy + 'static> Inbox<T> {
                 Wait::Event => false,
                 Wait::Hybrid { spin_ns } => now - start < spin_ns,
             };
-            match (&self.listener, spin) {
+            // iceoryx2 0.10 turns the timeout into SO_RCVTIMEO, where anything under 1 µs
+            // becomes {0, 0}: "wait forever". Never pass it less than 2 µs; spin instead.
+            let left = deadline_ns - now;
+            match (&self.listener, spin || left < 2_000) {
                 (Some(l), false) => {
                     // Bounded so that signals are seen; wake-ups merge, so drain after.
-                    let left = (deadline_ns - now).min(10_000_000);
+                    let left = left.min(10_000_000);
                     l.timed_wait(|_| {}, Duration::from_nanos(left))
                         .map_err(|e| iox("cannot wait for an event")(&e))?;
                 }

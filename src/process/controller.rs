@@ -187,8 +187,10 @@ pub fn run(args: &ControllerArgs) -> anyhow::Result<()> {
             reference_misses,
             published,
         };
-        out.send(sample, |s| s.publish_ns = now_ns()).context("controller: publishing torque")?;
+        // Slot first: killed between the two, the restart re-sends this very answer when
+        // the plant asks again; the other order would resume with a stale ξ_I.
         slot.store(&sample);
+        out.send(sample, |s| s.publish_ns = now_ns()).context("controller: publishing torque")?;
         last = Some(sample);
         if state.flags & FLAG_LAST != 0 {
             break;
