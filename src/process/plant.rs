@@ -159,13 +159,16 @@ pub fn run(args: &PlantArgs) -> anyhow::Result<()> {
         sample.flags = if k == ticks { FLAG_LAST } else { 0 }
             | if realtime { FLAG_REALTIME } else { 0 }
             | if safe { FLAG_SAFE_MODE } else { 0 };
+        // Slot first: killed between the two, the restart publishes this very state,
+        // which the controller answers (or answers again). The other order would let a
+        // restart re-publish tick k−1 after the controller has moved past it: deadlock.
+        slot.store(&sample);
         states
             .send(sample, |s| {
                 s.publish_ns = now_ns();
                 publish_ns = s.publish_ns;
             })
             .context("plant: publishing state")?;
-        slot.store(&sample);
 
         let wait_until = if realtime { grid(k + 1).saturating_sub(spin_last) } else { u64::MAX };
         let since = now_ns();
