@@ -30,14 +30,7 @@ impl ClosedLoop {
     /// rotor-actuated plant in both actuations, so an internal and an external run track
     /// the same reference. `open_loop` replaces the controller by a constant rotor torque.
     pub fn new(scenario: &Scenario, actuation: Actuation, open_loop: Option<DVec3>) -> Self {
-        let h = scenario.plant_init.spatial_momentum(&scenario.plant);
-        let reference = Reference::matched(
-            scenario.reference,
-            scenario.reference_attitude,
-            scenario.reference_omega,
-            scenario.reference_torque,
-            h,
-        );
+        let reference = Reference::for_scenario(scenario);
         let body = match actuation {
             Actuation::Internal => scenario.plant,
             Actuation::External => scenario.plant.without_rotors(),

@@ -40,6 +40,13 @@ impl Reference {
         )
     }
 
+    /// The reference of a scenario, momentum-matched to the scenario's rotor-actuated
+    /// plant (the same reference whatever the plant's actuation).
+    pub fn for_scenario(s: &rotorloop_common::Scenario) -> Self {
+        let h = s.plant_init.spatial_momentum(&s.plant);
+        Self::matched(s.reference, s.reference_attitude, s.reference_omega, s.reference_torque, h)
+    }
+
     /// A reference continuing from a full dummy-body state (e.g. the last one published).
     pub fn resume(params: BodyParams, state: RotorBodyState, profile: TorqueProfile) -> Self {
         Self { body: Body::new(params, state), profile }

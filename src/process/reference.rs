@@ -77,17 +77,7 @@ pub fn run(args: &ReferenceArgs) -> anyhow::Result<()> {
             );
             (g, r.next)
         }
-        None => {
-            let h = scenario.plant_init.spatial_momentum(&scenario.plant);
-            let g = Reference::matched(
-                scenario.reference,
-                scenario.reference_attitude,
-                scenario.reference_omega,
-                scenario.reference_torque,
-                h,
-            );
-            (g, 0)
-        }
+        None => (Reference::for_scenario(&scenario), 0),
     };
     let mut window = ring.take().unwrap_or(ReferenceResume {
         samples: [ReferenceSample {
