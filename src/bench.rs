@@ -363,12 +363,10 @@ fn measure_loop(
     if without_monitor {
         // No monitor, no summary: the plant's own histogram of the loop.
         let hgrm = out.join("plant_sense_to_actuate.hgrm");
-        let pts = read_hgrm_values(&hgrm);
-        let at = |q: f64| pts.iter().find(|(p, _)| *p >= q).map_or(f64::NAN, |(_, v)| *v);
-        row.p50 = at(0.5);
-        row.p99 = at(0.99);
-        row.p99_9 = at(0.999);
-        row.max = pts.last().map_or(f64::NAN, |(_, v)| *v);
+        row.p50 = hgrm_quantile(&hgrm, 0.5);
+        row.p99 = hgrm_quantile(&hgrm, 0.99);
+        row.p99_9 = hgrm_quantile(&hgrm, 0.999);
+        row.max = hgrm_quantile(&hgrm, 1.0);
         row.count = hgrm_count(&hgrm);
         row.lateness_p99 = f64::NAN;
         row.achieved = f64::NAN;
@@ -526,8 +524,9 @@ fn write_markdown(a: &BenchArgs, rows: &[Row]) -> anyhow::Result<()> {
              with and without the monitor attached (separate runs, same cell).\n"
         );
         for r in rows.iter().filter(|r| r.kind == "loop-nomon" && r.skipped.is_empty()) {
-            let with = hgrm_p50(
+            let with = hgrm_quantile(
                 &a.out.join("cells").join(&r.cell).join("loop").join("plant_sense_to_actuate.hgrm"),
+                0.5,
             );
             let _ = writeln!(
                 md,
@@ -573,8 +572,9 @@ pub fn read_hgrm_values(path: &Path) -> Vec<(f64, f64)> {
         .collect()
 }
 
-fn hgrm_p50(path: &Path) -> f64 {
-    read_hgrm_values(path).iter().find(|(q, _)| *q >= 0.5).map_or(f64::NAN, |(_, v)| *v)
+/// The value (µs) at percentile `q` of a `.hgrm` file (`q = 1` is the maximum).
+fn hgrm_quantile(path: &Path, q: f64) -> f64 {
+    read_hgrm_values(path).iter().find(|(p, _)| *p >= q).map_or(f64::NAN, |(_, v)| *v)
 }
 
 /// The total count of a `.hgrm` file.

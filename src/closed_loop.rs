@@ -31,10 +31,7 @@ impl ClosedLoop {
     /// the same reference. `open_loop` replaces the controller by a constant rotor torque.
     pub fn new(scenario: &Scenario, actuation: Actuation, open_loop: Option<DVec3>) -> Self {
         let reference = Reference::for_scenario(scenario);
-        let body = match actuation {
-            Actuation::Internal => scenario.plant,
-            Actuation::External => scenario.plant.without_rotors(),
-        };
+        let body = scenario.plant_params(actuation);
         let plant = Body::new(body, scenario.plant_init);
         let pid = GeometricPid::new(scenario.gains, body);
         let metrics = Metrics::new(body, &plant.state());

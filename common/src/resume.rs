@@ -26,7 +26,6 @@ const HEADER: usize = 64;
 pub struct ResumeSlot<T: Copy + ZeroCopySend> {
     map: *mut u8,
     len: usize,
-    path: PathBuf,
     _t: PhantomData<T>,
 }
 
@@ -71,7 +70,7 @@ impl<T: Copy + ZeroCopySend> ResumeSlot<T> {
         if map == libc::MAP_FAILED {
             return Err(err("mmap", std::io::Error::last_os_error()));
         }
-        let slot = Self { map: map.cast(), len, path, _t: PhantomData };
+        let slot = Self { map: map.cast(), len, _t: PhantomData };
         let (magic, size, version) = (slot.word(0), slot.word(1), slot.word(2));
         if magic.load(Ordering::Acquire) != MAGIC
             || size.load(Ordering::Relaxed) != size_of::<T>() as u64
@@ -130,7 +129,6 @@ impl<T: Copy + ZeroCopySend> Drop for ResumeSlot<T> {
     fn drop(&mut self) {
         // SAFETY: unmaps what open() mapped.
         unsafe { libc::munmap(self.map.cast(), self.len) };
-        let _ = &self.path;
     }
 }
 

@@ -407,6 +407,15 @@ impl Scenario {
         ((self.file.run.duration_s * self.file.run.rate_hz).round() as u64).max(1)
     }
 
+    /// The plant's inertia parameters for an actuation: the gas-jet body is the same
+    /// body without its rotors.
+    pub fn plant_params(&self, actuation: Actuation) -> BodyParams {
+        match actuation {
+            Actuation::Internal => self.plant,
+            Actuation::External => self.plant.without_rotors(),
+        }
+    }
+
     /// The actuation of this run.
     pub fn actuation(&self) -> Actuation {
         self.file.run.actuation

@@ -16,11 +16,11 @@
 use anyhow::Context;
 use clap::Args;
 use glam::DVec3;
+use rotorloop_common::ReferenceState;
 use rotorloop_common::ipc::{Topic, now_ns, shutdown_requested};
 use rotorloop_common::resume::ResumeSlot;
 use rotorloop_common::so3::exp;
 use rotorloop_common::wire::{FLAG_LAST, ReferenceSample, StateSample, TorqueSample};
-use rotorloop_common::{Actuation, ReferenceState};
 use rotorloop_controller::GeometricPid;
 
 use super::{Mode, RoleArgs, SeqCounter, linger};
@@ -54,10 +54,7 @@ pub fn run(args: &ControllerArgs) -> anyhow::Result<()> {
         .context("controller")?;
     let slot = ResumeSlot::<TorqueSample>::open(&domain, "controller").context("controller")?;
 
-    let model = match scenario.actuation() {
-        Actuation::Internal => scenario.plant,
-        Actuation::External => scenario.plant.without_rotors(),
-    };
+    let model = scenario.plant_params(scenario.actuation());
     let ticks = scenario.ticks();
     let mut pid = GeometricPid::new(scenario.gains, model);
     let dt = scenario.dt();

@@ -187,10 +187,7 @@ pub fn run(args: &MonitorArgs) -> anyhow::Result<()> {
     }
 
     let actuation = scenario.actuation();
-    let params = match actuation {
-        Actuation::Internal => scenario.plant,
-        Actuation::External => scenario.plant.without_rotors(),
-    };
+    let params = scenario.plant_params(actuation);
     let init = rotorloop_plant::Body::new(params, scenario.plant_init).state();
     let mut metrics = match &resumed {
         Some(r) => Metrics::restore(params, &r.metrics),

@@ -73,10 +73,7 @@ pub fn run(args: &PlantArgs) -> anyhow::Result<()> {
     let slot = ResumeSlot::<StateSample>::open(&domain, "plant").context("plant")?;
 
     let actuation = scenario.actuation();
-    let params = match actuation {
-        Actuation::Internal => scenario.plant,
-        Actuation::External => scenario.plant.without_rotors(),
-    };
+    let params = scenario.plant_params(actuation);
     let ticks = scenario.ticks();
     let dt = scenario.dt();
     let realtime = role.mode == Mode::Realtime;
