@@ -359,6 +359,7 @@ fn measure_loop(
         spin_before_tick_us: a.spin_before_tick_us,
         hold_ticks: 50,
         fault: Vec::new(),
+        corrupt: Vec::new(),
     })?;
     if without_monitor {
         // No monitor, no summary: the plant's own histogram of the loop.

@@ -3,7 +3,7 @@
 //! in-process simulator's core and the unit the benchmark measures.
 
 use glam::DVec3;
-use rotorloop_common::{Actuation, Scenario};
+use rotorloop_common::{ActuatorLimits, Actuation, Scenario};
 use rotorloop_controller::{ControlOutput, GeometricPid};
 use rotorloop_monitor::{Metrics, TraceRow};
 use rotorloop_plant::{Body, BodyInput};
@@ -20,9 +20,12 @@ pub struct ClosedLoop {
     open_loop: Option<DVec3>,
     metrics: Metrics,
     actuation: Actuation,
+    limits: ActuatorLimits,
+    disturbance: DVec3,
     dt: f64,
     tick: u64,
     held: DVec3,
+    saturated_ticks: u64,
 }
 
 impl ClosedLoop {
@@ -33,8 +36,11 @@ impl ClosedLoop {
         let reference = Reference::for_scenario(scenario);
         let body = scenario.plant_params(actuation);
         let plant = Body::new(body, scenario.plant_init);
-        let pid = GeometricPid::new(scenario.gains, body);
-        let metrics = Metrics::new(body, &plant.state());
+        let limits = scenario.limits_for(actuation);
+        let pid = GeometricPid::new(scenario.gains, scenario.controller_params(actuation))
+            .with_limits(limits, scenario.anti_windup);
+        let metrics =
+            Metrics::new(body, &plant.state()).with_disturbance(scenario.disturbance);
         Self {
             plant,
             reference,
@@ -42,9 +48,12 @@ impl ClosedLoop {
             open_loop,
             metrics,
             actuation,
+            limits,
+            disturbance: scenario.disturbance,
             dt: scenario.dt(),
             tick: 0,
             held: DVec3::ZERO,
+            saturated_ticks: 0,
         }
     }
 
@@ -61,6 +70,11 @@ impl ClosedLoop {
     /// The reference generator.
     pub fn reference(&self) -> &Reference {
         &self.reference
+    }
+
+    /// Ticks so far whose rotor torque the actuator limits changed.
+    pub fn saturated_ticks(&self) -> u64 {
+        self.saturated_ticks
     }
 
     /// The metrics.
@@ -82,13 +96,19 @@ impl ClosedLoop {
             Some(u) => ControlOutput { rotor_torque: u, ..ControlOutput::default() },
         };
         let (input, u_traced) = match self.actuation {
-            Actuation::Internal => (
-                BodyInput { rotor_torque: out.rotor_torque, body_torque: DVec3::ZERO },
-                out.rotor_torque,
-            ),
-            Actuation::External => {
-                (BodyInput { rotor_torque: DVec3::ZERO, body_torque: out.body_torque }, DVec3::ZERO)
+            Actuation::Internal => {
+                // The motors deliver what their limits allow (the trace keeps the command).
+                let (u, saturated) = self.limits.apply(out.rotor_torque, x.omega_r);
+                self.saturated_ticks += u64::from(saturated);
+                (BodyInput { rotor_torque: u, body_torque: self.disturbance }, out.rotor_torque)
             }
+            Actuation::External => (
+                BodyInput {
+                    rotor_torque: DVec3::ZERO,
+                    body_torque: out.body_torque + self.disturbance,
+                },
+                DVec3::ZERO,
+            ),
         };
         let row = self.metrics.observe(k, t, &x, &rd, u_traced, out.body_torque, self.held);
         self.held = input.rotor_torque;

@@ -46,6 +46,31 @@ pub struct RunArgs {
     /// ROLE is plant, reference, controller or monitor). Repeatable.
     #[arg(long)]
     pub fault: Vec<String>,
+    /// Inject a corrupted sample: `ROLE:KIND@TICK` makes ROLE (plant, reference or
+    /// controller) publish tick TICK with a NaN (`nan`), an infinity (`inf`), an absurd
+    /// 1e12 (`huge`) or, for plant and reference, a non-rotation attitude (`skew`).
+    /// The receivers must reject it. Repeatable.
+    #[arg(long)]
+    pub corrupt: Vec<String>,
+}
+
+/// Parses `--corrupt ROLE:KIND@TICK`.
+pub fn parse_corrupt(s: &str) -> Result<(String, crate::process::Corrupt), UsageError> {
+    use crate::process::{Corrupt, CorruptKind};
+    let bad = |why: &str| {
+        UsageError(format!(
+            "--corrupt `{s}` is not allowed: {why} (form ROLE:KIND@TICK, e.g. controller:nan@500)"
+        ))
+    };
+    let (role, rest) = s.split_once(':').ok_or_else(|| bad("no ROLE:"))?;
+    if !["plant", "reference", "controller"].contains(&role) {
+        return Err(bad("ROLE is plant, reference or controller"));
+    }
+    let c: Corrupt = rest.parse().map_err(|e: String| bad(&e))?;
+    if role == "controller" && c.kind == CorruptKind::Skew {
+        return Err(bad("`skew` needs an attitude: plant or reference"));
+    }
+    Ok((role.to_owned(), c))
 }
 
 /// One `--fault`.
@@ -124,6 +149,63 @@ pub fn parse_pins(s: &str) -> Result<BTreeMap<String, usize>, UsageError> {
     Ok(pins)
 }
 
+/// Resident memory of one role over a run, from `/proc/<pid>/status` (`VmRSS`), sampled
+/// once a second by the launcher. It includes the shared-memory pages the process has
+/// touched. A restarted role starts a new life: the figures are of its last life.
+#[derive(Debug, Clone, Copy, Default, serde::Serialize)]
+pub struct RssTrack {
+    /// The process's pid (last life).
+    pub pid: u32,
+    /// First sample taken at least [`RSS_SETTLE_S`] after the start, or the first at all
+    /// for a shorter life (KiB).
+    pub start_kib: u64,
+    /// Seconds after the start of that sample.
+    pub start_at_s: f64,
+    /// Last sample before the process ended (KiB).
+    pub end_kib: u64,
+    /// Seconds after the start of that sample.
+    pub end_at_s: f64,
+    /// Largest sample (KiB).
+    pub max_kib: u64,
+    /// Samples taken.
+    pub samples: u64,
+    #[serde(skip)]
+    spawned_ns: u64,
+    #[serde(skip)]
+    settled: bool,
+}
+
+/// Seconds a process may allocate its set-up before its "start" memory is taken.
+pub const RSS_SETTLE_S: f64 = 3.0;
+
+/// `VmRSS` of a process (KiB), if it is alive.
+pub fn rss_kib(pid: u32) -> Option<u64> {
+    let status = std::fs::read_to_string(format!("/proc/{pid}/status")).ok()?;
+    let line = status.lines().find(|l| l.starts_with("VmRSS:"))?;
+    line.split_whitespace().nth(1)?.parse().ok()
+}
+
+impl RssTrack {
+    fn new(pid: u32) -> Self {
+        Self { pid, spawned_ns: now_ns(), ..Self::default() }
+    }
+
+    fn sample(&mut self) -> Option<u64> {
+        let kib = rss_kib(self.pid)?;
+        let at = (now_ns() - self.spawned_ns) as f64 / 1e9;
+        if self.samples == 0 || (!self.settled && at >= RSS_SETTLE_S) {
+            self.start_kib = kib;
+            self.start_at_s = at;
+            self.settled = at >= RSS_SETTLE_S;
+        }
+        self.end_kib = kib;
+        self.end_at_s = at;
+        self.max_kib = self.max_kib.max(kib);
+        self.samples += 1;
+        Some(kib)
+    }
+}
+
 struct Children(Vec<(String, Child)>);
 
 impl Drop for Children {
@@ -149,6 +231,7 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
         eprintln!("warning: {w}");
     }
     let faults = args.fault.iter().map(|f| parse_fault(f)).collect::<Result<Vec<_>, _>>()?;
+    let corrupt = args.corrupt.iter().map(|c| parse_corrupt(c)).collect::<Result<Vec<_>, _>>()?;
     let mut role_args = args.role.clone();
     role_args.domain.get_or_insert_with(|| format!("run-{}", std::process::id()));
     let domain = role_args.open_domain()?;
@@ -176,6 +259,9 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
         r.core = pins.get(role).copied();
         let mut cmd = Command::new(&exe);
         cmd.arg("role").arg(role).args(r.to_args()).stdin(Stdio::null());
+        for (_, c) in corrupt.iter().filter(|(r, _)| r == role) {
+            cmd.arg("--corrupt").arg(c.to_string());
+        }
         if args.quiet {
             cmd.stdout(Stdio::null());
         }
@@ -197,14 +283,25 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
         cmd
     };
     let mut children = Children(Vec::new());
+    let mut rss: BTreeMap<String, RssTrack> = BTreeMap::new();
     for role in ROLES {
         if role == "monitor" && args.no_monitor {
             continue;
         }
         let child = command(role).spawn().with_context(|| format!("cannot start {role}"))?;
+        rss.insert(role.to_owned(), RssTrack::new(child.id()));
         children.0.push((role.to_owned(), child));
     }
     let t0 = now_ns();
+    let mut rss_csv = std::io::BufWriter::new(
+        std::fs::File::create(args.out.join("rss.csv"))
+            .with_context(|| format!("cannot write {}", args.out.join("rss.csv").display()))?,
+    );
+    {
+        use std::io::Write;
+        writeln!(rss_csv, "t_s,role,pid,rss_kib")?;
+    }
+    let mut next_rss_ns = t0;
     let mut events: Vec<FaultEvent> = Vec::new();
     let mut pending = faults.clone();
 
@@ -236,6 +333,7 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
                 let child = command(&f.role)
                     .spawn()
                     .with_context(|| format!("cannot restart {}", f.role))?;
+                rss.insert(f.role.clone(), RssTrack::new(child.id()));
                 if let Some(entry) = children.0.iter_mut().find(|(r, _)| *r == f.role) {
                     entry.1 = child;
                 }
@@ -245,6 +343,17 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
                 eprintln!("launcher: restarted {} at {elapsed:.3} s", f.role);
                 f.restarted = true;
             }
+        }
+        if now_ns() >= next_rss_ns {
+            use std::io::Write;
+            next_rss_ns += 1_000_000_000;
+            let t = (now_ns() - t0) as f64 / 1e9;
+            for (role, track) in rss.iter_mut() {
+                if let Some(kib) = track.sample() {
+                    writeln!(rss_csv, "{t:.1},{role},{},{kib}", track.pid)?;
+                }
+            }
+            rss_csv.flush()?;
         }
         let waiting_restart =
             pending.iter().any(|f| f.killed && !f.restarted && f.restart_s.is_some());
@@ -293,6 +402,17 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
     if let Some(f) = failures.first() {
         anyhow::bail!("{f}; the run was stopped ({} failed)", failures.join(", "));
     }
+    if !args.no_monitor {
+        add_resources(&args.out, &rss).context("resource report")?;
+    }
+    if !args.quiet {
+        for (role, r) in &rss {
+            println!(
+                "{role:<10} RSS {:>7} KiB at {:>6.1} s → {:>7} KiB at {:>8.1} s (max {} KiB)",
+                r.start_kib, r.start_at_s, r.end_kib, r.end_at_s, r.max_kib
+            );
+        }
+    }
     if !events.is_empty() && !args.no_monitor {
         crate::faults::report(&args.out, &role_args.scenario()?, &events)
             .context("fault report")?;
@@ -302,5 +422,17 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
     } else if !args.no_monitor && !args.quiet {
         println!("report: {}", args.out.display());
     }
+    Ok(())
+}
+
+/// Adds the per-role memory figures to `out/summary.json` as `resources`.
+fn add_resources(out: &std::path::Path, rss: &BTreeMap<String, RssTrack>) -> anyhow::Result<()> {
+    let path = out.join("summary.json");
+    let Ok(text) = std::fs::read_to_string(&path) else {
+        return Ok(()); // no summary (the monitor was stopped early): nothing to add to
+    };
+    let mut j: serde_json::Value = serde_json::from_str(&text)?;
+    j["resources"] = serde_json::json!({ "rss": rss, "rss_csv": "rss.csv" });
+    crate::sim::write_json(&path, &j)?;
     Ok(())
 }

@@ -48,6 +48,7 @@ pub fn run(out: &Path, duration: f64, rate: f64, in_process: bool) -> anyhow::Re
                 spin_before_tick_us: 0,
                 hold_ticks: 50,
                 fault: Vec::new(),
+                corrupt: Vec::new(),
             })
             .with_context(|| format!("four-process run of {name}"))?;
             let j: serde_json::Value = serde_json::from_str(

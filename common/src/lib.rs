@@ -24,5 +24,5 @@ pub mod scenario;
 pub mod so3;
 pub mod wire;
 
-pub use params::{BodyParams, Gains, ReferenceState, RotorBodyState};
+pub use params::{ActuatorLimits, AntiWindup, BodyParams, Gains, ReferenceState, RotorBodyState};
 pub use scenario::{Actuation, Scenario, ScenarioError, TorqueProfile};

@@ -88,3 +88,55 @@ pub struct ReferenceState {
     /// `Ω̇_d` (rad/s²) from the dummy body's own dynamics at the same instant.
     pub omega_d_dot: DVec3,
 }
+
+/// What the rotor motors can do (spec extension; off in the paper's scenarios). Applied
+/// by the plant to every held torque, and known to the controller for anti-windup.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct ActuatorLimits {
+    /// `u_max`: each `|u_i|` is clamped to it (N m).
+    pub rotor_torque: Option<f64>,
+    /// `Ω_max`: a rotor at or beyond it gets no torque that would spin it further (rad/s).
+    pub rotor_rate: Option<f64>,
+}
+
+impl ActuatorLimits {
+    /// Whether any limit is set.
+    pub fn any(&self) -> bool {
+        self.rotor_torque.is_some() || self.rotor_rate.is_some()
+    }
+
+    /// The rotor torque the motors actually deliver for command `u` with the rotors at
+    /// relative rates `omega_r`, and whether that differs from the command.
+    ///
+    /// Torque saturation clamps each `u_i` to `±u_max`. The speed limit cuts `u_i` to zero
+    /// when `|Ω_r,i| ≥ Ω_max` and `u_i` has the sign of `Ω_r,i` (it would spin the rotor
+    /// further). Body motion still moves `Ω_r` a little (`Ω̇_r = K⁻¹u − Ω̇`), so a rotor
+    /// can pass `Ω_max` slightly; the limiter then only lets torque through that slows it.
+    #[inline]
+    pub fn apply(&self, u: DVec3, omega_r: DVec3) -> (DVec3, bool) {
+        let mut v = match self.rotor_torque {
+            Some(m) => u.clamp(DVec3::splat(-m), DVec3::splat(m)),
+            None => u,
+        };
+        if let Some(w) = self.rotor_rate {
+            for i in 0..3 {
+                if omega_r[i].abs() >= w && v[i] * omega_r[i] > 0.0 {
+                    v[i] = 0.0;
+                }
+            }
+        }
+        (v, v != u)
+    }
+}
+
+/// What the controller does with its integral state while the actuators saturate.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum AntiWindup {
+    /// Conditional integration: on a tick whose command the actuator limits change,
+    /// `ξ_I` is advanced only if that shrinks it (`s·ξ_I < 0`); otherwise it is held.
+    #[default]
+    Conditional,
+    /// Always integrate (the paper's law as written): the integral winds up.
+    None,
+}

@@ -14,7 +14,7 @@ use glam::{DMat3, DVec3};
 use nalgebra::{Matrix3, SymmetricEigen};
 use serde::{Deserialize, Serialize};
 
-use crate::params::{BodyParams, Gains, RotorBodyState};
+use crate::params::{ActuatorLimits, AntiWindup, BodyParams, Gains, RotorBodyState};
 use crate::so3;
 
 /// Scenarios that ship with rotorloop, by name: the paper's three reference torques.
@@ -30,6 +30,8 @@ pub const RATE_RANGE_HZ: (f64, f64) = (1.0, 100_000.0);
 pub const DURATION_RANGE_S: (f64, f64) = (1e-3, 86_400.0);
 /// Tolerance on `‖RᵀR − I‖` and `|det R − 1|` for initial attitudes.
 pub const ORTHONORMAL_TOL: f64 = 1e-6;
+/// Allowed `controller.inertia_factor`.
+pub const INERTIA_FACTOR_RANGE: (f64, f64) = (0.1, 10.0);
 /// Largest magnitude accepted for any vector entry (rates, torques, momenta).
 pub const MAX_MAGNITUDE: f64 = 1e6;
 
@@ -171,6 +173,18 @@ pub struct BodyFile {
     /// `Θ(0)` (rad). Default 0.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub rotor_angles: Option<Row3>,
+    /// Rotor torque limit `u_max` (N m, > 0): each `|u_i|` is clamped to it. Default:
+    /// unlimited. Plant only.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub rotor_torque_limit: Option<f64>,
+    /// Rotor speed limit `Ω_max` (rad/s, > 0): torque that would spin a rotor beyond it is
+    /// cut. Default: unlimited. Plant only.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub rotor_rate_limit: Option<f64>,
+    /// A constant external disturbance torque on the body (N m, body frame). Default 0.
+    /// Plant only.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub disturbance_torque: Option<Row3>,
 }
 
 /// The reference body: a [`BodyFile`] plus its torque profile.
@@ -227,6 +241,13 @@ pub struct ControllerFile {
     /// `P` (rows): symmetric positive definite. Default `diag(0.9, 1.0, 1.1)`.
     #[serde(default = "default_p")]
     pub p: Mat3Rows,
+    /// The controller's model of the body inertia is this factor times the plant's `I`
+    /// (an inertia mismatch; `K` is known exactly). 0.1 to 10, default 1.
+    #[serde(default = "default_inertia_factor")]
+    pub inertia_factor: f64,
+    /// `conditional` (default) or `none`: what `ξ_I` does while the actuators saturate.
+    #[serde(default)]
+    pub anti_windup: AntiWindup,
 }
 
 /// How the run is driven.
@@ -260,6 +281,9 @@ fn identity_rows() -> Mat3Rows {
 fn default_p() -> Mat3Rows {
     [[0.9, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.1]]
 }
+fn default_inertia_factor() -> f64 {
+    1.0
+}
 fn default_duration() -> f64 {
     30.0
 }
@@ -286,6 +310,12 @@ pub struct Scenario {
     pub reference_torque: TorqueProfile,
     /// Control gains.
     pub gains: Gains,
+    /// The rotor motors' limits (none in the paper's scenarios).
+    pub limits: ActuatorLimits,
+    /// Constant disturbance torque on the plant's body (N m, body frame).
+    pub disturbance: DVec3,
+    /// Anti-windup rule of the controller.
+    pub anti_windup: AntiWindup,
     /// Eigenvalues of the plant's `I`, ascending (for the gain bounds).
     pub plant_principal_moments: [f64; 3],
     /// Eigenvalues of `P`, ascending.
@@ -378,6 +408,38 @@ impl Scenario {
             ));
         }
 
+        in_range("controller.inertia_factor", c.inertia_factor, INERTIA_FACTOR_RANGE)?;
+        let positive = |field: &str, v: Option<f64>| match v {
+            Some(x) if !(x.is_finite() && x > 0.0 && x <= MAX_MAGNITUDE) => Err(
+                ScenarioError::invalid(field, x, "a finite number > 0 and ≤ 1e6, or no entry (unlimited)"),
+            ),
+            _ => Ok(v),
+        };
+        let limits = ActuatorLimits {
+            rotor_torque: positive("plant.rotor_torque_limit", file.plant.rotor_torque_limit)?,
+            rotor_rate: positive("plant.rotor_rate_limit", file.plant.rotor_rate_limit)?,
+        };
+        if let Some(w) = limits.rotor_rate {
+            if omega_r0.abs().max_element() > w {
+                return Err(ScenarioError::invalid(
+                    "plant.rotor_rates",
+                    omega_r0.to_array(),
+                    format!("each |Ω_r,i| ≤ plant.rotor_rate_limit = {w}"),
+                ));
+            }
+        }
+        let disturbance = finite_vec(
+            "plant.disturbance_torque",
+            file.plant.disturbance_torque.unwrap_or_default(),
+        )?;
+        if limits.any() && file.run.actuation == Actuation::External {
+            warnings.push(
+                "plant.rotor_torque_limit / rotor_rate_limit limit the rotors; with \
+                 run.actuation = external there are none, so they have no effect"
+                    .to_owned(),
+            );
+        }
+
         let run = &file.run;
         in_range("run.rate_hz", run.rate_hz, RATE_RANGE_HZ)?;
         in_range("run.duration_s", run.duration_s, DURATION_RANGE_S)?;
@@ -390,6 +452,9 @@ impl Scenario {
             reference_omega: omega_d0,
             reference_torque,
             gains: Gains { kp: c.kp, kd: c.kd, ki: c.ki, p },
+            limits,
+            disturbance,
+            anti_windup: c.anti_windup,
             plant_principal_moments: plant_moments,
             p_eigenvalues: p_eig,
             warnings,
@@ -413,6 +478,21 @@ impl Scenario {
         match actuation {
             Actuation::Internal => self.plant,
             Actuation::External => self.plant.without_rotors(),
+        }
+    }
+
+    /// The controller's model of the plant for an actuation: the plant's parameters with
+    /// `I` scaled by `controller.inertia_factor`.
+    pub fn controller_params(&self, actuation: Actuation) -> BodyParams {
+        let p = self.plant_params(actuation);
+        BodyParams::new(p.inertia * self.file.controller.inertia_factor, p.rotor_inertia)
+    }
+
+    /// The actuator limits in effect for an actuation (gas jets have no rotors to limit).
+    pub fn limits_for(&self, actuation: Actuation) -> ActuatorLimits {
+        match actuation {
+            Actuation::Internal => self.limits,
+            Actuation::External => ActuatorLimits::default(),
         }
     }
 

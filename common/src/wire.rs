@@ -16,7 +16,7 @@ use crate::so3::{from_rows, to_row_major};
 use crate::{ReferenceState, RotorBodyState};
 
 /// The layout version carried in every type name.
-pub const LAYOUT_VERSION: u32 = 2;
+pub const LAYOUT_VERSION: u32 = 3;
 
 /// "No torque sample" in [`StateSample::applied_torque_tick`].
 pub const NO_TICK: u64 = u64::MAX;
@@ -27,10 +27,18 @@ pub const FLAG_LAST: u64 = 1;
 pub const FLAG_REALTIME: u64 = 1 << 1;
 /// [`StateSample::flags`]: safe mode (no fresh torque for too long: rotors coast).
 pub const FLAG_SAFE_MODE: u64 = 1 << 2;
+/// [`StateSample::flags`]: the torque held over `[t_k−1, t_k]` was limited by the
+/// actuators (torque saturation or the rotor speed limit).
+pub const FLAG_SATURATED: u64 = 1 << 3;
+
+/// [`TorqueSample::flags`]: the controller did not compute this tick because an input
+/// was rejected; the torque fields are zero and the plant must treat the sample as a
+/// missing torque (hold, then safe mode).
+pub const TORQUE_SKIPPED: u64 = 1;
 
 /// The plant's state at tick `tick`, published once per tick.
 #[derive(Debug, Clone, Copy, PartialEq, ZeroCopySend)]
-#[type_name("rotorloop::StateSample_v2")]
+#[type_name("rotorloop::StateSample_v3")]
 #[repr(C)]
 pub struct StateSample {
     /// Tick index `k`.
@@ -67,18 +75,22 @@ pub struct StateSample {
     pub torques_lost: u64,
     /// Ticks so far spent in safe mode (cumulative).
     pub safe_mode_ticks: u64,
-    /// [`FLAG_LAST`], [`FLAG_REALTIME`], [`FLAG_SAFE_MODE`].
+    /// Torque samples rejected by validation so far (NaN, infinite, absurd).
+    pub torques_rejected: u64,
+    /// Ticks so far whose held torque the actuator limits changed (cumulative).
+    pub saturated_ticks: u64,
+    /// [`FLAG_LAST`], [`FLAG_REALTIME`], [`FLAG_SAFE_MODE`], [`FLAG_SATURATED`].
     pub flags: u64,
     /// The integrator's `h` (N m s, inertial): with `p` and `R`, an exact resume point.
     pub internal_h: [f64; 3],
     /// The integrator's rotor momenta `p = K(Ω+Ω_r)` (N m s).
     pub internal_p: [f64; 3],
 }
-const _: () = assert!(size_of::<StateSample>() == 336);
+const _: () = assert!(size_of::<StateSample>() == 352);
 
 /// The desired attitude for tick `tick`, published ahead of the plant.
 #[derive(Debug, Clone, Copy, PartialEq, ZeroCopySend)]
-#[type_name("rotorloop::ReferenceSample_v2")]
+#[type_name("rotorloop::ReferenceSample_v3")]
 #[repr(C)]
 pub struct ReferenceSample {
     /// Tick index `k`.
@@ -106,7 +118,7 @@ const _: () = assert!(size_of::<ReferenceSample>() == 240);
 
 /// The controller's answer to state sample `tick`.
 #[derive(Debug, Clone, Copy, PartialEq, ZeroCopySend)]
-#[type_name("rotorloop::TorqueSample_v2")]
+#[type_name("rotorloop::TorqueSample_v3")]
 #[repr(C)]
 pub struct TorqueSample {
     /// The state tick this answers.
@@ -132,8 +144,14 @@ pub struct TorqueSample {
     /// Torque samples published so far, this one included (so a subscriber's losses
     /// are `published − received`, whatever ticks the controller skipped).
     pub published: u64,
+    /// State samples rejected by validation so far.
+    pub states_rejected: u64,
+    /// Reference samples rejected by validation so far.
+    pub references_rejected: u64,
+    /// [`TORQUE_SKIPPED`].
+    pub flags: u64,
 }
-const _: () = assert!(size_of::<TorqueSample>() == 136);
+const _: () = assert!(size_of::<TorqueSample>() == 160);
 
 impl StateSample {
     /// The kinematic state carried.
@@ -166,6 +184,8 @@ impl StateSample {
             torques_received: 0,
             torques_lost: 0,
             safe_mode_ticks: 0,
+            torques_rejected: 0,
+            saturated_ticks: 0,
             flags: 0,
             internal_h: [0.0; 3],
             internal_p: [0.0; 3],
@@ -191,6 +211,157 @@ impl ReferenceSample {
             omega_r: DVec3::from_array(self.omega_rotor_rad_s),
             theta: DVec3::from_array(self.theta_rotor_rad),
         }
+    }
+}
+
+/// A received torque more than this many times the configured limit is absurd (the
+/// actuators would merely saturate at a few times the limit).
+pub const ABSURD_TORQUE_FACTOR: f64 = 1e3;
+/// Largest magnitude accepted for a received rate, torque or momentum without a
+/// configured limit (the scenario loader's bound on every vector entry).
+pub const MAX_WIRE_MAGNITUDE: f64 = crate::scenario::MAX_MAGNITUDE;
+/// Largest accepted rotor angle or integral state (they accumulate over a run).
+pub const MAX_WIRE_ACCUMULATED: f64 = 1e12;
+/// Largest entry of `RᵀR − I`, and `|det R − 1|`, accepted in a received attitude.
+pub const WIRE_ORTHONORMAL_TOL: f64 = 1e-6;
+
+/// Why a received sample was rejected. Names the field; no allocation.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum WireFault {
+    /// NaN or infinity.
+    NonFinite {
+        /// The field.
+        field: &'static str,
+    },
+    /// A finite value beyond what the receiver accepts.
+    Absurd {
+        /// The field.
+        field: &'static str,
+        /// The offending entry.
+        value: f64,
+        /// The largest magnitude accepted.
+        limit: f64,
+    },
+    /// An attitude off SO(3).
+    NotOrthonormal {
+        /// The field.
+        field: &'static str,
+        /// `max(max |RᵀR − I|, |det R − 1|)`.
+        deviation: f64,
+    },
+}
+
+impl WireFault {
+    /// Short name of the kind: `non-finite`, `absurd` or `non-orthonormal`.
+    pub fn kind(&self) -> &'static str {
+        match self {
+            Self::NonFinite { .. } => "non-finite",
+            Self::Absurd { .. } => "absurd",
+            Self::NotOrthonormal { .. } => "non-orthonormal",
+        }
+    }
+
+    /// The field that was rejected.
+    pub fn field(&self) -> &'static str {
+        match self {
+            Self::NonFinite { field }
+            | Self::Absurd { field, .. }
+            | Self::NotOrthonormal { field, .. } => field,
+        }
+    }
+}
+
+impl std::fmt::Display for WireFault {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Self::NonFinite { field } => write!(f, "{field} is not finite"),
+            Self::Absurd { field, value, limit } => {
+                write!(f, "{field} has {value:e}, beyond the accepted ±{limit:e}")
+            }
+            Self::NotOrthonormal { field, deviation } => write!(
+                f,
+                "{field} is not a rotation (deviation {deviation:e}, allowed {WIRE_ORTHONORMAL_TOL:e})"
+            ),
+        }
+    }
+}
+
+#[inline]
+fn check_entries(field: &'static str, v: &[f64], limit: f64) -> Result<(), WireFault> {
+    for &x in v {
+        if !x.is_finite() {
+            return Err(WireFault::NonFinite { field });
+        }
+        if x.abs() > limit {
+            return Err(WireFault::Absurd { field, value: x, limit });
+        }
+    }
+    Ok(())
+}
+
+#[inline]
+fn check_rotation(field: &'static str, m: &[f64; 9]) -> Result<(), WireFault> {
+    check_entries(field, m, 2.0)?;
+    let r = mat(m);
+    let g = r.transpose() * r - DMat3::IDENTITY;
+    let dev = g.to_cols_array().iter().fold((r.determinant() - 1.0).abs(), |a, x| a.max(x.abs()));
+    if dev > WIRE_ORTHONORMAL_TOL {
+        return Err(WireFault::NotOrthonormal { field, deviation: dev });
+    }
+    Ok(())
+}
+
+impl StateSample {
+    /// Checks every number a receiver uses: finite, plausible magnitudes, `R` on SO(3).
+    #[inline]
+    pub fn validate(&self) -> Result<(), WireFault> {
+        check_entries("state.t_s", &[self.t_s], MAX_WIRE_ACCUMULATED)?;
+        check_rotation("state.r", &self.r_row_major)?;
+        check_entries("state.omega_body", &self.omega_body_rad_s, MAX_WIRE_MAGNITUDE)?;
+        check_entries("state.omega_rotor", &self.omega_rotor_rad_s, MAX_WIRE_MAGNITUDE)?;
+        check_entries("state.theta_rotor", &self.theta_rotor_rad, MAX_WIRE_ACCUMULATED)?;
+        check_entries("state.applied_rotor_torque", &self.applied_rotor_torque_nm, MAX_WIRE_MAGNITUDE)?;
+        check_entries("state.applied_body_torque", &self.applied_body_torque_nm, MAX_WIRE_MAGNITUDE)?;
+        check_entries("state.internal_h", &self.internal_h, MAX_WIRE_ACCUMULATED)?;
+        check_entries("state.internal_p", &self.internal_p, MAX_WIRE_ACCUMULATED)
+    }
+}
+
+impl ReferenceSample {
+    /// Checks every number a receiver uses: finite, plausible magnitudes, `R_d` on SO(3).
+    #[inline]
+    pub fn validate(&self) -> Result<(), WireFault> {
+        check_entries("reference.t_s", &[self.t_s], MAX_WIRE_ACCUMULATED)?;
+        check_rotation("reference.r_d", &self.r_d_row_major)?;
+        check_entries("reference.omega_d", &self.omega_d_rad_s, MAX_WIRE_MAGNITUDE)?;
+        check_entries("reference.omega_d_dot", &self.omega_d_dot_rad_s2, MAX_WIRE_MAGNITUDE)?;
+        check_entries("reference.omega_rotor", &self.omega_rotor_rad_s, MAX_WIRE_MAGNITUDE)?;
+        check_entries("reference.theta_rotor", &self.theta_rotor_rad, MAX_WIRE_ACCUMULATED)?;
+        check_entries("reference.internal_h", &self.internal_h, MAX_WIRE_ACCUMULATED)?;
+        check_entries("reference.internal_p", &self.internal_p, MAX_WIRE_ACCUMULATED)
+    }
+}
+
+impl TorqueSample {
+    /// The largest torque entry a receiver accepts, given the rotor torque limit of the
+    /// scenario (`None`: unlimited).
+    pub fn absurd_limit(rotor_torque_limit: Option<f64>) -> f64 {
+        rotor_torque_limit.map_or(MAX_WIRE_MAGNITUDE, |u| (u * ABSURD_TORQUE_FACTOR).min(MAX_WIRE_MAGNITUDE))
+    }
+
+    /// Checks the torques against `limit` (see [`TorqueSample::absurd_limit`]) and the
+    /// integral state for finiteness.
+    #[inline]
+    pub fn validate(&self, limit: f64) -> Result<(), WireFault> {
+        check_entries("torque.rotor_torque", &self.rotor_torque_nm, limit)?;
+        check_entries("torque.body_torque", &self.body_torque_nm, limit)?;
+        check_entries("torque.xi_i", &self.xi_i, MAX_WIRE_ACCUMULATED)
+    }
+
+    /// Whether the controller computed this tick (not [`TORQUE_SKIPPED`]).
+    #[inline]
+    pub fn computed(&self) -> bool {
+        self.flags & TORQUE_SKIPPED == 0
     }
 }
 

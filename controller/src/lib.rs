@@ -5,10 +5,22 @@
 //!
 //! Discrete time (spec): at tick `k` the law uses `ξ_I,k`, then advances
 //! `ξ_I,k+1 = ξ_I,k + dt · s_k` (forward Euler over the tick).
+//!
+//! # Anti-windup (an extension; inactive without actuator limits)
+//!
+//! With rotor limits ([`ActuatorLimits`]) the plant may deliver less than `u`. While it
+//! does, the integral term keeps accumulating error that the actuators cannot act on
+//! and overshoots once they recover ("windup"). [`AntiWindup::Conditional`] (the
+//! default) is conditional integration: on a tick whose command the limits change, the
+//! law holds `ξ_I` unless the step would shrink it (`s·ξ_I < 0`). The controller applies
+//! the same limits the plant does, to the same state, so it knows exactly which ticks
+//! saturate. The law's `u` itself is published unclamped: the plant's actuators clamp.
 
 use glam::DVec3;
 use rotorloop_common::so3::vee;
-use rotorloop_common::{BodyParams, Gains, ReferenceState, RotorBodyState};
+use rotorloop_common::{
+    ActuatorLimits, AntiWindup, BodyParams, Gains, ReferenceState, RotorBodyState,
+};
 
 /// Everything the law computes in one tick.
 #[derive(Debug, Clone, Copy, PartialEq, Default)]
@@ -25,6 +37,8 @@ pub struct ControlOutput {
     pub psi: f64,
     /// The integral state used at this tick, `ξ_I,k`.
     pub xi_i: DVec3,
+    /// Whether the actuator limits change `u` at this tick (set by [`GeometricPid::step`]).
+    pub saturated: bool,
 }
 
 /// The law of the spec for given gains and body model, evaluated with integral state `xi_i`.
@@ -50,7 +64,7 @@ pub fn control_law(
     let i_omega = body.inertia * x.omega;
     let tau = body.inertia * omega_dot_star - i_omega.cross(x.omega);
     let u = (body.rotor_inertia * (x.omega + x.omega_r)).cross(x.omega) - tau;
-    ControlOutput { rotor_torque: u, body_torque: tau, s, eta, psi, xi_i }
+    ControlOutput { rotor_torque: u, body_torque: tau, s, eta, psi, xi_i, saturated: false }
 }
 
 /// The law with its integral state.
@@ -58,6 +72,8 @@ pub fn control_law(
 pub struct GeometricPid {
     gains: Gains,
     model: BodyParams,
+    limits: ActuatorLimits,
+    anti_windup: AntiWindup,
     xi_i: DVec3,
 }
 
@@ -65,7 +81,20 @@ impl GeometricPid {
     /// A controller with zero integral state. `model` is its model of the plant's
     /// inertia (`I`, `K`).
     pub fn new(gains: Gains, model: BodyParams) -> Self {
-        Self { gains, model, xi_i: DVec3::ZERO }
+        Self {
+            gains,
+            model,
+            limits: ActuatorLimits::default(),
+            anti_windup: AntiWindup::default(),
+            xi_i: DVec3::ZERO,
+        }
+    }
+
+    /// The same law aware of the plant's actuator limits, with an anti-windup rule.
+    pub fn with_limits(mut self, limits: ActuatorLimits, anti_windup: AntiWindup) -> Self {
+        self.limits = limits;
+        self.anti_windup = anti_windup;
+        self
     }
 
     /// Continue from a known integral state (bumpless restart).
@@ -93,8 +122,16 @@ impl GeometricPid {
         reference: &ReferenceState,
         dt: f64,
     ) -> ControlOutput {
-        let out = control_law(&self.gains, &self.model, x, reference, self.xi_i);
-        self.xi_i += dt * out.s;
+        let mut out = control_law(&self.gains, &self.model, x, reference, self.xi_i);
+        if self.limits.any() {
+            out.saturated = self.limits.apply(out.rotor_torque, x.omega_r).1;
+        }
+        let hold = out.saturated
+            && self.anti_windup == AntiWindup::Conditional
+            && out.s.dot(self.xi_i) >= 0.0;
+        if !hold {
+            self.xi_i += dt * out.s;
+        }
         out
     }
 }

@@ -1,5 +1,11 @@
 //! Per-tick metrics of a run: attitude error angle, rate error, control effort, spatial
 //! momentum and its drift, and the residual of energy change minus rotor work.
+//!
+//! With a constant disturbance torque `τ_d` on the body (a scenario option), momentum
+//! and energy are no longer conserved: `ḣ = R τ_d` and `Ṫ = u·Θ̇ + τ_d·Ω`. The drift
+//! and the residual are then taken against `h(0) + ∫ R τ_d dt` and the rotor work plus
+//! `∫ τ_d·Ω dt`, both by the trapezoidal rule over the ticks (second order, so they
+//! stay small, not at rounding level).
 
 use glam::DVec3;
 use rotorloop_common::so3::{rotation_angle, to_row_major};
@@ -63,10 +69,15 @@ pub struct Metrics {
     prev_theta: Option<DVec3>,
     last_residual: f64,
     rebase: bool,
+    disturbance: DVec3,
+    /// `∫ R τ_d dt` so far.
+    h_disturbance: DVec3,
+    /// `(t, R τ_d, τ_d·Ω)` at the previous row.
+    prev_disturbance: Option<(f64, DVec3, f64)>,
 }
 
 /// Length of [`Metrics::save`].
-pub const METRICS_STATE_LEN: usize = 10;
+pub const METRICS_STATE_LEN: usize = 16;
 
 impl Metrics {
     /// Metrics for a plant with these parameters; `initial` is its state at tick 0.
@@ -82,7 +93,16 @@ impl Metrics {
             prev_theta: None,
             last_residual: 0.0,
             rebase: false,
+            disturbance: DVec3::ZERO,
+            h_disturbance: DVec3::ZERO,
+            prev_disturbance: None,
         }
+    }
+
+    /// The same metrics for a plant under the constant body-frame disturbance `tau_d`.
+    pub fn with_disturbance(mut self, tau_d: DVec3) -> Self {
+        self.disturbance = tau_d;
+        self
     }
 
     /// The row for tick `k`. `held_before` is the rotor torque the plant held over
@@ -101,6 +121,18 @@ impl Metrics {
     ) -> TraceRow {
         let e = reference.r_d * x.r.transpose();
         let h = x.spatial_momentum(&self.body);
+        if self.disturbance != DVec3::ZERO {
+            let now = (t, x.r * self.disturbance, self.disturbance.dot(x.omega));
+            if self.rebase {
+                // The impulse over a gap is unknown: the drift restarts from zero.
+                self.h_disturbance = h - self.h0;
+            } else if let Some((t0, rt0, p0)) = self.prev_disturbance {
+                let half = 0.5 * (t - t0);
+                self.h_disturbance += half * (rt0 + now.1);
+                self.work += half * (p0 + now.2);
+            }
+            self.prev_disturbance = Some(now);
+        }
         let energy_residual = if self.has_rotors {
             let energy = self.body.kinetic_energy(x.omega, x.omega_r);
             if self.rebase {
@@ -133,7 +165,7 @@ impl Metrics {
             werr: (x.omega - reference.omega_d).length(),
             h: h.to_array(),
             h_drift_rel: if self.h0_norm > 0.0 {
-                (h - self.h0).length() / self.h0_norm
+                (h - self.h0 - self.h_disturbance).length() / self.h0_norm
             } else {
                 0.0
             },
@@ -155,6 +187,12 @@ impl Metrics {
             t.y,
             t.z,
             f64::from(u8::from(self.prev_theta.is_some())),
+            self.disturbance.x,
+            self.disturbance.y,
+            self.disturbance.z,
+            self.h_disturbance.x,
+            self.h_disturbance.y,
+            self.h_disturbance.z,
         ]
     }
 
@@ -172,6 +210,9 @@ impl Metrics {
             last_residual: s[5],
             prev_theta: (s[9] > 0.5).then(|| DVec3::new(s[6], s[7], s[8])),
             rebase: true,
+            disturbance: DVec3::new(s[10], s[11], s[12]),
+            h_disturbance: DVec3::new(s[13], s[14], s[15]),
+            prev_disturbance: None,
         }
     }
 

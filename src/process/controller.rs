@@ -8,6 +8,14 @@
 //! held) for at most `--reference-hold-ticks` ticks, then stops answering, so the plant
 //! holds its torque and then enters safe mode.
 //!
+//! **Rejected input.** Every state and reference sample is validated
+//! ([`StateSample::validate`]): NaN, infinity, absurd magnitudes and attitudes off SO(3)
+//! are rejected and counted. A rejected state is not controlled: the tick is answered
+//! with a [`TORQUE_SKIPPED`] sample (zero torque, `ξ_I` untouched), which the plant
+//! treats as a missing torque (hold, then safe mode), so lockstep runs on. A rejected
+//! reference counts as a missing one, but is not waited for, even in lockstep: the last
+//! good reference is propagated as above (or, with none yet, the tick is skipped).
+//!
 //! **Restart.** A controller started while its resume slot holds an unfinished run
 //! continues bumplessly: the integral state `ξ_I` and the counters come from the last
 //! torque sample it published. A state it has already answered (a restarted plant
@@ -20,22 +28,37 @@ use rotorloop_common::ReferenceState;
 use rotorloop_common::ipc::{Topic, now_ns, shutdown_requested};
 use rotorloop_common::resume::ResumeSlot;
 use rotorloop_common::so3::exp;
-use rotorloop_common::wire::{FLAG_LAST, ReferenceSample, StateSample, TorqueSample};
+use rotorloop_common::wire::{
+    FLAG_LAST, ReferenceSample, StateSample, TORQUE_SKIPPED, TorqueSample,
+};
 use rotorloop_controller::GeometricPid;
 
-use super::{Mode, RoleArgs, SeqCounter, linger};
+use super::{Mode, RoleArgs, SeqCounter, corrupted, linger};
 
 /// `controller` arguments.
 #[derive(Debug, Clone, Args)]
 pub struct ControllerArgs {
     #[command(flatten)]
     pub role: RoleArgs,
+    /// Fault injection: publish this tick's sample corrupted (`nan@TICK`, `inf@TICK`,
+    /// `huge@TICK`, `skew@TICK`). Repeatable. Set by `rotorloop run --corrupt`.
+    #[arg(long)]
+    pub corrupt: Vec<super::Corrupt>,
     /// Real time: ticks to propagate the last reference when it is missing.
     #[arg(long, default_value_t = 1000)]
     pub reference_hold_ticks: u64,
 }
 
 const RING: usize = 256;
+
+/// A reference ring entry.
+#[derive(Debug, Clone, Copy)]
+enum RefEntry {
+    Empty,
+    Valid(ReferenceSample),
+    /// A sample of this tick arrived and was rejected.
+    Rejected(u64),
+}
 
 /// Runs the controller until the plant's last tick or a termination signal.
 pub fn run(args: &ControllerArgs) -> anyhow::Result<()> {
@@ -54,12 +77,15 @@ pub fn run(args: &ControllerArgs) -> anyhow::Result<()> {
         .context("controller")?;
     let slot = ResumeSlot::<TorqueSample>::open(&domain, "controller").context("controller")?;
 
-    let model = scenario.plant_params(scenario.actuation());
+    let actuation = scenario.actuation();
     let ticks = scenario.ticks();
-    let mut pid = GeometricPid::new(scenario.gains, model);
+    let mut pid = GeometricPid::new(scenario.gains, scenario.controller_params(actuation))
+        .with_limits(scenario.limits_for(actuation), scenario.anti_windup);
     let dt = scenario.dt();
     let lockstep = role.mode == Mode::Lockstep;
-    let mut ring: Vec<Option<ReferenceSample>> = vec![None; RING];
+    let mut ring: Vec<RefEntry> = vec![RefEntry::Empty; RING];
+    let (mut states_rejected, mut references_rejected) = (0u64, 0u64);
+    let mut first_rejection_logged = false;
     let mut state_seq = SeqCounter::default();
     let mut reference_misses = 0u64;
     let mut skipped = 0u64;
@@ -72,6 +98,8 @@ pub fn run(args: &ControllerArgs) -> anyhow::Result<()> {
         published = t.published;
         reference_misses = t.reference_misses;
         skipped = t.states_skipped;
+        states_rejected = t.states_rejected;
+        references_rejected = t.references_rejected;
         state_seq = SeqCounter::resume(t.states_received, t.states_lost, t.tick);
         last = Some(t);
         eprintln!(
@@ -80,15 +108,24 @@ pub fn run(args: &ControllerArgs) -> anyhow::Result<()> {
         );
     }
 
-    let drain_refs = |ring: &mut Vec<Option<ReferenceSample>>| -> anyhow::Result<()> {
+    let drain_refs = |ring: &mut Vec<RefEntry>, rejected: &mut u64| -> anyhow::Result<()> {
         while let Some(r) = refs.take()? {
-            ring[r.tick as usize % RING] = Some(r);
+            ring[r.tick as usize % RING] = match r.validate() {
+                Ok(()) => RefEntry::Valid(r),
+                Err(_) => {
+                    *rejected += 1;
+                    RefEntry::Rejected(r.tick)
+                }
+            };
         }
         Ok(())
     };
-    let lookup = |ring: &Vec<Option<ReferenceSample>>, k: u64| {
-        ring[k as usize % RING].filter(|r| r.tick == k)
+    let lookup = |ring: &Vec<RefEntry>, k: u64| match ring[k as usize % RING] {
+        RefEntry::Valid(r) if r.tick == k => Some(r),
+        _ => None,
     };
+    let rejected_at =
+        |ring: &Vec<RefEntry>, k: u64| matches!(ring[k as usize % RING], RefEntry::Rejected(t) if t == k);
     // Test hook: a first-incarnation controller loans a torque sample at this tick and
     // stalls holding it, so that a test can kill it with the loan outstanding.
     let stall_at: Option<u64> = std::env::var("ROTORLOOP_TEST_STALL_WITH_LOAN_AT")
@@ -138,17 +175,26 @@ pub fn run(args: &ControllerArgs) -> anyhow::Result<()> {
             }
             continue;
         }
-        drain_refs(&mut ring)?;
+        let state_fault = state.validate().err();
+        if let Some(f) = state_fault {
+            states_rejected += 1;
+            if !first_rejection_logged {
+                eprintln!("controller: rejected the state of tick {k}: {f} (skipping; counted)");
+                first_rejection_logged = true;
+            }
+        }
+        drain_refs(&mut ring, &mut references_rejected)?;
         let mut rd = lookup(&ring, k).map(|r| r.reference_state());
-        if rd.is_none() {
+        if rd.is_none() && state_fault.is_none() {
             reference_misses += 1;
             if lockstep {
-                while rd.is_none() && !shutdown_requested() {
+                while rd.is_none() && !rejected_at(&ring, k) && !shutdown_requested() {
                     std::thread::sleep(std::time::Duration::from_micros(100));
-                    drain_refs(&mut ring)?;
+                    drain_refs(&mut ring, &mut references_rejected)?;
                     rd = lookup(&ring, k).map(|r| r.reference_state());
                 }
-            } else if let Some(r) = last_ref.filter(|r| r.tick < k) {
+            }
+            if let Some(r) = last_ref.filter(|r| rd.is_none() && r.tick < k) {
                 held_refs += 1;
                 if held_refs <= args.reference_hold_ticks {
                     // Hold and propagate the last reference sample.
@@ -163,13 +209,18 @@ pub fn run(args: &ControllerArgs) -> anyhow::Result<()> {
         if let Some(r) = lookup(&ring, k) {
             last_ref = Some(r);
         }
-        let Some(rd) = rd else {
-            if shutdown_requested() {
-                break;
-            }
-            continue; // real time: no answer this tick; the plant holds the last torque
+        let skip = match rd {
+            _ if state_fault.is_some() => true,
+            None if shutdown_requested() => break,
+            // Real time, reference gone for too long: no answer; the plant holds.
+            None if !rejected_at(&ring, k) && !lockstep => continue,
+            None => true,
+            Some(_) => false,
         };
-        let out_k = pid.step(&state.body_state(), &rd, dt);
+        let out_k = match rd {
+            Some(rd) if !skip => pid.step(&state.body_state(), &rd, dt),
+            _ => Default::default(),
+        };
         published += 1;
         let sample = TorqueSample {
             tick: k,
@@ -183,11 +234,15 @@ pub fn run(args: &ControllerArgs) -> anyhow::Result<()> {
             states_skipped: skipped,
             reference_misses,
             published,
+            states_rejected,
+            references_rejected,
+            flags: if skip { TORQUE_SKIPPED } else { 0 },
         };
         // Slot first: killed between the two, the restart re-sends this very answer when
         // the plant asks again; the other order would resume with a stale ξ_I.
         slot.store(&sample);
-        out.send(sample, |s| s.publish_ns = now_ns()).context("controller: publishing torque")?;
+        out.send(corrupted(&args.corrupt, sample), |s| s.publish_ns = now_ns())
+            .context("controller: publishing torque")?;
         last = Some(sample);
         if state.flags & FLAG_LAST != 0 {
             break;

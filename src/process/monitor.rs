@@ -5,6 +5,11 @@
 //! It is passive: it has no event listener (publishers never wait for it or wake it), it
 //! polls its large ring buffers every `--poll-us`, and if it falls behind the oldest
 //! samples are overwritten: it counts the ticks lost and says so in the report.
+//!
+//! Every sample is validated before it is used ([`StateSample::validate`] and its
+//! siblings). A rejected sample is a fault event in the report (`wire_faults`, with
+//! topic, tick and reason, and `wire_rejected` counts together with the plant's and
+//! the controller's own); a row whose state or reference was rejected is not written.
 
 use std::fs::File;
 use std::io::{BufWriter, IsTerminal, Write};
@@ -50,7 +55,7 @@ const MAX_GAPS: usize = 8;
 
 /// What a restarted monitor needs to continue the same report.
 #[derive(Debug, Clone, Copy, ZeroCopySend)]
-#[type_name("rotorloop::MonitorResume_v2")]
+#[type_name("rotorloop::MonitorResume_v3")]
 #[repr(C)]
 struct MonitorResume {
     next_row: u64,
@@ -61,6 +66,7 @@ struct MonitorResume {
     drift_max: f64,
     metrics: [f64; rotorloop_monitor::metrics::METRICS_STATE_LEN],
     counts: [u64; 6],
+    rejected: [u64; 3],
     gaps: [[u64; 2]; MAX_GAPS],
     n_gaps: u64,
 }
@@ -86,6 +92,22 @@ impl From<SeqCounter> for SubscriberCounts {
         Self { received: s.received, lost: s.lost }
     }
 }
+
+/// A sample the monitor rejected.
+#[derive(Debug, Clone, Serialize)]
+pub struct WireFaultEvent {
+    /// `state`, `reference` or `torque`.
+    pub topic: &'static str,
+    /// The sample's tick.
+    pub tick: u64,
+    /// `non-finite`, `absurd` or `non-orthonormal`.
+    pub kind: &'static str,
+    /// The reason, naming the field.
+    pub detail: String,
+}
+
+/// Most wire fault events kept in the report.
+const MAX_FAULT_EVENTS: usize = 64;
 
 /// `summary.json` of a multi-process run.
 #[derive(Debug, Clone, Serialize)]
@@ -134,8 +156,20 @@ pub struct RunSummary {
     pub monitor_restarts: u64,
     /// Ticks the plant spent in safe mode.
     pub safe_mode_ticks: u64,
+    /// Samples rejected by validation, per receiver (`plant.torque`, `controller.state`,
+    /// `controller.reference`, `monitor.state`, `monitor.reference`, `monitor.torque`).
+    pub wire_rejected: std::collections::BTreeMap<String, u64>,
+    /// The first rejected samples the monitor saw (this monitor life), with the reason.
+    pub wire_faults: Vec<WireFaultEvent>,
+    /// Ticks whose rotor torque the actuator limits changed.
+    pub saturated_ticks: u64,
+    /// `saturated_ticks / ticks`.
+    pub saturated_fraction: f64,
     /// Faults injected by the launcher (filled in by `rotorloop run --fault`).
     pub faults: Vec<serde_json::Value>,
+    /// Resident memory of each process (filled in by `rotorloop run`).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub resources: Option<serde_json::Value>,
     /// Files written.
     pub files: Vec<String>,
 }
@@ -191,8 +225,24 @@ pub fn run(args: &MonitorArgs) -> anyhow::Result<()> {
     let init = rotorloop_plant::Body::new(params, scenario.plant_init).state();
     let mut metrics = match &resumed {
         Some(r) => Metrics::restore(params, &r.metrics),
-        None => Metrics::new(params, &init),
+        None => Metrics::new(params, &init).with_disturbance(scenario.disturbance),
     };
+    let torque_limit = rotorloop_common::wire::TorqueSample::absurd_limit(
+        scenario.limits_for(actuation).rotor_torque,
+    );
+    let mut rejected = resumed.map_or([0u64; 3], |r| r.rejected);
+    let mut wire_faults: Vec<WireFaultEvent> = Vec::new();
+    let mut note_fault =
+        |topic: &'static str, tick: u64, f: rotorloop_common::wire::WireFault| {
+            if wire_faults.len() < MAX_FAULT_EVENTS {
+                wire_faults.push(WireFaultEvent {
+                    topic,
+                    tick,
+                    kind: f.kind(),
+                    detail: f.to_string(),
+                });
+            }
+        };
     let mut rec = Recorder::new(ticks + 1);
     let mut latency =
         Latency::new(out, now_ns(), resumed.is_some()).context("monitor: interval logs")?;
@@ -233,18 +283,34 @@ pub fn run(args: &MonitorArgs) -> anyhow::Result<()> {
     loop {
         while let Some(s) = states.take()? {
             s_seq.see(s.tick);
-            first_wake.get_or_insert(s.wake_ns);
-            slots[s.tick as usize % RING].state = Some(s);
+            // Counters and flags are integers: usable even from a rejected sample.
             if last_state.is_none_or(|l| s.tick >= l.tick) {
                 last_state = Some(s);
             }
+            if let Err(f) = s.validate() {
+                rejected[0] += 1;
+                note_fault("state", s.tick, f);
+                continue;
+            }
+            first_wake.get_or_insert(s.wake_ns);
+            slots[s.tick as usize % RING].state = Some(s);
         }
         while let Some(r) = refs.take()? {
             r_seq.see(r.tick);
+            if let Err(f) = r.validate() {
+                rejected[1] += 1;
+                note_fault("reference", r.tick, f);
+                continue;
+            }
             slots[r.tick as usize % RING].reference = Some(r);
         }
         while let Some(t) = torques.take()? {
             t_seq.see(t.tick);
+            if let Err(f) = t.validate(torque_limit) {
+                rejected[2] += 1;
+                note_fault("torque", t.tick, f);
+                continue;
+            }
             slots[t.tick as usize % RING].torque = Some(t);
             last_torque = Some(t);
         }
@@ -300,7 +366,7 @@ pub fn run(args: &MonitorArgs) -> anyhow::Result<()> {
             let rd = r.reference_state();
             let nan = DVec3::splat(f64::NAN);
             let (u, tau) = match t {
-                Some(t) => (
+                Some(t) if t.computed() => (
                     if actuation == Actuation::Internal {
                         DVec3::from_array(t.rotor_torque_nm)
                     } else {
@@ -308,7 +374,7 @@ pub fn run(args: &MonitorArgs) -> anyhow::Result<()> {
                     },
                     DVec3::from_array(t.body_torque_nm),
                 ),
-                None => (nan, nan),
+                _ => (nan, nan),
             };
             let row = metrics.observe(
                 next,
@@ -390,6 +456,7 @@ pub fn run(args: &MonitorArgs) -> anyhow::Result<()> {
                     t_seq.received,
                     t_seq.lost,
                 ],
+                rejected,
                 gaps: g,
                 n_gaps: gaps.len().min(MAX_GAPS) as u64,
             });
@@ -458,6 +525,18 @@ pub fn run(args: &MonitorArgs) -> anyhow::Result<()> {
             SubscriberCounts { received: t.states_received, lost: t.states_lost },
         );
     }
+    let mut wire_rejected = std::collections::BTreeMap::new();
+    for (name, n) in ["monitor.state", "monitor.reference", "monitor.torque"].iter().zip(rejected) {
+        wire_rejected.insert((*name).to_owned(), n);
+    }
+    wire_rejected.insert("plant.torque".to_owned(), last.map_or(0, |s| s.torques_rejected));
+    wire_rejected
+        .insert("controller.state".to_owned(), last_torque.map_or(0, |t| t.states_rejected));
+    wire_rejected.insert(
+        "controller.reference".to_owned(),
+        last_torque.map_or(0, |t| t.references_rejected),
+    );
+    let saturated_ticks = last.map_or(0, |s| s.saturated_ticks);
     let summary = RunSummary {
         name: scenario.file.name.clone(),
         scenario: scenario.file.clone(),
@@ -488,7 +567,12 @@ pub fn run(args: &MonitorArgs) -> anyhow::Result<()> {
         monitor_gaps: gaps.clone(),
         monitor_restarts: restarts,
         safe_mode_ticks: last.map_or(0, |s| s.safe_mode_ticks),
+        wire_rejected,
+        wire_faults,
+        saturated_ticks,
+        saturated_fraction: saturated_ticks as f64 / ticks as f64,
         faults: Vec::new(),
+        resources: None,
         files,
     };
     println!("{}", console_summary(&summary));
@@ -512,6 +596,15 @@ pub fn console_summary(s: &RunSummary) -> String {
         s.err_deg_initial,
         s.err_deg_final
     );
+    let rejected: u64 = s.wire_rejected.values().sum();
+    if rejected > 0 || s.saturated_ticks > 0 || s.safe_mode_ticks > 0 {
+        t.push_str(&format!(
+            "rejected samples {:?}; saturated {:.2} % of ticks; {} ticks in safe mode\n",
+            s.wire_rejected,
+            100.0 * s.saturated_fraction,
+            s.safe_mode_ticks
+        ));
+    }
     for hop in Hop::ALL {
         let h = s.hops.get(hop.name()).copied().unwrap_or_default();
         let us = |v: u64| v as f64 / 1e3;

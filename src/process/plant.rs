@@ -8,6 +8,18 @@
 //! `--hold-ticks` ticks without a fresh torque, enter safe mode: zero torque (the rotors
 //! coast and momentum is conserved) until a fresh torque arrives.
 //!
+//! **Rejected torque.** Every torque sample is validated ([`TorqueSample::validate`]):
+//! NaN, infinity, or a magnitude beyond [`TorqueSample::absurd_limit`] of the scenario's
+//! rotor torque limit is rejected and counted (`torques_rejected`). A rejected torque,
+//! like a controller's [`TORQUE_SKIPPED`] answer, is a missing torque: the plant holds
+//! the last good one, counts a miss, and enters safe mode after `--hold-ticks` such
+//! ticks, in lockstep as in real time. Nothing of a rejected sample reaches the state.
+//!
+//! **Actuators.** The held rotor torque goes through the scenario's actuator limits every
+//! tick (torque saturation, rotor speed limit); the state sample carries the torque
+//! actually applied and [`FLAG_SATURATED`] / `saturated_ticks`. A constant disturbance
+//! torque from the scenario is added to the body torque of every step.
+//!
 //! Restart: a plant started while its resume slot holds an unfinished run (its
 //! predecessor was killed) continues from the last state it published, at the same tick
 //! index, bit for bit (the slot carries the integrator's own state).
@@ -19,17 +31,22 @@ use rotorloop_common::Actuation;
 use rotorloop_common::ipc::{Topic, now_ns, shutdown_requested, sleep_until_ns};
 use rotorloop_common::resume::ResumeSlot;
 use rotorloop_common::wire::{
-    FLAG_LAST, FLAG_REALTIME, FLAG_SAFE_MODE, NO_TICK, StateSample, TorqueSample,
+    FLAG_LAST, FLAG_REALTIME, FLAG_SAFE_MODE, FLAG_SATURATED, NO_TICK, StateSample,
+    TORQUE_SKIPPED, TorqueSample,
 };
 use rotorloop_plant::{Body, BodyInput};
 
-use super::{Mode, RoleArgs, SeqCounter, linger};
+use super::{Mode, RoleArgs, SeqCounter, corrupted, linger};
 
 /// `plant` arguments.
 #[derive(Debug, Clone, Args)]
 pub struct PlantArgs {
     #[command(flatten)]
     pub role: RoleArgs,
+    /// Fault injection: publish this tick's sample corrupted (`nan@TICK`, `inf@TICK`,
+    /// `huge@TICK`, `skew@TICK`). Repeatable. Set by `rotorloop run --corrupt`.
+    #[arg(long)]
+    pub corrupt: Vec<super::Corrupt>,
     /// Wait for this many subscribers to the state before tick 0 (controller and
     /// reference; 3 with a monitor that must see every tick).
     #[arg(long, default_value_t = 2)]
@@ -87,6 +104,12 @@ pub fn run(args: &PlantArgs) -> anyhow::Result<()> {
     let mut seq = SeqCounter::default();
     let mut misses = 0u64;
     let mut safe_ticks = 0u64;
+    let mut rejected = 0u64;
+    let mut saturated_ticks = 0u64;
+    let mut saturated = false;
+    let limits = scenario.limits_for(actuation);
+    let torque_limit = TorqueSample::absurd_limit(limits.rotor_torque);
+    let disturbance = scenario.disturbance;
     let resumed = slot.load().filter(|s| s.flags & FLAG_LAST == 0 && s.tick <= ticks);
     if let Some(s) = resumed {
         let x = s.body_state();
@@ -106,6 +129,9 @@ pub fn run(args: &PlantArgs) -> anyhow::Result<()> {
         held_recv_ns = s.applied_torque_recv_ns;
         misses = s.misses;
         safe_ticks = s.safe_mode_ticks;
+        rejected = s.torques_rejected;
+        saturated_ticks = s.saturated_ticks;
+        saturated = s.flags & FLAG_SATURATED != 0;
         seq = match s.applied_torque_tick {
             NO_TICK => SeqCounter { received: s.torques_received, lost: s.torques_lost, ..seq },
             t => SeqCounter::resume(s.torques_received, s.torques_lost, t),
@@ -132,6 +158,8 @@ pub fn run(args: &PlantArgs) -> anyhow::Result<()> {
     let mut stale = 0u64; // ticks since the last fresh torque
     let mut safe = resumed.is_some_and(|s| s.flags & FLAG_SAFE_MODE != 0);
     let mut waiting_logged = false;
+    let mut rejection_logged = false;
+    let mut applied = held;
 
     for k in first..=ticks {
         let deadline = if realtime { grid(k) } else { 0 };
@@ -143,8 +171,8 @@ pub fn run(args: &PlantArgs) -> anyhow::Result<()> {
         let (_, h, p, _) = body.internal();
         sample.internal_h = h.to_array();
         sample.internal_p = p.to_array();
-        sample.applied_rotor_torque_nm = held.rotor_torque.to_array();
-        sample.applied_body_torque_nm = held.body_torque.to_array();
+        sample.applied_rotor_torque_nm = applied.rotor_torque.to_array();
+        sample.applied_body_torque_nm = applied.body_torque.to_array();
         sample.applied_torque_tick = held_tick;
         sample.applied_torque_recv_ns = held_recv_ns;
         sample.deadline_ns = deadline;
@@ -153,15 +181,18 @@ pub fn run(args: &PlantArgs) -> anyhow::Result<()> {
         sample.safe_mode_ticks = safe_ticks;
         sample.torques_received = seq.received;
         sample.torques_lost = seq.lost;
+        sample.torques_rejected = rejected;
+        sample.saturated_ticks = saturated_ticks;
         sample.flags = if k == ticks { FLAG_LAST } else { 0 }
             | if realtime { FLAG_REALTIME } else { 0 }
-            | if safe { FLAG_SAFE_MODE } else { 0 };
+            | if safe { FLAG_SAFE_MODE } else { 0 }
+            | if saturated { FLAG_SATURATED } else { 0 };
         // Slot first: killed between the two, the restart publishes this very state,
         // which the controller answers (or answers again). The other order would let a
         // restart re-publish tick k−1 after the controller has moved past it: deadlock.
         slot.store(&sample);
         states
-            .send(sample, |s| {
+            .send(corrupted(&args.corrupt, sample), |s| {
                 s.publish_ns = now_ns();
                 publish_ns = s.publish_ns;
             })
@@ -173,8 +204,14 @@ pub fn run(args: &PlantArgs) -> anyhow::Result<()> {
             let mut found = None;
             while let Some(t) = inbox.take()? {
                 seq.see(t.tick);
+                let fault = t.validate(torque_limit).err();
+                if fault.is_some() {
+                    rejected += 1;
+                }
                 if t.tick == k {
-                    found = Some((t, now_ns()));
+                    // A rejected or skipped answer ends the wait too: the controller
+                    // will not send another for this tick.
+                    found = Some((t, now_ns(), fault));
                 }
             }
             if found.is_none() && now_ns() - last_update > 5_000_000 {
@@ -188,6 +225,21 @@ pub fn run(args: &PlantArgs) -> anyhow::Result<()> {
             }
             Ok(found)
         })?;
+        let got = match got {
+            Some((t, _, Some(fault))) => {
+                if !rejection_logged {
+                    eprintln!(
+                        "plant: rejected the torque of tick {}: {fault} (holding; counted)",
+                        t.tick
+                    );
+                    rejection_logged = true;
+                }
+                None
+            }
+            Some((t, _, None)) if t.flags & TORQUE_SKIPPED != 0 => None,
+            Some((t, recv, None)) => Some((t, recv)),
+            None => None,
+        };
         match got {
             Some((t, recv)) => {
                 if waiting_logged || safe {
@@ -220,7 +272,16 @@ pub fn run(args: &PlantArgs) -> anyhow::Result<()> {
             }
         }
         if k < ticks {
-            body.step(held, dt);
+            // The motors deliver what their limits allow at the current rotor rates.
+            let omega_r = if limits.any() { body.state().omega_r } else { DVec3::ZERO };
+            let (u, sat) = limits.apply(held.rotor_torque, omega_r);
+            saturated = sat;
+            saturated_ticks += u64::from(sat);
+            applied = BodyInput { rotor_torque: u, body_torque: held.body_torque };
+            body.step(
+                BodyInput { rotor_torque: u, body_torque: held.body_torque + disturbance },
+                dt,
+            );
         }
     }
     drop(torques);

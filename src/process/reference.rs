@@ -2,6 +2,8 @@
 //! [`REFERENCE_LEAD`] ticks ahead of the newest state, so the controller never waits for
 //! it. The samples also carry the dummy's integrator state: a restarted reference
 //! continues from the last sample it published, bit for bit, as if it had never died.
+//!
+//! It reads only the tick and the flags of state samples, so it needs no validation.
 
 use anyhow::Context;
 use clap::Args;
@@ -13,14 +15,14 @@ use rotorloop_common::so3::to_row_major;
 use rotorloop_common::wire::{FLAG_LAST, ReferenceSample, StateSample};
 use rotorloop_reference::Reference;
 
-use super::{RoleArgs, linger};
+use super::{RoleArgs, corrupted, linger};
 
 /// Samples a restarted reference can re-publish: its whole lead and history.
 const RESUME_RING: usize = 2 * REFERENCE_LEAD as usize + 2;
 
 /// The reference's resume slot: its last [`RESUME_RING`] published samples.
 #[derive(Debug, Clone, Copy, ZeroCopySend)]
-#[type_name("rotorloop::ReferenceResume_v2")]
+#[type_name("rotorloop::ReferenceResume_v3")]
 #[repr(C)]
 struct ReferenceResume {
     samples: [ReferenceSample; RESUME_RING],
@@ -33,6 +35,10 @@ struct ReferenceResume {
 pub struct ReferenceArgs {
     #[command(flatten)]
     pub role: RoleArgs,
+    /// Fault injection: publish this tick's sample corrupted (`nan@TICK`, `inf@TICK`,
+    /// `huge@TICK`, `skew@TICK`). Repeatable. Set by `rotorloop run --corrupt`.
+    #[arg(long)]
+    pub corrupt: Vec<super::Corrupt>,
 }
 
 /// Runs the reference generator until the plant's last tick or a termination signal.
@@ -115,7 +121,8 @@ pub fn run(args: &ReferenceArgs) -> anyhow::Result<()> {
                 internal_h: h.to_array(),
                 internal_p: p.to_array(),
             };
-            out.send(sample, |s| s.publish_ns = now_ns()).context("reference: publishing")?;
+            out.send(corrupted(&args.corrupt, sample), |s| s.publish_ns = now_ns())
+                .context("reference: publishing")?;
             window.samples[next as usize % RESUME_RING] = sample;
             window.next = next + 1;
             generator.step(t, dt);
