@@ -84,6 +84,12 @@ pub struct SimSummary {
     pub orthonormality_error_max: f64,
     /// Largest `|det R − 1|`.
     pub det_error_max: f64,
+    /// Ticks whose rotor torque the actuator limits changed.
+    pub saturated_ticks: u64,
+    /// `saturated_ticks / ticks`.
+    pub saturated_fraction: f64,
+    /// Largest `|Ω_r,i|` over the run (rad/s).
+    pub rotor_rate_max: f64,
     /// Largest `‖u‖` (N m).
     pub u_norm_max: f64,
     /// Largest `‖τ‖` (N m).
@@ -114,6 +120,7 @@ struct Stats {
     tau_max: f64,
     u_sq: f64,
     tau_sq: f64,
+    rotor_rate_max: f64,
     rows: u64,
 }
 
@@ -131,6 +138,7 @@ impl Stats {
             tau_max: 0.0,
             u_sq: 0.0,
             tau_sq: 0.0,
+            rotor_rate_max: 0.0,
             rows: 0,
         }
     }
@@ -144,6 +152,8 @@ impl Stats {
             self.settle = None;
         }
         self.drift_max = self.drift_max.max(row.h_drift_rel);
+        self.rotor_rate_max =
+            row.omega_r.iter().fold(self.rotor_rate_max, |m, w| m.max(w.abs()));
         if row.energy_residual.is_finite() {
             self.energy_max = self.energy_max.max(row.energy_residual.abs());
         }
@@ -277,6 +287,9 @@ pub fn run(opts: &SimOptions) -> anyhow::Result<(SimSummary, Recorder)> {
         energy_residual_rel_max: has_rotors.then_some(stats.energy_max / e0),
         orthonormality_error_max: stats.ortho_max,
         det_error_max: stats.det_max,
+        saturated_ticks: lp.saturated_ticks(),
+        saturated_fraction: lp.saturated_ticks() as f64 / ticks as f64,
+        rotor_rate_max: stats.rotor_rate_max,
         u_norm_max: stats.u_max,
         tau_norm_max: stats.tau_max,
         effort,
@@ -316,7 +329,15 @@ pub fn summary_table(s: &SimSummary) -> String {
             s.settle_time_0p1deg_s.map_or("no".into(), |t| format!("at t = {t:.3} s")),
         ),
         ("momentum drift (max, rel.)", format!("{:.3e}", s.momentum_drift_rel_max)),
-        ("energy − rotor work (max)", opt(s.energy_residual_max_abs, " J")),
+        ("energy − work (max)", opt(s.energy_residual_max_abs, " J")),
+        (
+            "actuators",
+            format!(
+                "saturated {:.2} % of ticks; max |Ω_r,i| {:.4} rad/s",
+                100.0 * s.saturated_fraction,
+                s.rotor_rate_max
+            ),
+        ),
         ("‖RᵀR − I‖ (max)", format!("{:.3e}", s.orthonormality_error_max)),
         (
             "speed",

@@ -24,6 +24,36 @@ pub enum IpcError {
     /// iceoryx2 refused something.
     #[error("{what}: {detail}")]
     Iceoryx { what: String, detail: String },
+    /// The role already runs in the domain.
+    #[error(
+        "role `{role}` is already running in domain `{domain}` (pid {pid}); refusing to start a second one \
+         (stop it first, or use another --domain)"
+    )]
+    DuplicateRole { role: String, domain: String, pid: String },
+    /// The domain's services were made by a build with another sample layout.
+    #[error(
+        "the `{topic}` service of domain `{domain}` carries `{theirs}` (sample layout v{their_version}) \
+         but this build uses `{ours}` (layout v{our_version}): every process of a run must be the same \
+         build; stop the other processes of the domain or use another --domain"
+    )]
+    LayoutSkew {
+        topic: &'static str,
+        domain: String,
+        theirs: String,
+        their_version: String,
+        ours: String,
+        our_version: String,
+    },
+}
+
+/// The layout version at the end of a type name (`…_v3` → `3`), or `?`.
+fn layout_version_of(type_name: &str) -> String {
+    type_name
+        .rsplit_once("_v")
+        .map(|(_, v)| v)
+        .filter(|v| !v.is_empty() && v.bytes().all(|b| b.is_ascii_digit()))
+        .unwrap_or("?")
+        .to_owned()
 }
 
 fn iox(what: impl Into<String>) -> impl FnOnce(&dyn Debug) -> IpcError {
@@ -114,16 +144,43 @@ impl Domain {
         self.config.global.root_path().to_string()
     }
 
-    /// A node for `role`. Creating it removes what dead nodes left behind.
+    /// A node for `role`, refused with [`IpcError::DuplicateRole`] when a live process
+    /// already holds that role in this domain (the running one is not disturbed).
     pub fn node(&self, role: &str) -> Result<Node<ipc::Service>, IpcError> {
+        use iceoryx2::node::NodeView;
         let name = format!("rotorloop/{}/{role}", self.name);
         let node_name = NodeName::new(&name).map_err(|e| iox(format!("node name {name}"))(&e))?;
-        NodeBuilder::new()
+        let node = NodeBuilder::new()
             .name(&node_name)
             .config(&self.config)
             .signal_handling_mode(SignalHandlingMode::Disabled)
             .create::<ipc::Service>()
-            .map_err(|e| iox(format!("cannot create node {name}"))(&e))
+            .map_err(|e| iox(format!("cannot create node {name}"))(&e))?;
+        // Another live node of the same name: that role is taken. (Dead ones are a killed
+        // predecessor: a restart, which is allowed.)
+        let mine = node.id().value();
+        let mut other = None;
+        Node::<ipc::Service>::list(&self.config, |state| {
+            if let NodeState::Alive(v) = &state {
+                let same = v.details().as_ref().is_some_and(|d| d.name().as_str() == name);
+                if same && v.id().value() != mine {
+                    other = Some(
+                        v.id().pid::<ipc::Service>().map_or("unknown".to_owned(), |p| p.to_string()),
+                    );
+                    return CallbackProgression::Stop;
+                }
+            }
+            CallbackProgression::Continue
+        })
+        .map_err(|e| iox("cannot list nodes")(&e))?;
+        match other {
+            Some(pid) => Err(IpcError::DuplicateRole {
+                role: role.to_owned(),
+                domain: self.name.clone(),
+                pid,
+            }),
+            None => Ok(node),
+        }
     }
 
     /// Removes what dead nodes of this domain left behind and, when no node of the
@@ -188,7 +245,29 @@ impl Domain {
             .subscriber_max_borrowed_samples(2)
             .enable_safe_overflow(true)
             .open_or_create()
-            .map_err(|e| iox(format!("cannot open service {name} ({})", topic.name()))(&e))
+            .map_err(|e| {
+                self.layout_skew::<T>(&name, topic)
+                    .unwrap_or_else(|| iox(format!("cannot open service {name} ({})", topic.name()))(&e))
+            })
+    }
+
+    /// When `topic`'s service exists with another payload type than `T`: the skew.
+    fn layout_skew<T: ZeroCopySend>(&self, name: &ServiceName, topic: Topic) -> Option<IpcError> {
+        let details =
+            ipc::Service::details(name, &self.config, MessagingPattern::PublishSubscribe).ok()??;
+        let theirs =
+            details.static_details.publish_subscribe().message_type_details().payload.type_name();
+        let theirs = theirs.to_string();
+        // SAFETY: type_name only returns the static name.
+        let ours = unsafe { <T as ZeroCopySend>::type_name() }.to_owned();
+        (theirs != ours).then(|| IpcError::LayoutSkew {
+            topic: topic.name(),
+            domain: self.name.clone(),
+            their_version: layout_version_of(&theirs),
+            our_version: layout_version_of(&ours),
+            theirs,
+            ours,
+        })
     }
 
     fn event(
