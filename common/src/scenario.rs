@@ -17,11 +17,17 @@ use serde::{Deserialize, Serialize};
 use crate::params::{ActuatorLimits, AntiWindup, BodyParams, Gains, RotorBodyState};
 use crate::so3;
 
-/// Scenarios that ship with rotorloop, by name: the paper's three reference torques.
-pub const BUILTIN: [(&str, &str); 3] = [
+/// Scenarios that ship with rotorloop, by name: the paper's three reference torques, and
+/// the extensions' demonstrations (a constant disturbance with PID and with PD;
+/// saturated rotors with and without anti-windup).
+pub const BUILTIN: [(&str, &str); 7] = [
     ("paper-zero", include_str!("../../scenarios/paper-zero.toml")),
     ("paper-constant", include_str!("../../scenarios/paper-constant.toml")),
     ("paper-sinusoid", include_str!("../../scenarios/paper-sinusoid.toml")),
+    ("disturbance-pid", include_str!("../../scenarios/disturbance-pid.toml")),
+    ("disturbance-pd", include_str!("../../scenarios/disturbance-pd.toml")),
+    ("saturation-antiwindup", include_str!("../../scenarios/saturation-antiwindup.toml")),
+    ("saturation-windup", include_str!("../../scenarios/saturation-windup.toml")),
 ];
 
 /// Allowed tick rates (Hz).
@@ -741,6 +747,13 @@ mod tests {
         for (name, _) in BUILTIN {
             let s = Scenario::load(name).expect(name);
             assert_eq!(s.file.name, name);
+            if !name.starts_with("paper-") {
+                continue;
+            }
+            // The paper's runs have none of the extensions.
+            assert_eq!(s.limits, ActuatorLimits::default());
+            assert_eq!(s.disturbance, DVec3::ZERO);
+            assert_eq!(s.file.controller.inertia_factor, 1.0);
             assert_eq!(s.gains.kp, 1.0);
             assert_eq!(s.gains.kd, 3.0);
             assert_eq!(s.gains.ki, 1.0);
