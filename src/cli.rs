@@ -79,6 +79,8 @@ enum RoleCommand {
     Monitor(crate::process::monitor::MonitorArgs),
     Pingpong(crate::process::pingpong::PingPongArgs),
     Hog(crate::process::pingpong::HogArgs),
+    /// Try to reach a run's services and files from outside; print what was granted.
+    Probe(crate::process::probe::ProbeArgs),
 }
 
 #[derive(Debug, clap::Args)]
@@ -164,6 +166,7 @@ pub fn main() -> ExitCode {
             RoleCommand::Monitor(a) => run_role("monitor", a, monitor::run),
             RoleCommand::Pingpong(a) => run_role("pingpong", a, crate::process::pingpong::run),
             RoleCommand::Hog(a) => run_role("hog", a, crate::process::pingpong::hog),
+            RoleCommand::Probe(a) => run_role("probe", a, crate::process::probe::run),
         };
     }
     match run(cli) {

@@ -173,6 +173,7 @@ impl Domain {
             CallbackProgression::Continue
         })
         .map_err(|e| iox("cannot list nodes")(&e))?;
+        self.restrict_global_segment();
         match other {
             Some(pid) => Err(IpcError::DuplicateRole {
                 role: role.to_owned(),
@@ -180,6 +181,32 @@ impl Domain {
                 pid,
             }),
             None => Ok(node),
+        }
+    }
+
+    /// iceoryx2 creates its global management segment (a node counter) world-readable and
+    /// -writable (mode 0666, `enable_global_access`). A domain belongs to one user: make
+    /// it owner-only like every other file of the run. A file of another owner is left
+    /// alone (chmod would fail anyway).
+    fn restrict_global_segment(&self) {
+        use std::os::unix::fs::{MetadataExt, PermissionsExt};
+        let prefix = Self::prefix_of(&self.name);
+        let Ok(dir) = std::fs::read_dir("/dev/shm") else { return };
+        // SAFETY: plain getter.
+        let me = unsafe { libc::geteuid() };
+        for e in dir.flatten() {
+            let name = e.file_name();
+            let name = name.to_string_lossy();
+            if name.starts_with(&prefix) && name.ends_with(".global_mgmt") {
+                if let Ok(meta) = e.metadata() {
+                    if meta.uid() == me && meta.mode() & 0o077 != 0 {
+                        let _ = std::fs::set_permissions(
+                            e.path(),
+                            std::fs::Permissions::from_mode(0o600),
+                        );
+                    }
+                }
+            }
         }
     }
 
@@ -297,7 +324,7 @@ impl Domain {
         let publisher =
             service.publisher_builder().max_loaned_samples(2).create().map_err(|e| {
                 iox(format!(
-                    "cannot publish `{}` in domain `{}` (is another process of this role running?)",
+                    "cannot publish `{}` in domain `{}` (a topic has one publisher, and it has one)",
                     topic.name(),
                     self.name
                 ))(&e)

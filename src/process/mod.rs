@@ -10,6 +10,7 @@ pub mod controller;
 pub mod monitor;
 pub mod pingpong;
 pub mod plant;
+pub mod probe;
 pub mod reference;
 
 use std::time::Duration;

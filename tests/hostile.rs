@@ -1,0 +1,400 @@
+//! Hostile input and who may touch a run: corrupted samples on the wire, a second
+//! process for a role that runs, a process of another sample layout, and a second OS
+//! user.
+
+mod common;
+
+use std::os::unix::fs::PermissionsExt;
+use std::os::unix::process::CommandExt;
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output, Stdio};
+use std::time::{Duration, Instant};
+
+use common::harness::{Harness, ROTORLOOP, json, ok, wait_output};
+use iceoryx2::prelude::ZeroCopySend;
+use rotorloop_common::ipc::{Domain, IpcError, Topic};
+use rotorloop_common::wire::{LAYOUT_VERSION, StateSample};
+
+const LIMIT: Duration = Duration::from_secs(120);
+
+fn lockstep(h: &Harness, name: &str, extra: &[&str]) -> PathBuf {
+    let out = h.path(name);
+    let mut args = vec![
+        "run",
+        "--scenario",
+        "paper-zero",
+        "--duration",
+        "1",
+        "--mode",
+        "lockstep",
+        "--quiet",
+        "--domain",
+        &h.domain,
+        "--out",
+        out.to_str().expect("utf8"),
+    ];
+    args.extend_from_slice(extra);
+    ok(&h.rotorloop(&args, LIMIT));
+    out
+}
+
+/// `tick → applied_torque_tick` from the monitor's timing.csv.
+fn applied_ticks(out: &Path) -> Vec<(u64, i64)> {
+    std::fs::read_to_string(out.join("timing.csv"))
+        .expect("timing")
+        .lines()
+        .skip(1)
+        .map(|l| {
+            let f: Vec<&str> = l.split(',').collect();
+            (f[0].parse().expect("tick"), f[2].parse().expect("applied"))
+        })
+        .collect()
+}
+
+/// Each kind of corrupted sample (NaN, infinity, absurd magnitude, an attitude off SO(3))
+/// on each topic is rejected by every receiver, counted, reported as a fault event, and
+/// answered safely: the plant holds the last good torque, the controller skips the tick,
+/// the monitor drops the row. No NaN ever reaches the plant's state.
+#[test]
+fn every_kind_of_corrupted_sample_is_rejected_counted_and_never_reaches_the_state() {
+    let h = Harness::new("corrupt");
+    let corrupt = [
+        "controller:nan@100",
+        "controller:inf@150",
+        "controller:huge@200",
+        "plant:nan@300",
+        "plant:skew@350",
+        "plant:huge@400",
+        "reference:inf@500",
+        "reference:skew@550",
+        "reference:huge@600",
+    ];
+    let extra: Vec<&str> = corrupt.iter().flat_map(|c| ["--corrupt", c]).collect();
+    let out = lockstep(&h, "run", &extra);
+    let s = json(&out.join("summary.json"));
+    assert_eq!(s["completed"], true);
+    let rejected = &s["wire_rejected"];
+    for (receiver, n) in [
+        ("plant.torque", 3),
+        ("controller.state", 3),
+        ("controller.reference", 3),
+        ("monitor.torque", 3),
+        ("monitor.state", 3),
+        ("monitor.reference", 3),
+    ] {
+        assert_eq!(rejected[receiver], n, "{receiver}: {rejected}");
+    }
+    // Three rejected torques and three skipped ticks (answers to rejected states); a
+    // rejected reference is replaced by the propagated last one, which costs no torque.
+    assert_eq!(s["misses"], 6);
+    assert_eq!(s["rows_lost"], 6, "rows of rejected states and references are not written");
+    let events = s["wire_faults"].as_array().expect("events");
+    let seen: Vec<(String, u64, String)> = events
+        .iter()
+        .map(|e| {
+            (
+                e["topic"].as_str().unwrap().to_owned(),
+                e["tick"].as_u64().unwrap(),
+                e["kind"].as_str().unwrap().to_owned(),
+            )
+        })
+        .collect();
+    for (topic, tick, kind) in [
+        ("torque", 100, "non-finite"),
+        ("torque", 150, "non-finite"),
+        ("torque", 200, "absurd"),
+        ("state", 300, "non-finite"),
+        ("state", 350, "non-orthonormal"),
+        ("state", 400, "absurd"),
+        ("reference", 500, "non-finite"),
+        ("reference", 550, "non-orthonormal"),
+        ("reference", 600, "absurd"),
+    ] {
+        assert!(
+            seen.contains(&(topic.to_owned(), tick, kind.to_owned())),
+            "no {kind} {topic} event at tick {tick} in {seen:?}"
+        );
+    }
+    assert!(events.iter().all(|e| e["detail"].as_str().unwrap().contains(".")), "field named");
+
+    // Hold: over the tick after a rejected torque k, torque k−1 was applied.
+    let applied = applied_ticks(&out);
+    for k in [100u64, 150, 200, 300, 350, 400] {
+        let row = applied.iter().find(|(t, _)| *t == k + 1).expect("row");
+        assert_eq!(row.1, k as i64 - 1, "tick {k}: the plant should hold torque {}", k - 1);
+    }
+    // No NaN anywhere in the state columns of the trace.
+    let trace = std::fs::read_to_string(out.join("trace.csv")).expect("trace");
+    let header: Vec<&str> = trace.lines().next().unwrap().split(',').collect();
+    for line in trace.lines().skip(1) {
+        for (name, v) in header.iter().zip(line.split(',')) {
+            if name.starts_with('R') || name.starts_with('W') || name.starts_with('h') {
+                let v: f64 = v.parse().expect("number");
+                assert!(v.is_finite(), "{name} = {v} in row {line}");
+            }
+        }
+    }
+    h.assert_no_leftovers();
+}
+
+/// Torques rejected for longer than `--hold-ticks` put the plant in safe mode (zero
+/// torque), and the first good torque brings control back.
+#[test]
+fn rejected_torques_beyond_the_hold_put_the_plant_in_safe_mode_until_a_good_one() {
+    let h = Harness::new("corrupt-safe");
+    let mut extra: Vec<String> = vec!["--hold-ticks".into(), "5".into()];
+    for k in 100..=110 {
+        extra.extend(["--corrupt".into(), format!("controller:nan@{k}")]);
+    }
+    let extra: Vec<&str> = extra.iter().map(String::as_str).collect();
+    let out = lockstep(&h, "run", &extra);
+    let s = json(&out.join("summary.json"));
+    assert_eq!(s["wire_rejected"]["plant.torque"], 11);
+    assert_eq!(s["misses"], 11);
+    assert_eq!(s["safe_mode_ticks"], 6, "ticks 6..=11 of the 11 rejected ones");
+    let applied = applied_ticks(&out);
+    let at = |k: u64| applied.iter().find(|(t, _)| *t == k).expect("row").1;
+    assert_eq!(at(101), 99, "holding");
+    assert_eq!(at(111), -1, "safe mode: no torque applied");
+    assert_eq!(at(112), 111, "control back with the first good torque");
+    h.assert_no_leftovers();
+}
+
+/// The pid of `role` from the launcher's rss.csv.
+fn pid_of(out: &Path, role: &str) -> Option<String> {
+    let text = std::fs::read_to_string(out.join("rss.csv")).ok()?;
+    text.lines()
+        .filter_map(|l| {
+            let f: Vec<&str> = l.split(',').collect();
+            (f.get(1) == Some(&role)).then(|| f[2].to_owned())
+        })
+        .next()
+}
+
+fn start_realtime_run(h: &mut Harness, out: &Path, seconds: &str) -> usize {
+    let args: Vec<String> = [
+        "run",
+        "--scenario",
+        "paper-zero",
+        "--duration",
+        seconds,
+        "--mode",
+        "realtime",
+        "--quiet",
+        "--domain",
+        &h.domain,
+        "--out",
+        out.to_str().unwrap(),
+    ]
+    .iter()
+    .map(|s| (*s).to_owned())
+    .collect();
+    let i = h.spawn(ROTORLOOP, &args);
+    // Running once every role has a pid and the state service exists.
+    let until = Instant::now() + Duration::from_secs(30);
+    while ["plant", "controller", "reference", "monitor"].iter().any(|r| pid_of(out, r).is_none())
+    {
+        assert!(Instant::now() < until, "the run did not start");
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    std::thread::sleep(Duration::from_millis(500));
+    i
+}
+
+fn role_by_hand(h: &Harness, role: &str, extra: &[&str]) -> Output {
+    let mut args = vec!["role", role, "--domain", &h.domain, "--scenario", "paper-zero"];
+    args.extend_from_slice(&["--mode", "realtime"]);
+    args.extend_from_slice(extra);
+    h.rotorloop(&args, LIMIT)
+}
+
+/// A second process of any role in a running domain is refused with a message naming the
+/// domain and the pid of the running one; the run goes on unaffected.
+#[test]
+fn a_second_process_of_a_running_role_is_refused_naming_the_domain_and_its_pid() {
+    let mut h = Harness::new("dup");
+    let out = h.path("run");
+    let run = start_realtime_run(&mut h, &out, "5");
+    let monitor_out = h.path("second-monitor");
+    for role in ["plant", "controller", "reference", "monitor"] {
+        let extra: Vec<&str> = if role == "monitor" {
+            vec!["--out", monitor_out.to_str().unwrap()]
+        } else {
+            vec![]
+        };
+        let o = role_by_hand(&h, role, &extra);
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert!(!o.status.success(), "a second {role} started: {err}");
+        let pid = pid_of(&out, role).expect("pid");
+        let want = format!("role `{role}` is already running in domain `{}` (pid {pid})", h.domain);
+        assert!(err.contains(&want), "{role}: {err}");
+    }
+    assert!(!monitor_out.exists(), "the refused monitor must not create its output");
+    let status = h.wait_all(LIMIT);
+    assert!(status[run].success(), "the first run failed");
+    let s = json(&out.join("summary.json"));
+    assert_eq!(s["completed"], true);
+    assert_eq!(s["trace_rows"], 5001);
+    assert_eq!(s["rows_lost"], 0);
+    h.assert_no_leftovers();
+}
+
+/// What an older build's state sample looks like on the wire: another layout version.
+#[derive(Debug, Clone, Copy, ZeroCopySend)]
+#[type_name("rotorloop::StateSample_v2")]
+#[repr(C)]
+struct StateSampleV2 {
+    tick: u64,
+    rest: [f64; 41],
+}
+
+/// A process of another sample layout version is refused with a message naming both
+/// versions, in both directions: our role meeting an old build's service, and an old
+/// build's type meeting ours.
+#[test]
+fn a_process_of_another_layout_version_is_refused_naming_both_versions() {
+    let h = Harness::new("skew");
+    let domain = Domain::new(&h.domain).expect("domain");
+    {
+        // An "old build" owns the state service.
+        let node = domain.node("plant").expect("node");
+        let _old = domain.outbox::<StateSampleV2>(&node, Topic::State).expect("old service");
+        let o = role_by_hand(&h, "controller", &[]);
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert!(!o.status.success());
+        assert!(
+            err.contains("rotorloop::StateSample_v2")
+                && err.contains("layout v2")
+                && err.contains(&format!("layout v{LAYOUT_VERSION}")),
+            "{err}"
+        );
+    }
+    {
+        // Our build owns it; the "old build" is refused.
+        let node = domain.node("plant").expect("node");
+        let _ours = domain.outbox::<StateSample>(&node, Topic::State).expect("service");
+        let other = domain.node("monitor").expect("node");
+        match domain.inbox::<StateSampleV2>(&other, Topic::State, 1, false) {
+            Err(e @ IpcError::LayoutSkew { .. }) => {
+                let msg = e.to_string();
+                assert!(msg.contains("layout v2") && msg.contains("layout v3"), "{msg}");
+            }
+            other => panic!("expected a layout skew error, got {other:?}"),
+        }
+    }
+    domain.cleanup().expect("cleanup");
+    h.assert_no_leftovers();
+}
+
+/// Creates a system user for the test and deletes it on drop.
+struct TempUser {
+    name: String,
+    uid: u32,
+}
+
+impl TempUser {
+    fn create() -> Result<Self, String> {
+        // SAFETY: plain getter.
+        if unsafe { libc::geteuid() } != 0 {
+            return Err("not root: cannot create a second OS user".into());
+        }
+        let name = format!("rlprobe{}", std::process::id() % 100_000);
+        let st = Command::new("useradd")
+            .args(["--system", "--no-create-home", "--shell", "/usr/sbin/nologin", &name])
+            .stderr(Stdio::piped())
+            .output()
+            .map_err(|e| format!("useradd: {e}"))?;
+        if !st.status.success() {
+            return Err(format!("useradd failed: {}", String::from_utf8_lossy(&st.stderr)));
+        }
+        let id = Command::new("id").args(["-u", &name]).output().map_err(|e| e.to_string())?;
+        let uid = String::from_utf8_lossy(&id.stdout).trim().parse().map_err(|_| "id -u")?;
+        Ok(Self { name, uid })
+    }
+}
+
+impl Drop for TempUser {
+    fn drop(&mut self) {
+        let _ = Command::new("userdel").arg(&self.name).status();
+    }
+}
+
+fn probe(binary: &Path, domain: &str, uid: Option<u32>) -> String {
+    let mut cmd = Command::new(binary);
+    cmd.args(["role", "probe", "--domain", domain])
+        .stdin(Stdio::null())
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped());
+    if let Some(uid) = uid {
+        cmd.uid(uid).gid(uid); // std drops the supplementary groups when it changes uid
+    }
+    let out = wait_output(cmd.spawn().expect("probe"), LIMIT);
+    String::from_utf8_lossy(&out.stdout).into_owned()
+}
+
+/// A run's shared memory and files belong to its user alone: a second OS user can neither
+/// create a node in the domain, subscribe to the state, publish a torque, nor open any of
+/// its shared-memory files; the owner can (the same probe, as a control). Skipped, with
+/// the reason, where a second user cannot be created.
+#[test]
+fn another_os_user_can_neither_subscribe_to_the_state_nor_publish_a_torque() {
+    let user = match TempUser::create() {
+        Ok(u) => u,
+        Err(why) => {
+            eprintln!("SKIPPED another_os_user_…: {why}");
+            return;
+        }
+    };
+    let mut h = Harness::new("users");
+    // The other user needs an executable it may reach.
+    let bin_dir = tempfile::tempdir().expect("tempdir");
+    std::fs::set_permissions(bin_dir.path(), std::fs::Permissions::from_mode(0o755)).unwrap();
+    let binary = bin_dir.path().join("rotorloop");
+    std::fs::copy(ROTORLOOP, &binary).expect("copy binary");
+    std::fs::set_permissions(&binary, std::fs::Permissions::from_mode(0o755)).unwrap();
+
+    let out = h.path("run");
+    let run = start_realtime_run(&mut h, &out, "4");
+    let owner = probe(&binary, &h.domain, None);
+    let other = probe(&binary, &h.domain, Some(user.uid));
+    let status = h.wait_all(LIMIT);
+
+    assert!(owner.contains("subscribe state: granted (received tick"), "control:\n{owner}");
+    assert!(owner.contains("for write: granted"), "control:\n{owner}");
+    let shm_lines = other.lines().filter(|l| l.starts_with("open /dev/shm/")).count();
+    assert!(shm_lines >= 10, "the probe should have found the run's files:\n{other}");
+    for l in other.lines() {
+        assert!(l.contains(": refused ("), "user {} got: {l}\n{other}", user.name);
+    }
+    for what in ["node:", "subscribe state:", "publish torque:"] {
+        assert!(other.lines().any(|l| l.starts_with(what)), "{what} missing:\n{other}");
+    }
+    assert!(status[run].success(), "the run failed");
+    let s = json(&out.join("summary.json"));
+    assert_eq!(s["completed"], true);
+    h.assert_no_leftovers();
+}
+
+/// The modes of a running domain's files: owner-only, nothing for group or others.
+#[test]
+fn a_running_domains_files_are_owner_only() {
+    let mut h = Harness::new("modes");
+    let out = h.path("run");
+    let run = start_realtime_run(&mut h, &out, "2");
+    let prefix = format!("rl_{}_", h.domain);
+    let mut seen = 0;
+    for e in std::fs::read_dir("/dev/shm").expect("shm").flatten() {
+        if e.file_name().to_string_lossy().starts_with(&prefix) {
+            let mode = e.metadata().expect("meta").permissions().mode();
+            assert_eq!(mode & 0o077, 0, "{:?} has mode {mode:o}", e.file_name());
+            seen += 1;
+        }
+    }
+    assert!(seen >= 10, "found only {seen} shared-memory files");
+    let root = Path::new("/tmp/iceoryx2").join(&prefix);
+    let mode = std::fs::metadata(&root).expect("root").permissions().mode();
+    assert_eq!(mode & 0o007, 0, "{} has mode {mode:o}", root.display());
+    let status = h.wait_all(LIMIT);
+    assert!(status[run].success());
+    h.assert_no_leftovers();
+}
