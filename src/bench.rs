@@ -27,7 +27,7 @@ use crate::process::{Mode, RoleArgs};
 #[derive(Debug, Clone, Args)]
 pub struct BenchArgs {
     /// Tick rates (Hz).
-    #[arg(long, value_delimiter = ',', default_value = "1000,2000,5000,10000,20000")]
+    #[arg(long, allow_negative_numbers = true, value_delimiter = ',', default_value = "1000,2000,5000,10000,20000")]
     pub rates: Vec<f64>,
     /// Wait strategies.
     #[arg(long, value_delimiter = ',', default_value = "event,spin,hybrid")]
@@ -36,7 +36,7 @@ pub struct BenchArgs {
     #[arg(long, value_delimiter = ',', default_value = "same-core,cross-core,unpinned")]
     pub placement: Vec<String>,
     /// Seconds per measurement.
-    #[arg(long, default_value_t = 3.0)]
+    #[arg(long, allow_negative_numbers = true, default_value_t = 3.0)]
     pub seconds: f64,
     /// Load: none, or other-core (a CPU hog on the core the loop is not pinned to).
     #[arg(long, value_delimiter = ',', default_value = "none")]
@@ -45,7 +45,7 @@ pub struct BenchArgs {
     #[arg(long, value_delimiter = ',', default_value = "atomic,iceoryx2,uds")]
     pub baselines: Vec<String>,
     /// The plant sleeps until this many µs before each tick and spins the rest.
-    #[arg(long, default_value_t = 0)]
+    #[arg(long, allow_negative_numbers = true, default_value_t = 0)]
     pub spin_before_tick_us: u64,
     /// Also run each loop cell without the monitor and report the change of the
     /// plant-measured sense-to-actuate p50 (`loop-nomon` rows).

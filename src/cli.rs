@@ -34,10 +34,10 @@ enum Command {
         #[arg(long, default_value = "out/paper")]
         out: PathBuf,
         /// Simulated seconds per run.
-        #[arg(long, default_value_t = 30.0)]
+        #[arg(long, allow_negative_numbers = true, default_value_t = 30.0)]
         duration: f64,
         /// Tick rate (Hz).
-        #[arg(long, default_value_t = 1000.0)]
+        #[arg(long, allow_negative_numbers = true, default_value_t = 1000.0)]
         rate: f64,
         /// Only the in-process simulator (no four-process runs).
         #[arg(long)]
@@ -85,7 +85,9 @@ enum RoleCommand {
 
 #[derive(Debug, clap::Args)]
 struct SimArgs {
-    /// `paper-zero`, `paper-constant`, `paper-sinusoid`, or the path of a TOML file.
+    /// A built-in scenario (`paper-zero`, `paper-constant`, `paper-sinusoid`,
+    /// `disturbance-pid`, `disturbance-pd`, `saturation-antiwindup`, `saturation-windup`)
+    /// or the path of a TOML file.
     #[arg(long)]
     scenario: String,
     /// Simulated seconds [default: the scenario's, 30].
@@ -101,7 +103,7 @@ struct SimArgs {
     #[arg(long, value_parser = parse_vec3, allow_hyphen_values = true)]
     open_loop: Option<DVec3>,
     /// Write every N-th tick to trace.csv (the last tick always).
-    #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u64).range(1..))]
+    #[arg(long, allow_negative_numbers = true, default_value_t = 1, value_parser = clap::value_parser!(u64).range(1..))]
     trace_every: u64,
     /// Skip the PNG figures.
     #[arg(long)]
@@ -114,25 +116,25 @@ struct SimArgs {
 #[derive(Debug, clap::Args)]
 struct McArgs {
     /// Number of runs.
-    #[arg(long, default_value_t = 100, value_parser = clap::value_parser!(u64).range(1..=100_000))]
+    #[arg(long, allow_negative_numbers = true, default_value_t = 100, value_parser = clap::value_parser!(u64).range(1..=100_000))]
     runs: u64,
     /// RNG seed.
-    #[arg(long, default_value_t = 1)]
+    #[arg(long, allow_negative_numbers = true, default_value_t = 1)]
     seed: u64,
     /// Base scenario (bodies, reference, gains).
     #[arg(long, default_value = "paper-zero")]
     scenario: String,
     /// Simulated seconds per run.
-    #[arg(long, default_value_t = 60.0)]
+    #[arg(long, allow_negative_numbers = true, default_value_t = 60.0)]
     duration: f64,
     /// Tick rate (Hz).
-    #[arg(long, default_value_t = 1000.0)]
+    #[arg(long, allow_negative_numbers = true, default_value_t = 1000.0)]
     rate: f64,
     /// Every N-th run starts within 2° of a 180° error.
-    #[arg(long, default_value_t = 3, value_parser = clap::value_parser!(u64).range(1..))]
+    #[arg(long, allow_negative_numbers = true, default_value_t = 3, value_parser = clap::value_parser!(u64).range(1..))]
     near_pi_every: u64,
     /// Largest |IΩ(0)| and |Ω_r(0)| component drawn.
-    #[arg(long, default_value_t = 3.0)]
+    #[arg(long, allow_negative_numbers = true, default_value_t = 3.0)]
     max_rate: f64,
     /// Output directory.
     #[arg(long)]

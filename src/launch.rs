@@ -37,10 +37,10 @@ pub struct RunArgs {
     pub quiet: bool,
     /// Real time: the plant sleeps until this many µs before each grid time and spins
     /// the rest (sharper ticks, one core busier).
-    #[arg(long, default_value_t = 0)]
+    #[arg(long, allow_negative_numbers = true, default_value_t = 0)]
     pub spin_before_tick_us: u64,
     /// Real time: ticks the plant holds the last torque before safe mode.
-    #[arg(long, default_value_t = 50)]
+    #[arg(long, allow_negative_numbers = true, default_value_t = 50)]
     pub hold_ticks: u64,
     /// Inject a fault: `ROLE:kill@T[:restart@T2]` (seconds since the processes started;
     /// ROLE is plant, reference, controller or monitor). Repeatable.

@@ -12,6 +12,8 @@ use rotorloop_common::scenario::RunFile;
 use rotorloop_common::so3::orthonormality_error;
 use rotorloop_common::{Actuation, Scenario};
 use rotorloop_monitor::figures::tracking_figures;
+
+use crate::UsageError;
 use rotorloop_monitor::{Recorder, TraceRow, TraceWriter};
 use serde::Serialize;
 
@@ -180,6 +182,9 @@ fn drive(
     let mut stats: Option<Stats> = None;
     for k in 0..=ticks {
         let row = lp.tick();
+        if !lp.plant().is_finite() {
+            return Err(diverged(k, row.t).into());
+        }
         let st = stats.get_or_insert_with(|| Stats::new(row));
         st.add(&row, lp);
         if k < ticks {
@@ -189,6 +194,16 @@ fn drive(
         each(&row, k == ticks)?;
     }
     stats.context("a run has at least one row")
+}
+
+/// The error of a run whose state stopped being finite: a configuration the integrator
+/// or the loop cannot handle (exit code 2, like any other bad scenario value).
+pub fn diverged(tick: u64, t: f64) -> UsageError {
+    UsageError(format!(
+        "the run diverged at tick {tick} (t = {t} s): the plant's state is no longer finite. \
+         The scenario is valid but unstable at this tick rate (gains, rates or torques too \
+         large for dt?); no summary.json was written"
+    ))
 }
 
 /// Runs `sim` and writes `trace.csv`, `summary.json` and the figures into `opts.out`.

@@ -143,14 +143,17 @@ fn every_kind_of_corrupted_sample_is_rejected_counted_and_never_reaches_the_stat
 fn rejected_torques_beyond_the_hold_put_the_plant_in_safe_mode_until_a_good_one() {
     let h = Harness::new("corrupt-safe");
     let mut extra: Vec<String> = vec!["--hold-ticks".into(), "5".into()];
-    for k in 100..=110 {
+    // 100..=110, and the last answer of the run (a rejected row must not stall the
+    // monitor at the end).
+    for k in (100..=110).chain([999]) {
         extra.extend(["--corrupt".into(), format!("controller:nan@{k}")]);
     }
     let extra: Vec<&str> = extra.iter().map(String::as_str).collect();
     let out = lockstep(&h, "run", &extra);
     let s = json(&out.join("summary.json"));
-    assert_eq!(s["wire_rejected"]["plant.torque"], 11);
-    assert_eq!(s["misses"], 11);
+    assert_eq!(s["completed"], true);
+    assert_eq!(s["wire_rejected"]["plant.torque"], 12);
+    assert_eq!(s["misses"], 12);
     assert_eq!(s["safe_mode_ticks"], 6, "ticks 6..=11 of the 11 rejected ones");
     let applied = applied_ticks(&out);
     let at = |k: u64| applied.iter().find(|(t, _)| *t == k).expect("row").1;

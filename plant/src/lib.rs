@@ -117,6 +117,13 @@ impl Body {
         RotorBodyState { r: self.r, omega, omega_r, theta: self.theta }
     }
 
+    /// Whether every number of the state is finite (an unstable configuration, such as
+    /// gains far too high for the tick rate, can make the integration blow up).
+    #[inline]
+    pub fn is_finite(&self) -> bool {
+        self.r.is_finite() && self.h.is_finite() && self.p.is_finite() && self.theta.is_finite()
+    }
+
     /// The integrator's own state `(R, h, p, Θ)`: resuming from it with
     /// [`Body::from_internal`] continues bit for bit.
     pub fn internal(&self) -> (DMat3, DVec3, DVec3, DVec3) {

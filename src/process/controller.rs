@@ -45,7 +45,7 @@ pub struct ControllerArgs {
     #[arg(long)]
     pub corrupt: Vec<super::Corrupt>,
     /// Real time: ticks to propagate the last reference when it is missing.
-    #[arg(long, default_value_t = 1000)]
+    #[arg(long, allow_negative_numbers = true, default_value_t = 1000)]
     pub reference_hold_ticks: u64,
 }
 

@@ -63,10 +63,10 @@ pub struct RoleArgs {
     #[arg(long, default_value = "event")]
     pub wait: Wait,
     /// Pin the process to this core.
-    #[arg(long)]
+    #[arg(long, allow_negative_numbers = true)]
     pub core: Option<usize>,
     /// SCHED_FIFO priority 1–99 (a warning and the default policy when not permitted).
-    #[arg(long, value_parser = clap::value_parser!(i32).range(1..=99))]
+    #[arg(long, allow_negative_numbers = true, value_parser = clap::value_parser!(i32).range(1..=99))]
     pub rt_priority: Option<i32>,
     /// Lock the process's memory (mlockall).
     #[arg(long)]

@@ -46,7 +46,7 @@ pub struct MonitorArgs {
     #[arg(long)]
     pub status: bool,
     /// Poll period (µs).
-    #[arg(long, default_value_t = 2000, value_parser = clap::value_parser!(u64).range(50..=100_000))]
+    #[arg(long, allow_negative_numbers = true, default_value_t = 2000, value_parser = clap::value_parser!(u64).range(50..=100_000))]
     pub poll_us: u64,
 }
 
@@ -76,6 +76,8 @@ struct Slot {
     state: Option<StateSample>,
     reference: Option<ReferenceSample>,
     torque: Option<TorqueSample>,
+    /// The tick of a torque sample that arrived here and was rejected.
+    torque_rejected: Option<u64>,
 }
 
 /// Received and lost samples of one subscriber.
@@ -309,6 +311,7 @@ pub fn run(args: &MonitorArgs) -> anyhow::Result<()> {
             if let Err(f) = t.validate(torque_limit) {
                 rejected[2] += 1;
                 note_fault("torque", t.tick, f);
+                slots[t.tick as usize % RING].torque_rejected = Some(t.tick);
                 continue;
             }
             slots[t.tick as usize % RING].torque = Some(t);
@@ -345,7 +348,9 @@ pub fn run(args: &MonitorArgs) -> anyhow::Result<()> {
             } else {
                 None
             };
-            let torque_settled = t.is_some() || newest >= next + 2 || stopping;
+            // A rejected torque settles its row too: no other sample of that tick comes.
+            let t_rejected = slot.torque_rejected == Some(next);
+            let torque_settled = t.is_some() || t_rejected || newest >= next + 2 || stopping;
             let next_settled =
                 following.is_some() || next == ticks || newest > next + 1 || stopping;
             let (Some(s), Some(r)) = (s, r) else {
@@ -358,7 +363,7 @@ pub fn run(args: &MonitorArgs) -> anyhow::Result<()> {
                 break;
             };
             if !(torque_settled && next_settled)
-                || (next == ticks && t.is_none() && !stopping && !ended)
+                || (next == ticks && t.is_none() && !t_rejected && !stopping && !ended)
             {
                 break;
             }

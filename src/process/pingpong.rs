@@ -54,13 +54,13 @@ pub struct PingPongArgs {
     /// Rendezvous name (domain / file stem).
     #[arg(long)]
     pub name: String,
-    #[arg(long, default_value_t = 1000.0)]
+    #[arg(long, allow_negative_numbers = true, default_value_t = 1000.0)]
     pub rate: f64,
-    #[arg(long, default_value_t = 3.0)]
+    #[arg(long, allow_negative_numbers = true, default_value_t = 3.0)]
     pub seconds: f64,
     #[arg(long, default_value = "event")]
     pub wait: Wait,
-    #[arg(long)]
+    #[arg(long, allow_negative_numbers = true)]
     pub core: Option<usize>,
     /// Ping: output stem (`STEM.hgrm`, `STEM.json`).
     #[arg(long)]
@@ -387,7 +387,7 @@ impl Link for UdsLink {
 /// Arguments of the CPU hog.
 #[derive(Debug, Clone, Args)]
 pub struct HogArgs {
-    #[arg(long)]
+    #[arg(long, allow_negative_numbers = true)]
     pub core: Option<usize>,
 }
 

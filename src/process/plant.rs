@@ -49,13 +49,13 @@ pub struct PlantArgs {
     pub corrupt: Vec<super::Corrupt>,
     /// Wait for this many subscribers to the state before tick 0 (controller and
     /// reference; 3 with a monitor that must see every tick).
-    #[arg(long, default_value_t = 2)]
+    #[arg(long, allow_negative_numbers = true, default_value_t = 2)]
     pub subscribers: usize,
     /// In real time, sleep until this many µs before each grid time and spin the rest.
-    #[arg(long, default_value_t = 0)]
+    #[arg(long, allow_negative_numbers = true, default_value_t = 0)]
     pub spin_before_tick_us: u64,
     /// Real time: ticks to hold the last torque without a fresh one before safe mode.
-    #[arg(long, default_value_t = 50)]
+    #[arg(long, allow_negative_numbers = true, default_value_t = 50)]
     pub hold_ticks: u64,
     /// Also record sense-to-actuate in the plant itself and write
     /// `DIR/plant_sense_to_actuate.hgrm` at the end (works without a monitor).
@@ -282,6 +282,10 @@ pub fn run(args: &PlantArgs) -> anyhow::Result<()> {
                 BodyInput { rotor_torque: u, body_torque: held.body_torque + disturbance },
                 dt,
             );
+            if !body.is_finite() {
+                // Publish nothing non-finite: stop, as the simulator does.
+                return Err(crate::sim::diverged(k + 1, (k + 1) as f64 * dt).into());
+            }
         }
     }
     drop(torques);
