@@ -27,7 +27,12 @@ use crate::process::{Mode, RoleArgs};
 #[derive(Debug, Clone, Args)]
 pub struct BenchArgs {
     /// Tick rates (Hz).
-    #[arg(long, allow_negative_numbers = true, value_delimiter = ',', default_value = "1000,2000,5000,10000,20000")]
+    #[arg(
+        long,
+        allow_negative_numbers = true,
+        value_delimiter = ',',
+        default_value = "1000,2000,5000,10000,20000"
+    )]
     pub rates: Vec<f64>,
     /// Wait strategies.
     #[arg(long, value_delimiter = ',', default_value = "event,spin,hybrid")]

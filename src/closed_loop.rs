@@ -3,7 +3,7 @@
 //! in-process simulator's core and the unit the benchmark measures.
 
 use glam::DVec3;
-use rotorloop_common::{ActuatorLimits, Actuation, Scenario};
+use rotorloop_common::{Actuation, ActuatorLimits, Scenario};
 use rotorloop_controller::{ControlOutput, GeometricPid};
 use rotorloop_monitor::{Metrics, TraceRow};
 use rotorloop_plant::{Body, BodyInput};
@@ -39,8 +39,7 @@ impl ClosedLoop {
         let limits = scenario.limits_for(actuation);
         let pid = GeometricPid::new(scenario.gains, scenario.controller_params(actuation))
             .with_limits(limits, scenario.anti_windup);
-        let metrics =
-            Metrics::new(body, &plant.state()).with_disturbance(scenario.disturbance);
+        let metrics = Metrics::new(body, &plant.state()).with_disturbance(scenario.disturbance);
         Self {
             plant,
             reference,

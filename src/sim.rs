@@ -156,8 +156,7 @@ impl Stats {
             self.settle = None;
         }
         self.drift_max = self.drift_max.max(row.h_drift_rel);
-        self.rotor_rate_max =
-            row.omega_r.iter().fold(self.rotor_rate_max, |m, w| m.max(w.abs()));
+        self.rotor_rate_max = row.omega_r.iter().fold(self.rotor_rate_max, |m, w| m.max(w.abs()));
         if row.energy_residual.is_finite() {
             self.energy_max = self.energy_max.max(row.energy_residual.abs());
         }

@@ -150,12 +150,17 @@ fn four_processes_apply_the_same_limits_and_disturbance_as_the_simulator() {
         let sim = h.path(&format!("sim-{scenario}"));
         let common = ["--scenario", scenario, "--duration", "4"];
         ok(&h.rotorloop(
-            &[&["run"][..], &common, &["--domain", &h.domain, "--out", out.to_str().unwrap()]]
-                .concat(),
+            &[
+                &["run"][..],
+                &common,
+                &["--domain", &h.domain, "--out", out.to_str().expect("present")],
+            ]
+            .concat(),
             limit,
         ));
         ok(&h.rotorloop(
-            &[&["sim"][..], &common, &["--no-figures", "--out", sim.to_str().unwrap()]].concat(),
+            &[&["sim"][..], &common, &["--no-figures", "--out", sim.to_str().expect("present")]]
+                .concat(),
             limit,
         ));
         let read = |d: &std::path::Path| std::fs::read(d.join("trace.csv")).expect("trace");

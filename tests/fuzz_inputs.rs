@@ -18,8 +18,29 @@ use rotorloop_common::{Actuation, Scenario, ScenarioError};
 
 /// Values that replace a number in a scenario file: valid, out of range, wrong type.
 const VALUES: [&str; 24] = [
-    "nan", "inf", "-inf", "-1.0", "0.0", "-0.0", "1e308", "-1e308", "1e-320", "1e7", "\"x\"",
-    "[]", "true", "[1.0, 2.0]", "{}", "3", "0.5", "2.0", "100.0", "1e-9", "7", "-3.5", "0.999",
+    "nan",
+    "inf",
+    "-inf",
+    "-1.0",
+    "0.0",
+    "-0.0",
+    "1e308",
+    "-1e308",
+    "1e-320",
+    "1e7",
+    "\"x\"",
+    "[]",
+    "true",
+    "[1.0, 2.0]",
+    "{}",
+    "3",
+    "0.5",
+    "2.0",
+    "100.0",
+    "1e-9",
+    "7",
+    "-3.5",
+    "0.999",
     "[[1.0]]",
 ];
 
@@ -84,7 +105,8 @@ fn number_spans(line: &str) -> Vec<(usize, usize)> {
     let mut spans = Vec::new();
     let mut i = 0;
     while i < b.len() {
-        let starts = b[i].is_ascii_digit() || (b[i] == b'-' && b.get(i + 1).is_some_and(u8::is_ascii_digit));
+        let starts =
+            b[i].is_ascii_digit() || (b[i] == b'-' && b.get(i + 1).is_some_and(u8::is_ascii_digit));
         if starts && (i == 0 || !b[i - 1].is_ascii_alphanumeric() && b[i - 1] != b'_') {
             let a = i;
             i += 1;
@@ -138,7 +160,9 @@ fn mutated_scenario_files_are_valid_runs_or_named_errors_never_panics() {
 fn assert_outcome(case: usize, out: &std::process::Output, dir: &Path, what: &str) {
     let err = String::from_utf8_lossy(&out.stderr);
     match out.status.code() {
-        Some(0) => assert!(dir.join("summary.json").exists(), "case {case}: {what}: ok, no summary"),
+        Some(0) => {
+            assert!(dir.join("summary.json").exists(), "case {case}: {what}: ok, no summary")
+        }
         Some(2) => {
             assert!(err.contains("error"), "case {case}: {what}: exit 2 without an error: {err}");
             assert!(
@@ -178,7 +202,7 @@ fn random_sim_arguments_give_a_report_or_exit_2() {
             // Always a duration: a valid file may ask for a day of simulated time.
             if i == 0 || r.random_bool(0.3) {
                 let pool = if r.random_bool(0.7) { valid } else { invalid };
-                args.extend([flag.to_string(), pool.choose(&mut r).unwrap().to_string()]);
+                args.extend([flag.to_string(), pool.choose(&mut r).expect("present").to_string()]);
             }
         }
         let argv: Vec<&str> = args.iter().map(String::as_str).collect();
@@ -199,7 +223,10 @@ fn bad_run_arguments_exit_2_before_starting_anything() {
     let h = Harness::new("fuzz-run");
     let bad: [(&str, &[&str]); 10] = [
         ("--pin", &["plant", "plant=99", "nobody=0", "plant=-1", "plant=0,controller=x"]),
-        ("--fault", &["plant", "plant:kill", "x:kill@1", "plant:kill@-1", "plant:kill@2:restart@1"]),
+        (
+            "--fault",
+            &["plant", "plant:kill", "x:kill@1", "plant:kill@-1", "plant:kill@2:restart@1"],
+        ),
         ("--corrupt", &["plant", "plant:nan", "controller:skew@3", "monitor:nan@1", "plant:zap@1"]),
         ("--domain", &["", "a/b", "this-domain-name-is-far-too-long-for-a-socket", "spa ce"]),
         ("--rate", &["0", "-1", "nan", "1e9"]),
@@ -215,8 +242,10 @@ fn bad_run_arguments_exit_2_before_starting_anything() {
             let dir = h.path(&format!("run{case}"));
             let domain = format!("{}-{case}", h.domain);
             let mut args = vec!["run", "--scenario", "paper-zero", "--quiet"];
-            args.extend(["--out", dir.to_str().unwrap()]);
-            for (f, default) in [("--mode", "lockstep"), ("--duration", "0.01"), ("--domain", &domain)] {
+            args.extend(["--out", dir.to_str().expect("present")]);
+            for (f, default) in
+                [("--mode", "lockstep"), ("--duration", "0.01"), ("--domain", &domain)]
+            {
                 if f != flag {
                     args.extend([f, default]);
                 }

@@ -93,9 +93,9 @@ fn every_kind_of_corrupted_sample_is_rejected_counted_and_never_reaches_the_stat
         .iter()
         .map(|e| {
             (
-                e["topic"].as_str().unwrap().to_owned(),
-                e["tick"].as_u64().unwrap(),
-                e["kind"].as_str().unwrap().to_owned(),
+                e["topic"].as_str().expect("present").to_owned(),
+                e["tick"].as_u64().expect("present"),
+                e["kind"].as_str().expect("present").to_owned(),
             )
         })
         .collect();
@@ -115,7 +115,10 @@ fn every_kind_of_corrupted_sample_is_rejected_counted_and_never_reaches_the_stat
             "no {kind} {topic} event at tick {tick} in {seen:?}"
         );
     }
-    assert!(events.iter().all(|e| e["detail"].as_str().unwrap().contains(".")), "field named");
+    assert!(
+        events.iter().all(|e| e["detail"].as_str().expect("present").contains(".")),
+        "field named"
+    );
 
     // Hold: over the tick after a rejected torque k, torque k−1 was applied.
     let applied = applied_ticks(&out);
@@ -125,7 +128,7 @@ fn every_kind_of_corrupted_sample_is_rejected_counted_and_never_reaches_the_stat
     }
     // No NaN anywhere in the state columns of the trace.
     let trace = std::fs::read_to_string(out.join("trace.csv")).expect("trace");
-    let header: Vec<&str> = trace.lines().next().unwrap().split(',').collect();
+    let header: Vec<&str> = trace.lines().next().expect("present").split(',').collect();
     for line in trace.lines().skip(1) {
         for (name, v) in header.iter().zip(line.split(',')) {
             if name.starts_with('R') || name.starts_with('W') || name.starts_with('h') {
@@ -187,7 +190,7 @@ fn start_realtime_run(h: &mut Harness, out: &Path, seconds: &str) -> usize {
         "--domain",
         &h.domain,
         "--out",
-        out.to_str().unwrap(),
+        out.to_str().expect("present"),
     ]
     .iter()
     .map(|s| (*s).to_owned())
@@ -195,8 +198,7 @@ fn start_realtime_run(h: &mut Harness, out: &Path, seconds: &str) -> usize {
     let i = h.spawn(ROTORLOOP, &args);
     // Running once every role has a pid and the state service exists.
     let until = Instant::now() + Duration::from_secs(30);
-    while ["plant", "controller", "reference", "monitor"].iter().any(|r| pid_of(out, r).is_none())
-    {
+    while ["plant", "controller", "reference", "monitor"].iter().any(|r| pid_of(out, r).is_none()) {
         assert!(Instant::now() < until, "the run did not start");
         std::thread::sleep(Duration::from_millis(50));
     }
@@ -221,7 +223,7 @@ fn a_second_process_of_a_running_role_is_refused_naming_the_domain_and_its_pid()
     let monitor_out = h.path("second-monitor");
     for role in ["plant", "controller", "reference", "monitor"] {
         let extra: Vec<&str> = if role == "monitor" {
-            vec!["--out", monitor_out.to_str().unwrap()]
+            vec!["--out", monitor_out.to_str().expect("present")]
         } else {
             vec![]
         };
@@ -351,10 +353,11 @@ fn another_os_user_can_neither_subscribe_to_the_state_nor_publish_a_torque() {
     let mut h = Harness::new("users");
     // The other user needs an executable it may reach.
     let bin_dir = tempfile::tempdir().expect("tempdir");
-    std::fs::set_permissions(bin_dir.path(), std::fs::Permissions::from_mode(0o755)).unwrap();
+    std::fs::set_permissions(bin_dir.path(), std::fs::Permissions::from_mode(0o755))
+        .expect("present");
     let binary = bin_dir.path().join("rotorloop");
     std::fs::copy(ROTORLOOP, &binary).expect("copy binary");
-    std::fs::set_permissions(&binary, std::fs::Permissions::from_mode(0o755)).unwrap();
+    std::fs::set_permissions(&binary, std::fs::Permissions::from_mode(0o755)).expect("present");
 
     let out = h.path("run");
     let run = start_realtime_run(&mut h, &out, "4");

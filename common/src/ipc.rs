@@ -32,18 +32,13 @@ pub enum IpcError {
     DuplicateRole { role: String, domain: String, pid: String },
     /// The domain's services were made by a build with another sample layout.
     #[error(
-        "the `{topic}` service of domain `{domain}` carries `{theirs}` (sample layout v{their_version}) \
-         but this build uses `{ours}` (layout v{our_version}): every process of a run must be the same \
-         build; stop the other processes of the domain or use another --domain"
+        "the `{topic}` service of domain `{domain}` carries `{theirs}` (sample layout v{}) \
+         but this build uses `{ours}` (layout v{}): every process of a run must be the same \
+         build; stop the other processes of the domain or use another --domain",
+        layout_version_of(.theirs),
+        layout_version_of(.ours)
     )]
-    LayoutSkew {
-        topic: &'static str,
-        domain: String,
-        theirs: String,
-        their_version: String,
-        ours: String,
-        our_version: String,
-    },
+    LayoutSkew { topic: &'static str, domain: String, theirs: String, ours: String },
 }
 
 /// The layout version at the end of a type name (`…_v3` → `3`), or `?`.
@@ -165,7 +160,9 @@ impl Domain {
                 let same = v.details().as_ref().is_some_and(|d| d.name().as_str() == name);
                 if same && v.id().value() != mine {
                     other = Some(
-                        v.id().pid::<ipc::Service>().map_or("unknown".to_owned(), |p| p.to_string()),
+                        v.id()
+                            .pid::<ipc::Service>()
+                            .map_or("unknown".to_owned(), |p| p.to_string()),
                     );
                     return CallbackProgression::Stop;
                 }
@@ -273,15 +270,16 @@ impl Domain {
             .enable_safe_overflow(true)
             .open_or_create()
             .map_err(|e| {
-                self.layout_skew::<T>(&name, topic)
-                    .unwrap_or_else(|| iox(format!("cannot open service {name} ({})", topic.name()))(&e))
+                self.layout_skew::<T>(&name, topic).unwrap_or_else(|| {
+                    iox(format!("cannot open service {name} ({})", topic.name()))(&e)
+                })
             })
     }
 
     /// When `topic`'s service exists with another payload type than `T`: the skew.
     fn layout_skew<T: ZeroCopySend>(&self, name: &ServiceName, topic: Topic) -> Option<IpcError> {
-        let details =
-            ipc::Service::details(name, &self.config, MessagingPattern::PublishSubscribe).ok()??;
+        let details = ipc::Service::details(name, &self.config, MessagingPattern::PublishSubscribe)
+            .ok()??;
         let theirs =
             details.static_details.publish_subscribe().message_type_details().payload.type_name();
         let theirs = theirs.to_string();
@@ -290,8 +288,6 @@ impl Domain {
         (theirs != ours).then(|| IpcError::LayoutSkew {
             topic: topic.name(),
             domain: self.name.clone(),
-            their_version: layout_version_of(&theirs),
-            our_version: layout_version_of(&ours),
             theirs,
             ours,
         })

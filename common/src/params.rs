@@ -140,3 +140,31 @@ pub enum AntiWindup {
     /// Always integrate (the paper's law as written): the integral winds up.
     None,
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn torque_saturation_clamps_each_axis_to_u_max() {
+        let l = ActuatorLimits { rotor_torque: Some(2.0), rotor_rate: None };
+        let (u, sat) = l.apply(DVec3::new(3.0, -5.0, 1.5), DVec3::ZERO);
+        assert_eq!((u, sat), (DVec3::new(2.0, -2.0, 1.5), true));
+        let (u, sat) = l.apply(DVec3::new(0.5, -2.0, 1.5), DVec3::ZERO);
+        assert_eq!((u, sat), (DVec3::new(0.5, -2.0, 1.5), false));
+    }
+
+    #[test]
+    fn the_speed_limit_cuts_only_torque_that_spins_a_rotor_further() {
+        let l = ActuatorLimits { rotor_torque: None, rotor_rate: Some(10.0) };
+        let omega_r = DVec3::new(10.0, -10.5, 9.9);
+        // Axis 1 at the limit, speeding up: cut. Axis 2 beyond it, slowing down: kept.
+        // Axis 3 below it: kept.
+        let (u, sat) = l.apply(DVec3::new(1.0, 1.0, 1.0), omega_r);
+        assert_eq!((u, sat), (DVec3::new(0.0, 1.0, 1.0), true));
+        let (u, sat) = l.apply(DVec3::new(-1.0, -1.0, 1.0), omega_r);
+        assert_eq!((u, sat), (DVec3::new(-1.0, 0.0, 1.0), true));
+        assert!(!ActuatorLimits::default().any());
+        assert_eq!(ActuatorLimits::default().apply(DVec3::ONE, omega_r), (DVec3::ONE, false));
+    }
+}

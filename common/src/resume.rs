@@ -164,6 +164,9 @@ mod tests {
             states_skipped: 0,
             reference_misses: 0,
             published: 0,
+            states_rejected: 0,
+            references_rejected: 0,
+            flags: 0,
         };
         {
             let slot = ResumeSlot::<TorqueSample>::open(&domain, "controller").expect("open");

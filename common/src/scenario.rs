@@ -416,9 +416,13 @@ impl Scenario {
 
         in_range("controller.inertia_factor", c.inertia_factor, INERTIA_FACTOR_RANGE)?;
         let positive = |field: &str, v: Option<f64>| match v {
-            Some(x) if !(x.is_finite() && x > 0.0 && x <= MAX_MAGNITUDE) => Err(
-                ScenarioError::invalid(field, x, "a finite number > 0 and ≤ 1e6, or no entry (unlimited)"),
-            ),
+            Some(x) if !(x.is_finite() && x > 0.0 && x <= MAX_MAGNITUDE) => {
+                Err(ScenarioError::invalid(
+                    field,
+                    x,
+                    "a finite number > 0 and ≤ 1e6, or no entry (unlimited)",
+                ))
+            }
             _ => Ok(v),
         };
         let limits = ActuatorLimits {

@@ -320,8 +320,16 @@ impl StateSample {
         check_entries("state.omega_body", &self.omega_body_rad_s, MAX_WIRE_MAGNITUDE)?;
         check_entries("state.omega_rotor", &self.omega_rotor_rad_s, MAX_WIRE_MAGNITUDE)?;
         check_entries("state.theta_rotor", &self.theta_rotor_rad, MAX_WIRE_ACCUMULATED)?;
-        check_entries("state.applied_rotor_torque", &self.applied_rotor_torque_nm, MAX_WIRE_MAGNITUDE)?;
-        check_entries("state.applied_body_torque", &self.applied_body_torque_nm, MAX_WIRE_MAGNITUDE)?;
+        check_entries(
+            "state.applied_rotor_torque",
+            &self.applied_rotor_torque_nm,
+            MAX_WIRE_MAGNITUDE,
+        )?;
+        check_entries(
+            "state.applied_body_torque",
+            &self.applied_body_torque_nm,
+            MAX_WIRE_MAGNITUDE,
+        )?;
         check_entries("state.internal_h", &self.internal_h, MAX_WIRE_ACCUMULATED)?;
         check_entries("state.internal_p", &self.internal_p, MAX_WIRE_ACCUMULATED)
     }
@@ -346,7 +354,8 @@ impl TorqueSample {
     /// The largest torque entry a receiver accepts, given the rotor torque limit of the
     /// scenario (`None`: unlimited).
     pub fn absurd_limit(rotor_torque_limit: Option<f64>) -> f64 {
-        rotor_torque_limit.map_or(MAX_WIRE_MAGNITUDE, |u| (u * ABSURD_TORQUE_FACTOR).min(MAX_WIRE_MAGNITUDE))
+        rotor_torque_limit
+            .map_or(MAX_WIRE_MAGNITUDE, |u| (u * ABSURD_TORQUE_FACTOR).min(MAX_WIRE_MAGNITUDE))
     }
 
     /// Checks the torques against `limit` (see [`TorqueSample::absurd_limit`]) and the
@@ -382,6 +391,69 @@ mod tests {
             theta: DVec3::new(5.0, 6.0, 7.0),
         };
         assert_eq!(StateSample::of(3, 0.003, &x).body_state(), x);
+    }
+
+    fn good_state() -> StateSample {
+        let x = RotorBodyState {
+            r: crate::so3::exp(DVec3::new(0.3, -0.2, 1.1)),
+            omega: DVec3::new(0.1, 0.2, 0.3),
+            omega_r: DVec3::new(-1.0, 2.0, 0.5),
+            theta: DVec3::new(5.0, 6.0, 7.0),
+        };
+        StateSample::of(3, 0.003, &x)
+    }
+
+    #[test]
+    fn validation_names_the_field_and_the_kind_of_every_bad_value() {
+        assert_eq!(good_state().validate(), Ok(()));
+        let mut s = good_state();
+        s.omega_rotor_rad_s[2] = f64::NAN;
+        assert_eq!(s.validate(), Err(WireFault::NonFinite { field: "state.omega_rotor" }));
+        let mut s = good_state();
+        s.omega_body_rad_s[0] = -2e6;
+        assert!(matches!(s.validate(), Err(WireFault::Absurd { field: "state.omega_body", .. })));
+        let mut s = good_state();
+        s.r_row_major[4] *= 1.0 + 1e-5;
+        let e = s.validate().expect_err("skewed R");
+        assert_eq!((e.kind(), e.field()), ("non-orthonormal", "state.r"));
+        assert!(e.to_string().contains("state.r is not a rotation"), "{e}");
+        // Rounding-level deviations of a real integrator pass.
+        let mut s = good_state();
+        s.r_row_major[4] *= 1.0 + 1e-12;
+        assert_eq!(s.validate(), Ok(()));
+    }
+
+    #[test]
+    fn torque_validation_scales_with_the_configured_limit() {
+        let t = TorqueSample {
+            tick: 1,
+            rotor_torque_nm: [3.0, -2.0, 900.0],
+            body_torque_nm: [0.0; 3],
+            xi_i: [0.0; 3],
+            state_recv_ns: 0,
+            publish_ns: 0,
+            states_received: 0,
+            states_lost: 0,
+            states_skipped: 0,
+            reference_misses: 0,
+            published: 1,
+            states_rejected: 0,
+            references_rejected: 0,
+            flags: 0,
+        };
+        // Unlimited actuators: anything up to 1e6 N m passes.
+        assert_eq!(t.validate(TorqueSample::absurd_limit(None)), Ok(()));
+        // u_max = 1 N m: 900 is saturation, not yet absurd; 1001 is.
+        assert_eq!(t.validate(TorqueSample::absurd_limit(Some(1.0))), Ok(()));
+        let t2 = TorqueSample { rotor_torque_nm: [0.0, 0.0, 1001.0], ..t };
+        assert!(matches!(
+            t2.validate(TorqueSample::absurd_limit(Some(1.0))),
+            Err(WireFault::Absurd { field: "torque.rotor_torque", .. })
+        ));
+        let t3 = TorqueSample { xi_i: [f64::INFINITY, 0.0, 0.0], ..t };
+        assert_eq!(t3.validate(1e6), Err(WireFault::NonFinite { field: "torque.xi_i" }));
+        assert!(t.computed());
+        assert!(!TorqueSample { flags: TORQUE_SKIPPED, ..t }.computed());
     }
 
     #[test]

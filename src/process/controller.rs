@@ -51,8 +51,10 @@ pub struct ControllerArgs {
 
 const RING: usize = 256;
 
-/// A reference ring entry.
+/// A reference ring entry. Unboxed on purpose: the ring is allocated once, and boxing the
+/// sample would allocate on every receive.
 #[derive(Debug, Clone, Copy)]
+#[allow(clippy::large_enum_variant)]
 enum RefEntry {
     Empty,
     Valid(ReferenceSample),
@@ -124,8 +126,7 @@ pub fn run(args: &ControllerArgs) -> anyhow::Result<()> {
         RefEntry::Valid(r) if r.tick == k => Some(r),
         _ => None,
     };
-    let rejected_at =
-        |ring: &Vec<RefEntry>, k: u64| matches!(ring[k as usize % RING], RefEntry::Rejected(t) if t == k);
+    let rejected_at = |ring: &Vec<RefEntry>, k: u64| matches!(ring[k as usize % RING], RefEntry::Rejected(t) if t == k);
     // Test hook: a first-incarnation controller loans a torque sample at this tick and
     // stalls holding it, so that a test can kill it with the loan outstanding.
     let stall_at: Option<u64> = std::env::var("ROTORLOOP_TEST_STALL_WITH_LOAN_AT")

@@ -234,17 +234,11 @@ pub fn run(args: &MonitorArgs) -> anyhow::Result<()> {
     );
     let mut rejected = resumed.map_or([0u64; 3], |r| r.rejected);
     let mut wire_faults: Vec<WireFaultEvent> = Vec::new();
-    let mut note_fault =
-        |topic: &'static str, tick: u64, f: rotorloop_common::wire::WireFault| {
-            if wire_faults.len() < MAX_FAULT_EVENTS {
-                wire_faults.push(WireFaultEvent {
-                    topic,
-                    tick,
-                    kind: f.kind(),
-                    detail: f.to_string(),
-                });
-            }
-        };
+    let mut note_fault = |topic: &'static str, tick: u64, f: rotorloop_common::wire::WireFault| {
+        if wire_faults.len() < MAX_FAULT_EVENTS {
+            wire_faults.push(WireFaultEvent { topic, tick, kind: f.kind(), detail: f.to_string() });
+        }
+    };
     let mut rec = Recorder::new(ticks + 1);
     let mut latency =
         Latency::new(out, now_ns(), resumed.is_some()).context("monitor: interval logs")?;

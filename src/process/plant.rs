@@ -31,8 +31,8 @@ use rotorloop_common::Actuation;
 use rotorloop_common::ipc::{Topic, now_ns, shutdown_requested, sleep_until_ns};
 use rotorloop_common::resume::ResumeSlot;
 use rotorloop_common::wire::{
-    FLAG_LAST, FLAG_REALTIME, FLAG_SAFE_MODE, FLAG_SATURATED, NO_TICK, StateSample,
-    TORQUE_SKIPPED, TorqueSample,
+    FLAG_LAST, FLAG_REALTIME, FLAG_SAFE_MODE, FLAG_SATURATED, NO_TICK, StateSample, TORQUE_SKIPPED,
+    TorqueSample,
 };
 use rotorloop_plant::{Body, BodyInput};
 
