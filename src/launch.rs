@@ -149,9 +149,11 @@ pub fn parse_pins(s: &str) -> Result<BTreeMap<String, usize>, UsageError> {
     Ok(pins)
 }
 
-/// Resident memory of one role over a run, from `/proc/<pid>/status` (`VmRSS`), sampled
-/// once a second by the launcher. It includes the shared-memory pages the process has
-/// touched. A restarted role starts a new life: the figures are of its last life.
+/// Resident memory of one role over a run, from `/proc/<pid>/status`, sampled once a
+/// second by the launcher: `VmRSS` and its parts `RssAnon` (heap and stacks: what a leak
+/// grows), `RssFile` (code and libraries, paged in as code paths first run) and
+/// `RssShmem` (the iceoryx2 segments' pages touched so far). A restarted role starts a new
+/// life: the figures are of its last life.
 #[derive(Debug, Clone, Copy, Default, serde::Serialize)]
 pub struct RssTrack {
     /// The process's pid (last life).
@@ -167,6 +169,10 @@ pub struct RssTrack {
     pub end_at_s: f64,
     /// Largest sample (KiB).
     pub max_kib: u64,
+    /// `(RssAnon, RssFile, RssShmem)` of the start sample (KiB).
+    pub start_parts_kib: [u64; 3],
+    /// The same of the end sample (KiB).
+    pub end_parts_kib: [u64; 3],
     /// Samples taken.
     pub samples: u64,
     #[serde(skip)]
@@ -178,11 +184,14 @@ pub struct RssTrack {
 /// Seconds a process may allocate its set-up before its "start" memory is taken.
 pub const RSS_SETTLE_S: f64 = 3.0;
 
-/// `VmRSS` of a process (KiB), if it is alive.
-pub fn rss_kib(pid: u32) -> Option<u64> {
+/// `VmRSS` and `(RssAnon, RssFile, RssShmem)` of a process (KiB), if it is alive.
+pub fn rss_kib(pid: u32) -> Option<(u64, [u64; 3])> {
     let status = std::fs::read_to_string(format!("/proc/{pid}/status")).ok()?;
-    let line = status.lines().find(|l| l.starts_with("VmRSS:"))?;
-    line.split_whitespace().nth(1)?.parse().ok()
+    let field = |name: &str| -> Option<u64> {
+        let line = status.lines().find(|l| l.starts_with(name))?;
+        line.split_whitespace().nth(1)?.parse().ok()
+    };
+    Some((field("VmRSS:")?, [field("RssAnon:")?, field("RssFile:")?, field("RssShmem:")?]))
 }
 
 impl RssTrack {
@@ -190,19 +199,21 @@ impl RssTrack {
         Self { pid, spawned_ns: now_ns(), ..Self::default() }
     }
 
-    fn sample(&mut self) -> Option<u64> {
-        let kib = rss_kib(self.pid)?;
+    fn sample(&mut self) -> Option<(u64, [u64; 3])> {
+        let (kib, parts) = rss_kib(self.pid)?;
         let at = (now_ns() - self.spawned_ns) as f64 / 1e9;
         if self.samples == 0 || (!self.settled && at >= RSS_SETTLE_S) {
             self.start_kib = kib;
+            self.start_parts_kib = parts;
             self.start_at_s = at;
             self.settled = at >= RSS_SETTLE_S;
         }
         self.end_kib = kib;
+        self.end_parts_kib = parts;
         self.end_at_s = at;
         self.max_kib = self.max_kib.max(kib);
         self.samples += 1;
-        Some(kib)
+        Some((kib, parts))
     }
 }
 
@@ -299,7 +310,7 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
     );
     {
         use std::io::Write;
-        writeln!(rss_csv, "t_s,role,pid,rss_kib")?;
+        writeln!(rss_csv, "t_s,role,pid,rss_kib,anon_kib,file_kib,shmem_kib")?;
     }
     let mut next_rss_ns = t0;
     let mut events: Vec<FaultEvent> = Vec::new();
@@ -349,8 +360,8 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
             next_rss_ns += 1_000_000_000;
             let t = (now_ns() - t0) as f64 / 1e9;
             for (role, track) in rss.iter_mut() {
-                if let Some(kib) = track.sample() {
-                    writeln!(rss_csv, "{t:.1},{role},{},{kib}", track.pid)?;
+                if let Some((kib, [anon, file, shmem])) = track.sample() {
+                    writeln!(rss_csv, "{t:.1},{role},{},{kib},{anon},{file},{shmem}", track.pid)?;
                 }
             }
             rss_csv.flush()?;
@@ -407,8 +418,11 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
     }
     if !args.quiet {
         for (role, r) in &rss {
+            let [a0, f0, s0] = r.start_parts_kib;
+            let [a1, f1, s1] = r.end_parts_kib;
             println!(
-                "{role:<10} RSS {:>7} KiB at {:>6.1} s → {:>7} KiB at {:>8.1} s (max {} KiB)",
+                "{role:<10} RSS {:>7} KiB at {:>6.1} s → {:>7} KiB at {:>8.1} s (max {} KiB); \
+                 anon {a0} → {a1}, file {f0} → {f1}, shmem {s0} → {s1} KiB",
                 r.start_kib, r.start_at_s, r.end_kib, r.end_at_s, r.max_kib
             );
         }

@@ -213,9 +213,11 @@ impl Domain {
     /// `(dead nodes cleaned, nodes still alive)`.
     pub fn cleanup(&self) -> Result<(usize, usize), IpcError> {
         use iceoryx2::node::NodeView;
+        // The domain has a root directory of its own, so every node listed here is of this
+        // domain; one without readable details was killed while it was being created.
         let ours = format!("rotorloop/{}/", self.name);
         let mine = |d: &Option<iceoryx2::node::NodeDetails>| {
-            d.as_ref().is_some_and(|d| d.name().as_str().starts_with(&ours))
+            d.as_ref().is_none_or(|d| d.name().as_str().starts_with(&ours))
         };
         let (mut cleaned, mut alive) = (0, 0);
         Node::<ipc::Service>::list(&self.config, |state| {
