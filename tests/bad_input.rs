@@ -211,3 +211,31 @@ fn cli_refuses_bad_input_with_exit_code_2() {
         assert!(!out_dir.join("summary.json").exists(), "{args:?} left a summary.json");
     }
 }
+
+/// The extensions' fields: limits must be positive, the initial rotor rates within the
+/// speed limit, the disturbance finite, the inertia factor in range, the anti-windup rule
+/// one of its names.
+#[test]
+fn actuator_disturbance_and_mismatch_values_out_of_range_are_refused() {
+    let plant = "rotor_rates = [0.5, 1.9, 1.5]";
+    for (line, field, hint) in [
+        ("rotor_torque_limit = -1.0", "plant.rotor_torque_limit", "> 0"),
+        ("rotor_torque_limit = nan", "plant.rotor_torque_limit", "> 0"),
+        ("rotor_rate_limit = 0.0", "plant.rotor_rate_limit", "> 0"),
+        ("rotor_rate_limit = 1.0", "plant.rotor_rates", "≤ plant.rotor_rate_limit"),
+        ("disturbance_torque = [0.0, inf, 0.0]", "plant.disturbance_torque", "finite"),
+    ] {
+        refused(&with(plant, &format!("{plant}\n{line}")), field, hint);
+    }
+    refused(&with("kp = 1.0", "kp = 1.0\ninertia_factor = 20.0"), "inertia_factor", "0.1 to 10");
+    refused(&with("kp = 1.0", "kp = 1.0\ninertia_factor = 0.0"), "inertia_factor", "0.1 to 10");
+    let err = Scenario::from_toml(&with("kp = 1.0", "kp = 1.0\nanti_windup = \"clamp\""), "t")
+        .expect_err("unknown rule")
+        .to_string();
+    assert!(err.contains("conditional") && err.contains("none"), "{err}");
+    // And the valid ones load.
+    let ok = with(plant, &format!("{plant}\nrotor_torque_limit = 2.0\nrotor_rate_limit = 5.0"));
+    let s = Scenario::from_toml(&ok, "t").expect("valid limits");
+    assert_eq!(s.limits.rotor_torque, Some(2.0));
+    assert_eq!(s.limits.rotor_rate, Some(5.0));
+}
