@@ -152,22 +152,8 @@ mod tests {
     #[test]
     fn a_slot_returns_the_last_stored_sample_across_reopen() {
         let domain = Domain::new(&format!("slot{}", std::process::id())).expect("domain");
-        let mut t = TorqueSample {
-            tick: 0,
-            rotor_torque_nm: [1.0, 2.0, 3.0],
-            body_torque_nm: [0.0; 3],
-            xi_i: [0.5; 3],
-            state_recv_ns: 0,
-            publish_ns: 0,
-            states_received: 0,
-            states_lost: 0,
-            states_skipped: 0,
-            reference_misses: 0,
-            published: 0,
-            states_rejected: 0,
-            references_rejected: 0,
-            flags: 0,
-        };
+        let mut t =
+            TorqueSample { rotor_torque_nm: [1.0, 2.0, 3.0], xi_i: [0.5; 3], ..Default::default() };
         {
             let slot = ResumeSlot::<TorqueSample>::open(&domain, "controller").expect("open");
             assert!(slot.load().is_none());

@@ -117,7 +117,7 @@ pub struct ReferenceSample {
 const _: () = assert!(size_of::<ReferenceSample>() == 240);
 
 /// The controller's answer to state sample `tick`.
-#[derive(Debug, Clone, Copy, PartialEq, ZeroCopySend)]
+#[derive(Debug, Clone, Copy, PartialEq, Default, ZeroCopySend)]
 #[type_name("rotorloop::TorqueSample_v3")]
 #[repr(C)]
 pub struct TorqueSample {
@@ -425,22 +425,7 @@ mod tests {
 
     #[test]
     fn torque_validation_scales_with_the_configured_limit() {
-        let t = TorqueSample {
-            tick: 1,
-            rotor_torque_nm: [3.0, -2.0, 900.0],
-            body_torque_nm: [0.0; 3],
-            xi_i: [0.0; 3],
-            state_recv_ns: 0,
-            publish_ns: 0,
-            states_received: 0,
-            states_lost: 0,
-            states_skipped: 0,
-            reference_misses: 0,
-            published: 1,
-            states_rejected: 0,
-            references_rejected: 0,
-            flags: 0,
-        };
+        let t = TorqueSample { tick: 1, rotor_torque_nm: [3.0, -2.0, 900.0], ..Default::default() };
         // Unlimited actuators: anything up to 1e6 N m passes.
         assert_eq!(t.validate(TorqueSample::absurd_limit(None)), Ok(()));
         // u_max = 1 N m: 900 is saturation, not yet absurd; 1001 is.
