@@ -102,12 +102,69 @@ impl HopStats {
 /// One point of the latency-over-time plot: `(second, p50, p99, max)` in µs.
 pub type IntervalPoint = (f64, f64, f64, f64);
 
+/// Most points kept of a latency-over-time series, whatever the run's length.
+pub const MAX_SERIES_POINTS: usize = 4096;
+
+/// The per-second latency series of one hop for the over-time plot, in bounded memory:
+/// its capacity is reserved once, and when it is full, neighbouring points are merged
+/// (worst of each statistic) and the seconds per point double. A run of any length
+/// keeps at most [`MAX_SERIES_POINTS`] points and never grows the vector.
+#[derive(Debug, Clone)]
+pub struct IntervalSeries {
+    points: Vec<IntervalPoint>,
+    stride: u64,
+    pending: Option<(IntervalPoint, u64)>,
+}
+
+fn worst(a: IntervalPoint, b: IntervalPoint) -> IntervalPoint {
+    (a.0, a.1.max(b.1), a.2.max(b.2), a.3.max(b.3))
+}
+
+impl Default for IntervalSeries {
+    fn default() -> Self {
+        Self { points: Vec::with_capacity(MAX_SERIES_POINTS), stride: 1, pending: None }
+    }
+}
+
+impl IntervalSeries {
+    /// Adds one interval's point.
+    pub fn push(&mut self, p: IntervalPoint) {
+        let (acc, n) = match self.pending.take() {
+            Some((acc, n)) => (worst(acc, p), n + 1),
+            None => (p, 1),
+        };
+        if n < self.stride {
+            self.pending = Some((acc, n));
+            return;
+        }
+        self.points.push(acc);
+        if self.points.len() == MAX_SERIES_POINTS {
+            let half = MAX_SERIES_POINTS / 2;
+            for i in 0..half {
+                self.points[i] = worst(self.points[2 * i], self.points[2 * i + 1]);
+            }
+            self.points.truncate(half);
+            self.stride *= 2;
+        }
+    }
+
+    /// The points, oldest first (the last, partial stride not included).
+    pub fn points(&self) -> &[IntervalPoint] {
+        &self.points
+    }
+
+    /// Seconds per point now.
+    pub fn stride(&self) -> u64 {
+        self.stride
+    }
+}
+
 struct HopRecorder {
     total: Histogram<u64>,
     interval: Histogram<u64>,
     log: BufWriter<File>,
     serializer: V2DeflateSerializer,
-    series: Vec<IntervalPoint>,
+    series: IntervalSeries,
 }
 
 fn histogram() -> Histogram<u64> {
@@ -161,7 +218,7 @@ impl Latency {
                 interval: histogram(),
                 log,
                 serializer: V2DeflateSerializer::new(),
-                series: Vec::new(),
+                series: IntervalSeries::default(),
             });
         }
         Ok(Self { hops, dir: dir.to_owned(), start_ns, interval_index: 0 })
@@ -271,14 +328,18 @@ impl Latency {
         )?;
         files.push(file.to_owned());
 
-        let s2a = &self.hops[Self::index(Hop::SenseToActuate)].series;
+        let series = &self.hops[Self::index(Hop::SenseToActuate)].series;
+        let s2a = series.points();
         let p50: Vec<(f64, f64)> = s2a.iter().map(|p| (p.0, p.1)).collect();
         let p99: Vec<(f64, f64)> = s2a.iter().map(|p| (p.0, p.2)).collect();
         let max: Vec<(f64, f64)> = s2a.iter().map(|p| (p.0, p.3)).collect();
         let file = "latency_over_time.png";
         line_chart(
             &self.dir.join(file),
-            &format!("{title}: sense-to-actuate per 1 s interval"),
+            &format!(
+                "{title}: sense-to-actuate per {} s interval (worst of each)",
+                series.stride()
+            ),
             "run time (s)",
             "µs (log)",
             &[
@@ -377,5 +438,25 @@ mod tests {
             }
         }
         out
+    }
+}
+
+#[cfg(test)]
+mod series_tests {
+    use super::*;
+
+    #[test]
+    fn a_day_of_intervals_stays_within_the_reserved_points_and_keeps_the_worst() {
+        let mut s = IntervalSeries::default();
+        let cap = s.points.capacity();
+        for k in 0..86_400u64 {
+            let spike = if k == 50_000 { 9_000.0 } else { 0.0 };
+            s.push((k as f64, 40.0, 100.0, 200.0 + spike));
+        }
+        assert!(s.points().len() <= MAX_SERIES_POINTS);
+        assert_eq!(s.points.capacity(), cap, "the vector must never grow");
+        assert_eq!(s.stride(), 32);
+        assert!(s.points().iter().any(|p| p.3 == 9_200.0), "the spike must survive merging");
+        assert!(s.points().windows(2).all(|w| w[0].0 < w[1].0), "time order kept");
     }
 }
