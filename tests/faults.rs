@@ -63,7 +63,7 @@ fn assert_faults_mid_run(out: &std::path::Path, n: usize) -> serde_json::Value {
 
 fn lockstep_role_killed_and_restarted_continues_bit_for_bit(role: &str) {
     let h = Harness::new(&format!("kill-{role}"));
-    let out = lockstep_with_faults(&h, &[&format!("{role}:kill@0.3:restart@0.6")], &[]);
+    let out = lockstep_with_faults(&h, &[&format!("{role}:kill@0.6:restart@0.9")], &[]);
     assert_faults_mid_run(&out, 1);
     assert_same_trace(role, &std::fs::read(out.join("trace.csv")).expect("trace"), &sim_trace(&h));
     h.assert_no_leftovers();
@@ -146,8 +146,8 @@ fn the_same_role_killed_five_times_in_one_run() {
         .map(|i| {
             format!(
                 "controller:kill@{:.2}:restart@{:.2}",
-                0.2 + 0.3 * i as f64,
-                0.35 + 0.3 * i as f64
+                0.5 + 0.3 * i as f64,
+                0.65 + 0.3 * i as f64
             )
         })
         .collect();
