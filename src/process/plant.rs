@@ -167,7 +167,8 @@ pub fn run(args: &PlantArgs) -> anyhow::Result<()> {
             sleep_until_ns(deadline, spin_last);
         }
         let wake = now_ns();
-        let mut sample = StateSample::of(k, k as f64 * dt, &body.state());
+        let x = body.state();
+        let mut sample = StateSample::of(k, k as f64 * dt, &x);
         let (_, h, p, _) = body.internal();
         sample.internal_h = h.to_array();
         sample.internal_p = p.to_array();
@@ -273,8 +274,8 @@ pub fn run(args: &PlantArgs) -> anyhow::Result<()> {
         }
         if k < ticks {
             // The motors deliver what their limits allow at the current rotor rates.
-            let omega_r = if limits.any() { body.state().omega_r } else { DVec3::ZERO };
-            let (u, sat) = limits.apply(held.rotor_torque, omega_r);
+            // At the rates of the state published this tick (the body has not moved since).
+            let (u, sat) = limits.apply(held.rotor_torque, x.omega_r);
             saturated = sat;
             saturated_ticks += u64::from(sat);
             applied = BodyInput { rotor_torque: u, body_torque: held.body_torque };
