@@ -19,7 +19,7 @@ use iceoryx2::service::port_factory::publish_subscribe::PortFactory as PubSubFac
 #[derive(Debug, thiserror::Error)]
 pub enum IpcError {
     /// A bad domain name.
-    #[error("--domain `{0}` is not allowed: 1 to 24 characters from A-Z a-z 0-9 - _")]
+    #[error("--domain `{0}` is not allowed: 1 to 24 characters from A-Z a-z 0-9 -")]
     Domain(String),
     /// iceoryx2 refused something.
     #[error("{what}: {detail}")]
@@ -98,13 +98,15 @@ pub struct Domain {
 }
 
 impl Domain {
-    /// A domain by name (1–24 of `A-Z a-z 0-9 - _`). The limit keeps iceoryx2's event
+    /// A domain by name (1–24 of `A-Z a-z 0-9 -`). The limit keeps iceoryx2's event
     /// socket paths (`<root>/rl_<domain>_/rl_<domain>_<id>.event`) within the 107 bytes a
-    /// Unix socket path may have.
+    /// Unix socket path may have. No `_`: the file prefix `rl_<domain>_` of one domain
+    /// must never begin the prefix of another (`a` and `a_b`), since cleaning a domain
+    /// removes files by prefix.
     pub fn new(name: &str) -> Result<Self, IpcError> {
         let ok = !name.is_empty()
             && name.len() <= 24
-            && name.bytes().all(|b| b.is_ascii_alphanumeric() || b == b'-' || b == b'_');
+            && name.bytes().all(|b| b.is_ascii_alphanumeric() || b == b'-');
         if !ok {
             return Err(IpcError::Domain(name.to_owned()));
         }
@@ -207,10 +209,16 @@ impl Domain {
         }
     }
 
-    /// Removes what dead nodes of this domain left behind and, when no node of the
-    /// domain is alive any more, the domain's global management segment (the one
-    /// shared-memory file iceoryx2 keeps after every node is gone). Returns
-    /// `(dead nodes cleaned, nodes still alive)`.
+    /// Removes what dead nodes of this domain left behind and, when no process of the
+    /// domain is alive any more, everything else of it: its directory under iceoryx2's
+    /// root, and every `/dev/shm` file with its prefix (the global management segment,
+    /// service segments, resume slots). Returns `(dead nodes cleaned, nodes still alive)`.
+    ///
+    /// iceoryx2's own cleanup sees only the nodes it lists, and it lists a node by its
+    /// monitor token. A node killed between writing its details and creating its token
+    /// (a restart killed early) is never listed, and a node killed while it was being
+    /// torn down can leave token files that no cleanup removes. Those are found here by
+    /// the process id inside the node id: an entry whose process is gone is stale.
     pub fn cleanup(&self) -> Result<(usize, usize), IpcError> {
         use iceoryx2::node::NodeView;
         // The domain has a root directory of its own, so every node listed here is of this
@@ -231,22 +239,59 @@ impl Domain {
             CallbackProgression::Continue
         })
         .map_err(|e| iox("cannot list nodes")(&e))?;
-        if alive == 0 {
-            // SAFETY: no node of this domain is alive, and the segment's name carries the
-            // domain's own prefix, so no other process uses it.
-            unsafe { iceoryx2::testing::remove_global_mgmt_segment::<ipc::Service>(&self.config) }
-                .map_err(|e| iox("cannot remove the global management segment")(&e))?;
-            crate::resume::remove_slots(self);
-            // The domain's root holds only (now empty) directories: remove them.
+        // What iceoryx2 left. An id whose process still runs is a live node, or one being
+        // created right now (not listed yet): that keeps the domain.
+        let nodes = self.node_entries();
+        let live = nodes.keys().filter(|&&id| node_process_alive(id)).count();
+        for (&id, entries) in &nodes {
+            let has_token = entries.iter().any(|p| p.is_file());
+            if !has_token && !node_process_alive(id) {
+                // Details only: the token was never created, so no port was either.
+                for p in entries {
+                    let _ = std::fs::remove_dir_all(p);
+                }
+                cleaned += 1;
+            }
+        }
+        if alive == 0 && live == 0 {
+            // No process of the domain is left: whatever remains is stale.
             let root = std::path::PathBuf::from(self.root_path());
-            if let Ok(entries) = std::fs::read_dir(&root) {
-                for e in entries.flatten() {
-                    let _ = std::fs::remove_dir(e.path());
+            if root.exists() {
+                std::fs::remove_dir_all(&root).map_err(|e| IpcError::Iceoryx {
+                    what: format!("cannot remove {}", root.display()),
+                    detail: e.to_string(),
+                })?;
+            }
+            let prefix = Self::prefix_of(&self.name);
+            for e in std::fs::read_dir("/dev/shm").into_iter().flatten().flatten() {
+                if e.file_name().to_string_lossy().starts_with(&prefix) {
+                    std::fs::remove_file(e.path()).map_err(|err| IpcError::Iceoryx {
+                        what: format!("cannot remove {}", e.path().display()),
+                        detail: err.to_string(),
+                    })?;
                 }
             }
-            let _ = std::fs::remove_dir(&root);
         }
-        Ok((cleaned, alive))
+        Ok((cleaned, alive.max(live)))
+    }
+
+    /// The entries under the domain's node directory, by node id: the node's directory
+    /// (`<id>/`, its details and port tags) and its monitor token files
+    /// (`<prefix><id>.node_monitor…`).
+    fn node_entries(&self) -> std::collections::BTreeMap<u128, Vec<std::path::PathBuf>> {
+        let prefix = Self::prefix_of(&self.name);
+        let dir = std::path::PathBuf::from(self.root_path()).join("nodes");
+        let mut out = std::collections::BTreeMap::<u128, Vec<_>>::new();
+        for e in std::fs::read_dir(dir).into_iter().flatten().flatten() {
+            let name = e.file_name();
+            let name = name.to_string_lossy();
+            let bare = name.strip_prefix(&prefix).unwrap_or(&name);
+            let id = bare.split('.').next().and_then(|s| s.parse::<u128>().ok());
+            if let Some(id) = id {
+                out.entry(id).or_default().push(e.path());
+            }
+        }
+        out
     }
 
     fn service_name(&self, topic: Topic) -> Result<ServiceName, IpcError> {
@@ -508,6 +553,46 @@ impl std::fmt::Display for Wait {
     }
 }
 
+/// Whether the process that created node `id` still runs. iceoryx2's node id is its
+/// `UniqueSystemId`: `repr(C)` `{ seconds, nanoseconds, pid, counter }` as a `u128`, the
+/// time from `CLOCK_MONOTONIC` (checked against a real node by a test). A process with
+/// that pid that started after the node was created has only reused the pid.
+fn node_process_alive(id: u128) -> bool {
+    let pid = (id >> 64) as u32;
+    let Ok(pid) = libc::pid_t::try_from(pid) else { return false };
+    if pid <= 0 {
+        return false;
+    }
+    // SAFETY: signal 0 only checks that the process exists.
+    let exists = unsafe { libc::kill(pid, 0) } == 0
+        || std::io::Error::last_os_error().raw_os_error() == Some(libc::EPERM);
+    if !exists {
+        return false;
+    }
+    // The node's creation on the boot clock (the clock of /proc's start times). Suspend
+    // since then only moves it later, never making the creator look like a newcomer.
+    let created_mono_s = (id & 0xffff_ffff) as f64;
+    let boot_minus_mono = clock_s(libc::CLOCK_BOOTTIME) - clock_s(libc::CLOCK_MONOTONIC);
+    process_start_s(pid).is_none_or(|start| start <= created_mono_s + boot_minus_mono + 2.0)
+}
+
+fn clock_s(clock: libc::clockid_t) -> f64 {
+    let mut ts = libc::timespec { tv_sec: 0, tv_nsec: 0 };
+    // SAFETY: valid pointer to a timespec.
+    unsafe { libc::clock_gettime(clock, &mut ts) };
+    ts.tv_sec as f64 + ts.tv_nsec as f64 * 1e-9
+}
+
+/// When process `pid` started, in seconds since boot (`/proc/<pid>/stat`, field 22).
+fn process_start_s(pid: libc::pid_t) -> Option<f64> {
+    let stat = std::fs::read_to_string(format!("/proc/{pid}/stat")).ok()?;
+    // Fields after the command name (which may hold spaces) start at field 3.
+    let ticks: f64 = stat.rsplit_once(')')?.1.split_whitespace().nth(19)?.parse().ok()?;
+    // SAFETY: plain getter.
+    let hz = unsafe { libc::sysconf(libc::_SC_CLK_TCK) };
+    (hz > 0).then(|| ticks / hz as f64)
+}
+
 /// `CLOCK_MONOTONIC` in nanoseconds.
 #[inline]
 pub fn now_ns() -> u64 {
@@ -629,4 +714,87 @@ impl RtSetup {
 /// Quiets iceoryx2's own console logging unless `IOX2_LOG_LEVEL` says otherwise.
 pub fn quiet_iceoryx_logs() {
     set_log_level_from_env_or(LogLevel::Error);
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::path::PathBuf;
+
+    /// The pid of a process that has exited (and been reaped).
+    fn dead_pid() -> u32 {
+        let mut c = std::process::Command::new("true").spawn().expect("spawn true");
+        let pid = c.id();
+        c.wait().expect("wait");
+        pid
+    }
+
+    fn node_id(secs: u32, pid: u32, counter: u32) -> u128 {
+        u128::from(secs) | (u128::from(pid) << 64) | (u128::from(counter) << 96)
+    }
+
+    fn shm_files(domain: &Domain) -> Vec<String> {
+        let prefix = Domain::prefix_of(domain.name());
+        std::fs::read_dir("/dev/shm")
+            .expect("/dev/shm")
+            .flatten()
+            .map(|e| e.file_name().to_string_lossy().into_owned())
+            .filter(|n| n.starts_with(&prefix))
+            .collect()
+    }
+
+    #[test]
+    fn a_node_id_carries_the_pid_of_its_creator() {
+        let domain = Domain::new(&format!("ipc-id{}", std::process::id())).expect("domain");
+        let node = domain.node("plant").expect("node");
+        let id = node.id().value();
+        assert_eq!((id >> 64) as u32, std::process::id());
+        assert!(node_process_alive(id));
+        assert!(!node_process_alive(node_id(id as u32, dead_pid(), 1)));
+        // The same pid, taken by a process that started long after the node: reused.
+        assert!(!node_process_alive(node_id(0, std::process::id(), 1)));
+        drop(node);
+        domain.cleanup().expect("cleanup");
+    }
+
+    #[test]
+    fn cleanup_removes_nodes_killed_mid_creation_and_keeps_live_ones() {
+        let domain = Domain::new(&format!("ipc-cl{}", std::process::id())).expect("domain");
+        let node = domain.node("plant").expect("node");
+        let nodes = PathBuf::from(domain.root_path()).join("nodes");
+        let prefix = Domain::prefix_of(domain.name());
+        // A restart killed between writing its details and creating its monitor token.
+        let orphan = nodes.join(node_id(1, dead_pid(), 3).to_string());
+        std::fs::create_dir_all(&orphan).expect("mkdir");
+        std::fs::write(orphan.join(format!("{prefix}node.details")), b"x").expect("write");
+        // A node being created right now by a live process: not touched.
+        let creating = nodes.join(node.id().value().wrapping_add(1 << 96).to_string());
+        std::fs::create_dir_all(&creating).expect("mkdir");
+
+        let (cleaned, alive) = domain.cleanup().expect("cleanup");
+        assert!(!orphan.exists(), "the orphan's details stay");
+        assert!(creating.exists(), "a node of a live process was removed");
+        assert_eq!((cleaned, alive), (1, 2));
+        std::fs::remove_dir(&creating).expect("rmdir");
+
+        // Token files of a dead node without details, and no process left: all of the
+        // domain goes, in /tmp/iceoryx2 and in /dev/shm.
+        let ghost = node_id(1, dead_pid(), 4);
+        for suffix in ["node_monitor", "node_monitor_owner_lock", "node_monitor_context"] {
+            std::fs::write(nodes.join(format!("{prefix}{ghost}.{suffix}")), b"").expect("write");
+        }
+        drop(node);
+        let (_, alive) = domain.cleanup().expect("cleanup");
+        assert_eq!(alive, 0);
+        assert!(!PathBuf::from(domain.root_path()).exists(), "the domain's root stays");
+        assert_eq!(shm_files(&domain), Vec::<String>::new());
+    }
+
+    #[test]
+    fn a_domain_name_never_begins_another_domains_prefix() {
+        for bad in ["a_b", "", "a/b", "a b", "this-name-is-25-chars-xxx"] {
+            assert!(Domain::new(bad).is_err(), "{bad:?} was accepted");
+        }
+        assert!(Domain::new("Run-1").is_ok());
+    }
 }

@@ -162,7 +162,7 @@ struct AtomicLink {
 
 impl AtomicLink {
     fn open(name: &str, side: Side) -> anyhow::Result<Self> {
-        let path = PathBuf::from(format!("/dev/shm/rl_bench_{name}"));
+        let path = PathBuf::from(format!("/dev/shm/rlbench_{name}"));
         let f = std::fs::OpenOptions::new()
             .read(true)
             .write(true)
@@ -301,7 +301,7 @@ struct UdsLink {
 
 impl UdsLink {
     fn open(name: &str, side: Side, wait: Wait) -> anyhow::Result<Self> {
-        let path = std::env::temp_dir().join(format!("rl_bench_{name}.sock"));
+        let path = std::env::temp_dir().join(format!("rlbench_{name}.sock"));
         let (stream, own) = match side {
             Side::Pong => {
                 let _ = std::fs::remove_file(&path);
