@@ -11,6 +11,8 @@ use std::time::Duration;
 use anyhow::Context;
 use clap::Args;
 use rotorloop_common::ipc::{install_signal_handlers, now_ns, shutdown_requested};
+use rotorloop_common::resume::ResumeSlot;
+use rotorloop_common::wire::StateSample;
 
 use crate::UsageError;
 use crate::process::RoleArgs;
@@ -42,8 +44,9 @@ pub struct RunArgs {
     /// Real time: ticks the plant holds the last torque before safe mode.
     #[arg(long, allow_negative_numbers = true, default_value_t = 50)]
     pub hold_ticks: u64,
-    /// Inject a fault: `ROLE:kill@T[:restart@T2]` (seconds since the processes started;
-    /// ROLE is plant, reference, controller or monitor). Repeatable.
+    /// Inject a fault: `ROLE:kill@T[:restart@T2]` (seconds since the plant published tick
+    /// 0, so a slow start never moves a fault before the run; ROLE is plant, reference,
+    /// controller or monitor). Repeatable.
     #[arg(long)]
     pub fault: Vec<String>,
     /// Inject a corrupted sample: `ROLE:KIND@TICK` makes ROLE (plant, reference or
@@ -304,6 +307,11 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
         children.0.push((role.to_owned(), child));
     }
     let t0 = now_ns();
+    // The fault clock starts when the plant has published tick 0 (its resume slot is
+    // written just before each publish).
+    let plant_slot =
+        ResumeSlot::<StateSample>::open(&domain, "plant").context("the plant's resume slot")?;
+    let mut run_t0: Option<u64> = None;
     let mut rss_csv = std::io::BufWriter::new(
         std::fs::File::create(args.out.join("rss.csv"))
             .with_context(|| format!("cannot write {}", args.out.join("rss.csv").display()))?,
@@ -321,7 +329,10 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
     let mut failures = Vec::new();
     loop {
         // Fault injection: SIGKILL at `kill`, the same command again at `restart`.
-        let elapsed = (now_ns() - t0) as f64 / 1e9;
+        if run_t0.is_none() && plant_slot.load().is_some() {
+            run_t0 = Some(now_ns());
+        }
+        let elapsed = run_t0.map_or(f64::NEG_INFINITY, |r| (now_ns() - r) as f64 / 1e9);
         for f in pending.iter_mut() {
             if !f.killed && elapsed >= f.kill_s && term_sent_at.is_none() {
                 if let Some((_, c)) = children.0.iter_mut().find(|(r, _)| *r == f.role) {

@@ -234,8 +234,11 @@ fn realtime_controller_loss_holds_then_safe_mode_then_recovers() {
     let without = f["ticks_without_fresh_torque"].as_u64().expect("ticks");
     assert!(without > 40, "{f}");
     assert!(f["ticks_to_first_fresh_torque"].as_u64().is_some(), "control never resumed: {f}");
+    // The plant held 40 ticks, then stayed in safe mode until the first fresh torque.
+    // (Safe mode can also come elsewhere in the run when a loaded machine starves the
+    // controller for 40 ticks, so the total has no upper bound here.)
     let safe = s["safe_mode_ticks"].as_u64().expect("safe");
-    assert!(safe > 0 && safe <= without, "safe mode ticks {safe}, without fresh torque {without}");
+    assert!(safe + 40 >= without, "safe mode ticks {safe}, without fresh torque {without}");
     assert!(out.join("faults.png").exists());
     h.assert_no_leftovers();
 }
