@@ -76,6 +76,26 @@ pub fn parse_corrupt(s: &str) -> Result<(String, crate::process::Corrupt), Usage
     Ok((role.to_owned(), c))
 }
 
+/// A role started by the launcher gets SIGTERM when the launcher dies, however it dies
+/// (`kill -9` of the launcher, a test's time limit): no orphaned role keeps a domain, or
+/// a pipe of whoever started the launcher, open.
+fn stop_with_parent(cmd: &mut Command) {
+    use std::os::unix::process::CommandExt;
+    let parent = libc::pid_t::try_from(std::process::id()).unwrap_or(0);
+    // SAFETY: runs in the child between fork and exec, calling only async-signal-safe
+    // functions (prctl, getppid, raise).
+    unsafe {
+        cmd.pre_exec(move || {
+            libc::prctl(libc::PR_SET_PDEATHSIG, libc::SIGTERM);
+            // The launcher may have died before the prctl: then nobody would signal us.
+            if libc::getppid() != parent {
+                libc::raise(libc::SIGTERM);
+            }
+            Ok(())
+        });
+    }
+}
+
 /// One `--fault`.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Fault {
@@ -273,6 +293,7 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
         r.core = pins.get(role).copied();
         let mut cmd = Command::new(&exe);
         cmd.arg("role").arg(role).args(r.to_args()).stdin(Stdio::null());
+        stop_with_parent(&mut cmd);
         for (_, c) in corrupt.iter().filter(|(r, _)| r == role) {
             cmd.arg("--corrupt").arg(c.to_string());
         }

@@ -14,6 +14,7 @@ const LIMIT: Duration = Duration::from_secs(180);
 fn lockstep_with_faults(h: &Harness, faults: &[&str], env: &[(&str, &str)]) -> std::path::PathBuf {
     let out = h.path("run");
     let mut cmd = std::process::Command::new(common::harness::ROTORLOOP);
+    common::harness::group(&mut cmd);
     cmd.args(["run", "--scenario", "paper-sinusoid", "--duration", "60", "--mode", "lockstep"])
         .args(["--domain", &h.domain, "--out"])
         .arg(&out)
@@ -333,5 +334,83 @@ fn soak_random_kills_of_random_roles() {
         s["monitor_gaps"].as_array().map_or(0, Vec::len)
     );
     assert_eq!(s["completed"], true);
+    h.assert_no_leftovers();
+}
+
+/// Under load the controller answers only the newest state in its inbox, so some ticks
+/// never get a torque. At the very end no newer state comes to settle such a row: the
+/// monitor must settle it from the controller's later torque and finish the report (it
+/// used to wait forever, and with it the launcher).
+#[test]
+fn a_tick_the_controller_skipped_at_the_end_does_not_stall_the_report() {
+    let h = Harness::new("skip-end");
+    let out = h.path("rt");
+    let mut cmd = std::process::Command::new(common::harness::ROTORLOOP);
+    common::harness::group(&mut cmd)
+        .args(["run", "--scenario", "paper-zero", "--duration", "0.3", "--mode", "realtime"])
+        .args(["--domain", &h.domain, "--out"])
+        .arg(&out)
+        .env("ROTORLOOP_TEST_SKIP_STATE_AT", "299")
+        .stdin(std::process::Stdio::null())
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped());
+    ok(&common::harness::wait_output(cmd.spawn().expect("spawn"), Duration::from_secs(60)));
+    let s = json(&out.join("summary.json"));
+    assert_eq!(s["completed"], true);
+    assert_eq!(s["trace_rows"], 301);
+    let timing = std::fs::read_to_string(out.join("timing.csv")).expect("timing");
+    // The plant held torque 298 over tick 299 → its state 300 says so.
+    let row300 = timing.lines().find(|l| l.starts_with("300,")).expect("row 300");
+    assert_eq!(row300.split(',').nth(2), Some("298"), "{row300}");
+    h.assert_no_leftovers();
+}
+
+/// The processes of a domain (by their command line).
+fn processes_of(domain: &str) -> Vec<u32> {
+    let mut out = Vec::new();
+    for e in std::fs::read_dir("/proc").expect("/proc").flatten() {
+        let Ok(pid) = e.file_name().to_string_lossy().parse::<u32>() else { continue };
+        let Ok(cmdline) = std::fs::read(e.path().join("cmdline")) else { continue };
+        let args: Vec<&[u8]> = cmdline.split(|b| *b == 0).collect();
+        if args.windows(2).any(|w| w[0] == b"--domain" && w[1] == domain.as_bytes()) {
+            out.push(pid);
+        }
+    }
+    out
+}
+
+/// `kill -9` of the launcher itself: its roles get SIGTERM from the kernel (parent-death
+/// signal), stop, and leave nothing running; `clean` then leaves nothing behind.
+#[test]
+fn a_killed_launcher_leaves_no_role_running() {
+    let mut h = Harness::new("kill-launcher");
+    let out = h.path("rt");
+    // Far longer than the limit below: roles that outlive the launcher would run on.
+    let args: Vec<String> = ["run", "--scenario", "paper-zero", "--duration", "600"]
+        .iter()
+        .map(|s| s.to_string())
+        .chain(["--mode", "realtime", "--domain", &h.domain, "--out"].map(String::from))
+        .chain([out.to_string_lossy().into_owned()])
+        .collect();
+    let launcher = h.spawn(common::harness::ROTORLOOP, &args);
+    let until = std::time::Instant::now() + LIMIT;
+    while processes_of(&h.domain).len() < 5 || !out.join("timing.csv").exists() {
+        assert!(std::time::Instant::now() < until, "the run did not start");
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    h.child(launcher).kill().expect("kill -9 the launcher");
+    h.child(launcher).wait().expect("reap");
+    while !processes_of(&h.domain).is_empty() {
+        if std::time::Instant::now() > until {
+            let left = processes_of(&h.domain);
+            for &pid in &left {
+                // SAFETY: plain syscall on processes this test started.
+                unsafe { libc::kill(pid as libc::pid_t, libc::SIGKILL) };
+            }
+            panic!("roles outlived the launcher: {left:?}");
+        }
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    ok(&h.rotorloop(&["clean", "--domain", &h.domain], LIMIT));
     h.assert_no_leftovers();
 }

@@ -326,6 +326,7 @@ impl Drop for TempUser {
 
 fn probe(binary: &Path, domain: &str, uid: Option<u32>) -> String {
     let mut cmd = Command::new(binary);
+    common::harness::group(&mut cmd);
     cmd.args(["role", "probe", "--domain", domain])
         .stdin(Stdio::null())
         .stdout(Stdio::piped())

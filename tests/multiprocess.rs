@@ -229,7 +229,7 @@ fn two_domains_in_parallel_do_not_interfere() {
     let h = Harness::new("domains");
     let spawn = |scenario: &str, domain: &str| {
         let out = h.path(&format!("run-{scenario}"));
-        let child = std::process::Command::new(ROTORLOOP)
+        let child = common::harness::group(&mut std::process::Command::new(ROTORLOOP))
             .args(["run", "--scenario", scenario, "--duration", "1", "--domain", domain, "--out"])
             .arg(&out)
             .stdin(std::process::Stdio::null())
@@ -262,7 +262,7 @@ fn two_domains_in_parallel_do_not_interfere() {
 fn sigterm_stops_the_run_cleanly_with_a_partial_report() {
     let h = Harness::new("sigterm");
     let out = h.path("rt");
-    let child = std::process::Command::new(ROTORLOOP)
+    let child = common::harness::group(&mut std::process::Command::new(ROTORLOOP))
         .args([
             "run",
             "--scenario",

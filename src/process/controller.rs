@@ -133,6 +133,10 @@ pub fn run(args: &ControllerArgs) -> anyhow::Result<()> {
         .ok()
         .and_then(|v| v.parse().ok())
         .filter(|_| last.is_none());
+    // Test hook: never answer the state of this tick, as when a newer state superseded it
+    // in the inbox (the newest-only policy under load).
+    let skip_at: Option<u64> =
+        std::env::var("ROTORLOOP_TEST_SKIP_STATE_AT").ok().and_then(|v| v.parse().ok());
     let mut last_state_ns = now_ns();
     let mut plant_gone = false;
 
@@ -168,6 +172,10 @@ pub fn run(args: &ControllerArgs) -> anyhow::Result<()> {
         if stall_at == Some(k) {
             out.stall_holding_a_loan()?;
             break;
+        }
+        if skip_at == Some(k) && state.flags & FLAG_LAST == 0 {
+            skipped += 1;
+            continue;
         }
         if let Some(prev) = last.filter(|t| t.tick >= k) {
             // Already answered (a restarted plant re-published it): same answer again.

@@ -52,6 +52,9 @@ pub struct MonitorArgs {
 
 const RING: usize = 16_384;
 const MAX_GAPS: usize = 8;
+/// After the plant's last state, this long without any new sample settles the rows still
+/// open: their missing samples are not coming.
+const END_QUIET_NS: u64 = 5_000_000_000;
 
 /// What a restarted monitor needs to continue the same report.
 #[derive(Debug, Clone, Copy, ZeroCopySend)]
@@ -270,6 +273,7 @@ pub fn run(args: &MonitorArgs) -> anyhow::Result<()> {
         gap_pending = true;
         eprintln!("monitor: restarted; continuing the report from tick {next}");
     }
+    let (mut inputs_seen, mut last_input_ns) = (0u64, now_ns());
     let mut first_wake: Option<u64> = None;
     let mut last_state: Option<StateSample> = None;
     let mut last_torque: Option<TorqueSample> = None;
@@ -329,8 +333,16 @@ pub fn run(args: &MonitorArgs) -> anyhow::Result<()> {
             }
         }
         let newest = s_seq.last().unwrap_or(0);
+        let newest_torque = t_seq.last();
         let ended = last_state.is_some_and(|s| s.flags & FLAG_LAST != 0);
-        let stopping = shutdown_requested();
+        let counts = s_seq.received + r_seq.received + t_seq.received;
+        if counts != inputs_seen {
+            (inputs_seen, last_input_ns) = (counts, now_ns());
+        }
+        // The plant has ended and nothing has arrived for a while: what is missing now
+        // never comes (a role killed at the very end, say), so settle the rest.
+        let drained = ended && now_ns() - last_input_ns > END_QUIET_NS;
+        let stopping = shutdown_requested() || drained;
         // Emit every row that is complete, in tick order.
         while next <= ticks {
             let slot = slots[next as usize % RING];
@@ -344,7 +356,13 @@ pub fn run(args: &MonitorArgs) -> anyhow::Result<()> {
             };
             // A rejected torque settles its row too: no other sample of that tick comes.
             let t_rejected = slot.torque_rejected == Some(next);
-            let torque_settled = t.is_some() || t_rejected || newest >= next + 2 || stopping;
+            // The controller answers the newest state and skips older ones (a loaded
+            // machine): a torque of a later tick means none comes for this one.
+            let torque_settled = t.is_some()
+                || t_rejected
+                || newest >= next + 2
+                || newest_torque.is_some_and(|l| l > next)
+                || stopping;
             let next_settled =
                 following.is_some() || next == ticks || newest > next + 1 || stopping;
             let (Some(s), Some(r)) = (s, r) else {

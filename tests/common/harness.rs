@@ -28,7 +28,7 @@ impl Harness {
 
     /// Runs `rotorloop args…` to completion (at most `limit`), returning its output.
     pub fn rotorloop(&self, args: &[&str], limit: Duration) -> Output {
-        let child = Command::new(ROTORLOOP)
+        let child = group(&mut Command::new(ROTORLOOP))
             .args(args)
             .stdin(Stdio::null())
             .stdout(Stdio::piped())
@@ -114,7 +114,15 @@ impl Drop for Harness {
     }
 }
 
-/// Waits for a child with a deadline, killing it if it overruns.
+/// Puts the command's process in a group of its own, which [`wait_output`] kills whole
+/// at its time limit.
+pub fn group(cmd: &mut Command) -> &mut Command {
+    use std::os::unix::process::CommandExt;
+    cmd.process_group(0)
+}
+
+/// Waits for `child` (started with [`group`], or its grandchildren may survive a
+/// timeout) to finish, at most `limit`; panics with its stderr otherwise.
 pub fn wait_output(mut child: Child, limit: Duration) -> Output {
     let until = Instant::now() + limit;
     loop {
@@ -122,6 +130,9 @@ pub fn wait_output(mut child: Child, limit: Duration) -> Output {
             return child.wait_with_output().expect("output");
         }
         if Instant::now() > until {
+            // The whole group: a grandchild holding the pipes would block the read below.
+            // SAFETY: plain syscall; the group is the child's own (see `group`).
+            unsafe { libc::kill(-(child.id() as libc::pid_t), libc::SIGKILL) };
             let _ = child.kill();
             let out = child.wait_with_output().expect("output");
             panic!(
