@@ -414,3 +414,35 @@ fn a_killed_launcher_leaves_no_role_running() {
     ok(&h.rotorloop(&["clean", "--domain", &h.domain], LIMIT));
     h.assert_no_leftovers();
 }
+
+/// A role killed just before the end and restarted after it gets no more states: it
+/// learns from the plant's resume slot that the run is over and stops, instead of
+/// waiting forever for a plant that has gone (the controller used to). Every tick is in
+/// the report or counted lost, and a monitor restarted late reports the end as its gap.
+#[test]
+fn a_role_restarted_after_the_run_ended_stops_and_the_report_accounts_for_every_tick() {
+    let h = Harness::new("late-restart");
+    for role in ["controller", "reference", "monitor"] {
+        let out = h.path(role);
+        let fault = format!("{role}:kill@0.9:restart@2.5");
+        let args = ["run", "--scenario", "paper-zero", "--duration", "1", "--mode", "realtime"];
+        let mut cmd = std::process::Command::new(common::harness::ROTORLOOP);
+        common::harness::group(&mut cmd)
+            .args(args)
+            .args(["--fault", &fault, "--domain", &h.domain, "--out"])
+            .arg(&out)
+            .stdin(std::process::Stdio::null())
+            .stdout(std::process::Stdio::piped())
+            .stderr(std::process::Stdio::piped());
+        ok(&common::harness::wait_output(cmd.spawn().expect("spawn"), LIMIT));
+        let s = json(&out.join("summary.json"));
+        assert_eq!(s["completed"], true, "{role}: {s}");
+        let rows = s["trace_rows"].as_u64().expect("rows");
+        let lost = s["rows_lost"].as_u64().expect("lost");
+        assert_eq!(rows + lost, 1001, "{role}: {rows} rows + {lost} lost");
+        if role == "monitor" {
+            assert_eq!(s["monitor_gaps"][0][1], 1000, "{role}: {s}");
+        }
+        h.assert_no_leftovers();
+    }
+}

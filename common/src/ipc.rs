@@ -501,8 +501,12 @@ impl<T: ZeroCopySend + Debug + Copy + 'static> Inbox<T> {
                 (Some(l), false) => {
                     // Bounded so that signals are seen; wake-ups merge, so drain after.
                     let left = left.min(10_000_000);
-                    l.timed_wait(|_| {}, Duration::from_nanos(left))
-                        .map_err(|e| iox("cannot wait for an event")(&e))?;
+                    match l.timed_wait(|_| {}, Duration::from_nanos(left)) {
+                        // A signal (SIGTERM to stop, say) is a wake-up like any other.
+                        Ok(_)
+                        | Err(iceoryx2::port::listener::ListenerWaitError::InterruptSignal) => {}
+                        Err(e) => return Err(iox("cannot wait for an event")(&e)),
+                    }
                 }
                 _ => std::hint::spin_loop(),
             }

@@ -33,7 +33,7 @@ use rotorloop_common::wire::{
 };
 use rotorloop_controller::GeometricPid;
 
-use super::{Mode, RoleArgs, SeqCounter, corrupted, linger};
+use super::{Mode, PlantEnd, RoleArgs, SeqCounter, corrupted, linger};
 
 /// `controller` arguments.
 #[derive(Debug, Clone, Args)]
@@ -78,6 +78,7 @@ pub fn run(args: &ControllerArgs) -> anyhow::Result<()> {
         .inbox::<StateSample>(&node, Topic::State, 8, role.wait.listens())
         .context("controller")?;
     let slot = ResumeSlot::<TorqueSample>::open(&domain, "controller").context("controller")?;
+    let plant_end = PlantEnd::open(&domain).context("controller")?;
 
     let actuation = scenario.actuation();
     let ticks = scenario.ticks();
@@ -157,9 +158,15 @@ pub fn run(args: &ControllerArgs) -> anyhow::Result<()> {
             if shutdown_requested() {
                 break;
             }
-            if !plant_gone && now_ns() - last_state_ns > 1_000_000_000 {
-                eprintln!("controller: no state from the plant for 1 s (plant gone?)");
-                plant_gone = true;
+            if now_ns() - last_state_ns > 1_000_000_000 {
+                if plant_end.ended() {
+                    eprintln!("controller: the plant has ended the run; nothing left to answer");
+                    break;
+                }
+                if !plant_gone {
+                    eprintln!("controller: no state from the plant for 1 s (plant gone?)");
+                    plant_gone = true;
+                }
             }
             continue;
         };

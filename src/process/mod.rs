@@ -15,9 +15,11 @@ pub mod reference;
 
 use std::time::Duration;
 
+use anyhow::Context;
 use clap::{Args, ValueEnum};
-use rotorloop_common::ipc::{RtSetup, Wait, now_ns, shutdown_requested};
-use rotorloop_common::wire::{ReferenceSample, StateSample, TorqueSample};
+use rotorloop_common::ipc::{Domain, RtSetup, Wait, now_ns, shutdown_requested};
+use rotorloop_common::resume::ResumeSlot;
+use rotorloop_common::wire::{FLAG_LAST, ReferenceSample, StateSample, TorqueSample};
 use rotorloop_common::{Actuation, Scenario};
 
 use crate::UsageError;
@@ -131,6 +133,25 @@ impl RoleArgs {
             a.push("--mlock".into());
         }
         a
+    }
+}
+
+/// Whether the plant has published its last tick, read from its resume slot (written just
+/// before each publish, kept after the plant exits). A role restarted after the run's end
+/// gets no more states: with this it learns that it has nothing left to do, instead of
+/// waiting for a plant that is gone.
+#[derive(Debug)]
+pub struct PlantEnd(ResumeSlot<StateSample>);
+
+impl PlantEnd {
+    /// Opens the plant's slot of `domain` (created empty if the plant has not yet).
+    pub fn open(domain: &Domain) -> anyhow::Result<Self> {
+        Ok(Self(ResumeSlot::open(domain, "plant").context("the plant's resume slot")?))
+    }
+
+    /// The plant published its last tick.
+    pub fn ended(&self) -> bool {
+        self.0.load().is_some_and(|s| s.flags & FLAG_LAST != 0)
     }
 }
 

@@ -31,7 +31,7 @@ use rotorloop_monitor::latency::{Hop, HopStats, Latency};
 use rotorloop_monitor::{Metrics, Recorder, TraceWriter};
 use serde::Serialize;
 
-use super::{Mode, RoleArgs, SeqCounter};
+use super::{Mode, PlantEnd, RoleArgs, SeqCounter};
 use crate::sim::write_json;
 
 /// `monitor` arguments.
@@ -197,6 +197,7 @@ pub fn run(args: &MonitorArgs) -> anyhow::Result<()> {
         domain.inbox::<StateSample>(&node, Topic::State, MAX_BUFFER, false).context("monitor")?;
 
     let resume_slot = ResumeSlot::<MonitorResume>::open(&domain, "monitor").context("monitor")?;
+    let plant_end = PlantEnd::open(&domain).context("monitor")?;
     let ticks = scenario.ticks();
     let out = &args.out;
     std::fs::create_dir_all(out).with_context(|| format!("cannot create {}", out.display()))?;
@@ -339,9 +340,10 @@ pub fn run(args: &MonitorArgs) -> anyhow::Result<()> {
         if counts != inputs_seen {
             (inputs_seen, last_input_ns) = (counts, now_ns());
         }
-        // The plant has ended and nothing has arrived for a while: what is missing now
-        // never comes (a role killed at the very end, say), so settle the rest.
-        let drained = ended && now_ns() - last_input_ns > END_QUIET_NS;
+        // The plant has ended (seen here, or in its resume slot by a monitor restarted
+        // after the end) and nothing has arrived for a while: what is missing now never
+        // comes (a role killed at the very end, say), so settle the rest.
+        let drained = now_ns() - last_input_ns > END_QUIET_NS && (ended || plant_end.ended());
         let stopping = shutdown_requested() || drained;
         // Emit every row that is complete, in tick order.
         while next <= ticks {
@@ -446,6 +448,16 @@ pub fn run(args: &MonitorArgs) -> anyhow::Result<()> {
             }
             latency.record(Hop::ReferenceLead, s.publish_ns.saturating_sub(r.publish_ns), at)?;
             next += 1;
+        }
+        if drained && next <= ticks {
+            // The run is over and these rows never came together: lost. A monitor
+            // restarted after the end saw none of them: that is its gap.
+            if gap_pending {
+                gaps.push([next, ticks]);
+                gap_pending = false;
+            }
+            rows_lost += ticks + 1 - next;
+            next = ticks + 1;
         }
         if rows > rows_at_flush {
             // Durable first, then recorded: a monitor killed now loses nothing that its

@@ -15,7 +15,7 @@ use rotorloop_common::so3::to_row_major;
 use rotorloop_common::wire::{FLAG_LAST, ReferenceSample, StateSample};
 use rotorloop_reference::Reference;
 
-use super::{RoleArgs, corrupted, linger};
+use super::{PlantEnd, RoleArgs, corrupted, linger};
 
 /// Samples a restarted reference can re-publish: its whole lead and history.
 const RESUME_RING: usize = 2 * REFERENCE_LEAD as usize + 2;
@@ -102,6 +102,8 @@ pub fn run(args: &ReferenceArgs) -> anyhow::Result<()> {
     });
     let mut newest_state = next.saturating_sub(REFERENCE_LEAD + 1);
     let mut saw_last = false;
+    let plant_end = PlantEnd::open(&domain).context("reference")?;
+    let mut last_state_ns = now_ns();
     let mut published_batch = false;
     loop {
         while next <= ticks.min(newest_state + REFERENCE_LEAD) {
@@ -137,7 +139,7 @@ pub fn run(args: &ReferenceArgs) -> anyhow::Result<()> {
             break;
         }
         let deadline = now_ns() + 100_000_000;
-        states.wait_for(Wait::Event, deadline, |inbox| {
+        let got = states.wait_for(Wait::Event, deadline, |inbox| {
             let mut any = None;
             while let Some(s) = inbox.take()? {
                 newest_state = newest_state.max(s.tick);
@@ -149,6 +151,12 @@ pub fn run(args: &ReferenceArgs) -> anyhow::Result<()> {
             }
             Ok(any)
         })?;
+        if got.is_some() {
+            last_state_ns = now_ns();
+        } else if now_ns() - last_state_ns > 1_000_000_000 && plant_end.ended() {
+            eprintln!("reference: the plant has ended the run; nothing left to publish");
+            break;
+        }
     }
     drop(states);
     linger(|| out.subscribers() == 0);
