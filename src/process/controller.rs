@@ -5,8 +5,9 @@
 //! the state arrives. When it is not (counted as a reference miss): in lockstep the
 //! controller waits for it, so the run stays deterministic; in real time it holds the
 //! last reference sample and propagates it (`R_d ← R_d exp(Δt Ω_d)`, `Ω_d` and `Ω̇_d`
-//! held) for at most `--reference-hold-ticks` ticks, then stops answering, so the plant
-//! holds its torque and then enters safe mode.
+//! held) for at most `--reference-hold-ticks` ticks; after that (or with no reference
+//! yet at all, as when the state of tick 0 comes first) it answers with a
+//! [`TORQUE_SKIPPED`] sample, so the plant holds its torque and then enters safe mode.
 //!
 //! **Rejected input.** Every state and reference sample is validated
 //! ([`StateSample::validate`]): NaN, infinity, absurd magnitudes and attitudes off SO(3)
@@ -228,8 +229,10 @@ pub fn run(args: &ControllerArgs) -> anyhow::Result<()> {
         let skip = match rd {
             _ if state_fault.is_some() => true,
             None if shutdown_requested() => break,
-            // Real time, reference gone for too long: no answer; the plant holds.
-            None if !rejected_at(&ring, k) && !lockstep => continue,
+            // No reference to track (rejected, gone for longer than the hold, or not yet
+            // arrived for the first tick): a skipped answer, which the plant treats as a
+            // missing torque (hold, then safe mode). Answering keeps the count exact:
+            // every state taken is answered or counted skipped.
             None => true,
             Some(_) => false,
         };

@@ -101,6 +101,15 @@ pub fn run(args: &ReferenceArgs) -> anyhow::Result<()> {
         next: 0,
     });
     let mut newest_state = next.saturating_sub(REFERENCE_LEAD + 1);
+    // Test hook: a first incarnation starts publishing this late, so that the first
+    // states reach the controller before any reference does.
+    if next == 0 {
+        if let Some(ms) =
+            std::env::var("ROTORLOOP_TEST_REFERENCE_LATE_MS").ok().and_then(|v| v.parse().ok())
+        {
+            std::thread::sleep(std::time::Duration::from_millis(ms));
+        }
+    }
     let mut saw_last = false;
     let plant_end = PlantEnd::open(&domain).context("reference")?;
     let mut last_state_ns = now_ns();
