@@ -359,9 +359,12 @@ fn a_tick_the_controller_skipped_at_the_end_does_not_stall_the_report() {
     assert_eq!(s["completed"], true);
     assert_eq!(s["trace_rows"], 301);
     let timing = std::fs::read_to_string(out.join("timing.csv")).expect("timing");
-    // The plant held torque 298 over tick 299 → its state 300 says so.
+    // Torque 299 never came, so the plant held an older one over tick 299 and its state
+    // 300 says which: 298 on an idle machine, earlier when a loaded controller answered
+    // only the newest of several states.
     let row300 = timing.lines().find(|l| l.starts_with("300,")).expect("row 300");
-    assert_eq!(row300.split(',').nth(2), Some("298"), "{row300}");
+    let held: i64 = row300.split(',').nth(2).and_then(|t| t.parse().ok()).expect(row300);
+    assert!(held < 299, "the plant applied a torque for the skipped tick: {row300}");
     h.assert_no_leftovers();
 }
 
