@@ -5,6 +5,7 @@ use std::path::Path;
 
 use crate::metrics::TraceRow;
 use crate::plot::{PlotError, Series, YScale, line_chart, panel_grid};
+use crate::prefaulted;
 
 /// `(t, value)` points of one series.
 type Points = Vec<(f64, f64)>;
@@ -12,8 +13,9 @@ type Points = Vec<(f64, f64)>;
 /// Most points kept per series for figures.
 pub const MAX_POINTS: u64 = 6000;
 
-/// Trace rows decimated for plotting. Capacity is reserved up front, so recording does
-/// not allocate during a run of the announced length.
+/// Trace rows decimated for plotting. Capacity is reserved and faulted in up front, so
+/// recording neither allocates nor grows resident memory during a run of the announced
+/// length.
 #[derive(Debug, Clone, Default)]
 pub struct Recorder {
     every: u64,
@@ -44,15 +46,15 @@ impl Recorder {
         let n = (rows / every + 2) as usize;
         Self {
             every,
-            t: Vec::with_capacity(n),
-            r: Vec::with_capacity(n),
-            r_d: Vec::with_capacity(n),
-            err_deg: Vec::with_capacity(n),
-            omega_r: Vec::with_capacity(n),
-            h_drift_rel: Vec::with_capacity(n),
-            energy_residual: Vec::with_capacity(n),
-            u_norm: Vec::with_capacity(n),
-            tau_norm: Vec::with_capacity(n),
+            t: prefaulted(n),
+            r: prefaulted(n),
+            r_d: prefaulted(n),
+            err_deg: prefaulted(n),
+            omega_r: prefaulted(n),
+            h_drift_rel: prefaulted(n),
+            energy_residual: prefaulted(n),
+            u_norm: prefaulted(n),
+            tau_norm: prefaulted(n),
         }
     }
 

@@ -14,6 +14,7 @@ use hdrhistogram::serialization::interval_log::IntervalLogWriterBuilder;
 use serde::Serialize;
 
 use crate::plot::{PlotError, Series, YScale, line_chart};
+use crate::prefaulted;
 
 /// The hops of one loop tick.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -122,7 +123,7 @@ fn worst(a: IntervalPoint, b: IntervalPoint) -> IntervalPoint {
 
 impl Default for IntervalSeries {
     fn default() -> Self {
-        Self { points: Vec::with_capacity(MAX_SERIES_POINTS), stride: 1, pending: None }
+        Self { points: prefaulted(MAX_SERIES_POINTS), stride: 1, pending: None }
     }
 }
 
@@ -169,7 +170,12 @@ struct HopRecorder {
 
 fn histogram() -> Histogram<u64> {
     // 1 ns to 1 h at 3 significant digits.
-    Histogram::new_with_bounds(1, 3_600_000_000_000, 3).expect("constant bounds are valid")
+    let mut h =
+        Histogram::new_with_bounds(1, 3_600_000_000_000, 3).expect("constant bounds are valid");
+    // The counts come zeroed from the allocator, not yet resident; writing them once
+    // faults every page in now rather than one by one as new latencies first appear.
+    h.reset();
+    h
 }
 
 /// The latency recorder of a run.
