@@ -18,13 +18,4 @@ pub mod sim;
 
 pub use closed_loop::ClosedLoop;
 
-/// An error the user caused (bad argument or scenario value): exit code 2.
-#[derive(Debug, thiserror::Error)]
-#[error("{0}")]
-pub struct UsageError(pub String);
-
-impl From<rotorloop_common::ScenarioError> for UsageError {
-    fn from(e: rotorloop_common::ScenarioError) -> Self {
-        Self(e.to_string())
-    }
-}
+pub use rotorloop_common::role::UsageError;

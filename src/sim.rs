@@ -1,19 +1,18 @@
 //! `rotorloop sim`: one scenario in one process, faster than real time, with its trace,
 //! summary and figures.
 
+pub use rotorloop_common::role::{diverged, scenario_with_overrides, write_json};
 use std::fs::File;
 use std::io::{BufWriter, IsTerminal, Write};
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 use std::time::Instant;
 
 use anyhow::Context;
 use glam::DVec3;
-use rotorloop_common::scenario::RunFile;
 use rotorloop_common::so3::orthonormality_error;
 use rotorloop_common::{Actuation, Scenario};
 use rotorloop_monitor::figures::tracking_figures;
 
-use crate::UsageError;
 use rotorloop_monitor::{Recorder, TraceRow, TraceWriter};
 use serde::Serialize;
 
@@ -195,16 +194,6 @@ fn drive(
     stats.context("a run has at least one row")
 }
 
-/// The error of a run whose state stopped being finite: a configuration the integrator
-/// or the loop cannot handle (exit code 2, like any other bad scenario value).
-pub fn diverged(tick: u64, t: f64) -> UsageError {
-    UsageError(format!(
-        "the run diverged at tick {tick} (t = {t} s): the plant's state is no longer finite. \
-         The scenario is valid but unstable at this tick rate (gains, rates or torques too \
-         large for dt?); no summary.json was written"
-    ))
-}
-
 /// Runs `sim` and writes `trace.csv`, `summary.json` and the figures into `opts.out`.
 /// `summary.json` is written last: a directory without it is an unfinished run.
 pub fn run(opts: &SimOptions) -> anyhow::Result<(SimSummary, Recorder)> {
@@ -322,12 +311,6 @@ pub fn run(opts: &SimOptions) -> anyhow::Result<(SimSummary, Recorder)> {
     Ok((summary, rec))
 }
 
-/// Writes `value` as pretty JSON.
-pub fn write_json(path: &Path, value: &impl Serialize) -> anyhow::Result<()> {
-    let text = serde_json::to_string_pretty(value).context("cannot serialise summary")?;
-    std::fs::write(path, text + "\n").with_context(|| format!("cannot write {}", path.display()))
-}
-
 /// The short summary table printed after a run.
 pub fn summary_table(s: &SimSummary) -> String {
     let mut t = String::new();
@@ -411,20 +394,4 @@ impl Progress {
             eprint!("\r{:60}\r", "");
         }
     }
-}
-
-/// Builds the scenario to run from a name or path and command-line overrides.
-pub fn scenario_with_overrides(
-    name_or_path: &str,
-    duration_s: Option<f64>,
-    rate_hz: Option<f64>,
-    actuation: Option<Actuation>,
-) -> Result<Scenario, crate::UsageError> {
-    let base = Scenario::load(name_or_path)?;
-    let run = RunFile {
-        duration_s: duration_s.unwrap_or(base.file.run.duration_s),
-        rate_hz: rate_hz.unwrap_or(base.file.run.rate_hz),
-        actuation: actuation.unwrap_or(base.file.run.actuation),
-    };
-    Ok(base.with_run(run)?)
 }

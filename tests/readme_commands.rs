@@ -60,7 +60,8 @@ fn command_lines(readme: &str) -> Vec<(String, bool)> {
     // lines. A command names its subcommands in plain words.
     out.retain(|(line, _)| {
         let (sub, _) = split_command(line);
-        !sub.is_empty() && sub.iter().all(|w| w.bytes().all(|b| b.is_ascii_lowercase() || b == b'-'))
+        !sub.is_empty()
+            && sub.iter().all(|w| w.bytes().all(|b| b.is_ascii_lowercase() || b == b'-'))
     });
     out
 }
@@ -85,7 +86,9 @@ fn flags_in(text: &str) -> Vec<String> {
     let b = text.as_bytes();
     let mut i = 0;
     while i + 2 < b.len() {
-        let starts = b[i] == b'-' && b[i + 1] == b'-' && (i == 0 || !b[i - 1].is_ascii_alphanumeric() && b[i - 1] != b'-');
+        let starts = b[i] == b'-'
+            && b[i + 1] == b'-'
+            && (i == 0 || !b[i - 1].is_ascii_alphanumeric() && b[i - 1] != b'-');
         if starts && b[i + 2].is_ascii_lowercase() {
             let end = (i + 2..b.len())
                 .find(|&j| !(b[j].is_ascii_lowercase() || b[j].is_ascii_digit() || b[j] == b'-'))
@@ -120,7 +123,8 @@ fn text(o: &Output) -> String {
 #[test]
 fn readme_main_command_resolves_and_starts_as_written() {
     let cmds = setup_commands(&readme());
-    let run = cmds.iter().find(|c| c.starts_with("cargo run")).expect("a `cargo run` set-up command");
+    let run =
+        cmds.iter().find(|c| c.starts_with("cargo run")).expect("a `cargo run` set-up command");
     let words: Vec<&str> = run.split_whitespace().collect();
     let mut c = cargo();
     c.args(&words[1..]).arg("--help");
@@ -140,7 +144,8 @@ fn readme_main_command_resolves_and_starts_as_written() {
 #[test]
 fn readme_test_command_resolves_and_ci_runs_it() {
     let cmds = setup_commands(&readme());
-    let test = cmds.iter().find(|c| c.starts_with("cargo test")).expect("a `cargo test` set-up command");
+    let test =
+        cmds.iter().find(|c| c.starts_with("cargo test")).expect("a `cargo test` set-up command");
     let ci = std::fs::read_to_string(root().join(".ci/run")).expect(".ci/run");
     assert!(
         ci.lines().any(|l| l.trim() == test),
@@ -155,7 +160,8 @@ fn readme_test_command_resolves_and_ci_runs_it() {
     let o = c.arg("--list").output().expect("run cargo");
     assert!(o.status.success(), "the README's test command `{test}` does not start:\n{}", text(&o));
     assert!(
-        String::from_utf8_lossy(&o.stdout).contains("readme_test_command_resolves_and_ci_runs_it: test"),
+        String::from_utf8_lossy(&o.stdout)
+            .contains("readme_test_command_resolves_and_ci_runs_it: test"),
         "`{test} -- --list` did not list this very test:\n{}",
         text(&o)
     );
@@ -181,7 +187,8 @@ fn every_readme_command_line_parses() {
         let accepted = flags_in(&help);
         for flag in flags_in(&rest.join(" ")) {
             if !accepted.contains(&flag) {
-                problems.push(format!("`{line}`: `rotorloop {}` has no flag `{flag}`", sub.join(" ")));
+                problems
+                    .push(format!("`{line}`: `rotorloop {}` has no flag `{flag}`", sub.join(" ")));
             }
         }
         if *pasteable {
@@ -205,7 +212,10 @@ fn readme_extraction_finds_what_it_should() {
     let md = "x\n## Two commands\n\n```sh\ncargo run --release -- paper --out o   # main\ncargo test --workspace   # tests\n```\n\
               | `rotorloop run --mode lockstep\\|realtime [--rate HZ]` | y |\n```sh\nrotorloop bench --rates 1 \\\n    --seconds 5 --out o\n```\n\
               `rotorloop role <name>` and\n```\nrotorloop (root package)\n```\n";
-    assert_eq!(setup_commands(md), ["cargo run --release -- paper --out o", "cargo test --workspace"]);
+    assert_eq!(
+        setup_commands(md),
+        ["cargo run --release -- paper --out o", "cargo test --workspace"]
+    );
     let lines = command_lines(md);
     assert_eq!(
         lines,

@@ -1,5 +1,7 @@
 //! Shared by every rotorloop role: SO(3) helpers for the per-tick math, the parameter
-//! types of a body with rotors and of the control law, and scenario files.
+//! types of a body with rotors and of the control law, scenario files, the wire samples,
+//! the IPC helpers, and what every role process shares ([`role`]: arguments, start,
+//! counting, ending).
 //!
 //! # Conventions (stated once, used everywhere)
 //!
@@ -17,9 +19,11 @@
 //! The conversion happens once, when a scenario is validated ([`scenario`]); nothing
 //! inside a tick converts between them.
 
+pub mod hgrm;
 pub mod ipc;
 pub mod params;
 pub mod resume;
+pub mod role;
 pub mod scenario;
 pub mod so3;
 pub mod wire;

@@ -15,6 +15,13 @@
 //! law holds `ξ_I` unless the step would shrink it (`s·ξ_I < 0`). The controller applies
 //! the same limits the plant does, to the same state, so it knows exactly which ticks
 //! saturate. The law's `u` itself is published unclamped: the plant's actuators clamp.
+//!
+//! [`policy`] holds what the controller decides beyond the law (pairing a state with its
+//! reference, holding a missing one, skipping and answering again) and [`process`] the
+//! `controller` process around it.
+
+pub mod policy;
+pub mod process;
 
 use glam::DVec3;
 use rotorloop_common::so3::vee;

@@ -2,11 +2,19 @@
 //! ([`metrics`]), the trace file ([`trace`]) and the figures ([`plot`]) of a run.
 //! The in-process simulator and the monitor process use the same code, so their traces
 //! are comparable column for column.
+//!
+//! [`policy`] holds what the monitor decides (joining rows, settling, losses, gaps),
+//! [`recording`] what it writes, [`report`] its summary, and [`process`] the `monitor`
+//! process around them.
 
 pub mod figures;
 pub mod latency;
 pub mod metrics;
 pub mod plot;
+pub mod policy;
+pub mod process;
+pub mod recording;
+pub mod report;
 pub mod trace;
 
 pub use figures::Recorder;

@@ -26,6 +26,12 @@
 //! instead of drifting with the truncation error. `Θ` gets fourth-order quadrature of the
 //! stage rates, so the rotor work `u·ΔΘ` matches the energy change to truncation level.
 //! Cost: four `exp` and three `dexp⁻¹` per step; no allocation.
+//!
+//! [`policy`] holds what the plant decides beyond the dynamics (the hold rule, misses,
+//! safe mode, restarts, the state sample) and [`process`] the `plant` process around it.
+
+pub mod policy;
+pub mod process;
 
 use glam::{DMat3, DVec3};
 use rotorloop_common::so3::{dexp_inv, exp};

@@ -5,6 +5,12 @@
 //! Its rotor rates at `t = 0` are set by momentum matching, so that the reference lies on
 //! the level set of the plant's momentum map: `Ω_rd(0) = K_d⁻¹(R_d(0)ᵀh − (I_d+K_d)Ω_d(0))`.
 //! Time is passed in: [`Reference::step`] takes `t` and `dt`; nothing here reads a clock.
+//!
+//! [`policy`] holds what the reference process decides (how far ahead to publish, what a
+//! restart re-publishes) and [`process`] the `reference` process around it.
+
+pub mod policy;
+pub mod process;
 
 use glam::{DMat3, DVec3};
 use rotorloop_common::{BodyParams, ReferenceState, RotorBodyState, TorqueProfile};

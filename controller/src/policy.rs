@@ -1,0 +1,408 @@
+//! What the controller decides, apart from the law and without IPC or a clock. The process
+//! shell ([`crate::process`]) feeds it the samples that arrived and publishes its answers.
+//!
+//! - [`ReferencePairing`] pairs each state with the reference sample of the same tick,
+//!   kept in a ring (the reference is published ahead). A rejected reference is counted
+//!   and marks its tick. When tick `k`'s reference is missing (counted as a reference
+//!   miss): in lockstep the shell waits for it (unless it was rejected); then, or at once
+//!   in real time, the last good reference is held and propagated
+//!   (`R_d ← R_d exp(Δt Ω_d)`, `Ω_d` and `Ω̇_d` held) for at most `hold_ticks` ticks;
+//!   beyond that, or with no reference yet, there is nothing to track.
+//! - [`TorqueAnswers`] decides what each state gets: the newest state taken is answered
+//!   and older ones in the same batch are counted skipped; a state already answered (a
+//!   restarted plant re-publishes its last one) gets the same answer again, never a second
+//!   integration; a rejected state, or one with nothing to track, gets a
+//!   [`TORQUE_SKIPPED`] answer (zero torque, `ξ_I` untouched), so every state taken is
+//!   answered or counted skipped. A restart resumes `ξ_I` and the counters from the last
+//!   answer its predecessor published (bumpless).
+
+use glam::DVec3;
+use rotorloop_common::ReferenceState;
+use rotorloop_common::role::SeqCounter;
+use rotorloop_common::so3::exp;
+use rotorloop_common::wire::{
+    ReferenceSample, StateSample, TORQUE_SKIPPED, TorqueSample, WireFault,
+};
+
+use crate::GeometricPid;
+
+/// Reference samples kept for pairing.
+pub const RING: usize = 256;
+
+/// A reference ring entry. Unboxed on purpose: the ring is allocated once, and boxing the
+/// sample would allocate on every receive.
+#[derive(Debug, Clone, Copy)]
+#[allow(clippy::large_enum_variant)]
+enum RefEntry {
+    Empty,
+    Valid(ReferenceSample),
+    /// A sample of this tick arrived and was rejected.
+    Rejected(u64),
+}
+
+/// The pairing rule (module docs).
+#[derive(Debug, Clone)]
+pub struct ReferencePairing {
+    ring: Vec<RefEntry>,
+    last: Option<ReferenceSample>,
+    held: u64,
+    hold_ticks: u64,
+    dt: f64,
+    misses: u64,
+    rejected: u64,
+}
+
+impl ReferencePairing {
+    /// Holds a missing reference for at most `hold_ticks` ticks of `dt` seconds.
+    pub fn new(hold_ticks: u64, dt: f64) -> Self {
+        Self {
+            ring: vec![RefEntry::Empty; RING],
+            last: None,
+            held: 0,
+            hold_ticks,
+            dt,
+            misses: 0,
+            rejected: 0,
+        }
+    }
+
+    /// Continues the counts of a killed predecessor.
+    pub fn resume(&mut self, misses: u64, rejected: u64) {
+        (self.misses, self.rejected) = (misses, rejected);
+    }
+
+    /// A reference sample arrived: validated, stored by tick (or marked rejected).
+    pub fn take(&mut self, r: ReferenceSample) {
+        self.ring[r.tick as usize % RING] = match r.validate() {
+            Ok(()) => RefEntry::Valid(r),
+            Err(_) => {
+                self.rejected += 1;
+                RefEntry::Rejected(r.tick)
+            }
+        };
+    }
+
+    /// Tick `k`'s reference sample, if it is here.
+    pub fn lookup(&self, k: u64) -> Option<ReferenceSample> {
+        match self.ring[k as usize % RING] {
+            RefEntry::Valid(r) if r.tick == k => Some(r),
+            _ => None,
+        }
+    }
+
+    /// Whether tick `k`'s reference arrived and was rejected (none will come).
+    pub fn rejected_at(&self, k: u64) -> bool {
+        matches!(self.ring[k as usize % RING], RefEntry::Rejected(t) if t == k)
+    }
+
+    /// Starts pairing tick `k` (whose state is `state_ok`): the reference if it is here.
+    /// Missing for a valid state, it is counted as a reference miss; the caller may then
+    /// wait for it (lockstep) before [`Self::finish`].
+    pub fn begin(&mut self, k: u64, state_ok: bool) -> Option<ReferenceSample> {
+        let r = self.lookup(k);
+        if r.is_none() && state_ok {
+            self.misses += 1;
+        } else {
+            self.held = 0;
+        }
+        r
+    }
+
+    /// Ends pairing tick `k`: `found` if it came (after `begin`, or a wait), else the
+    /// last good reference propagated to `k` while the hold lasts (only after a miss
+    /// counted by `begin`), else nothing to track.
+    pub fn finish(
+        &mut self,
+        k: u64,
+        found: Option<ReferenceSample>,
+        missed: bool,
+    ) -> Option<ReferenceState> {
+        let mut rd = found.map(|r| r.reference_state());
+        if missed {
+            if let Some(r) = self.last.filter(|r| rd.is_none() && r.tick < k) {
+                self.held += 1;
+                if self.held <= self.hold_ticks {
+                    let x = r.reference_state();
+                    let gap = (k - r.tick) as f64 * self.dt;
+                    rd = Some(ReferenceState { r_d: x.r_d * exp(gap * x.omega_d), ..x });
+                }
+            }
+        }
+        if let Some(r) = self.lookup(k) {
+            self.last = Some(r);
+        }
+        rd
+    }
+
+    /// States answered without their own reference sample at hand.
+    pub fn misses(&self) -> u64 {
+        self.misses
+    }
+
+    /// Reference samples rejected by validation.
+    pub fn rejected(&self) -> u64 {
+        self.rejected
+    }
+}
+
+/// What to do with the newest state taken.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum Decision {
+    /// Already answered: send this same answer again.
+    AnswerAgain(TorqueSample),
+    /// Older than the last answer: nothing to send.
+    Ignore,
+    /// A new tick: pair it with a reference and answer it.
+    Answer {
+        /// Why the state cannot be used, if it was rejected.
+        fault: Option<WireFault>,
+    },
+}
+
+/// The answering rule (module docs), around the law.
+#[derive(Debug, Clone)]
+pub struct TorqueAnswers {
+    pid: GeometricPid,
+    seq: SeqCounter,
+    skipped: u64,
+    published: u64,
+    rejected: u64,
+    last: Option<TorqueSample>,
+}
+
+impl TorqueAnswers {
+    /// Answers with the law `pid`.
+    pub fn new(pid: GeometricPid) -> Self {
+        Self { pid, seq: SeqCounter::default(), skipped: 0, published: 0, rejected: 0, last: None }
+    }
+
+    /// Continues bumplessly from the last answer `t` a killed predecessor published:
+    /// its `ξ_I`, its counters, its tick.
+    pub fn resume(&mut self, t: &TorqueSample) {
+        self.pid = self.pid.with_integral_state(DVec3::from_array(t.xi_i));
+        self.published = t.published;
+        self.skipped = t.states_skipped;
+        self.rejected = t.states_rejected;
+        self.seq = SeqCounter::resume(t.states_received, t.states_lost, t.tick);
+        self.last = Some(*t);
+    }
+
+    /// Whether this controller resumed from (or has sent) an answer.
+    pub fn last(&self) -> Option<TorqueSample> {
+        self.last
+    }
+
+    /// A state sample taken from the inbox. `newest_so_far` says whether another one was
+    /// taken before it in this batch: that one is skipped (only the newest is answered).
+    pub fn take(&mut self, s: &StateSample, newest_so_far: bool) {
+        self.seq.see(s.tick);
+        self.skipped += u64::from(newest_so_far);
+    }
+
+    /// Counts a state deliberately left unanswered (a test hook's superseded state).
+    pub fn skip(&mut self) {
+        self.skipped += 1;
+    }
+
+    /// What the newest state `s` gets.
+    pub fn decide(&mut self, s: &StateSample) -> Decision {
+        match self.last.filter(|t| t.tick >= s.tick) {
+            Some(prev) if prev.tick == s.tick => Decision::AnswerAgain(prev),
+            Some(_) => Decision::Ignore,
+            None => {
+                let fault = s.validate().err();
+                self.rejected += u64::from(fault.is_some());
+                Decision::Answer { fault }
+            }
+        }
+    }
+
+    /// The answer to state `s` (received at `recv_ns`), tracking `rd`; with `None` (a
+    /// rejected state or nothing to track) a skipped answer. The counts of `pairing` go
+    /// into the sample; `publish_ns` is left for the send.
+    pub fn answer(
+        &mut self,
+        s: &StateSample,
+        recv_ns: u64,
+        rd: Option<&ReferenceState>,
+        pairing: &ReferencePairing,
+        dt: f64,
+    ) -> TorqueSample {
+        let out = match rd {
+            Some(rd) => self.pid.step(&s.body_state(), rd, dt),
+            None => Default::default(),
+        };
+        self.published += 1;
+        let sample = TorqueSample {
+            tick: s.tick,
+            rotor_torque_nm: out.rotor_torque.to_array(),
+            body_torque_nm: out.body_torque.to_array(),
+            xi_i: self.pid.integral_state().to_array(),
+            state_recv_ns: recv_ns,
+            publish_ns: 0,
+            states_received: self.seq.received,
+            states_lost: self.seq.lost,
+            states_skipped: self.skipped,
+            reference_misses: pairing.misses(),
+            published: self.published,
+            states_rejected: self.rejected,
+            references_rejected: pairing.rejected(),
+            flags: if rd.is_none() { TORQUE_SKIPPED } else { 0 },
+        };
+        self.last = Some(sample);
+        sample
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use glam::DMat3;
+    use rotorloop_common::Scenario;
+    use rotorloop_common::so3::to_row_major;
+
+    const DT: f64 = 1e-3;
+
+    fn reference(tick: u64, omega: f64) -> ReferenceSample {
+        ReferenceSample {
+            tick,
+            t_s: tick as f64 * DT,
+            r_d_row_major: to_row_major(&DMat3::IDENTITY),
+            omega_d_rad_s: [0.0, 0.0, omega],
+            omega_d_dot_rad_s2: [0.0; 3],
+            omega_rotor_rad_s: [0.0; 3],
+            theta_rotor_rad: [0.0; 3],
+            publish_ns: 0,
+            internal_h: [0.0; 3],
+            internal_p: [0.0; 3],
+        }
+    }
+
+    /// Pairs tick `k` as the real-time shell does (no wait).
+    fn pair(p: &mut ReferencePairing, k: u64) -> Option<ReferenceState> {
+        let found = p.begin(k, true);
+        let missed = found.is_none();
+        p.finish(k, found, missed)
+    }
+
+    #[test]
+    fn a_state_pairs_with_the_reference_of_its_own_tick() {
+        let mut p = ReferencePairing::new(10, DT);
+        p.take(reference(3, 0.5));
+        p.take(reference(4, 0.7));
+        assert_eq!(pair(&mut p, 4).expect("paired").omega_d.z, 0.7);
+        assert_eq!(p.misses(), 0);
+    }
+
+    #[test]
+    fn a_missing_reference_is_held_and_propagated_for_at_most_hold_ticks() {
+        let mut p = ReferencePairing::new(2, DT);
+        p.take(reference(0, 2.0));
+        pair(&mut p, 0).expect("tick 0");
+        let rd = pair(&mut p, 3).expect("propagated");
+        let expected = exp(3.0 * DT * glam::DVec3::new(0.0, 0.0, 2.0));
+        assert!(rd.r_d.abs_diff_eq(expected, 1e-15), "R_d ← R_d exp(3 Δt Ω_d)");
+        assert_eq!(rd.omega_d.z, 2.0, "Ω_d held");
+        assert!(pair(&mut p, 4).is_some(), "second held tick");
+        assert!(pair(&mut p, 5).is_none(), "beyond the hold: nothing to track");
+        assert_eq!(p.misses(), 3);
+        // A fresh reference ends the hold and resets it.
+        p.take(reference(6, 1.0));
+        assert_eq!(pair(&mut p, 6).expect("fresh").omega_d.z, 1.0);
+        assert!(pair(&mut p, 7).is_some(), "the hold counts afresh");
+    }
+
+    #[test]
+    fn with_no_reference_yet_there_is_nothing_to_track() {
+        let mut p = ReferencePairing::new(1000, DT);
+        assert!(pair(&mut p, 0).is_none());
+        assert_eq!(p.misses(), 1);
+    }
+
+    #[test]
+    fn a_rejected_reference_is_counted_and_marks_its_tick() {
+        let mut p = ReferencePairing::new(1000, DT);
+        p.take(reference(0, 1.0));
+        pair(&mut p, 0);
+        let mut bad = reference(1, 1.0);
+        bad.omega_d_rad_s[0] = f64::NAN;
+        p.take(bad);
+        assert!(p.rejected_at(1) && !p.rejected_at(2));
+        assert_eq!(p.rejected(), 1);
+        assert!(pair(&mut p, 1).is_some(), "the last good reference is propagated instead");
+    }
+
+    #[test]
+    fn a_rejected_state_does_not_count_a_reference_miss() {
+        let mut p = ReferencePairing::new(1000, DT);
+        assert!(p.begin(0, false).is_none());
+        assert_eq!(p.misses(), 0);
+    }
+
+    fn answers() -> (TorqueAnswers, StateSample) {
+        let scenario = Scenario::load("paper-constant").expect("built-in");
+        let a = scenario.actuation();
+        let pid = GeometricPid::new(scenario.gains, scenario.controller_params(a));
+        (TorqueAnswers::new(pid), StateSample::of(0, 0.0, &scenario.plant_init))
+    }
+
+    #[test]
+    fn a_state_already_answered_gets_the_same_answer_again() {
+        let (mut a, s0) = answers();
+        let p = ReferencePairing::new(10, DT);
+        let rd = reference(0, 0.1).reference_state();
+        assert_eq!(a.decide(&s0), Decision::Answer { fault: None });
+        let first = a.answer(&s0, 5, Some(&rd), &p, DT);
+        assert_eq!(a.decide(&s0), Decision::AnswerAgain(first));
+        let older = StateSample { tick: 0, ..s0 };
+        let s1 = StateSample { tick: 1, ..s0 };
+        a.answer(&s1, 6, Some(&rd), &p, DT);
+        assert_eq!(a.decide(&older), Decision::Ignore);
+        assert_eq!(a.last().expect("answered").published, 2, "no second integration");
+    }
+
+    #[test]
+    fn a_rejected_state_gets_a_skipped_answer_with_the_integral_untouched() {
+        let (mut a, s0) = answers();
+        let p = ReferencePairing::new(10, DT);
+        let rd = reference(0, 0.1).reference_state();
+        let t0 = a.answer(&s0, 0, Some(&rd), &p, DT);
+        let mut bad = StateSample { tick: 1, ..s0 };
+        bad.omega_body_rad_s[1] = f64::INFINITY;
+        let Decision::Answer { fault: Some(f) } = a.decide(&bad) else { panic!("not rejected") };
+        assert_eq!(f.kind(), "non-finite");
+        let t1 = a.answer(&bad, 0, None, &p, DT);
+        assert_eq!(t1.flags, TORQUE_SKIPPED);
+        assert_eq!(t1.rotor_torque_nm, [0.0; 3]);
+        assert_eq!(t1.xi_i, t0.xi_i, "ξ_I untouched by a skipped tick");
+        assert_eq!(t1.states_rejected, 1);
+    }
+
+    #[test]
+    fn only_the_newest_state_of_a_batch_is_answered_the_rest_counted_skipped() {
+        let (mut a, s0) = answers();
+        for (i, k) in [3u64, 4, 6].iter().enumerate() {
+            a.take(&StateSample { tick: *k, ..s0 }, i > 0);
+        }
+        let t =
+            a.answer(&StateSample { tick: 6, ..s0 }, 0, None, &ReferencePairing::new(1, DT), DT);
+        assert_eq!((t.states_received, t.states_lost, t.states_skipped), (3, 3, 2));
+    }
+
+    #[test]
+    fn a_restart_resumes_the_integral_state_bumplessly() {
+        let (mut a, s0) = answers();
+        let p = ReferencePairing::new(10, DT);
+        let rd = reference(0, 0.1).reference_state();
+        let mut last = a.answer(&s0, 0, Some(&rd), &p, DT);
+        for k in 1..5 {
+            last = a.answer(&StateSample { tick: k, ..s0 }, 0, Some(&rd), &p, DT);
+        }
+        let (mut b, _) = answers();
+        b.resume(&last);
+        let s5 = StateSample { tick: 5, ..s0 };
+        assert_eq!(b.decide(&s5), Decision::Answer { fault: None });
+        let (ta, tb) = (a.answer(&s5, 0, Some(&rd), &p, DT), b.answer(&s5, 0, Some(&rd), &p, DT));
+        assert_eq!(format!("{ta:?}"), format!("{tb:?}"));
+    }
+}

@@ -1,0 +1,19 @@
+//! `controller` arguments (the same for the `controller` binary and `rotorloop role
+//! controller`).
+
+use clap::Args;
+use rotorloop_common::role::{Corrupt, RoleArgs};
+
+/// `controller` arguments.
+#[derive(Debug, Clone, Args)]
+pub struct ControllerArgs {
+    #[command(flatten)]
+    pub role: RoleArgs,
+    /// Fault injection: publish this tick's sample corrupted (`nan@TICK`, `inf@TICK`,
+    /// `huge@TICK`, `skew@TICK`). Repeatable. Set by `rotorloop run --corrupt`.
+    #[arg(long)]
+    pub corrupt: Vec<Corrupt>,
+    /// Real time: ticks to propagate the last reference when it is missing.
+    #[arg(long, allow_negative_numbers = true, default_value_t = 1000)]
+    pub reference_hold_ticks: u64,
+}

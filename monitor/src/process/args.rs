@@ -1,0 +1,22 @@
+//! `monitor` arguments (the same for the `monitor` binary and `rotorloop role monitor`).
+
+use std::path::PathBuf;
+
+use clap::Args;
+use rotorloop_common::role::RoleArgs;
+
+/// `monitor` arguments.
+#[derive(Debug, Clone, Args)]
+pub struct MonitorArgs {
+    #[command(flatten)]
+    pub role: RoleArgs,
+    /// Output directory for trace, histograms, logs, plots and summary.
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Print a live status line on stderr.
+    #[arg(long)]
+    pub status: bool,
+    /// Poll period (µs).
+    #[arg(long, allow_negative_numbers = true, default_value_t = 2000, value_parser = clap::value_parser!(u64).range(50..=100_000))]
+    pub poll_us: u64,
+}

@@ -1,0 +1,217 @@
+//! `summary.json` of a multi-process run ([`RunSummary`]), assembled from what the
+//! [`RowJoiner`] saw (its counts and the counters that the plant's and the controller's
+//! own samples carry) and what the [`Recording`] measured, and its console form.
+
+use std::collections::BTreeMap;
+
+use rotorloop_common::Scenario;
+use rotorloop_common::role::SeqCounter;
+use serde::Serialize;
+
+use crate::latency::{Hop, HopStats};
+use crate::policy::{RowJoiner, WireFaultEvent};
+use crate::recording::Recording;
+
+/// Received and lost samples of one subscriber.
+#[derive(Debug, Clone, Copy, Serialize, Default)]
+pub struct SubscriberCounts {
+    /// Samples taken.
+    pub received: u64,
+    /// Samples known lost (gaps in the tick sequence).
+    pub lost: u64,
+}
+
+impl From<SeqCounter> for SubscriberCounts {
+    fn from(s: SeqCounter) -> Self {
+        Self { received: s.received, lost: s.lost }
+    }
+}
+
+/// `summary.json` of a multi-process run.
+#[derive(Debug, Clone, Serialize)]
+pub struct RunSummary {
+    /// Scenario name.
+    pub name: String,
+    /// The scenario as run.
+    pub scenario: rotorloop_common::scenario::ScenarioFile,
+    /// `lockstep` or `realtime`.
+    pub mode: String,
+    /// Wait strategy.
+    pub wait: String,
+    /// Plant steps in the run.
+    pub ticks: u64,
+    /// Rows written to `trace.csv` (ticks + 1 when complete).
+    pub trace_rows: u64,
+    /// Rows the monitor could not assemble (samples lost or never published).
+    pub rows_lost: u64,
+    /// Whether the monitor saw every tick.
+    pub monitor_kept_up: bool,
+    /// Ticks on which the plant had no fresh torque in time (real time).
+    pub misses: u64,
+    /// Ticks answered without a reference sample at hand (controller).
+    pub reference_misses: u64,
+    /// State samples the controller took but did not answer (a newer one was there).
+    pub states_skipped_by_controller: u64,
+    /// Requested rate (Hz).
+    pub rate_hz: f64,
+    /// Achieved tick rate (Hz): ticks over the plant's wall time from tick 0 to the last.
+    pub achieved_rate_hz: f64,
+    /// Per subscriber: samples received and lost.
+    pub subscribers: BTreeMap<String, SubscriberCounts>,
+    /// Per hop (ns).
+    pub hops: BTreeMap<String, HopStats>,
+    /// Attitude error at the first and last row (deg).
+    pub err_deg_initial: f64,
+    /// See `err_deg_initial`.
+    pub err_deg_final: f64,
+    /// Largest relative spatial-momentum drift.
+    pub momentum_drift_rel_max: f64,
+    /// Whether the run reached its last tick (false after a signal).
+    pub completed: bool,
+    /// Ticks the monitor missed while it was down, `[first, last]` (restarted monitor).
+    pub monitor_gaps: Vec<[u64; 2]>,
+    /// How often the monitor was restarted during the run.
+    pub monitor_restarts: u64,
+    /// Ticks the plant spent in safe mode.
+    pub safe_mode_ticks: u64,
+    /// Samples rejected by validation, per receiver (`plant.torque`, `controller.state`,
+    /// `controller.reference`, `monitor.state`, `monitor.reference`, `monitor.torque`).
+    pub wire_rejected: BTreeMap<String, u64>,
+    /// The first rejected samples the monitor saw (this monitor life), with the reason.
+    pub wire_faults: Vec<WireFaultEvent>,
+    /// Ticks whose rotor torque the actuator limits changed.
+    pub saturated_ticks: u64,
+    /// `saturated_ticks / ticks`.
+    pub saturated_fraction: f64,
+    /// Faults injected by the launcher (filled in by `rotorloop run --fault`).
+    pub faults: Vec<serde_json::Value>,
+    /// Resident memory of each process (filled in by `rotorloop run`).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub resources: Option<serde_json::Value>,
+    /// Files written.
+    pub files: Vec<String>,
+}
+
+/// The summary of a run: `mode` and `wait` as run, `files` written.
+pub fn summary(
+    scenario: &Scenario,
+    mode: &str,
+    wait: &str,
+    j: &RowJoiner,
+    rec: &Recording,
+    files: Vec<String>,
+) -> RunSummary {
+    let ticks = scenario.ticks();
+    let (last, last_torque) = (j.last_state(), j.last_torque());
+    let achieved = match (j.first_wake(), last) {
+        (Some(w0), Some(l)) if l.tick > 0 && l.wake_ns > w0 => {
+            l.tick as f64 / ((l.wake_ns - w0) as f64 / 1e9)
+        }
+        _ => 0.0,
+    };
+    let [s_seq, r_seq, t_seq] = j.seq;
+    let mut subscribers = BTreeMap::new();
+    subscribers.insert("monitor.state".to_owned(), s_seq.into());
+    subscribers.insert("monitor.reference".to_owned(), r_seq.into());
+    // Torque ticks the controller skipped are not losses: count against what it published.
+    let monitor_torque_lost = last_torque.map_or(0, |t| t.published.saturating_sub(t_seq.received));
+    let counts = |received, lost| SubscriberCounts { received, lost };
+    subscribers.insert("monitor.torque".to_owned(), counts(t_seq.received, monitor_torque_lost));
+    if let (Some(l), Some(t)) = (last, last_torque) {
+        // The plant's counters are as of its last state sample, before the last torque.
+        let published_before = t.published - u64::from(t.tick == l.tick);
+        let lost = published_before.saturating_sub(l.torques_received);
+        subscribers.insert("plant.torque".to_owned(), counts(l.torques_received, lost));
+    }
+    if let Some(t) = last_torque {
+        subscribers.insert("controller.state".to_owned(), counts(t.states_received, t.states_lost));
+    }
+    let names = ["monitor.state", "monitor.reference", "monitor.torque"];
+    let mut wire_rejected: BTreeMap<String, u64> =
+        names.iter().zip(j.rejected).map(|(n, c)| ((*n).to_owned(), c)).collect();
+    wire_rejected.insert("plant.torque".to_owned(), last.map_or(0, |s| s.torques_rejected));
+    wire_rejected
+        .insert("controller.state".to_owned(), last_torque.map_or(0, |t| t.states_rejected));
+    wire_rejected.insert(
+        "controller.reference".to_owned(),
+        last_torque.map_or(0, |t| t.references_rejected),
+    );
+    let saturated_ticks = last.map_or(0, |s| s.saturated_ticks);
+    let rows = j.rows();
+    RunSummary {
+        name: scenario.file.name.clone(),
+        scenario: scenario.file.clone(),
+        mode: mode.to_owned(),
+        wait: wait.to_owned(),
+        ticks,
+        trace_rows: rows,
+        rows_lost: j.rows_lost(),
+        monitor_kept_up: j.rows_lost() == 0
+            && s_seq.lost == 0
+            && r_seq.lost == 0
+            && monitor_torque_lost == 0
+            && rows == ticks + 1,
+        states_skipped_by_controller: last_torque.map_or(0, |t| t.states_skipped),
+        misses: last.map_or(0, |s| s.misses),
+        reference_misses: last_torque.map_or(0, |t| t.reference_misses),
+        rate_hz: scenario.file.run.rate_hz,
+        achieved_rate_hz: achieved,
+        subscribers,
+        hops: Hop::ALL.iter().map(|h| (h.name().to_owned(), rec.latency.stats(*h))).collect(),
+        err_deg_initial: rec.first_err,
+        err_deg_final: rec.last_err,
+        momentum_drift_rel_max: rec.drift_max,
+        completed: j.done(),
+        monitor_gaps: j.gaps().to_vec(),
+        monitor_restarts: j.restarts(),
+        safe_mode_ticks: last.map_or(0, |s| s.safe_mode_ticks),
+        wire_rejected,
+        wire_faults: j.wire_faults.clone(),
+        saturated_ticks,
+        saturated_fraction: saturated_ticks as f64 / ticks as f64,
+        faults: Vec::new(),
+        resources: None,
+        files,
+    }
+}
+
+/// A cyclictest-like summary: one line per hop with count/min/avg/p99/max in µs.
+pub fn console_summary(s: &RunSummary) -> String {
+    let mut t = format!(
+        "{} ({}, {} wait): {} ticks, {} rows, {} lost, {} misses, achieved {:.3} Hz of {} Hz, error {:.4}° → {:.3e}°\n",
+        s.name,
+        s.mode,
+        s.wait,
+        s.ticks,
+        s.trace_rows,
+        s.rows_lost,
+        s.misses,
+        s.achieved_rate_hz,
+        s.rate_hz,
+        s.err_deg_initial,
+        s.err_deg_final
+    );
+    let rejected: u64 = s.wire_rejected.values().sum();
+    if rejected > 0 || s.saturated_ticks > 0 || s.safe_mode_ticks > 0 {
+        t.push_str(&format!(
+            "rejected samples {:?}; saturated {:.2} % of ticks; {} ticks in safe mode\n",
+            s.wire_rejected,
+            100.0 * s.saturated_fraction,
+            s.safe_mode_ticks
+        ));
+    }
+    for hop in Hop::ALL {
+        let h = s.hops.get(hop.name()).copied().unwrap_or_default();
+        let us = |v: u64| v as f64 / 1e3;
+        t.push_str(&format!(
+            "T:{:<20} C:{:>9} Min:{:>9.1} Avg:{:>9.1} P99:{:>9.1} Max:{:>10.1} (µs)\n",
+            hop.name(),
+            h.count,
+            us(h.min),
+            h.mean / 1e3,
+            us(h.p99),
+            us(h.max)
+        ));
+    }
+    t
+}

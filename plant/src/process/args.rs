@@ -1,0 +1,29 @@
+//! `plant` arguments (the same for the `plant` binary and `rotorloop role plant`).
+
+use clap::Args;
+use rotorloop_common::role::{Corrupt, RoleArgs};
+
+/// `plant` arguments.
+#[derive(Debug, Clone, Args)]
+pub struct PlantArgs {
+    #[command(flatten)]
+    pub role: RoleArgs,
+    /// Fault injection: publish this tick's sample corrupted (`nan@TICK`, `inf@TICK`,
+    /// `huge@TICK`, `skew@TICK`). Repeatable. Set by `rotorloop run --corrupt`.
+    #[arg(long)]
+    pub corrupt: Vec<Corrupt>,
+    /// Wait for this many subscribers to the state before tick 0 (controller and
+    /// reference; 3 with a monitor that must see every tick).
+    #[arg(long, allow_negative_numbers = true, default_value_t = 2)]
+    pub subscribers: usize,
+    /// In real time, sleep until this many µs before each grid time and spin the rest.
+    #[arg(long, allow_negative_numbers = true, default_value_t = 0)]
+    pub spin_before_tick_us: u64,
+    /// Real time: ticks to hold the last torque without a fresh one before safe mode.
+    #[arg(long, allow_negative_numbers = true, default_value_t = 50)]
+    pub hold_ticks: u64,
+    /// Also record sense-to-actuate in the plant itself and write
+    /// `DIR/plant_sense_to_actuate.hgrm` at the end (works without a monitor).
+    #[arg(long)]
+    pub latency_out: Option<std::path::PathBuf>,
+}

@@ -1,0 +1,87 @@
+//! The `reference` process: a thin shell over [`LeadWindow`] (the rule, in
+//! [`crate::policy`]). It publishes `R_d, Ω_d, Ω̇_d` up to the lead ahead of the newest
+//! state, so the controller never waits for it; a restart re-publishes its window and
+//! continues. It reads only the tick and the flags of state samples, so it needs no
+//! validation, and it always blocks on events, whatever `--wait` says: it is off the hot
+//! path, and a spinning loop must not get a third busy process.
+
+use anyhow::Context;
+use clap::Args;
+use rotorloop_common::ipc::{Topic, Wait, now_ns, shutdown_requested};
+use rotorloop_common::resume::ResumeSlot;
+use rotorloop_common::role::{Corrupt, PlantEnd, RoleArgs, corrupted, linger, test_hook};
+use rotorloop_common::wire::{FLAG_LAST, ReferenceSample, StateSample};
+
+use crate::policy::{LeadWindow, ReferenceResume};
+
+/// `reference` arguments.
+#[derive(Debug, Clone, Args)]
+pub struct ReferenceArgs {
+    #[command(flatten)]
+    pub role: RoleArgs,
+    /// Fault injection: publish this tick's sample corrupted (`nan@TICK`, `inf@TICK`,
+    /// `huge@TICK`, `skew@TICK`). Repeatable. Set by `rotorloop run --corrupt`.
+    #[arg(long)]
+    pub corrupt: Vec<Corrupt>,
+}
+
+/// Runs the reference generator until the plant's last tick or a termination signal.
+pub fn run(args: &ReferenceArgs) -> anyhow::Result<()> {
+    let (role, scenario) = (&args.role, args.role.scenario()?);
+    role.setup("reference");
+    let domain = role.open_domain()?;
+    let node = domain.node("reference").context("reference")?;
+    let out = domain.outbox::<ReferenceSample>(&node, Topic::Reference).context("reference")?;
+    let states = domain.inbox::<StateSample>(&node, Topic::State, 8, true).context("reference")?;
+    let slot = ResumeSlot::<ReferenceResume>::open(&domain, "reference").context("reference")?;
+    let plant_end = PlantEnd::open(&domain).context("reference")?;
+    let mut lead = LeadWindow::new(&scenario);
+    let send = |s: ReferenceSample| out.send(s, |s| s.publish_ns = now_ns());
+    if let Some(r) = slot.load().filter(|r| lead.can_resume(r)) {
+        for again in lead.resume(&scenario, &r) {
+            send(again).context("reference: re-publishing")?;
+        }
+        eprintln!(
+            "reference: resuming after tick {} from the samples published before a restart",
+            lead.next() - 1
+        );
+    } else if let Some(ms) = test_hook("ROTORLOOP_TEST_REFERENCE_LATE_MS") {
+        // Test hook: a first incarnation starts this late, so that the first states reach
+        // the controller before any reference does.
+        std::thread::sleep(std::time::Duration::from_millis(ms));
+    }
+    let (mut saw_last, mut last_state_ns) = (false, now_ns());
+    loop {
+        let mut batch = false;
+        while let Some(sample) = lead.next_due() {
+            send(corrupted(&args.corrupt, sample)).context("reference: publishing")?;
+            batch = true;
+        }
+        if batch {
+            slot.store(lead.window()); // once per batch: the window is a few KiB
+        }
+        if saw_last || shutdown_requested() {
+            break;
+        }
+        let got = states.wait_for(Wait::Event, now_ns() + 100_000_000, |inbox| {
+            let mut any = None;
+            while let Some(s) = inbox.take()? {
+                lead.saw_state(s.tick);
+                (saw_last, any) = (saw_last || s.flags & FLAG_LAST != 0, Some(()));
+            }
+            if any.is_none() {
+                out.update_connections();
+            }
+            Ok(any)
+        })?;
+        if got.is_some() {
+            last_state_ns = now_ns();
+        } else if now_ns() - last_state_ns > 1_000_000_000 && plant_end.ended() {
+            eprintln!("reference: the plant has ended the run; nothing left to publish");
+            break;
+        }
+    }
+    drop(states);
+    linger(|| out.subscribers() == 0);
+    Ok(())
+}
