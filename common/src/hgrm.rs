@@ -35,3 +35,13 @@ pub fn write_percentile_distribution(h: &Histogram<u64>, out: &mut impl Write) -
     writeln!(out, "#[Max     = {max:12.3}, Total count    = {:12}]", h.len())?;
     writeln!(out, "#[Buckets = {:12}, SubBuckets     = {:12}]", h.buckets(), h.distinct_values())
 }
+
+/// Writes `h` as a `.hgrm` file at `path`.
+pub fn write_hgrm_file(path: &std::path::Path, h: &Histogram<u64>) -> io::Result<()> {
+    let mut f =
+        io::BufWriter::new(std::fs::File::create(path).map_err(|e| {
+            io::Error::new(e.kind(), format!("cannot write {}: {e}", path.display()))
+        })?);
+    write_percentile_distribution(h, &mut f)?;
+    f.flush()
+}

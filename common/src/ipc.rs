@@ -419,6 +419,20 @@ pub struct Outbox<T: ZeroCopySend + Debug + Copy + 'static> {
 }
 
 impl<T: ZeroCopySend + Debug + Copy + 'static> Outbox<T> {
+    /// Waits until at least `n` subscribers are connected (those that must see the first
+    /// sample), polling every millisecond; false on a termination signal.
+    pub fn wait_for_subscribers(&self, n: usize) -> bool {
+        while self.subscribers() < n {
+            if shutdown_requested() {
+                return false;
+            }
+            self.update_connections();
+            std::thread::sleep(std::time::Duration::from_millis(1));
+        }
+        self.update_connections();
+        true
+    }
+
     /// Publishes `value` (written in place into shared memory) and notifies listeners.
     /// `stamp` is called just before the send to set the publish timestamp.
     #[inline]
@@ -460,6 +474,15 @@ pub struct Inbox<T: ZeroCopySend + Debug + Copy + 'static> {
 }
 
 impl<T: ZeroCopySend + Debug + Copy + 'static> Inbox<T> {
+    /// Takes every waiting sample, oldest first, handing each to `f`.
+    #[inline]
+    pub fn drain(&self, mut f: impl FnMut(T)) -> Result<(), IpcError> {
+        while let Some(x) = self.take()? {
+            f(x);
+        }
+        Ok(())
+    }
+
     /// Takes the oldest waiting sample, if any.
     #[inline]
     pub fn take(&self) -> Result<Option<T>, IpcError> {

@@ -196,6 +196,69 @@ impl PlantEnd {
     }
 }
 
+/// How a role that follows the plant's states (controller, reference) notices that the
+/// plant is gone: after 1 s without a state it says so once (and says when the plant is
+/// back); if the plant's resume slot then says the run is over, the role stops (a role
+/// restarted after the end gets no more states and would otherwise wait forever).
+#[derive(Debug)]
+pub struct PlantWatch {
+    role: &'static str,
+    end: PlantEnd,
+    last_state_ns: u64,
+    gone: bool,
+}
+
+impl PlantWatch {
+    /// Watches the plant of `domain` for `role` (named in its messages).
+    pub fn open(domain: &Domain, role: &'static str) -> anyhow::Result<Self> {
+        Ok(Self { role, end: PlantEnd::open(domain)?, last_state_ns: now_ns(), gone: false })
+    }
+
+    /// A state of tick `tick` arrived.
+    pub fn saw_state(&mut self, tick: u64) {
+        self.last_state_ns = now_ns();
+        if std::mem::take(&mut self.gone) {
+            eprintln!("{}: plant back at tick {tick}", self.role);
+        }
+    }
+
+    /// A wait ended without a state: whether the run is over (stop).
+    pub fn run_over(&mut self) -> bool {
+        if now_ns() - self.last_state_ns <= 1_000_000_000 {
+            return false;
+        }
+        if self.end.ended() {
+            eprintln!("{}: the plant has ended the run; nothing left to do", self.role);
+            return true;
+        }
+        if !std::mem::replace(&mut self.gone, true) {
+            eprintln!("{}: no state from the plant for 1 s (plant gone?)", self.role);
+        }
+        false
+    }
+}
+
+/// The absolute time grid of a real-time run: tick `k` is due at `start_ns + (k − first)`
+/// periods (rounded to the ns, never accumulated, so the rate does not drift).
+#[derive(Debug, Clone, Copy)]
+pub struct TickGrid {
+    start_ns: u64,
+    first: u64,
+    period_ns: f64,
+}
+
+impl TickGrid {
+    /// Tick `first` at `start_ns`, then one tick every `1 / rate_hz` seconds.
+    pub fn new(start_ns: u64, first: u64, rate_hz: f64) -> Self {
+        Self { start_ns, first, period_ns: 1e9 / rate_hz }
+    }
+
+    /// When tick `k` is due (monotonic ns).
+    pub fn at(&self, k: u64) -> u64 {
+        self.start_ns + ((k - self.first) as f64 * self.period_ns).round() as u64
+    }
+}
+
 /// Waits until `done()` or [`LINGER_S`] seconds or a termination signal.
 pub fn linger(mut done: impl FnMut() -> bool) {
     let until = now_ns() + LINGER_S * 1_000_000_000;

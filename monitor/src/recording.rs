@@ -9,7 +9,7 @@ use std::path::{Path, PathBuf};
 
 use anyhow::Context;
 use glam::DVec3;
-use rotorloop_common::wire::FLAG_REALTIME;
+use rotorloop_common::wire::{FLAG_REALTIME, StateSample};
 use rotorloop_common::{Actuation, Scenario};
 
 use crate::figures::tracking_figures;
@@ -38,17 +38,25 @@ pub struct Recording {
     pub last_err: f64,
     /// Largest relative spatial-momentum drift.
     pub drift_max: f64,
+    /// When the live status line was last drawn (`None`: never).
+    status_at_ns: Option<u64>,
 }
 
 impl Recording {
-    /// Opens the report in `out` for `scenario`, starting at `now_ns`: new files, or, for a
-    /// restart (`resumed`), the predecessor's, appended to.
+    /// Opens the report in `out` for `scenario`, starting at `now_ns`: new files, or, when
+    /// `slot` (the monitor's resume slot) holds an unfinished report whose trace is there,
+    /// the predecessor's, appended to (a restart); then it also returns that slot content.
     pub fn open(
         out: &Path,
         scenario: &Scenario,
-        resumed: Option<&MonitorResume>,
+        slot: Option<MonitorResume>,
         now_ns: u64,
-    ) -> anyhow::Result<Self> {
+    ) -> anyhow::Result<(Self, Option<MonitorResume>)> {
+        std::fs::create_dir_all(out).with_context(|| format!("cannot create {}", out.display()))?;
+        let _ = std::fs::remove_file(out.join("summary.json"));
+        let resumed =
+            slot.filter(|r| r.next_row <= scenario.ticks() && out.join("trace.csv").exists());
+        let resumed = resumed.as_ref();
         let open = |name: &str| {
             let path = out.join(name);
             let f = std::fs::OpenOptions::new()
@@ -78,7 +86,7 @@ impl Recording {
         };
         let latency =
             Latency::new(out, now_ns, resumed.is_some()).context("monitor: interval logs")?;
-        Ok(Self {
+        let rec = Self {
             out: out.to_owned(),
             trace,
             timing,
@@ -91,7 +99,9 @@ impl Recording {
             first_err: resumed.map_or(f64::NAN, |r| r.first_err),
             last_err: f64::NAN,
             drift_max: resumed.map_or(0.0, |r| r.drift_max),
-        })
+            status_at_ns: None,
+        };
+        Ok((rec, resumed.copied()))
     }
 
     /// Writes one joined row and records its latencies.
@@ -171,9 +181,30 @@ impl Recording {
         Ok(Some(joiner.save(self.first_err, self.drift_max, self.metrics.save())))
     }
 
+    /// Rewrites the live status line on stderr, at most twice a second: run time, attitude
+    /// error, sense-to-actuate p99, misses (of the newest state `last`).
+    pub fn status_line(&mut self, last: Option<StateSample>, now_ns: u64) {
+        if self.status_at_ns.is_some_and(|t| now_ns - t < 500_000_000) {
+            return;
+        }
+        self.status_at_ns = Some(now_ns);
+        let p99 = self.latency.histogram(Hop::SenseToActuate).value_at_quantile(0.99) as f64 / 1e3;
+        let (t, misses, err) =
+            last.map_or((0.0, 0, self.last_err), |s| (s.t_s, s.misses, self.last_err));
+        let mut e = std::io::stderr().lock();
+        let _ = write!(
+            e,
+            "\r  t = {t:8.3} s   error {err:.3e}°   sense-to-actuate p99 {p99:9.1} µs   misses {misses}   "
+        );
+        let _ = e.flush();
+    }
+
     /// Closes the files and writes the histograms, interval logs and figures; returns the
     /// files written.
     pub fn finish(&mut self, title: &str) -> anyhow::Result<Vec<String>> {
+        if self.status_at_ns.is_some() {
+            eprint!("\r{:100}\r", ""); // clear the status line
+        }
         let trace_path = self.out.join("trace.csv");
         self.trace.flush().with_context(|| format!("cannot write {}", trace_path.display()))?;
         self.timing.flush()?;

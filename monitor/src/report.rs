@@ -5,7 +5,7 @@
 use std::collections::BTreeMap;
 
 use rotorloop_common::Scenario;
-use rotorloop_common::role::SeqCounter;
+use rotorloop_common::role::{Mode, RoleArgs, SeqCounter};
 use serde::Serialize;
 
 use crate::latency::{Hop, HopStats};
@@ -92,11 +92,10 @@ pub struct RunSummary {
     pub files: Vec<String>,
 }
 
-/// The summary of a run: `mode` and `wait` as run, `files` written.
+/// The summary of a run of `role`'s mode and wait strategy, `files` written.
 pub fn summary(
     scenario: &Scenario,
-    mode: &str,
-    wait: &str,
+    role: &RoleArgs,
     j: &RowJoiner,
     rec: &Recording,
     files: Vec<String>,
@@ -141,8 +140,8 @@ pub fn summary(
     RunSummary {
         name: scenario.file.name.clone(),
         scenario: scenario.file.clone(),
-        mode: mode.to_owned(),
-        wait: wait.to_owned(),
+        mode: if role.mode == Mode::Lockstep { "lockstep" } else { "realtime" }.to_owned(),
+        wait: role.wait.to_string(),
         ticks,
         trace_rows: rows,
         rows_lost: j.rows_lost(),

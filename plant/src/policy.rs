@@ -54,6 +54,24 @@ pub enum Settled {
     },
 }
 
+impl Settled {
+    /// What changed at tick `k`, for the log (state changes only; `None` on a plain tick).
+    pub fn event(&self, k: u64, hold_ticks: u64) -> Option<String> {
+        match *self {
+            Settled::Fresh { after_safe_mode: true } => {
+                Some(format!("fresh torque at tick {k}; control resumed"))
+            }
+            Settled::Miss { first_rejection: Some((tick, fault)), .. } => {
+                Some(format!("rejected the torque of tick {tick}: {fault} (holding; counted)"))
+            }
+            Settled::Miss { entered_safe_mode: true, .. } => Some(format!(
+                "no fresh torque for {hold_ticks} ticks at tick {k}: safe mode (zero torque, rotors coast)"
+            )),
+            _ => None,
+        }
+    }
+}
+
 /// The hold rule (module docs): the torque in force, misses, safe mode, and the counts the
 /// state sample carries.
 #[derive(Debug, Clone, Copy)]

@@ -1,20 +1,19 @@
 //! The `controller` process: a thin shell over [`TorqueAnswers`] and [`ReferencePairing`]
 //! (the rules, in [`crate::policy`]). It answers the newest state sample with the law's
-//! torques, pairing it with the reference sample of the same tick (waiting for it only in
-//! lockstep), and stops after the plant's last tick (or, restarted after the end, when the
-//! plant's resume slot says the run is over).
+//! torques, paired with the reference sample of the same tick (waited for only in
+//! lockstep), and stops after the plant's last tick (or, restarted after the end, when
+//! the plant's resume slot says the run is over).
 
 mod args;
 
 use anyhow::Context;
-use rotorloop_common::ipc::{Inbox, Topic, now_ns, shutdown_requested};
+use rotorloop_common::ipc::{Topic, now_ns, shutdown_requested};
 use rotorloop_common::resume::ResumeSlot;
-use rotorloop_common::role::{Mode, PlantEnd, corrupted, linger, test_hook};
+use rotorloop_common::role::{Mode, PlantWatch, corrupted, linger, test_hook};
 use rotorloop_common::wire::{FLAG_LAST, ReferenceSample, StateSample, TorqueSample};
 
 pub use args::ControllerArgs;
 
-use crate::GeometricPid;
 use crate::policy::{Decision, ReferencePairing, TorqueAnswers};
 
 /// Runs the controller until the plant's last tick or a termination signal.
@@ -26,59 +25,42 @@ pub fn run(args: &ControllerArgs) -> anyhow::Result<()> {
     let out = domain.outbox::<TorqueSample>(&node, Topic::Torque).context("controller")?;
     // Subscribe to the state last: the plant starts when it sees its state subscribers.
     let refs = domain.inbox::<ReferenceSample>(&node, Topic::Reference, 128, false);
-    let (refs, wait) = (refs.context("controller")?, role.wait);
-    let states = domain
-        .inbox::<StateSample>(&node, Topic::State, 8, wait.listens())
-        .context("controller")?;
+    let refs = refs.context("controller")?;
+    let states = domain.inbox::<StateSample>(&node, Topic::State, 8, role.wait.listens());
+    let states = states.context("controller")?;
     let slot = ResumeSlot::<TorqueSample>::open(&domain, "controller").context("controller")?;
-    let plant_end = PlantEnd::open(&domain).context("controller")?;
-    let (a, dt) = (scenario.actuation(), scenario.dt());
-    let pid = GeometricPid::new(scenario.gains, scenario.controller_params(a))
-        .with_limits(scenario.limits_for(a), scenario.anti_windup);
-    let (mut answers, mut pairing) =
-        (TorqueAnswers::new(pid), ReferencePairing::new(args.reference_hold_ticks, dt));
+    let mut plant = PlantWatch::open(&domain, "controller").context("controller")?;
+    let dt = scenario.dt();
+    let mut answers = TorqueAnswers::for_scenario(&scenario);
+    let mut pairing = ReferencePairing::new(args.reference_hold_ticks, dt);
     if let Some(t) = slot.load().filter(|t| t.tick < scenario.ticks()) {
         answers.resume(&t);
         pairing.resume(t.reference_misses, t.references_rejected);
-        eprintln!(
-            "controller: resuming after tick {} with the integral state it last published",
-            t.tick
-        );
+        eprintln!("controller: resuming after tick {} with its last integral state", t.tick);
     }
     // Test hooks: stall holding a loan at this tick (first incarnation only); never answer
     // the state of that tick, as when a newer state superseded it under load.
     let stall_at =
         test_hook("ROTORLOOP_TEST_STALL_WITH_LOAN_AT").filter(|_| answers.last().is_none());
     let skip_at = test_hook("ROTORLOOP_TEST_SKIP_STATE_AT");
-    let (mut last_state_ns, mut plant_gone, mut rejection_logged) = (now_ns(), false, false);
+    let mut rejection_logged = false;
     loop {
-        let state = states.wait_for(wait, now_ns() + 100_000_000, |inbox| {
+        let state = states.wait_for(role.wait, now_ns() + 100_000_000, |inbox| {
             let mut newest: Option<(StateSample, u64)> = None;
-            while let Some(s) = inbox.take()? {
+            inbox.drain(|s| {
                 answers.take(&s, newest.is_some());
                 newest = Some((s, now_ns()));
-            }
+            })?;
             Ok(newest)
         })?;
         let Some((state, recv_ns)) = state else {
-            let silent = now_ns() - last_state_ns > 1_000_000_000;
-            if shutdown_requested() {
+            if shutdown_requested() || plant.run_over() {
                 break;
-            }
-            if silent && plant_end.ended() {
-                eprintln!("controller: the plant has ended the run; nothing left to answer");
-                break;
-            }
-            if silent && !std::mem::replace(&mut plant_gone, true) {
-                eprintln!("controller: no state from the plant for 1 s (plant gone?)");
             }
             continue;
         };
-        last_state_ns = now_ns();
-        if std::mem::take(&mut plant_gone) {
-            eprintln!("controller: plant back at tick {}", state.tick);
-        }
         let k = state.tick;
+        plant.saw_state(k);
         if stall_at == Some(k) {
             out.stall_holding_a_loan()?;
             break;
@@ -98,20 +80,13 @@ pub fn run(args: &ControllerArgs) -> anyhow::Result<()> {
         if let Some(f) = fault.filter(|_| !std::mem::replace(&mut rejection_logged, true)) {
             eprintln!("controller: rejected the state of tick {k}: {f} (skipping; counted)");
         }
-        drain(&refs, &mut pairing)?;
-        let mut found = pairing.begin(k, fault.is_none());
-        let missed = found.is_none() && fault.is_none();
-        while missed
-            && role.mode == Mode::Lockstep
-            && found.is_none()
-            && !pairing.rejected_at(k)
-            && !shutdown_requested()
-        {
+        refs.drain(|r| pairing.take(r))?;
+        let lockstep = role.mode == Mode::Lockstep;
+        let rd = pairing.pair(k, fault.is_none(), lockstep, |p| {
             std::thread::sleep(std::time::Duration::from_micros(100));
-            drain(&refs, &mut pairing)?;
-            found = pairing.lookup(k);
-        }
-        let rd = pairing.finish(k, found, missed).filter(|_| fault.is_none());
+            refs.drain(|r| p.take(r))?;
+            Ok(!shutdown_requested())
+        })?;
         if rd.is_none() && fault.is_none() && shutdown_requested() {
             break;
         }
@@ -127,13 +102,5 @@ pub fn run(args: &ControllerArgs) -> anyhow::Result<()> {
     }
     drop((states, refs));
     linger(|| out.subscribers() == 0);
-    Ok(())
-}
-
-/// Takes every reference sample that arrived.
-fn drain(refs: &Inbox<ReferenceSample>, pairing: &mut ReferencePairing) -> anyhow::Result<()> {
-    while let Some(r) = refs.take()? {
-        pairing.take(r);
-    }
     Ok(())
 }

@@ -6,17 +6,16 @@
 
 mod args;
 
-use std::io::{IsTerminal, Write};
+use std::io::IsTerminal;
 
 use anyhow::Context;
 use rotorloop_common::ipc::{MAX_BUFFER, Topic, now_ns, shutdown_requested};
 use rotorloop_common::resume::ResumeSlot;
-use rotorloop_common::role::{Mode, PlantEnd, write_json};
+use rotorloop_common::role::{PlantEnd, write_json};
 use rotorloop_common::wire::{ReferenceSample, StateSample, TorqueSample};
 
 pub use args::MonitorArgs;
 
-use crate::latency::Hop;
 use crate::policy::{END_QUIET_NS, MonitorResume, RowJoiner};
 use crate::recording::Recording;
 use crate::report::{console_summary, summary};
@@ -29,39 +28,24 @@ pub fn run(args: &MonitorArgs) -> anyhow::Result<()> {
     let node = domain.node("monitor").context("monitor")?;
     // Subscribe to the state last: the plant starts when it sees its state subscribers,
     // so everything else must already be connected by then.
-    let refs = domain
-        .inbox::<ReferenceSample>(&node, Topic::Reference, MAX_BUFFER, false)
-        .context("monitor")?;
-    let torques =
-        domain.inbox::<TorqueSample>(&node, Topic::Torque, MAX_BUFFER, false).context("monitor")?;
-    let states =
-        domain.inbox::<StateSample>(&node, Topic::State, MAX_BUFFER, false).context("monitor")?;
+    let refs = domain.inbox::<ReferenceSample>(&node, Topic::Reference, MAX_BUFFER, false)?;
+    let torques = domain.inbox::<TorqueSample>(&node, Topic::Torque, MAX_BUFFER, false)?;
+    let states = domain.inbox::<StateSample>(&node, Topic::State, MAX_BUFFER, false)?;
     let slot = ResumeSlot::<MonitorResume>::open(&domain, "monitor").context("monitor")?;
     let plant_end = PlantEnd::open(&domain).context("monitor")?;
-    let out = &args.out;
-    std::fs::create_dir_all(out).with_context(|| format!("cannot create {}", out.display()))?;
-    let _ = std::fs::remove_file(out.join("summary.json"));
-    let ticks = scenario.ticks();
     // A restart continues the report in the same directory.
-    let resumed = slot.load().filter(|r| r.next_row <= ticks && out.join("trace.csv").exists());
-    let mut rec = Recording::open(out, &scenario, resumed.as_ref(), now_ns())?;
+    let (mut rec, resumed) = Recording::open(&args.out, &scenario, slot.load(), now_ns())?;
     let limit = TorqueSample::absurd_limit(scenario.limits_for(scenario.actuation()).rotor_torque);
-    let mut joiner = RowJoiner::new(ticks, limit, now_ns());
+    let mut joiner = RowJoiner::new(scenario.ticks(), limit, now_ns());
     if let Some(r) = &resumed {
         joiner.resume(r);
         eprintln!("monitor: restarted; continuing the report from tick {}", r.next_row);
     }
-    let (status, mut last_status) = (args.status && std::io::stderr().is_terminal(), now_ns());
+    let status = args.status && std::io::stderr().is_terminal();
     loop {
-        while let Some(s) = states.take()? {
-            joiner.take_state(s);
-        }
-        while let Some(r) = refs.take()? {
-            joiner.take_reference(r);
-        }
-        while let Some(t) = torques.take()? {
-            joiner.take_torque(t);
-        }
+        states.drain(|s| joiner.take_state(s))?;
+        refs.drain(|r| joiner.take_reference(r))?;
+        torques.drain(|t| joiner.take_torque(t))?;
         // The plant has ended (seen here, or in its resume slot by a monitor restarted
         // after the end) and nothing has arrived for a while: what is missing now never
         // comes (a role killed at the very end, say), so settle the rest.
@@ -77,33 +61,19 @@ pub fn run(args: &MonitorArgs) -> anyhow::Result<()> {
         if let Some(r) = rec.flush(&joiner)? {
             slot.store(&r);
         }
-        if status && now_ns() - last_status > 500_000_000 {
-            last_status = now_ns();
-            let p99 =
-                rec.latency.histogram(Hop::SenseToActuate).value_at_quantile(0.99) as f64 / 1e3;
-            let (t, misses) = joiner.last_state().map_or((0.0, 0), |s| (s.t_s, s.misses));
-            let mut e = std::io::stderr().lock();
-            let err = rec.last_err;
-            let _ = write!(
-                e,
-                "\r  t = {t:8.3} s   error {err:.3e}°   sense-to-actuate p99 {p99:9.1} µs   misses {misses}   "
-            );
-            let _ = e.flush();
+        if status {
+            rec.status_line(joiner.last_state(), now_ns());
         }
         if joiner.done() || stopping {
             break;
         }
         std::thread::sleep(std::time::Duration::from_micros(args.poll_us));
     }
-    if status {
-        eprint!("\r{:100}\r", "");
-    }
     let files = rec.finish(&scenario.file.name)?;
     if joiner.done() {
         slot.clear(); // finished: a later monitor in this domain starts a new report
     }
-    let mode = if role.mode == Mode::Lockstep { "lockstep" } else { "realtime" };
-    let summary = summary(&scenario, mode, &role.wait.to_string(), &joiner, &rec, files);
+    let summary = summary(&scenario, role, &joiner, &rec, files);
     println!("{}", console_summary(&summary));
-    write_json(&out.join("summary.json"), &summary)
+    write_json(&args.out.join("summary.json"), &summary)
 }

@@ -9,7 +9,7 @@ use anyhow::Context;
 use clap::Args;
 use rotorloop_common::ipc::{Topic, Wait, now_ns, shutdown_requested};
 use rotorloop_common::resume::ResumeSlot;
-use rotorloop_common::role::{Corrupt, PlantEnd, RoleArgs, corrupted, linger, test_hook};
+use rotorloop_common::role::{Corrupt, PlantWatch, RoleArgs, corrupted, linger, test_hook};
 use rotorloop_common::wire::{FLAG_LAST, ReferenceSample, StateSample};
 
 use crate::policy::{LeadWindow, ReferenceResume};
@@ -34,7 +34,7 @@ pub fn run(args: &ReferenceArgs) -> anyhow::Result<()> {
     let out = domain.outbox::<ReferenceSample>(&node, Topic::Reference).context("reference")?;
     let states = domain.inbox::<StateSample>(&node, Topic::State, 8, true).context("reference")?;
     let slot = ResumeSlot::<ReferenceResume>::open(&domain, "reference").context("reference")?;
-    let plant_end = PlantEnd::open(&domain).context("reference")?;
+    let mut plant = PlantWatch::open(&domain, "reference").context("reference")?;
     let mut lead = LeadWindow::new(&scenario);
     let send = |s: ReferenceSample| out.send(s, |s| s.publish_ns = now_ns());
     if let Some(r) = slot.load().filter(|r| lead.can_resume(r)) {
@@ -50,7 +50,7 @@ pub fn run(args: &ReferenceArgs) -> anyhow::Result<()> {
         // the controller before any reference does.
         std::thread::sleep(std::time::Duration::from_millis(ms));
     }
-    let (mut saw_last, mut last_state_ns) = (false, now_ns());
+    let mut saw_last = false;
     loop {
         let mut batch = false;
         while let Some(sample) = lead.next_due() {
@@ -63,22 +63,21 @@ pub fn run(args: &ReferenceArgs) -> anyhow::Result<()> {
         if saw_last || shutdown_requested() {
             break;
         }
-        let got = states.wait_for(Wait::Event, now_ns() + 100_000_000, |inbox| {
-            let mut any = None;
-            while let Some(s) = inbox.take()? {
-                lead.saw_state(s.tick);
-                (saw_last, any) = (saw_last || s.flags & FLAG_LAST != 0, Some(()));
-            }
-            if any.is_none() {
+        let newest = states.wait_for(Wait::Event, now_ns() + 100_000_000, |inbox| {
+            let mut newest = None;
+            inbox.drain(|s| {
+                saw_last |= s.flags & FLAG_LAST != 0;
+                newest = newest.max(Some(s.tick));
+            })?;
+            if newest.is_none() {
                 out.update_connections();
             }
-            Ok(any)
+            Ok(newest)
         })?;
-        if got.is_some() {
-            last_state_ns = now_ns();
-        } else if now_ns() - last_state_ns > 1_000_000_000 && plant_end.ended() {
-            eprintln!("reference: the plant has ended the run; nothing left to publish");
-            break;
+        match newest {
+            Some(tick) => (lead.saw_state(tick), plant.saw_state(tick)).1,
+            None if plant.run_over() => break,
+            None => {}
         }
     }
     drop(states);
