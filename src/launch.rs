@@ -3,7 +3,6 @@
 //! cleanly at the end or on Ctrl-C/SIGTERM, and leaves the report in `--out`.
 
 use std::collections::BTreeMap;
-use std::os::unix::process::ExitStatusExt;
 use std::path::PathBuf;
 use std::process::{Child, Command, Stdio};
 use std::time::Duration;
@@ -14,11 +13,12 @@ use rotorloop_common::ipc::{install_signal_handlers, now_ns, shutdown_requested}
 use rotorloop_common::resume::ResumeSlot;
 use rotorloop_common::wire::StateSample;
 
-use crate::UsageError;
-use crate::process::RoleArgs;
+use rotorloop_common::ipc::Domain;
 
-/// The roles, in start order (the monitor first, so it sees tick 0).
-pub const ROLES: [&str; 4] = ["monitor", "reference", "controller", "plant"];
+use crate::UsageError;
+use crate::process::{Corrupt, RoleArgs};
+use crate::supervise::{Action, Children, FaultSchedule, exit_verdict, signal};
+pub use crate::supervise::{Fault, ROLES, parse_fault};
 
 /// `rotorloop run` arguments.
 #[derive(Debug, Clone, Args)]
@@ -58,8 +58,8 @@ pub struct RunArgs {
 }
 
 /// Parses `--corrupt ROLE:KIND@TICK`.
-pub fn parse_corrupt(s: &str) -> Result<(String, crate::process::Corrupt), UsageError> {
-    use crate::process::{Corrupt, CorruptKind};
+pub fn parse_corrupt(s: &str) -> Result<(String, Corrupt), UsageError> {
+    use crate::process::CorruptKind;
     let bad = |why: &str| {
         UsageError(format!(
             "--corrupt `{s}` is not allowed: {why} (form ROLE:KIND@TICK, e.g. controller:nan@500)"
@@ -96,19 +96,6 @@ fn stop_with_parent(cmd: &mut Command) {
     }
 }
 
-/// One `--fault`.
-#[derive(Debug, Clone, PartialEq)]
-pub struct Fault {
-    /// The role to kill.
-    pub role: String,
-    /// When to SIGKILL it (s after the start).
-    pub kill_s: f64,
-    /// When to start it again (s), if at all.
-    pub restart_s: Option<f64>,
-    killed: bool,
-    restarted: bool,
-}
-
 /// A fault as it happened (monotonic ns).
 #[derive(Debug, Clone, PartialEq)]
 pub struct FaultEvent {
@@ -118,34 +105,6 @@ pub struct FaultEvent {
     pub kill_ns: u64,
     /// When it was started again.
     pub restart_ns: Option<u64>,
-}
-
-/// Parses `ROLE:kill@T[:restart@T2]`.
-pub fn parse_fault(s: &str) -> Result<Fault, UsageError> {
-    let bad = |why: &str| {
-        UsageError(format!(
-            "--fault `{s}` is not allowed: {why} (form ROLE:kill@T[:restart@T2], e.g. controller:kill@2:restart@2.5)"
-        ))
-    };
-    let parts: Vec<&str> = s.split(':').collect();
-    if parts.len() < 2 || parts.len() > 3 {
-        return Err(bad("two or three parts"));
-    }
-    if !ROLES.contains(&parts[0]) {
-        return Err(bad("ROLE is plant, reference, controller or monitor"));
-    }
-    let time = |p: &str, key: &str| -> Result<f64, UsageError> {
-        p.strip_prefix(key)
-            .and_then(|t| t.parse::<f64>().ok())
-            .filter(|t| t.is_finite() && *t >= 0.0)
-            .ok_or_else(|| bad(&format!("`{p}` must be {key}SECONDS with SECONDS ≥ 0")))
-    };
-    let kill_s = time(parts[1], "kill@")?;
-    let restart_s = parts.get(2).map(|p| time(p, "restart@")).transpose()?;
-    if restart_s.is_some_and(|r| r <= kill_s) {
-        return Err(bad("the restart must come after the kill"));
-    }
-    Ok(Fault { role: parts[0].to_owned(), kill_s, restart_s, killed: false, restarted: false })
 }
 
 /// Parses `--pin`: `role=core` pairs separated by commas.
@@ -240,61 +199,26 @@ impl RssTrack {
     }
 }
 
-struct Children(Vec<(String, Child)>);
-
-impl Drop for Children {
-    fn drop(&mut self) {
-        for (_, c) in &mut self.0 {
-            if let Ok(None) = c.try_wait() {
-                let _ = c.kill();
-                let _ = c.wait();
-            }
-        }
-    }
+/// What the launcher starts, and how: the roles' arguments, pins, corruptions, and the
+/// executable they run from (this one, so the four are always the same build).
+struct Launch<'a> {
+    args: &'a RunArgs,
+    role_args: RoleArgs,
+    pins: BTreeMap<String, usize>,
+    corrupt: Vec<(String, Corrupt)>,
+    exe: PathBuf,
 }
 
-fn signal(child: &Child, sig: libc::c_int) {
-    // SAFETY: sends a signal to our own child's pid.
-    unsafe { libc::kill(child.id() as libc::pid_t, sig) };
-}
-
-/// Runs the four processes to the end of the scenario.
-pub fn run(args: &RunArgs) -> anyhow::Result<()> {
-    let scenario = args.role.scenario()?;
-    for w in &scenario.warnings {
-        eprintln!("warning: {w}");
-    }
-    let faults = args.fault.iter().map(|f| parse_fault(f)).collect::<Result<Vec<_>, _>>()?;
-    let corrupt = args.corrupt.iter().map(|c| parse_corrupt(c)).collect::<Result<Vec<_>, _>>()?;
-    let mut role_args = args.role.clone();
-    role_args.domain.get_or_insert_with(|| format!("run-{}", std::process::id()));
-    let domain = role_args.open_domain()?;
-    let pins = match &args.pin {
-        Some(p) => parse_pins(p)?,
-        None => BTreeMap::new(),
-    };
-    std::fs::create_dir_all(&args.out)
-        .with_context(|| format!("cannot create {}", args.out.display()))?;
-    let exe = std::env::current_exe().context("cannot find the rotorloop executable")?;
-    install_signal_handlers();
-    // Nothing of this domain may be alive: clear what an earlier, killed run left
-    // (including resume slots, which would otherwise be taken for a restart).
-    let (_, alive) = domain.cleanup()?;
-    if alive > 0 {
-        return Err(UsageError(format!(
-            "domain `{}` is in use by {alive} running process(es); choose another --domain",
-            domain.name()
-        ))
-        .into());
-    }
-
-    let command = |role: &str| {
-        let mut r = role_args.clone();
-        r.core = pins.get(role).copied();
-        let mut cmd = Command::new(&exe);
+impl Launch<'_> {
+    /// The command line of `role`: `rotorloop role ROLE` with the run's arguments.
+    fn command(&self, role: &str) -> Command {
+        let args = self.args;
+        let mut r = self.role_args.clone();
+        r.core = self.pins.get(role).copied();
+        let mut cmd = Command::new(&self.exe);
         cmd.arg("role").arg(role).args(r.to_args()).stdin(Stdio::null());
         stop_with_parent(&mut cmd);
-        for (_, c) in corrupt.iter().filter(|(r, _)| r == role) {
+        for (_, c) in self.corrupt.iter().filter(|(r, _)| r == role) {
             cmd.arg("--corrupt").arg(c.to_string());
         }
         if args.quiet {
@@ -316,140 +240,153 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
             _ => {}
         }
         cmd
-    };
-    let mut children = Children(Vec::new());
-    let mut rss: BTreeMap<String, RssTrack> = BTreeMap::new();
-    for role in ROLES {
-        if role == "monitor" && args.no_monitor {
-            continue;
-        }
-        let child = command(role).spawn().with_context(|| format!("cannot start {role}"))?;
-        rss.insert(role.to_owned(), RssTrack::new(child.id()));
-        children.0.push((role.to_owned(), child));
     }
-    let t0 = now_ns();
-    // The fault clock starts when the plant has published tick 0 (its resume slot is
-    // written just before each publish).
-    let plant_slot =
-        ResumeSlot::<StateSample>::open(&domain, "plant").context("the plant's resume slot")?;
-    let mut run_t0: Option<u64> = None;
-    let mut rss_csv = std::io::BufWriter::new(
-        std::fs::File::create(args.out.join("rss.csv"))
-            .with_context(|| format!("cannot write {}", args.out.join("rss.csv").display()))?,
-    );
-    {
-        use std::io::Write;
-        writeln!(rss_csv, "t_s,role,pid,rss_kib,anon_kib,file_kib,shmem_kib")?;
-    }
-    let mut next_rss_ns = t0;
-    let mut events: Vec<FaultEvent> = Vec::new();
-    let mut pending = faults.clone();
 
-    // Wait for all to finish; on a signal, forward SIGTERM, then SIGKILL after 10 s.
-    let mut term_sent_at: Option<u64> = None;
-    let mut failures = Vec::new();
-    loop {
-        // Fault injection: SIGKILL at `kill`, the same command again at `restart`.
-        if run_t0.is_none() && plant_slot.load().is_some() {
-            run_t0 = Some(now_ns());
-        }
-        let elapsed = run_t0.map_or(f64::NEG_INFINITY, |r| (now_ns() - r) as f64 / 1e9);
-        for f in pending.iter_mut() {
-            if !f.killed && elapsed >= f.kill_s && term_sent_at.is_none() {
-                if let Some((_, c)) = children.0.iter_mut().find(|(r, _)| *r == f.role) {
-                    signal(c, libc::SIGKILL);
-                    let _ = c.wait(); // reap: an unreaped zombie can delay dead-node detection
-                    events.push(FaultEvent {
-                        role: f.role.clone(),
-                        kill_ns: now_ns(),
-                        restart_ns: None,
-                    });
-                    eprintln!("launcher: killed {} (SIGKILL) at {elapsed:.3} s", f.role);
-                }
-                f.killed = true;
-            }
-            if f.killed
-                && !f.restarted
-                && f.restart_s.is_some_and(|r| elapsed >= r)
-                && term_sent_at.is_none()
-            {
-                let child = command(&f.role)
-                    .spawn()
-                    .with_context(|| format!("cannot restart {}", f.role))?;
-                rss.insert(f.role.clone(), RssTrack::new(child.id()));
-                if let Some(entry) = children.0.iter_mut().find(|(r, _)| *r == f.role) {
-                    entry.1 = child;
-                }
-                if let Some(e) = events.iter_mut().rev().find(|e| e.role == f.role) {
-                    e.restart_ns = Some(now_ns());
-                }
-                eprintln!("launcher: restarted {} at {elapsed:.3} s", f.role);
-                f.restarted = true;
-            }
-        }
-        if now_ns() >= next_rss_ns {
-            use std::io::Write;
-            next_rss_ns += 1_000_000_000;
-            let t = (now_ns() - t0) as f64 / 1e9;
-            for (role, track) in rss.iter_mut() {
-                if let Some((kib, [anon, file, shmem])) = track.sample() {
-                    writeln!(rss_csv, "{t:.1},{role},{},{kib},{anon},{file},{shmem}", track.pid)?;
-                }
-            }
-            rss_csv.flush()?;
-        }
-        let waiting_restart =
-            pending.iter().any(|f| f.killed && !f.restarted && f.restart_s.is_some());
-        let mut running = 0;
-        for (role, c) in &mut children.0 {
-            match c.try_wait() {
-                Ok(None) => running += 1,
-                Ok(Some(st)) if !st.success() && term_sent_at.is_none() => {
-                    // A child we killed on purpose is not a failure.
-                    if st.signal() == Some(libc::SIGKILL) && events.iter().any(|e| e.role == *role)
-                    {
-                        continue;
-                    }
-                    let msg = format!("{role} exited with {st}");
-                    if !failures.contains(&msg) {
-                        failures.push(msg);
-                    }
-                }
-                _ => {}
-            }
-        }
-        if running == 0 && !waiting_restart {
-            break;
-        }
-        if (shutdown_requested() || !failures.is_empty()) && term_sent_at.is_none() {
-            term_sent_at = Some(now_ns());
-            for (_, c) in &children.0 {
-                signal(c, libc::SIGTERM);
-            }
-        }
-        if term_sent_at.is_some_and(|t| now_ns() - t > 10_000_000_000) {
-            for (_, c) in &mut children.0 {
-                let _ = c.kill();
-            }
-        }
-        if term_sent_at.is_some() && running == 0 {
-            break;
-        }
-        std::thread::sleep(Duration::from_millis(2));
+    /// Starts `role`, records it for the memory report, and returns the child.
+    fn spawn(&self, role: &str, rss: &mut RssLog) -> anyhow::Result<Child> {
+        let child = self.command(role).spawn().with_context(|| format!("cannot start {role}"))?;
+        rss.track(role, child.id());
+        Ok(child)
     }
+}
+
+/// Runs the four processes to the end of the scenario.
+pub fn run(args: &RunArgs) -> anyhow::Result<()> {
+    let scenario = args.role.scenario()?;
+    for w in &scenario.warnings {
+        eprintln!("warning: {w}");
+    }
+    let faults = args.fault.iter().map(|f| parse_fault(f)).collect::<Result<Vec<_>, _>>()?;
+    let corrupt = args.corrupt.iter().map(|c| parse_corrupt(c)).collect::<Result<Vec<_>, _>>()?;
+    let mut role_args = args.role.clone();
+    role_args.domain.get_or_insert_with(|| format!("run-{}", std::process::id()));
+    let domain = role_args.open_domain()?;
+    let pins = args.pin.as_deref().map(parse_pins).transpose()?.unwrap_or_default();
+    std::fs::create_dir_all(&args.out)
+        .with_context(|| format!("cannot create {}", args.out.display()))?;
+    let exe = std::env::current_exe().context("cannot find the rotorloop executable")?;
+    install_signal_handlers();
+    // Nothing of this domain may be alive: clear what an earlier, killed run left
+    // (including resume slots, which would otherwise be taken for a restart).
+    let (_, alive) = domain.cleanup()?;
+    if alive > 0 {
+        let name = domain.name();
+        let msg = format!(
+            "domain `{name}` is in use by {alive} running process(es); choose another --domain"
+        );
+        return Err(UsageError(msg).into());
+    }
+    let launch = Launch { args, role_args, pins, corrupt, exe };
+    let mut rss = RssLog::create(&args.out)?;
+    let mut children = Children::default();
+    for role in ROLES.iter().filter(|r| **r != "monitor" || !args.no_monitor) {
+        children.0.push((role.to_string(), launch.spawn(role, &mut rss)?));
+    }
+    let supervised =
+        supervise(&launch, &domain, &mut children, &mut rss, FaultSchedule::new(faults));
     drop(children);
     // Everything of this domain is gone now: remove what iceoryx2 keeps after its nodes.
     if let Err(e) = domain.cleanup() {
         eprintln!("warning: cleaning up domain {}: {e}", domain.name());
     }
-    if let Some(f) = failures.first() {
-        anyhow::bail!("{f}; the run was stopped ({} failed)", failures.join(", "));
+    let events = supervised?;
+    report(&launch, &scenario, &rss, &events)
+}
+
+/// Runs the fault schedule, samples memory, and waits for every child; on a signal or a
+/// child's failure, forwards SIGTERM, then SIGKILL after 10 s. Returns the faults as they
+/// happened, or the first failure.
+fn supervise(
+    launch: &Launch,
+    domain: &Domain,
+    children: &mut Children,
+    rss: &mut RssLog,
+    mut schedule: FaultSchedule,
+) -> anyhow::Result<Vec<FaultEvent>> {
+    // The fault clock starts when the plant has published tick 0 (its resume slot is
+    // written just before each publish).
+    let plant_slot =
+        ResumeSlot::<StateSample>::open(domain, "plant").context("the plant's resume slot")?;
+    let (mut run_t0, mut term_sent_at): (Option<u64>, Option<u64>) = (None, None);
+    let (mut events, mut failures) = (Vec::<FaultEvent>::new(), Vec::<String>::new());
+    loop {
+        if run_t0.is_none() && plant_slot.load().is_some() {
+            run_t0 = Some(now_ns());
+        }
+        let elapsed =
+            run_t0.map(|r| (now_ns() - r) as f64 / 1e9).filter(|_| term_sent_at.is_none());
+        for action in schedule.due(elapsed) {
+            let at = elapsed.unwrap_or_default();
+            match action {
+                Action::Kill(role) => {
+                    if let Some(c) = children.get_mut(&role) {
+                        signal(c, libc::SIGKILL);
+                        let _ = c.wait(); // reap: an unreaped zombie can delay dead-node detection
+                        eprintln!("launcher: killed {role} (SIGKILL) at {at:.3} s");
+                        events.push(FaultEvent { role, kill_ns: now_ns(), restart_ns: None });
+                    }
+                }
+                Action::Restart(role) => {
+                    let child = launch
+                        .spawn(&role, rss)
+                        .with_context(|| format!("cannot restart {role}"))?;
+                    if let Some(c) = children.get_mut(&role) {
+                        *c = child;
+                    }
+                    if let Some(e) = events.iter_mut().rev().find(|e| e.role == role) {
+                        e.restart_ns = Some(now_ns());
+                    }
+                    eprintln!("launcher: restarted {role} at {at:.3} s");
+                }
+            }
+        }
+        rss.sample_if_due()?;
+        let mut running = 0;
+        for (role, c) in &mut children.0 {
+            match c.try_wait() {
+                Ok(None) => running += 1,
+                Ok(Some(st)) => {
+                    let ours = events.iter().any(|e| e.role == *role);
+                    if let Some(msg) = exit_verdict(role, st, ours, term_sent_at.is_some()) {
+                        if !failures.contains(&msg) {
+                            failures.push(msg);
+                        }
+                    }
+                }
+                Err(_) => {}
+            }
+        }
+        if running == 0 && (!schedule.awaiting_restart() || term_sent_at.is_some()) {
+            break;
+        }
+        if (shutdown_requested() || !failures.is_empty()) && term_sent_at.is_none() {
+            term_sent_at = Some(now_ns());
+            children.signal_all(libc::SIGTERM);
+        }
+        if term_sent_at.is_some_and(|t| now_ns() - t > 10_000_000_000) {
+            children.signal_all(libc::SIGKILL);
+        }
+        std::thread::sleep(Duration::from_millis(2));
     }
+    match failures.first() {
+        Some(f) => anyhow::bail!("{f}; the run was stopped ({} failed)", failures.join(", ")),
+        None => Ok(events),
+    }
+}
+
+/// After the run: memory figures into `summary.json` and on the console, the fault report.
+fn report(
+    launch: &Launch,
+    scenario: &rotorloop_common::Scenario,
+    rss: &RssLog,
+    events: &[FaultEvent],
+) -> anyhow::Result<()> {
+    let args = launch.args;
     if !args.no_monitor {
-        add_resources(&args.out, &rss).context("resource report")?;
+        add_resources(&args.out, &rss.tracks).context("resource report")?;
     }
     if !args.quiet {
-        for (role, r) in &rss {
+        for (role, r) in &rss.tracks {
             let [a0, f0, s0] = r.start_parts_kib;
             let [a1, f1, s1] = r.end_parts_kib;
             println!(
@@ -460,8 +397,7 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
         }
     }
     if !events.is_empty() && !args.no_monitor {
-        crate::faults::report(&args.out, &role_args.scenario()?, &events)
-            .context("fault report")?;
+        crate::faults::report(&args.out, scenario, events).context("fault report")?;
     }
     if shutdown_requested() {
         eprintln!("stopped by signal; partial report in {}", args.out.display());
@@ -469,6 +405,46 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
         println!("report: {}", args.out.display());
     }
     Ok(())
+}
+
+/// Each role's resident memory, sampled once a second into `rss.csv`.
+struct RssLog {
+    tracks: BTreeMap<String, RssTrack>,
+    csv: std::io::BufWriter<std::fs::File>,
+    t0: u64,
+    next_ns: u64,
+}
+
+impl RssLog {
+    fn create(out: &std::path::Path) -> anyhow::Result<Self> {
+        use std::io::Write;
+        let path = out.join("rss.csv");
+        let f = std::fs::File::create(&path)
+            .with_context(|| format!("cannot write {}", path.display()))?;
+        let mut csv = std::io::BufWriter::new(f);
+        writeln!(csv, "t_s,role,pid,rss_kib,anon_kib,file_kib,shmem_kib")?;
+        Ok(Self { tracks: BTreeMap::new(), csv, t0: now_ns(), next_ns: now_ns() })
+    }
+
+    /// A new life of `role` (its figures are of its last life).
+    fn track(&mut self, role: &str, pid: u32) {
+        self.tracks.insert(role.to_owned(), RssTrack::new(pid));
+    }
+
+    fn sample_if_due(&mut self) -> anyhow::Result<()> {
+        use std::io::Write;
+        if now_ns() < self.next_ns {
+            return Ok(());
+        }
+        self.next_ns += 1_000_000_000;
+        let t = (now_ns() - self.t0) as f64 / 1e9;
+        for (role, track) in self.tracks.iter_mut() {
+            if let Some((kib, [anon, file, shmem])) = track.sample() {
+                writeln!(self.csv, "{t:.1},{role},{},{kib},{anon},{file},{shmem}", track.pid)?;
+            }
+        }
+        Ok(self.csv.flush()?)
+    }
 }
 
 /// Adds the per-role memory figures to `out/summary.json` as `resources`.

