@@ -21,7 +21,7 @@ use rotorloop_common::ReferenceState;
 use rotorloop_common::role::SeqCounter;
 use rotorloop_common::so3::exp;
 use rotorloop_common::wire::{
-    ReferenceSample, StateSample, TORQUE_SKIPPED, TorqueSample, WireFault,
+    FLAG_LAST, ReferenceSample, StateSample, TORQUE_SKIPPED, TorqueSample, WireFault,
 };
 
 use crate::GeometricPid;
@@ -66,9 +66,9 @@ impl ReferencePairing {
         }
     }
 
-    /// Continues the counts of a killed predecessor.
-    pub fn resume(&mut self, misses: u64, rejected: u64) {
-        (self.misses, self.rejected) = (misses, rejected);
+    /// Continues the counts of a killed predecessor, from its last answer `t`.
+    pub fn resume(&mut self, t: &TorqueSample) {
+        (self.misses, self.rejected) = (t.reference_misses, t.references_rejected);
     }
 
     /// A reference sample arrived: validated, stored by tick (or marked rejected).
@@ -175,6 +175,8 @@ pub enum Decision {
     Answer {
         /// Why the state cannot be used, if it was rejected.
         fault: Option<WireFault>,
+        /// This is the first rejected state of this controller's life (worth a log line).
+        first_rejection: bool,
     },
 }
 
@@ -186,13 +188,31 @@ pub struct TorqueAnswers {
     skipped: u64,
     published: u64,
     rejected: u64,
+    rejection_seen: bool,
     last: Option<TorqueSample>,
+    unanswered: Option<u64>,
 }
 
 impl TorqueAnswers {
     /// Answers with the law `pid`.
     pub fn new(pid: GeometricPid) -> Self {
-        Self { pid, seq: SeqCounter::default(), skipped: 0, published: 0, rejected: 0, last: None }
+        Self {
+            pid,
+            seq: SeqCounter::default(),
+            skipped: 0,
+            published: 0,
+            rejected: 0,
+            rejection_seen: false,
+            last: None,
+            unanswered: None,
+        }
+    }
+
+    /// Test hook: never answers the state of tick `tick` (unless it is the last), as when
+    /// a newer state superseded it in the inbox under load; it is counted skipped.
+    pub fn leaving_unanswered(mut self, tick: Option<u64>) -> Self {
+        self.unanswered = tick;
+        self
     }
 
     /// The law of `scenario` (gains, the controller's body model, actuator limits and
@@ -228,20 +248,21 @@ impl TorqueAnswers {
         self.skipped += u64::from(newest_so_far);
     }
 
-    /// Counts a state deliberately left unanswered (a test hook's superseded state).
-    pub fn skip(&mut self) {
-        self.skipped += 1;
-    }
-
     /// What the newest state `s` gets.
     pub fn decide(&mut self, s: &StateSample) -> Decision {
+        if self.unanswered == Some(s.tick) && s.flags & FLAG_LAST == 0 {
+            self.skipped += 1;
+            return Decision::Ignore;
+        }
         match self.last.filter(|t| t.tick >= s.tick) {
             Some(prev) if prev.tick == s.tick => Decision::AnswerAgain(prev),
             Some(_) => Decision::Ignore,
             None => {
                 let fault = s.validate().err();
                 self.rejected += u64::from(fault.is_some());
-                Decision::Answer { fault }
+                let first_rejection = fault.is_some() && !self.rejection_seen;
+                self.rejection_seen |= fault.is_some();
+                Decision::Answer { fault, first_rejection }
             }
         }
     }
@@ -380,7 +401,7 @@ mod tests {
         let (mut a, s0) = answers();
         let p = ReferencePairing::new(10, DT);
         let rd = reference(0, 0.1).reference_state();
-        assert_eq!(a.decide(&s0), Decision::Answer { fault: None });
+        assert_eq!(a.decide(&s0), Decision::Answer { fault: None, first_rejection: false });
         let first = a.answer(&s0, 5, Some(&rd), &p, DT);
         assert_eq!(a.decide(&s0), Decision::AnswerAgain(first));
         let older = StateSample { tick: 0, ..s0 };
@@ -398,7 +419,9 @@ mod tests {
         let t0 = a.answer(&s0, 0, Some(&rd), &p, DT);
         let mut bad = StateSample { tick: 1, ..s0 };
         bad.omega_body_rad_s[1] = f64::INFINITY;
-        let Decision::Answer { fault: Some(f) } = a.decide(&bad) else { panic!("not rejected") };
+        let Decision::Answer { fault: Some(f), first_rejection: true } = a.decide(&bad) else {
+            panic!("not rejected")
+        };
         assert_eq!(f.kind(), "non-finite");
         let t1 = a.answer(&bad, 0, None, &p, DT);
         assert_eq!(t1.flags, TORQUE_SKIPPED);
@@ -419,6 +442,17 @@ mod tests {
     }
 
     #[test]
+    fn a_state_left_unanswered_by_the_test_hook_is_counted_skipped_unless_last() {
+        let (a, s0) = answers();
+        let mut a = a.leaving_unanswered(Some(2));
+        assert_eq!(a.decide(&StateSample { tick: 2, ..s0 }), Decision::Ignore);
+        let last = StateSample { tick: 2, flags: FLAG_LAST, ..s0 };
+        assert!(matches!(a.decide(&last), Decision::Answer { .. }));
+        let t = a.answer(&last, 0, None, &ReferencePairing::new(1, DT), DT);
+        assert_eq!(t.states_skipped, 1);
+    }
+
+    #[test]
     fn a_restart_resumes_the_integral_state_bumplessly() {
         let (mut a, s0) = answers();
         let p = ReferencePairing::new(10, DT);
@@ -430,7 +464,7 @@ mod tests {
         let (mut b, _) = answers();
         b.resume(&last);
         let s5 = StateSample { tick: 5, ..s0 };
-        assert_eq!(b.decide(&s5), Decision::Answer { fault: None });
+        assert_eq!(b.decide(&s5), Decision::Answer { fault: None, first_rejection: false });
         let (ta, tb) = (a.answer(&s5, 0, Some(&rd), &p, DT), b.answer(&s5, 0, Some(&rd), &p, DT));
         assert_eq!(format!("{ta:?}"), format!("{tb:?}"));
     }

@@ -31,19 +31,17 @@ pub fn run(args: &ControllerArgs) -> anyhow::Result<()> {
     let slot = ResumeSlot::<TorqueSample>::open(&domain, "controller").context("controller")?;
     let mut plant = PlantWatch::open(&domain, "controller").context("controller")?;
     let dt = scenario.dt();
-    let mut answers = TorqueAnswers::for_scenario(&scenario);
+    let skip_at = test_hook("ROTORLOOP_TEST_SKIP_STATE_AT");
+    let mut answers = TorqueAnswers::for_scenario(&scenario).leaving_unanswered(skip_at);
     let mut pairing = ReferencePairing::new(args.reference_hold_ticks, dt);
     if let Some(t) = slot.load().filter(|t| t.tick < scenario.ticks()) {
         answers.resume(&t);
-        pairing.resume(t.reference_misses, t.references_rejected);
+        pairing.resume(&t);
         eprintln!("controller: resuming after tick {} with its last integral state", t.tick);
     }
-    // Test hooks: stall holding a loan at this tick (first incarnation only); never answer
-    // the state of that tick, as when a newer state superseded it under load.
+    // Test hook: a first incarnation stalls holding a loan at this tick, to be killed so.
     let stall_at =
         test_hook("ROTORLOOP_TEST_STALL_WITH_LOAN_AT").filter(|_| answers.last().is_none());
-    let skip_at = test_hook("ROTORLOOP_TEST_SKIP_STATE_AT");
-    let mut rejection_logged = false;
     loop {
         let state = states.wait_for(role.wait, now_ns() + 100_000_000, |inbox| {
             let mut newest: Option<(StateSample, u64)> = None;
@@ -65,21 +63,18 @@ pub fn run(args: &ControllerArgs) -> anyhow::Result<()> {
             out.stall_holding_a_loan()?;
             break;
         }
-        if skip_at == Some(k) && state.flags & FLAG_LAST == 0 {
-            answers.skip();
-            continue;
-        }
         let fault = match answers.decide(&state) {
             Decision::AnswerAgain(prev) => {
                 out.send(prev, |s| s.publish_ns = now_ns()).context("controller: re-publishing")?;
                 continue;
             }
             Decision::Ignore => continue,
-            Decision::Answer { fault } => fault,
+            Decision::Answer { fault: Some(f), first_rejection: true } => {
+                eprintln!("controller: rejected the state of tick {k}: {f} (skipping; counted)");
+                Some(f)
+            }
+            Decision::Answer { fault, .. } => fault,
         };
-        if let Some(f) = fault.filter(|_| !std::mem::replace(&mut rejection_logged, true)) {
-            eprintln!("controller: rejected the state of tick {k}: {f} (skipping; counted)");
-        }
         refs.drain(|r| pairing.take(r))?;
         let lockstep = role.mode == Mode::Lockstep;
         let rd = pairing.pair(k, fault.is_none(), lockstep, |p| {
