@@ -25,49 +25,7 @@ pub fn run(out: &Path, duration: f64, rate: f64, in_process: bool) -> anyhow::Re
         let scenario = scenario_with_overrides(name, Some(duration), Some(rate), None)?;
         let dir = if in_process { out.join(name) } else { out.join(name).join("sim") };
         if !in_process {
-            println!("{name}: four processes, real time");
-            let run_dir = out.join(name);
-            let role = crate::process::RoleArgs {
-                domain: None,
-                scenario: name.to_owned(),
-                duration: Some(duration),
-                rate: Some(rate),
-                actuation: None,
-                mode: crate::process::Mode::Realtime,
-                wait: rotorloop_common::ipc::Wait::Event,
-                core: None,
-                rt_priority: None,
-                mlock: false,
-            };
-            crate::launch::run(&crate::launch::RunArgs {
-                role,
-                pin: None,
-                out: run_dir.clone(),
-                no_monitor: false,
-                quiet: false,
-                spin_before_tick_us: 0,
-                hold_ticks: 50,
-                fault: Vec::new(),
-                corrupt: Vec::new(),
-            })
-            .with_context(|| format!("four-process run of {name}"))?;
-            let j: serde_json::Value = serde_json::from_str(
-                &std::fs::read_to_string(run_dir.join("summary.json"))
-                    .with_context(|| format!("no summary of the {name} run"))?,
-            )?;
-            let us = |hop: &str, q: &str| j["hops"][hop][q].as_f64().unwrap_or(f64::NAN) / 1e3;
-            let _ = writeln!(
-                loop_rows,
-                "| {name} | {} | {} | {:.3} | {:.1} | {:.1} | {:.1} | {:.1} | {:.3e} |",
-                j["ticks"],
-                j["misses"],
-                j["achieved_rate_hz"].as_f64().unwrap_or(f64::NAN),
-                us("sense_to_actuate", "p50"),
-                us("sense_to_actuate", "p99"),
-                us("sense_to_actuate", "max"),
-                us("tick_lateness", "p99"),
-                j["err_deg_final"].as_f64().unwrap_or(f64::NAN),
-            );
+            loop_rows.push_str(&four_process_run(out, name, duration, rate)?);
         }
         println!("{name}: in process");
         let (s, rec) = sim::run(&SimOptions {
@@ -139,4 +97,51 @@ pub fn run(out: &Path, duration: f64, rate: f64, in_process: bool) -> anyhow::Re
     std::fs::write(&path, md).with_context(|| format!("cannot write {}", path.display()))?;
     println!("report: {}", path.display());
     Ok(())
+}
+
+/// Runs `name` as the real-time four-process loop into `out/<name>/`; returns its row of
+/// the report's loop table.
+fn four_process_run(out: &Path, name: &str, duration: f64, rate: f64) -> anyhow::Result<String> {
+    println!("{name}: four processes, real time");
+    let run_dir = out.join(name);
+    let role = crate::process::RoleArgs {
+        domain: None,
+        scenario: name.to_owned(),
+        duration: Some(duration),
+        rate: Some(rate),
+        actuation: None,
+        mode: crate::process::Mode::Realtime,
+        wait: rotorloop_common::ipc::Wait::Event,
+        core: None,
+        rt_priority: None,
+        mlock: false,
+    };
+    crate::launch::run(&crate::launch::RunArgs {
+        role,
+        pin: None,
+        out: run_dir.clone(),
+        no_monitor: false,
+        quiet: false,
+        spin_before_tick_us: 0,
+        hold_ticks: 50,
+        fault: Vec::new(),
+        corrupt: Vec::new(),
+    })
+    .with_context(|| format!("four-process run of {name}"))?;
+    let j: serde_json::Value = serde_json::from_str(
+        &std::fs::read_to_string(run_dir.join("summary.json"))
+            .with_context(|| format!("no summary of the {name} run"))?,
+    )?;
+    let us = |hop: &str, q: &str| j["hops"][hop][q].as_f64().unwrap_or(f64::NAN) / 1e3;
+    Ok(format!(
+        "| {name} | {} | {} | {:.3} | {:.1} | {:.1} | {:.1} | {:.1} | {:.3e} |\n",
+        j["ticks"],
+        j["misses"],
+        j["achieved_rate_hz"].as_f64().unwrap_or(f64::NAN),
+        us("sense_to_actuate", "p50"),
+        us("sense_to_actuate", "p99"),
+        us("sense_to_actuate", "max"),
+        us("tick_lateness", "p99"),
+        j["err_deg_final"].as_f64().unwrap_or(f64::NAN),
+    ))
 }

@@ -232,41 +232,10 @@ pub fn run(opts: &SimOptions) -> anyhow::Result<(SimSummary, Recorder)> {
     progress.done();
 
     // The effort comparison: the other actuation on the same reference.
-    let mut effort = None;
-    let mut other_rec = None;
-    if opts.open_loop.is_none() {
-        let other = match actuation {
-            Actuation::Internal => Actuation::External,
-            Actuation::External => Actuation::Internal,
-        };
-        let mut olp = ClosedLoop::new(s, other, None);
-        let mut orec = Recorder::new(ticks + 1);
-        let mut err_diff = 0.0f64;
-        let mut main_err = rec.err_deg.iter();
-        let ostats = drive(&mut olp, ticks, |row, last| {
-            let before = orec.t.len();
-            orec.record(row, last);
-            if orec.t.len() > before {
-                if let Some(e) = main_err.next() {
-                    err_diff = err_diff.max((e - row.err_deg).abs());
-                }
-            }
-            Ok(())
-        })?;
-        let (int, ext) = match actuation {
-            Actuation::Internal => (&stats, &ostats),
-            Actuation::External => (&ostats, &stats),
-        };
-        let n = (ticks + 1) as f64;
-        effort = Some(EffortComparison {
-            internal_u_rms: (int.u_sq / n).sqrt(),
-            internal_u_max: int.u_max,
-            external_tau_rms: (ext.tau_sq / n).sqrt(),
-            external_tau_max: ext.tau_max,
-            err_deg_max_difference: err_diff,
-        });
-        other_rec = Some(orec);
-    }
+    let (effort, other_rec) = match opts.open_loop {
+        None => effort_comparison(s, &stats, &rec).map(|(e, r)| (Some(e), Some(r)))?,
+        Some(_) => (None, None),
+    };
 
     let mut figures = Vec::new();
     if opts.figures {
@@ -394,4 +363,45 @@ impl Progress {
             eprint!("\r{:60}\r", "");
         }
     }
+}
+
+/// Flies the other actuation (rotors ↔ gas jets) on the same reference and compares the
+/// control effort with the run's `stats`; `rec` is the run's recorded error history.
+fn effort_comparison(
+    s: &Scenario,
+    stats: &Stats,
+    rec: &Recorder,
+) -> anyhow::Result<(EffortComparison, Recorder)> {
+    let (actuation, ticks) = (s.actuation(), s.ticks());
+    let other = match actuation {
+        Actuation::Internal => Actuation::External,
+        Actuation::External => Actuation::Internal,
+    };
+    let mut olp = ClosedLoop::new(s, other, None);
+    let mut orec = Recorder::new(ticks + 1);
+    let mut err_diff = 0.0f64;
+    let mut main_err = rec.err_deg.iter();
+    let ostats = drive(&mut olp, ticks, |row, last| {
+        let before = orec.t.len();
+        orec.record(row, last);
+        if orec.t.len() > before {
+            if let Some(e) = main_err.next() {
+                err_diff = err_diff.max((e - row.err_deg).abs());
+            }
+        }
+        Ok(())
+    })?;
+    let (int, ext) = match actuation {
+        Actuation::Internal => (stats, &ostats),
+        Actuation::External => (&ostats, stats),
+    };
+    let n = (ticks + 1) as f64;
+    let effort = EffortComparison {
+        internal_u_rms: (int.u_sq / n).sqrt(),
+        internal_u_max: int.u_max,
+        external_tau_rms: (ext.tau_sq / n).sqrt(),
+        external_tau_max: ext.tau_max,
+        err_deg_max_difference: err_diff,
+    };
+    Ok((effort, orec))
 }

@@ -380,75 +380,9 @@ impl Scenario {
         let reference_torque = torque_profile(&file.reference.torque)?;
 
         let c = &file.controller;
-        for (field, v, allow_zero) in [
-            ("controller.kp", c.kp, false),
-            ("controller.kd", c.kd, false),
-            ("controller.ki", c.ki, true),
-        ] {
-            let ok =
-                v.is_finite() && v <= MAX_MAGNITUDE && if allow_zero { v >= 0.0 } else { v > 0.0 };
-            if !ok {
-                let allowed = if allow_zero {
-                    "a finite number ≥ 0 and ≤ 1e6 (0 switches the integral term off)"
-                } else {
-                    "a finite number > 0 and ≤ 1e6"
-                };
-                return Err(ScenarioError::invalid(field, v, allowed));
-            }
-        }
-        let (p, p_eig) = spd("controller.p", &c.p)?;
-        let gap = (p_eig[1] - p_eig[0]).min(p_eig[2] - p_eig[1]);
-        if gap <= 1e-9 * p_eig[2] {
-            warnings.push(format!(
-                "controller.p: repeated eigenvalues {:?}: ψ is then not a Morse function and its \
-                 critical set at π is not isolated; running it anyway",
-                p_eig
-            ));
-        }
-        if c.kd * c.kp <= c.ki {
-            warnings.push(format!(
-                "controller: k_d k_p = {} ≤ k_I = {}: the linearised closed loop is not Hurwitz; \
-                 expect no convergence",
-                c.kd * c.kp,
-                c.ki
-            ));
-        }
-
+        let (p, p_eig) = controller_gains(c, &mut warnings)?;
         in_range("controller.inertia_factor", c.inertia_factor, INERTIA_FACTOR_RANGE)?;
-        let positive = |field: &str, v: Option<f64>| match v {
-            Some(x) if !(x.is_finite() && x > 0.0 && x <= MAX_MAGNITUDE) => {
-                Err(ScenarioError::invalid(
-                    field,
-                    x,
-                    "a finite number > 0 and ≤ 1e6, or no entry (unlimited)",
-                ))
-            }
-            _ => Ok(v),
-        };
-        let limits = ActuatorLimits {
-            rotor_torque: positive("plant.rotor_torque_limit", file.plant.rotor_torque_limit)?,
-            rotor_rate: positive("plant.rotor_rate_limit", file.plant.rotor_rate_limit)?,
-        };
-        if let Some(w) = limits.rotor_rate {
-            if omega_r0.abs().max_element() > w {
-                return Err(ScenarioError::invalid(
-                    "plant.rotor_rates",
-                    omega_r0.to_array(),
-                    format!("each |Ω_r,i| ≤ plant.rotor_rate_limit = {w}"),
-                ));
-            }
-        }
-        let disturbance = finite_vec(
-            "plant.disturbance_torque",
-            file.plant.disturbance_torque.unwrap_or_default(),
-        )?;
-        if limits.any() && file.run.actuation == Actuation::External {
-            warnings.push(
-                "plant.rotor_torque_limit / rotor_rate_limit limit the rotors; with \
-                 run.actuation = external there are none, so they have no effect"
-                    .to_owned(),
-            );
-        }
+        let (limits, disturbance) = actuators(&file, omega_r0, &mut warnings)?;
 
         let run = &file.run;
         in_range("run.rate_hz", run.rate_hz, RATE_RANGE_HZ)?;
@@ -740,6 +674,89 @@ fn in_range(field: &str, v: f64, (lo, hi): (f64, f64)) -> Result<(), ScenarioErr
         return Err(ScenarioError::invalid(field, v, format!("a finite number from {lo} to {hi}")));
     }
     Ok(())
+}
+
+/// Checks the gains of the law and `P` (symmetric positive definite), and warns about
+/// repeated eigenvalues of `P` and a linearisation that is not Hurwitz.
+fn controller_gains(
+    c: &ControllerFile,
+    warnings: &mut Vec<String>,
+) -> Result<(DMat3, [f64; 3]), ScenarioError> {
+    for (field, v, allow_zero) in [
+        ("controller.kp", c.kp, false),
+        ("controller.kd", c.kd, false),
+        ("controller.ki", c.ki, true),
+    ] {
+        let ok = v.is_finite() && v <= MAX_MAGNITUDE && if allow_zero { v >= 0.0 } else { v > 0.0 };
+        if !ok {
+            let allowed = if allow_zero {
+                "a finite number ≥ 0 and ≤ 1e6 (0 switches the integral term off)"
+            } else {
+                "a finite number > 0 and ≤ 1e6"
+            };
+            return Err(ScenarioError::invalid(field, v, allowed));
+        }
+    }
+    let (p, p_eig) = spd("controller.p", &c.p)?;
+    let gap = (p_eig[1] - p_eig[0]).min(p_eig[2] - p_eig[1]);
+    if gap <= 1e-9 * p_eig[2] {
+        warnings.push(format!(
+            "controller.p: repeated eigenvalues {:?}: ψ is then not a Morse function and its \
+             critical set at π is not isolated; running it anyway",
+            p_eig
+        ));
+    }
+    if c.kd * c.kp <= c.ki {
+        warnings.push(format!(
+            "controller: k_d k_p = {} ≤ k_I = {}: the linearised closed loop is not Hurwitz; \
+             expect no convergence",
+            c.kd * c.kp,
+            c.ki
+        ));
+    }
+    Ok((p, p_eig))
+}
+
+/// Checks the actuator limits (and the initial rotor rates against them) and the
+/// disturbance torque; warns when limits are set for a body without rotors.
+fn actuators(
+    file: &ScenarioFile,
+    omega_r0: DVec3,
+    warnings: &mut Vec<String>,
+) -> Result<(ActuatorLimits, DVec3), ScenarioError> {
+    let positive = |field: &str, v: Option<f64>| match v {
+        Some(x) if !(x.is_finite() && x > 0.0 && x <= MAX_MAGNITUDE) => {
+            Err(ScenarioError::invalid(
+                field,
+                x,
+                "a finite number > 0 and ≤ 1e6, or no entry (unlimited)",
+            ))
+        }
+        _ => Ok(v),
+    };
+    let limits = ActuatorLimits {
+        rotor_torque: positive("plant.rotor_torque_limit", file.plant.rotor_torque_limit)?,
+        rotor_rate: positive("plant.rotor_rate_limit", file.plant.rotor_rate_limit)?,
+    };
+    if let Some(w) = limits.rotor_rate {
+        if omega_r0.abs().max_element() > w {
+            return Err(ScenarioError::invalid(
+                "plant.rotor_rates",
+                omega_r0.to_array(),
+                format!("each |Ω_r,i| ≤ plant.rotor_rate_limit = {w}"),
+            ));
+        }
+    }
+    let disturbance =
+        finite_vec("plant.disturbance_torque", file.plant.disturbance_torque.unwrap_or_default())?;
+    if limits.any() && file.run.actuation == Actuation::External {
+        warnings.push(
+            "plant.rotor_torque_limit / rotor_rate_limit limit the rotors; with \
+             run.actuation = external there are none, so they have no effect"
+                .to_owned(),
+        );
+    }
+    Ok((limits, disturbance))
 }
 
 #[cfg(test)]
