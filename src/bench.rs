@@ -356,15 +356,11 @@ fn measure_loop(
         mlock: false,
     };
     crate::launch::run(&RunArgs {
-        role,
         pin,
-        out: out.clone(),
         no_monitor: without_monitor,
         quiet: true,
         spin_before_tick_us: a.spin_before_tick_us,
-        hold_ticks: 50,
-        fault: Vec::new(),
-        corrupt: Vec::new(),
+        ..RunArgs::defaults(role, out.clone())
     })?;
     if without_monitor {
         // No monitor, no summary: the plant's own histogram of the loop.

@@ -177,6 +177,8 @@ pub fn main() -> ExitCode {
             eprintln!("error: {e:#}");
             if e.downcast_ref::<UsageError>().is_some() {
                 ExitCode::from(2)
+            } else if e.downcast_ref::<crate::launch::RunEnd>().is_some() {
+                ExitCode::from(3)
             } else {
                 ExitCode::FAILURE
             }

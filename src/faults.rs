@@ -20,8 +20,14 @@ pub const RECOVERED_DEG: f64 = 0.1;
 /// One fault's cost.
 #[derive(Debug, Clone, Serialize)]
 pub struct FaultReport {
-    /// The role killed.
+    /// The role.
     pub role: String,
+    /// `kill` or `stop` (injected by `--fault`); `killed` (SIGKILL by anyone else),
+    /// `crash` (another signal or a non-zero exit), `exited` (a clean exit restarted by
+    /// `--restart always`) or `hang` (the watchdog found it making no progress).
+    pub kind: &'static str,
+    /// What happened, in words: the exit status, what the watchdog and the supervisor did.
+    pub detail: String,
     /// Kill time (s after the first tick was published).
     pub kill_s: f64,
     /// Restart time (s), if restarted.
@@ -123,6 +129,8 @@ pub fn report(
         let kill_t = errors.get(&from).map_or(0.0, |(t, _)| *t);
         reports.push(FaultReport {
             role: e.role.clone(),
+            kind: e.kind,
+            detail: e.detail.clone(),
             kill_s: e.kill_ns.saturating_sub(t0) as f64 / 1e9,
             restart_s: e.restart_ns.map(|r| r.saturating_sub(t0) as f64 / 1e9),
             kill_tick,
@@ -154,7 +162,7 @@ pub fn report(
     for r in &reports {
         let at = |k: Option<u64>| k.and_then(|k| errors.get(&k)).map(|(t, _)| *t);
         if let Some(t) = at(r.kill_tick) {
-            markers.push((format!("kill {}", r.role), vec![(t, 1e-6), (t, top)]));
+            markers.push((format!("{} {}", r.kind, r.role), vec![(t, 1e-6), (t, top)]));
         }
         let restart_tick =
             r.restart_s.and_then(|_| r.kill_tick.map(|k| k + r.ticks_without_fresh_torque));

@@ -9,15 +9,21 @@ use std::time::Duration;
 
 use anyhow::Context;
 use clap::Args;
+use rotorloop_common::ipc::REFERENCE_LEAD;
 use rotorloop_common::ipc::{install_signal_handlers, now_ns, shutdown_requested};
 use rotorloop_common::resume::ResumeSlot;
-use rotorloop_common::wire::StateSample;
+use rotorloop_common::wire::{FLAG_LAST, StateSample, TorqueSample};
+use rotorloop_monitor::policy::MonitorResume;
+use rotorloop_reference::policy::ReferenceResume;
 
 use rotorloop_common::ipc::Domain;
 
 use crate::UsageError;
-use crate::process::{Corrupt, RoleArgs};
-use crate::supervise::{Action, Children, FaultSchedule, exit_verdict, signal};
+use crate::process::{Corrupt, Mode, RoleArgs};
+use crate::supervise::{
+    Action, Children, Ending, FaultSchedule, Marks, RestartLimit, Supervisor, Verdict, Watchdog,
+    parse_restart, signal,
+};
 pub use crate::supervise::{Fault, ROLES, parse_fault};
 
 /// `rotorloop run` arguments.
@@ -55,6 +61,39 @@ pub struct RunArgs {
     /// The receivers must reject it. Repeatable.
     #[arg(long)]
     pub corrupt: Vec<String>,
+    /// Restart policy for a role that exits abnormally, is killed by anyone or hangs:
+    /// `on-failure`, `always` (also after a clean exit before the run's end) or `never`,
+    /// for every role, per role (`monitor=always,plant=never`), or both (`never,monitor=always`).
+    #[arg(long, default_value = "on-failure")]
+    pub restart: String,
+    /// Restart intensity limit `N/SECONDS`: a role restarted more than N times within that
+    /// many seconds stops the run (the monitor is then given up instead; the loop goes on).
+    #[arg(long, default_value = "5/10")]
+    pub restart_limit: String,
+    /// A role with work waiting that makes no progress (its resume slot does not move) for
+    /// this many milliseconds is killed and restarted by its policy (0: no watchdog).
+    #[arg(long, allow_negative_numbers = true, default_value_t = 3000)]
+    pub watchdog_ms: u64,
+}
+
+impl RunArgs {
+    /// The defaults of every launcher option, for `role` into `out` (paper, bench).
+    pub fn defaults(role: RoleArgs, out: PathBuf) -> Self {
+        Self {
+            role,
+            pin: None,
+            out,
+            no_monitor: false,
+            quiet: false,
+            spin_before_tick_us: 0,
+            hold_ticks: 50,
+            fault: Vec::new(),
+            corrupt: Vec::new(),
+            restart: "on-failure".into(),
+            restart_limit: "5/10".into(),
+            watchdog_ms: 3000,
+        }
+    }
 }
 
 /// Parses `--corrupt ROLE:KIND@TICK`.
@@ -96,14 +135,19 @@ fn stop_with_parent(cmd: &mut Command) {
     }
 }
 
-/// A fault as it happened (monotonic ns).
+/// A fault as it happened (monotonic ns): injected (`kill`, `stop`) or not (`killed`,
+/// `crash`, `exited`, `hang`: what the supervisor saw).
 #[derive(Debug, Clone, PartialEq)]
 pub struct FaultEvent {
-    /// The role killed.
+    /// The role.
     pub role: String,
-    /// When it was killed.
+    /// `kill` or `stop` (injected by `--fault`), `killed`, `crash`, `exited` or `hang`.
+    pub kind: &'static str,
+    /// What happened, in words (the exit status, what the watchdog did).
+    pub detail: String,
+    /// When it was killed, stopped, or found dead or hung.
     pub kill_ns: u64,
-    /// When it was started again.
+    /// When it was started again (or continued).
     pub restart_ns: Option<u64>,
 }
 
@@ -199,6 +243,14 @@ impl RssTrack {
     }
 }
 
+/// How a run ended without completing its control loop (mapped to exit codes by the CLI).
+#[derive(Debug, thiserror::Error)]
+pub enum RunEnd {
+    /// SIGINT or SIGTERM before the plant's last tick: exit code 3.
+    #[error("the run was stopped by a signal before its last tick")]
+    StoppedBySignal,
+}
+
 /// What the launcher starts, and how: the roles' arguments, pins, corruptions, and the
 /// executable they run from (this one, so the four are always the same build).
 struct Launch<'a> {
@@ -277,7 +329,7 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
         return Err(UsageError(msg).into());
     }
     let launch = Launch { args, role_args, pins, corrupt, exe };
-    let mut rss = RssLog::create(&args.out)?;
+    let mut rss = RssLog::create(&args.out);
     let mut children = Children::default();
     for role in ROLES.iter().filter(|r| **r != "monitor" || !args.no_monitor) {
         children.0.push((role.to_string(), launch.spawn(role, &mut rss)?));
@@ -293,9 +345,57 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
     report(&launch, &scenario, &rss, &events)
 }
 
-/// Runs the fault schedule, samples memory, and waits for every child; on a signal or a
-/// child's failure, forwards SIGTERM, then SIGKILL after 10 s. Returns the faults as they
-/// happened, or the first failure.
+/// Where each role stands, from the resume slots (what the watchdog reads).
+struct Progress {
+    plant: ResumeSlot<StateSample>,
+    controller: ResumeSlot<TorqueSample>,
+    reference: ResumeSlot<ReferenceResume>,
+    monitor: ResumeSlot<MonitorResume>,
+}
+
+impl Progress {
+    fn open(domain: &Domain) -> anyhow::Result<Self> {
+        let ctx = "the resume slots";
+        Ok(Self {
+            plant: ResumeSlot::open(domain, "plant").context(ctx)?,
+            controller: ResumeSlot::open(domain, "controller").context(ctx)?,
+            reference: ResumeSlot::open(domain, "reference").context(ctx)?,
+            monitor: ResumeSlot::open(domain, "monitor").context(ctx)?,
+        })
+    }
+
+    fn marks(&self) -> Marks {
+        Marks {
+            plant: self.plant.load().map(|s| s.tick),
+            controller: self.controller.load().map(|t| t.tick),
+            reference_next: self.reference.load().map(|r| r.next()),
+            monitor_next: self.monitor.load().map(|m| m.next_row),
+        }
+    }
+
+    /// The plant has published its last tick: the control loop is complete.
+    fn loop_complete(&self) -> bool {
+        self.plant.load().is_some_and(|s| s.flags & FLAG_LAST != 0)
+    }
+}
+
+/// What the supervision loop keeps between polls.
+struct Watch {
+    events: Vec<FaultEvent>,
+    failures: Vec<String>,
+    /// Roles waiting to be started again, and when (s after tick 0).
+    restarts: BTreeMap<String, f64>,
+    /// Pids whose end has been dealt with.
+    handled: std::collections::BTreeSet<u32>,
+    /// Pids killed by the schedule or the watchdog (their SIGKILL is not a new fault).
+    planned: std::collections::BTreeSet<u32>,
+    /// The pid stopped by each `stop` fault.
+    stopped: BTreeMap<String, u32>,
+}
+
+/// Runs the fault schedule, the restart policy and the watchdog, samples memory, and
+/// waits for every child; on a signal or a failure, forwards SIGTERM, then SIGKILL after
+/// 10 s. Returns the faults as they happened, or the first failure.
 fn supervise(
     launch: &Launch,
     domain: &Domain,
@@ -303,64 +403,128 @@ fn supervise(
     rss: &mut RssLog,
     mut schedule: FaultSchedule,
 ) -> anyhow::Result<Vec<FaultEvent>> {
+    let args = launch.args;
+    let policies = parse_restart(&args.restart)?;
+    let limit: RestartLimit =
+        args.restart_limit.parse().map_err(|e| UsageError(format!("--restart-limit {e}")))?;
+    let mut supervisor = Supervisor::new(policies, limit);
+    let mut watchdog = Watchdog::new(args.watchdog_ms as f64 / 1e3);
+    let lockstep = launch.role_args.mode == Mode::Lockstep;
     // The fault clock starts when the plant has published tick 0 (its resume slot is
     // written just before each publish).
-    let plant_slot =
-        ResumeSlot::<StateSample>::open(domain, "plant").context("the plant's resume slot")?;
+    let progress = Progress::open(domain)?;
     let (mut run_t0, mut term_sent_at): (Option<u64>, Option<u64>) = (None, None);
-    let (mut events, mut failures) = (Vec::<FaultEvent>::new(), Vec::<String>::new());
+    let mut w = Watch {
+        events: Vec::new(),
+        failures: Vec::new(),
+        restarts: BTreeMap::new(),
+        handled: Default::default(),
+        planned: Default::default(),
+        stopped: BTreeMap::new(),
+    };
+    let launched_ns = now_ns();
     loop {
-        if run_t0.is_none() && plant_slot.load().is_some() {
+        if run_t0.is_none() && progress.plant.load().is_some() {
             run_t0 = Some(now_ns());
         }
-        let elapsed =
-            run_t0.map(|r| (now_ns() - r) as f64 / 1e9).filter(|_| term_sent_at.is_none());
+        // Seconds since tick 0 (before it: negative, since the launch).
+        let now_s = (now_ns() as f64 - run_t0.unwrap_or(launched_ns) as f64) / 1e9;
+        let stopping = term_sent_at.is_some();
+        let elapsed = run_t0.map(|_| now_s).filter(|_| !stopping);
         for action in schedule.due(elapsed) {
-            let at = elapsed.unwrap_or_default();
-            match action {
-                Action::Kill(role) => {
-                    if let Some(c) = children.get_mut(&role) {
-                        signal(c, libc::SIGKILL);
-                        let _ = c.wait(); // reap: an unreaped zombie can delay dead-node detection
-                        eprintln!("launcher: killed {role} (SIGKILL) at {at:.3} s");
-                        events.push(FaultEvent { role, kill_ns: now_ns(), restart_ns: None });
-                    }
-                }
-                Action::Restart(role) => {
-                    let child = launch
-                        .spawn(&role, rss)
-                        .with_context(|| format!("cannot restart {role}"))?;
-                    if let Some(c) = children.get_mut(&role) {
-                        *c = child;
-                    }
-                    if let Some(e) = events.iter_mut().rev().find(|e| e.role == role) {
-                        e.restart_ns = Some(now_ns());
-                    }
-                    eprintln!("launcher: restarted {role} at {at:.3} s");
+            injected(launch, children, rss, &mut w, &mut watchdog, action, now_s)?;
+        }
+        let complete = progress.loop_complete();
+        if !stopping && run_t0.is_some() && !complete {
+            let marks = progress.marks();
+            for role in ROLES {
+                let pid = children.get_mut(role).map(|c| c.id());
+                let alive = pid.is_some_and(|p| !w.handled.contains(&p));
+                let pending = alive && marks.work_waiting(role, lockstep, REFERENCE_LEAD);
+                if watchdog.check(role, marks.of(role), pending, now_s) {
+                    let c = children.get_mut(role).expect("alive");
+                    w.planned.insert(c.id());
+                    signal(c, libc::SIGKILL);
+                    let ms = args.watchdog_ms;
+                    eprintln!(
+                        "launcher: {role} made no progress for {ms} ms with work waiting: hung; killed (SIGKILL) at {now_s:.3} s"
+                    );
+                    let detail = format!("no progress for {ms} ms; killed by the watchdog");
+                    w.events.push(FaultEvent {
+                        role: role.into(),
+                        kind: "hang",
+                        detail,
+                        kill_ns: now_ns(),
+                        restart_ns: None,
+                    });
+                    let verdict =
+                        supervisor.on_end(role, Ending::Hang, "hung", None, now_s, complete);
+                    decide(role, verdict, &mut w, now_s);
                 }
             }
         }
-        rss.sample_if_due()?;
+        let due: Vec<String> = w
+            .restarts
+            .iter()
+            .filter(|(_, at)| **at <= now_s && !stopping)
+            .map(|(r, _)| r.clone())
+            .collect();
+        for role in due {
+            w.restarts.remove(&role);
+            if let Some(c) = children.get_mut(&role) {
+                let _ = c.wait(); // reap the dead one first
+            }
+            let child =
+                launch.spawn(&role, rss).with_context(|| format!("cannot restart {role}"))?;
+            if let Some(c) = children.get_mut(&role) {
+                *c = child;
+            }
+            watchdog.reset(&role, now_s);
+            if let Some(e) = w.events.iter_mut().rev().find(|e| e.role == role) {
+                e.restart_ns = Some(now_ns());
+            }
+            eprintln!("launcher: restarted {role} at {now_s:.3} s");
+        }
+        rss.sample_if_due();
         let mut running = 0;
         for (role, c) in &mut children.0 {
+            let pid = c.id();
             match c.try_wait() {
                 Ok(None) => running += 1,
-                Ok(Some(st)) => {
-                    let ours = events.iter().any(|e| e.role == *role);
-                    if let Some(msg) = exit_verdict(role, st, ours, term_sent_at.is_some()) {
-                        if !failures.contains(&msg) {
-                            failures.push(msg);
-                        }
+                Ok(Some(st)) if w.handled.insert(pid) && !w.planned.contains(&pid) && !stopping => {
+                    let how = Ending::of(st);
+                    if how != Ending::Exited {
+                        eprintln!("launcher: {role} {} ({st}) at {now_s:.3} s", how.name());
+                        let detail = st.to_string();
+                        w.events.push(FaultEvent {
+                            role: role.clone(),
+                            kind: how.name(),
+                            detail,
+                            kill_ns: now_ns(),
+                            restart_ns: None,
+                        });
                     }
+                    let what = format!("exited with {st}");
+                    let verdict = supervisor.on_end(
+                        role,
+                        how,
+                        &what,
+                        st.code(),
+                        now_s,
+                        progress.loop_complete(),
+                    );
+                    decide(role, verdict, &mut w, now_s);
                 }
-                Err(_) => {}
+                _ => {}
             }
         }
-        if running == 0 && (!schedule.awaiting_restart() || term_sent_at.is_some()) {
+        let awaiting = schedule.awaiting_restart() || !w.restarts.is_empty();
+        if running == 0 && (!awaiting || stopping) {
             break;
         }
-        if (shutdown_requested() || !failures.is_empty()) && term_sent_at.is_none() {
+        if (shutdown_requested() || !w.failures.is_empty()) && !stopping {
             term_sent_at = Some(now_ns());
+            children.signal_all(libc::SIGCONT); // a stopped child must see the SIGTERM
             children.signal_all(libc::SIGTERM);
         }
         if term_sent_at.is_some_and(|t| now_ns() - t > 10_000_000_000) {
@@ -368,10 +532,112 @@ fn supervise(
         }
         std::thread::sleep(Duration::from_millis(2));
     }
-    match failures.first() {
-        Some(f) => anyhow::bail!("{f}; the run was stopped ({} failed)", failures.join(", ")),
-        None => Ok(events),
+    match w.failures.first() {
+        Some(f) => anyhow::bail!("{f}; the run was stopped ({} failed)", w.failures.join(", ")),
+        None => Ok(w.events),
     }
+}
+
+/// Carries out the supervisor's verdict on `role`. The monitor is an observer: when it may
+/// not be restarted again, the loop goes on without it.
+fn decide(role: &str, verdict: Verdict, w: &mut Watch, now_s: f64) {
+    match verdict {
+        Verdict::Done => {}
+        Verdict::Restart { at_s } => {
+            if at_s > now_s {
+                eprintln!("launcher: restarting {role} in {:.1} s (backoff)", at_s - now_s);
+            }
+            w.restarts.insert(role.to_owned(), at_s);
+        }
+        Verdict::Fail(msg) if role == "monitor" => {
+            eprintln!("launcher: {msg}; the loop goes on without a monitor");
+            if let Some(e) = w.events.last_mut().filter(|e| e.role == role) {
+                e.detail = format!("{}; given up: {msg}", e.detail);
+            }
+        }
+        Verdict::Fail(msg) => w.failures.push(msg),
+    }
+}
+
+/// Carries out one action of the `--fault` schedule.
+fn injected(
+    launch: &Launch,
+    children: &mut Children,
+    rss: &mut RssLog,
+    w: &mut Watch,
+    watchdog: &mut Watchdog,
+    action: Action,
+    at: f64,
+) -> anyhow::Result<()> {
+    match action {
+        Action::Kill(role) => {
+            if let Some(c) = children.get_mut(&role) {
+                w.planned.insert(c.id());
+                signal(c, libc::SIGKILL);
+                let _ = c.wait(); // reap: an unreaped zombie can delay dead-node detection
+                eprintln!("launcher: killed {role} (SIGKILL) at {at:.3} s");
+                let detail = "SIGKILL (--fault)".to_owned();
+                w.events.push(FaultEvent {
+                    role,
+                    kind: "kill",
+                    detail,
+                    kill_ns: now_ns(),
+                    restart_ns: None,
+                });
+            }
+        }
+        Action::Restart(role) => {
+            w.restarts.remove(&role); // the schedule's restart replaces a supervisor's
+            let child =
+                launch.spawn(&role, rss).with_context(|| format!("cannot restart {role}"))?;
+            if let Some(c) = children.get_mut(&role) {
+                *c = child;
+            }
+            watchdog.reset(&role, at);
+            if let Some(e) = w.events.iter_mut().rev().find(|e| e.role == role) {
+                e.restart_ns = Some(now_ns());
+            }
+            eprintln!("launcher: restarted {role} at {at:.3} s");
+        }
+        Action::Stop(role) => {
+            if let Some(c) = children.get_mut(&role) {
+                signal(c, libc::SIGSTOP);
+                w.stopped.insert(role.clone(), c.id());
+                eprintln!("launcher: stopped {role} (SIGSTOP) at {at:.3} s");
+                let detail = "SIGSTOP (--fault)".to_owned();
+                w.events.push(FaultEvent {
+                    role,
+                    kind: "stop",
+                    detail,
+                    kill_ns: now_ns(),
+                    restart_ns: None,
+                });
+            }
+        }
+        Action::Cont(role) => {
+            let stopped = w.stopped.remove(&role);
+            let event = w.events.iter_mut().rev().find(|e| e.role == role && e.kind == "stop");
+            match children.get_mut(&role) {
+                Some(c) if Some(c.id()) == stopped && !w.planned.contains(&c.id()) => {
+                    signal(c, libc::SIGCONT);
+                    eprintln!("launcher: continued {role} (SIGCONT) at {at:.3} s");
+                    if let Some(e) = event {
+                        e.restart_ns = Some(now_ns());
+                        e.detail.push_str("; SIGCONT (--fault)");
+                    }
+                }
+                _ => {
+                    eprintln!(
+                        "launcher: {role} was restarted by the watchdog before its SIGCONT at {at:.3} s"
+                    );
+                    if let Some(e) = event {
+                        e.detail.push_str("; the watchdog restarted it before the SIGCONT");
+                    }
+                }
+            }
+        }
+    }
+    Ok(())
 }
 
 /// After the run: memory figures into `summary.json` and on the console, the fault report.
@@ -383,7 +649,9 @@ fn report(
 ) -> anyhow::Result<()> {
     let args = launch.args;
     if !args.no_monitor {
-        add_resources(&args.out, &rss.tracks).context("resource report")?;
+        if let Err(e) = add_resources(&args.out, &rss.tracks) {
+            eprintln!("warning: resource report not added to summary.json: {e:#}");
+        }
     }
     if !args.quiet {
         for (role, r) in &rss.tracks {
@@ -397,33 +665,43 @@ fn report(
         }
     }
     if !events.is_empty() && !args.no_monitor {
-        crate::faults::report(&args.out, scenario, events).context("fault report")?;
+        if let Err(e) = crate::faults::report(&args.out, scenario, events) {
+            eprintln!("warning: no fault report: {e:#}");
+            for e in events {
+                eprintln!("  {} {}: {}", e.kind, e.role, e.detail);
+            }
+        }
     }
     if shutdown_requested() {
         eprintln!("stopped by signal; partial report in {}", args.out.display());
-    } else if !args.no_monitor && !args.quiet {
+        return Err(RunEnd::StoppedBySignal.into());
+    }
+    if !args.no_monitor && !args.quiet {
         println!("report: {}", args.out.display());
     }
     Ok(())
 }
 
-/// Each role's resident memory, sampled once a second into `rss.csv`.
+/// Each role's resident memory, sampled once a second into `rss.csv`. A file that cannot
+/// be written (a full disk) is given up with a warning: memory figures are an observer's,
+/// never a reason to stop the loop.
 struct RssLog {
     tracks: BTreeMap<String, RssTrack>,
-    csv: std::io::BufWriter<std::fs::File>,
+    csv: Option<std::io::BufWriter<std::fs::File>>,
     t0: u64,
     next_ns: u64,
 }
 
 impl RssLog {
-    fn create(out: &std::path::Path) -> anyhow::Result<Self> {
+    fn create(out: &std::path::Path) -> Self {
         use std::io::Write;
         let path = out.join("rss.csv");
-        let f = std::fs::File::create(&path)
-            .with_context(|| format!("cannot write {}", path.display()))?;
-        let mut csv = std::io::BufWriter::new(f);
-        writeln!(csv, "t_s,role,pid,rss_kib,anon_kib,file_kib,shmem_kib")?;
-        Ok(Self { tracks: BTreeMap::new(), csv, t0: now_ns(), next_ns: now_ns() })
+        let csv = std::fs::File::create(&path).map(std::io::BufWriter::new).and_then(|mut f| {
+            writeln!(f, "t_s,role,pid,rss_kib,anon_kib,file_kib,shmem_kib")?;
+            Ok(f)
+        });
+        let csv = csv.map_err(|e| eprintln!("warning: cannot write {}: {e}", path.display())).ok();
+        Self { tracks: BTreeMap::new(), csv, t0: now_ns(), next_ns: now_ns() }
     }
 
     /// A new life of `role` (its figures are of its last life).
@@ -431,19 +709,27 @@ impl RssLog {
         self.tracks.insert(role.to_owned(), RssTrack::new(pid));
     }
 
-    fn sample_if_due(&mut self) -> anyhow::Result<()> {
+    fn sample_if_due(&mut self) {
         use std::io::Write;
         if now_ns() < self.next_ns {
-            return Ok(());
+            return;
         }
         self.next_ns += 1_000_000_000;
         let t = (now_ns() - self.t0) as f64 / 1e9;
+        let mut rows = String::new();
         for (role, track) in self.tracks.iter_mut() {
             if let Some((kib, [anon, file, shmem])) = track.sample() {
-                writeln!(self.csv, "{t:.1},{role},{},{kib},{anon},{file},{shmem}", track.pid)?;
+                rows += &format!("{t:.1},{role},{},{kib},{anon},{file},{shmem}\n", track.pid);
             }
         }
-        Ok(self.csv.flush()?)
+        if let Some(csv) = &mut self.csv {
+            if let Err(e) = csv.write_all(rows.as_bytes()).and_then(|()| csv.flush()) {
+                eprintln!(
+                    "warning: cannot write rss.csv any more ({e}); memory figures go on in memory"
+                );
+                self.csv = None;
+            }
+        }
     }
 }
 

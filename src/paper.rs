@@ -116,18 +116,8 @@ fn four_process_run(out: &Path, name: &str, duration: f64, rate: f64) -> anyhow:
         rt_priority: None,
         mlock: false,
     };
-    crate::launch::run(&crate::launch::RunArgs {
-        role,
-        pin: None,
-        out: run_dir.clone(),
-        no_monitor: false,
-        quiet: false,
-        spin_before_tick_us: 0,
-        hold_ticks: 50,
-        fault: Vec::new(),
-        corrupt: Vec::new(),
-    })
-    .with_context(|| format!("four-process run of {name}"))?;
+    crate::launch::run(&crate::launch::RunArgs::defaults(role, run_dir.clone()))
+        .with_context(|| format!("four-process run of {name}"))?;
     let j: serde_json::Value = serde_json::from_str(
         &std::fs::read_to_string(run_dir.join("summary.json"))
             .with_context(|| format!("no summary of the {name} run"))?,

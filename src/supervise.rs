@@ -1,9 +1,21 @@
-//! What the launcher decides about its children, as plain structs with the time passed in:
-//! [`FaultSchedule`] says which `--fault` kill or restart is due (seconds since the plant
-//! published tick 0), and [`exit_verdict`] says whether a child's exit fails the run. The
-//! launcher ([`crate::launch`]) spawns, signals and reaps; [`Children`] holds the
+//! What the launcher decides about its children, as plain structs with the time passed in
+//! (seconds since the plant published tick 0):
+//!
+//! - [`FaultSchedule`]: which `--fault` kill, restart, stop (SIGSTOP) or continue
+//!   (SIGCONT) is due.
+//! - [`Supervisor`]: what happens when a role exits or hangs that nobody planned: started
+//!   again by its [`RestartPolicy`] (systemd's `Restart=`), after a backoff, unless it
+//!   restarted too often in the window ([`RestartLimit`], systemd's `StartLimitBurst` /
+//!   `StartLimitIntervalSec`, Erlang's restart intensity): then the run stops, naming the
+//!   role and its last exit.
+//! - [`Watchdog`]: a role with work waiting that makes no progress (its resume slot's
+//!   mark does not move) for the timeout is hung (systemd's `WatchdogSec`), whatever its
+//!   process state.
+//!
+//! The launcher ([`crate::launch`]) spawns, signals and reaps; [`Children`] holds the
 //! processes and stops them all when dropped.
 
+use std::collections::BTreeMap;
 use std::os::unix::process::ExitStatusExt;
 use std::process::{Child, ExitStatus};
 
@@ -12,24 +24,27 @@ use crate::UsageError;
 /// The roles, in start order (the monitor first, so it sees tick 0).
 pub const ROLES: [&str; 4] = ["monitor", "reference", "controller", "plant"];
 
-/// One `--fault ROLE:kill@T[:restart@T2]`.
+/// One `--fault ROLE:kill@T[:restart@T2]` or `ROLE:stop@T[:cont@T2]`.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Fault {
-    /// The role to kill.
+    /// The role.
     pub role: String,
-    /// When to SIGKILL it (s after tick 0).
+    /// A hang (SIGSTOP, then SIGCONT) rather than a kill (SIGKILL, then a restart).
+    pub stop: bool,
+    /// When to SIGKILL (or SIGSTOP) it (s after tick 0).
     pub kill_s: f64,
-    /// When to start it again (s), if at all.
+    /// When to start it again (or SIGCONT it) (s), if at all.
     pub restart_s: Option<f64>,
     killed: bool,
     restarted: bool,
 }
 
-/// Parses `ROLE:kill@T[:restart@T2]`.
+/// Parses `ROLE:kill@T[:restart@T2]` or `ROLE:stop@T[:cont@T2]`.
 pub fn parse_fault(s: &str) -> Result<Fault, UsageError> {
     let bad = |why: &str| {
         UsageError(format!(
-            "--fault `{s}` is not allowed: {why} (form ROLE:kill@T[:restart@T2], e.g. controller:kill@2:restart@2.5)"
+            "--fault `{s}` is not allowed: {why} (form ROLE:kill@T[:restart@T2] or \
+             ROLE:stop@T[:cont@T2], e.g. controller:kill@2:restart@2.5)"
         ))
     };
     let parts: Vec<&str> = s.split(':').collect();
@@ -45,12 +60,19 @@ pub fn parse_fault(s: &str) -> Result<Fault, UsageError> {
             .filter(|t| t.is_finite() && *t >= 0.0)
             .ok_or_else(|| bad(&format!("`{p}` must be {key}SECONDS with SECONDS ≥ 0")))
     };
-    let kill_s = time(parts[1], "kill@")?;
-    let restart_s = parts.get(2).map(|p| time(p, "restart@")).transpose()?;
+    let stop = parts[1].starts_with("stop@");
+    let (first, then) = if stop { ("stop@", "cont@") } else { ("kill@", "restart@") };
+    let kill_s = time(parts[1], first)?;
+    let restart_s = parts.get(2).map(|p| time(p, then)).transpose()?;
     if restart_s.is_some_and(|r| r <= kill_s) {
-        return Err(bad("the restart must come after the kill"));
+        return Err(bad(&format!(
+            "the {} must come after the {}",
+            &then[..then.len() - 1],
+            &first[..first.len() - 1]
+        )));
     }
-    Ok(Fault { role: parts[0].to_owned(), kill_s, restart_s, killed: false, restarted: false })
+    let (killed, restarted) = (false, false);
+    Ok(Fault { role: parts[0].to_owned(), stop, kill_s, restart_s, killed, restarted })
 }
 
 /// What the schedule asks the launcher to do now.
@@ -60,6 +82,10 @@ pub enum Action {
     Kill(String),
     /// Start this role again with its original arguments.
     Restart(String),
+    /// SIGSTOP this role (an injected hang).
+    Stop(String),
+    /// SIGCONT this role.
+    Cont(String),
 }
 
 /// The `--fault` schedule.
@@ -82,11 +108,13 @@ impl FaultSchedule {
         for f in &mut self.faults {
             if !f.killed && t >= f.kill_s {
                 f.killed = true;
-                actions.push(Action::Kill(f.role.clone()));
+                let r = f.role.clone();
+                actions.push(if f.stop { Action::Stop(r) } else { Action::Kill(r) });
             }
             if f.killed && !f.restarted && f.restart_s.is_some_and(|r| t >= r) {
                 f.restarted = true;
-                actions.push(Action::Restart(f.role.clone()));
+                let r = f.role.clone();
+                actions.push(if f.stop { Action::Cont(r) } else { Action::Restart(r) });
             }
         }
         actions
@@ -95,20 +123,295 @@ impl FaultSchedule {
     /// A role was killed and its restart is still to come: the run is not over even if
     /// no child runs.
     pub fn awaiting_restart(&self) -> bool {
-        self.faults.iter().any(|f| f.killed && !f.restarted && f.restart_s.is_some())
+        self.faults.iter().any(|f| !f.stop && f.killed && !f.restarted && f.restart_s.is_some())
     }
 }
 
-/// Whether a child's exit fails the run: a failure message, or `None` for a clean exit,
-/// an exit during the launcher's own stop, or the SIGKILL of a fault it injected.
-pub fn exit_verdict(
-    role: &str,
-    status: ExitStatus,
-    killed_by_us: bool,
-    stopping: bool,
-) -> Option<String> {
-    let planned = killed_by_us && status.signal() == Some(libc::SIGKILL);
-    (!status.success() && !stopping && !planned).then(|| format!("{role} exited with {status}"))
+/// When a role that ended on its own is started again (systemd's `Restart=`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum RestartPolicy {
+    /// After an abnormal exit: a signal (a `kill -9` by anyone, a crash), a non-zero exit
+    /// code other than 2, or a hang found by the watchdog.
+    OnFailure,
+    /// As `on-failure`, and also after a clean exit before the plant's last tick.
+    Always,
+    /// Never: an abnormal exit stops the run.
+    Never,
+}
+
+impl std::str::FromStr for RestartPolicy {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        match s {
+            "on-failure" => Ok(Self::OnFailure),
+            "always" => Ok(Self::Always),
+            "never" => Ok(Self::Never),
+            _ => Err(format!("`{s}` is not a restart policy: on-failure, always or never")),
+        }
+    }
+}
+
+impl std::fmt::Display for RestartPolicy {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            Self::OnFailure => "on-failure",
+            Self::Always => "always",
+            Self::Never => "never",
+        })
+    }
+}
+
+/// Parses `--restart POLICY` or `ROLE=POLICY,…` (or both: `never,monitor=always`); a
+/// role not named gets the bare policy, `on-failure` by default.
+pub fn parse_restart(s: &str) -> Result<BTreeMap<String, RestartPolicy>, UsageError> {
+    let bad = |why: String| {
+        UsageError(format!(
+            "--restart `{s}` is not allowed: {why} (form POLICY or ROLE=POLICY,…, e.g. monitor=always,plant=never)"
+        ))
+    };
+    let mut default = RestartPolicy::OnFailure;
+    let mut by_role = BTreeMap::new();
+    for part in s.split(',').filter(|p| !p.is_empty()) {
+        match part.split_once('=') {
+            Some((role, p)) if ROLES.contains(&role) => {
+                by_role.insert(role.to_owned(), p.parse().map_err(bad)?);
+            }
+            Some((role, _)) => {
+                return Err(bad(format!(
+                    "`{role}` is not a role: plant, reference, controller or monitor"
+                )));
+            }
+            None => default = part.parse().map_err(bad)?,
+        }
+    }
+    Ok(ROLES.iter().map(|r| (r.to_string(), by_role.get(*r).copied().unwrap_or(default))).collect())
+}
+
+/// At most `burst` unplanned restarts of one role within `window_s` seconds.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct RestartLimit {
+    /// Restarts allowed in the window.
+    pub burst: usize,
+    /// The window (s).
+    pub window_s: f64,
+}
+
+impl std::str::FromStr for RestartLimit {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        let bad =
+            || format!("`{s}` is not allowed: N/SECONDS with N ≥ 1 and SECONDS > 0, e.g. 5/10");
+        let (n, w) = s.split_once('/').ok_or_else(bad)?;
+        let burst = n.parse::<usize>().ok().filter(|n| *n >= 1).ok_or_else(bad)?;
+        let window_s =
+            w.parse::<f64>().ok().filter(|w| w.is_finite() && *w > 0.0).ok_or_else(bad)?;
+        Ok(Self { burst, window_s })
+    }
+}
+
+/// How a role ended, as far as the report goes.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Ending {
+    /// Killed by SIGKILL (by anyone: a user's `kill -9`, the OOM killer).
+    Killed,
+    /// Another signal, or a non-zero exit code.
+    Crash,
+    /// A clean exit (restarted only by `always`).
+    Exited,
+    /// Found hung by the watchdog and killed.
+    Hang,
+}
+
+impl Ending {
+    /// The report's name of it.
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::Killed => "killed",
+            Self::Crash => "crash",
+            Self::Exited => "exited",
+            Self::Hang => "hang",
+        }
+    }
+
+    /// How a process that exited with `status` ended.
+    pub fn of(status: ExitStatus) -> Self {
+        match status.signal() {
+            Some(libc::SIGKILL) => Self::Killed,
+            Some(_) => Self::Crash,
+            None if status.success() => Self::Exited,
+            None => Self::Crash,
+        }
+    }
+}
+
+/// What the supervisor decided about an unplanned ending.
+#[derive(Debug, Clone, PartialEq)]
+pub enum Verdict {
+    /// Nothing to do: a clean end.
+    Done,
+    /// Start the role again at `at_s`.
+    Restart {
+        /// When (s after tick 0): now, or after the backoff.
+        at_s: f64,
+    },
+    /// Stop the run: the message names the role and its last exit.
+    Fail(String),
+}
+
+/// The restart rule (module docs).
+#[derive(Debug, Clone)]
+pub struct Supervisor {
+    policies: BTreeMap<String, RestartPolicy>,
+    limit: RestartLimit,
+    restarts: BTreeMap<String, Vec<f64>>,
+}
+
+/// The first restart of a role is immediate; each further one within the window waits
+/// twice as long as the one before, from this, up to [`MAX_BACKOFF_S`].
+pub const FIRST_BACKOFF_S: f64 = 0.1;
+/// The longest backoff.
+pub const MAX_BACKOFF_S: f64 = 2.0;
+
+impl Supervisor {
+    /// Restarts by `policies` (one per role) within `limit`.
+    pub fn new(policies: BTreeMap<String, RestartPolicy>, limit: RestartLimit) -> Self {
+        Self { policies, limit, restarts: BTreeMap::new() }
+    }
+
+    /// The policy of `role`.
+    pub fn policy(&self, role: &str) -> RestartPolicy {
+        self.policies.get(role).copied().unwrap_or(RestartPolicy::OnFailure)
+    }
+
+    /// `role` ended unplanned (`how`, described by `what`, e.g. its exit status) at `now_s`;
+    /// `run_over`: the plant has published its last tick. Exit code 2 (a bad argument or
+    /// scenario value, or a run that diverged) is never restarted: it would fail again.
+    pub fn on_end(
+        &mut self,
+        role: &str,
+        how: Ending,
+        what: &str,
+        code: Option<i32>,
+        now_s: f64,
+        run_over: bool,
+    ) -> Verdict {
+        let policy = self.policy(role);
+        let restart = match how {
+            Ending::Exited => policy == RestartPolicy::Always && !run_over,
+            _ if code == Some(2) => {
+                return Verdict::Fail(format!(
+                    "{role} {what} (a bad argument or scenario value, or the run diverged: not restarted)"
+                ));
+            }
+            _ => policy != RestartPolicy::Never,
+        };
+        if !restart {
+            return match how {
+                Ending::Exited => Verdict::Done,
+                _ => Verdict::Fail(format!("{role} {what} (restart policy {policy})")),
+            };
+        }
+        let window = self.limit.window_s;
+        let times = self.restarts.entry(role.to_owned()).or_default();
+        times.retain(|t| now_s - t < window);
+        if times.len() >= self.limit.burst {
+            return Verdict::Fail(format!(
+                "{role} {what}, its restart {} within {window} s (limit {}/{window}): not restarted again",
+                times.len() + 1,
+                self.limit.burst,
+            ));
+        }
+        let backoff = match times.len() {
+            0 => 0.0,
+            n => (FIRST_BACKOFF_S * 2f64.powi(n as i32 - 1)).min(MAX_BACKOFF_S),
+        };
+        times.push(now_s);
+        Verdict::Restart { at_s: now_s + backoff }
+    }
+}
+
+/// The hang rule (module docs): per role, the last progress mark and since when there has
+/// been work waiting without the mark moving.
+#[derive(Debug, Clone)]
+pub struct Watchdog {
+    timeout_s: f64,
+    marks: BTreeMap<String, (Option<u64>, f64)>,
+}
+
+impl Watchdog {
+    /// Finds a role hung after `timeout_s` without progress while work waits (0: never).
+    pub fn new(timeout_s: f64) -> Self {
+        Self { timeout_s, marks: BTreeMap::new() }
+    }
+
+    /// `role`'s progress mark is `mark` at `now_s`, and `pending` says whether work waits
+    /// for it. Returns whether it is hung.
+    pub fn check(&mut self, role: &str, mark: Option<u64>, pending: bool, now_s: f64) -> bool {
+        let entry = self.marks.entry(role.to_owned()).or_insert((mark, now_s));
+        if entry.0 != mark || !pending {
+            *entry = (mark, now_s);
+        }
+        self.timeout_s > 0.0 && pending && now_s - entry.1 > self.timeout_s
+    }
+
+    /// `role` was (re)started at `now_s`: its clock starts again.
+    pub fn reset(&mut self, role: &str, now_s: f64) {
+        if let Some(e) = self.marks.get_mut(role) {
+            e.1 = now_s;
+        }
+    }
+}
+
+/// Each role's progress mark, from the resume slots: the plant's newest tick, the
+/// controller's newest answer, the reference's next tick, the monitor's next row.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct Marks {
+    /// The plant's newest published tick.
+    pub plant: Option<u64>,
+    /// The tick of the controller's newest answer.
+    pub controller: Option<u64>,
+    /// The next tick the reference will publish.
+    pub reference_next: Option<u64>,
+    /// The next row the monitor will write.
+    pub monitor_next: Option<u64>,
+}
+
+impl Marks {
+    /// The mark of `role`.
+    pub fn of(&self, role: &str) -> Option<u64> {
+        match role {
+            "plant" => self.plant,
+            "controller" => self.controller,
+            "reference" => self.reference_next,
+            _ => self.monitor_next,
+        }
+    }
+
+    /// Whether work waits for `role`, that nothing but the role itself holds up: so the
+    /// watchdog blames the role that hangs, not those waiting for it. Nothing waits before
+    /// tick 0. The plant: always in real time (it ticks on its own); in lockstep once the
+    /// controller has answered its newest state. The controller: a state newer than its
+    /// last answer (in lockstep, only once that state's reference is there). The reference:
+    /// the plant has reached the tick it has yet to publish. The monitor: rows of which
+    /// every sample is out (two ticks behind the slowest of the others).
+    pub fn work_waiting(&self, role: &str, lockstep: bool, lead: u64) -> bool {
+        let Some(p) = self.plant else { return false };
+        let answered = |c: Option<u64>| c.is_some_and(|c| c >= p);
+        match role {
+            "plant" => !lockstep || answered(self.controller),
+            "controller" => {
+                !answered(self.controller)
+                    && (!lockstep || self.reference_next.is_some_and(|n| n > p))
+            }
+            "reference" => self.reference_next.is_none_or(|n| n <= p.min(p + lead)),
+            _ => {
+                let out = p
+                    .min(self.controller.unwrap_or(0))
+                    .min(self.reference_next.unwrap_or(0).saturating_sub(1));
+                self.monitor_next.unwrap_or(0) + 2 <= out
+            }
+        }
+    }
 }
 
 /// The launcher's children, by role. Dropping it SIGKILLs and reaps any still running.
@@ -195,16 +498,145 @@ mod tests {
         }
     }
 
+    fn exited(code: i32) -> ExitStatus {
+        ExitStatus::from_raw(code << 8)
+    }
+
+    fn supervisor(spec: &str, limit: &str) -> Supervisor {
+        Supervisor::new(parse_restart(spec).expect("valid"), limit.parse().expect("valid"))
+    }
+
+    fn end(s: &mut Supervisor, role: &str, status: ExitStatus, now_s: f64) -> Verdict {
+        s.on_end(
+            role,
+            Ending::of(status),
+            &format!("exited with {status}"),
+            status.code(),
+            now_s,
+            false,
+        )
+    }
+
     #[test]
-    fn only_an_unplanned_abnormal_exit_fails_the_run() {
-        let exited = |code: i32| ExitStatus::from_raw(code << 8);
+    fn a_killed_or_crashed_role_is_restarted_at_once_then_with_growing_backoff() {
+        let mut s = supervisor("on-failure", "5/10");
         let killed = ExitStatus::from_raw(libc::SIGKILL);
-        assert_eq!(exit_verdict("plant", exited(0), false, false), None);
-        assert!(
-            exit_verdict("plant", exited(1), false, false).is_some_and(|m| m.contains("plant"))
+        assert_eq!(Ending::of(killed), Ending::Killed);
+        assert_eq!(Ending::of(exited(1)), Ending::Crash);
+        assert_eq!(Ending::of(ExitStatus::from_raw(libc::SIGSEGV)), Ending::Crash);
+        assert_eq!(end(&mut s, "controller", killed, 1.0), Verdict::Restart { at_s: 1.0 });
+        assert_eq!(end(&mut s, "controller", exited(1), 2.0), Verdict::Restart { at_s: 2.1 });
+        assert_eq!(end(&mut s, "controller", killed, 3.0), Verdict::Restart { at_s: 3.2 });
+        assert_eq!(end(&mut s, "controller", killed, 4.0), Verdict::Restart { at_s: 4.4 });
+        assert_eq!(
+            end(&mut s, "reference", killed, 4.0),
+            Verdict::Restart { at_s: 4.0 },
+            "per role"
         );
-        assert_eq!(exit_verdict("plant", killed, true, false), None, "our own fault injection");
-        assert!(exit_verdict("plant", killed, false, false).is_some(), "killed by someone else");
-        assert_eq!(exit_verdict("plant", exited(1), false, true), None, "while stopping");
+    }
+
+    #[test]
+    fn too_many_restarts_in_the_window_stop_the_run_naming_the_role_and_its_exit() {
+        let mut s = supervisor("on-failure", "2/10");
+        let killed = ExitStatus::from_raw(libc::SIGKILL);
+        assert!(matches!(end(&mut s, "monitor", killed, 0.0), Verdict::Restart { .. }));
+        assert!(matches!(end(&mut s, "monitor", killed, 1.0), Verdict::Restart { .. }));
+        let Verdict::Fail(m) = end(&mut s, "monitor", exited(1), 2.0) else {
+            panic!("not stopped")
+        };
+        assert!(m.contains("monitor") && m.contains("exit status: 1") && m.contains("2/10"), "{m}");
+        // Outside the window the count starts afresh.
+        assert!(matches!(end(&mut s, "monitor", killed, 30.0), Verdict::Restart { .. }));
+    }
+
+    #[test]
+    fn the_policy_decides_clean_exits_and_never() {
+        let mut s = supervisor("never,monitor=always", "5/10");
+        assert!(
+            matches!(end(&mut s, "controller", ExitStatus::from_raw(libc::SIGKILL), 1.0), Verdict::Fail(m) if m.contains("never"))
+        );
+        assert_eq!(end(&mut s, "controller", exited(0), 1.0), Verdict::Done);
+        assert!(matches!(end(&mut s, "monitor", exited(0), 1.0), Verdict::Restart { .. }));
+        let over = s.on_end("monitor", Ending::Exited, "exited", Some(0), 9.0, true);
+        assert_eq!(over, Verdict::Done, "always does not restart a role the run is over for");
+    }
+
+    #[test]
+    fn exit_code_2_is_never_restarted() {
+        let mut s = supervisor("always", "5/10");
+        assert!(
+            matches!(end(&mut s, "plant", exited(2), 1.0), Verdict::Fail(m) if m.contains("diverged"))
+        );
+    }
+
+    #[test]
+    fn bad_restart_specs_are_refused_naming_what_is_allowed() {
+        assert_eq!(parse_restart("monitor=always").expect("ok")["plant"], RestartPolicy::OnFailure);
+        for (spec, why) in
+            [("sometimes", "on-failure, always or never"), ("pilot=never", "not a role")]
+        {
+            let e = parse_restart(spec).expect_err(spec).to_string();
+            assert!(e.contains(why) && e.contains(spec), "{e}");
+        }
+        for bad in ["0/10", "5/0", "5", "x/y"] {
+            assert!(bad.parse::<RestartLimit>().is_err(), "{bad}");
+        }
+    }
+
+    #[test]
+    fn a_role_is_hung_only_when_work_waits_and_its_mark_stands_still() {
+        let mut w = Watchdog::new(1.0);
+        assert!(!w.check("controller", Some(5), true, 0.0));
+        assert!(!w.check("controller", Some(5), true, 0.9));
+        assert!(w.check("controller", Some(5), true, 1.1), "no progress for over 1 s");
+        assert!(!w.check("controller", Some(6), true, 1.2), "progress resets the clock");
+        assert!(!w.check("controller", Some(6), false, 5.0), "nothing waiting: not hung");
+        assert!(!w.check("controller", Some(6), true, 5.5));
+        w.reset("controller", 6.0);
+        assert!(!w.check("controller", Some(6), true, 6.9));
+        assert!(w.check("controller", Some(6), true, 7.1));
+        let mut off = Watchdog::new(0.0);
+        assert!(!off.check("plant", Some(1), true, 0.0) && !off.check("plant", Some(1), true, 1e9));
+    }
+
+    #[test]
+    fn the_watchdog_blames_the_role_that_holds_the_loop_up_not_those_waiting_for_it() {
+        let m = |plant, controller, reference_next, monitor_next| Marks {
+            plant,
+            controller,
+            reference_next,
+            monitor_next,
+        };
+        // Before tick 0 nothing waits.
+        assert!(ROLES.iter().all(|r| !m(None, None, Some(17), None).work_waiting(r, true, 16)));
+        // Lockstep, the controller hangs at tick 10: it is to blame; the plant waits.
+        let hung_controller = m(Some(10), Some(9), Some(27), Some(8));
+        assert!(hung_controller.work_waiting("controller", true, 16));
+        assert!(!hung_controller.work_waiting("plant", true, 16));
+        assert!(!hung_controller.work_waiting("reference", true, 16));
+        assert!(!hung_controller.work_waiting("monitor", true, 16));
+        // Lockstep, the reference hangs before tick 10: it is to blame, not the controller.
+        let hung_reference = m(Some(10), Some(9), Some(10), Some(8));
+        assert!(hung_reference.work_waiting("reference", true, 16));
+        assert!(!hung_reference.work_waiting("controller", true, 16));
+        // Lockstep, the controller answered 10 and the plant has not moved on: the plant.
+        assert!(m(Some(10), Some(10), Some(27), Some(8)).work_waiting("plant", true, 16));
+        // Real time: the plant always has work; the monitor has rows waiting.
+        let monitor_behind = m(Some(100), Some(100), Some(117), Some(50));
+        assert!(monitor_behind.work_waiting("plant", false, 16));
+        assert!(monitor_behind.work_waiting("monitor", false, 16));
+        assert!(!m(Some(100), Some(100), Some(117), Some(99)).work_waiting("monitor", false, 16));
+    }
+
+    #[test]
+    fn a_stop_and_its_cont_are_due_like_a_kill_and_its_restart() {
+        let mut s =
+            FaultSchedule::new(vec![parse_fault("controller:stop@1:cont@3").expect("valid")]);
+        assert_eq!(s.due(Some(1.0)), [Action::Stop("controller".into())]);
+        assert!(!s.awaiting_restart(), "a stopped role is still there");
+        assert_eq!(s.due(Some(3.0)), [Action::Cont("controller".into())]);
+        let e = parse_fault("controller:stop@2:cont@1").expect_err("cont first").to_string();
+        assert!(e.contains("cont must come after the stop"), "{e}");
+        assert!(parse_fault("controller:stop@2:restart@3").is_err());
     }
 }

@@ -163,7 +163,8 @@ impl IntervalSeries {
 struct HopRecorder {
     total: Histogram<u64>,
     interval: Histogram<u64>,
-    log: BufWriter<File>,
+    /// The interval log; `None` once it could not be written (the histograms go on).
+    log: Option<BufWriter<File>>,
     serializer: V2DeflateSerializer,
     series: IntervalSeries,
 }
@@ -184,6 +185,8 @@ pub struct Latency {
     dir: PathBuf,
     start_ns: u64,
     interval_index: u64,
+    /// Why the interval logs stopped, if they did (a full disk).
+    log_error: Option<String>,
 }
 
 impl std::fmt::Debug for Latency {
@@ -197,28 +200,11 @@ impl Latency {
     /// continued (a restarted monitor). Run time counts from `start_ns`.
     pub fn new(dir: &Path, start_ns: u64, append: bool) -> io::Result<Self> {
         let mut hops = Vec::new();
+        let mut log_error = None;
         for hop in Hop::ALL {
-            let path = dir.join(format!("{}.hlog", hop.name()));
-            let fresh = !append || !path.exists();
-            let file = std::fs::OpenOptions::new()
-                .create(true)
-                .append(append)
-                .write(true)
-                .truncate(!append)
-                .open(&path)?;
-            let mut log = BufWriter::new(file);
-            if fresh {
-                let mut ser = V2DeflateSerializer::new();
-                IntervalLogWriterBuilder::new()
-                    .add_comment(&format!("rotorloop {} latency (ns), 1 s intervals", hop.name()))
-                    .with_start_time(std::time::SystemTime::now())
-                    .begin_log_with(&mut log, &mut ser)?;
-                writeln!(
-                    log,
-                    "\"StartTimestamp\",\"Interval_Length\",\"Interval_Max\",\"Interval_Compressed_Histogram\""
-                )?;
-                log.flush()?;
-            }
+            let log = Self::open_log(dir, hop, append)
+                .map_err(|e| log_error.get_or_insert(format!("{}.hlog: {e}", hop.name())).clone())
+                .ok();
             hops.push(HopRecorder {
                 total: histogram(),
                 interval: histogram(),
@@ -227,40 +213,81 @@ impl Latency {
                 series: IntervalSeries::default(),
             });
         }
-        Ok(Self { hops, dir: dir.to_owned(), start_ns, interval_index: 0 })
+        Ok(Self { hops, dir: dir.to_owned(), start_ns, interval_index: 0, log_error })
+    }
+
+    /// Opens (or continues) the interval log of `hop`, with its header when new.
+    fn open_log(dir: &Path, hop: Hop, append: bool) -> io::Result<BufWriter<File>> {
+        let path = dir.join(format!("{}.hlog", hop.name()));
+        let fresh = !append || !path.exists();
+        let file = std::fs::OpenOptions::new()
+            .create(true)
+            .append(append)
+            .write(true)
+            .truncate(!append)
+            .open(&path)?;
+        let mut log = BufWriter::new(file);
+        if fresh {
+            let mut ser = V2DeflateSerializer::new();
+            IntervalLogWriterBuilder::new()
+                .add_comment(&format!("rotorloop {} latency (ns), 1 s intervals", hop.name()))
+                .with_start_time(std::time::SystemTime::now())
+                .begin_log_with(&mut log, &mut ser)?;
+            writeln!(
+                log,
+                "\"StartTimestamp\",\"Interval_Length\",\"Interval_Max\",\"Interval_Compressed_Histogram\""
+            )?;
+            log.flush()?;
+        }
+        Ok(log)
+    }
+
+    /// Why the interval logs stopped being written, if they did.
+    pub fn log_error(&self) -> Option<&str> {
+        self.log_error.as_deref()
     }
 
     fn index(hop: Hop) -> usize {
         Hop::ALL.iter().position(|h| *h == hop).unwrap_or(0)
     }
 
-    /// Records `value_ns` for `hop`, observed at monotonic time `at_ns`.
+    /// Records `value_ns` for `hop`, observed at monotonic time `at_ns`. Never fails: an
+    /// interval log that cannot be written is given up ([`Self::log_error`]), the
+    /// histograms go on.
     #[inline]
-    pub fn record(&mut self, hop: Hop, value_ns: u64, at_ns: u64) -> io::Result<()> {
+    pub fn record(&mut self, hop: Hop, value_ns: u64, at_ns: u64) {
         let idx = at_ns.saturating_sub(self.start_ns) / 1_000_000_000;
         if idx > self.interval_index {
-            self.rotate()?;
+            self.rotate();
             self.interval_index = idx;
         }
         let h = &mut self.hops[Self::index(hop)];
         let v = value_ns.max(1);
         h.total.saturating_record(v);
         h.interval.saturating_record(v);
-        Ok(())
     }
 
     /// Writes the current interval of every hop to its log and flushes it.
-    pub fn rotate(&mut self) -> io::Result<()> {
+    pub fn rotate(&mut self) {
         let start = Duration::from_secs(self.interval_index);
-        for h in &mut self.hops {
+        for (hop, h) in Hop::ALL.iter().zip(&mut self.hops) {
             if h.interval.is_empty() {
                 continue;
             }
-            IntervalLogWriterBuilder::new()
-                .begin_log_with(&mut h.log, &mut h.serializer)?
-                .write_histogram(&h.interval, start, Duration::from_secs(1), None)
-                .map_err(|e| io::Error::other(format!("{e:?}")))?;
-            h.log.flush()?;
+            if let Some(log) = &mut h.log {
+                let written = IntervalLogWriterBuilder::new()
+                    .begin_log_with(&mut *log, &mut h.serializer)
+                    .map_err(|e| io::Error::other(format!("{e:?}")))
+                    .and_then(|mut w| {
+                        w.write_histogram(&h.interval, start, Duration::from_secs(1), None)
+                            .map_err(|e| io::Error::other(format!("{e:?}")))
+                    })
+                    .and_then(|()| log.flush());
+                if let Err(e) = written {
+                    self.log_error.get_or_insert(format!("{}.hlog: {e}", hop.name()));
+                    h.log = None;
+                }
+            }
             let us = |q: f64| h.interval.value_at_quantile(q) as f64 / 1e3;
             h.series.push((
                 self.interval_index as f64,
@@ -270,7 +297,6 @@ impl Latency {
             ));
             h.interval.reset();
         }
-        Ok(())
     }
 
     /// The whole-run histogram of a hop.
@@ -283,13 +309,13 @@ impl Latency {
         HopStats::of(self.histogram(hop))
     }
 
-    /// Flushes the last interval and writes `DIR/<hop>.hgrm` for every hop.
-    pub fn finish(&mut self) -> io::Result<Vec<String>> {
-        self.rotate()?;
+    /// Flushes the last interval and writes `<hop>.hgrm` for every hop into `dir`.
+    pub fn finish(&mut self, dir: &Path) -> io::Result<Vec<String>> {
+        self.rotate();
         let mut files = Vec::new();
         for hop in Hop::ALL {
             let name = format!("{}.hgrm", hop.name());
-            let mut out = BufWriter::new(File::create(self.dir.join(&name))?);
+            let mut out = BufWriter::new(File::create(dir.join(&name))?);
             write_percentile_distribution(self.histogram(hop), &mut out)?;
             out.flush()?;
             files.push(name);
@@ -374,9 +400,10 @@ mod tests {
         std::fs::create_dir_all(&dir).expect("dir");
         let mut lat = Latency::new(&dir, 0, false).expect("new");
         for i in 0..3000u64 {
-            lat.record(Hop::SenseToActuate, 10_000 + i, i * 1_000_000).expect("record");
+            lat.record(Hop::SenseToActuate, 10_000 + i, i * 1_000_000);
         }
-        let files = lat.finish().expect("finish");
+        let files = lat.finish(&dir).expect("finish");
+        assert!(lat.log_error().is_none());
         assert_eq!(files.len(), Hop::ALL.len());
         let text = std::fs::read(dir.join("sense_to_actuate.hlog")).expect("log");
         let mut total = 0;

@@ -2,6 +2,13 @@
 //! `trace.csv` row (the same columns and code as `rotorloop sim`) and a `timing.csv` row,
 //! feeds the figures' recorder, and records its per-hop latencies from the timestamps the
 //! samples carry. A restarted monitor appends to the same files.
+//!
+//! **An observer never stops the loop.** When the output cannot be written (a full disk,
+//! an I/O error, the directory removed), the recording stops appending rows and records
+//! from which tick the trace is incomplete and why ([`StorageLoss`]); the metrics,
+//! histograms and figures' data go on in memory. At the end the histograms, figures and
+//! `summary.json` are written where possible: into the output directory (tried twice),
+//! else into a fallback directory it names, else the summary goes to stderr.
 
 use std::fs::File;
 use std::io::{BufWriter, Write};
@@ -11,6 +18,7 @@ use anyhow::Context;
 use glam::DVec3;
 use rotorloop_common::wire::{FLAG_REALTIME, StateSample};
 use rotorloop_common::{Actuation, Scenario};
+use serde::Serialize;
 
 use crate::figures::tracking_figures;
 use crate::latency::{Hop, Latency};
@@ -19,12 +27,22 @@ use crate::{Metrics, Recorder, TraceWriter};
 
 type Buffered = BufWriter<File>;
 
+/// The trace stopped being written.
+#[derive(Debug, Clone, Serialize, PartialEq)]
+pub struct StorageLoss {
+    /// The first tick whose row is missing from `trace.csv` (rows from it on were not
+    /// written).
+    pub from_tick: u64,
+    /// Why: the I/O error and the file.
+    pub reason: String,
+}
+
 /// The files of one run's report, open for appending rows.
 #[derive(Debug)]
 pub struct Recording {
     out: PathBuf,
-    trace: TraceWriter<Buffered>,
-    timing: Buffered,
+    /// `trace.csv` and `timing.csv`; `None` once they could not be written.
+    files: Option<(TraceWriter<Buffered>, Buffered)>,
     metrics: Metrics,
     recorder: Recorder,
     /// Per-hop histograms and interval logs.
@@ -32,80 +50,118 @@ pub struct Recording {
     actuation: Actuation,
     ticks: u64,
     rows_at_flush: u64,
+    /// The tick of the first row taken since the last flush.
+    first_unflushed: Option<u64>,
     /// Attitude error of the first row of the run (deg).
     pub first_err: f64,
-    /// Attitude error of the last row written (deg).
+    /// Attitude error of the last row (deg).
     pub last_err: f64,
     /// Largest relative spatial-momentum drift.
     pub drift_max: f64,
+    /// Where the trace stopped, if it did.
+    pub loss: Option<StorageLoss>,
+    /// Every output that could not be written where it belonged, and where it went.
+    pub storage_errors: Vec<String>,
     /// When the live status line was last drawn (`None`: never).
     status_at_ns: Option<u64>,
+}
+
+fn open_files(
+    out: &Path,
+    resumed: Option<&MonitorResume>,
+) -> anyhow::Result<(TraceWriter<Buffered>, Buffered)> {
+    let open = |name: &str| {
+        let path = out.join(name);
+        let f = std::fs::OpenOptions::new()
+            .create(true)
+            .append(resumed.is_some())
+            .write(true)
+            .truncate(resumed.is_none())
+            .open(&path)
+            .with_context(|| format!("cannot open {}", path.display()))?;
+        anyhow::Ok(BufWriter::with_capacity(1 << 20, f))
+    };
+    let trace = match resumed {
+        Some(_) => TraceWriter::append(open("trace.csv")?),
+        None => TraceWriter::new(open("trace.csv")?).context("cannot write trace.csv")?,
+    };
+    let mut timing = open("timing.csv")?;
+    if resumed.is_none() {
+        writeln!(timing, "tick,state_publish_ns,applied_torque_tick,flags")
+            .context("cannot write timing.csv")?;
+    }
+    Ok((trace, timing))
 }
 
 impl Recording {
     /// Opens the report in `out` for `scenario`, starting at `now_ns`: new files, or, when
     /// `slot` (the monitor's resume slot) holds an unfinished report whose trace is there,
     /// the predecessor's, appended to (a restart); then it also returns that slot content.
+    /// Files that cannot be opened are a [`StorageLoss`] from the first row, not an error.
     pub fn open(
         out: &Path,
         scenario: &Scenario,
         slot: Option<MonitorResume>,
         now_ns: u64,
-    ) -> anyhow::Result<(Self, Option<MonitorResume>)> {
-        std::fs::create_dir_all(out).with_context(|| format!("cannot create {}", out.display()))?;
+    ) -> (Self, Option<MonitorResume>) {
+        let _ = std::fs::create_dir_all(out);
         let _ = std::fs::remove_file(out.join("summary.json"));
         let resumed =
             slot.filter(|r| r.next_row <= scenario.ticks() && out.join("trace.csv").exists());
-        let resumed = resumed.as_ref();
-        let open = |name: &str| {
-            let path = out.join(name);
-            let f = std::fs::OpenOptions::new()
-                .create(true)
-                .append(resumed.is_some())
-                .write(true)
-                .truncate(resumed.is_none())
-                .open(&path)
-                .with_context(|| format!("cannot open {}", path.display()))?;
-            anyhow::Ok(BufWriter::with_capacity(1 << 20, f))
+        let first_row = resumed.map_or(0, |r| r.next_row);
+        let (files, loss) = match open_files(out, resumed.as_ref()) {
+            Ok(f) => (Some(f), None),
+            Err(e) => (None, Some(StorageLoss { from_tick: first_row, reason: format!("{e:#}") })),
         };
-        let trace = match resumed {
-            Some(_) => TraceWriter::append(open("trace.csv")?),
-            None => TraceWriter::new(open("trace.csv")?)?,
-        };
-        let mut timing = open("timing.csv")?;
-        if resumed.is_none() {
-            writeln!(timing, "tick,state_publish_ns,applied_torque_tick,flags")?;
-        }
         let actuation = scenario.actuation();
         let params = scenario.plant_params(actuation);
         // The initial state exactly as the plant's integrator holds it.
         let init = rotorloop_plant::Body::new(params, scenario.plant_init).state();
-        let metrics = match resumed {
+        let metrics = match &resumed {
             Some(r) => Metrics::restore(params, &r.metrics),
             None => Metrics::new(params, &init).with_disturbance(scenario.disturbance),
         };
-        let latency =
-            Latency::new(out, now_ns, resumed.is_some()).context("monitor: interval logs")?;
-        let rec = Self {
+        let latency = Latency::new(out, now_ns, resumed.is_some()).unwrap_or_else(|_| {
+            unreachable!("Latency::new keeps its histograms when its logs cannot be opened")
+        });
+        let mut rec = Self {
             out: out.to_owned(),
-            trace,
-            timing,
+            files,
             metrics,
             recorder: Recorder::new(scenario.ticks() + 1),
             latency,
             actuation,
             ticks: scenario.ticks(),
             rows_at_flush: resumed.map_or(0, |r| r.rows),
+            first_unflushed: None,
             first_err: resumed.map_or(f64::NAN, |r| r.first_err),
             last_err: f64::NAN,
             drift_max: resumed.map_or(0.0, |r| r.drift_max),
+            loss: None,
+            storage_errors: Vec::new(),
             status_at_ns: None,
         };
-        Ok((rec, resumed.copied()))
+        if let Some(l) = loss {
+            rec.lose(l.from_tick, l.reason);
+        }
+        (rec, resumed)
     }
 
-    /// Writes one joined row and records its latencies.
-    pub fn write(&mut self, j: &JoinedRow) -> anyhow::Result<()> {
+    /// The trace cannot be written from `tick` on: stop appending, say so once.
+    fn lose(&mut self, tick: u64, reason: String) {
+        self.files = None;
+        if self.loss.is_none() {
+            eprintln!(
+                "monitor: cannot write the trace from tick {tick}: {reason}; the loop goes on, \
+                 histograms and metrics are kept in memory"
+            );
+            self.loss = Some(StorageLoss { from_tick: tick, reason });
+        }
+    }
+
+    /// Takes one joined row: metrics, the trace row (while the trace can be written), the
+    /// figures' data and its latencies.
+    pub fn write(&mut self, j: &JoinedRow) {
         let (s, k) = (&j.state, j.tick);
         let nan = DVec3::splat(f64::NAN);
         let (u, tau) = match j.torque {
@@ -120,65 +176,67 @@ impl Recording {
             _ => (nan, nan),
         };
         let applied = DVec3::from_array(s.applied_rotor_torque_nm);
-        let row = self.metrics.observe(
-            k,
-            s.t_s,
-            &s.body_state(),
-            &j.reference.reference_state(),
-            u,
-            tau,
-            applied,
-        );
-        let trace_path = || self.out.join("trace.csv").display().to_string();
-        self.trace.write(&row).with_context(|| format!("cannot write {}", trace_path()))?;
-        writeln!(self.timing, "{k},{},{},{}", s.publish_ns, s.applied_torque_tick as i64, s.flags)?;
+        let rd = j.reference.reference_state();
+        let row = self.metrics.observe(k, s.t_s, &s.body_state(), &rd, u, tau, applied);
+        self.first_unflushed.get_or_insert(k);
+        if let Some((trace, timing)) = &mut self.files {
+            let written = trace.write(&row).map_err(|e| format!("trace.csv: {e}")).and_then(|()| {
+                writeln!(
+                    timing,
+                    "{k},{},{},{}",
+                    s.publish_ns, s.applied_torque_tick as i64, s.flags
+                )
+                .map_err(|e| format!("timing.csv: {e}"))
+            });
+            if let Err(reason) = written {
+                self.lose(k, reason);
+            }
+        }
         self.recorder.record(&row, k == self.ticks);
         if j.first {
             self.first_err = row.err_deg;
         }
         self.last_err = row.err_deg;
         self.drift_max = self.drift_max.max(row.h_drift_rel);
-        self.record_latencies(j)
+        self.record_latencies(j);
     }
 
-    fn record_latencies(&mut self, j: &JoinedRow) -> anyhow::Result<()> {
+    fn record_latencies(&mut self, j: &JoinedRow) {
         let (s, at, l) = (&j.state, j.state.publish_ns, &mut self.latency);
         if let Some(t) = j.torque {
-            l.record(Hop::StateTransport, t.state_recv_ns.saturating_sub(s.publish_ns), at)?;
-            l.record(Hop::ControllerCompute, t.publish_ns.saturating_sub(t.state_recv_ns), at)?;
+            l.record(Hop::StateTransport, t.state_recv_ns.saturating_sub(s.publish_ns), at);
+            l.record(Hop::ControllerCompute, t.publish_ns.saturating_sub(t.state_recv_ns), at);
             if let Some(f) = j.following.filter(|f| f.applied_torque_tick == j.tick) {
-                l.record(
-                    Hop::TorqueTransport,
-                    f.applied_torque_recv_ns.saturating_sub(t.publish_ns),
-                    at,
-                )?;
-                l.record(
-                    Hop::SenseToActuate,
-                    f.applied_torque_recv_ns.saturating_sub(s.publish_ns),
-                    at,
-                )?;
+                let recv = f.applied_torque_recv_ns;
+                l.record(Hop::TorqueTransport, recv.saturating_sub(t.publish_ns), at);
+                l.record(Hop::SenseToActuate, recv.saturating_sub(s.publish_ns), at);
             }
         }
         if s.flags & FLAG_REALTIME != 0 {
-            l.record(Hop::TickLateness, s.wake_ns.saturating_sub(s.deadline_ns), at)?;
+            l.record(Hop::TickLateness, s.wake_ns.saturating_sub(s.deadline_ns), at);
         }
-        l.record(Hop::ReferenceLead, s.publish_ns.saturating_sub(j.reference.publish_ns), at)?;
-        Ok(())
+        l.record(Hop::ReferenceLead, s.publish_ns.saturating_sub(j.reference.publish_ns), at);
     }
 
-    /// If rows were written since the last call: makes them durable, then returns what the
+    /// If rows were taken since the last call: makes them durable, then returns what the
     /// resume slot should now say (durable first, then recorded: a monitor killed now
     /// loses nothing that its resume slot claims was written).
-    pub fn flush(&mut self, joiner: &RowJoiner) -> anyhow::Result<Option<MonitorResume>> {
+    pub fn flush(&mut self, joiner: &RowJoiner) -> Option<MonitorResume> {
         if joiner.rows() <= self.rows_at_flush {
-            return Ok(None);
+            return None;
         }
-        self.trace
-            .flush()
-            .with_context(|| format!("cannot write {}", self.out.join("trace.csv").display()))?;
-        self.timing.flush()?;
+        if let Some((trace, timing)) = &mut self.files {
+            let flushed = trace.flush().map_err(|e| format!("trace.csv: {e}"));
+            if let Err(reason) =
+                flushed.and_then(|()| timing.flush().map_err(|e| format!("timing.csv: {e}")))
+            {
+                // What was buffered since the last flush is not on disk.
+                self.lose(self.first_unflushed.unwrap_or_default(), reason);
+            }
+        }
         self.rows_at_flush = joiner.rows();
-        Ok(Some(joiner.save(self.first_err, self.drift_max, self.metrics.save())))
+        self.first_unflushed = None;
+        Some(joiner.save(self.first_err, self.drift_max, self.metrics.save()))
     }
 
     /// Rewrites the live status line on stderr, at most twice a second: run time, attitude
@@ -189,8 +247,8 @@ impl Recording {
         }
         self.status_at_ns = Some(now_ns);
         let p99 = self.latency.histogram(Hop::SenseToActuate).value_at_quantile(0.99) as f64 / 1e3;
-        let (t, misses, err) =
-            last.map_or((0.0, 0, self.last_err), |s| (s.t_s, s.misses, self.last_err));
+        let (t, misses) = last.map_or((0.0, 0), |s| (s.t_s, s.misses));
+        let err = self.last_err;
         let mut e = std::io::stderr().lock();
         let _ = write!(
             e,
@@ -199,20 +257,76 @@ impl Recording {
         let _ = e.flush();
     }
 
-    /// Closes the files and writes the histograms, interval logs and figures; returns the
-    /// files written.
-    pub fn finish(&mut self, title: &str) -> anyhow::Result<Vec<String>> {
+    /// Closes the files and writes the histograms and figures; returns the files written
+    /// and the directory they are in (the output directory, or the fallback).
+    pub fn finish(&mut self, title: &str, fallback: &Path) -> (Vec<String>, PathBuf) {
         if self.status_at_ns.is_some() {
             eprint!("\r{:100}\r", ""); // clear the status line
         }
-        let trace_path = self.out.join("trace.csv");
-        self.trace.flush().with_context(|| format!("cannot write {}", trace_path.display()))?;
-        self.timing.flush()?;
-        let mut files = vec!["trace.csv".to_owned(), "timing.csv".to_owned()];
-        files.extend(self.latency.finish().context("monitor: histograms")?);
-        files.extend(Hop::ALL.iter().map(|h| format!("{}.hlog", h.name())));
-        files.extend(self.latency.plots(title)?);
-        files.extend(tracking_figures(&self.out, title, &self.recorder, None)?);
-        Ok(files)
+        let mut files = Vec::new();
+        if let Some((trace, timing)) = &mut self.files {
+            match trace.flush().and_then(|()| timing.flush()) {
+                Ok(()) => files.extend(["trace.csv".to_owned(), "timing.csv".to_owned()]),
+                Err(e) => {
+                    self.lose(self.first_unflushed.unwrap_or_default(), format!("trace.csv: {e}"))
+                }
+            }
+        }
+        if let Some(e) = self.latency.log_error() {
+            self.storage_errors.push(format!("interval logs (.hlog) incomplete: {e}"));
+        } else {
+            files.extend(Hop::ALL.iter().map(|h| format!("{}.hlog", h.name())));
+        }
+        let out = self.out.clone();
+        let dir = match with_fallback(&out, fallback, |d| Ok(self.latency.finish(d)?)) {
+            Ok((hgrm, dir)) => {
+                files.extend(hgrm);
+                dir
+            }
+            Err(e) => {
+                self.storage_errors.push(format!("histograms (.hgrm) not written: {e:#}"));
+                out.clone()
+            }
+        };
+        if dir != out {
+            self.storage_errors.push(format!("histograms written to {} instead", dir.display()));
+        }
+        match self.latency.plots(title).map_err(anyhow::Error::from).and_then(|mut f| {
+            f.extend(tracking_figures(&out, title, &self.recorder, None)?);
+            Ok(f)
+        }) {
+            Ok(f) => files.extend(f),
+            Err(e) => self.storage_errors.push(format!("figures not written: {e:#}")),
+        }
+        if let Some(l) = &self.loss {
+            self.storage_errors
+                .push(format!("trace.csv incomplete from tick {}: {}", l.from_tick, l.reason));
+        }
+        (files, dir)
     }
+}
+
+/// Runs `write` on `out`, again on `out` after 100 ms, then on `fallback` (created);
+/// returns its result and the directory it succeeded in.
+pub fn with_fallback<T>(
+    out: &Path,
+    fallback: &Path,
+    mut write: impl FnMut(&Path) -> anyhow::Result<T>,
+) -> anyhow::Result<(T, PathBuf)> {
+    let first = match write(out) {
+        Ok(v) => return Ok((v, out.to_owned())),
+        Err(e) => e,
+    };
+    std::thread::sleep(std::time::Duration::from_millis(100));
+    if let Ok(v) = write(out) {
+        return Ok((v, out.to_owned()));
+    }
+    std::fs::create_dir_all(fallback)
+        .and_then(|()| {
+            use std::os::unix::fs::PermissionsExt;
+            std::fs::set_permissions(fallback, std::fs::Permissions::from_mode(0o700))
+        })
+        .with_context(|| format!("{first:#}; fallback {} not usable either", fallback.display()))?;
+    let v = write(fallback).with_context(|| format!("{first:#}; and in {}", fallback.display()))?;
+    Ok((v, fallback.to_owned()))
 }

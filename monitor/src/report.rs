@@ -90,6 +90,15 @@ pub struct RunSummary {
     pub resources: Option<serde_json::Value>,
     /// Files written.
     pub files: Vec<String>,
+    /// The first tick missing from `trace.csv`, when the output could not be written
+    /// (a full disk): the rows from it on were not written, though the figures above
+    /// count them.
+    pub trace_incomplete_from_tick: Option<u64>,
+    /// What could not be written where it belonged, and why (empty: everything was).
+    pub storage_errors: Vec<String>,
+    /// Where the report was written, when not in the output directory (a fallback).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub report_dir: Option<String>,
 }
 
 /// The summary of a run of `role`'s mode and wait strategy, `files` written.
@@ -171,6 +180,9 @@ pub fn summary(
         faults: Vec::new(),
         resources: None,
         files,
+        trace_incomplete_from_tick: rec.loss.as_ref().map(|l| l.from_tick),
+        storage_errors: rec.storage_errors.clone(),
+        report_dir: None,
     }
 }
 
@@ -190,6 +202,9 @@ pub fn console_summary(s: &RunSummary) -> String {
         s.err_deg_initial,
         s.err_deg_final
     );
+    for e in &s.storage_errors {
+        t.push_str(&format!("storage: {e}\n"));
+    }
     let rejected: u64 = s.wire_rejected.values().sum();
     if rejected > 0 || s.saturated_ticks > 0 || s.safe_mode_ticks > 0 {
         t.push_str(&format!(

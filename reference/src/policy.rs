@@ -26,6 +26,13 @@ pub struct ReferenceResume {
     next: u64,
 }
 
+impl ReferenceResume {
+    /// The next tick to publish (what a watcher reads as the reference's progress).
+    pub fn next(&self) -> u64 {
+        self.next
+    }
+}
+
 const EMPTY: ReferenceSample = ReferenceSample {
     tick: u64::MAX,
     t_s: 0.0,

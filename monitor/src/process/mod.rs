@@ -17,7 +17,7 @@ use rotorloop_common::wire::{ReferenceSample, StateSample, TorqueSample};
 pub use args::MonitorArgs;
 
 use crate::policy::{END_QUIET_NS, MonitorResume, RowJoiner};
-use crate::recording::Recording;
+use crate::recording::{Recording, with_fallback};
 use crate::report::{console_summary, summary};
 
 /// Runs the monitor until it has the last row, or a termination signal.
@@ -34,7 +34,7 @@ pub fn run(args: &MonitorArgs) -> anyhow::Result<()> {
     let slot = ResumeSlot::<MonitorResume>::open(&domain, "monitor").context("monitor")?;
     let plant_end = PlantEnd::open(&domain).context("monitor")?;
     // A restart continues the report in the same directory.
-    let (mut rec, resumed) = Recording::open(&args.out, &scenario, slot.load(), now_ns())?;
+    let (mut rec, resumed) = Recording::open(&args.out, &scenario, slot.load(), now_ns());
     let limit = TorqueSample::absurd_limit(scenario.limits_for(scenario.actuation()).rotor_torque);
     let mut joiner = RowJoiner::new(scenario.ticks(), limit, now_ns());
     if let Some(r) = &resumed {
@@ -53,12 +53,12 @@ pub fn run(args: &MonitorArgs) -> anyhow::Result<()> {
         let drained = quiet && (joiner.plant_ended() || plant_end.ended());
         let stopping = shutdown_requested() || drained;
         while let Some(row) = joiner.next_row(stopping) {
-            rec.write(&row)?;
+            rec.write(&row);
         }
         if drained {
             joiner.settle_rest();
         }
-        if let Some(r) = rec.flush(&joiner)? {
+        if let Some(r) = rec.flush(&joiner) {
             slot.store(&r);
         }
         if status {
@@ -69,11 +69,25 @@ pub fn run(args: &MonitorArgs) -> anyhow::Result<()> {
         }
         std::thread::sleep(std::time::Duration::from_micros(args.poll_us));
     }
-    let files = rec.finish(&scenario.file.name)?;
+    let fallback = std::env::temp_dir().join(format!("rotorloop-report-{}", domain.name()));
+    let (files, dir) = rec.finish(&scenario.file.name, &fallback);
     if joiner.done() {
         slot.clear(); // finished: a later monitor in this domain starts a new report
     }
-    let summary = summary(&scenario, role, &joiner, &rec, files);
+    let mut summary = summary(&scenario, role, &joiner, &rec, files);
+    summary.report_dir = (dir != args.out).then(|| dir.display().to_string());
     println!("{}", console_summary(&summary));
-    write_json(&args.out.join("summary.json"), &summary)
+    let write = |d: &std::path::Path| write_json(&d.join("summary.json"), &summary);
+    match with_fallback(&args.out, &fallback, write) {
+        Ok(((), d)) if d != args.out => {
+            eprintln!("monitor: summary.json written to {}", d.display())
+        }
+        Ok(_) => {}
+        Err(e) => {
+            // Nowhere to write: the summary goes to stderr, so it is not lost.
+            eprintln!("monitor: summary.json not written ({e:#}); here it is:");
+            eprintln!("{}", serde_json::to_string_pretty(&summary)?);
+        }
+    }
+    Ok(())
 }
