@@ -677,7 +677,13 @@ fn report(
         return Err(RunEnd::StoppedBySignal.into());
     }
     if !args.no_monitor && !args.quiet {
-        println!("report: {}", args.out.display());
+        match args.out.join("summary.json").exists() {
+            true => println!("report: {}", args.out.display()),
+            false => println!(
+                "report: no summary.json in {} (see the monitor's messages above)",
+                args.out.display()
+            ),
+        }
     }
     Ok(())
 }

@@ -60,10 +60,17 @@ pub fn diverged(tick: u64, t: f64) -> UsageError {
     ))
 }
 
-/// Writes `value` as pretty JSON (a summary), with a trailing newline.
+/// Writes `value` as pretty JSON (a summary), with a trailing newline. All or nothing: it
+/// is written beside `path` and renamed into place, so a full disk never leaves a
+/// truncated file where a reader expects a whole one.
 pub fn write_json(path: &Path, value: &impl Serialize) -> anyhow::Result<()> {
     let text = serde_json::to_string_pretty(value).context("cannot serialise summary")?;
-    std::fs::write(path, text + "\n").with_context(|| format!("cannot write {}", path.display()))
+    let tmp = path.with_extension("json.partial");
+    let written = std::fs::write(&tmp, text + "\n").and_then(|()| std::fs::rename(&tmp, path));
+    if written.is_err() {
+        let _ = std::fs::remove_file(&tmp);
+    }
+    written.with_context(|| format!("cannot write {}", path.display()))
 }
 
 /// Longest a finished role waits for its subscribers to leave (s).
