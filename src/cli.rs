@@ -13,6 +13,7 @@ use crate::UsageError;
 use crate::gains;
 use crate::montecarlo::{self, McOptions};
 use crate::sim::{self, SimOptions, scenario_with_overrides, summary_table};
+use rotorloop_plant::policy::ActuationDelay;
 
 /// Attitude tracking of a rigid body with three internal rotors (geometric PID,
 /// almost-global), simulated and analysed.
@@ -58,6 +59,9 @@ enum Command {
     Run(crate::launch::RunArgs),
     /// The latency study: the loop against same-invocation baselines, per cell.
     Bench(crate::bench::BenchArgs),
+    /// How much actuation delay the loop tolerates: the linearised prediction per mode and
+    /// a sweep of the nonlinear loop in process.
+    Margin(crate::margin::MarginArgs),
     /// Remove what dead processes of a domain left in shared memory (and, when none of
     /// its processes is alive, the domain's last iceoryx2 file).
     Clean {
@@ -88,8 +92,8 @@ struct SimArgs {
     /// A built-in scenario (`paper-zero`, `paper-constant`, `paper-sinusoid`,
     /// `disturbance-pid`, `disturbance-pd`, `saturation-antiwindup`, `saturation-windup`)
     /// or the path of a TOML file.
-    #[arg(long)]
-    scenario: String,
+    #[arg(long, required_unless_present = "replay")]
+    scenario: Option<String>,
     /// Simulated seconds [default: the scenario's, 30].
     #[arg(long, allow_negative_numbers = true)]
     duration: Option<f64>,
@@ -108,6 +112,22 @@ struct SimArgs {
     /// Skip the PNG figures.
     #[arg(long)]
     no_figures: bool,
+    /// Each torque takes effect this many seconds after its tick's time (delayed
+    /// zero-order hold; any length, longer than a tick is a queue; 0: the plain hold).
+    #[arg(long, allow_negative_numbers = true, default_value = "0", conflicts_with = "delay_from")]
+    actuation_delay: String,
+    /// Draw each torque's delay from a measured latency distribution: a `.hgrm` file such
+    /// as a real-time run's `sense_to_actuate.hgrm` (µs), with `--seed`.
+    #[arg(long)]
+    delay_from: Option<PathBuf>,
+    /// Seed of the delays drawn with `--delay-from`.
+    #[arg(long, allow_negative_numbers = true, default_value_t = 1)]
+    seed: u64,
+    /// Re-run a finished real-time run DIR (its `summary.json`, `trace.csv`, `timing.csv`)
+    /// in process, with each torque taking effect where and when it did there; writes the
+    /// same `trace.csv` and says whether it is identical.
+    #[arg(long, conflicts_with_all = ["scenario", "open_loop", "delay_from"])]
+    replay: Option<PathBuf>,
     /// Output directory.
     #[arg(long)]
     out: PathBuf,
@@ -196,8 +216,27 @@ fn print_warnings(w: &[String]) {
 pub fn run(cli: Cli) -> anyhow::Result<()> {
     match cli.command {
         Command::Sim(a) => {
-            let scenario = scenario_with_overrides(&a.scenario, a.duration, a.rate, a.actuation)?;
+            if let Some(dir) = &a.replay {
+                let r = crate::replay::run(dir, &a.out)?;
+                println!("{}", r.describe());
+                return Ok(());
+            }
+            let name = a.scenario.as_deref().unwrap_or_default();
+            let scenario = scenario_with_overrides(name, a.duration, a.rate, a.actuation)?;
             print_warnings(&scenario.warnings);
+            let delay = a.actuation_delay.parse().map_err(|e: String| {
+                UsageError(
+                    format!("--actuation-delay {e}").replace("`measured`, or seconds", "seconds"),
+                )
+            })?;
+            if delay == ActuationDelay::Measured {
+                return Err(UsageError(
+                    "--actuation-delay measured is for real-time runs; sim takes SECONDS".into(),
+                )
+                .into());
+            }
+            let drawn =
+                a.delay_from.as_deref().map(|p| sim::drawn_delays(p, a.seed)).transpose()?;
             let opts = SimOptions {
                 scenario,
                 open_loop: a.open_loop,
@@ -205,8 +244,10 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
                 out: a.out.clone(),
                 figures: !a.no_figures,
                 progress: true,
+                delay,
+                drawn,
             };
-            let (summary, _) = sim::run(&opts).with_context(|| format!("sim of {}", a.scenario))?;
+            let (summary, _) = sim::run(&opts).with_context(|| format!("sim of {name}"))?;
             print!("{}", summary_table(&summary));
             println!("  {:<28} {}", "output", a.out.display());
         }
@@ -225,6 +266,10 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         }
         Command::Run(a) => crate::launch::run(&a)?,
         Command::Bench(a) => crate::bench::run(&a)?,
+        Command::Margin(a) => {
+            crate::margin::run(&a)?;
+            println!("output: {}", a.out.display());
+        }
         Command::Role(_) => unreachable!("handled in main"),
         Command::Clean { domain } => {
             let d = rotorloop_common::ipc::Domain::new(&domain)

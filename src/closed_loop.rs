@@ -3,11 +3,43 @@
 //! in-process simulator's core and the unit the benchmark measures.
 
 use glam::DVec3;
+use rand::Rng;
+use rand_chacha::ChaCha8Rng;
 use rotorloop_common::{Actuation, ActuatorLimits, Scenario};
 use rotorloop_controller::{ControlOutput, GeometricPid};
 use rotorloop_monitor::{Metrics, TraceRow};
+use rotorloop_plant::policy::{ActuationDelay, DelayLine, integrate_tick};
 use rotorloop_plant::{Body, BodyInput};
 use rotorloop_reference::Reference;
+
+/// Delays drawn from a measured latency distribution: `(quantile, seconds)` points of its
+/// inverse CDF (from a `.hgrm`), sampled with a seeded generator, so a run is reproducible
+/// by its seed.
+#[derive(Debug, Clone)]
+pub struct DrawnDelays {
+    quantiles: Vec<(f64, f64)>,
+    rng: ChaCha8Rng,
+}
+
+impl DrawnDelays {
+    /// Draws from the inverse CDF `quantiles` (increasing in both) with `seed`.
+    pub fn new(quantiles: Vec<(f64, f64)>, seed: u64) -> Self {
+        use rand::SeedableRng;
+        Self { quantiles, rng: ChaCha8Rng::seed_from_u64(seed) }
+    }
+
+    /// The next delay (s): the inverse CDF at a uniform draw, linear between points.
+    pub fn draw(&mut self) -> f64 {
+        let u: f64 = self.rng.random();
+        let q = &self.quantiles;
+        let i = q.partition_point(|(p, _)| *p < u).min(q.len() - 1);
+        if i == 0 {
+            return q[0].1;
+        }
+        let ((p0, v0), (p1, v1)) = (q[i - 1], q[i]);
+        if p1 > p0 { v0 + (v1 - v0) * (u - p0) / (p1 - p0) } else { v1 }
+    }
+}
 
 /// Plant + reference + controller + metrics at a fixed tick.
 #[derive(Debug, Clone)]
@@ -24,8 +56,12 @@ pub struct ClosedLoop {
     disturbance: DVec3,
     dt: f64,
     tick: u64,
-    held: DVec3,
+    last: u64,
+    /// Rotor work over the previous tick (J).
+    work: f64,
     saturated_ticks: u64,
+    line: DelayLine,
+    drawn: Option<DrawnDelays>,
 }
 
 impl ClosedLoop {
@@ -51,9 +87,25 @@ impl ClosedLoop {
             disturbance: scenario.disturbance,
             dt: scenario.dt(),
             tick: 0,
-            held: DVec3::ZERO,
+            last: scenario.ticks(),
+            work: 0.0,
             saturated_ticks: 0,
+            line: DelayLine::new(ActuationDelay::Instant, scenario.dt()),
+            drawn: None,
         }
+    }
+
+    /// Each torque takes effect `delay` after its tick's time (delayed zero-order hold;
+    /// `Instant` is the plain zero-order hold).
+    pub fn with_delay(mut self, delay: ActuationDelay) -> Self {
+        self.line = DelayLine::new(delay, self.dt);
+        self
+    }
+
+    /// Each torque's delay is drawn from `drawn` (a measured distribution).
+    pub fn with_drawn_delays(mut self, drawn: DrawnDelays) -> Self {
+        self.drawn = Some(drawn);
+        self
     }
 
     /// The next tick index.
@@ -82,8 +134,8 @@ impl ClosedLoop {
     }
 
     /// One tick `k`: read the state and reference at `t_k = k dt`, compute the torques,
-    /// record the row, then advance plant (torque held) and reference to `t_k+1`.
-    /// Allocation-free.
+    /// record the row, then advance plant (the torques in force, piecewise: delayed
+    /// zero-order hold) and reference to `t_k+1`. Allocation-free.
     #[inline]
     pub fn tick(&mut self) -> TraceRow {
         let k = self.tick;
@@ -94,24 +146,27 @@ impl ClosedLoop {
             None => self.pid.step(&x, &rd, self.dt),
             Some(u) => ControlOutput { rotor_torque: u, ..ControlOutput::default() },
         };
+        // The motors deliver what their limits allow (the trace keeps the command).
         let (input, u_traced) = match self.actuation {
-            Actuation::Internal => {
-                // The motors deliver what their limits allow (the trace keeps the command).
-                let (u, saturated) = self.limits.apply(out.rotor_torque, x.omega_r);
-                self.saturated_ticks += u64::from(saturated);
-                (BodyInput { rotor_torque: u, body_torque: self.disturbance }, out.rotor_torque)
-            }
-            Actuation::External => (
-                BodyInput {
-                    rotor_torque: DVec3::ZERO,
-                    body_torque: out.body_torque + self.disturbance,
-                },
-                DVec3::ZERO,
+            Actuation::Internal => (
+                BodyInput { rotor_torque: out.rotor_torque, body_torque: DVec3::ZERO },
+                out.rotor_torque,
             ),
+            Actuation::External => {
+                (BodyInput { rotor_torque: DVec3::ZERO, body_torque: out.body_torque }, DVec3::ZERO)
+            }
         };
-        let row = self.metrics.observe(k, t, &x, &rd, u_traced, out.body_torque, self.held);
-        self.held = input.rotor_torque;
-        self.plant.step(input, self.dt);
+        let mut row =
+            self.metrics.observe_work(k, t, &x, &rd, u_traced, out.body_torque, self.work);
+        let drawn = self.drawn.as_mut().map(DrawnDelays::draw);
+        self.line.arrive(k, input, k, 0.0, 0, drawn);
+        let step =
+            integrate_tick(&mut self.plant, &mut self.line, k, &self.limits, self.disturbance);
+        self.work = step.work;
+        self.saturated_ticks += u64::from(step.saturated);
+        if k < self.last {
+            row.delay_s = step.effects.first_delay_s(k, self.dt);
+        }
         self.reference.step(t, self.dt);
         self.tick += 1;
         row

@@ -25,6 +25,7 @@ use crate::supervise::{
     parse_restart, signal,
 };
 pub use crate::supervise::{Fault, ROLES, parse_fault};
+use rotorloop_plant::policy::ActuationDelay;
 
 /// `rotorloop run` arguments.
 #[derive(Debug, Clone, Args)]
@@ -61,6 +62,12 @@ pub struct RunArgs {
     /// The receivers must reject it. Repeatable.
     #[arg(long)]
     pub corrupt: Vec<String>,
+    /// When a torque takes effect in the plant: `measured` (when it arrives: the loop's
+    /// real latency, delayed zero-order hold; in lockstep at its own tick's time), `0` (at
+    /// the start of the tick it arrives in: the plain zero-order hold), or SECONDS after
+    /// its tick's time (a fixed delay of any length, never before it arrives).
+    #[arg(long, default_value = "measured")]
+    pub actuation_delay: ActuationDelay,
     /// Restart policy for a role that exits abnormally, is killed by anyone or hangs:
     /// `on-failure`, `always` (also after a clean exit before the run's end) or `never`,
     /// for every role, per role (`monitor=always,plant=never`), or both (`never,monitor=always`).
@@ -92,6 +99,7 @@ impl RunArgs {
             restart: "on-failure".into(),
             restart_limit: "5/10".into(),
             watchdog_ms: 3000,
+            actuation_delay: ActuationDelay::Measured,
         }
     }
 }
@@ -255,6 +263,8 @@ pub enum RunEnd {
 /// executable they run from (this one, so the four are always the same build).
 struct Launch<'a> {
     args: &'a RunArgs,
+    faults: Vec<Fault>,
+    supervisor: Supervisor,
     role_args: RoleArgs,
     pins: BTreeMap<String, usize>,
     corrupt: Vec<(String, Corrupt)>,
@@ -288,6 +298,14 @@ impl Launch<'_> {
                 cmd.arg("--spin-before-tick-us").arg(args.spin_before_tick_us.to_string());
                 cmd.arg("--hold-ticks").arg(args.hold_ticks.to_string());
                 cmd.arg("--latency-out").arg(&args.out);
+                cmd.arg("--actuation-delay").arg(args.actuation_delay.to_string());
+            }
+            "controller" => {
+                for f in &self.faults {
+                    if let Some(d) = f.inject_delay_arg() {
+                        cmd.arg("--inject-delay").arg(d);
+                    }
+                }
             }
             _ => {}
         }
@@ -310,6 +328,9 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
     }
     let faults = args.fault.iter().map(|f| parse_fault(f)).collect::<Result<Vec<_>, _>>()?;
     let corrupt = args.corrupt.iter().map(|c| parse_corrupt(c)).collect::<Result<Vec<_>, _>>()?;
+    let limit: RestartLimit =
+        args.restart_limit.parse().map_err(|e| UsageError(format!("--restart-limit {e}")))?;
+    let supervisor = Supervisor::new(parse_restart(&args.restart)?, limit);
     let mut role_args = args.role.clone();
     role_args.domain.get_or_insert_with(|| format!("run-{}", std::process::id()));
     let domain = role_args.open_domain()?;
@@ -328,7 +349,7 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
         );
         return Err(UsageError(msg).into());
     }
-    let launch = Launch { args, role_args, pins, corrupt, exe };
+    let launch = Launch { args, faults: faults.clone(), supervisor, role_args, pins, corrupt, exe };
     let mut rss = RssLog::create(&args.out);
     let mut children = Children::default();
     for role in ROLES.iter().filter(|r| **r != "monitor" || !args.no_monitor) {
@@ -404,10 +425,7 @@ fn supervise(
     mut schedule: FaultSchedule,
 ) -> anyhow::Result<Vec<FaultEvent>> {
     let args = launch.args;
-    let policies = parse_restart(&args.restart)?;
-    let limit: RestartLimit =
-        args.restart_limit.parse().map_err(|e| UsageError(format!("--restart-limit {e}")))?;
-    let mut supervisor = Supervisor::new(policies, limit);
+    let mut supervisor = launch.supervisor.clone();
     let mut watchdog = Watchdog::new(args.watchdog_ms as f64 / 1e3);
     let lockstep = launch.role_args.mode == Mode::Lockstep;
     // The fault clock starts when the plant has published tick 0 (its resume slot is
@@ -612,6 +630,27 @@ fn injected(
                     kill_ns: now_ns(),
                     restart_ns: None,
                 });
+            }
+        }
+        Action::Delay(role, d, started) => {
+            let ms = d * 1e3;
+            if started {
+                eprintln!("launcher: {role} answers {ms} ms late from {at:.3} s (injected)");
+                let detail = format!("each answer sent {ms} ms late (--fault delay)");
+                w.events.push(FaultEvent {
+                    role,
+                    kind: "delay",
+                    detail,
+                    kill_ns: now_ns(),
+                    restart_ns: None,
+                });
+            } else {
+                eprintln!("launcher: {role} answers on time again from {at:.3} s");
+                if let Some(e) =
+                    w.events.iter_mut().rev().find(|e| e.role == role && e.kind == "delay")
+                {
+                    e.restart_ns = Some(now_ns());
+                }
             }
         }
         Action::Cont(role) => {

@@ -11,9 +11,11 @@ pub mod closed_loop;
 pub mod faults;
 pub mod gains;
 pub mod launch;
+pub mod margin;
 pub mod montecarlo;
 pub mod paper;
 pub mod process;
+pub mod replay;
 pub mod sim;
 pub mod supervise;
 

@@ -28,15 +28,9 @@ pub fn run(out: &Path, duration: f64, rate: f64, in_process: bool) -> anyhow::Re
             loop_rows.push_str(&four_process_run(out, name, duration, rate)?);
         }
         println!("{name}: in process");
-        let (s, rec) = sim::run(&SimOptions {
-            scenario,
-            open_loop: None,
-            trace_every: 1,
-            out: dir.clone(),
-            figures: true,
-            progress: true,
-        })
-        .with_context(|| format!("sim of {name}"))?;
+        let (s, rec) =
+            sim::run(&SimOptions { progress: true, ..SimOptions::new(scenario, dir.clone()) })
+                .with_context(|| format!("sim of {name}"))?;
         print!("{}", summary_table(&s));
         let e = s.effort.as_ref().context("closed-loop runs have an effort comparison")?;
         let _ = writeln!(

@@ -4,7 +4,7 @@
 pub use rotorloop_common::role::{diverged, scenario_with_overrides, write_json};
 use std::fs::File;
 use std::io::{BufWriter, IsTerminal, Write};
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use anyhow::Context;
@@ -16,7 +16,9 @@ use rotorloop_monitor::figures::tracking_figures;
 use rotorloop_monitor::{Recorder, TraceRow, TraceWriter};
 use serde::Serialize;
 
-use crate::ClosedLoop;
+use crate::closed_loop::DrawnDelays;
+use crate::{ClosedLoop, UsageError};
+use rotorloop_plant::policy::ActuationDelay;
 
 /// What to simulate.
 #[derive(Debug, Clone)]
@@ -33,6 +35,63 @@ pub struct SimOptions {
     pub figures: bool,
     /// Show progress on a terminal.
     pub progress: bool,
+    /// When each torque takes effect (`Instant`: the plain zero-order hold).
+    pub delay: ActuationDelay,
+    /// Each torque's delay drawn from a measured distribution instead.
+    pub drawn: Option<DrawnDelays>,
+}
+
+impl SimOptions {
+    /// A plain run of `scenario` into `out`: closed loop, every row, figures, the plain
+    /// zero-order hold.
+    pub fn new(scenario: Scenario, out: PathBuf) -> Self {
+        Self {
+            scenario,
+            open_loop: None,
+            trace_every: 1,
+            out,
+            figures: true,
+            progress: false,
+            delay: ActuationDelay::Instant,
+            drawn: None,
+        }
+    }
+
+    /// The closed loop these options run, with `actuation`.
+    pub fn closed_loop(&self, actuation: Actuation, open_loop: Option<DVec3>) -> ClosedLoop {
+        let lp = ClosedLoop::new(&self.scenario, actuation, open_loop).with_delay(self.delay);
+        match &self.drawn {
+            Some(d) => lp.with_drawn_delays(d.clone()),
+            None => lp,
+        }
+    }
+}
+
+/// The delays of `--delay-from FILE --seed S`: the inverse CDF of a `.hgrm` percentile
+/// distribution (values in µs), drawn with the seed.
+pub fn drawn_delays(path: &Path, seed: u64) -> Result<DrawnDelays, UsageError> {
+    let bad = |why: &str| UsageError(format!("--delay-from {}: {why}", path.display()));
+    let text = std::fs::read_to_string(path).map_err(|e| bad(&e.to_string()))?;
+    let mut q: Vec<(f64, f64)> = Vec::new();
+    for line in text.lines().filter(|l| !l.trim_start().starts_with('#')) {
+        let f: Vec<&str> = line.split_whitespace().collect();
+        let (Some(v), Some(p)) = (f.first(), f.get(1)) else { continue };
+        let (Ok(v_us), Ok(p)) = (v.parse::<f64>(), p.parse::<f64>()) else { continue };
+        if !(v_us.is_finite() && v_us >= 0.0 && (0.0..=1.0).contains(&p)) {
+            return Err(bad(&format!(
+                "`{line}` is not a value (µs ≥ 0) and a percentile in [0, 1]"
+            )));
+        }
+        if q.last().is_none_or(|(lp, lv)| p >= *lp && v_us * 1e-6 >= *lv) {
+            q.push((p, v_us * 1e-6));
+        }
+    }
+    if q.len() < 2 {
+        return Err(bad(
+            "no percentile distribution in it (HdrHistogram's .hgrm text: Value Percentile TotalCount …)",
+        ));
+    }
+    Ok(DrawnDelays::new(q, seed))
 }
 
 /// The effort comparison of the internally and externally actuated runs.
@@ -216,7 +275,7 @@ pub fn run(opts: &SimOptions) -> anyhow::Result<(SimSummary, Recorder)> {
     let every = opts.trace_every.max(1);
     let mut trace_rows = 0u64;
 
-    let mut lp = ClosedLoop::new(s, actuation, opts.open_loop);
+    let mut lp = opts.closed_loop(actuation, opts.open_loop);
     let start = Instant::now();
     let stats = drive(&mut lp, ticks, |row, last| {
         if row.tick % every == 0 || last {
@@ -233,7 +292,7 @@ pub fn run(opts: &SimOptions) -> anyhow::Result<(SimSummary, Recorder)> {
 
     // The effort comparison: the other actuation on the same reference.
     let (effort, other_rec) = match opts.open_loop {
-        None => effort_comparison(s, &stats, &rec).map(|(e, r)| (Some(e), Some(r)))?,
+        None => effort_comparison(opts, &stats, &rec).map(|(e, r)| (Some(e), Some(r)))?,
         Some(_) => (None, None),
     };
 
@@ -368,16 +427,17 @@ impl Progress {
 /// Flies the other actuation (rotors ↔ gas jets) on the same reference and compares the
 /// control effort with the run's `stats`; `rec` is the run's recorded error history.
 fn effort_comparison(
-    s: &Scenario,
+    opts: &SimOptions,
     stats: &Stats,
     rec: &Recorder,
 ) -> anyhow::Result<(EffortComparison, Recorder)> {
+    let s = &opts.scenario;
     let (actuation, ticks) = (s.actuation(), s.ticks());
     let other = match actuation {
         Actuation::Internal => Actuation::External,
         Actuation::External => Actuation::Internal,
     };
-    let mut olp = ClosedLoop::new(s, other, None);
+    let mut olp = opts.closed_loop(other, None);
     let mut orec = Recorder::new(ticks + 1);
     let mut err_diff = 0.0f64;
     let mut main_err = rec.err_deg.iter();

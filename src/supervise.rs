@@ -24,27 +24,54 @@ use crate::UsageError;
 /// The roles, in start order (the monitor first, so it sees tick 0).
 pub const ROLES: [&str; 4] = ["monitor", "reference", "controller", "plant"];
 
-/// One `--fault ROLE:kill@T[:restart@T2]` or `ROLE:stop@T[:cont@T2]`.
+/// What a `--fault` does.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum FaultKind {
+    /// SIGKILL, then (if given) start it again.
+    Kill,
+    /// SIGSTOP (a hang), then (if given) SIGCONT.
+    Stop,
+    /// The controller sends each answer this many seconds late (a slow network or an
+    /// overloaded computer), from the fault's time until its end (if given). The
+    /// controller applies it itself, by the states' times (`--inject-delay`).
+    Delay(f64),
+}
+
+/// One `--fault`: `ROLE:kill@T[:restart@T2]`, `ROLE:stop@T[:cont@T2]` or
+/// `controller:delay@T=SECONDS[:until@T2]`.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Fault {
     /// The role.
     pub role: String,
-    /// A hang (SIGSTOP, then SIGCONT) rather than a kill (SIGKILL, then a restart).
-    pub stop: bool,
-    /// When to SIGKILL (or SIGSTOP) it (s after tick 0).
+    /// What it does.
+    pub kind: FaultKind,
+    /// When it starts (s after tick 0).
     pub kill_s: f64,
-    /// When to start it again (or SIGCONT it) (s), if at all.
+    /// When it ends: restart, SIGCONT, or the delay's end (s), if at all.
     pub restart_s: Option<f64>,
     killed: bool,
     restarted: bool,
 }
 
-/// Parses `ROLE:kill@T[:restart@T2]` or `ROLE:stop@T[:cont@T2]`.
+impl Fault {
+    /// The controller's `--inject-delay FROM=SECONDS[:UNTIL]` of a delay fault.
+    pub fn inject_delay_arg(&self) -> Option<String> {
+        match self.kind {
+            FaultKind::Delay(d) => Some(match self.restart_s {
+                Some(u) => format!("{}={d}:{u}", self.kill_s),
+                None => format!("{}={d}", self.kill_s),
+            }),
+            _ => None,
+        }
+    }
+}
+
+/// Parses a `--fault` (see [`Fault`]).
 pub fn parse_fault(s: &str) -> Result<Fault, UsageError> {
     let bad = |why: &str| {
         UsageError(format!(
-            "--fault `{s}` is not allowed: {why} (form ROLE:kill@T[:restart@T2] or \
-             ROLE:stop@T[:cont@T2], e.g. controller:kill@2:restart@2.5)"
+            "--fault `{s}` is not allowed: {why} (form ROLE:kill@T[:restart@T2], \
+             ROLE:stop@T[:cont@T2] or controller:delay@T=SECONDS[:until@T2], e.g. controller:kill@2:restart@2.5)"
         ))
     };
     let parts: Vec<&str> = s.split(':').collect();
@@ -54,29 +81,48 @@ pub fn parse_fault(s: &str) -> Result<Fault, UsageError> {
     if !ROLES.contains(&parts[0]) {
         return Err(bad("ROLE is plant, reference, controller or monitor"));
     }
-    let time = |p: &str, key: &str| -> Result<f64, UsageError> {
-        p.strip_prefix(key)
-            .and_then(|t| t.parse::<f64>().ok())
+    let seconds = |p: &str, what: &str| -> Result<f64, UsageError> {
+        p.parse::<f64>()
+            .ok()
             .filter(|t| t.is_finite() && *t >= 0.0)
-            .ok_or_else(|| bad(&format!("`{p}` must be {key}SECONDS with SECONDS ≥ 0")))
+            .ok_or_else(|| bad(&format!("`{p}` must be {what}, seconds ≥ 0")))
     };
-    let stop = parts[1].starts_with("stop@");
-    let (first, then) = if stop { ("stop@", "cont@") } else { ("kill@", "restart@") };
-    let kill_s = time(parts[1], first)?;
+    let time = |p: &str, key: &str| match p.strip_prefix(key) {
+        Some(t) => seconds(t, &format!("the time of {key}")),
+        None => Err(bad(&format!("`{p}` must be {key}SECONDS"))),
+    };
+    let (kind, first, then) = match parts[1].split_once('@').map(|(k, _)| k) {
+        Some("stop") => (FaultKind::Stop, "stop@", "cont@"),
+        Some("delay") => {
+            let (_, spec) = parts[1].split_once('@').unwrap_or_default();
+            let (_, d) = spec.split_once('=').ok_or_else(|| bad("delay@T=SECONDS"))?;
+            let d = seconds(d, "the delay").and_then(|d| match d > 0.0 && d <= 60.0 {
+                true => Ok(d),
+                false => Err(bad("the delay must be > 0 and ≤ 60 s")),
+            })?;
+            if parts[0] != "controller" {
+                return Err(bad("only the controller's answers can be delayed"));
+            }
+            (FaultKind::Delay(d), "delay@", "until@")
+        }
+        _ => (FaultKind::Kill, "kill@", "restart@"),
+    };
+    let start = match kind {
+        FaultKind::Delay(_) => parts[1].split_once('=').map_or(parts[1], |(t, _)| t),
+        _ => parts[1],
+    };
+    let kill_s = time(start, first)?;
     let restart_s = parts.get(2).map(|p| time(p, then)).transpose()?;
     if restart_s.is_some_and(|r| r <= kill_s) {
-        return Err(bad(&format!(
-            "the {} must come after the {}",
-            &then[..then.len() - 1],
-            &first[..first.len() - 1]
-        )));
+        let (a, b) = (&then[..then.len() - 1], &first[..first.len() - 1]);
+        return Err(bad(&format!("the {a} must come after the {b}")));
     }
     let (killed, restarted) = (false, false);
-    Ok(Fault { role: parts[0].to_owned(), stop, kill_s, restart_s, killed, restarted })
+    Ok(Fault { role: parts[0].to_owned(), kind, kill_s, restart_s, killed, restarted })
 }
 
 /// What the schedule asks the launcher to do now.
-#[derive(Debug, Clone, PartialEq, Eq)]
+#[derive(Debug, Clone, PartialEq)]
 pub enum Action {
     /// SIGKILL this role.
     Kill(String),
@@ -86,6 +132,9 @@ pub enum Action {
     Stop(String),
     /// SIGCONT this role.
     Cont(String),
+    /// The controller's injected delay starts (`true`) or ends (the controller applies
+    /// it; the launcher reports it).
+    Delay(String, f64, bool),
 }
 
 /// The `--fault` schedule.
@@ -106,15 +155,22 @@ impl FaultSchedule {
         let Some(t) = elapsed_s else { return Vec::new() };
         let mut actions = Vec::new();
         for f in &mut self.faults {
+            let r = f.role.clone();
             if !f.killed && t >= f.kill_s {
                 f.killed = true;
-                let r = f.role.clone();
-                actions.push(if f.stop { Action::Stop(r) } else { Action::Kill(r) });
+                actions.push(match f.kind {
+                    FaultKind::Kill => Action::Kill(r.clone()),
+                    FaultKind::Stop => Action::Stop(r.clone()),
+                    FaultKind::Delay(d) => Action::Delay(r.clone(), d, true),
+                });
             }
-            if f.killed && !f.restarted && f.restart_s.is_some_and(|r| t >= r) {
+            if f.killed && !f.restarted && f.restart_s.is_some_and(|at| t >= at) {
                 f.restarted = true;
-                let r = f.role.clone();
-                actions.push(if f.stop { Action::Cont(r) } else { Action::Restart(r) });
+                actions.push(match f.kind {
+                    FaultKind::Kill => Action::Restart(r),
+                    FaultKind::Stop => Action::Cont(r),
+                    FaultKind::Delay(d) => Action::Delay(r, d, false),
+                });
             }
         }
         actions
@@ -123,7 +179,9 @@ impl FaultSchedule {
     /// A role was killed and its restart is still to come: the run is not over even if
     /// no child runs.
     pub fn awaiting_restart(&self) -> bool {
-        self.faults.iter().any(|f| !f.stop && f.killed && !f.restarted && f.restart_s.is_some())
+        self.faults
+            .iter()
+            .any(|f| f.kind == FaultKind::Kill && f.killed && !f.restarted && f.restart_s.is_some())
     }
 }
 
@@ -638,5 +696,24 @@ mod tests {
         let e = parse_fault("controller:stop@2:cont@1").expect_err("cont first").to_string();
         assert!(e.contains("cont must come after the stop"), "{e}");
         assert!(parse_fault("controller:stop@2:restart@3").is_err());
+    }
+
+    #[test]
+    fn an_injected_delay_is_the_controllers_and_is_reported_at_its_start_and_end() {
+        let f = parse_fault("controller:delay@1=0.005:until@3").expect("valid");
+        assert_eq!((f.kind, f.kill_s, f.restart_s), (FaultKind::Delay(0.005), 1.0, Some(3.0)));
+        assert_eq!(f.inject_delay_arg().as_deref(), Some("1=0.005:3"));
+        let mut s = FaultSchedule::new(vec![f]);
+        assert_eq!(s.due(Some(1.0)), [Action::Delay("controller".into(), 0.005, true)]);
+        assert_eq!(s.due(Some(3.0)), [Action::Delay("controller".into(), 0.005, false)]);
+        for (bad, why) in [
+            ("plant:delay@1=0.005", "only the controller"),
+            ("controller:delay@1", "delay@T=SECONDS"),
+            ("controller:delay@1=0", "> 0"),
+            ("controller:delay@2=0.1:until@1", "until must come after the delay"),
+        ] {
+            let e = parse_fault(bad).expect_err(bad).to_string();
+            assert!(e.contains(why), "{bad}: {e}");
+        }
     }
 }

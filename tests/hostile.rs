@@ -282,7 +282,10 @@ fn a_process_of_another_layout_version_is_refused_naming_both_versions() {
         match domain.inbox::<StateSampleV2>(&other, Topic::State, 1, false) {
             Err(e @ IpcError::LayoutSkew { .. }) => {
                 let msg = e.to_string();
-                assert!(msg.contains("layout v2") && msg.contains("layout v3"), "{msg}");
+                assert!(
+                    msg.contains("layout v2") && msg.contains(&format!("layout v{LAYOUT_VERSION}")),
+                    "{msg}"
+                );
             }
             other => panic!("expected a layout skew error, got {other:?}"),
         }

@@ -517,23 +517,44 @@ impl<T: ZeroCopySend + Debug + Copy + 'static> Inbox<T> {
                 Wait::Event => false,
                 Wait::Hybrid { spin_ns } => now - start < spin_ns,
             };
-            // iceoryx2 0.10 turns the timeout into SO_RCVTIMEO, where anything under 1 µs
-            // becomes {0, 0}: "wait forever". Never pass it less than 2 µs; spin instead.
             let left = deadline_ns - now;
             match (&self.listener, spin || left < 2_000) {
-                (Some(l), false) => {
-                    // Bounded so that signals are seen; wake-ups merge, so drain after.
-                    let left = left.min(10_000_000);
-                    match l.timed_wait(|_| {}, Duration::from_nanos(left)) {
-                        // A signal (SIGTERM to stop, say) is a wake-up like any other.
-                        Ok(_)
-                        | Err(iceoryx2::port::listener::ListenerWaitError::InterruptSignal) => {}
-                        Err(e) => return Err(iox("cannot wait for an event")(&e)),
-                    }
-                }
+                // Bounded so that signals are seen; wake-ups merge, so drain after.
+                (Some(l), false) => wait_readable(l, left.min(10_000_000))?,
                 _ => std::hint::spin_loop(),
             }
         }
+    }
+}
+
+/// Blocks until `listener` has an event or `timeout_ns` passes, then drains its events.
+///
+/// Not iceoryx2's `Listener::timed_wait`: it sets the timeout as `SO_RCVTIMEO`, which Linux
+/// counts in jiffies (4 ms at `HZ=250`), so a 1 ms timeout blocked 4–8 ms here (found as
+/// real-time ticks late by up to 8 ms whenever a torque did not come; and a timeout under
+/// 1 µs becomes `{0, 0}`: wait forever). `ppoll` on the listener's socket has an hrtimer
+/// timeout with nanosecond resolution; the listener is drained with `try_wait` after.
+fn wait_readable(listener: &Listener<ipc::Service>, timeout_ns: u64) -> Result<(), IpcError> {
+    use iceoryx2_bb_posix::file_descriptor::FileDescriptorBased;
+    // SAFETY: the listener owns the descriptor and outlives this call; it is only polled.
+    let fd = unsafe { listener.file_descriptor().native_handle() };
+    let mut pfd = libc::pollfd { fd, events: libc::POLLIN, revents: 0 };
+    let ts = libc::timespec {
+        tv_sec: (timeout_ns / 1_000_000_000) as libc::time_t,
+        tv_nsec: (timeout_ns % 1_000_000_000) as libc::c_long,
+    };
+    // SAFETY: one valid pollfd, a valid timespec, no signal mask change.
+    let r = unsafe { libc::ppoll(&mut pfd, 1, &ts, std::ptr::null()) };
+    if r < 0 && std::io::Error::last_os_error().kind() != std::io::ErrorKind::Interrupted {
+        return Err(IpcError::Iceoryx {
+            what: "cannot wait for an event".into(),
+            detail: std::io::Error::last_os_error().to_string(),
+        });
+    }
+    match listener.try_wait(|_| {}) {
+        // A signal (SIGTERM to stop, say) is a wake-up like any other.
+        Ok(_) | Err(iceoryx2::port::listener::ListenerWaitError::InterruptSignal) => Ok(()),
+        Err(e) => Err(iox("cannot drain events")(&e)),
     }
 }
 

@@ -16,7 +16,7 @@ use crate::so3::{from_rows, to_row_major};
 use crate::{ReferenceState, RotorBodyState};
 
 /// The layout version carried in every type name.
-pub const LAYOUT_VERSION: u32 = 3;
+pub const LAYOUT_VERSION: u32 = 4;
 
 /// "No torque sample" in [`StateSample::applied_torque_tick`].
 pub const NO_TICK: u64 = u64::MAX;
@@ -38,7 +38,7 @@ pub const TORQUE_SKIPPED: u64 = 1;
 
 /// The plant's state at tick `tick`, published once per tick.
 #[derive(Debug, Clone, Copy, PartialEq, ZeroCopySend)]
-#[type_name("rotorloop::StateSample_v3")]
+#[type_name("rotorloop::StateSample_v4")]
 #[repr(C)]
 pub struct StateSample {
     /// Tick index `k`.
@@ -85,12 +85,21 @@ pub struct StateSample {
     pub internal_h: [f64; 3],
     /// The integrator's rotor momenta `p = K(Ω+Ω_r)` (N m s).
     pub internal_p: [f64; 3],
+    /// Rotor work over `[t_k−1, t_k]` (J): the sum over the tick's pieces of `u · ΔΘ`
+    /// (delayed zero-order hold: a torque takes effect inside the tick).
+    pub rotor_work_j: f64,
+    /// How many new torques took effect during `[t_k−1, t_k]` (may exceed 3).
+    pub effects: u64,
+    /// The ticks of the first three of them.
+    pub effect_ticks: [u64; 3],
+    /// When each took effect, after `t_k−1` (s).
+    pub effect_offsets_s: [f64; 3],
 }
-const _: () = assert!(size_of::<StateSample>() == 352);
+const _: () = assert!(size_of::<StateSample>() == 416);
 
 /// The desired attitude for tick `tick`, published ahead of the plant.
 #[derive(Debug, Clone, Copy, PartialEq, ZeroCopySend)]
-#[type_name("rotorloop::ReferenceSample_v3")]
+#[type_name("rotorloop::ReferenceSample_v4")]
 #[repr(C)]
 pub struct ReferenceSample {
     /// Tick index `k`.
@@ -118,7 +127,7 @@ const _: () = assert!(size_of::<ReferenceSample>() == 240);
 
 /// The controller's answer to state sample `tick`.
 #[derive(Debug, Clone, Copy, PartialEq, Default, ZeroCopySend)]
-#[type_name("rotorloop::TorqueSample_v3")]
+#[type_name("rotorloop::TorqueSample_v4")]
 #[repr(C)]
 pub struct TorqueSample {
     /// The state tick this answers.
@@ -189,8 +198,34 @@ impl StateSample {
             flags: 0,
             internal_h: [0.0; 3],
             internal_p: [0.0; 3],
+            rotor_work_j: 0.0,
+            effects: 0,
+            effect_ticks: [NO_TICK; 3],
+            effect_offsets_s: [f64::NAN; 3],
         }
     }
+
+    /// The actuation delay of the first torque that took effect during the previous tick
+    /// `[t_k−1, t_k]` (s): when it took effect minus its own tick's time, with ticks of
+    /// `dt`; NaN when none did (the trace's `delay_s` of row `k − 1`).
+    pub fn first_effect_delay_s(&self, dt: f64) -> f64 {
+        match self.effects {
+            0 => f64::NAN,
+            _ => effect_delay_s(
+                self.tick.saturating_sub(1),
+                self.effect_ticks[0],
+                self.effect_offsets_s[0],
+                dt,
+            ),
+        }
+    }
+}
+
+/// The actuation delay of the torque of tick `source` that took effect `offset_s` into
+/// tick `tick` (s): `(tick − source) dt + offset`. The plant process and the in-process
+/// simulator both compute it here, so their traces agree bit for bit.
+pub fn effect_delay_s(tick: u64, source: u64, offset_s: f64, dt: f64) -> f64 {
+    tick.saturating_sub(source) as f64 * dt + offset_s
 }
 
 impl ReferenceSample {

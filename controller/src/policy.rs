@@ -304,6 +304,90 @@ impl TorqueAnswers {
     }
 }
 
+/// An injected delay (`--inject-delay FROM=SECONDS[:UNTIL]`, set by `rotorloop run --fault
+/// controller:delay@…`): answers to states of times in `[from_s, until_s)` are sent
+/// `delay_s` late.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct InjectedDelay {
+    /// From this state time (s).
+    pub from_s: f64,
+    /// Each answer this much late (s).
+    pub delay_s: f64,
+    /// Until this state time (s), if it ends.
+    pub until_s: Option<f64>,
+}
+
+impl std::str::FromStr for InjectedDelay {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        let bad =
+            || format!("`{s}` is not allowed: FROM=SECONDS[:UNTIL], times in s ≥ 0, delay > 0");
+        let (from, rest) = s.split_once('=').ok_or_else(bad)?;
+        let (delay, until) = match rest.split_once(':') {
+            Some((d, u)) => (d, Some(u)),
+            None => (rest, None),
+        };
+        let num =
+            |v: &str| v.parse::<f64>().ok().filter(|x| x.is_finite() && *x >= 0.0).ok_or_else(bad);
+        let (from_s, delay_s) = (num(from)?, num(delay)?);
+        let until_s = until.map(num).transpose()?;
+        if delay_s == 0.0 || until_s.is_some_and(|u| u <= from_s) {
+            return Err(bad());
+        }
+        Ok(Self { from_s, delay_s, until_s })
+    }
+}
+
+/// Answers held back by an injected delay, sent when due (in order: a network that
+/// delays, not one that reorders).
+#[derive(Debug, Clone, Default)]
+pub struct DelayedSends {
+    delays: Vec<InjectedDelay>,
+    queue: std::collections::VecDeque<(u64, TorqueSample)>,
+}
+
+impl DelayedSends {
+    /// Sends delayed by `delays`; room for a second of answers at 10 kHz is reserved.
+    pub fn new(delays: Vec<InjectedDelay>) -> Self {
+        let room = if delays.is_empty() { 0 } else { 10_000 };
+        Self { delays, queue: std::collections::VecDeque::with_capacity(room) }
+    }
+
+    /// The answer `t` to the state of time `t_s`, ready at `now_ns`: `Some(t)` to send now,
+    /// or `None` when it is held back.
+    pub fn hold(&mut self, t: TorqueSample, t_s: f64, now_ns: u64) -> Option<TorqueSample> {
+        let active =
+            self.delays.iter().find(|d| t_s >= d.from_s && d.until_s.is_none_or(|u| t_s < u));
+        match active {
+            Some(d) => {
+                self.queue.push_back((now_ns + (d.delay_s * 1e9) as u64, t));
+                None
+            }
+            None if self.queue.is_empty() => Some(t),
+            None => {
+                // Behind answers still held: keep the order.
+                let due = self.queue.back().map_or(now_ns, |b| b.0);
+                self.queue.push_back((due, t));
+                None
+            }
+        }
+    }
+
+    /// The next held answer if it is due at `now_ns`.
+    pub fn due(&mut self, now_ns: u64) -> Option<TorqueSample> {
+        self.queue
+            .front()
+            .is_some_and(|f| f.0 <= now_ns)
+            .then(|| self.queue.pop_front().map(|f| f.1))
+            .flatten()
+    }
+
+    /// When the next held answer is due.
+    pub fn next_due_ns(&self) -> Option<u64> {
+        self.queue.front().map(|f| f.0)
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -450,6 +534,28 @@ mod tests {
         assert!(matches!(a.decide(&last), Decision::Answer { .. }));
         let t = a.answer(&last, 0, None, &ReferencePairing::new(1, DT), DT);
         assert_eq!(t.states_skipped, 1);
+    }
+
+    #[test]
+    fn an_injected_delay_sends_each_answer_that_much_later_in_order() {
+        let d: InjectedDelay = "1=0.005:2".parse().expect("valid");
+        assert_eq!(d, InjectedDelay { from_s: 1.0, delay_s: 0.005, until_s: Some(2.0) });
+        for bad in ["1", "1=0", "2=0.1:1", "x=1", "-1=0.1"] {
+            assert!(bad.parse::<InjectedDelay>().is_err(), "{bad}");
+        }
+        let mut s = DelayedSends::new(vec![d]);
+        let t = |tick| TorqueSample { tick, ..Default::default() };
+        assert_eq!(s.hold(t(1), 0.5, 0), Some(t(1)), "before the delay: at once");
+        assert_eq!(s.hold(t(2), 1.0, 1_000), None);
+        assert_eq!(s.hold(t(3), 1.001, 2_000_000), None);
+        assert_eq!(s.next_due_ns(), Some(5_001_000));
+        assert_eq!(s.due(5_000_999), None);
+        assert_eq!(s.due(5_001_000), Some(t(2)));
+        // After the delay ends, an answer still waits behind those held: in order.
+        assert_eq!(s.hold(t(4), 2.0, 3_000_000), None);
+        assert_eq!(s.due(7_000_000), Some(t(3)));
+        assert_eq!(s.due(7_000_000), Some(t(4)));
+        assert_eq!(s.hold(t(5), 2.1, 8_000_000), Some(t(5)));
     }
 
     #[test]

@@ -43,6 +43,10 @@ pub struct TraceRow {
     pub h_drift_rel: f64,
     /// `T_k − T_0 − Σ u·ΔΘ` (J): zero for exact dynamics; NaN for a body without rotors.
     pub energy_residual: f64,
+    /// The actuation delay of the first torque that took effect during `[t_k, t_k+1]`
+    /// (s): when it took effect minus its own tick's time; NaN when none did (a miss, the
+    /// last tick, or a tick not seen). 0 for the plain zero-order hold.
+    pub delay_s: f64,
 }
 
 impl TraceRow {
@@ -106,7 +110,8 @@ impl Metrics {
     }
 
     /// The row for tick `k`. `held_before` is the rotor torque the plant held over
-    /// `[t_k−1, t_k]` (ignored at the first row; zero for a gas-jet body), for the rotor work.
+    /// `[t_k−1, t_k]` (ignored at the first row; zero for a gas-jet body), for the rotor work
+    /// `u · ΔΘ` of a plain zero-order hold.
     #[inline]
     #[allow(clippy::too_many_arguments)]
     pub fn observe(
@@ -118,6 +123,25 @@ impl Metrics {
         u: DVec3,
         tau: DVec3,
         held_before: DVec3,
+    ) -> TraceRow {
+        let work = self.prev_theta.map_or(0.0, |p| held_before.dot(x.theta - p));
+        self.observe_work(tick, t, x, reference, u, tau, work)
+    }
+
+    /// The row for tick `k`, with `work_before` the rotor work over `[t_k−1, t_k]` as the
+    /// plant integrated it (the sum over the tick's pieces of `u · ΔΘ`; a delayed
+    /// zero-order hold changes the torque inside the tick).
+    #[inline]
+    #[allow(clippy::too_many_arguments)]
+    pub fn observe_work(
+        &mut self,
+        tick: u64,
+        t: f64,
+        x: &RotorBodyState,
+        reference: &ReferenceState,
+        u: DVec3,
+        tau: DVec3,
+        work_before: f64,
     ) -> TraceRow {
         let e = reference.r_d * x.r.transpose();
         let h = x.spatial_momentum(&self.body);
@@ -140,10 +164,10 @@ impl Metrics {
                 // the residual from where it was.
                 self.work = energy - self.energy0 - self.last_residual;
                 self.rebase = false;
-            } else if let Some(theta_prev) = self.prev_theta {
-                // Rotor work over the previous tick with u held: u · (Θ_k − Θ_k−1), exact
-                // for zero-order hold.
-                self.work += held_before.dot(x.theta - theta_prev);
+            } else if self.prev_theta.is_some() {
+                // Rotor work over the previous tick, summed over its pieces: exact for a
+                // torque held piecewise.
+                self.work += work_before;
             }
             self.last_residual = energy - self.energy0 - self.work;
             self.last_residual
@@ -170,6 +194,7 @@ impl Metrics {
                 0.0
             },
             energy_residual,
+            delay_s: f64::NAN,
         }
     }
 

@@ -39,7 +39,7 @@ pub const END_QUIET_NS: u64 = 5_000_000_000;
 
 /// What a restarted monitor needs to continue the same report.
 #[derive(Debug, Clone, Copy, ZeroCopySend)]
-#[type_name("rotorloop::MonitorResume_v3")]
+#[type_name("rotorloop::MonitorResume_v4")]
 #[repr(C)]
 pub struct MonitorResume {
     /// The next row to write.

@@ -49,6 +49,7 @@ pub struct Recording {
     pub latency: Latency,
     actuation: Actuation,
     ticks: u64,
+    dt: f64,
     rows_at_flush: u64,
     /// The tick of the first row taken since the last flush.
     first_unflushed: Option<u64>,
@@ -64,6 +65,29 @@ pub struct Recording {
     pub storage_errors: Vec<String>,
     /// When the live status line was last drawn (`None`: never).
     status_at_ns: Option<u64>,
+}
+
+/// The columns of `timing.csv`, one row per state sample `k`: when it was published, the
+/// torque in force at the end of tick `k − 1` (−1: none), the flags, and the torques that
+/// took effect during tick `k − 1` (how many, then tick and offset from `t_k−1` in s of
+/// the first three; empty when fewer): with the trace's torques, what `sim --replay` needs.
+pub const TIMING_HEADER: &str = "tick,state_publish_ns,applied_torque_tick,flags,effects,\
+effect1_tick,effect1_offset_s,effect2_tick,effect2_offset_s,effect3_tick,effect3_offset_s";
+
+fn timing_row(out: &mut impl Write, s: &StateSample) -> std::io::Result<()> {
+    write!(
+        out,
+        "{},{},{},{},{}",
+        s.tick, s.publish_ns, s.applied_torque_tick as i64, s.flags, s.effects
+    )?;
+    for i in 0..3 {
+        if (i as u64) < s.effects {
+            write!(out, ",{},{}", s.effect_ticks[i], s.effect_offsets_s[i])?;
+        } else {
+            write!(out, ",,")?;
+        }
+    }
+    writeln!(out)
 }
 
 fn open_files(
@@ -87,8 +111,7 @@ fn open_files(
     };
     let mut timing = open("timing.csv")?;
     if resumed.is_none() {
-        writeln!(timing, "tick,state_publish_ns,applied_torque_tick,flags")
-            .context("cannot write timing.csv")?;
+        writeln!(timing, "{TIMING_HEADER}").context("cannot write timing.csv")?;
     }
     Ok((trace, timing))
 }
@@ -132,6 +155,7 @@ impl Recording {
             latency,
             actuation,
             ticks: scenario.ticks(),
+            dt: scenario.dt(),
             rows_at_flush: resumed.map_or(0, |r| r.rows),
             first_unflushed: None,
             first_err: resumed.map_or(f64::NAN, |r| r.first_err),
@@ -175,19 +199,16 @@ impl Recording {
             ),
             _ => (nan, nan),
         };
-        let applied = DVec3::from_array(s.applied_rotor_torque_nm);
         let rd = j.reference.reference_state();
-        let row = self.metrics.observe(k, s.t_s, &s.body_state(), &rd, u, tau, applied);
+        let mut row =
+            self.metrics.observe_work(k, s.t_s, &s.body_state(), &rd, u, tau, s.rotor_work_j);
+        row.delay_s = j.following.map_or(f64::NAN, |f| f.first_effect_delay_s(self.dt));
         self.first_unflushed.get_or_insert(k);
         if let Some((trace, timing)) = &mut self.files {
-            let written = trace.write(&row).map_err(|e| format!("trace.csv: {e}")).and_then(|()| {
-                writeln!(
-                    timing,
-                    "{k},{},{},{}",
-                    s.publish_ns, s.applied_torque_tick as i64, s.flags
-                )
-                .map_err(|e| format!("timing.csv: {e}"))
-            });
+            let written = trace
+                .write(&row)
+                .map_err(|e| format!("trace.csv: {e}"))
+                .and_then(|()| timing_row(timing, s).map_err(|e| format!("timing.csv: {e}")));
             if let Err(reason) = written {
                 self.lose(k, reason);
             }

@@ -5,11 +5,12 @@ use std::io::{self, Write};
 
 use crate::metrics::TraceRow;
 
-/// The trace header. The first columns are the documented contract; the last two are
-/// invariant checks.
+/// The trace header. The first columns are the documented contract; then the invariant
+/// checks, the tick, and the actuation delay in force (`delay_s`, NaN for a tick in which
+/// no new torque took effect).
 pub const HEADER: &str = "t,R11,R12,R13,R21,R22,R23,R31,R32,R33,\
 Rd11,Rd12,Rd13,Rd21,Rd22,Rd23,Rd31,Rd32,Rd33,W1,W2,W3,Wd1,Wd2,Wd3,Wr1,Wr2,Wr3,\
-u1,u2,u3,tau1,tau2,tau3,err_deg,werr,h1,h2,h3,h_drift_rel,energy_residual,tick";
+u1,u2,u3,tau1,tau2,tau3,err_deg,werr,h1,h2,h3,h_drift_rel,energy_residual,tick,delay_s";
 
 /// Writes trace rows as CSV.
 #[derive(Debug)]
@@ -43,7 +44,7 @@ impl<W: Write> TraceWriter<W> {
         for v in &row.h {
             write!(o, ",{v}")?;
         }
-        writeln!(o, ",{},{},{}", row.h_drift_rel, row.energy_residual, row.tick)
+        writeln!(o, ",{},{},{},{}", row.h_drift_rel, row.energy_residual, row.tick, row.delay_s)
     }
 
     /// Flushes what was written so far to the file.

@@ -1,19 +1,36 @@
 //! What the plant decides, apart from the dynamics and without IPC or a clock: which rotor
-//! torque is in force over each tick (zero-order hold), when a tick is a **miss**, when
-//! **safe mode** starts and ends, what a restart resumes, and what goes into the state
-//! sample. The process shell ([`crate::process`]) feeds it the samples that arrived and
-//! their receive times, and publishes what it returns.
+//! torque is in force over each part of each tick (delayed zero-order hold), when a tick
+//! is a **miss**, when **safe mode** starts and ends, what a restart resumes, and what
+//! goes into the state sample. The process shell ([`crate::process`]) feeds it the
+//! samples that arrived and their receive times, and publishes what it returns; the
+//! in-process simulator feeds the same [`DelayLine`] with its own torques.
 //!
-//! - [`TorqueHold`] is the hold rule: a torque sample answering tick `k` that passes
-//!   validation and is not a controller's skipped answer becomes the torque in force from
-//!   this tick on. Anything else (late, missing, rejected, skipped) is a miss: the last
-//!   good torque stays in force; after `hold_ticks` consecutive misses the plant enters
-//!   safe mode (zero torque: the rotors coast, momentum is conserved) until a fresh
-//!   torque arrives. A rejected sample is counted; a skipped one is not a rejection.
-//! - [`PlantTicker`] is one tick of the plant around the hold: it writes the state
-//!   sample of tick `k` (state, the torque applied over the previous tick and the counters),
-//!   then, once the wait for torque `k` has ended, applies the actuator limits at the
-//!   published rotor rates and steps the body (with the scenario's disturbance).
+//! - [`TorqueHold`] is the acceptance and hold rule: a torque sample is **accepted** when
+//!   it passes validation, is not a controller's skipped answer, and is newer than every
+//!   torque accepted before (an older one would undo a newer command). A tick whose own
+//!   torque did not arrive in time is a **miss** (a deadline miss of the loop), whatever
+//!   else arrived. After `hold_ticks` consecutive ticks in which no torque was accepted,
+//!   the plant enters **safe mode** (zero torque: the rotors coast, momentum is conserved)
+//!   until one is. A late torque (one that arrives after its own tick) is applied when it
+//!   arrives, not dropped: a real actuator takes the newest command it gets, and a loop
+//!   whose every answer is late still controls, late. A rejected sample is counted; a
+//!   skipped one is not a rejection.
+//! - [`DelayLine`] is the delayed zero-order hold (spec, "Actuation delay"): each accepted
+//!   torque takes effect at an instant inside some tick and stays in force until the next
+//!   takes effect. [`ActuationDelay`] says when: at the start of the tick it arrives in
+//!   (`Instant`, the zero-order hold of earlier versions), `d` after its own tick's time
+//!   but never before it arrived (`Fixed(d)`, any length: a queue), or when it arrives
+//!   (`Measured`, real time). Over a tick the plant integrates piecewise, one RKMK4 step
+//!   per piece, split exactly at those instants. With every effect at offset 0 there is
+//!   one piece of length `dt`: the numbers are those of the plain zero-order hold, bit
+//!   for bit.
+//! - [`PlantTicker`] is one tick of the plant around them: the state sample of tick `k`
+//!   (state, the torque in force at the end of the previous tick, the torques that took
+//!   effect in it and when, its rotor work, the counters), then, once the wait for torque
+//!   `k` has ended, the tick's pieces through the actuator limits (at the rotor rates at
+//!   the start of each piece) with the scenario's disturbance.
+
+use std::collections::VecDeque;
 
 use glam::DVec3;
 use rotorloop_common::role::{SeqCounter, UsageError, diverged};
@@ -25,11 +42,14 @@ use rotorloop_common::{Actuation, ActuatorLimits, Scenario};
 
 use crate::{Body, BodyInput};
 
-/// How the wait for tick `k`'s torque ended, as far as the hold rule is concerned.
+/// How the wait for tick `k`'s torque ended, or what arrived during it.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub enum Answer {
     /// A valid computed torque for tick `k`, received at `recv_ns`.
     Fresh(TorqueSample, u64),
+    /// A valid computed torque for an earlier tick, newer than the one in force, received
+    /// at `recv_ns`: it takes effect, but it does not answer tick `k`.
+    Late(TorqueSample, u64),
     /// The controller answered tick `k` with a skipped sample (no state or reference to
     /// control with): no torque comes for this tick.
     Skipped(TorqueSample),
@@ -37,15 +57,22 @@ pub enum Answer {
     Rejected(TorqueSample, WireFault),
 }
 
+impl Answer {
+    /// Whether this answers tick `k` (ends the wait for it).
+    pub fn answers_the_tick(&self) -> bool {
+        !matches!(self, Answer::Late(..))
+    }
+}
+
 /// What [`TorqueHold::settle`] decided for one tick (for the shell to log).
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub enum Settled {
-    /// A fresh torque is in force; `after_safe_mode` when it ended safe mode.
+    /// The tick's own torque arrived; `after_safe_mode` when it ended safe mode.
     Fresh {
         /// The plant was in safe mode until this torque.
         after_safe_mode: bool,
     },
-    /// No fresh torque: the previous one (or zero, in safe mode) stays in force.
+    /// The tick's own torque did not arrive in time.
     Miss {
         /// This miss started safe mode.
         entered_safe_mode: bool,
@@ -72,17 +99,18 @@ impl Settled {
     }
 }
 
-/// The hold rule (module docs): the torque in force, misses, safe mode, and the counts the
-/// state sample carries.
+/// The acceptance and hold rule (module docs): what is accepted, misses, safe mode, and
+/// the counts the state sample carries.
 #[derive(Debug, Clone, Copy)]
 pub struct TorqueHold {
     hold_ticks: u64,
     actuation: Actuation,
     absurd_limit: f64,
-    held: BodyInput,
-    held_tick: u64,
-    held_recv_ns: u64,
-    /// Consecutive ticks without a fresh torque.
+    /// The newest torque tick accepted (never goes back).
+    newest: u64,
+    /// A torque was accepted during the current tick's wait.
+    accepted: bool,
+    /// Consecutive ticks without an accepted torque.
     stale: u64,
     safe: bool,
     rejection_seen: bool,
@@ -93,16 +121,15 @@ pub struct TorqueHold {
 }
 
 impl TorqueHold {
-    /// A hold with no torque yet (zero in force), entering safe mode after `hold_ticks`
-    /// consecutive misses; torques beyond `absurd_limit` are rejected.
+    /// A hold with no torque yet, entering safe mode after `hold_ticks` consecutive ticks
+    /// without one; torques beyond `absurd_limit` are rejected.
     pub fn new(hold_ticks: u64, actuation: Actuation, absurd_limit: f64) -> Self {
         Self {
             hold_ticks,
             actuation,
             absurd_limit,
-            held: BodyInput::default(),
-            held_tick: NO_TICK,
-            held_recv_ns: 0,
+            newest: NO_TICK,
+            accepted: false,
             stale: 0,
             safe: false,
             rejection_seen: false,
@@ -113,19 +140,14 @@ impl TorqueHold {
         }
     }
 
-    /// Continues from the last state sample a killed predecessor published: the torque it
-    /// held, its counters and its safe mode.
+    /// Continues from the last state sample a killed predecessor published: its
+    /// counters, its safe mode, and the newest torque it had accepted.
     pub fn resume(&mut self, s: &StateSample) {
-        self.held = BodyInput {
-            rotor_torque: DVec3::from_array(s.applied_rotor_torque_nm),
-            body_torque: DVec3::from_array(s.applied_body_torque_nm),
-        };
-        self.held_tick = s.applied_torque_tick;
-        self.held_recv_ns = s.applied_torque_recv_ns;
         self.misses = s.misses;
         self.safe_ticks = s.safe_mode_ticks;
         self.rejected = s.torques_rejected;
         self.safe = s.flags & FLAG_SAFE_MODE != 0;
+        self.newest = s.applied_torque_tick;
         self.seq = match s.applied_torque_tick {
             NO_TICK => SeqCounter::resume_unanchored(s.torques_received, s.torques_lost),
             t => SeqCounter::resume(s.torques_received, s.torques_lost, t),
@@ -133,31 +155,38 @@ impl TorqueHold {
     }
 
     /// One torque sample taken while waiting for tick `k`, received at `recv_ns`: counted
-    /// (and, if invalid, counted rejected). Returns the answer it gives tick `k`, if it is
-    /// for tick `k`; a rejected or skipped answer ends the wait too, since the controller
-    /// will not send another for this tick.
+    /// (and, if invalid, counted rejected). Returns what it means: the answer to tick `k`
+    /// (fresh, skipped or rejected: each ends the wait, since the controller will not send
+    /// another for this tick), a late torque that is accepted all the same, or nothing
+    /// (older than what is in force, or a skipped or rejected answer to an older tick).
     pub fn take(&mut self, t: &TorqueSample, k: u64, recv_ns: u64) -> Option<Answer> {
         self.seq.see(t.tick);
         let fault = t.validate(self.absurd_limit).err();
-        if fault.is_some() {
-            self.rejected += 1;
+        self.rejected += u64::from(fault.is_some());
+        let newer = self.newest == NO_TICK || t.tick > self.newest;
+        let usable = fault.is_none() && t.flags & TORQUE_SKIPPED == 0 && newer;
+        if usable {
+            self.newest = t.tick;
+            self.accepted = true;
         }
-        (t.tick == k).then_some(match fault {
-            Some(f) => Answer::Rejected(*t, f),
-            None if t.flags & TORQUE_SKIPPED != 0 => Answer::Skipped(*t),
-            None => Answer::Fresh(*t, recv_ns),
-        })
+        match fault {
+            _ if t.tick != k => usable.then_some(Answer::Late(*t, recv_ns)),
+            Some(f) => Some(Answer::Rejected(*t, f)),
+            None if t.flags & TORQUE_SKIPPED != 0 => Some(Answer::Skipped(*t)),
+            None if usable => Some(Answer::Fresh(*t, recv_ns)),
+            None => None,
+        }
     }
 
     /// The wait for tick `k` ended with `answer` (`None`: nothing for `k` in time).
     pub fn settle(&mut self, answer: Option<Answer>) -> Settled {
-        if let Some(Answer::Fresh(t, recv_ns)) = answer {
-            let after_safe_mode = self.safe;
+        let accepted = std::mem::take(&mut self.accepted);
+        let after_safe_mode = self.safe && accepted;
+        if accepted {
             self.safe = false;
             self.stale = 0;
-            self.held = self.input_of(&t);
-            self.held_tick = t.tick;
-            self.held_recv_ns = recv_ns;
+        }
+        if let Some(Answer::Fresh(..)) = answer {
             return Settled::Fresh { after_safe_mode };
         }
         let first_rejection = match answer {
@@ -168,20 +197,25 @@ impl TorqueHold {
             _ => None,
         };
         self.misses += 1;
-        self.stale += 1;
+        self.stale += u64::from(!accepted);
         let entered_safe_mode = self.stale > self.hold_ticks && !self.safe;
         self.safe |= entered_safe_mode;
-        if self.safe {
-            self.safe_ticks += 1;
-            self.held = BodyInput::default();
-            self.held_tick = NO_TICK;
-        }
+        self.safe_ticks += u64::from(self.safe);
         Settled::Miss { entered_safe_mode, first_rejection }
     }
 
-    /// The torque in force (what the motors are commanded, before their limits).
-    pub fn in_force(&self) -> BodyInput {
-        self.held
+    /// The input a torque sample commands.
+    pub fn input_of(&self, t: &TorqueSample) -> BodyInput {
+        match self.actuation {
+            Actuation::Internal => BodyInput {
+                rotor_torque: DVec3::from_array(t.rotor_torque_nm),
+                body_torque: DVec3::ZERO,
+            },
+            Actuation::External => BodyInput {
+                rotor_torque: DVec3::ZERO,
+                body_torque: DVec3::from_array(t.body_torque_nm),
+            },
+        }
     }
 
     /// Whether the plant is in safe mode.
@@ -189,7 +223,7 @@ impl TorqueHold {
         self.safe
     }
 
-    /// Ticks without a fresh torque in time, over the run.
+    /// Ticks whose own torque did not arrive in time, over the run.
     pub fn misses(&self) -> u64 {
         self.misses
     }
@@ -209,23 +243,8 @@ impl TorqueHold {
         self.seq
     }
 
-    fn input_of(&self, t: &TorqueSample) -> BodyInput {
-        match self.actuation {
-            Actuation::Internal => BodyInput {
-                rotor_torque: DVec3::from_array(t.rotor_torque_nm),
-                body_torque: DVec3::ZERO,
-            },
-            Actuation::External => BodyInput {
-                rotor_torque: DVec3::ZERO,
-                body_torque: DVec3::from_array(t.body_torque_nm),
-            },
-        }
-    }
-
-    /// Writes the held torque's tick and receive time and the counters into `s`.
+    /// Writes the counters into `s`.
     fn fill(&self, s: &mut StateSample) {
-        s.applied_torque_tick = self.held_tick;
-        s.applied_torque_recv_ns = self.held_recv_ns;
         s.misses = self.misses;
         s.safe_mode_ticks = self.safe_ticks;
         s.torques_received = self.seq.received;
@@ -234,36 +253,242 @@ impl TorqueHold {
     }
 }
 
-/// One tick of the plant around the hold rule (module docs).
-#[derive(Debug, Clone, Copy)]
+/// When an accepted torque takes effect (module docs).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum ActuationDelay {
+    /// At the start of the tick it arrives in: the zero-order hold of earlier versions
+    /// (`--actuation-delay 0` in real time).
+    Instant,
+    /// `d` seconds after its own tick's time, and not before it arrives (any length).
+    Fixed(f64),
+    /// When it arrives (real time; in lockstep a torque arrives at its own tick's time).
+    Measured,
+}
+
+impl std::str::FromStr for ActuationDelay {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        match s {
+            "measured" => Ok(Self::Measured),
+            _ => match s.parse::<f64>() {
+                Ok(0.0) => Ok(Self::Instant),
+                Ok(d) if d.is_finite() && d > 0.0 && d <= 3600.0 => Ok(Self::Fixed(d)),
+                _ => Err(format!(
+                    "`{s}` is not allowed: `measured`, or seconds from 0 to 3600 (0: at the start of the tick it arrives in)"
+                )),
+            },
+        }
+    }
+}
+
+impl std::fmt::Display for ActuationDelay {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Self::Instant => f.write_str("0"),
+            Self::Fixed(d) => write!(f, "{d}"),
+            Self::Measured => f.write_str("measured"),
+        }
+    }
+}
+
+/// A torque waiting to take effect: in tick `tick`, `offset_s` after its start.
+#[derive(Debug, Clone, Copy, PartialEq)]
+struct Pending {
+    tick: u64,
+    offset_s: f64,
+    source: u64,
+    input: BodyInput,
+    recv_ns: u64,
+}
+
+/// The torques that took effect in one tick (the first three, and how many).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Effects {
+    /// How many took effect.
+    pub count: u64,
+    /// Their torque ticks.
+    pub ticks: [u64; 3],
+    /// Their offsets from the tick's start (s).
+    pub offsets_s: [f64; 3],
+}
+
+impl Default for Effects {
+    fn default() -> Self {
+        Self { count: 0, ticks: [NO_TICK; 3], offsets_s: [f64::NAN; 3] }
+    }
+}
+
+impl Effects {
+    /// The actuation delay of the first of them, which took effect in tick `k` (s); NaN
+    /// when none did.
+    pub fn first_delay_s(&self, k: u64, dt: f64) -> f64 {
+        match self.count {
+            0 => f64::NAN,
+            _ => rotorloop_common::wire::effect_delay_s(k, self.ticks[0], self.offsets_s[0], dt),
+        }
+    }
+
+    fn push(&mut self, source: u64, offset_s: f64) {
+        if let Some(i) = (self.count < 3).then_some(self.count as usize) {
+            (self.ticks[i], self.offsets_s[i]) = (source, offset_s);
+        }
+        self.count += 1;
+    }
+}
+
+/// The delayed zero-order hold (module docs): the torque in force and those waiting.
+#[derive(Debug, Clone)]
+pub struct DelayLine {
+    delay: ActuationDelay,
+    dt: f64,
+    queue: VecDeque<Pending>,
+    in_force: BodyInput,
+    in_force_tick: u64,
+    in_force_recv_ns: u64,
+}
+
+impl DelayLine {
+    /// An empty line (zero torque in force) for ticks of `dt`. Room for the whole queue a
+    /// fixed delay makes is reserved now: nothing allocates per tick.
+    pub fn new(delay: ActuationDelay, dt: f64) -> Self {
+        let room = match delay {
+            ActuationDelay::Fixed(d) => (d / dt).ceil() as usize + 8,
+            _ => 8,
+        };
+        Self {
+            delay,
+            dt,
+            queue: VecDeque::with_capacity(room),
+            in_force: BodyInput::default(),
+            in_force_tick: NO_TICK,
+            in_force_recv_ns: 0,
+        }
+    }
+
+    /// The delay rule.
+    pub fn delay(&self) -> ActuationDelay {
+        self.delay
+    }
+
+    /// The torque of tick `source` arrived during tick `now`, `arrived_s` after its start
+    /// (0 in lockstep and in process), at `recv_ns`: it is queued to take effect by the
+    /// rule. A [`ActuationDelay::Fixed`] delay is counted from the source tick's time; for
+    /// a given delay `d` a caller may pass `Some(d)` to override the rule for this torque
+    /// (a delay drawn from a distribution, or replayed).
+    pub fn arrive(
+        &mut self,
+        source: u64,
+        input: BodyInput,
+        now: u64,
+        arrived_s: f64,
+        recv_ns: u64,
+        d: Option<f64>,
+    ) {
+        // An arrival at (or rounded past) the tick's end belongs to the next tick.
+        let arrived = if arrived_s >= self.dt { (now + 1, 0.0) } else { (now, arrived_s.max(0.0)) };
+        let scheduled = |d: f64| {
+            let whole = (d / self.dt).floor();
+            (source + whole as u64, d - whole * self.dt)
+        };
+        let (tick, offset_s) = match (d, self.delay) {
+            (Some(d), _) | (None, ActuationDelay::Fixed(d)) => {
+                let s = scheduled(d);
+                if s.0 > arrived.0 || (s.0 == arrived.0 && s.1 >= arrived.1) { s } else { arrived }
+            }
+            (None, ActuationDelay::Instant) => (now, 0.0),
+            (None, ActuationDelay::Measured) => arrived,
+        };
+        // A torque that would take effect after this newer one arrives after it: the
+        // actuator drops it then (it only ever takes a command newer than its own).
+        while self.queue.back().is_some_and(|b| (b.tick, b.offset_s) > (tick, offset_s)) {
+            self.queue.pop_back();
+        }
+        self.queue.push_back(Pending { tick, offset_s, source, input, recv_ns });
+    }
+
+    /// Queues the torque of tick `source` to take effect in tick `tick`, `offset_s` after
+    /// its start, as recorded (a replay).
+    pub fn schedule(&mut self, tick: u64, offset_s: f64, source: u64, input: BodyInput) {
+        self.queue.push_back(Pending { tick, offset_s, source, input, recv_ns: 0 });
+    }
+
+    /// Safe mode: zero torque in force from now, nothing waiting.
+    pub fn clear(&mut self) {
+        self.queue.clear();
+        self.in_force = BodyInput::default();
+        self.in_force_tick = NO_TICK;
+    }
+
+    /// Continues with `input` of tick `source` (received at `recv_ns`) in force.
+    pub fn resume(&mut self, input: BodyInput, source: u64, recv_ns: u64) {
+        (self.in_force, self.in_force_tick, self.in_force_recv_ns) = (input, source, recv_ns);
+    }
+
+    /// The torque in force now, its tick and when it was received.
+    pub fn in_force(&self) -> (BodyInput, u64, u64) {
+        (self.in_force, self.in_force_tick, self.in_force_recv_ns)
+    }
+
+    /// Integrates tick `k` piecewise: `step(input, h)` for each piece in order (the
+    /// input in force on it, its length), and returns the torques that took effect.
+    pub fn pieces(&mut self, k: u64, mut step: impl FnMut(BodyInput, f64)) -> Effects {
+        let mut effects = Effects::default();
+        let mut at = 0.0;
+        while let Some(p) = self.queue.front().copied().filter(|p| p.tick <= k) {
+            self.queue.pop_front();
+            let offset = if p.tick < k { 0.0 } else { p.offset_s };
+            if offset > at {
+                step(self.in_force, offset - at);
+                at = offset;
+            }
+            (self.in_force, self.in_force_tick, self.in_force_recv_ns) =
+                (p.input, p.source, p.recv_ns);
+            effects.push(p.source, offset);
+        }
+        if self.dt > at {
+            step(self.in_force, self.dt - at);
+        }
+        effects
+    }
+}
+
+/// One tick of the plant around the hold and the delay line (module docs).
+#[derive(Debug, Clone)]
 pub struct PlantTicker {
     body: Body,
-    /// The hold rule.
+    /// The acceptance and hold rule.
     pub hold: TorqueHold,
+    line: DelayLine,
     limits: ActuatorLimits,
     disturbance: DVec3,
     dt: f64,
     ticks: u64,
     realtime: bool,
     first: u64,
-    /// What the motors delivered over the previous tick (after their limits).
+    /// What the motors delivered at the end of the previous tick (after their limits).
     applied: BodyInput,
+    work: f64,
+    effects: Effects,
     saturated: bool,
     saturated_ticks: u64,
 }
 
 impl PlantTicker {
-    /// The plant of `scenario` at tick 0, with the hold rule's `hold_ticks`.
-    pub fn new(scenario: &Scenario, hold_ticks: u64, realtime: bool) -> Self {
+    /// The plant of `scenario` at tick 0, with the hold rule's `hold_ticks` and the delay
+    /// rule `delay`.
+    pub fn new(
+        scenario: &Scenario,
+        hold_ticks: u64,
+        realtime: bool,
+        delay: ActuationDelay,
+    ) -> Self {
         let actuation = scenario.actuation();
         let limits = scenario.limits_for(actuation);
+        let absurd = TorqueSample::absurd_limit(limits.rotor_torque);
         Self {
             body: Body::new(scenario.plant_params(actuation), scenario.plant_init),
-            hold: TorqueHold::new(
-                hold_ticks,
-                actuation,
-                TorqueSample::absurd_limit(limits.rotor_torque),
-            ),
+            hold: TorqueHold::new(hold_ticks, actuation, absurd),
+            line: DelayLine::new(delay, scenario.dt()),
             limits,
             disturbance: scenario.disturbance,
             dt: scenario.dt(),
@@ -271,6 +496,8 @@ impl PlantTicker {
             realtime,
             first: 0,
             applied: BodyInput::default(),
+            work: 0.0,
+            effects: Effects::default(),
             saturated: false,
             saturated_ticks: 0,
         }
@@ -284,6 +511,8 @@ impl PlantTicker {
 
     /// Continues, bit for bit, from the last state a killed predecessor published: the
     /// integrator's own state, the torque in force and every counter, at the same tick.
+    /// (Torques it had queued but not yet applied are gone with it: with a delay longer
+    /// than a tick, the controller's answers to the ticks before the restart are lost.)
     pub fn resume(&mut self, s: &StateSample) {
         let x = s.body_state();
         self.body = Body::from_internal(
@@ -295,7 +524,14 @@ impl PlantTicker {
         );
         self.first = s.tick;
         self.hold.resume(s);
-        self.applied = self.hold.in_force();
+        self.applied = BodyInput {
+            rotor_torque: DVec3::from_array(s.applied_rotor_torque_nm),
+            body_torque: DVec3::from_array(s.applied_body_torque_nm),
+        };
+        self.line.resume(self.applied, s.applied_torque_tick, s.applied_torque_recv_ns);
+        self.work = s.rotor_work_j;
+        self.effects =
+            Effects { count: s.effects, ticks: s.effect_ticks, offsets_s: s.effect_offsets_s };
         self.saturated_ticks = s.saturated_ticks;
         self.saturated = s.flags & FLAG_SATURATED != 0;
     }
@@ -319,9 +555,13 @@ impl PlantTicker {
         s.internal_p = p.to_array();
         s.applied_rotor_torque_nm = self.applied.rotor_torque.to_array();
         s.applied_body_torque_nm = self.applied.body_torque.to_array();
+        (_, s.applied_torque_tick, s.applied_torque_recv_ns) = self.line.in_force();
         s.deadline_ns = deadline_ns;
         s.wake_ns = wake_ns;
         s.saturated_ticks = self.saturated_ticks;
+        s.rotor_work_j = self.work;
+        (s.effects, s.effect_ticks, s.effect_offsets_s) =
+            (self.effects.count, self.effects.ticks, self.effects.offsets_s);
         self.hold.fill(&mut s);
         let flag = |on: bool, f: u64| if on { f } else { 0 };
         s.flags = flag(k == self.ticks, FLAG_LAST)
@@ -331,25 +571,88 @@ impl PlantTicker {
         s
     }
 
-    /// Steps from tick `k` to `k + 1` with the torque in force, through the actuator
-    /// limits at the rotor rates of tick `k`'s state (the body has not moved since it was
-    /// published). The last tick does not step. A state that stops being finite is an
-    /// error: nothing non-finite is ever published.
+    /// One torque sample taken while waiting for tick `k` (which started at `tick_start_ns`
+    /// of the monotonic clock in real time; 0 in lockstep), received at `recv_ns`: the
+    /// hold rule's verdict, and an accepted torque goes into the delay line.
+    pub fn take(
+        &mut self,
+        t: &TorqueSample,
+        k: u64,
+        tick_start_ns: u64,
+        recv_ns: u64,
+    ) -> Option<Answer> {
+        let answer = self.hold.take(t, k, recv_ns);
+        if let Some(Answer::Fresh(t, recv) | Answer::Late(t, recv)) = answer {
+            let arrived_s = if tick_start_ns == 0 {
+                0.0
+            } else {
+                recv.saturating_sub(tick_start_ns) as f64 / 1e9
+            };
+            let input = self.hold.input_of(&t);
+            self.line.arrive(t.tick, input, k, arrived_s, recv, None);
+        }
+        answer
+    }
+
+    /// The wait for tick `k` ended with `answer`: the hold rule settles it; entering safe
+    /// mode clears the delay line (zero torque from the start of the tick).
+    pub fn settle(&mut self, answer: Option<Answer>) -> Settled {
+        let settled = self.hold.settle(answer);
+        if self.hold.safe_mode() {
+            self.line.clear();
+        }
+        settled
+    }
+
+    /// Steps from tick `k` to `k + 1`, piecewise (module docs), each piece through the
+    /// actuator limits at the rotor rates at its start. The last tick does not step. A
+    /// state that stops being finite is an error: nothing non-finite is ever published.
     pub fn step(&mut self, k: u64) -> Result<(), UsageError> {
         if k >= self.ticks {
             return Ok(());
         }
-        let held = self.hold.in_force();
-        let (u, sat) = self.limits.apply(held.rotor_torque, self.body.state().omega_r);
-        self.saturated = sat;
-        self.saturated_ticks += u64::from(sat);
-        self.applied = BodyInput { rotor_torque: u, body_torque: held.body_torque };
-        self.body.step(
-            BodyInput { rotor_torque: u, body_torque: held.body_torque + self.disturbance },
-            self.dt,
-        );
+        let t = integrate_tick(&mut self.body, &mut self.line, k, &self.limits, self.disturbance);
+        (self.work, self.saturated, self.applied, self.effects) =
+            (t.work, t.saturated, t.applied, t.effects);
+        self.saturated_ticks += u64::from(t.saturated);
         if self.body.is_finite() { Ok(()) } else { Err(diverged(k + 1, (k + 1) as f64 * self.dt)) }
     }
+}
+
+/// What one tick's piecewise integration did.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct TickOutcome {
+    /// Rotor work over the tick (J): the sum over pieces of `u · ΔΘ`.
+    pub work: f64,
+    /// The actuator limits changed the torque on some piece.
+    pub saturated: bool,
+    /// What the motors delivered on the last piece (after their limits).
+    pub applied: BodyInput,
+    /// The torques that took effect, and when.
+    pub effects: Effects,
+}
+
+/// Integrates tick `k` of `body` piecewise with the torques of `line` (module docs): each
+/// piece through the actuator `limits` at the rotor rates at its start, with the body
+/// disturbance added. The plant process and the in-process simulator both step with this.
+pub fn integrate_tick(
+    body: &mut Body,
+    line: &mut DelayLine,
+    k: u64,
+    limits: &ActuatorLimits,
+    disturbance: DVec3,
+) -> TickOutcome {
+    let (mut work, mut saturated) = (0.0, false);
+    let mut applied = BodyInput::default();
+    let effects = line.pieces(k, |held, h| {
+        let x = body.state();
+        let (u, sat) = limits.apply(held.rotor_torque, x.omega_r);
+        saturated |= sat;
+        applied = BodyInput { rotor_torque: u, body_torque: held.body_torque };
+        body.step(BodyInput { rotor_torque: u, body_torque: held.body_torque + disturbance }, h);
+        work += u.dot(body.state().theta - x.theta);
+    });
+    TickOutcome { work, saturated, applied, effects }
 }
 
 #[cfg(test)]
@@ -357,6 +660,7 @@ mod tests {
     use super::*;
 
     const LIMIT: f64 = 1e3;
+    const DT: f64 = 1e-3;
 
     fn torque(tick: u64, u: f64) -> TorqueSample {
         TorqueSample { tick, rotor_torque_nm: [u, 0.0, 0.0], ..Default::default() }
@@ -370,85 +674,111 @@ mod tests {
     fn tick(h: &mut TorqueHold, k: u64, samples: &[TorqueSample]) -> Settled {
         let mut answer = None;
         for (i, t) in samples.iter().enumerate() {
-            if let Some(a) = h.take(t, k, 1000 * k + i as u64) {
+            if let Some(a) = h.take(t, k, 1000 * k + i as u64).filter(Answer::answers_the_tick) {
                 answer = Some(a);
             }
         }
         h.settle(answer)
     }
 
+    fn paper() -> Scenario {
+        Scenario::load("paper-sinusoid").expect("built-in")
+    }
+
+    /// Lengths and rotor torques of the pieces of tick `k`.
+    fn pieces(line: &mut DelayLine, k: u64) -> (Vec<(f64, f64)>, Effects) {
+        let mut v = Vec::new();
+        let e = line.pieces(k, |i, h| v.push((h, i.rotor_torque.x)));
+        (v, e)
+    }
+
+    fn input(u: f64) -> BodyInput {
+        BodyInput { rotor_torque: DVec3::new(u, 0.0, 0.0), body_torque: DVec3::ZERO }
+    }
+
     #[test]
     fn no_torque_is_in_force_before_the_first_arrives() {
-        let h = hold(50);
-        assert_eq!(h.in_force(), BodyInput::default());
-        assert_eq!(h.held_tick, NO_TICK);
+        let mut line = DelayLine::new(ActuationDelay::Measured, DT);
+        assert_eq!(line.in_force(), (BodyInput::default(), NO_TICK, 0));
+        assert_eq!(pieces(&mut line, 0).0, [(DT, 0.0)]);
     }
 
     #[test]
-    fn a_torque_for_this_tick_is_in_force_from_this_tick() {
+    fn a_torque_for_this_tick_answers_it() {
         let mut h = hold(50);
         assert_eq!(tick(&mut h, 0, &[torque(0, 2.0)]), Settled::Fresh { after_safe_mode: false });
-        assert_eq!(h.in_force().rotor_torque.x, 2.0);
-        assert_eq!((h.held_tick, h.held_recv_ns, h.misses()), (0, 0, 0));
-    }
-
-    #[test]
-    fn a_late_torque_is_a_miss_and_the_previous_one_stays_in_force() {
-        let mut h = hold(50);
-        tick(&mut h, 0, &[torque(0, 2.0)]);
-        // Nothing for tick 1 in time: miss, torque 0 held.
+        assert_eq!(h.misses(), 0);
         assert!(matches!(tick(&mut h, 1, &[]), Settled::Miss { entered_safe_mode: false, .. }));
-        assert_eq!((h.in_force().rotor_torque.x, h.held_tick, h.misses()), (2.0, 0, 1));
-        // Torque 1 arrives during tick 2's wait: counted, but it answers tick 1, not 2.
-        assert!(matches!(tick(&mut h, 2, &[torque(1, 3.0)]), Settled::Miss { .. }));
-        assert_eq!((h.in_force().rotor_torque.x, h.misses(), h.seq().received), (2.0, 2, 2));
+        assert_eq!(h.misses(), 1);
     }
 
     #[test]
-    fn a_torque_for_an_older_tick_never_replaces_the_one_in_force() {
+    fn a_late_torque_is_accepted_and_applied_when_it_arrives_but_its_tick_was_a_miss() {
+        let mut h = hold(2);
+        tick(&mut h, 0, &[torque(0, 2.0)]);
+        // Torque 1 arrives during tick 2's wait: a miss for ticks 1 and 2, but it is newer
+        // than torque 0, so it is taken (and keeps the plant out of safe mode).
+        assert!(matches!(tick(&mut h, 1, &[]), Settled::Miss { .. }));
+        assert_eq!(h.take(&torque(1, 3.0), 2, 7), Some(Answer::Late(torque(1, 3.0), 7)));
+        assert!(matches!(h.settle(None), Settled::Miss { entered_safe_mode: false, .. }));
+        for k in 3..6 {
+            assert_eq!(
+                h.take(&torque(k - 1, 3.0), k, 7).map(|a| a.answers_the_tick()),
+                Some(false)
+            );
+            h.settle(None);
+        }
+        assert!(!h.safe_mode(), "a controller whose every answer is late still controls");
+        assert_eq!(h.misses(), 5);
+    }
+
+    #[test]
+    fn a_torque_for_an_older_tick_never_replaces_a_newer_one() {
         let mut h = hold(50);
         tick(&mut h, 5, &[torque(5, 1.0)]);
-        assert!(matches!(
-            tick(&mut h, 6, &[torque(4, 9.0), torque(6, 2.0)]),
-            Settled::Fresh { .. }
-        ));
-        assert_eq!((h.in_force().rotor_torque.x, h.held_tick), (2.0, 6));
+        assert_eq!(h.take(&torque(4, 9.0), 6, 0), None, "older than torque 5");
         assert_eq!(h.seq().repeated, 1, "the older tick counts as a repeat, not a reception");
     }
 
     #[test]
-    fn safe_mode_starts_after_hold_ticks_misses_and_ends_with_a_fresh_torque() {
-        let mut h = hold(3);
-        tick(&mut h, 0, &[torque(0, 2.0)]);
+    fn safe_mode_starts_after_hold_ticks_without_a_torque_and_ends_with_the_next() {
+        let scenario = paper();
+        let mut p = PlantTicker::new(&scenario, 3, true, ActuationDelay::Instant);
+        let feed = |p: &mut PlantTicker, k: u64, t: Option<TorqueSample>| {
+            let a = t.and_then(|t| p.take(&t, k, 0, 0));
+            let s = p.settle(a);
+            p.step(k).expect("finite");
+            s
+        };
+        feed(&mut p, 0, Some(torque(0, 2.0)));
         for k in 1..=3 {
-            assert!(matches!(tick(&mut h, k, &[]), Settled::Miss { entered_safe_mode: false, .. }));
-            assert_eq!(h.in_force().rotor_torque.x, 2.0, "held during the first {k} misses");
+            assert!(matches!(
+                feed(&mut p, k, None),
+                Settled::Miss { entered_safe_mode: false, .. }
+            ));
+            assert_eq!(p.line.in_force().0.rotor_torque.x, 2.0, "held during miss {k}");
         }
-        assert!(matches!(tick(&mut h, 4, &[]), Settled::Miss { entered_safe_mode: true, .. }));
-        assert!(h.safe_mode());
-        assert_eq!(
-            (h.in_force(), h.held_tick, h.safe_mode_ticks()),
-            (BodyInput::default(), NO_TICK, 1)
-        );
-        assert!(matches!(tick(&mut h, 5, &[]), Settled::Miss { entered_safe_mode: false, .. }));
-        assert_eq!(h.safe_mode_ticks(), 2);
-        assert_eq!(tick(&mut h, 6, &[torque(6, 4.0)]), Settled::Fresh { after_safe_mode: true });
-        assert!(!h.safe_mode());
-        assert_eq!((h.in_force().rotor_torque.x, h.misses(), h.safe_mode_ticks()), (4.0, 5, 2));
+        assert!(matches!(feed(&mut p, 4, None), Settled::Miss { entered_safe_mode: true, .. }));
+        assert_eq!(p.line.in_force(), (BodyInput::default(), NO_TICK, 0), "zero torque");
+        assert_eq!(p.state_sample(5, 0, 0).flags & FLAG_SAFE_MODE, FLAG_SAFE_MODE);
+        feed(&mut p, 5, None);
+        assert_eq!(p.hold.safe_mode_ticks(), 2);
+        assert_eq!(feed(&mut p, 6, Some(torque(6, 4.0))), Settled::Fresh { after_safe_mode: true });
+        assert!(!p.hold.safe_mode());
+        assert_eq!(p.line.in_force().0.rotor_torque.x, 4.0);
     }
 
     #[test]
     fn a_rejected_torque_is_counted_and_held_like_a_missing_one() {
         let mut h = hold(50);
         tick(&mut h, 0, &[torque(0, 2.0)]);
-        let bad = torque(1, f64::NAN);
-        match tick(&mut h, 1, &[bad]) {
+        match tick(&mut h, 1, &[torque(1, f64::NAN)]) {
             Settled::Miss { first_rejection: Some((1, f)), entered_safe_mode: false } => {
                 assert_eq!(f.kind(), "non-finite");
             }
             other => panic!("{other:?}"),
         }
-        assert_eq!((h.in_force().rotor_torque.x, h.rejected(), h.misses()), (2.0, 1, 1));
+        assert_eq!((h.rejected(), h.misses()), (1, 1));
         // Absurd magnitude: rejected too, and only the first rejection is reported.
         let huge = torque(2, 10.0 * LIMIT);
         assert!(matches!(tick(&mut h, 2, &[huge]), Settled::Miss { first_rejection: None, .. }));
@@ -461,52 +791,124 @@ mod tests {
         tick(&mut h, 0, &[torque(0, 2.0)]);
         let skipped = TorqueSample { flags: TORQUE_SKIPPED, ..torque(1, 0.0) };
         assert_eq!(h.take(&skipped, 1, 7), Some(Answer::Skipped(skipped)));
-        assert!(matches!(
-            h.settle(Some(Answer::Skipped(skipped))),
-            Settled::Miss { first_rejection: None, .. }
-        ));
-        assert_eq!((h.in_force().rotor_torque.x, h.rejected(), h.misses()), (2.0, 0, 1));
+        let settled = h.settle(Some(Answer::Skipped(skipped)));
+        assert!(matches!(settled, Settled::Miss { first_rejection: None, .. }));
+        assert_eq!((h.rejected(), h.misses()), (0, 1));
     }
 
     #[test]
-    fn external_actuation_holds_the_body_torque() {
-        let mut h = TorqueHold::new(50, Actuation::External, LIMIT);
-        let t = TorqueSample { tick: 0, body_torque_nm: [0.0, 5.0, 0.0], ..torque(0, 3.0) };
-        tick(&mut h, 0, &[t]);
-        assert_eq!(h.in_force().rotor_torque, DVec3::ZERO);
-        assert_eq!(h.in_force().body_torque.y, 5.0);
+    fn external_actuation_commands_the_body_torque() {
+        let h = TorqueHold::new(50, Actuation::External, LIMIT);
+        let t = TorqueSample { body_torque_nm: [0.0, 5.0, 0.0], ..torque(0, 3.0) };
+        assert_eq!(
+            h.input_of(&t),
+            BodyInput { rotor_torque: DVec3::ZERO, body_torque: DVec3::new(0.0, 5.0, 0.0) }
+        );
+    }
+
+    #[test]
+    fn zero_delay_is_one_piece_of_a_whole_tick() {
+        for delay in [ActuationDelay::Instant, ActuationDelay::Measured, ActuationDelay::Fixed(0.0)]
+        {
+            let mut line = DelayLine::new(delay, DT);
+            line.arrive(3, input(1.5), 3, 0.0, 0, None);
+            let (p, e) = pieces(&mut line, 3);
+            assert_eq!(p, [(DT, 1.5)], "{delay:?}");
+            assert_eq!((e.count, e.ticks[0], e.offsets_s[0]), (1, 3, 0.0));
+        }
+    }
+
+    #[test]
+    fn a_delay_inside_the_tick_splits_it_at_the_arrival() {
+        let mut line = DelayLine::new(ActuationDelay::Fixed(3e-4), DT);
+        line.arrive(0, input(1.0), 0, 0.0, 0, None);
+        assert_eq!(pieces(&mut line, 0).0, [(3e-4, 0.0), (DT - 3e-4, 1.0)]);
+        // Measured: where it arrived, 0.4 ms into the tick.
+        let mut m = DelayLine::new(ActuationDelay::Measured, DT);
+        m.arrive(0, input(1.0), 0, 4e-4, 0, None);
+        m.arrive(0, input(9.0), 0, 2e-4, 0, None); // cannot overtake: dropped as older
+        assert_eq!(pieces(&mut m, 0).0, [(2e-4, 0.0), (DT - 2e-4, 9.0)]);
+        // Instant ignores where in the tick it arrived.
+        let mut i = DelayLine::new(ActuationDelay::Instant, DT);
+        i.arrive(0, input(1.0), 0, 4e-4, 0, None);
+        assert_eq!(pieces(&mut i, 0).0, [(DT, 1.0)]);
+    }
+
+    #[test]
+    fn a_delay_longer_than_a_tick_is_a_queue() {
+        let mut line = DelayLine::new(ActuationDelay::Fixed(2.5e-3), DT);
+        for k in 0..6 {
+            line.arrive(k, input(k as f64 + 1.0), k, 0.0, 0, None);
+            let (p, e) = pieces(&mut line, k);
+            if k < 2 {
+                assert_eq!(
+                    (p.as_slice(), e.count),
+                    ([(DT, 0.0)].as_slice(), 0),
+                    "tick {k}: nothing yet"
+                );
+            } else {
+                // Torque k − 2 takes effect half way through tick k.
+                assert_eq!(e.ticks[0], k - 2);
+                assert!((e.offsets_s[0] - 5e-4).abs() < 1e-15);
+                assert_eq!(p.len(), 2);
+                assert!((p[0].0 + p[1].0 - DT).abs() < 1e-18 && p[1].1 == (k - 1) as f64);
+            }
+        }
+    }
+
+    #[test]
+    fn a_fixed_delay_never_applies_a_torque_before_it_arrives() {
+        let mut line = DelayLine::new(ActuationDelay::Fixed(1e-4), DT);
+        line.arrive(0, input(1.0), 0, 6e-4, 0, None); // arrived later than t_0 + d
+        assert_eq!(pieces(&mut line, 0).0, [(6e-4, 0.0), (DT - 6e-4, 1.0)]);
+    }
+
+    #[test]
+    fn zero_delay_steps_exactly_as_the_plain_zero_order_hold() {
+        let scenario = paper();
+        let mut p = PlantTicker::new(&scenario, 50, false, ActuationDelay::Instant);
+        let mut body = Body::new(scenario.plant_params(scenario.actuation()), scenario.plant_init);
+        for k in 0..50 {
+            let t = torque(k, (k as f64 * 0.37).sin());
+            let a = p.take(&t, k, 0, 0);
+            p.settle(a);
+            p.step(k).expect("finite");
+            let x = body.state();
+            let u = DVec3::from_array(t.rotor_torque_nm);
+            body.step(BodyInput { rotor_torque: u, body_torque: DVec3::ZERO }, scenario.dt());
+            let s = p.state_sample(k + 1, 0, 0);
+            assert_eq!(s.body_state(), body.state(), "tick {k}: bit for bit");
+            assert_eq!(s.rotor_work_j, 0.0 + u.dot(body.state().theta - x.theta));
+        }
     }
 
     #[test]
     fn a_restart_resumes_the_hold_its_predecessor_published() {
-        let scenario = Scenario::load("paper-sinusoid").expect("built-in");
-        let mut a = PlantTicker::new(&scenario, 2, true);
-        let mut published = Vec::new();
+        let scenario = paper();
+        let mut a = PlantTicker::new(&scenario, 2, true, ActuationDelay::Instant);
+        let run = |p: &mut PlantTicker, k: u64, t: Option<TorqueSample>| {
+            let ans = t.and_then(|t| p.take(&t, k, 0, 0));
+            p.settle(ans);
+            p.step(k).expect("finite");
+        };
         for k in 0..10 {
-            let s = a.state_sample(k, 0, 0);
-            published.push(s);
-            let answer = if k < 4 { vec![torque(k, 0.5 + k as f64)] } else { vec![] };
-            tick(&mut a.hold, k, &answer);
-            a.step(k).expect("finite");
+            run(&mut a, k, (k < 4).then(|| torque(k, 0.5 + k as f64)));
         }
-        // The predecessor dies after publishing tick 9 (in safe mode since tick 7).
+        // The predecessor dies after publishing tick 10 (in safe mode since tick 6).
         let last = a.state_sample(10, 0, 0);
         assert_ne!(last.flags & FLAG_SAFE_MODE, 0);
-        let mut b = PlantTicker::new(&scenario, 2, true);
+        let mut b = PlantTicker::new(&scenario, 2, true, ActuationDelay::Instant);
         assert!(b.can_resume(&last));
         b.resume(&last);
         assert_eq!(b.first(), 10);
-        let again = b.state_sample(10, 0, 0);
         assert_eq!(
-            format!("{again:?}"),
+            format!("{:?}", b.state_sample(10, 0, 0)),
             format!("{last:?}"),
-            "the restart publishes the same state"
+            "the same state again"
         );
         for k in 10..15 {
-            for p in [&mut a, &mut b] {
-                tick(&mut p.hold, k, &[torque(k, 0.1)]);
-                p.step(k).expect("finite");
-            }
+            run(&mut a, k, Some(torque(k, 0.1)));
+            run(&mut b, k, Some(torque(k, 0.1)));
         }
         let (sa, sb) = (a.state_sample(15, 0, 0), b.state_sample(15, 0, 0));
         // One counter cannot continue exactly: resumed in safe mode, the sample names no

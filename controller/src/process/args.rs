@@ -4,6 +4,8 @@
 use clap::Args;
 use rotorloop_common::role::{Corrupt, RoleArgs};
 
+use crate::policy::InjectedDelay;
+
 /// `controller` arguments.
 #[derive(Debug, Clone, Args)]
 pub struct ControllerArgs {
@@ -13,6 +15,11 @@ pub struct ControllerArgs {
     /// `huge@TICK`, `skew@TICK`). Repeatable. Set by `rotorloop run --corrupt`.
     #[arg(long)]
     pub corrupt: Vec<Corrupt>,
+    /// Fault injection: send the answers to states of times FROM to UNTIL (s) SECONDS late
+    /// (`FROM=SECONDS[:UNTIL]`; repeatable). Set by `rotorloop run --fault
+    /// controller:delay@T=SECONDS[:until@T2]`.
+    #[arg(long)]
+    pub inject_delay: Vec<InjectedDelay>,
     /// Real time: ticks to propagate the last reference when it is missing.
     #[arg(long, allow_negative_numbers = true, default_value_t = 1000)]
     pub reference_hold_ticks: u64,

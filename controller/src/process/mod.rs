@@ -14,7 +14,7 @@ use rotorloop_common::wire::{FLAG_LAST, ReferenceSample, StateSample, TorqueSamp
 
 pub use args::ControllerArgs;
 
-use crate::policy::{Decision, ReferencePairing, TorqueAnswers};
+use crate::policy::{Decision, DelayedSends, ReferencePairing, TorqueAnswers};
 
 /// Runs the controller until the plant's last tick or a termination signal.
 pub fn run(args: &ControllerArgs) -> anyhow::Result<()> {
@@ -42,8 +42,14 @@ pub fn run(args: &ControllerArgs) -> anyhow::Result<()> {
     // Test hook: a first incarnation stalls holding a loan at this tick, to be killed so.
     let stall_at =
         test_hook("ROTORLOOP_TEST_STALL_WITH_LOAN_AT").filter(|_| answers.last().is_none());
+    let mut sends = DelayedSends::new(args.inject_delay.clone());
+    let send = |t: TorqueSample| out.send(corrupted(&args.corrupt, t), |s| s.publish_ns = now_ns());
     loop {
-        let state = states.wait_for(role.wait, now_ns() + 100_000_000, |inbox| {
+        while let Some(t) = sends.due(now_ns()) {
+            send(t).context("controller: publishing a delayed torque")?;
+        }
+        let until = sends.next_due_ns().unwrap_or(u64::MAX).min(now_ns() + 100_000_000);
+        let state = states.wait_for(role.wait, until, |inbox| {
             let mut newest: Option<(StateSample, u64)> = None;
             inbox.drain(|s| {
                 answers.take(&s, newest.is_some());
@@ -89,10 +95,18 @@ pub fn run(args: &ControllerArgs) -> anyhow::Result<()> {
         // Slot first: killed between the two, the restart re-sends this very answer when
         // the plant asks again; the other order would resume with a stale ξ_I.
         slot.store(&sample);
-        out.send(corrupted(&args.corrupt, sample), |s| s.publish_ns = now_ns())
-            .context("controller: publishing torque")?;
+        if let Some(t) = sends.hold(sample, state.t_s, now_ns()) {
+            send(t).context("controller: publishing torque")?;
+        }
         if state.flags & FLAG_LAST != 0 {
             break;
+        }
+    }
+    while let Some(due) = sends.next_due_ns() {
+        // The last answers still held back go out when due.
+        std::thread::sleep(std::time::Duration::from_nanos(due.saturating_sub(now_ns())));
+        while let Some(t) = sends.due(now_ns()) {
+            send(t).context("controller: publishing a delayed torque")?;
         }
     }
     drop((states, refs));

@@ -3,6 +3,8 @@
 use clap::Args;
 use rotorloop_common::role::{Corrupt, RoleArgs};
 
+use crate::policy::ActuationDelay;
+
 /// `plant` arguments.
 #[derive(Debug, Clone, Args)]
 pub struct PlantArgs {
@@ -22,6 +24,12 @@ pub struct PlantArgs {
     /// Real time: ticks to hold the last torque without a fresh one before safe mode.
     #[arg(long, allow_negative_numbers = true, default_value_t = 50)]
     pub hold_ticks: u64,
+    /// When a torque takes effect: `measured` (when it arrives; in lockstep at its own
+    /// tick's time), `0` (at the start of the tick it arrives in: the plain zero-order
+    /// hold), or SECONDS after its own tick's time (a fixed delay of any length, and never
+    /// before it arrives).
+    #[arg(long, default_value = "measured")]
+    pub actuation_delay: ActuationDelay,
     /// Also record sense-to-actuate in the plant itself and write
     /// `DIR/plant_sense_to_actuate.hgrm` at the end (works without a monitor).
     #[arg(long)]

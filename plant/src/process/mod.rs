@@ -28,7 +28,7 @@ pub fn run(args: &PlantArgs) -> anyhow::Result<()> {
     let torques = torques.context("plant")?;
     let slot = ResumeSlot::<StateSample>::open(&domain, "plant").context("plant")?;
     let realtime = role.mode == Mode::Realtime;
-    let mut plant = PlantTicker::new(&scenario, args.hold_ticks, realtime);
+    let mut plant = PlantTicker::new(&scenario, args.hold_ticks, realtime, args.actuation_delay);
     match slot.load().filter(|s| plant.can_resume(s)) {
         Some(s) => plant.resume(&s),
         None if !states.wait_for_subscribers(args.subscribers) => return Ok(()),
@@ -57,7 +57,10 @@ pub fn run(args: &PlantArgs) -> anyhow::Result<()> {
         let since = now_ns();
         let answer = torques.wait_for(role.wait, until, |inbox| {
             let mut answer: Option<Answer> = None;
-            inbox.drain(|t| answer = plant.hold.take(&t, k, now_ns()).or(answer))?;
+            inbox.drain(|t| {
+                let took = plant.take(&t, k, deadline, now_ns());
+                answer = took.filter(Answer::answers_the_tick).or(answer);
+            })?;
             if answer.is_none() && now_ns() - last_update > 5_000_000 {
                 // Late joiners (a controller started after us) get the state from history.
                 (last_update, _) = (now_ns(), states.update_connections());
@@ -71,7 +74,7 @@ pub fn run(args: &PlantArgs) -> anyhow::Result<()> {
         if !matches!(answer, Some(Answer::Fresh(..))) && shutdown_requested() {
             break;
         }
-        let settled = plant.hold.settle(answer);
+        let settled = plant.settle(answer);
         if let Some(Answer::Fresh(_, recv)) = answer {
             s2a.saturating_record(recv.saturating_sub(publish_ns).max(1));
         }

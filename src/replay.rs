@@ -1,0 +1,216 @@
+//! `rotorloop sim --replay DIR`: a finished real-time run again, in process. The plant is
+//! integrated with each torque taking effect in the tick and at the offset the real plant
+//! recorded (`timing.csv`: the torques that took effect in each tick and when; safe mode
+//! from the state flags), the torques being the controller's own answers as the trace
+//! recorded them (shortest round-trip decimals: bit for bit), through the same
+//! [`integrate_tick`] and actuator limits. The reference and the metrics are recomputed.
+//! If the physics of the run is what rotorloop says it is, the replayed `trace.csv` is
+//! the run's, byte for byte; the replay says whether it is, and where it first is not.
+//!
+//! What a replay cannot know: torques a killed plant had queued (a delay longer than a
+//! tick) and the limits applied again after a plant restart (the restart resumes the
+//! limited torque), and the rotor work of ticks a killed monitor did not see (its
+//! residual is re-anchored after the gap). Runs with those faults replay up to them.
+
+use std::collections::BTreeMap;
+use std::io::Write;
+use std::path::Path;
+
+use anyhow::Context;
+use glam::DVec3;
+use rotorloop_common::wire::FLAG_SAFE_MODE;
+use rotorloop_common::{Actuation, Scenario};
+use rotorloop_monitor::{Metrics, TraceWriter};
+use rotorloop_plant::policy::{ActuationDelay, DelayLine, integrate_tick};
+use rotorloop_plant::{Body, BodyInput};
+use rotorloop_reference::Reference;
+use serde::Serialize;
+
+use crate::UsageError;
+
+/// What a replay found.
+#[derive(Debug, Clone, Serialize)]
+pub struct ReplaySummary {
+    /// The run replayed.
+    pub run: String,
+    /// Rows replayed.
+    pub rows: u64,
+    /// Whether the replayed trace equals the run's, byte for byte.
+    pub identical: bool,
+    /// The first row (tick) that differs, if any.
+    pub first_difference: Option<u64>,
+    /// Ticks in which more torques took effect than `timing.csv` records (not replayable).
+    pub unrecorded_effects: Vec<u64>,
+}
+
+impl ReplaySummary {
+    /// One line for the console.
+    pub fn describe(&self) -> String {
+        match (self.identical, self.first_difference) {
+            (true, _) => {
+                format!("replay of {}: {} rows, identical byte for byte", self.run, self.rows)
+            }
+            (false, Some(k)) => {
+                format!("replay of {}: {} rows, first difference at tick {k}", self.run, self.rows)
+            }
+            (false, None) => {
+                format!("replay of {}: {} rows, not the same length", self.run, self.rows)
+            }
+        }
+    }
+}
+
+/// One row of `timing.csv`: the state's flags and the torques that took effect in the
+/// tick before it.
+struct Timing {
+    flags: u64,
+    effects: u64,
+    recorded: Vec<(u64, f64)>,
+}
+
+fn bad(dir: &Path, what: &str) -> UsageError {
+    UsageError(format!("--replay {}: {what}", dir.display()))
+}
+
+fn read_timing(dir: &Path) -> anyhow::Result<BTreeMap<u64, Timing>> {
+    let path = dir.join("timing.csv");
+    let text = std::fs::read_to_string(&path).map_err(|e| bad(dir, &format!("timing.csv: {e}")))?;
+    let mut out = BTreeMap::new();
+    for (i, line) in text.lines().enumerate().skip(1) {
+        let f: Vec<&str> = line.split(',').collect();
+        let num = |j: usize| f.get(j).and_then(|v| v.parse::<u64>().ok());
+        let (Some(tick), Some(flags), Some(effects)) = (num(0), num(3), num(4)) else {
+            return Err(bad(
+                dir,
+                &format!(
+                    "timing.csv line {}: not a row of this version (tick, …, flags, effects, …)",
+                    i + 1
+                ),
+            )
+            .into());
+        };
+        let recorded = (0..3)
+            .filter_map(|e| Some((num(5 + 2 * e)?, f.get(6 + 2 * e)?.parse::<f64>().ok()?)))
+            .collect();
+        out.insert(tick, Timing { flags, effects, recorded });
+    }
+    Ok(out)
+}
+
+/// A trace row: the whole line, and its torques `u`, `τ`.
+type Row = (String, DVec3, DVec3);
+
+/// The trace's header and rows by tick.
+fn read_trace(dir: &Path) -> anyhow::Result<(String, BTreeMap<u64, Row>)> {
+    let text = std::fs::read_to_string(dir.join("trace.csv"))
+        .map_err(|e| bad(dir, &format!("trace.csv: {e}")))?;
+    let mut lines = text.lines();
+    let header = lines.next().unwrap_or_default().to_owned();
+    let cols: Vec<&str> = header.split(',').collect();
+    let at = |name: &str| cols.iter().position(|c| *c == name);
+    let (Some(u1), Some(tau1), Some(tick)) = (at("u1"), at("tau1"), at("tick")) else {
+        return Err(bad(dir, "trace.csv has no u1, tau1 and tick columns").into());
+    };
+    let mut rows = BTreeMap::new();
+    for line in lines {
+        let f: Vec<&str> = line.split(',').collect();
+        let v = |j: usize| f.get(j).and_then(|x| x.parse::<f64>().ok()).unwrap_or(f64::NAN);
+        let k: u64 = f
+            .get(tick)
+            .and_then(|x| x.parse().ok())
+            .ok_or_else(|| bad(dir, "a trace row without a tick"))?;
+        let u = DVec3::new(v(u1), v(u1 + 1), v(u1 + 2));
+        let tau = DVec3::new(v(tau1), v(tau1 + 1), v(tau1 + 2));
+        rows.insert(k, (line.to_owned(), u, tau));
+    }
+    Ok((header, rows))
+}
+
+/// Replays the real-time run in `dir` into `out` (module docs).
+pub fn run(dir: &Path, out: &Path) -> anyhow::Result<ReplaySummary> {
+    let summary: serde_json::Value = serde_json::from_str(
+        &std::fs::read_to_string(dir.join("summary.json"))
+            .map_err(|e| bad(dir, &format!("summary.json: {e}")))?,
+    )
+    .map_err(|e| bad(dir, &format!("summary.json: {e}")))?;
+    let file = serde_json::from_value(summary["scenario"].clone())
+        .map_err(|e| bad(dir, &format!("summary.json has no scenario as run: {e}")))?;
+    let scenario = Scenario::from_file(file).map_err(UsageError::from)?;
+    let timing = read_timing(dir)?;
+    let (header, rows) = read_trace(dir)?;
+    let (actuation, dt, ticks) = (scenario.actuation(), scenario.dt(), scenario.ticks());
+    let params = scenario.plant_params(actuation);
+    let mut body = Body::new(params, scenario.plant_init);
+    let mut reference = Reference::for_scenario(&scenario);
+    let mut metrics = Metrics::new(params, &body.state()).with_disturbance(scenario.disturbance);
+    let limits = scenario.limits_for(actuation);
+    let mut line = DelayLine::new(ActuationDelay::Instant, dt);
+    let input_of = |k: u64| -> anyhow::Result<BodyInput> {
+        let (_, u, tau) = rows.get(&k).ok_or_else(|| {
+            bad(dir, &format!("the torque of tick {k} took effect but its trace row is missing"))
+        })?;
+        Ok(match actuation {
+            Actuation::Internal => BodyInput { rotor_torque: *u, body_torque: DVec3::ZERO },
+            Actuation::External => BodyInput { rotor_torque: DVec3::ZERO, body_torque: *tau },
+        })
+    };
+    std::fs::create_dir_all(out).with_context(|| format!("cannot create {}", out.display()))?;
+    let mut trace = TraceWriter::new(std::io::BufWriter::new(
+        std::fs::File::create(out.join("trace.csv"))
+            .with_context(|| format!("cannot write {}", out.join("trace.csv").display()))?,
+    ))?;
+    let mut result = ReplaySummary {
+        run: dir.display().to_string(),
+        rows: 0,
+        identical: true,
+        first_difference: None,
+        unrecorded_effects: Vec::new(),
+    };
+    let mut work = 0.0;
+    for k in 0..=ticks {
+        let t = k as f64 * dt;
+        let x = body.state();
+        let rd = reference.sample(t);
+        let (u, tau) = rows.get(&k).map_or((DVec3::NAN, DVec3::NAN), |r| (r.1, r.2));
+        let u_traced = if actuation == Actuation::Internal { u } else { DVec3::ZERO };
+        let mut row = metrics.observe_work(k, t, &x, &rd, u_traced, tau, work);
+        if k < ticks {
+            // What happened in tick k, as the state of tick k + 1 recorded it.
+            let next = timing
+                .get(&(k + 1))
+                .ok_or_else(|| bad(dir, &format!("timing.csv has no row for tick {}", k + 1)))?;
+            if next.flags & FLAG_SAFE_MODE != 0 {
+                line.clear();
+            }
+            if next.effects > next.recorded.len() as u64 {
+                result.unrecorded_effects.push(k);
+            }
+            for (source, offset) in &next.recorded {
+                line.schedule(k, *offset, *source, input_of(*source)?);
+            }
+            let step = integrate_tick(&mut body, &mut line, k, &limits, scenario.disturbance);
+            work = step.work;
+            row.delay_s = step.effects.first_delay_s(k, dt);
+        }
+        reference.step(t, dt);
+        trace.write(&row)?;
+        result.rows += 1;
+    }
+    let mut file = trace.finish()?;
+    file.flush()?;
+    drop(file);
+    // Compare with the run's trace, row by row.
+    let (replayed_header, replayed) = read_trace(out)?;
+    let mut first = (replayed_header != header).then_some(0);
+    for (k, (line, _, _)) in &rows {
+        if first.is_none() && replayed.get(k).map(|r| &r.0) != Some(line) {
+            first = Some(*k);
+        }
+    }
+    result.first_difference = first;
+    result.identical = first.is_none() && replayed.len() == rows.len();
+    let text = serde_json::to_string_pretty(&result)?;
+    std::fs::write(out.join("replay.json"), text + "\n")
+        .with_context(|| format!("cannot write {}", out.display()))?;
+    Ok(result)
+}
