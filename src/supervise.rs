@@ -547,7 +547,7 @@ mod tests {
     fn bad_faults_are_refused_naming_what_is_allowed() {
         for (f, why) in [
             ("pilot:kill@1", "ROLE is plant"),
-            ("plant:kill@-1", "SECONDS ≥ 0"),
+            ("plant:kill@-1", "seconds ≥ 0"),
             ("plant:kill@2:restart@1", "after the kill"),
             ("plant", "two or three parts"),
         ] {

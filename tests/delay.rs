@@ -216,10 +216,9 @@ fn the_predicted_margin_agrees_with_an_independent_computation_and_divergence_is
     };
     let md = std::fs::read_to_string(out.join("margin.md")).expect("md");
     for m in [1.9, 2.0, 2.1] {
-        let (mut lo, mut hi) = (0.01, 100.0);
+        let (mut lo, mut hi) = (0.01f64, 100.0f64);
         for _ in 0..200 {
-            let mid = (lo * hi) as f64;
-            let mid = mid.sqrt();
+            let mid = (lo * hi).sqrt();
             if l(m, mid).norm() > 1.0 { lo = mid } else { hi = mid }
         }
         let phi = std::f64::consts::PI + l(m, lo).arg();

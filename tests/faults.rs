@@ -114,11 +114,12 @@ fn monitor_killed_and_restarted_reports_exactly_its_gap() {
     let sim = String::from_utf8(sim_trace(&h)).expect("utf8");
     let header: Vec<&str> = sim.lines().next().expect("header").split(',').collect();
     let residual = header.iter().position(|c| *c == "energy_residual").expect("column");
+    let tick_col = header.iter().position(|c| *c == "tick").expect("column");
     let sim_rows: Vec<&str> = sim.lines().skip(1).collect();
     let mut expected_tick = 0u64;
     for line in run.lines().skip(1) {
         let f: Vec<&str> = line.split(',').collect();
-        let tick: u64 = f.last().expect("tick").parse().expect("tick");
+        let tick: u64 = f[tick_col].parse().expect("tick");
         if expected_tick == g0 {
             expected_tick = g1 + 1;
         }

@@ -122,8 +122,11 @@ fn realtime_run_populates_every_histogram_and_counts_add_up() {
     h.assert_no_leftovers();
 }
 
-/// When nothing is late, real time gives the lockstep trace: every row up to the first
-/// miss equals the simulator's, bit for bit.
+/// With the plain zero-order hold (`--actuation-delay 0`: a torque in force from the start
+/// of its tick) and nothing late, real time gives the lockstep trace: every row up to the
+/// first miss equals the simulator's, bit for bit. (With the default, `measured`, each
+/// torque takes effect when it arrived, and the trace carries the loop's real latency;
+/// `tests/delay.rs` replays such a run byte for byte.)
 #[test]
 fn realtime_trace_equals_lockstep_until_the_first_miss() {
     let h = Harness::new("rt-equal");
@@ -131,6 +134,8 @@ fn realtime_trace_equals_lockstep_until_the_first_miss() {
     ok(&h.rotorloop(
         &[
             "run",
+            "--actuation-delay",
+            "0",
             "--scenario",
             "paper-constant",
             "--duration",
