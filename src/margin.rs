@@ -378,7 +378,7 @@ fn plots(out: &Path, name: &str, runs: &[SweepRun], tau_star: f64) -> anyhow::Re
     let finals: Vec<(f64, f64)> =
         runs.iter().map(|r| (r.delay_s, r.final_err_deg.max(1e-6))).collect();
     let top = finals.iter().map(|p| p.1).fold(1.0f64, f64::max).max(180.0);
-    let marker = [(tau_star, 1e-6), (tau_star, top)];
+    let marker = [(tau_star, 1e-3), (tau_star, top)];
     line_chart(
         &out.join("margin_final.png"),
         &format!(
@@ -390,7 +390,7 @@ fn plots(out: &Path, name: &str, runs: &[SweepRun], tau_star: f64) -> anyhow::Re
             Series { label: "measured (nonlinear, in process)", points: &finals, dashed: false },
             Series { label: "predicted margin τ*", points: &marker, dashed: true },
         ],
-        YScale::Log { floor: 1e-6 },
+        YScale::Log { floor: 1e-3 },
     )?;
     Ok(())
 }
