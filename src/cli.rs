@@ -59,6 +59,11 @@ enum Command {
     Run(crate::launch::RunArgs),
     /// The latency study: the loop against same-invocation baselines, per cell.
     Bench(crate::bench::BenchArgs),
+    /// The rotorloop domains on this machine: roles with pid, core, policy, state, ticks,
+    /// rate, and the services (read-only: no node, no port).
+    Ps(crate::observe::PsArgs),
+    /// A live view of a running loop (passive: reads the roles' resume slots).
+    Watch(crate::observe::WatchArgs),
     /// How much actuation delay the loop tolerates: the linearised prediction per mode and
     /// a sweep of the nonlinear loop in process.
     Margin(crate::margin::MarginArgs),
@@ -266,6 +271,8 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         }
         Command::Run(a) => crate::launch::run(&a)?,
         Command::Bench(a) => crate::bench::run(&a)?,
+        Command::Ps(a) => crate::observe::ps(&a)?,
+        Command::Watch(a) => crate::observe::watch(&a)?,
         Command::Margin(a) => {
             crate::margin::run(&a)?;
             println!("output: {}", a.out.display());

@@ -338,6 +338,9 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
     std::fs::create_dir_all(&args.out)
         .with_context(|| format!("cannot create {}", args.out.display()))?;
     let exe = std::env::current_exe().context("cannot find the rotorloop executable")?;
+    if let Err(e) = domain.write_iox2_config(&args.out) {
+        eprintln!("warning: cannot write {}/config/iceoryx2.toml: {e}", args.out.display());
+    }
     install_signal_handlers();
     // Nothing of this domain may be alive: clear what an earlier, killed run left
     // (including resume slots, which would otherwise be taken for a restart).

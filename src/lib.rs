@@ -13,6 +13,7 @@ pub mod gains;
 pub mod launch;
 pub mod margin;
 pub mod montecarlo;
+pub mod observe;
 pub mod paper;
 pub mod process;
 pub mod replay;

@@ -136,6 +136,22 @@ impl Domain {
         &self.name
     }
 
+    /// The domain's iceoryx2 configuration.
+    pub fn config(&self) -> &Config {
+        &self.config
+    }
+
+    /// Writes the domain's iceoryx2 configuration (prefix, root path, the rest as iceoryx2's
+    /// defaults) to `DIR/config/iceoryx2.toml`, where iceoryx2's own CLI looks for it, so
+    /// that `cd DIR && iox2 service list` shows this domain's services.
+    pub fn write_iox2_config(&self, dir: &std::path::Path) -> std::io::Result<std::path::PathBuf> {
+        let text = toml::to_string(&self.config).map_err(std::io::Error::other)?;
+        let path = dir.join("config").join("iceoryx2.toml");
+        std::fs::create_dir_all(dir.join("config"))?;
+        std::fs::write(&path, text)?;
+        Ok(path)
+    }
+
     /// The iceoryx2 root directory (static service and node files).
     pub fn root_path(&self) -> String {
         self.config.global.root_path().to_string()

@@ -37,7 +37,23 @@ impl<T: Copy + ZeroCopySend> ResumeSlot<T> {
 
     /// Opens (or creates) the slot of `role` in `domain`.
     pub fn open(domain: &Domain, role: &str) -> Result<Self, IpcError> {
+        Self::map(domain, role, true)?.ok_or_else(|| IpcError::Iceoryx {
+            what: format!("resume slot {}", Self::path(domain, role).display()),
+            detail: "could not be created".into(),
+        })
+    }
+
+    /// Opens the slot of `role` in `domain` if it exists and was written by this layout;
+    /// never creates or changes it (for observers: `rotorloop ps` and `watch`).
+    pub fn open_existing(domain: &Domain, role: &str) -> Result<Option<Self>, IpcError> {
+        Self::map(domain, role, false)
+    }
+
+    fn map(domain: &Domain, role: &str, create: bool) -> Result<Option<Self>, IpcError> {
         let path = Self::path(domain, role);
+        if !create && !path.exists() {
+            return Ok(None);
+        }
         let err = |what: &str, e: std::io::Error| IpcError::Iceoryx {
             what: format!("resume slot {}: {what}", path.display()),
             detail: e.to_string(),
@@ -46,15 +62,20 @@ impl<T: Copy + ZeroCopySend> ResumeSlot<T> {
         let file = std::fs::OpenOptions::new()
             .read(true)
             .write(true)
-            .create(true)
+            .create(create)
             .truncate(false)
             .open(&path)
             .map_err(|e| err("open", e))?;
-        // Owner only, like iceoryx2's own files.
-        use std::os::unix::fs::PermissionsExt;
-        let _ = file.set_permissions(std::fs::Permissions::from_mode(0o600));
         if file.metadata().map_err(|e| err("stat", e))?.len() != len as u64 {
+            if !create {
+                return Ok(None); // another layout's slot
+            }
             file.set_len(len as u64).map_err(|e| err("size", e))?;
+        }
+        if create {
+            // Owner only, like iceoryx2's own files.
+            use std::os::unix::fs::PermissionsExt;
+            let _ = file.set_permissions(std::fs::Permissions::from_mode(0o600));
         }
         // SAFETY: maps `len` bytes of a file of exactly that size; checked for failure.
         let map = unsafe {
@@ -76,13 +97,16 @@ impl<T: Copy + ZeroCopySend> ResumeSlot<T> {
             || size.load(Ordering::Relaxed) != size_of::<T>() as u64
             || version.load(Ordering::Relaxed) != u64::from(LAYOUT_VERSION)
         {
+            if !create {
+                return Ok(None); // not written yet, or by another layout
+            }
             // Fresh, or written by another layout: start empty.
             slot.word(3).store(0, Ordering::Relaxed);
             size.store(size_of::<T>() as u64, Ordering::Relaxed);
             version.store(u64::from(LAYOUT_VERSION), Ordering::Relaxed);
             magic.store(MAGIC, Ordering::Release);
         }
-        Ok(slot)
+        Ok(Some(slot))
     }
 
     fn word(&self, i: usize) -> &AtomicU64 {

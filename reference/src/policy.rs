@@ -31,6 +31,11 @@ impl ReferenceResume {
     pub fn next(&self) -> u64 {
         self.next
     }
+
+    /// The stored sample of `tick`, if the window still holds it.
+    pub fn sample(&self, tick: u64) -> Option<ReferenceSample> {
+        Some(self.samples[tick as usize % RESUME_RING]).filter(|s| s.tick == tick)
+    }
 }
 
 const EMPTY: ReferenceSample = ReferenceSample {

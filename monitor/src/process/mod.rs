@@ -33,6 +33,8 @@ pub fn run(args: &MonitorArgs) -> anyhow::Result<()> {
     let states = domain.inbox::<StateSample>(&node, Topic::State, MAX_BUFFER, false)?;
     let slot = ResumeSlot::<MonitorResume>::open(&domain, "monitor").context("monitor")?;
     let plant_end = PlantEnd::open(&domain).context("monitor")?;
+    // iceoryx2's own CLI finds the domain from here: `cd OUT && iox2 service list`.
+    let _ = domain.write_iox2_config(&args.out);
     // A restart continues the report in the same directory.
     let (mut rec, resumed) = Recording::open(&args.out, &scenario, slot.load(), now_ns());
     let limit = TorqueSample::absurd_limit(scenario.limits_for(scenario.actuation()).rotor_torque);

@@ -1,0 +1,180 @@
+//! Seeing a loop that runs: `rotorloop ps`, `rotorloop watch`, and iceoryx2's own CLI
+//! finding a run's services from the config the run writes. The observers are passive:
+//! a run watched has the same ports on its services as one that is not.
+
+mod common;
+
+use std::process::{Child, Command, Stdio};
+use std::time::{Duration, Instant};
+
+use common::harness::{Harness, group, ok, wait_output};
+const LIMIT: Duration = Duration::from_secs(240);
+
+fn start(h: &Harness, seconds: &str) -> (Child, std::path::PathBuf) {
+    let out = h.path("run");
+    let child = group(&mut Command::new(common::harness::ROTORLOOP))
+        .args([
+            "run",
+            "--scenario",
+            "paper-sinusoid",
+            "--mode",
+            "realtime",
+            "--duration",
+            seconds,
+            "--quiet",
+        ])
+        .args(["--domain", &h.domain, "--out"])
+        .arg(&out)
+        .stdin(Stdio::null())
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .expect("spawn");
+    // Running: the plant has published and the monitor written rows.
+    let until = Instant::now() + LIMIT;
+    while std::fs::read(out.join("trace.csv")).map_or(0, |t| t.len()) < 50_000 {
+        assert!(Instant::now() < until, "the run did not start");
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    (child, out)
+}
+
+fn json_of(h: &Harness, args: &[&str]) -> serde_json::Value {
+    let text = ok(&h.rotorloop(args, LIMIT));
+    serde_json::from_str(&text).unwrap_or_else(|e| panic!("{e}: {text}"))
+}
+
+/// The pub-sub services iceoryx2 lists with the config the run wrote into its directory:
+/// the same lookup `cd DIR && iox2 service list` does.
+fn services(dir: &std::path::Path) -> Vec<String> {
+    use iceoryx2::prelude::*;
+    let text = std::fs::read_to_string(dir.join("config/iceoryx2.toml")).expect("config written");
+    let config: iceoryx2::config::Config = toml::from_str(&text).expect("iceoryx2 reads it");
+    let mut names = Vec::new();
+    ipc::Service::list(&config, |s| {
+        use iceoryx2::service::static_config::messaging_pattern::MessagingPattern as P;
+        if matches!(s.static_details.messaging_pattern(), P::PublishSubscribe(_)) {
+            names.push(s.static_details.name().as_str().to_owned());
+        }
+        CallbackProgression::Continue
+    })
+    .expect("list");
+    names.sort();
+    names
+}
+
+/// A run writes its domain's iceoryx2 config (prefix, root path) to `DIR/config/iceoryx2.toml`,
+/// where iceoryx2's CLI looks, and with it iceoryx2 lists exactly the run's services.
+#[test]
+fn the_run_directory_holds_the_iceoryx2_config_that_finds_its_services() {
+    let h = Harness::new("iox2cfg");
+    let (child, out) = start(&h, "4");
+    let text = std::fs::read_to_string(out.join("config/iceoryx2.toml")).expect("config");
+    let prefix = format!("rl_{}_", h.domain);
+    let t: toml::Value = toml::from_str(&text).expect("toml");
+    assert_eq!(t["global"]["prefix"].as_str(), Some(prefix.as_str()));
+    assert_eq!(
+        t["global"]["root-path"].as_str(),
+        Some(format!("/tmp/iceoryx2/{prefix}/").as_str())
+    );
+    let services = services(&out);
+    let want: Vec<String> = ["reference", "state", "torque"]
+        .iter()
+        .map(|t| format!("rotorloop/{}/{t}", h.domain))
+        .collect();
+    assert_eq!(services, want);
+    ok(&wait_output(child, LIMIT));
+    h.assert_no_leftovers();
+}
+
+/// `rotorloop ps --domain D --json` of a running loop: the four roles alive with their
+/// pids, a core and a policy, the plant's rate near 1 kHz, progress marks, and the nodes
+/// attached to each service; it creates nothing (no node of its own appears).
+#[test]
+fn ps_lists_the_roles_of_a_running_loop_and_creates_nothing() {
+    let h = Harness::new("ps");
+    let (child, _out) = start(&h, "4");
+    let v = json_of(&h, &["ps", "--domain", &h.domain, "--json", "--sample-ms", "300"]);
+    let d = &v[0];
+    assert_eq!(d["domain"], h.domain.as_str());
+    let roles = d["roles"].as_array().expect("roles");
+    let names: Vec<&str> = roles.iter().filter_map(|r| r["role"].as_str()).collect();
+    assert_eq!(names, ["monitor", "reference", "controller", "plant"], "no node but the loop's");
+    for r in roles {
+        assert_eq!(r["state"], "alive", "{r}");
+        assert!(
+            r["pid"].as_u64().expect("pid") > 0 && r["core"].is_u64() && r["policy"] == "other",
+            "{r}"
+        );
+    }
+    let rate = d["rate_hz"].as_f64().expect("rate");
+    assert!(rate > 500.0 && rate < 1500.0, "rate {rate}");
+    assert!(d["ticks"]["plant"].as_u64().expect("tick") > 100);
+    let state = d["services"]
+        .as_array()
+        .expect("services")
+        .iter()
+        .find(|s| {
+            s["name"] == format!("rotorloop/{}/state", h.domain)
+                && s["pattern"] == "publish_subscribe"
+        })
+        .expect("state service")
+        .clone();
+    assert_eq!(state["nodes"].as_array().expect("nodes").len(), 4, "{state}");
+    ok(&wait_output(child, LIMIT));
+    h.assert_no_leftovers();
+}
+
+/// `rotorloop watch --once --json` on a running loop shows it ticking at about 1 kHz
+/// with tick lateness and actuation delays, and a controller killed by hand and restarted
+/// by the supervisor shows as a restart; the run with the watcher attached completes
+/// with no subscriber lost on any service.
+#[test]
+fn watch_shows_a_running_loop_and_a_restart_as_it_happens() {
+    let h = Harness::new("watch");
+    let (child, out) = start(&h, "6");
+    let first = json_of(&h, &["watch", "--domain", &h.domain, "--once", "--seconds", "1"]);
+    assert!(first["rate_hz"].as_f64().expect("rate") > 500.0, "{first}");
+    assert!(first["tick_lateness_1s"]["count"].as_u64().expect("count") > 50, "{first}");
+    assert!(first["actuation_delay_1s"]["p50"].as_f64().expect("p50") > 0.0, "{first}");
+    assert!(first["err_deg"].is_f64(), "{first}");
+    let watcher = group(&mut Command::new(common::harness::ROTORLOOP))
+        .args(["watch", "--domain", &h.domain, "--once", "--seconds", "2.5"])
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .expect("watch");
+    std::thread::sleep(Duration::from_millis(700));
+    let ps = json_of(&h, &["ps", "--domain", &h.domain, "--json", "--sample-ms", "10"]);
+    // While watched: still only the loop's four nodes on its services, no port of the
+    // watcher's.
+    assert_eq!(ps[0]["roles"].as_array().expect("roles").len(), 4, "{ps}");
+    for svc in ps[0]["services"].as_array().expect("services") {
+        assert!(svc["nodes"].as_array().expect("nodes").len() <= 4, "{svc}");
+    }
+    let pid = ps[0]["roles"]
+        .as_array()
+        .expect("roles")
+        .iter()
+        .find(|r| r["role"] == "controller")
+        .expect("controller")["pid"]
+        .as_u64()
+        .expect("pid");
+    // SAFETY: kills a process of this test's own run.
+    unsafe { libc::kill(pid as libc::pid_t, libc::SIGKILL) };
+    let seen = ok(&wait_output(watcher, LIMIT));
+    let v: serde_json::Value = serde_json::from_str(&seen).expect("json");
+    let events: Vec<&str> =
+        v["events"].as_array().expect("events").iter().filter_map(|e| e.as_str()).collect();
+    assert!(events.iter().any(|e| e.contains("controller restarted")), "{events:?}");
+    ok(&wait_output(child, LIMIT));
+    let s: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("summary.json")).expect("summary"))
+            .expect("json");
+    for (name, c) in s["subscribers"].as_object().expect("subscribers") {
+        if name.starts_with("monitor.") {
+            assert_eq!(c["lost"], 0, "{name}: the watcher cost the monitor samples");
+        }
+    }
+    h.assert_no_leftovers();
+}
