@@ -154,7 +154,10 @@ fn roles(domain: &Domain) -> Result<Vec<RoleView>, UsageError> {
             NodeState::Undefined(id) => ("undefined", id.value(), None),
         };
         let name = details.map(|d| d.name().as_str().to_owned()).unwrap_or_default();
-        let role = name.strip_prefix(&ours).unwrap_or(&name).to_owned();
+        let role = match name.strip_prefix(&ours).unwrap_or(&name) {
+            "" => "(unnamed: being created or cleaned up)".to_owned(),
+            r => r.to_owned(),
+        };
         let pid = (id >> 64) as u32;
         let (core, rt_priority, policy, cores_allowed) =
             if view_state == "alive" { proc_sched(pid) } else { (None, None, None, None) };
@@ -552,7 +555,11 @@ impl Watcher {
 
     /// Roles: note deaths and restarts (a new pid for a role).
     fn roles(&mut self) -> Vec<RoleView> {
-        let roles = roles(&self.domain).unwrap_or_default();
+        let roles: Vec<RoleView> = roles(&self.domain)
+            .unwrap_or_default()
+            .into_iter()
+            .filter(|r| !r.role.starts_with('('))
+            .collect();
         for r in &roles {
             match self.pids.get(&r.role) {
                 Some((pid, _)) if *pid != r.pid && r.state == "alive" => {
