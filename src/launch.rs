@@ -492,19 +492,7 @@ fn supervise(
             .collect();
         for role in due {
             w.restarts.remove(&role);
-            if let Some(c) = children.get_mut(&role) {
-                let _ = c.wait(); // reap the dead one first
-            }
-            let child =
-                launch.spawn(&role, rss).with_context(|| format!("cannot restart {role}"))?;
-            if let Some(c) = children.get_mut(&role) {
-                *c = child;
-            }
-            watchdog.reset(&role, now_s);
-            if let Some(e) = w.events.iter_mut().rev().find(|e| e.role == role) {
-                e.restart_ns = Some(now_ns());
-            }
-            eprintln!("launcher: restarted {role} at {now_s:.3} s");
+            restart(launch, children, rss, &mut w, &mut watchdog, &role, now_s)?;
         }
         rss.sample_if_due();
         let mut running = 0;
@@ -580,6 +568,32 @@ fn decide(role: &str, verdict: Verdict, w: &mut Watch, now_s: f64) {
     }
 }
 
+/// Starts `role` again (reaping the dead one first), at `at` s: the watchdog's clock starts
+/// again, and the newest fault event of the role gets its restart time.
+fn restart(
+    launch: &Launch,
+    children: &mut Children,
+    rss: &mut RssLog,
+    w: &mut Watch,
+    watchdog: &mut Watchdog,
+    role: &str,
+    at: f64,
+) -> anyhow::Result<()> {
+    if let Some(c) = children.get_mut(role) {
+        let _ = c.wait();
+    }
+    let child = launch.spawn(role, rss).with_context(|| format!("cannot restart {role}"))?;
+    if let Some(c) = children.get_mut(role) {
+        *c = child;
+    }
+    watchdog.reset(role, at);
+    if let Some(e) = w.events.iter_mut().rev().find(|e| e.role == role) {
+        e.restart_ns = Some(now_ns());
+    }
+    eprintln!("launcher: restarted {role} at {at:.3} s");
+    Ok(())
+}
+
 /// Carries out one action of the `--fault` schedule.
 fn injected(
     launch: &Launch,
@@ -609,16 +623,7 @@ fn injected(
         }
         Action::Restart(role) => {
             w.restarts.remove(&role); // the schedule's restart replaces a supervisor's
-            let child =
-                launch.spawn(&role, rss).with_context(|| format!("cannot restart {role}"))?;
-            if let Some(c) = children.get_mut(&role) {
-                *c = child;
-            }
-            watchdog.reset(&role, at);
-            if let Some(e) = w.events.iter_mut().rev().find(|e| e.role == role) {
-                e.restart_ns = Some(now_ns());
-            }
-            eprintln!("launcher: restarted {role} at {at:.3} s");
+            restart(launch, children, rss, w, watchdog, &role, at)?;
         }
         Action::Stop(role) => {
             if let Some(c) = children.get_mut(&role) {

@@ -17,6 +17,16 @@ fn column(trace: &str, name: &str) -> Vec<f64> {
     lines.map(|l| l.split(',').nth(i).expect("field").parse::<f64>().expect("number")).collect()
 }
 
+/// A 4 s real-time run of paper-sinusoid in `h`'s domain with `extra` arguments; its dir.
+fn realtime_run(h: &Harness, extra: &[&str]) -> std::path::PathBuf {
+    let out = h.path("rt");
+    let o = out.to_str().expect("utf8");
+    let args = ["run", "--scenario", "paper-sinusoid", "--duration", "4", "--mode", "realtime"];
+    let tail = ["--domain", &h.domain, "--quiet", "--out", o];
+    ok(&h.rotorloop(&[&args[..], extra, &tail].concat(), LIMIT));
+    out
+}
+
 fn sim(h: &Harness, name: &str, extra: &[&str]) -> std::path::PathBuf {
     let out = h.path(name);
     let mut args = vec!["sim", "--no-figures", "--out", out.to_str().expect("utf8")];
@@ -87,25 +97,8 @@ fn lockstep_equals_sim_with_a_delay_longer_than_a_tick() {
 #[test]
 fn a_real_time_run_with_misses_and_a_kill_replays_byte_for_byte() {
     let h = Harness::new("replay");
-    let out = h.path("rt");
+    let out = realtime_run(&h, &["--fault", "controller:kill@1.5:restart@1.8"]);
     let o = out.to_str().expect("utf8");
-    ok(&h.rotorloop(
-        &[
-            "run",
-            "--scenario",
-            "paper-sinusoid",
-            "--duration",
-            "4",
-            "--mode",
-            "realtime",
-            "--domain",
-            &h.domain,
-        ]
-        .into_iter()
-        .chain(["--fault", "controller:kill@1.5:restart@1.8", "--quiet", "--out", o])
-        .collect::<Vec<_>>(),
-        LIMIT,
-    ));
     let s = json(&out.join("summary.json"));
     assert!(s["misses"].as_u64().expect("misses") > 50, "the kill made misses: {}", s["misses"]);
     let trace = std::fs::read_to_string(out.join("trace.csv")).expect("trace");
@@ -161,25 +154,7 @@ fn delays_drawn_from_a_measured_distribution_are_reproducible_by_seed() {
 #[test]
 fn an_injected_controller_delay_is_felt_and_reported() {
     let h = Harness::new("inject");
-    let out = h.path("rt");
-    let o = out.to_str().expect("utf8");
-    ok(&h.rotorloop(
-        &[
-            "run",
-            "--scenario",
-            "paper-sinusoid",
-            "--duration",
-            "4",
-            "--mode",
-            "realtime",
-            "--domain",
-            &h.domain,
-        ]
-        .into_iter()
-        .chain(["--fault", "controller:delay@1=0.005:until@3", "--quiet", "--out", o])
-        .collect::<Vec<_>>(),
-        LIMIT,
-    ));
+    let out = realtime_run(&h, &["--fault", "controller:delay@1=0.005:until@3"]);
     let s = json(&out.join("summary.json"));
     assert_eq!(s["faults"][0]["kind"], "delay", "{}", s["faults"]);
     assert_eq!(s["safe_mode_ticks"], 0);
