@@ -9,9 +9,10 @@
 //!   as a fault event (topic, tick, kind, reason; the first [`MAX_FAULT_EVENTS`]), and a
 //!   row whose state or reference was rejected is never written.
 //! - A row needs tick `k`'s state and reference. Its torque is settled when it came, was
-//!   rejected, or will not come: a state two ticks newer, or a torque of a later tick
-//!   (the controller answers the newest state and skips older ones under load), or the
-//!   end. Its sense-to-actuate needs the next state (which says which torque the plant
+//!   rejected, or will not come: a torque of a later tick (the controller answers the
+//!   newest state and skips older ones under load), [`TORQUE_PATIENCE`] ticks of states
+//!   without one, or the end. A late torque still takes effect in the plant, so the row
+//!   waits for it rather than giving up when the next states arrive. Its sense-to-actuate needs the next state (which says which torque the plant
 //!   held), so the row also waits for tick `k + 1` unless it is the last.
 //! - A row whose state or reference never comes is **lost**: newer states exist and the
 //!   ring (half of [`RING`]) moved on, or the run ended with newer states seen.
@@ -33,6 +34,12 @@ pub const RING: usize = 16_384;
 pub const MAX_GAPS: usize = 8;
 /// Most wire fault events kept in the report.
 pub const MAX_FAULT_EVENTS: usize = 64;
+/// How many ticks a row waits for its torque after its state while no newer torque comes.
+/// A late torque still takes effect in the plant (delayed zero-order hold), so the trace
+/// must carry it for a replay: a row is not given up on just because the states moved on
+/// (a dead controller's rows settle when its restart answers a newer state, or after this).
+pub const TORQUE_PATIENCE: u64 = 1024;
+
 /// After the plant's last state, this long without any new sample settles the rows still
 /// open: their missing samples are not coming.
 pub const END_QUIET_NS: u64 = 5_000_000_000;
@@ -304,7 +311,7 @@ impl RowJoiner {
             let t_rejected = slot.torque_rejected == Some(next);
             let torque_settled = t.is_some()
                 || t_rejected
-                || newest >= next + 2
+                || newest >= next + TORQUE_PATIENCE
                 || newest_torque.is_some_and(|l| l > next)
                 || stopping;
             let next_settled =
@@ -454,6 +461,18 @@ mod tests {
         }
         j.take_torque(torque(1)); // no torque for tick 0: the controller answered 1
         assert_eq!(rows(&mut j, false), [(0, false), (1, true)]);
+    }
+
+    #[test]
+    fn a_late_torque_still_lands_in_its_row() {
+        let mut j = RowJoiner::new(10, 1e6, 0);
+        for k in 0..5 {
+            j.take_reference(reference(k));
+            j.take_state(state(k, false));
+        }
+        assert!(rows(&mut j, false).is_empty(), "row 0 waits for its torque");
+        j.take_torque(torque(0)); // four ticks late: the plant applies it, the trace shows it
+        assert_eq!(rows(&mut j, false), [(0, true)]);
     }
 
     #[test]
