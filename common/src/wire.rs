@@ -229,6 +229,25 @@ pub fn effect_delay_s(tick: u64, source: u64, offset_s: f64, dt: f64) -> f64 {
 }
 
 impl ReferenceSample {
+    /// A sample of `tick` with every field zero (`R_d` too: not a rotation until set), to
+    /// build others from with struct update syntax.
+    pub const fn zeroed(tick: u64) -> Self {
+        Self {
+            tick,
+            t_s: 0.0,
+            r_d_row_major: [0.0; 9],
+            omega_d_rad_s: [0.0; 3],
+            omega_d_dot_rad_s2: [0.0; 3],
+            omega_rotor_rad_s: [0.0; 3],
+            theta_rotor_rad: [0.0; 3],
+            publish_ns: 0,
+            internal_h: [0.0; 3],
+            internal_p: [0.0; 3],
+        }
+    }
+}
+
+impl ReferenceSample {
     /// What the controller needs.
     pub fn reference_state(&self) -> ReferenceState {
         ReferenceState {

@@ -411,16 +411,8 @@ mod tests {
 
     fn reference(tick: u64) -> ReferenceSample {
         ReferenceSample {
-            tick,
-            t_s: 0.0,
             r_d_row_major: to_row_major(&DMat3::IDENTITY),
-            omega_d_rad_s: [0.0; 3],
-            omega_d_dot_rad_s2: [0.0; 3],
-            omega_rotor_rad_s: [0.0; 3],
-            theta_rotor_rad: [0.0; 3],
-            publish_ns: 0,
-            internal_h: [0.0; 3],
-            internal_p: [0.0; 3],
+            ..ReferenceSample::zeroed(tick)
         }
     }
 

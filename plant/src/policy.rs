@@ -365,11 +365,6 @@ impl DelayLine {
         }
     }
 
-    /// The delay rule.
-    pub fn delay(&self) -> ActuationDelay {
-        self.delay
-    }
-
     /// The torque of tick `source` arrived during tick `now`, `arrived_s` after its start
     /// (0 in lockstep and in process), at `recv_ns`: it is queued to take effect by the
     /// rule. A [`ActuationDelay::Fixed`] delay is counted from the source tick's time; for

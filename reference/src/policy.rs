@@ -38,18 +38,7 @@ impl ReferenceResume {
     }
 }
 
-const EMPTY: ReferenceSample = ReferenceSample {
-    tick: u64::MAX,
-    t_s: 0.0,
-    r_d_row_major: [0.0; 9],
-    omega_d_rad_s: [0.0; 3],
-    omega_d_dot_rad_s2: [0.0; 3],
-    omega_rotor_rad_s: [0.0; 3],
-    theta_rotor_rad: [0.0; 3],
-    publish_ns: 0,
-    internal_h: [0.0; 3],
-    internal_p: [0.0; 3],
-};
+const EMPTY: ReferenceSample = ReferenceSample::zeroed(u64::MAX);
 
 /// The lead rule (module docs).
 #[derive(Debug, Clone)]
