@@ -325,7 +325,10 @@ impl RowJoiner {
                 }
                 return None;
             };
-            let last_open = next == self.ticks && t.is_none() && !t_rejected && !stopping && !ended;
+            // The last row waits for its torque even after the plant's last state: the
+            // report's counts come from that last answer (the end's quiet period settles
+            // it if none comes).
+            let last_open = next == self.ticks && t.is_none() && !t_rejected && !stopping;
             if !(torque_settled && next_settled) || last_open {
                 return None;
             }
