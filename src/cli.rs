@@ -220,42 +220,7 @@ fn print_warnings(w: &[String]) {
 /// Runs a parsed command line.
 pub fn run(cli: Cli) -> anyhow::Result<()> {
     match cli.command {
-        Command::Sim(a) => {
-            if let Some(dir) = &a.replay {
-                let r = crate::replay::run(dir, &a.out)?;
-                println!("{}", r.describe());
-                return Ok(());
-            }
-            let name = a.scenario.as_deref().unwrap_or_default();
-            let scenario = scenario_with_overrides(name, a.duration, a.rate, a.actuation)?;
-            print_warnings(&scenario.warnings);
-            let delay = a.actuation_delay.parse().map_err(|e: String| {
-                UsageError(
-                    format!("--actuation-delay {e}").replace("`measured`, or seconds", "seconds"),
-                )
-            })?;
-            if delay == ActuationDelay::Measured {
-                return Err(UsageError(
-                    "--actuation-delay measured is for real-time runs; sim takes SECONDS".into(),
-                )
-                .into());
-            }
-            let drawn =
-                a.delay_from.as_deref().map(|p| sim::drawn_delays(p, a.seed)).transpose()?;
-            let opts = SimOptions {
-                scenario,
-                open_loop: a.open_loop,
-                trace_every: a.trace_every,
-                out: a.out.clone(),
-                figures: !a.no_figures,
-                progress: true,
-                delay,
-                drawn,
-            };
-            let (summary, _) = sim::run(&opts).with_context(|| format!("sim of {name}"))?;
-            print!("{}", summary_table(&summary));
-            println!("  {:<28} {}", "output", a.out.display());
-        }
+        Command::Sim(a) => sim_command(&a)?,
         Command::Paper { out, duration, rate, in_process } => {
             crate::paper::run(&out, duration, rate, in_process)?
         }
@@ -284,40 +249,79 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
             let (cleaned, alive) = d.cleanup()?;
             println!("domain {domain}: {cleaned} dead node(s) cleaned, {alive} alive");
         }
-        Command::Montecarlo(a) => {
-            let scenario =
-                scenario_with_overrides(&a.scenario, Some(a.duration), Some(a.rate), None)?;
-            if !(a.max_rate.is_finite() && a.max_rate > 0.0 && a.max_rate <= 1e3) {
-                return Err(UsageError(format!(
-                    "--max-rate {} is not allowed: a number > 0 and ≤ 1000",
-                    a.max_rate
-                ))
-                .into());
-            }
-            let opts = McOptions {
-                scenario,
-                runs: a.runs as usize,
-                seed: a.seed,
-                near_pi_every: a.near_pi_every as usize,
-                max_rate: a.max_rate,
-                threads: std::thread::available_parallelism().map_or(1, |n| n.get()),
-                out: Some(a.out.clone()),
-            };
-            let (s, _) = montecarlo::run(&opts)?;
-            println!(
-                "{} runs ({} within 2° of 180°, closest {:.3}° from it), {} s each at {} Hz\n\
-                 converged (final error < {}°): {:.1} %\nworst final error: {:.3e}°\noutput: {}",
-                s.runs,
-                s.near_pi_runs,
-                s.closest_to_pi_deg,
-                s.duration_s,
-                s.rate_hz,
-                montecarlo::CONVERGED_DEG,
-                100.0 * s.fraction_converged,
-                s.worst_final_err_deg,
-                a.out.display()
-            );
-        }
+        Command::Montecarlo(a) => montecarlo_command(&a)?,
     }
+    Ok(())
+}
+
+/// `rotorloop sim`: a replay, or an in-process run of a scenario.
+fn sim_command(a: &SimArgs) -> anyhow::Result<()> {
+    if let Some(dir) = &a.replay {
+        let r = crate::replay::run(dir, &a.out)?;
+        println!("{}", r.describe());
+        return Ok(());
+    }
+    let name = a.scenario.as_deref().unwrap_or_default();
+    let scenario = scenario_with_overrides(name, a.duration, a.rate, a.actuation)?;
+    print_warnings(&scenario.warnings);
+    let delay = a.actuation_delay.parse().map_err(|e: String| {
+        UsageError(format!("--actuation-delay {e}").replace("`measured`, or seconds", "seconds"))
+    })?;
+    if delay == ActuationDelay::Measured {
+        return Err(UsageError(
+            "--actuation-delay measured is for real-time runs; sim takes SECONDS".into(),
+        )
+        .into());
+    }
+    let drawn = a.delay_from.as_deref().map(|p| sim::drawn_delays(p, a.seed)).transpose()?;
+    let opts = SimOptions {
+        scenario,
+        open_loop: a.open_loop,
+        trace_every: a.trace_every,
+        out: a.out.clone(),
+        figures: !a.no_figures,
+        progress: true,
+        delay,
+        drawn,
+    };
+    let (summary, _) = sim::run(&opts).with_context(|| format!("sim of {name}"))?;
+    print!("{}", summary_table(&summary));
+    println!("  {:<28} {}", "output", a.out.display());
+    Ok(())
+}
+
+/// `rotorloop montecarlo`: many in-process runs from random initial attitudes.
+fn montecarlo_command(a: &McArgs) -> anyhow::Result<()> {
+    let scenario = scenario_with_overrides(&a.scenario, Some(a.duration), Some(a.rate), None)?;
+    if !(a.max_rate.is_finite() && a.max_rate > 0.0 && a.max_rate <= 1e3) {
+        return Err(UsageError(format!(
+            "--max-rate {} is not allowed: a number > 0 and ≤ 1000",
+            a.max_rate
+        ))
+        .into());
+    }
+    let opts = McOptions {
+        scenario,
+        runs: a.runs as usize,
+        seed: a.seed,
+        near_pi_every: a.near_pi_every as usize,
+        max_rate: a.max_rate,
+        threads: std::thread::available_parallelism().map_or(1, |n| n.get()),
+        out: Some(a.out.clone()),
+    };
+    let (s, _) = montecarlo::run(&opts)?;
+    println!(
+        "{} runs ({} within 2° of 180°, closest {:.3}° from it), {} s each at {} Hz\n\
+         converged (final error < {}°): {:.1} %\nworst final error: {:.3e}°\noutput: {}",
+        s.runs,
+        s.near_pi_runs,
+        s.closest_to_pi_deg,
+        s.duration_s,
+        s.rate_hz,
+        montecarlo::CONVERGED_DEG,
+        100.0 * s.fraction_converged,
+        s.worst_final_err_deg,
+        a.out.display()
+    );
     Ok(())
 }

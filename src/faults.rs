@@ -151,7 +151,18 @@ pub fn report(
         crate::sim::write_json(&summary_path, &j)?;
     }
 
-    // faults.png: the error of this run and of the no-fault run, faults marked.
+    draw(out, scenario, &errors, &nofault, &reports)?;
+    Ok(reports)
+}
+
+/// Draws `out/faults.png`: the error of this run and of the no-fault run, faults marked.
+fn draw(
+    out: &Path,
+    scenario: &Scenario,
+    errors: &BTreeMap<u64, (f64, f64)>,
+    nofault: &[f64],
+    reports: &[FaultReport],
+) -> anyhow::Result<()> {
     let run: Vec<(f64, f64)> = errors.values().copied().collect();
     let dt = scenario.dt();
     let every = (nofault.len() / 6000).max(1);
@@ -159,7 +170,7 @@ pub fn report(
         nofault.iter().enumerate().step_by(every).map(|(k, e)| (k as f64 * dt, *e)).collect();
     let top = run.iter().map(|p| p.1).fold(1.0f64, f64::max);
     let mut markers: Vec<(String, Vec<(f64, f64)>)> = Vec::new();
-    for r in &reports {
+    for r in reports {
         let at = |k: Option<u64>| k.and_then(|k| errors.get(&k)).map(|(t, _)| *t);
         if let Some(t) = at(r.kill_tick) {
             markers.push((format!("{} {}", r.kind, r.role), vec![(t, 1e-6), (t, top)]));
@@ -185,5 +196,5 @@ pub fn report(
         &series,
         YScale::Log { floor: 1e-6 },
     )?;
-    Ok(reports)
+    Ok(())
 }

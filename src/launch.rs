@@ -415,6 +415,10 @@ struct Watch {
     planned: std::collections::BTreeSet<u32>,
     /// The pid stopped by each `stop` fault.
     stopped: BTreeMap<String, u32>,
+    /// The restart policy's state.
+    supervisor: Supervisor,
+    /// The hang watchdog's state.
+    watchdog: Watchdog,
 }
 
 /// Runs the fault schedule, the restart policy and the watchdog, samples memory, and
@@ -427,9 +431,6 @@ fn supervise(
     rss: &mut RssLog,
     mut schedule: FaultSchedule,
 ) -> anyhow::Result<Vec<FaultEvent>> {
-    let args = launch.args;
-    let mut supervisor = launch.supervisor.clone();
-    let mut watchdog = Watchdog::new(args.watchdog_ms as f64 / 1e3);
     let lockstep = launch.role_args.mode == Mode::Lockstep;
     // The fault clock starts when the plant has published tick 0 (its resume slot is
     // written just before each publish).
@@ -442,6 +443,8 @@ fn supervise(
         handled: Default::default(),
         planned: Default::default(),
         stopped: BTreeMap::new(),
+        supervisor: launch.supervisor.clone(),
+        watchdog: Watchdog::new(launch.args.watchdog_ms as f64 / 1e3),
     };
     let launched_ns = now_ns();
     loop {
@@ -453,36 +456,10 @@ fn supervise(
         let stopping = term_sent_at.is_some();
         let elapsed = run_t0.map(|_| now_s).filter(|_| !stopping);
         for action in schedule.due(elapsed) {
-            injected(launch, children, rss, &mut w, &mut watchdog, action, now_s)?;
+            injected(launch, children, rss, &mut w, action, now_s)?;
         }
-        let complete = progress.loop_complete();
-        if !stopping && run_t0.is_some() && !complete {
-            let marks = progress.marks();
-            for role in ROLES {
-                let pid = children.get_mut(role).map(|c| c.id());
-                let alive = pid.is_some_and(|p| !w.handled.contains(&p));
-                let pending = alive && marks.work_waiting(role, lockstep, REFERENCE_LEAD);
-                if watchdog.check(role, marks.of(role), pending, now_s) {
-                    let c = children.get_mut(role).expect("alive");
-                    w.planned.insert(c.id());
-                    signal(c, libc::SIGKILL);
-                    let ms = args.watchdog_ms;
-                    eprintln!(
-                        "launcher: {role} made no progress for {ms} ms with work waiting: hung; killed (SIGKILL) at {now_s:.3} s"
-                    );
-                    let detail = format!("no progress for {ms} ms; killed by the watchdog");
-                    w.events.push(FaultEvent {
-                        role: role.into(),
-                        kind: "hang",
-                        detail,
-                        kill_ns: now_ns(),
-                        restart_ns: None,
-                    });
-                    let verdict =
-                        supervisor.on_end(role, Ending::Hang, "hung", None, now_s, complete);
-                    decide(role, verdict, &mut w, now_s);
-                }
-            }
+        if !stopping && run_t0.is_some() && !progress.loop_complete() {
+            watch_for_hangs(launch, children, &mut w, &progress.marks(), lockstep, now_s);
         }
         let due: Vec<String> = w
             .restarts
@@ -492,41 +469,10 @@ fn supervise(
             .collect();
         for role in due {
             w.restarts.remove(&role);
-            restart(launch, children, rss, &mut w, &mut watchdog, &role, now_s)?;
+            restart(launch, children, rss, &mut w, &role, now_s)?;
         }
         rss.sample_if_due();
-        let mut running = 0;
-        for (role, c) in &mut children.0 {
-            let pid = c.id();
-            match c.try_wait() {
-                Ok(None) => running += 1,
-                Ok(Some(st)) if w.handled.insert(pid) && !w.planned.contains(&pid) && !stopping => {
-                    let how = Ending::of(st);
-                    if how != Ending::Exited {
-                        eprintln!("launcher: {role} {} ({st}) at {now_s:.3} s", how.name());
-                        let detail = st.to_string();
-                        w.events.push(FaultEvent {
-                            role: role.clone(),
-                            kind: how.name(),
-                            detail,
-                            kill_ns: now_ns(),
-                            restart_ns: None,
-                        });
-                    }
-                    let what = format!("exited with {st}");
-                    let verdict = supervisor.on_end(
-                        role,
-                        how,
-                        &what,
-                        st.code(),
-                        now_s,
-                        progress.loop_complete(),
-                    );
-                    decide(role, verdict, &mut w, now_s);
-                }
-                _ => {}
-            }
-        }
+        let running = reap(children, &mut w, &progress, stopping, now_s);
         let awaiting = schedule.awaiting_restart() || !w.restarts.is_empty();
         if running == 0 && (!awaiting || stopping) {
             break;
@@ -545,6 +491,81 @@ fn supervise(
         Some(f) => anyhow::bail!("{f}; the run was stopped ({} failed)", w.failures.join(", ")),
         None => Ok(w.events),
     }
+}
+
+/// The watchdog's pass: a role with work waiting and no progress for `--watchdog-ms` is
+/// hung: killed (SIGKILL), recorded as a fault, and handed to the restart policy.
+fn watch_for_hangs(
+    launch: &Launch,
+    children: &mut Children,
+    w: &mut Watch,
+    marks: &Marks,
+    lockstep: bool,
+    now_s: f64,
+) {
+    for role in ROLES {
+        let pid = children.get_mut(role).map(|c| c.id());
+        let alive = pid.is_some_and(|p| !w.handled.contains(&p));
+        let pending = alive && marks.work_waiting(role, lockstep, REFERENCE_LEAD);
+        if !w.watchdog.check(role, marks.of(role), pending, now_s) {
+            continue;
+        }
+        let c = children.get_mut(role).expect("alive");
+        w.planned.insert(c.id());
+        signal(c, libc::SIGKILL);
+        let ms = launch.args.watchdog_ms;
+        eprintln!(
+            "launcher: {role} made no progress for {ms} ms with work waiting: hung; killed (SIGKILL) at {now_s:.3} s"
+        );
+        let detail = format!("no progress for {ms} ms; killed by the watchdog");
+        w.events.push(FaultEvent {
+            role: role.into(),
+            kind: "hang",
+            detail,
+            kill_ns: now_ns(),
+            restart_ns: None,
+        });
+        let verdict = w.supervisor.on_end(role, Ending::Hang, "hung", None, now_s, false);
+        decide(role, verdict, w, now_s);
+    }
+}
+
+/// Reaps the children that ended: an end nobody planned is a fault (unless it is a clean
+/// exit), and goes to the restart policy. Returns how many children still run.
+fn reap(
+    children: &mut Children,
+    w: &mut Watch,
+    progress: &Progress,
+    stopping: bool,
+    now_s: f64,
+) -> usize {
+    let mut running = 0;
+    for (role, c) in &mut children.0 {
+        let pid = c.id();
+        match c.try_wait() {
+            Ok(None) => running += 1,
+            Ok(Some(st)) if w.handled.insert(pid) && !w.planned.contains(&pid) && !stopping => {
+                let how = Ending::of(st);
+                if how != Ending::Exited {
+                    eprintln!("launcher: {role} {} ({st}) at {now_s:.3} s", how.name());
+                    let detail = st.to_string();
+                    w.events.push(FaultEvent {
+                        role: role.clone(),
+                        kind: how.name(),
+                        detail,
+                        kill_ns: now_ns(),
+                        restart_ns: None,
+                    });
+                }
+                let what = format!("exited with {st}");
+                let complete = progress.loop_complete();
+                let verdict = w.supervisor.on_end(role, how, &what, st.code(), now_s, complete);
+                decide(role, verdict, w, now_s);
+            }
+            _ => {}
+        }
+    }
+    running
 }
 
 /// Carries out the supervisor's verdict on `role`. The monitor is an observer: when it may
@@ -575,7 +596,6 @@ fn restart(
     children: &mut Children,
     rss: &mut RssLog,
     w: &mut Watch,
-    watchdog: &mut Watchdog,
     role: &str,
     at: f64,
 ) -> anyhow::Result<()> {
@@ -586,7 +606,7 @@ fn restart(
     if let Some(c) = children.get_mut(role) {
         *c = child;
     }
-    watchdog.reset(role, at);
+    w.watchdog.reset(role, at);
     if let Some(e) = w.events.iter_mut().rev().find(|e| e.role == role) {
         e.restart_ns = Some(now_ns());
     }
@@ -600,7 +620,6 @@ fn injected(
     children: &mut Children,
     rss: &mut RssLog,
     w: &mut Watch,
-    watchdog: &mut Watchdog,
     action: Action,
     at: f64,
 ) -> anyhow::Result<()> {
@@ -623,7 +642,7 @@ fn injected(
         }
         Action::Restart(role) => {
             w.restarts.remove(&role); // the schedule's restart replaces a supervisor's
-            restart(launch, children, rss, w, watchdog, &role, at)?;
+            restart(launch, children, rss, w, &role, at)?;
         }
         Action::Stop(role) => {
             if let Some(c) = children.get_mut(&role) {

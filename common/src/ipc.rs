@@ -426,6 +426,9 @@ impl Domain {
     }
 }
 
+/// A role's iceoryx2 node: it must outlive the role's ports.
+pub type RoleNode = Node<ipc::Service>;
+
 /// A publisher and the notifier that wakes its subscribers.
 #[derive(Debug)]
 pub struct Outbox<T: ZeroCopySend + Debug + Copy + 'static> {

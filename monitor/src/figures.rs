@@ -92,25 +92,7 @@ pub fn tracking_figures(
 ) -> Result<Vec<String>, PlotError> {
     let mut files = Vec::new();
 
-    let labels = ["(1,1)", "(1,2)", "(2,1)", "(2,2)"];
-    let entries: Vec<(Points, Points)> =
-        (0..4).map(|j| (rec.xy(|i| rec.r[i][j]), rec.xy(|i| rec.r_d[i][j]))).collect();
-    let series: Vec<[Series<'_>; 2]> = entries
-        .iter()
-        .map(|(r, rd)| {
-            [
-                Series { label: "R (plant)", points: r, dashed: false },
-                Series { label: "R_d (reference)", points: rd, dashed: true },
-            ]
-        })
-        .collect();
-    let panels: Vec<(String, &[Series<'_>])> =
-        labels.iter().zip(&series).map(|(l, s)| (format!("entry {l}"), &s[..])).collect();
-    let panels: Vec<(&str, &str, &[Series<'_>])> =
-        panels.iter().map(|(t, s)| (t.as_str(), "", *s)).collect();
-    let file = "attitude_entries.png";
-    panel_grid(&dir.join(file), &format!("{name}: attitude R(t) against R_d(t)"), (2, 2), &panels)?;
-    files.push(file.to_owned());
+    files.push(attitude_entries(dir, name, rec)?);
 
     let err = rec.xy(|i| rec.err_deg[i]);
     let file = "attitude_error.png";
@@ -184,4 +166,27 @@ pub fn tracking_figures(
         files.push(file.to_owned());
     }
     Ok(files)
+}
+
+/// `attitude_entries.png`: four entries of `R` against those of `R_d`.
+fn attitude_entries(dir: &Path, name: &str, rec: &Recorder) -> Result<String, PlotError> {
+    let labels = ["(1,1)", "(1,2)", "(2,1)", "(2,2)"];
+    let entries: Vec<(Points, Points)> =
+        (0..4).map(|j| (rec.xy(|i| rec.r[i][j]), rec.xy(|i| rec.r_d[i][j]))).collect();
+    let series: Vec<[Series<'_>; 2]> = entries
+        .iter()
+        .map(|(r, rd)| {
+            [
+                Series { label: "R (plant)", points: r, dashed: false },
+                Series { label: "R_d (reference)", points: rd, dashed: true },
+            ]
+        })
+        .collect();
+    let panels: Vec<(String, &[Series<'_>])> =
+        labels.iter().zip(&series).map(|(l, s)| (format!("entry {l}"), &s[..])).collect();
+    let panels: Vec<(&str, &str, &[Series<'_>])> =
+        panels.iter().map(|(t, s)| (t.as_str(), "", *s)).collect();
+    let file = "attitude_entries.png";
+    panel_grid(&dir.join(file), &format!("{name}: attitude R(t) against R_d(t)"), (2, 2), &panels)?;
+    Ok(file.to_owned())
 }

@@ -3,14 +3,15 @@
 //! own samples carry) and what the [`Recording`] measured, and its console form.
 
 use std::collections::BTreeMap;
+use std::path::Path;
 
 use rotorloop_common::Scenario;
-use rotorloop_common::role::{Mode, RoleArgs, SeqCounter};
+use rotorloop_common::role::{Mode, RoleArgs, SeqCounter, write_json};
 use serde::Serialize;
 
 use crate::latency::{Hop, HopStats};
 use crate::policy::{RowJoiner, WireFaultEvent};
-use crate::recording::Recording;
+use crate::recording::{Recording, with_fallback};
 
 /// Received and lost samples of one subscriber.
 #[derive(Debug, Clone, Copy, Serialize, Default)]
@@ -228,4 +229,19 @@ pub fn console_summary(s: &RunSummary) -> String {
         ));
     }
     t
+}
+
+/// Writes `summary.json` into `out`, or into `fallback` where `out` cannot take it, or
+/// (nowhere to write) onto stderr, so that it is never lost.
+pub fn write_summary(out: &Path, fallback: &Path, summary: &RunSummary) -> anyhow::Result<()> {
+    let write = |d: &Path| write_json(&d.join("summary.json"), summary);
+    match with_fallback(out, fallback, write) {
+        Ok(((), d)) if d != out => eprintln!("monitor: summary.json written to {}", d.display()),
+        Ok(_) => {}
+        Err(e) => {
+            eprintln!("monitor: summary.json not written ({e:#}); here it is:");
+            eprintln!("{}", serde_json::to_string_pretty(summary)?);
+        }
+    }
+    Ok(())
 }

@@ -5,38 +5,27 @@
 //! counts the ticks lost and says so in the report.
 
 mod args;
+mod ports;
 
 use std::io::IsTerminal;
 
-use anyhow::Context;
-use rotorloop_common::ipc::{MAX_BUFFER, Topic, now_ns, shutdown_requested};
-use rotorloop_common::resume::ResumeSlot;
-use rotorloop_common::role::{PlantEnd, write_json};
-use rotorloop_common::wire::{ReferenceSample, StateSample, TorqueSample};
+use rotorloop_common::ipc::{now_ns, shutdown_requested};
+use rotorloop_common::wire::TorqueSample;
 
 pub use args::MonitorArgs;
 
-use crate::policy::{END_QUIET_NS, MonitorResume, RowJoiner};
-use crate::recording::{Recording, with_fallback};
-use crate::report::{console_summary, summary};
+use crate::policy::{END_QUIET_NS, RowJoiner};
+use crate::recording::Recording;
+use crate::report::{console_summary, summary, write_summary};
+use ports::Ports;
 
 /// Runs the monitor until it has the last row, or a termination signal.
 pub fn run(args: &MonitorArgs) -> anyhow::Result<()> {
     let (role, scenario) = (&args.role, args.role.scenario()?);
     role.setup("monitor");
-    let domain = role.open_domain()?;
-    let node = domain.node("monitor").context("monitor")?;
-    // Subscribe to the state last: the plant starts when it sees its state subscribers,
-    // so everything else must already be connected by then.
-    let refs = domain.inbox::<ReferenceSample>(&node, Topic::Reference, MAX_BUFFER, false)?;
-    let torques = domain.inbox::<TorqueSample>(&node, Topic::Torque, MAX_BUFFER, false)?;
-    let states = domain.inbox::<StateSample>(&node, Topic::State, MAX_BUFFER, false)?;
-    let slot = ResumeSlot::<MonitorResume>::open(&domain, "monitor").context("monitor")?;
-    let plant_end = PlantEnd::open(&domain).context("monitor")?;
-    // iceoryx2's own CLI finds the domain from here: `cd OUT && iox2 service list`.
-    let _ = domain.write_iox2_config(&args.out);
+    let ports = Ports::open(role, &args.out)?;
     // A restart continues the report in the same directory.
-    let (mut rec, resumed) = Recording::open(&args.out, &scenario, slot.load(), now_ns());
+    let (mut rec, resumed) = Recording::open(&args.out, &scenario, ports.slot.load(), now_ns());
     let limit = TorqueSample::absurd_limit(scenario.limits_for(scenario.actuation()).rotor_torque);
     let mut joiner = RowJoiner::new(scenario.ticks(), limit, now_ns());
     if let Some(r) = &resumed {
@@ -45,14 +34,12 @@ pub fn run(args: &MonitorArgs) -> anyhow::Result<()> {
     }
     let status = args.status && std::io::stderr().is_terminal();
     loop {
-        states.drain(|s| joiner.take_state(s))?;
-        refs.drain(|r| joiner.take_reference(r))?;
-        torques.drain(|t| joiner.take_torque(t))?;
+        ports.drain(&mut joiner)?;
         // The plant has ended (seen here, or in its resume slot by a monitor restarted
         // after the end) and nothing has arrived for a while: what is missing now never
         // comes (a role killed at the very end, say), so settle the rest.
         let quiet = joiner.quiet_ns(now_ns()) > END_QUIET_NS;
-        let drained = quiet && (joiner.plant_ended() || plant_end.ended());
+        let drained = quiet && (joiner.plant_ended() || ports.plant_end.ended());
         let stopping = shutdown_requested() || drained;
         while let Some(row) = joiner.next_row(stopping) {
             rec.write(&row);
@@ -61,7 +48,7 @@ pub fn run(args: &MonitorArgs) -> anyhow::Result<()> {
             joiner.settle_rest();
         }
         if let Some(r) = rec.flush(&joiner) {
-            slot.store(&r);
+            ports.slot.store(&r);
         }
         if status {
             rec.status_line(joiner.last_state(), now_ns());
@@ -71,25 +58,13 @@ pub fn run(args: &MonitorArgs) -> anyhow::Result<()> {
         }
         std::thread::sleep(std::time::Duration::from_micros(args.poll_us));
     }
-    let fallback = std::env::temp_dir().join(format!("rotorloop-report-{}", domain.name()));
+    let fallback = std::env::temp_dir().join(format!("rotorloop-report-{}", ports.domain));
     let (files, dir) = rec.finish(&scenario.file.name, &fallback);
     if joiner.done() {
-        slot.clear(); // finished: a later monitor in this domain starts a new report
+        ports.slot.clear(); // finished: a later monitor in this domain starts a new report
     }
     let mut summary = summary(&scenario, role, &joiner, &rec, files);
     summary.report_dir = (dir != args.out).then(|| dir.display().to_string());
     println!("{}", console_summary(&summary));
-    let write = |d: &std::path::Path| write_json(&d.join("summary.json"), &summary);
-    match with_fallback(&args.out, &fallback, write) {
-        Ok(((), d)) if d != args.out => {
-            eprintln!("monitor: summary.json written to {}", d.display())
-        }
-        Ok(_) => {}
-        Err(e) => {
-            // Nowhere to write: the summary goes to stderr, so it is not lost.
-            eprintln!("monitor: summary.json not written ({e:#}); here it is:");
-            eprintln!("{}", serde_json::to_string_pretty(&summary)?);
-        }
-    }
-    Ok(())
+    write_summary(&args.out, &fallback, &summary)
 }

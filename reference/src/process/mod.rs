@@ -5,25 +5,17 @@
 //! validation, and it always blocks on events, whatever `--wait` says: it is off the hot
 //! path, and a spinning loop must not get a third busy process.
 
+mod args;
+
 use anyhow::Context;
-use clap::Args;
 use rotorloop_common::ipc::{Topic, Wait, now_ns, shutdown_requested};
 use rotorloop_common::resume::ResumeSlot;
-use rotorloop_common::role::{Corrupt, PlantWatch, RoleArgs, corrupted, linger, test_hook};
+use rotorloop_common::role::{PlantWatch, corrupted, linger, test_hook};
 use rotorloop_common::wire::{FLAG_LAST, ReferenceSample, StateSample};
 
-use crate::policy::{LeadWindow, ReferenceResume};
+pub use args::ReferenceArgs;
 
-/// `reference` arguments.
-#[derive(Debug, Clone, Args)]
-pub struct ReferenceArgs {
-    #[command(flatten)]
-    pub role: RoleArgs,
-    /// Fault injection: publish this tick's sample corrupted (`nan@TICK`, `inf@TICK`,
-    /// `huge@TICK`, `skew@TICK`). Repeatable. Set by `rotorloop run --corrupt`.
-    #[arg(long)]
-    pub corrupt: Vec<Corrupt>,
-}
+use crate::policy::{LeadWindow, ReferenceResume};
 
 /// Runs the reference generator until the plant's last tick or a termination signal.
 pub fn run(args: &ReferenceArgs) -> anyhow::Result<()> {

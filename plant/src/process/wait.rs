@@ -1,0 +1,114 @@
+//! The shell's ports and its per-tick helpers: the torque wait (which also connects late
+//! joiners and says when the controller seems gone), the messages a settled tick is
+//! worth, and the plant's own sense-to-actuate histogram.
+
+use anyhow::Context;
+use hdrhistogram::Histogram;
+use rotorloop_common::hgrm::write_hgrm_file;
+use rotorloop_common::ipc::{Inbox, Outbox, RoleNode, Topic, now_ns};
+use rotorloop_common::resume::ResumeSlot;
+use rotorloop_common::role::RoleArgs;
+use rotorloop_common::wire::{StateSample, TorqueSample};
+
+use crate::policy::{Answer, PlantTicker, Settled};
+
+/// What the plant opens: its state publisher, torque subscriber and resume slot.
+pub(super) struct Ports {
+    pub states: Outbox<StateSample>,
+    pub torques: Inbox<TorqueSample>,
+    pub slot: ResumeSlot<StateSample>,
+    _node: RoleNode,
+}
+
+impl Ports {
+    pub fn open(role: &RoleArgs) -> anyhow::Result<Self> {
+        let domain = role.open_domain()?;
+        let node = domain.node("plant").context("plant")?;
+        let states = domain.outbox::<StateSample>(&node, Topic::State).context("plant")?;
+        let torques = domain.inbox::<TorqueSample>(&node, Topic::Torque, 16, role.wait.listens());
+        let slot = ResumeSlot::<StateSample>::open(&domain, "plant").context("plant")?;
+        Ok(Self { states, torques: torques.context("plant")?, slot, _node: node })
+    }
+}
+
+/// The wait for each tick's torque, and what the shell says about it.
+pub(super) struct TorqueWait {
+    realtime: bool,
+    last_update: u64,
+    waiting_logged: bool,
+}
+
+impl TorqueWait {
+    pub fn new(realtime: bool) -> Self {
+        Self { realtime, last_update: now_ns(), waiting_logged: false }
+    }
+
+    /// Waits for the answer to tick `k` (started at `deadline`; 0 in lockstep) until
+    /// `until`, handing every torque that arrives to the plant's hold rule.
+    pub fn answer(
+        &mut self,
+        ports: &Ports,
+        plant: &mut PlantTicker,
+        role: &RoleArgs,
+        (k, deadline, until): (u64, u64, u64),
+    ) -> anyhow::Result<Option<Answer>> {
+        let since = now_ns();
+        let answer = ports.torques.wait_for(role.wait, until, |inbox| {
+            let mut answer: Option<Answer> = None;
+            inbox.drain(|t| {
+                let took = plant.take(&t, k, deadline, now_ns());
+                answer = took.filter(Answer::answers_the_tick).or(answer);
+            })?;
+            if answer.is_none() && now_ns() - self.last_update > 5_000_000 {
+                // Late joiners (a controller started after us) get the state from history.
+                (self.last_update, _) = (now_ns(), ports.states.update_connections());
+                if !self.realtime && !self.waiting_logged && now_ns() - since > 1_000_000_000 {
+                    eprintln!("plant: no torque for tick {k} for 1 s (controller gone?); waiting");
+                    self.waiting_logged = true;
+                }
+            }
+            Ok(answer)
+        })?;
+        Ok(answer)
+    }
+
+    /// Says what a settled tick changed: safe mode entered or left, control resumed.
+    pub fn report(&mut self, settled: &Settled, k: u64, hold_ticks: u64) {
+        let resumed =
+            matches!(settled, Settled::Fresh { .. }) && std::mem::take(&mut self.waiting_logged);
+        match settled.event(k, hold_ticks) {
+            Some(event) => eprintln!("plant: {event}"),
+            None if resumed => eprintln!("plant: fresh torque at tick {k}; control resumed"),
+            None => {}
+        }
+    }
+}
+
+/// Sense-to-actuate as the plant itself sees it (`--latency-out`): from a state's
+/// publish to the receipt of its fresh answer.
+pub(super) struct SenseToActuate {
+    hist: Histogram<u64>,
+    /// When the state now being answered was published.
+    pub publish_ns: u64,
+}
+
+impl SenseToActuate {
+    pub fn new() -> anyhow::Result<Self> {
+        Ok(Self { hist: Histogram::new_with_bounds(1, 3_600_000_000_000, 3)?, publish_ns: 0 })
+    }
+
+    pub fn record(&mut self, answer: Option<Answer>) {
+        if let Some(Answer::Fresh(_, recv)) = answer {
+            self.hist.saturating_record(recv.saturating_sub(self.publish_ns).max(1));
+        }
+    }
+
+    /// Writes `DIR/plant_sense_to_actuate.hgrm`: an optional measurement, so a full disk
+    /// is a warning, never a failed run.
+    pub fn write(&self, dir: Option<&std::path::Path>) {
+        let Some(dir) = dir else { return };
+        if let Err(e) = write_hgrm_file(&dir.join("plant_sense_to_actuate.hgrm"), &self.hist) {
+            eprintln!("plant: warning: {e}");
+        }
+    }
+}
