@@ -354,6 +354,7 @@ fn measure_loop(
         core: None,
         rt_priority: None,
         mlock: false,
+        plain_hot_path: false,
     };
     crate::launch::run(&RunArgs {
         pin,

@@ -15,6 +15,8 @@ use iceoryx2::port::update_connections::UpdateConnections;
 use iceoryx2::prelude::*;
 use iceoryx2::service::port_factory::publish_subscribe::PortFactory as PubSubFactory;
 
+pub use crate::wire::SendCost;
+
 /// An IPC failure, with what was being done.
 #[derive(Debug, thiserror::Error)]
 pub enum IpcError {
@@ -453,14 +455,18 @@ impl<T: ZeroCopySend + Debug + Copy + 'static> Outbox<T> {
     }
 
     /// Publishes `value` (written in place into shared memory) and notifies listeners.
-    /// `stamp` is called just before the send to set the publish timestamp.
+    /// `stamp` is called just before the send to set the publish timestamp. Returns what
+    /// each step cost (for the stage breakdown; four clock reads).
     #[inline]
-    pub fn send(&self, mut value: T, stamp: impl FnOnce(&mut T)) -> Result<(), IpcError> {
+    pub fn send(&self, mut value: T, stamp: impl FnOnce(&mut T)) -> Result<SendCost, IpcError> {
+        let t0 = now_ns();
         let sample = self.publisher.loan_uninit().map_err(|e| iox("cannot loan a sample")(&e))?;
+        let t1 = now_ns();
         stamp(&mut value);
         sample.write_payload(value).send().map_err(|e| iox("cannot send a sample")(&e))?;
+        let t2 = now_ns();
         self.notifier.notify().map_err(|e| iox("cannot notify")(&e))?;
-        Ok(())
+        Ok(SendCost { loan_ns: t1 - t0, send_ns: t2 - t1, notify_ns: now_ns() - t2 })
     }
 
     /// Loans a sample and never sends it, until a termination signal: a test hook for
@@ -535,6 +541,11 @@ impl<T: ZeroCopySend + Debug + Copy + 'static> Inbox<T> {
                 Wait::Spin => true,
                 Wait::Event => false,
                 Wait::Hybrid { spin_ns } => now - start < spin_ns,
+                Wait::Poll { period_ns } => {
+                    let nap = period_ns.min(deadline_ns - now).min(10_000_000);
+                    std::thread::sleep(Duration::from_nanos(nap));
+                    continue;
+                }
             };
             let left = deadline_ns - now;
             match (&self.listener, spin || left < 2_000) {
@@ -589,12 +600,18 @@ pub enum Wait {
         /// How long to spin before blocking (ns).
         spin_ns: u64,
     },
+    /// Sleep `period_ns` between looks, with no listener (nobody has to wake this process:
+    /// the real-time reference, which works ahead of the loop).
+    Poll {
+        /// Time between looks (ns).
+        period_ns: u64,
+    },
 }
 
 impl Wait {
     /// Whether this strategy needs an event listener.
     pub fn listens(self) -> bool {
-        !matches!(self, Self::Spin)
+        !matches!(self, Self::Spin | Self::Poll { .. })
     }
 }
 
@@ -616,6 +633,7 @@ impl std::fmt::Display for Wait {
             Self::Event => f.write_str("event"),
             Self::Spin => f.write_str("spin"),
             Self::Hybrid { .. } => f.write_str("hybrid"),
+            Self::Poll { period_ns } => write!(f, "poll every {} µs", period_ns / 1000),
         }
     }
 }

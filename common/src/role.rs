@@ -121,6 +121,11 @@ pub struct RoleArgs {
     /// Lock the process's memory (mlockall).
     #[arg(long)]
     pub mlock: bool,
+    /// The hot path as it was before its overhead was cut (for `rotorloop bench
+    /// --before-after`): the real-time reference woken by every state, and the controller
+    /// reading the reference topic every tick.
+    #[arg(long, hide = true)]
+    pub plain_hot_path: bool,
 }
 
 impl RoleArgs {
@@ -179,6 +184,9 @@ impl RoleArgs {
         }
         if self.mlock {
             a.push("--mlock".into());
+        }
+        if self.plain_hot_path {
+            a.push("--plain-hot-path".into());
         }
         a
     }

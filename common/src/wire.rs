@@ -16,7 +16,7 @@ use crate::so3::{from_rows, to_row_major};
 use crate::{ReferenceState, RotorBodyState};
 
 /// The layout version carried in every type name.
-pub const LAYOUT_VERSION: u32 = 4;
+pub const LAYOUT_VERSION: u32 = 5;
 
 /// "No torque sample" in [`StateSample::applied_torque_tick`].
 pub const NO_TICK: u64 = u64::MAX;
@@ -38,7 +38,7 @@ pub const TORQUE_SKIPPED: u64 = 1;
 
 /// The plant's state at tick `tick`, published once per tick.
 #[derive(Debug, Clone, Copy, PartialEq, ZeroCopySend)]
-#[type_name("rotorloop::StateSample_v4")]
+#[type_name("rotorloop::StateSample_v5")]
 #[repr(C)]
 pub struct StateSample {
     /// Tick index `k`.
@@ -94,12 +94,14 @@ pub struct StateSample {
     pub effect_ticks: [u64; 3],
     /// When each took effect, after `t_k−1` (s).
     pub effect_offsets_s: [f64; 3],
+    /// What publishing the previous state cost (the stage breakdown of `rotorloop bench`).
+    pub prev_publish: SendCost,
 }
-const _: () = assert!(size_of::<StateSample>() == 416);
+const _: () = assert!(size_of::<StateSample>() == 440);
 
 /// The desired attitude for tick `tick`, published ahead of the plant.
 #[derive(Debug, Clone, Copy, PartialEq, ZeroCopySend)]
-#[type_name("rotorloop::ReferenceSample_v4")]
+#[type_name("rotorloop::ReferenceSample_v5")]
 #[repr(C)]
 pub struct ReferenceSample {
     /// Tick index `k`.
@@ -127,7 +129,7 @@ const _: () = assert!(size_of::<ReferenceSample>() == 240);
 
 /// The controller's answer to state sample `tick`.
 #[derive(Debug, Clone, Copy, PartialEq, Default, ZeroCopySend)]
-#[type_name("rotorloop::TorqueSample_v4")]
+#[type_name("rotorloop::TorqueSample_v5")]
 #[repr(C)]
 pub struct TorqueSample {
     /// The state tick this answers.
@@ -159,8 +161,33 @@ pub struct TorqueSample {
     pub references_rejected: u64,
     /// [`TORQUE_SKIPPED`].
     pub flags: u64,
+    /// When the state had passed the answer rule and its validation (ns).
+    pub validated_ns: u64,
+    /// When the state was paired with its reference (ns).
+    pub paired_ns: u64,
+    /// When the law's torques were computed (ns).
+    pub computed_ns: u64,
+    /// The tick of the previous torque published ([`NO_TICK`] if none).
+    pub prev_tick: u64,
+    /// What publishing it cost.
+    pub prev_publish: SendCost,
 }
-const _: () = assert!(size_of::<TorqueSample>() == 160);
+const _: () = assert!(size_of::<TorqueSample>() == 216);
+
+/// What one publish cost (ns): loaning the sample, from the publish timestamp until
+/// `send` returned, and notifying the listeners after it. Carried in the publisher's
+/// next sample (a sample cannot carry the cost of its own send).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, ZeroCopySend)]
+#[repr(C)]
+pub struct SendCost {
+    /// `loan_uninit` (before the publish timestamp: not part of the hop it starts).
+    pub loan_ns: u64,
+    /// From the publish timestamp until `send` returned: the sample is delivered.
+    pub send_ns: u64,
+    /// The notifier's `notify` (wakes the listeners; after the delivery).
+    pub notify_ns: u64,
+}
+const _: () = assert!(size_of::<SendCost>() == 24);
 
 impl StateSample {
     /// The kinematic state carried.
@@ -202,6 +229,7 @@ impl StateSample {
             effects: 0,
             effect_ticks: [NO_TICK; 3],
             effect_offsets_s: [f64::NAN; 3],
+            prev_publish: SendCost::default(),
         }
     }
 

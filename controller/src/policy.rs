@@ -21,7 +21,7 @@ use rotorloop_common::ReferenceState;
 use rotorloop_common::role::SeqCounter;
 use rotorloop_common::so3::exp;
 use rotorloop_common::wire::{
-    FLAG_LAST, ReferenceSample, StateSample, TORQUE_SKIPPED, TorqueSample, WireFault,
+    FLAG_LAST, NO_TICK, ReferenceSample, StateSample, TORQUE_SKIPPED, TorqueSample, WireFault,
 };
 
 use crate::GeometricPid;
@@ -298,6 +298,12 @@ impl TorqueAnswers {
             states_rejected: self.rejected,
             references_rejected: pairing.rejected(),
             flags: if rd.is_none() { TORQUE_SKIPPED } else { 0 },
+            // The stage stamps and the previous publish's cost are the shell's to fill.
+            validated_ns: 0,
+            paired_ns: 0,
+            computed_ns: 0,
+            prev_tick: NO_TICK,
+            prev_publish: Default::default(),
         };
         self.last = Some(sample);
         sample

@@ -15,6 +15,7 @@ pub mod policy;
 pub mod process;
 pub mod recording;
 pub mod report;
+pub mod stages;
 pub mod trace;
 
 pub use figures::Recorder;

@@ -46,7 +46,7 @@ pub const END_QUIET_NS: u64 = 5_000_000_000;
 
 /// What a restarted monitor needs to continue the same report.
 #[derive(Debug, Clone, Copy, ZeroCopySend)]
-#[type_name("rotorloop::MonitorResume_v4")]
+#[type_name("rotorloop::MonitorResume_v5")]
 #[repr(C)]
 pub struct MonitorResume {
     /// The next row to write.
@@ -108,6 +108,8 @@ pub struct JoinedRow {
     pub torque: Option<TorqueSample>,
     /// The state of the next tick, if here (it says which torque the plant held).
     pub following: Option<StateSample>,
+    /// The torque of the next tick, if here (it carries what publishing this row's cost).
+    pub next_torque: Option<TorqueSample>,
     /// The first row of the run (none was written before, by this monitor or a
     /// predecessor).
     pub first: bool,
@@ -335,7 +337,19 @@ impl RowJoiner {
             let first = self.rows == 0;
             self.rows += 1;
             self.next += 1;
-            return Some(JoinedRow { tick: next, state, reference, torque: t, following, first });
+            let next_torque = following
+                .and_then(|_| self.slots[(next + 1) as usize % RING].torque)
+                .filter(|t| t.tick == next + 1);
+            let (tick, torque) = (next, t);
+            return Some(JoinedRow {
+                tick,
+                state,
+                reference,
+                torque,
+                following,
+                next_torque,
+                first,
+            });
         }
         None
     }

@@ -23,6 +23,7 @@ use serde::Serialize;
 use crate::figures::tracking_figures;
 use crate::latency::{Hop, Latency};
 use crate::policy::{JoinedRow, MonitorResume, RowJoiner};
+use crate::stages::Stages;
 use crate::{Metrics, Recorder, TraceWriter};
 
 type Buffered = BufWriter<File>;
@@ -47,6 +48,8 @@ pub struct Recording {
     recorder: Recorder,
     /// Per-hop histograms and interval logs.
     pub latency: Latency,
+    /// The stage breakdown of sense-to-actuate.
+    pub stages: Stages,
     actuation: Actuation,
     ticks: u64,
     dt: f64,
@@ -153,6 +156,7 @@ impl Recording {
             metrics,
             recorder: Recorder::new(scenario.ticks() + 1),
             latency,
+            stages: Stages::default(),
             actuation,
             ticks: scenario.ticks(),
             dt: scenario.dt(),
@@ -220,6 +224,7 @@ impl Recording {
         self.last_err = row.err_deg;
         self.drift_max = self.drift_max.max(row.h_drift_rel);
         self.record_latencies(j);
+        self.stages.record_row(j);
     }
 
     fn record_latencies(&mut self, j: &JoinedRow) {

@@ -12,6 +12,7 @@ use serde::Serialize;
 use crate::latency::{Hop, HopStats};
 use crate::policy::{RowJoiner, WireFaultEvent};
 use crate::recording::{Recording, with_fallback};
+use crate::stages::StageStats;
 
 /// Received and lost samples of one subscriber.
 #[derive(Debug, Clone, Copy, Serialize, Default)]
@@ -61,6 +62,8 @@ pub struct RunSummary {
     pub subscribers: BTreeMap<String, SubscriberCounts>,
     /// Per hop (ns).
     pub hops: BTreeMap<String, HopStats>,
+    /// The stage breakdown of sense-to-actuate (ns; `crate::stages`), in tick order.
+    pub stages: Vec<StageStats>,
     /// Attitude error at the first and last row (deg).
     pub err_deg_initial: f64,
     /// See `err_deg_initial`.
@@ -167,6 +170,7 @@ pub fn summary(
         achieved_rate_hz: achieved,
         subscribers,
         hops: Hop::ALL.iter().map(|h| (h.name().to_owned(), rec.latency.stats(*h))).collect(),
+        stages: rec.stages.stats(),
         err_deg_initial: rec.first_err,
         err_deg_final: rec.last_err,
         momentum_drift_rel_max: rec.drift_max,

@@ -18,7 +18,7 @@ pub const RESUME_RING: usize = 2 * REFERENCE_LEAD as usize + 2;
 
 /// The reference's resume slot: its last [`RESUME_RING`] published samples.
 #[derive(Debug, Clone, Copy, ZeroCopySend)]
-#[type_name("rotorloop::ReferenceResume_v4")]
+#[type_name("rotorloop::ReferenceResume_v5")]
 #[repr(C)]
 pub struct ReferenceResume {
     samples: [ReferenceSample; RESUME_RING],

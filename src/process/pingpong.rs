@@ -354,7 +354,7 @@ impl Link for UdsLink {
             }
             let blocking = match self.wait {
                 Wait::Spin => false,
-                Wait::Event => true,
+                Wait::Event | Wait::Poll { .. } => true,
                 Wait::Hybrid { spin_ns } => now - start >= spin_ns,
             };
             if blocking {

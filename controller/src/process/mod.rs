@@ -50,17 +50,15 @@ pub fn run(args: &ControllerArgs) -> anyhow::Result<()> {
             break;
         }
         let Some(fault) = ports.act_on(answers.decide(&state), k)? else { continue };
-        ports.refs.drain(|r| pairing.take(r))?;
+        let validated = now_ns();
         let lockstep = role.mode == Mode::Lockstep;
-        let rd = pairing.pair(k, fault.is_none(), lockstep, |p| {
-            std::thread::sleep(std::time::Duration::from_micros(100));
-            ports.refs.drain(|r| p.take(r))?;
-            Ok(!shutdown_requested())
-        })?;
+        let rd = ports.pair(&mut pairing, k, fault.is_none(), lockstep)?;
         if rd.is_none() && fault.is_none() && shutdown_requested() {
             break;
         }
-        let sample = answers.answer(&state, recv_ns, rd.as_ref(), &pairing, dt);
+        let paired = now_ns();
+        let mut sample = answers.answer(&state, recv_ns, rd.as_ref(), &pairing, dt);
+        (sample.validated_ns, sample.paired_ns, sample.computed_ns) = (validated, paired, now_ns());
         // Slot first: killed between the two, the restart re-sends this very answer when
         // the plant asks again; the other order would resume with a stale ξ_I.
         ports.slot.store(&sample);

@@ -8,7 +8,7 @@ mod args;
 mod wait;
 
 use anyhow::Context;
-use rotorloop_common::ipc::{now_ns, shutdown_requested, sleep_until_ns};
+use rotorloop_common::ipc::{SendCost, now_ns, shutdown_requested, sleep_until_ns};
 use rotorloop_common::role::{Mode, TickGrid, corrupted, linger};
 use rotorloop_common::wire::StateSample;
 
@@ -35,6 +35,7 @@ pub fn run(args: &PlantArgs) -> anyhow::Result<()> {
     let spin_ns = args.spin_before_tick_us * 1000;
     let grid = TickGrid::new(now_ns() + 20_000_000, plant.first(), scenario.file.run.rate_hz);
     let (mut s2a, mut wait) = (SenseToActuate::new()?, TorqueWait::new(realtime));
+    let mut cost = SendCost::default(); // what publishing the previous state cost
     for k in plant.first()..=plant.last() {
         let deadline = if realtime { grid.at(k) } else { 0 };
         if realtime {
@@ -45,9 +46,9 @@ pub fn run(args: &PlantArgs) -> anyhow::Result<()> {
         // which the controller answers (or answers again). The other order would let a
         // restart re-publish tick k−1 after the controller has moved past it: deadlock.
         ports.slot.store(&sample);
-        let stamp = |s: &mut StateSample| (s.publish_ns, s2a.publish_ns) = (now_ns(), s.publish_ns);
-        let sample = corrupted(&args.corrupt, sample);
-        ports.states.send(sample, stamp).context("plant: publishing state")?;
+        let stamp = |s: &mut StateSample| (s.publish_ns, s2a.publish_ns) = [now_ns(); 2].into();
+        let sample = StateSample { prev_publish: cost, ..corrupted(&args.corrupt, sample) };
+        cost = ports.states.send(sample, stamp).context("plant: publishing state")?;
         let until = if realtime { grid.at(k + 1).saturating_sub(spin_ns) } else { u64::MAX };
         let answer = wait.answer(&ports, &mut plant, role, (k, deadline, until))?;
         if !matches!(answer, Some(Answer::Fresh(..))) && shutdown_requested() {

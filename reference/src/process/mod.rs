@@ -2,13 +2,13 @@
 //! [`crate::policy`]). It publishes `R_d, Ω_d, Ω̇_d` up to the lead ahead of the newest
 //! state, so the controller never waits for it; a restart re-publishes its window and
 //! continues. It reads only the tick and the flags of state samples, so it needs no
-//! validation, and it always blocks on events, whatever `--wait` says: it is off the hot
-//! path, and a spinning loop must not get a third busy process.
+//! validation. Whatever `--wait` says it never spins (it is off the hot path, and a spinning
+//! loop must not get a third busy process): see [`ReferenceArgs::wait`].
 
 mod args;
 
 use anyhow::Context;
-use rotorloop_common::ipc::{Topic, Wait, now_ns, shutdown_requested};
+use rotorloop_common::ipc::{Topic, now_ns, shutdown_requested};
 use rotorloop_common::resume::ResumeSlot;
 use rotorloop_common::role::{PlantWatch, corrupted, linger, test_hook};
 use rotorloop_common::wire::{FLAG_LAST, ReferenceSample, StateSample};
@@ -24,7 +24,8 @@ pub fn run(args: &ReferenceArgs) -> anyhow::Result<()> {
     let domain = role.open_domain()?;
     let node = domain.node("reference").context("reference")?;
     let out = domain.outbox::<ReferenceSample>(&node, Topic::Reference).context("reference")?;
-    let states = domain.inbox::<StateSample>(&node, Topic::State, 8, true).context("reference")?;
+    let wait = args.wait(scenario.dt());
+    let states = domain.inbox::<StateSample>(&node, Topic::State, 8, wait.listens())?;
     let slot = ResumeSlot::<ReferenceResume>::open(&domain, "reference").context("reference")?;
     let mut plant = PlantWatch::open(&domain, "reference").context("reference")?;
     let mut lead = LeadWindow::new(&scenario);
@@ -55,7 +56,7 @@ pub fn run(args: &ReferenceArgs) -> anyhow::Result<()> {
         if saw_last || shutdown_requested() {
             break;
         }
-        let newest = states.wait_for(Wait::Event, now_ns() + 100_000_000, |inbox| {
+        let newest = states.wait_for(wait, now_ns() + 100_000_000, |inbox| {
             let mut newest = None;
             inbox.drain(|s| {
                 saw_last |= s.flags & FLAG_LAST != 0;
