@@ -239,8 +239,12 @@ fn realtime_controller_loss_holds_then_safe_mode_then_recovers() {
     // The plant held 40 ticks, then stayed in safe mode until the first fresh torque.
     // (Safe mode can also come elsewhere in the run when a loaded machine starves the
     // controller for 40 ticks, so the total has no upper bound here.)
+    // One tick more is allowed: on a loaded machine the plant can fall behind its grid
+    // and catch up, and the first answer after the restart then arrives after its own
+    // tick's wait: it ends safe mode but takes effect from the next tick, whose row is
+    // the first with a fresh torque (seen in a loaded run: 1011 safe, 1052 without).
     let safe = s["safe_mode_ticks"].as_u64().expect("safe");
-    assert!(safe + 40 >= without, "safe mode ticks {safe}, without fresh torque {without}");
+    assert!(safe + 41 >= without, "safe mode ticks {safe}, without fresh torque {without}");
     assert!(out.join("faults.png").exists());
     h.assert_no_leftovers();
 }
