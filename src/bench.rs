@@ -37,7 +37,9 @@ pub struct BenchArgs {
     /// Wait strategies.
     #[arg(long, value_delimiter = ',', default_value = "event,spin,hybrid")]
     pub wait: Vec<Wait>,
-    /// Core placements of plant and controller: same-core, cross-core, unpinned.
+    /// Core placements of plant and controller: same-core, cross-core, unpinned, or
+    /// dedicated (every role on its own core, all spinning: `rotorloop run --preset
+    /// dedicated`; needs 4 cores, measured once per rate whatever `--wait` says).
     #[arg(long, value_delimiter = ',', default_value = "same-core,cross-core,unpinned")]
     pub placement: Vec<String>,
     /// Seconds per measurement.
@@ -56,6 +58,16 @@ pub struct BenchArgs {
     /// plant-measured sense-to-actuate p50 (`loop-nomon` rows).
     #[arg(long)]
     pub monitor_cost: bool,
+    /// Also run each loop cell with the hot path as it was before its overhead was cut
+    /// (`loop-before` rows: the real-time reference woken by every state, the controller
+    /// reading the reference topic every tick), in the same invocation.
+    #[arg(long)]
+    pub before_after: bool,
+    /// Scale: also run 2, 4, … up to N independent loops (domains) at once per cell, each
+    /// with its own four processes (`-xN` cells, a `loop-I` row per loop), and report the
+    /// largest N at which every loop has no more misses than the bare iceoryx2 baseline.
+    #[arg(long, default_value_t = 1)]
+    pub loops: usize,
     /// Rebuild bench.md and the plots from an existing `--out` directory, measuring nothing.
     #[arg(long)]
     pub replot: bool,
@@ -156,10 +168,11 @@ impl Row {
 }
 
 /// Cores of plant/controller (and ping/pong) for a placement; `None` = unpinned.
-fn cores(placement: &str) -> Option<(usize, usize)> {
+fn cores(placement: &str, ncores: usize) -> Option<(usize, usize)> {
     match placement {
         "same-core" => Some((0, 0)),
         "cross-core" => Some((0, 1)),
+        "dedicated" => crate::launch::dedicated_cores(ncores).ok().map(|c| (c[0], c[1])),
         _ => None,
     }
 }
@@ -172,6 +185,9 @@ pub fn skip_reason(
     load: &str,
     ncores: usize,
 ) -> Option<String> {
+    if placement == "dedicated" {
+        return crate::launch::dedicated_cores(ncores).err();
+    }
     let spins = matches!(wait, Wait::Spin) || kind == "atomic";
     if spins && placement == "same-core" {
         return Some(
@@ -195,9 +211,9 @@ fn validate(a: &BenchArgs) -> Result<(), UsageError> {
         }
     }
     for p in &a.placement {
-        if !["same-core", "cross-core", "unpinned"].contains(&p.as_str()) {
+        if !["same-core", "cross-core", "unpinned", "dedicated"].contains(&p.as_str()) {
             return Err(UsageError(format!(
-                "--placement `{p}` is not allowed: same-core, cross-core or unpinned"
+                "--placement `{p}` is not allowed: same-core, cross-core, unpinned or dedicated"
             )));
         }
     }
@@ -212,6 +228,9 @@ fn validate(a: &BenchArgs) -> Result<(), UsageError> {
                 "--baselines `{b}` is not allowed: atomic, iceoryx2, uds"
             )));
         }
+    }
+    if !(1..=64).contains(&a.loops) {
+        return Err(UsageError(format!("--loops {} is not allowed: 1 to 64", a.loops)));
     }
     if !(a.seconds.is_finite() && a.seconds >= 0.05 && a.seconds <= 3600.0) {
         return Err(UsageError(format!("--seconds {} is not allowed: 0.05 to 3600", a.seconds)));
@@ -245,8 +264,13 @@ pub fn run(a: &BenchArgs) -> anyhow::Result<()> {
     for &rate in &a.rates {
         for &wait in &a.wait {
             for placement in &a.placement {
+                // The dedicated preset spins: one cell per rate, whatever `--wait` lists.
+                let wait = if placement == "dedicated" { Wait::Spin } else { wait };
                 for load in &a.load {
-                    cells.push((rate, wait, placement.clone(), load.clone()));
+                    let cell = (rate, wait, placement.clone(), load.clone());
+                    if !cells.contains(&cell) {
+                        cells.push(cell);
+                    }
                 }
             }
         }
@@ -280,7 +304,7 @@ pub fn run(a: &BenchArgs) -> anyhow::Result<()> {
         let hog = if load == "other-core"
             && skip_reason("loop", *wait, placement, load, ncores).is_none()
         {
-            let core = cores(placement).map(|(p, _)| (p + 1) % ncores);
+            let core = cores(placement, ncores).map(|(p, _)| (p + 1) % ncores);
             let mut cmd = Command::new(&exe);
             cmd.args(["role", "hog"]).stdin(Stdio::null());
             if let Some(c) = core {
@@ -290,12 +314,18 @@ pub fn run(a: &BenchArgs) -> anyhow::Result<()> {
         } else {
             None
         };
-        let mut measured = vec![measure_loop(a, &base, *wait, placement, ncores, &dir, false)?];
+        let mut measured = vec![measure_loop(a, &base, ncores, &dir, Variant::Loop)?];
         if a.monitor_cost {
-            measured.push(measure_loop(a, &base, *wait, placement, ncores, &dir, true)?);
+            measured.push(measure_loop(a, &base, ncores, &dir, Variant::NoMonitor)?);
+        }
+        if a.before_after {
+            measured.push(measure_loop(a, &base, ncores, &dir, Variant::Before)?);
         }
         for b in &a.baselines {
             measured.push(measure_baseline(&exe, a, &base, b, *wait, placement, ncores, &dir)?);
+        }
+        for n in scale_steps(a.loops) {
+            measured.extend(measure_loops(a, &base, ncores, n)?);
         }
         if let Some(mut h) = hog {
             // SAFETY: signals our own child.
@@ -318,33 +348,53 @@ pub fn run(a: &BenchArgs) -> anyhow::Result<()> {
     Ok(())
 }
 
-fn measure_loop(
+/// Which loop a measurement runs.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Variant {
+    /// The loop as it is.
+    Loop,
+    /// Without the monitor (the plant's own histogram).
+    NoMonitor,
+    /// With `--plain-hot-path`: the hot path before its overhead was cut.
+    Before,
+}
+
+impl Variant {
+    fn kind(self) -> &'static str {
+        match self {
+            Variant::Loop => "loop",
+            Variant::NoMonitor => "loop-nomon",
+            Variant::Before => "loop-before",
+        }
+    }
+}
+
+/// The loop counts of the scale cells: 2, 4, 8, … and `max` itself.
+fn scale_steps(max: usize) -> Vec<usize> {
+    let mut steps: Vec<usize> =
+        std::iter::successors(Some(2), |n| Some(n * 2)).take_while(|n| *n < max).collect();
+    if max > 1 {
+        steps.push(max);
+    }
+    steps
+}
+
+/// The launcher's arguments of one loop of cell `base` in domain `domain`, into `out`.
+fn loop_run_args(
     a: &BenchArgs,
     base: &Row,
-    wait: Wait,
-    placement: &str,
     ncores: usize,
-    dir: &Path,
-    without_monitor: bool,
-) -> anyhow::Result<Row> {
-    let kind = if without_monitor { "loop-nomon" } else { "loop" };
-    let mut row = Row { kind: kind.into(), ..base.clone() };
-    if let Some(why) = skip_reason("loop", wait, placement, &base.load, ncores) {
-        row.skipped = why;
-        return Ok(row);
-    }
-    let pin = cores(placement).map(|(p, c)| {
+    domain: String,
+    out: PathBuf,
+) -> RunArgs {
+    let wait: Wait = base.wait.parse().unwrap_or(Wait::Event);
+    let dedicated = base.placement == "dedicated";
+    let pin = cores(&base.placement, ncores).filter(|_| !dedicated).map(|(p, c)| {
         let other = |x: usize| (x + 1) % ncores;
         format!("plant={p},controller={c},reference={},monitor={}", other(p), other(c))
     });
-    let out = dir.join(kind);
     let role = RoleArgs {
-        domain: Some(format!(
-            "bl{}-{}{}",
-            std::process::id(),
-            base.index,
-            if without_monitor { "n" } else { "" }
-        )),
+        domain: Some(domain),
         scenario: a.scenario.clone(),
         duration: Some(a.seconds),
         rate: Some(base.rate),
@@ -356,13 +406,41 @@ fn measure_loop(
         mlock: false,
         plain_hot_path: false,
     };
-    crate::launch::run(&RunArgs {
+    RunArgs {
         pin,
-        no_monitor: without_monitor,
         quiet: true,
         spin_before_tick_us: a.spin_before_tick_us,
-        ..RunArgs::defaults(role, out.clone())
-    })?;
+        preset: dedicated.then(|| "dedicated".to_owned()),
+        ..RunArgs::defaults(role, out)
+    }
+}
+
+fn measure_loop(
+    a: &BenchArgs,
+    base: &Row,
+    ncores: usize,
+    dir: &Path,
+    variant: Variant,
+) -> anyhow::Result<Row> {
+    let kind = variant.kind();
+    let without_monitor = variant == Variant::NoMonitor;
+    let mut row = Row { kind: kind.into(), ..base.clone() };
+    let wait: Wait = base.wait.parse().unwrap_or(Wait::Event);
+    if let Some(why) = skip_reason("loop", wait, &base.placement, &base.load, ncores) {
+        row.skipped = why;
+        return Ok(row);
+    }
+    let out = dir.join(kind);
+    let suffix = match variant {
+        Variant::Loop => "",
+        Variant::NoMonitor => "n",
+        Variant::Before => "b",
+    };
+    let domain = format!("bl{}-{}{suffix}", std::process::id(), base.index);
+    let mut run = loop_run_args(a, base, ncores, domain, out.clone());
+    run.no_monitor = without_monitor;
+    run.role.plain_hot_path = variant == Variant::Before;
+    crate::launch::run(&run)?;
     if without_monitor {
         // No monitor, no summary: the plant's own histogram of the loop.
         let hgrm = out.join("plant_sense_to_actuate.hgrm");
@@ -376,8 +454,17 @@ fn measure_loop(
         std::fs::copy(&hgrm, dir.join("loop-nomon.hgrm"))?;
         return Ok(row);
     }
-    let j: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(out.join("summary.json"))?)?;
+    read_loop_summary(&mut row, &out)?;
+    std::fs::copy(out.join("sense_to_actuate.hgrm"), dir.join(format!("{kind}.hgrm")))?;
+    Ok(row)
+}
+
+/// Fills `row` from the `summary.json` of a loop's report in `out`.
+fn read_loop_summary(row: &mut Row, out: &Path) -> anyhow::Result<()> {
+    let path = out.join("summary.json");
+    let text = std::fs::read_to_string(&path)
+        .with_context(|| format!("cannot read {}", path.display()))?;
+    let j: serde_json::Value = serde_json::from_str(&text)?;
     let h = &j["hops"]["sense_to_actuate"];
     let us = |v: &serde_json::Value| v.as_f64().unwrap_or(f64::NAN) / 1e3;
     row.count = h["count"].as_u64().unwrap_or(0);
@@ -388,8 +475,42 @@ fn measure_loop(
     row.misses = j["misses"].as_u64().unwrap_or(0);
     row.achieved = j["achieved_rate_hz"].as_f64().unwrap_or(0.0);
     row.lateness_p99 = us(&j["hops"]["tick_lateness"]["p99"]);
-    std::fs::copy(out.join("sense_to_actuate.hgrm"), dir.join("loop.hgrm"))?;
-    Ok(row)
+    Ok(())
+}
+
+/// The scale cell of `base` with `n` loops at once: a row per loop (`loop-1` …).
+fn measure_loops(a: &BenchArgs, base: &Row, ncores: usize, n: usize) -> anyhow::Result<Vec<Row>> {
+    let cell = format!("{}-x{n}", base.cell);
+    let dir = a.out.join("cells").join(&cell);
+    let row = |i: usize| Row { cell: cell.clone(), kind: format!("loop-{i}"), ..base.clone() };
+    let wait: Wait = base.wait.parse().unwrap_or(Wait::Event);
+    if let Some(why) = skip_reason("loop", wait, &base.placement, &base.load, ncores) {
+        return Ok((1..=n).map(|i| Row { skipped: why.clone(), ..row(i) }).collect());
+    }
+    let results: Vec<anyhow::Result<()>> = std::thread::scope(|scope| {
+        let handles: Vec<_> = (1..=n)
+            .map(|i| {
+                let domain = format!("bs{}-{}-{n}-{i}", std::process::id(), base.index);
+                let run = loop_run_args(a, base, ncores, domain, dir.join(format!("loop-{i}")));
+                scope.spawn(move || crate::launch::run(&run))
+            })
+            .collect();
+        handles
+            .into_iter()
+            .map(|h| h.join().unwrap_or_else(|_| Err(anyhow::anyhow!("panicked"))))
+            .collect()
+    });
+    let mut rows = Vec::new();
+    for (i, result) in (1..=n).zip(results) {
+        let mut r = row(i);
+        let out = dir.join(&r.kind);
+        match result.and_then(|()| read_loop_summary(&mut r, &out)) {
+            Ok(()) => {}
+            Err(e) => r.skipped = format!("loop failed: {e:#}"),
+        }
+        rows.push(r);
+    }
+    Ok(rows)
 }
 
 #[allow(clippy::too_many_arguments)]
@@ -415,7 +536,8 @@ fn measure_baseline(
     };
     let w = if k == Kind::Atomic { Wait::Spin } else { wait };
     let name = format!("bb{}-{kind}", std::process::id());
-    let (ping_core, pong_core) = cores(placement).map_or((None, None), |(p, c)| (Some(p), Some(c)));
+    let (ping_core, pong_core) =
+        cores(placement, ncores).map_or((None, None), |(p, c)| (Some(p), Some(c)));
     let side = |side: &str, core: Option<usize>| {
         let mut cmd = Command::new(exe);
         cmd.args(["role", "pingpong", "--kind", kind, "--side", side, "--name", &name])
@@ -541,6 +663,17 @@ fn write_markdown(a: &BenchArgs, rows: &[Row]) -> anyhow::Result<()> {
             );
         }
     }
+    md.push_str(&zero_miss_md(a, rows));
+    md.push_str(&breakdown_md(a, rows));
+    md.push_str(&before_after_md(rows));
+    md.push_str(&scale_md(rows));
+    std::fs::write(a.out.join("bench.md"), md)?;
+    Ok(())
+}
+
+/// The highest rate with zero misses, per wait strategy.
+fn zero_miss_md(a: &BenchArgs, rows: &[Row]) -> String {
+    let mut md = String::new();
     let _ = writeln!(md, "\n## Highest rate with zero misses (loop)\n");
     for w in &a.wait {
         let best = rows
@@ -560,8 +693,155 @@ fn write_markdown(a: &BenchArgs, rows: &[Row]) -> anyhow::Result<()> {
             }
         );
     }
-    std::fs::write(a.out.join("bench.md"), md)?;
-    Ok(())
+    md
+}
+
+/// The in-loop stages and the notifies, p50 in µs, in tick order.
+const BREAKDOWN: [(&str, &str); 10] = [
+    ("state_send", "state send"),
+    ("state_delivery", "state delivery"),
+    ("controller_validate", "validate"),
+    ("controller_pair", "pair"),
+    ("controller_law", "law"),
+    ("controller_publish_prep", "publish prep"),
+    ("torque_send", "torque send"),
+    ("torque_delivery", "torque delivery"),
+    ("state_notify", "(state notify)"),
+    ("torque_notify", "(torque notify)"),
+];
+
+/// The stage p50s (µs) of a loop measurement, from its `summary.json`.
+fn stage_p50s(a: &BenchArgs, r: &Row) -> Option<Vec<f64>> {
+    let path = a.out.join("cells").join(&r.cell).join(&r.kind).join("summary.json");
+    let j: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(path).ok()?).ok()?;
+    let stages = j["stages"].as_array()?;
+    let p50 = |name: &str| {
+        let s = stages.iter().find(|s| s["stage"] == name)?;
+        s["p50"].as_f64().map(|ns| ns / 1e3)
+    };
+    BREAKDOWN.iter().map(|(name, _)| p50(name)).collect()
+}
+
+/// Where the microseconds of sense-to-actuate go (`crate` monitor's `stages`).
+fn breakdown_md(a: &BenchArgs, rows: &[Row]) -> String {
+    let mut md = String::from(
+        "\n## Where the microseconds go (p50, µs)\n\nSense-to-actuate split at the stamps the plant \
+         and the controller carry in their samples; the eight stages add up to it tick by tick \
+         (their p50s need not add up to its p50). Notifies run after the send, beside the \
+         delivery; a spinning receiver does not wait for them.\n\n| cell | kind | s2a |",
+    );
+    for (_, label) in BREAKDOWN {
+        let _ = write!(md, " {label} |");
+    }
+    md.push_str("\n|---|---|---|");
+    md.push_str(&"---|".repeat(BREAKDOWN.len()));
+    md.push('\n');
+    for r in rows.iter().filter(|r| r.kind == "loop" || r.kind == "loop-before") {
+        let Some(p50s) = stage_p50s(a, r).filter(|_| r.skipped.is_empty()) else { continue };
+        let _ = write!(md, "| {} | {} | {:.1} |", r.cell, r.kind, r.p50);
+        for v in p50s {
+            let _ = write!(md, " {v:.2} |");
+        }
+        md.push('\n');
+    }
+    md
+}
+
+/// The loop before and after its overhead was cut, with the bare baseline of the cell.
+fn before_after_md(rows: &[Row]) -> String {
+    let mut md = String::new();
+    let ok = |cell: &str, kind: &str| {
+        rows.iter().find(|r| r.cell == cell && r.kind == kind && r.skipped.is_empty())
+    };
+    for r in rows.iter().filter(|r| r.kind == "loop" && r.skipped.is_empty()) {
+        let (Some(before), bare) = (ok(&r.cell, "loop-before"), ok(&r.cell, "iceoryx2")) else {
+            continue;
+        };
+        if md.is_empty() {
+            md.push_str(
+                "\n## Before and after (same invocation)\n\n| cell | before p50 | after p50 | \
+                 change | bare iceoryx2 p50 | before/bare | after/bare | misses before/after/bare |\n\
+                 |---|---|---|---|---|---|---|---|\n",
+            );
+        }
+        let bare_p50 = bare.map_or(f64::NAN, |b| b.p50);
+        let bare_misses = bare.map_or("—".to_owned(), |b| b.misses.to_string());
+        let _ = writeln!(
+            md,
+            "| {} | {:.1} | {:.1} | {:+.0} % | {:.1} | {:.2} | {:.2} | {} / {} / {} |",
+            r.cell,
+            before.p50,
+            r.p50,
+            100.0 * (r.p50 / before.p50 - 1.0),
+            bare_p50,
+            before.p50 / bare_p50,
+            r.p50 / bare_p50,
+            before.misses,
+            r.misses,
+            bare_misses
+        );
+    }
+    md
+}
+
+/// The scale cells: per loop count, the loops' p50s, worst p99 and misses, against the
+/// bare baseline's misses; the largest count at which no loop missed more.
+fn scale_md(rows: &[Row]) -> String {
+    let mut md = String::new();
+    for base in rows.iter().filter(|r| r.kind == "loop" && r.skipped.is_empty()) {
+        let scaled: Vec<(usize, Vec<&Row>)> = (2..=64)
+            .map(|n| {
+                let cell = format!("{}-x{n}", base.cell);
+                (n, rows.iter().filter(|r| r.cell == cell).collect::<Vec<_>>())
+            })
+            .filter(|(_, rs)| !rs.is_empty())
+            .collect();
+        if scaled.is_empty() {
+            continue;
+        }
+        let bare = rows.iter().find(|r| r.cell == base.cell && r.kind == "iceoryx2");
+        let limit = bare.filter(|b| b.skipped.is_empty()).map(|b| b.misses);
+        let _ = write!(
+            md,
+            "\n## Scale: {} (loops at once)\n\nBare iceoryx2 misses (one pair): {}.\n\n\
+             | loops | p50 of each loop (µs) | worst p99 | misses of each loop | all ≤ bare |\n\
+             |---|---|---|---|---|\n",
+            base.cell,
+            limit.map_or("not measured".into(), |m| m.to_string())
+        );
+        let (mut largest, mut unbroken) = (None, true);
+        let mut all = vec![(1, vec![base])];
+        all.extend(scaled);
+        for (n, rs) in &all {
+            let measured = rs.iter().all(|r| r.skipped.is_empty());
+            let fits = measured && limit.is_some_and(|l| rs.iter().all(|r| r.misses <= l));
+            let list =
+                |f: &dyn Fn(&Row) -> String| rs.iter().map(|r| f(r)).collect::<Vec<_>>().join(", ");
+            let worst = rs.iter().map(|r| r.p99).fold(f64::NAN, f64::max);
+            let _ = writeln!(
+                md,
+                "| {n} | {} | {worst:.1} | {} | {} |",
+                list(&|r| if r.skipped.is_empty() {
+                    format!("{:.1}", r.p50)
+                } else {
+                    r.skipped.clone()
+                }),
+                list(&|r| r.misses.to_string()),
+                if fits { "yes" } else { "no" }
+            );
+            // The largest count up to which every count measured fits.
+            unbroken &= fits;
+            if unbroken {
+                largest = Some(*n);
+            }
+        }
+        let _ = writeln!(
+            md,
+            "\nLargest number of loops with every loop at or below the bare baseline's misses: {}.",
+            largest.map_or("none measured".into(), |n| n.to_string())
+        );
+    }
+    md
 }
 
 /// `(percentile, value µs)` rows of a `.hgrm` file.

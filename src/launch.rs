@@ -81,6 +81,48 @@ pub struct RunArgs {
     /// this many milliseconds is killed and restarted by its policy (0: no watchdog).
     #[arg(long, allow_negative_numbers = true, default_value_t = 3000)]
     pub watchdog_ms: u64,
+    /// `dedicated`: every role on a core of its own (the machine's last four), every role
+    /// busy-waiting (`--wait spin`), and the plant spinning the last 50 µs before each tick
+    /// (sharp ticks on a VM whose timer wake-ups are late). Needs 4 cores. What `--pin`,
+    /// `--wait` or `--spin-before-tick-us` say explicitly wins.
+    #[arg(long)]
+    pub preset: Option<String>,
+}
+
+/// The cores of the `dedicated` preset on a machine with `ncores`: plant, controller,
+/// reference, monitor on the last four (core 0 takes most of the housekeeping), or why
+/// there are not enough.
+pub fn dedicated_cores(ncores: usize) -> Result<[usize; 4], String> {
+    if ncores < 4 {
+        return Err(format!("dedicated needs 4 cores (one per role); this machine has {ncores}"));
+    }
+    Ok([ncores - 4, ncores - 3, ncores - 2, ncores - 1])
+}
+
+/// Applies `--preset` (`dedicated`) to what the command line left unsaid.
+fn with_preset(args: &RunArgs, explicit_wait: bool) -> Result<RunArgs, UsageError> {
+    let mut a = args.clone();
+    match args.preset.as_deref() {
+        None => {}
+        Some("dedicated") => {
+            let ncores = std::thread::available_parallelism().map_or(1, |n| n.get());
+            let [p, c, r, m] =
+                dedicated_cores(ncores).map_err(|e| UsageError(format!("--preset {e}")))?;
+            a.pin.get_or_insert_with(|| {
+                format!("plant={p},controller={c},reference={r},monitor={m}")
+            });
+            if !explicit_wait {
+                a.role.wait = rotorloop_common::ipc::Wait::Spin;
+            }
+            if a.spin_before_tick_us == 0 {
+                a.spin_before_tick_us = 50;
+            }
+        }
+        Some(other) => {
+            return Err(UsageError(format!("--preset `{other}` is not allowed: dedicated")));
+        }
+    }
+    Ok(a)
 }
 
 impl RunArgs {
@@ -100,6 +142,7 @@ impl RunArgs {
             restart_limit: "5/10".into(),
             watchdog_ms: 3000,
             actuation_delay: ActuationDelay::Measured,
+            preset: None,
         }
     }
 }
@@ -322,6 +365,9 @@ impl Launch<'_> {
 
 /// Runs the four processes to the end of the scenario.
 pub fn run(args: &RunArgs) -> anyhow::Result<()> {
+    // `--wait` has a default, so "explicit" means: not the default (event).
+    let explicit_wait = args.role.wait != rotorloop_common::ipc::Wait::Event;
+    let args = &with_preset(args, explicit_wait)?;
     let scenario = args.role.scenario()?;
     for w in &scenario.warnings {
         eprintln!("warning: {w}");
