@@ -95,3 +95,126 @@ fn impossible_cells_are_skipped_with_a_reason() {
         assert!(r.contains("busy-wait with both ends on one core"), "{r}");
     }
 }
+
+/// The before/after, dedicated and scale options: `loop-before` rows beside the loop,
+/// a `-x2` cell with a row per loop (each from its own report), the dedicated cell named
+/// and skipped with its reason below 4 cores, and bench.md's breakdown, before/after and
+/// scale sections filled from what was measured.
+#[test]
+fn before_after_dedicated_and_scale_cells_are_written_or_skipped_with_a_reason() {
+    let h = Harness::new("benchscale");
+    let out = h.path("bench");
+    ok(&h.rotorloop(
+        &[
+            "bench",
+            "--rates",
+            "500",
+            "--wait",
+            "event",
+            "--placement",
+            "unpinned,dedicated",
+            "--baselines",
+            "iceoryx2",
+            "--seconds",
+            "0.3",
+            "--before-after",
+            "--loops",
+            "2",
+            "--out",
+            out.to_str().expect("utf8"),
+        ],
+        Duration::from_secs(240),
+    ));
+    let csv = std::fs::read_to_string(out.join("bench.csv")).expect("bench.csv");
+    let rows: Vec<Vec<&str>> = csv.lines().skip(1).map(|l| l.split(',').collect()).collect();
+    let row = |cell: &str, kind: &str| {
+        rows.iter()
+            .find(|r| r[0] == cell && r[1] == kind)
+            .unwrap_or_else(|| panic!("{cell} {kind}: {csv}"))
+    };
+    for (cell, kind) in [
+        ("r500-event-unpinned-none", "loop"),
+        ("r500-event-unpinned-none", "loop-before"),
+        ("r500-event-unpinned-none", "iceoryx2"),
+        ("r500-event-unpinned-none-x2", "loop-1"),
+        ("r500-event-unpinned-none-x2", "loop-2"),
+    ] {
+        let r = row(cell, kind);
+        assert!(r[14].is_empty(), "{cell} {kind} skipped: {r:?}");
+        assert!(r[6].parse::<u64>().expect("count") > 0, "{r:?}");
+    }
+    for kind in ["loop-1", "loop-2"] {
+        let summary = out.join("cells/r500-event-unpinned-none-x2").join(kind).join("summary.json");
+        assert!(summary.exists(), "each loop of a scale cell has its own report");
+    }
+    // The dedicated preset spins: one cell whatever --wait lists.
+    let dedicated: Vec<_> =
+        rows.iter().filter(|r| r[0].starts_with("r500-spin-dedicated")).collect();
+    assert!(!dedicated.is_empty(), "{csv}");
+    let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
+    for r in &dedicated {
+        if cores < 4 {
+            assert!(r[14].contains("dedicated needs 4 cores"), "{r:?}");
+        } else {
+            assert!(r[14].is_empty(), "{r:?}");
+        }
+    }
+    let md = std::fs::read_to_string(out.join("bench.md")).expect("bench.md");
+    for section in [
+        "## Where the microseconds go",
+        "## Before and after (same invocation)",
+        "## Scale: r500-event-unpinned-none",
+        "Largest number of loops",
+    ] {
+        assert!(md.contains(section), "bench.md lacks {section}:\n{md}");
+    }
+    assert!(md.contains("| r500-event-unpinned-none | loop-before |"), "{md}");
+}
+
+/// `rotorloop run --preset dedicated` says what it needs on a machine that lacks it, and
+/// refuses an unknown preset by name.
+#[test]
+fn run_presets_are_checked() {
+    let h = Harness::new("preset");
+    let out = h.path("run");
+    let unknown = h.rotorloop(
+        &[
+            "run",
+            "--scenario",
+            "paper-zero",
+            "--duration",
+            "0.1",
+            "--preset",
+            "fast",
+            "--out",
+            out.to_str().expect("utf8"),
+        ],
+        Duration::from_secs(60),
+    );
+    assert_eq!(unknown.status.code(), Some(2));
+    assert!(
+        String::from_utf8_lossy(&unknown.stderr)
+            .contains("--preset `fast` is not allowed: dedicated")
+    );
+    if std::thread::available_parallelism().map_or(1, |n| n.get()) < 4 {
+        let small = h.rotorloop(
+            &[
+                "run",
+                "--scenario",
+                "paper-zero",
+                "--duration",
+                "0.1",
+                "--preset",
+                "dedicated",
+                "--out",
+                out.to_str().expect("utf8"),
+            ],
+            Duration::from_secs(60),
+        );
+        assert_eq!(small.status.code(), Some(2));
+        assert!(
+            String::from_utf8_lossy(&small.stderr).contains("dedicated needs 4 cores"),
+            "{small:?}"
+        );
+    }
+}

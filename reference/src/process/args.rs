@@ -31,3 +31,33 @@ impl ReferenceArgs {
         }
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use clap::Parser;
+
+    use super::*;
+
+    #[derive(Parser)]
+    struct Cli {
+        #[command(flatten)]
+        args: ReferenceArgs,
+    }
+
+    fn args(extra: &[&str]) -> ReferenceArgs {
+        let line = ["reference", "--scenario", "paper-zero"].iter().chain(extra);
+        Cli::parse_from(line).args
+    }
+
+    #[test]
+    fn the_realtime_reference_polls_a_quarter_of_its_lead_and_lockstep_listens() {
+        let rt = args(&["--mode", "realtime"]);
+        // 16 ticks of 1 ms ahead: a look every 4 ms, no listener for the plant to wake.
+        assert_eq!(rt.wait(1e-3), Wait::Poll { period_ns: 4_000_000 });
+        assert!(!rt.wait(1e-3).listens());
+        assert_eq!(rt.wait(1e-6), Wait::Poll { period_ns: 50_000 }, "never busier than 20 kHz");
+        assert_eq!(rt.wait(1.0), Wait::Poll { period_ns: 10_000_000 }, "signals seen in 10 ms");
+        assert_eq!(args(&["--mode", "lockstep"]).wait(1e-3), Wait::Event);
+        assert_eq!(args(&["--mode", "realtime", "--plain-hot-path"]).wait(1e-3), Wait::Event);
+    }
+}
