@@ -260,21 +260,7 @@ pub fn run(a: &BenchArgs) -> anyhow::Result<()> {
     let csv_path = a.out.join("bench.csv");
     std::fs::write(&csv_path, format!("{CSV_HEADER}\n"))?;
     let mut rows: Vec<Row> = Vec::new();
-    let mut cells = Vec::new();
-    for &rate in &a.rates {
-        for &wait in &a.wait {
-            for placement in &a.placement {
-                // The dedicated preset spins: one cell per rate, whatever `--wait` lists.
-                let wait = if placement == "dedicated" { Wait::Spin } else { wait };
-                for load in &a.load {
-                    let cell = (rate, wait, placement.clone(), load.clone());
-                    if !cells.contains(&cell) {
-                        cells.push(cell);
-                    }
-                }
-            }
-        }
-    }
+    let cells = cells(a);
     let tty = std::io::stderr().is_terminal();
     for (i, (rate, wait, placement, load)) in cells.iter().enumerate() {
         if shutdown_requested() {
@@ -346,6 +332,27 @@ pub fn run(a: &BenchArgs) -> anyhow::Result<()> {
     plots(a, &rows)?;
     println!("bench: {} measurements in {}", rows.len(), a.out.display());
     Ok(())
+}
+
+/// The cells to measure: rate × wait × placement × load, the dedicated preset once per
+/// rate (it spins, whatever `--wait` lists).
+fn cells(a: &BenchArgs) -> Vec<(f64, Wait, String, String)> {
+    let mut cells = Vec::new();
+    for &rate in &a.rates {
+        for &wait in &a.wait {
+            for placement in &a.placement {
+                // The dedicated preset spins: one cell per rate, whatever `--wait` lists.
+                let wait = if placement == "dedicated" { Wait::Spin } else { wait };
+                for load in &a.load {
+                    let cell = (rate, wait, placement.clone(), load.clone());
+                    if !cells.contains(&cell) {
+                        cells.push(cell);
+                    }
+                }
+            }
+        }
+    }
+    cells
 }
 
 /// Which loop a measurement runs.

@@ -177,44 +177,21 @@ fn before_after_dedicated_and_scale_cells_are_written_or_skipped_with_a_reason()
 fn run_presets_are_checked() {
     let h = Harness::new("preset");
     let out = h.path("run");
-    let unknown = h.rotorloop(
-        &[
-            "run",
-            "--scenario",
-            "paper-zero",
-            "--duration",
-            "0.1",
-            "--preset",
-            "fast",
-            "--out",
-            out.to_str().expect("utf8"),
-        ],
-        Duration::from_secs(60),
-    );
+    let out = out.to_str().expect("utf8");
+    let with_preset = |preset: &str| {
+        let args = ["run", "--scenario", "paper-zero", "--duration", "0.1", "--out", out];
+        let mut args = args.to_vec();
+        args.extend(["--preset", preset]);
+        h.rotorloop(&args, Duration::from_secs(60))
+    };
+    let unknown = with_preset("fast");
     assert_eq!(unknown.status.code(), Some(2));
-    assert!(
-        String::from_utf8_lossy(&unknown.stderr)
-            .contains("--preset `fast` is not allowed: dedicated")
-    );
+    let stderr = String::from_utf8_lossy(&unknown.stderr);
+    assert!(stderr.contains("--preset `fast` is not allowed: dedicated"), "{stderr}");
     if std::thread::available_parallelism().map_or(1, |n| n.get()) < 4 {
-        let small = h.rotorloop(
-            &[
-                "run",
-                "--scenario",
-                "paper-zero",
-                "--duration",
-                "0.1",
-                "--preset",
-                "dedicated",
-                "--out",
-                out.to_str().expect("utf8"),
-            ],
-            Duration::from_secs(60),
-        );
+        let small = with_preset("dedicated");
         assert_eq!(small.status.code(), Some(2));
-        assert!(
-            String::from_utf8_lossy(&small.stderr).contains("dedicated needs 4 cores"),
-            "{small:?}"
-        );
+        let stderr = String::from_utf8_lossy(&small.stderr);
+        assert!(stderr.contains("dedicated needs 4 cores"), "{stderr}");
     }
 }
