@@ -83,8 +83,9 @@ pub struct RunArgs {
     pub watchdog_ms: u64,
     /// `dedicated`: every role on a core of its own (the machine's last four), every role
     /// busy-waiting (`--wait spin`), and the plant spinning the last 50 µs before each tick
-    /// (sharp ticks on a VM whose timer wake-ups are late). Needs 4 cores. What `--pin`,
-    /// `--wait` or `--spin-before-tick-us` say explicitly wins.
+    /// (sharp ticks on a VM whose timer wake-ups are late). Needs 4 cores. A `--pin`, a
+    /// `--spin-before-tick-us` other than 0 or a `--wait` other than `event` (the
+    /// defaults, which the preset replaces) wins.
     #[arg(long)]
     pub preset: Option<String>,
 }
@@ -200,6 +201,13 @@ pub struct FaultEvent {
     pub kill_ns: u64,
     /// When it was started again (or continued).
     pub restart_ns: Option<u64>,
+}
+
+impl FaultEvent {
+    /// A fault of `role` happening now, not (yet) followed by a restart.
+    fn now(role: impl Into<String>, kind: &'static str, detail: String) -> Self {
+        Self { role: role.into(), kind, detail, kill_ns: now_ns(), restart_ns: None }
+    }
 }
 
 /// Parses `--pin`: `role=core` pairs separated by commas.
@@ -564,13 +572,7 @@ fn watch_for_hangs(
             "launcher: {role} made no progress for {ms} ms with work waiting: hung; killed (SIGKILL) at {now_s:.3} s"
         );
         let detail = format!("no progress for {ms} ms; killed by the watchdog");
-        w.events.push(FaultEvent {
-            role: role.into(),
-            kind: "hang",
-            detail,
-            kill_ns: now_ns(),
-            restart_ns: None,
-        });
+        w.events.push(FaultEvent::now(role, "hang", detail));
         let verdict = w.supervisor.on_end(role, Ending::Hang, "hung", None, now_s, false);
         decide(role, verdict, w, now_s);
     }
@@ -595,13 +597,7 @@ fn reap(
                 if how != Ending::Exited {
                     eprintln!("launcher: {role} {} ({st}) at {now_s:.3} s", how.name());
                     let detail = st.to_string();
-                    w.events.push(FaultEvent {
-                        role: role.clone(),
-                        kind: how.name(),
-                        detail,
-                        kill_ns: now_ns(),
-                        restart_ns: None,
-                    });
+                    w.events.push(FaultEvent::now(role.as_str(), how.name(), detail));
                 }
                 let what = format!("exited with {st}");
                 let complete = progress.loop_complete();
@@ -677,13 +673,7 @@ fn injected(
                 let _ = c.wait(); // reap: an unreaped zombie can delay dead-node detection
                 eprintln!("launcher: killed {role} (SIGKILL) at {at:.3} s");
                 let detail = "SIGKILL (--fault)".to_owned();
-                w.events.push(FaultEvent {
-                    role,
-                    kind: "kill",
-                    detail,
-                    kill_ns: now_ns(),
-                    restart_ns: None,
-                });
+                w.events.push(FaultEvent::now(role, "kill", detail));
             }
         }
         Action::Restart(role) => {
@@ -696,13 +686,7 @@ fn injected(
                 w.stopped.insert(role.clone(), c.id());
                 eprintln!("launcher: stopped {role} (SIGSTOP) at {at:.3} s");
                 let detail = "SIGSTOP (--fault)".to_owned();
-                w.events.push(FaultEvent {
-                    role,
-                    kind: "stop",
-                    detail,
-                    kill_ns: now_ns(),
-                    restart_ns: None,
-                });
+                w.events.push(FaultEvent::now(role, "stop", detail));
             }
         }
         Action::Delay(role, d, started) => {
@@ -710,13 +694,7 @@ fn injected(
             if started {
                 eprintln!("launcher: {role} answers {ms} ms late from {at:.3} s (injected)");
                 let detail = format!("each answer sent {ms} ms late (--fault delay)");
-                w.events.push(FaultEvent {
-                    role,
-                    kind: "delay",
-                    detail,
-                    kill_ns: now_ns(),
-                    restart_ns: None,
-                });
+                w.events.push(FaultEvent::now(role, "delay", detail));
             } else {
                 eprintln!("launcher: {role} answers on time again from {at:.3} s");
                 if let Some(e) =

@@ -20,7 +20,7 @@
 use hdrhistogram::Histogram;
 use serde::Serialize;
 
-use crate::latency::HopStats;
+use crate::latency::{HopStats, histogram};
 use crate::policy::JoinedRow;
 
 /// One stage of a loop tick.
@@ -113,8 +113,7 @@ pub struct Stages {
 
 impl Default for Stages {
     fn default() -> Self {
-        let h = || Histogram::new_with_bounds(1, 3_600_000_000_000, 3).expect("constant bounds");
-        Self { hists: Stage::ALL.iter().map(|_| h()).collect() }
+        Self { hists: Stage::ALL.iter().map(|_| histogram()).collect() }
     }
 }
 
