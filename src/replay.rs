@@ -18,7 +18,7 @@ use std::path::Path;
 
 use anyhow::Context;
 use glam::DVec3;
-use rotorloop_common::wire::FLAG_SAFE_MODE;
+use rotorloop_common::wire::{FLAG_SAFE_MODE, MAX_EFFECTS};
 use rotorloop_common::{Actuation, Scenario};
 use rotorloop_monitor::{Metrics, TraceWriter};
 use rotorloop_plant::policy::{ActuationDelay, DelayLine, integrate_tick};
@@ -89,7 +89,7 @@ fn read_timing(dir: &Path) -> anyhow::Result<BTreeMap<u64, Timing>> {
             )
             .into());
         };
-        let recorded = (0..3)
+        let recorded = (0..MAX_EFFECTS)
             .filter_map(|e| Some((num(5 + 2 * e)?, f.get(6 + 2 * e)?.parse::<f64>().ok()?)))
             .collect();
         out.insert(tick, Timing { flags, effects, recorded });

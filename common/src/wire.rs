@@ -18,6 +18,11 @@ use crate::{ReferenceState, RotorBodyState};
 /// The layout version carried in every type name.
 pub const LAYOUT_VERSION: u32 = 5;
 
+/// How many of the torques that took effect in one tick a state sample records (tick and
+/// offset each): what `sim --replay` can reconstruct. A plant catching up after a stall of
+/// a few ms sees several arrive in one tick (four seen under CI load, with room for three).
+pub const MAX_EFFECTS: usize = 8;
+
 /// "No torque sample" in [`StateSample::applied_torque_tick`].
 pub const NO_TICK: u64 = u64::MAX;
 
@@ -88,16 +93,16 @@ pub struct StateSample {
     /// Rotor work over `[t_k−1, t_k]` (J): the sum over the tick's pieces of `u · ΔΘ`
     /// (delayed zero-order hold: a torque takes effect inside the tick).
     pub rotor_work_j: f64,
-    /// How many new torques took effect during `[t_k−1, t_k]` (may exceed 3).
+    /// How many new torques took effect during `[t_k−1, t_k]` (may exceed [`MAX_EFFECTS`]).
     pub effects: u64,
-    /// The ticks of the first three of them.
-    pub effect_ticks: [u64; 3],
+    /// The ticks of the first [`MAX_EFFECTS`] of them.
+    pub effect_ticks: [u64; MAX_EFFECTS],
     /// When each took effect, after `t_k−1` (s).
-    pub effect_offsets_s: [f64; 3],
+    pub effect_offsets_s: [f64; MAX_EFFECTS],
     /// What publishing the previous state cost (the stage breakdown of `rotorloop bench`).
     pub prev_publish: SendCost,
 }
-const _: () = assert!(size_of::<StateSample>() == 440);
+const _: () = assert!(size_of::<StateSample>() == 520);
 
 /// The desired attitude for tick `tick`, published ahead of the plant.
 #[derive(Debug, Clone, Copy, PartialEq, ZeroCopySend)]
@@ -227,8 +232,8 @@ impl StateSample {
             internal_p: [0.0; 3],
             rotor_work_j: 0.0,
             effects: 0,
-            effect_ticks: [NO_TICK; 3],
-            effect_offsets_s: [f64::NAN; 3],
+            effect_ticks: [NO_TICK; MAX_EFFECTS],
+            effect_offsets_s: [f64::NAN; MAX_EFFECTS],
             prev_publish: SendCost::default(),
         }
     }

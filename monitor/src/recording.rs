@@ -16,7 +16,7 @@ use std::path::{Path, PathBuf};
 
 use anyhow::Context;
 use glam::DVec3;
-use rotorloop_common::wire::{FLAG_REALTIME, StateSample};
+use rotorloop_common::wire::{FLAG_REALTIME, MAX_EFFECTS, StateSample};
 use rotorloop_common::{Actuation, Scenario};
 use serde::Serialize;
 
@@ -73,9 +73,15 @@ pub struct Recording {
 /// The columns of `timing.csv`, one row per state sample `k`: when it was published, the
 /// torque in force at the end of tick `k − 1` (−1: none), the flags, and the torques that
 /// took effect during tick `k − 1` (how many, then tick and offset from `t_k−1` in s of
-/// the first three; empty when fewer): with the trace's torques, what `sim --replay` needs.
-pub const TIMING_HEADER: &str = "tick,state_publish_ns,applied_torque_tick,flags,effects,\
-effect1_tick,effect1_offset_s,effect2_tick,effect2_offset_s,effect3_tick,effect3_offset_s";
+/// the first [`MAX_EFFECTS`]; empty when fewer): with the trace's torques, what `sim
+/// --replay` needs.
+pub fn timing_header() -> String {
+    let mut h = "tick,state_publish_ns,applied_torque_tick,flags,effects".to_owned();
+    for i in 1..=MAX_EFFECTS {
+        h += &format!(",effect{i}_tick,effect{i}_offset_s");
+    }
+    h
+}
 
 fn timing_row(out: &mut impl Write, s: &StateSample) -> std::io::Result<()> {
     write!(
@@ -83,7 +89,7 @@ fn timing_row(out: &mut impl Write, s: &StateSample) -> std::io::Result<()> {
         "{},{},{},{},{}",
         s.tick, s.publish_ns, s.applied_torque_tick as i64, s.flags, s.effects
     )?;
-    for i in 0..3 {
+    for i in 0..MAX_EFFECTS {
         if (i as u64) < s.effects {
             write!(out, ",{},{}", s.effect_ticks[i], s.effect_offsets_s[i])?;
         } else {
@@ -114,7 +120,7 @@ fn open_files(
     };
     let mut timing = open("timing.csv")?;
     if resumed.is_none() {
-        writeln!(timing, "{TIMING_HEADER}").context("cannot write timing.csv")?;
+        writeln!(timing, "{}", timing_header()).context("cannot write timing.csv")?;
     }
     Ok((trace, timing))
 }

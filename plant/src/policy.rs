@@ -35,8 +35,8 @@ use std::collections::VecDeque;
 use glam::DVec3;
 use rotorloop_common::role::{SeqCounter, UsageError, diverged};
 use rotorloop_common::wire::{
-    FLAG_LAST, FLAG_REALTIME, FLAG_SAFE_MODE, FLAG_SATURATED, NO_TICK, StateSample, TORQUE_SKIPPED,
-    TorqueSample, WireFault,
+    FLAG_LAST, FLAG_REALTIME, FLAG_SAFE_MODE, FLAG_SATURATED, MAX_EFFECTS, NO_TICK, StateSample,
+    TORQUE_SKIPPED, TorqueSample, WireFault,
 };
 use rotorloop_common::{Actuation, ActuatorLimits, Scenario};
 
@@ -301,20 +301,20 @@ struct Pending {
     recv_ns: u64,
 }
 
-/// The torques that took effect in one tick (the first three, and how many).
+/// The torques that took effect in one tick (the first [`MAX_EFFECTS`], and how many).
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Effects {
     /// How many took effect.
     pub count: u64,
     /// Their torque ticks.
-    pub ticks: [u64; 3],
+    pub ticks: [u64; MAX_EFFECTS],
     /// Their offsets from the tick's start (s).
-    pub offsets_s: [f64; 3],
+    pub offsets_s: [f64; MAX_EFFECTS],
 }
 
 impl Default for Effects {
     fn default() -> Self {
-        Self { count: 0, ticks: [NO_TICK; 3], offsets_s: [f64::NAN; 3] }
+        Self { count: 0, ticks: [NO_TICK; MAX_EFFECTS], offsets_s: [f64::NAN; MAX_EFFECTS] }
     }
 }
 
@@ -329,7 +329,7 @@ impl Effects {
     }
 
     fn push(&mut self, source: u64, offset_s: f64) {
-        if let Some(i) = (self.count < 3).then_some(self.count as usize) {
+        if let Some(i) = (self.count < MAX_EFFECTS as u64).then_some(self.count as usize) {
             (self.ticks[i], self.offsets_s[i]) = (source, offset_s);
         }
         self.count += 1;
@@ -653,6 +653,22 @@ pub fn integrate_tick(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A plant catching up after a stall sees several torques take effect in one tick;
+    /// each is recorded with its offset (what a replay needs), up to [`MAX_EFFECTS`], and
+    /// all are counted.
+    #[test]
+    fn every_torque_that_takes_effect_in_a_tick_is_recorded_up_to_max_effects() {
+        let mut e = Effects::default();
+        for (i, source) in (866..866 + MAX_EFFECTS as u64 + 2).enumerate() {
+            e.push(source, i as f64 * 1e-5);
+        }
+        assert_eq!(e.count, MAX_EFFECTS as u64 + 2);
+        const { assert!(MAX_EFFECTS >= 4, "four in one tick were seen under CI load") };
+        for i in 0..MAX_EFFECTS {
+            assert_eq!((e.ticks[i], e.offsets_s[i]), (866 + i as u64, i as f64 * 1e-5));
+        }
+    }
 
     const LIMIT: f64 = 1e3;
     const DT: f64 = 1e-3;
