@@ -402,6 +402,7 @@ fn loop_run_args(
     });
     let role = RoleArgs {
         domain: Some(domain),
+        host: None,
         scenario: a.scenario.clone(),
         duration: Some(a.seconds),
         rate: Some(base.rate),

@@ -74,6 +74,14 @@ enum Command {
         #[arg(long, default_value = "default")]
         domain: String,
     },
+    /// The link gateway of one host: carries a run domain's services to and from another
+    /// host over Zenoh (the `rotorloop-link` binary; `rotorloop link --help` for its options).
+    #[command(disable_help_flag = true)]
+    Link {
+        /// The gateway's arguments (`--domain D --listen|--connect ENDPOINT` …).
+        #[arg(trailing_var_arg = true, allow_hyphen_values = true)]
+        args: Vec<String>,
+    },
     /// Run one role of the loop in this process (what `run` starts; the `plant`,
     /// `reference`, `controller` and `monitor` binaries do the same).
     #[command(subcommand, hide = true)]
@@ -235,6 +243,7 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
             }
         }
         Command::Run(a) => crate::launch::run(&a)?,
+        Command::Link { args } => crate::split::exec_link(&args)?,
         Command::Bench(a) => crate::bench::run(&a)?,
         Command::Ps(a) => crate::observe::ps(&a)?,
         Command::Watch(a) => crate::observe::watch(&a)?,

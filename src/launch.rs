@@ -20,6 +20,7 @@ use rotorloop_common::ipc::Domain;
 
 use crate::UsageError;
 use crate::process::{Corrupt, Mode, RoleArgs};
+use crate::split::{Split, wait_until};
 use crate::supervise::{
     Action, Children, Ending, FaultSchedule, Marks, RestartLimit, Supervisor, Verdict, Watchdog,
     parse_restart, signal,
@@ -88,6 +89,13 @@ pub struct RunArgs {
     /// defaults, which the preset replaces) wins.
     #[arg(long)]
     pub preset: Option<String>,
+    /// Run over two "hosts" joined by link gateways (Zenoh on loopback): `ROLES@HOST ...`,
+    /// e.g. `plant,reference,monitor@a controller@b`. Each host has its own iceoryx2
+    /// space; the gateways (`link-a`, `link-b`) are supervised and can take faults
+    /// (`--fault link-b:kill@2:restart@3`). Needs the `rotorloop-link` binary beside this
+    /// one (`cargo build --release --workspace`).
+    #[arg(long)]
+    pub split: Option<String>,
 }
 
 /// The cores of the `dedicated` preset on a machine with `ncores`: plant, controller,
@@ -144,6 +152,7 @@ impl RunArgs {
             watchdog_ms: 3000,
             actuation_delay: ActuationDelay::Measured,
             preset: None,
+            split: None,
         }
     }
 }
@@ -314,6 +323,11 @@ pub enum RunEnd {
 /// executable they run from (this one, so the four are always the same build).
 struct Launch<'a> {
     args: &'a RunArgs,
+    /// The run's domain as each host sees it (one, with no host, unless split).
+    domains: Vec<Domain>,
+    split: Option<Split>,
+    /// The first host's gateway listens on this loopback port.
+    link_port: u16,
     faults: Vec<Fault>,
     supervisor: Supervisor,
     role_args: RoleArgs,
@@ -326,8 +340,21 @@ impl Launch<'_> {
     /// The command line of `role`: `rotorloop role ROLE` with the run's arguments.
     fn command(&self, role: &str) -> Command {
         let args = self.args;
+        if let (Some(split), Some(host)) = (&self.split, role.strip_prefix("link-")) {
+            let mut cmd = crate::split::gateway_command(
+                split,
+                host,
+                self.role_args.domain(),
+                self.link_port,
+                &args.out,
+            );
+            cmd.stdin(Stdio::null());
+            stop_with_parent(&mut cmd);
+            return cmd;
+        }
         let mut r = self.role_args.clone();
         r.core = self.pins.get(role).copied();
+        r.host = self.split.as_ref().and_then(|s| s.host_of(role)).map(str::to_owned);
         let mut cmd = Command::new(&self.exe);
         cmd.arg("role").arg(role).args(r.to_args()).stdin(Stdio::null());
         stop_with_parent(&mut cmd);
@@ -345,7 +372,11 @@ impl Launch<'_> {
                 }
             }
             "plant" => {
-                cmd.arg("--subscribers").arg(if args.no_monitor { "2" } else { "3" });
+                let n = match &self.split {
+                    Some(s) => s.plant_subscribers(),
+                    None => 3 - usize::from(args.no_monitor),
+                };
+                cmd.arg("--subscribers").arg(n.to_string());
                 cmd.arg("--spin-before-tick-us").arg(args.spin_before_tick_us.to_string());
                 cmd.arg("--hold-ticks").arg(args.hold_ticks.to_string());
                 cmd.arg("--latency-out").arg(&args.out);
@@ -364,6 +395,12 @@ impl Launch<'_> {
     }
 
     /// Starts `role`, records it for the memory report, and returns the child.
+    /// The domain as `role`'s host sees it.
+    fn domain_of(&self, role: &str) -> &Domain {
+        let host = self.split.as_ref().and_then(|s| s.host_of(role));
+        self.domains.iter().find(|d| d.host() == host).unwrap_or(&self.domains[0])
+    }
+
     fn spawn(&self, role: &str, rss: &mut RssLog) -> anyhow::Result<Child> {
         let child = self.command(role).spawn().with_context(|| format!("cannot start {role}"))?;
         rss.track(role, child.id());
@@ -387,40 +424,133 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
     let supervisor = Supervisor::new(parse_restart(&args.restart)?, limit);
     let mut role_args = args.role.clone();
     role_args.domain.get_or_insert_with(|| format!("run-{}", std::process::id()));
-    let domain = role_args.open_domain()?;
+    let split = args.split.as_deref().map(|s| Split::parse(s, !args.no_monitor)).transpose()?;
+    for f in &faults {
+        match &split {
+            Some(s) => s.check_fault_target(&f.role)?,
+            None if f.role.starts_with("link-") => {
+                return Err(UsageError(format!("--fault {}: gateways exist only with --split", f.role)).into());
+            }
+            None => {}
+        }
+    }
+    if split.is_some() {
+        crate::split::link_binary()?;
+    }
+    let hosts: Vec<Option<&str>> = match &split {
+        Some(s) => s.hosts().iter().map(|h| Some(h.as_str())).collect(),
+        None => vec![role_args.host.as_deref()],
+    };
+    let domains = hosts
+        .iter()
+        .map(|h| Domain::on_host(role_args.domain(), *h).map_err(|e| UsageError(e.to_string())))
+        .collect::<Result<Vec<_>, _>>()?;
     let pins = args.pin.as_deref().map(parse_pins).transpose()?.unwrap_or_default();
     std::fs::create_dir_all(&args.out)
         .with_context(|| format!("cannot create {}", args.out.display()))?;
     let exe = std::env::current_exe().context("cannot find the rotorloop executable")?;
-    if let Err(e) = domain.write_iox2_config(&args.out) {
-        eprintln!("warning: cannot write {}/config/iceoryx2.toml: {e}", args.out.display());
-    }
     install_signal_handlers();
-    // Nothing of this domain may be alive: clear what an earlier, killed run left
-    // (including resume slots, which would otherwise be taken for a restart).
-    let (_, alive) = domain.cleanup()?;
-    if alive > 0 {
-        let name = domain.name();
-        let msg = format!(
-            "domain `{name}` is in use by {alive} running process(es); choose another --domain"
-        );
-        return Err(UsageError(msg).into());
+    for domain in &domains {
+        let dir = match domain.host() {
+            Some(h) => args.out.join(format!("host-{h}")),
+            None => args.out.clone(),
+        };
+        if let Err(e) = domain.write_iox2_config(&dir) {
+            eprintln!("warning: cannot write {}/config/iceoryx2.toml: {e}", dir.display());
+        }
+        // Nothing of this domain may be alive: clear what an earlier, killed run left
+        // (including resume slots, which would otherwise be taken for a restart).
+        let (_, alive) = domain.cleanup()?;
+        if alive > 0 {
+            let name = domain.name();
+            let msg = format!(
+                "domain `{name}` is in use by {alive} running process(es); choose another --domain"
+            );
+            return Err(UsageError(msg).into());
+        }
     }
-    let launch = Launch { args, faults: faults.clone(), supervisor, role_args, pins, corrupt, exe };
+    let link_port = if split.is_some() { crate::split::free_port()? } else { 0 };
+    let launch = Launch {
+        args,
+        domains,
+        split,
+        link_port,
+        faults: faults.clone(),
+        supervisor,
+        role_args,
+        pins,
+        corrupt,
+        exe,
+    };
     let mut rss = RssLog::create(&args.out);
     let mut children = Children::default();
-    for role in ROLES.iter().filter(|r| **r != "monitor" || !args.no_monitor) {
-        children.0.push((role.to_string(), launch.spawn(role, &mut rss)?));
-    }
-    let supervised =
-        supervise(&launch, &domain, &mut children, &mut rss, FaultSchedule::new(faults));
+    let started = start(&launch, &mut children, &mut rss);
+    let supervised = started.and_then(|()| {
+        supervise(&launch, &mut children, &mut rss, FaultSchedule::new(faults))
+    });
+    stop_gateways(&mut children);
     drop(children);
     // Everything of this domain is gone now: remove what iceoryx2 keeps after its nodes.
-    if let Err(e) = domain.cleanup() {
-        eprintln!("warning: cleaning up domain {}: {e}", domain.name());
+    for domain in &launch.domains {
+        if let Err(e) = domain.cleanup() {
+            eprintln!("warning: cleaning up domain {}: {e}", domain.name());
+        }
+    }
+    for h in launch.split.iter().flat_map(|s| s.hosts()) {
+        let _ = std::fs::remove_file(crate::split::ready_file(&args.out, h));
     }
     let events = supervised?;
     report(&launch, &scenario, &rss, &events)
+}
+
+/// Starts the roles (and, split, the gateways first: see [`crate::split`]).
+fn start(launch: &Launch, children: &mut Children, rss: &mut RssLog) -> anyhow::Result<()> {
+    let args = launch.args;
+    let roles: Vec<&str> =
+        ROLES.iter().copied().filter(|r| *r != "monitor" || !args.no_monitor).collect();
+    let Some(split) = &launch.split else {
+        for role in roles {
+            children.0.push((role.to_string(), launch.spawn(role, rss)?));
+        }
+        return Ok(());
+    };
+    for g in split.gateways() {
+        children.0.push((g.clone(), launch.spawn(&g, rss)?));
+    }
+    let ready = |h: &String| crate::split::ready_file(&args.out, h).exists();
+    if !wait_until(Duration::from_secs(30), || split.hosts().iter().all(ready)) {
+        anyhow::bail!("the link gateways did not connect within 30 s (their messages are above)");
+    }
+    let plant_host = split.host_of("plant").unwrap_or_default().to_owned();
+    for role in roles.iter().filter(|r| split.host_of(r) != Some(&plant_host)) {
+        children.0.push((role.to_string(), launch.spawn(role, rss)?));
+    }
+    let at_plant = launch.domain_of("plant");
+    let needed = split.topics_needed_at_plant();
+    if !wait_until(Duration::from_secs(30), || needed.iter().all(|t| at_plant.topic_exists(*t))) {
+        anyhow::bail!(
+            "the services of host `{plant_host}`'s peer did not reach it through the link within 30 s"
+        );
+    }
+    for role in roles.iter().filter(|r| split.host_of(r) == Some(&plant_host)) {
+        children.0.push((role.to_string(), launch.spawn(role, rss)?));
+    }
+    Ok(())
+}
+
+/// Stops the gateways once the roles are done (SIGTERM, SIGKILL after 5 s).
+fn stop_gateways(children: &mut Children) {
+    for (name, c) in children.0.iter_mut().filter(|(n, _)| n.starts_with("link-")) {
+        if let Ok(None) = c.try_wait() {
+            signal(c, libc::SIGTERM);
+            let stopped = wait_until(Duration::from_secs(5), || !matches!(c.try_wait(), Ok(None)));
+            if !stopped {
+                eprintln!("launcher: {name} did not stop on SIGTERM within 5 s; killed");
+                let _ = c.kill();
+            }
+            let _ = c.wait();
+        }
+    }
 }
 
 /// Where each role stands, from the resume slots (what the watchdog reads).
@@ -432,13 +562,15 @@ struct Progress {
 }
 
 impl Progress {
-    fn open(domain: &Domain) -> anyhow::Result<Self> {
+    /// Each role's slot on its own host.
+    fn open(launch: &Launch) -> anyhow::Result<Self> {
         let ctx = "the resume slots";
+        let d = |role| launch.domain_of(role);
         Ok(Self {
-            plant: ResumeSlot::open(domain, "plant").context(ctx)?,
-            controller: ResumeSlot::open(domain, "controller").context(ctx)?,
-            reference: ResumeSlot::open(domain, "reference").context(ctx)?,
-            monitor: ResumeSlot::open(domain, "monitor").context(ctx)?,
+            plant: ResumeSlot::open(d("plant"), "plant").context(ctx)?,
+            controller: ResumeSlot::open(d("controller"), "controller").context(ctx)?,
+            reference: ResumeSlot::open(d("reference"), "reference").context(ctx)?,
+            monitor: ResumeSlot::open(d("monitor"), "monitor").context(ctx)?,
         })
     }
 
@@ -480,7 +612,6 @@ struct Watch {
 /// 10 s. Returns the faults as they happened, or the first failure.
 fn supervise(
     launch: &Launch,
-    domain: &Domain,
     children: &mut Children,
     rss: &mut RssLog,
     mut schedule: FaultSchedule,
@@ -488,7 +619,7 @@ fn supervise(
     let lockstep = launch.role_args.mode == Mode::Lockstep;
     // The fault clock starts when the plant has published tick 0 (its resume slot is
     // written just before each publish).
-    let progress = Progress::open(domain)?;
+    let progress = Progress::open(launch)?;
     let (mut run_t0, mut term_sent_at): (Option<u64>, Option<u64>) = (None, None);
     let mut w = Watch {
         events: Vec::new(),
@@ -591,7 +722,8 @@ fn reap(
     for (role, c) in &mut children.0 {
         let pid = c.id();
         match c.try_wait() {
-            Ok(None) => running += 1,
+            // The gateways run until the roles are done (then they are stopped).
+            Ok(None) => running += usize::from(!role.starts_with("link-")),
             Ok(Some(st)) if w.handled.insert(pid) && !w.planned.contains(&pid) && !stopping => {
                 let how = Ending::of(st);
                 if how != Ending::Exited {

@@ -18,6 +18,7 @@ pub mod paper;
 pub mod process;
 pub mod replay;
 pub mod sim;
+pub mod split;
 pub mod supervise;
 
 pub use closed_loop::ClosedLoop;

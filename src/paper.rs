@@ -100,6 +100,7 @@ fn four_process_run(out: &Path, name: &str, duration: f64, rate: f64) -> anyhow:
     let run_dir = out.join(name);
     let role = crate::process::RoleArgs {
         domain: None,
+        host: None,
         scenario: name.to_owned(),
         duration: Some(duration),
         rate: Some(rate),

@@ -78,8 +78,9 @@ pub fn parse_fault(s: &str) -> Result<Fault, UsageError> {
     if parts.len() < 2 || parts.len() > 3 {
         return Err(bad("two or three parts"));
     }
-    if !ROLES.contains(&parts[0]) {
-        return Err(bad("ROLE is plant, reference, controller or monitor"));
+    let gateway = parts[0].strip_prefix("link-").is_some_and(|h| !h.is_empty());
+    if !ROLES.contains(&parts[0]) && !gateway {
+        return Err(bad("ROLE is plant, reference, controller, monitor or (with --split) link-HOST"));
     }
     let seconds = |p: &str, what: &str| -> Result<f64, UsageError> {
         p.parse::<f64>()

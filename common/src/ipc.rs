@@ -23,6 +23,13 @@ pub enum IpcError {
     /// A bad domain name.
     #[error("--domain `{0}` is not allowed: 1 to 24 characters from A-Z a-z 0-9 -")]
     Domain(String),
+    /// A bad host name, or one too long for its domain.
+    #[error(
+        "--host `{host}` is not allowed: 1 to 12 characters from a-z 0-9 -, and at most 23 \
+         characters with the domain's name (`{domain}` has {})",
+        .domain.len()
+    )]
+    Host { host: String, domain: String },
     /// iceoryx2 refused something.
     #[error("{what}: {detail}")]
     Iceoryx { what: String, detail: String },
@@ -75,7 +82,11 @@ pub const REFERENCE_LEAD: u64 = 16;
 pub const MAX_BUFFER: usize = 4096;
 
 impl Topic {
-    fn name(self) -> &'static str {
+    /// Every topic.
+    pub const ALL: [Topic; 3] = [Topic::State, Topic::Reference, Topic::Torque];
+
+    /// The topic's service name under the domain (`state`, `reference`, `torque`).
+    pub fn name(self) -> &'static str {
         match self {
             Self::State => "state",
             Self::Reference => "reference",
@@ -91,11 +102,69 @@ impl Topic {
     }
 }
 
+/// The QoS every publish-subscribe service of a run is opened with. Two publishers: the
+/// role's and, when the topic crosses hosts, the link gateway's (a second role of the same
+/// kind is refused by [`Domain::node`], not by the service).
+struct PubSubQos {
+    max_publishers: usize,
+    max_subscribers: usize,
+    max_nodes: usize,
+    subscriber_max_buffer_size: usize,
+    subscriber_max_borrowed_samples: usize,
+    enable_safe_overflow: bool,
+}
+
+const PUBSUB_QOS: PubSubQos = PubSubQos {
+    max_publishers: 2,
+    max_subscribers: 8,
+    max_nodes: 16,
+    subscriber_max_buffer_size: MAX_BUFFER,
+    subscriber_max_borrowed_samples: 2,
+    enable_safe_overflow: true,
+};
+
+/// The QoS of every event service of a run.
+struct EventQos {
+    max_notifiers: usize,
+    max_listeners: usize,
+    max_nodes: usize,
+    event_id_max_value: usize,
+}
+
+const EVENT_QOS: EventQos =
+    EventQos { max_notifiers: 4, max_listeners: 8, max_nodes: 16, event_id_max_value: 8 };
+
+/// A link gateway creates the mirror of a remote service with the local configuration's
+/// defaults (iceoryx2-link 0.10), and a role then opens it with the QoS above, which
+/// iceoryx2 checks as minimums. So the defaults of a domain's configuration are that QoS,
+/// with the largest history of any topic: whoever creates a service first, every role
+/// can open it.
+fn set_mirror_defaults(config: &mut Config) {
+    let ps = &mut config.defaults.publish_subscribe;
+    ps.max_publishers = PUBSUB_QOS.max_publishers;
+    ps.max_subscribers = PUBSUB_QOS.max_subscribers;
+    ps.max_nodes = PUBSUB_QOS.max_nodes;
+    ps.subscriber_max_buffer_size = PUBSUB_QOS.subscriber_max_buffer_size;
+    ps.subscriber_max_borrowed_samples = PUBSUB_QOS.subscriber_max_borrowed_samples;
+    ps.enable_safe_overflow = PUBSUB_QOS.enable_safe_overflow;
+    ps.publisher_history_size = Topic::Reference.history();
+    let ev = &mut config.defaults.event;
+    ev.max_notifiers = EVENT_QOS.max_notifiers;
+    ev.max_listeners = EVENT_QOS.max_listeners;
+    ev.max_nodes = EVENT_QOS.max_nodes;
+    ev.event_id_max_value = EVENT_QOS.event_id_max_value;
+}
+
 /// A run domain: every service and node name of a run lives under it, and its shared
 /// memory files carry its own prefix, so two runs on one machine never see each other.
 #[derive(Debug)]
 pub struct Domain {
     name: String,
+    /// The "host" this process belongs to (`--host`), or none: the machine is one host.
+    host: Option<String>,
+    /// The file prefix of the domain's shared memory and its directory under iceoryx2's
+    /// root: `rl_<name>_`, or `rh_<host>_<name>_` on a host.
+    prefix: String,
     config: Config,
 }
 
@@ -106,29 +175,62 @@ impl Domain {
     /// must never begin the prefix of another (`a` and `a_b`), since cleaning a domain
     /// removes files by prefix.
     pub fn new(name: &str) -> Result<Self, IpcError> {
+        Self::on_host(name, None)
+    }
+
+    /// A domain as seen from `host` (`--host`): the same services by name, but its own
+    /// iceoryx2 prefix and root (`rh_<host>_<name>_`), so two hosts on one machine share
+    /// nothing but what a link gateway carries between them. Host names are 1–12 of
+    /// `a-z 0-9 -`, at most 23 characters with the domain name (the socket path limit
+    /// that bounds domain names). The prefix starts `rh_`, a domain's `rl_`: cleaning one
+    /// never removes files of the other.
+    pub fn on_host(name: &str, host: Option<&str>) -> Result<Self, IpcError> {
         let ok = !name.is_empty()
             && name.len() <= 24
             && name.bytes().all(|b| b.is_ascii_alphanumeric() || b == b'-');
         if !ok {
             return Err(IpcError::Domain(name.to_owned()));
         }
+        if let Some(h) = host {
+            let ok = !h.is_empty()
+                && h.len() <= 12
+                && h.len() + name.len() <= 23
+                && h.bytes().all(|b| b.is_ascii_lowercase() || b.is_ascii_digit() || b == b'-');
+            if !ok {
+                return Err(IpcError::Host { host: h.to_owned(), domain: name.to_owned() });
+            }
+        }
+        let prefix = match host {
+            None => format!("rl_{name}_"),
+            Some(h) => format!("rh_{h}_{name}_"),
+        };
         let mut config = Config::global_config().clone();
         // Static files under a root of the domain's own, shared memory with its prefix.
-        let root = format!("{}{}/", config.global.root_path(), Self::prefix_of(name));
+        let root = format!("{}{prefix}/", config.global.root_path());
         let root_path = Path::new(root.as_bytes()).map_err(|e| IpcError::Iceoryx {
             what: format!("root path `{root}`"),
             detail: format!("{e:?}"),
         })?;
         config.global.set_root_path(&root_path);
-        let prefix = Self::prefix_of(name);
         config.global.prefix = FileName::new(prefix.as_bytes()).map_err(|e| IpcError::Iceoryx {
             what: format!("file prefix `{prefix}`"),
             detail: format!("{e:?}"),
         })?;
-        Ok(Self { name: name.to_owned(), config })
+        set_mirror_defaults(&mut config);
+        Ok(Self { name: name.to_owned(), host: host.map(str::to_owned), prefix, config })
     }
 
-    /// The shared-memory file prefix of a domain.
+    /// The domain's shared-memory file prefix (`rl_<name>_` or `rh_<host>_<name>_`).
+    pub fn prefix(&self) -> &str {
+        &self.prefix
+    }
+
+    /// The host this domain is seen from, if any.
+    pub fn host(&self) -> Option<&str> {
+        self.host.as_deref()
+    }
+
+    /// The shared-memory file prefix of a domain on no host.
     pub fn prefix_of(name: &str) -> String {
         format!("rl_{name}_")
     }
@@ -207,14 +309,14 @@ impl Domain {
     /// alone (chmod would fail anyway).
     fn restrict_global_segment(&self) {
         use std::os::unix::fs::{MetadataExt, PermissionsExt};
-        let prefix = Self::prefix_of(&self.name);
+        let prefix = self.prefix.as_str();
         let Ok(dir) = std::fs::read_dir("/dev/shm") else { return };
         // SAFETY: plain getter.
         let me = unsafe { libc::geteuid() };
         for e in dir.flatten() {
             let name = e.file_name();
             let name = name.to_string_lossy();
-            if name.starts_with(&prefix) && name.ends_with(".global_mgmt") {
+            if name.starts_with(prefix) && name.ends_with(".global_mgmt") {
                 if let Ok(meta) = e.metadata() {
                     if meta.uid() == me && meta.mode() & 0o077 != 0 {
                         let _ = std::fs::set_permissions(
@@ -280,9 +382,9 @@ impl Domain {
                     detail: e.to_string(),
                 })?;
             }
-            let prefix = Self::prefix_of(&self.name);
+            let prefix = self.prefix.as_str();
             for e in std::fs::read_dir("/dev/shm").into_iter().flatten().flatten() {
-                if e.file_name().to_string_lossy().starts_with(&prefix) {
+                if e.file_name().to_string_lossy().starts_with(prefix) {
                     std::fs::remove_file(e.path()).map_err(|err| IpcError::Iceoryx {
                         what: format!("cannot remove {}", e.path().display()),
                         detail: err.to_string(),
@@ -297,19 +399,73 @@ impl Domain {
     /// (`<id>/`, its details and port tags) and its monitor token files
     /// (`<prefix><id>.node_monitor…`).
     fn node_entries(&self) -> std::collections::BTreeMap<u128, Vec<std::path::PathBuf>> {
-        let prefix = Self::prefix_of(&self.name);
+        let prefix = self.prefix.as_str();
         let dir = std::path::PathBuf::from(self.root_path()).join("nodes");
         let mut out = std::collections::BTreeMap::<u128, Vec<_>>::new();
         for e in std::fs::read_dir(dir).into_iter().flatten().flatten() {
             let name = e.file_name();
             let name = name.to_string_lossy();
-            let bare = name.strip_prefix(&prefix).unwrap_or(&name);
+            let bare = name.strip_prefix(prefix).unwrap_or(&name);
             let id = bare.split('.').next().and_then(|s| s.parse::<u128>().ok());
             if let Some(id) = id {
                 out.entry(id).or_default().push(e.path());
             }
         }
         out
+    }
+
+    /// What every service name of the domain starts with (`rotorloop/<name>/`): what a
+    /// link gateway bridges.
+    pub fn service_prefix(&self) -> String {
+        format!("rotorloop/{}/", self.name)
+    }
+
+    /// The node ids of the domain's live link gateways (node `rotorloop/<name>/link`).
+    pub fn link_node_ids(&self) -> Vec<u128> {
+        use iceoryx2::node::NodeView;
+        let name = format!("rotorloop/{}/link", self.name);
+        let mut ids = Vec::new();
+        let _ = Node::<ipc::Service>::list(&self.config, |state| {
+            if let NodeState::Alive(v) = &state {
+                if v.details().as_ref().is_some_and(|d| d.name().as_str() == name) {
+                    ids.push(v.id().value());
+                }
+            }
+            CallbackProgression::Continue
+        });
+        ids
+    }
+
+    /// Whether `topic`'s publish-subscribe service exists in this domain (made by a role,
+    /// or mirrored by a link gateway from another host).
+    pub fn topic_exists(&self, topic: Topic) -> bool {
+        self.service_name(topic).is_ok_and(|name| {
+            matches!(
+                ipc::Service::does_exist(&name, &self.config, MessagingPattern::PublishSubscribe),
+                Ok(true)
+            )
+        })
+    }
+
+    /// A listener on `topic`'s event service for `node`, if the service exists (a link
+    /// gateway wakes on the domain's events without creating any service).
+    pub fn listener_if_exists(
+        &self,
+        node: &Node<ipc::Service>,
+        topic: Topic,
+    ) -> Result<Option<Listener<ipc::Service>>, IpcError> {
+        let name = self.service_name(topic)?;
+        let exists = ipc::Service::does_exist(&name, &self.config, MessagingPattern::Event)
+            .map_err(|e| iox(format!("cannot look up {name}"))(&e))?;
+        if !exists {
+            return Ok(None);
+        }
+        let Ok(service) = node.service_builder(&name).event().open() else { return Ok(None) };
+        let listener = service
+            .listener_builder()
+            .create()
+            .map_err(|e| iox(format!("cannot listen to {name}"))(&e))?;
+        Ok(Some(listener))
     }
 
     fn service_name(&self, topic: Topic) -> Result<ServiceName, IpcError> {
@@ -326,13 +482,13 @@ impl Domain {
         // Every role opens with the same QoS, so the start order does not matter.
         node.service_builder(&name)
             .publish_subscribe::<T>()
-            .max_publishers(1)
-            .max_subscribers(8)
-            .max_nodes(16)
+            .max_publishers(PUBSUB_QOS.max_publishers)
+            .max_subscribers(PUBSUB_QOS.max_subscribers)
+            .max_nodes(PUBSUB_QOS.max_nodes)
             .history_size(topic.history())
-            .subscriber_max_buffer_size(MAX_BUFFER)
-            .subscriber_max_borrowed_samples(2)
-            .enable_safe_overflow(true)
+            .subscriber_max_buffer_size(PUBSUB_QOS.subscriber_max_buffer_size)
+            .subscriber_max_borrowed_samples(PUBSUB_QOS.subscriber_max_borrowed_samples)
+            .enable_safe_overflow(PUBSUB_QOS.enable_safe_overflow)
             .open_or_create()
             .map_err(|e| {
                 self.layout_skew::<T>(&name, topic).unwrap_or_else(|| {
@@ -366,16 +522,17 @@ impl Domain {
         let name = self.service_name(topic)?;
         node.service_builder(&name)
             .event()
-            .max_notifiers(4)
-            .max_listeners(8)
-            .max_nodes(16)
-            .event_id_max_value(8)
+            .max_notifiers(EVENT_QOS.max_notifiers)
+            .max_listeners(EVENT_QOS.max_listeners)
+            .max_nodes(EVENT_QOS.max_nodes)
+            .event_id_max_value(EVENT_QOS.event_id_max_value)
             .open_or_create()
             .map_err(|e| iox(format!("cannot open event service {name}"))(&e))
     }
 
-    /// The publishing end of `topic`. Fails if another process already publishes it
-    /// (one publisher per topic and domain).
+    /// The publishing end of `topic`. Fails when its two publisher slots (the role's and a
+    /// link gateway's) are taken; a second role of the same kind is refused earlier, by
+    /// [`Domain::node`].
     pub fn outbox<T: ZeroCopySend + Debug + Copy + 'static>(
         &self,
         node: &Node<ipc::Service>,
@@ -385,7 +542,7 @@ impl Domain {
         let publisher =
             service.publisher_builder().max_loaned_samples(2).create().map_err(|e| {
                 iox(format!(
-                    "cannot publish `{}` in domain `{}` (a topic has one publisher, and it has one)",
+                    "cannot publish `{}` in domain `{}` (its publisher slots are taken)",
                     topic.name(),
                     self.name
                 ))(&e)
@@ -488,6 +645,16 @@ impl<T: ZeroCopySend + Debug + Copy + 'static> Outbox<T> {
     /// Subscribers currently connected to this topic.
     pub fn subscribers(&self) -> usize {
         self.service.dynamic_config().number_of_subscribers()
+    }
+
+    /// Subscribers of this topic that belong to none of `nodes` (a link gateway's).
+    pub fn subscribers_except(&self, nodes: &[u128]) -> usize {
+        let mut n = 0;
+        self.service.dynamic_config().list_subscribers(|d| {
+            n += usize::from(!nodes.contains(&d.node_id.value()));
+            CallbackProgression::Continue
+        });
+        n
     }
 }
 

@@ -32,7 +32,7 @@ pub struct ResumeSlot<T: Copy + ZeroCopySend> {
 impl<T: Copy + ZeroCopySend> ResumeSlot<T> {
     /// The slot file of `role` in `domain`.
     pub fn path(domain: &Domain, role: &str) -> PathBuf {
-        PathBuf::from(format!("/dev/shm/{}resume_{role}", Domain::prefix_of(domain.name())))
+        PathBuf::from(format!("/dev/shm/{}resume_{role}", domain.prefix()))
     }
 
     /// Opens (or creates) the slot of `role` in `domain`.
@@ -158,7 +158,7 @@ impl<T: Copy + ZeroCopySend> Drop for ResumeSlot<T> {
 
 /// Removes every resume slot of a domain.
 pub fn remove_slots(domain: &Domain) {
-    let prefix = format!("{}resume_", Domain::prefix_of(domain.name()));
+    let prefix = format!("{}resume_", domain.prefix());
     if let Ok(d) = std::fs::read_dir("/dev/shm") {
         for e in d.flatten() {
             if e.file_name().to_string_lossy().starts_with(&prefix) {

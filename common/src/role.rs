@@ -94,6 +94,11 @@ pub struct RoleArgs {
     /// [default: `default` for a role started by hand, `run-<pid>` for `rotorloop run`].
     #[arg(long)]
     pub domain: Option<String>,
+    /// The host this process runs on, when a run spans hosts joined by link gateways
+    /// (`rotorloop link`): its own iceoryx2 prefix and root, so that two "hosts" on one
+    /// machine share nothing but the link [default: none, this machine is the only host].
+    #[arg(long)]
+    pub host: Option<String>,
     /// Built-in scenario name or TOML path (every role reads the same one).
     #[arg(long)]
     pub scenario: String,
@@ -141,7 +146,8 @@ impl RoleArgs {
 
     /// The run domain, validated.
     pub fn open_domain(&self) -> Result<crate::ipc::Domain, UsageError> {
-        crate::ipc::Domain::new(self.domain()).map_err(|e| UsageError(e.to_string()))
+        crate::ipc::Domain::on_host(self.domain(), self.host.as_deref())
+            .map_err(|e| UsageError(e.to_string()))
     }
 
     /// Applies pinning, priority and mlock; prints a warning for each refusal.
@@ -167,6 +173,9 @@ impl RoleArgs {
             "--wait".into(),
             self.wait.to_string(),
         ];
+        if let Some(h) = &self.host {
+            a.extend(["--host".into(), h.clone()]);
+        }
         if let Some(d) = self.duration {
             a.extend(["--duration".into(), d.to_string()]);
         }
@@ -276,6 +285,28 @@ impl TickGrid {
 
 /// Waits until `done()` or [`LINGER_S`] seconds or a termination signal.
 pub fn linger(mut done: impl FnMut() -> bool) {
+    linger_until(&mut done);
+}
+
+/// How long a finished publisher gives a link gateway's subscriber (which never leaves:
+/// it lives as long as the gateway) to take its last samples.
+pub const LINK_GRACE_NS: u64 = 300_000_000;
+
+/// [`linger`] for a publisher: until every subscriber but a link gateway's has left, and,
+/// when a gateway carries the topic to another host, at least [`LINK_GRACE_NS`].
+pub fn linger_publisher<T>(out: &crate::ipc::Outbox<T>, role: &RoleArgs)
+where
+    T: iceoryx2::prelude::ZeroCopySend + std::fmt::Debug + Copy + 'static,
+{
+    let links = role.open_domain().map(|d| d.link_node_ids()).unwrap_or_default();
+    let start = now_ns();
+    linger(|| {
+        out.subscribers_except(&links) == 0
+            && (links.is_empty() || now_ns() - start > LINK_GRACE_NS)
+    });
+}
+
+fn linger_until(done: &mut impl FnMut() -> bool) {
     let until = now_ns() + LINGER_S * 1_000_000_000;
     while !done() && now_ns() < until && !shutdown_requested() {
         std::thread::sleep(Duration::from_millis(2));

@@ -8,7 +8,7 @@ mod args;
 mod ports;
 
 use rotorloop_common::ipc::{now_ns, shutdown_requested};
-use rotorloop_common::role::{Mode, linger, test_hook};
+use rotorloop_common::role::{Mode, linger_publisher, test_hook};
 use rotorloop_common::wire::FLAG_LAST;
 
 pub use args::ControllerArgs;
@@ -72,6 +72,6 @@ pub fn run(args: &ControllerArgs) -> anyhow::Result<()> {
     ports.send_due(&mut sends, &args.corrupt, true)?; // the last answers held back
     let Ports { out, states, refs, .. } = ports;
     drop((states, refs));
-    linger(|| out.subscribers() == 0);
+    linger_publisher(&out, role);
     Ok(())
 }

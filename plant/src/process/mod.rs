@@ -9,7 +9,7 @@ mod wait;
 
 use anyhow::Context;
 use rotorloop_common::ipc::{SendCost, now_ns, shutdown_requested, sleep_until_ns};
-use rotorloop_common::role::{Mode, TickGrid, corrupted, linger};
+use rotorloop_common::role::{Mode, TickGrid, corrupted, linger_publisher};
 use rotorloop_common::wire::StateSample;
 
 pub use args::PlantArgs;
@@ -62,6 +62,6 @@ pub fn run(args: &PlantArgs) -> anyhow::Result<()> {
     let Ports { states, torques, .. } = ports;
     drop(torques);
     s2a.write(args.latency_out.as_deref());
-    linger(|| states.subscribers() == 0);
+    linger_publisher(&states, role);
     Ok(())
 }

@@ -10,7 +10,7 @@ mod args;
 use anyhow::Context;
 use rotorloop_common::ipc::{Topic, now_ns, shutdown_requested};
 use rotorloop_common::resume::ResumeSlot;
-use rotorloop_common::role::{PlantWatch, corrupted, linger, test_hook};
+use rotorloop_common::role::{PlantWatch, corrupted, linger_publisher, test_hook};
 use rotorloop_common::wire::{FLAG_LAST, ReferenceSample, StateSample};
 
 pub use args::ReferenceArgs;
@@ -74,6 +74,6 @@ pub fn run(args: &ReferenceArgs) -> anyhow::Result<()> {
         }
     }
     drop(states);
-    linger(|| out.subscribers() == 0);
+    linger_publisher(&out, role);
     Ok(())
 }

@@ -1,0 +1,197 @@
+//! The gateway loop: one thread drives iceoryx2's link. It blocks (ppoll) on the
+//! carrier's wake (something arrived from the other host) and on listeners of the
+//! domain's own event services (a role here published), then propagates; every
+//! `--discover-ms` it runs the link's discovery and says what it bridges.
+//!
+//! The listeners belong to the link's own node, so the link never takes them for a local
+//! offer to export, and the gateway never notifies anything itself: the link's event
+//! bridge carries the roles' notifications, samples first (iceoryx2-link 0.10 propagates
+//! samples before events, so a woken subscriber finds its sample).
+
+use std::collections::BTreeSet;
+use std::time::Duration;
+
+use anyhow::Context;
+use iceoryx2::port::listener::Listener;
+use iceoryx2::prelude::*;
+use iceoryx2_bb_posix::file_descriptor::FileDescriptorBased;
+use iceoryx2_integrations_zenoh_link_carrier::ZenohCarrier;
+use iceoryx2_link::Link;
+use iceoryx2_link_tunnel::Tunnel;
+use rotorloop_common::ipc::{Domain, Topic, install_signal_handlers, now_ns, shutdown_requested};
+use zenoh::Wait;
+
+use crate::config::{ConfigError, LinkArgs, zenoh_config};
+
+type ZenohLink = Link<ipc::Service, Tunnel<ZenohCarrier>>;
+
+/// Runs the gateway until SIGINT or SIGTERM.
+pub fn run(args: &LinkArgs) -> anyhow::Result<()> {
+    let spin = match args.wait.as_str() {
+        "event" => false,
+        "spin" => true,
+        other => return Err(ConfigError::Bad(format!("--wait `{other}` is not allowed: event or spin")).into()),
+    };
+    let zenoh_cfg = zenoh_config(args)?;
+    let domain = Domain::on_host(&args.domain, args.host.as_deref())
+        .map_err(|e| ConfigError::Bad(e.to_string()))?;
+    install_signal_handlers();
+    // A killed predecessor's ports would hold the services' gateway slots.
+    let _ = domain.cleanup();
+    let node = domain.node("link").context("link")?;
+    let session = zenoh::open(zenoh_cfg)
+        .wait()
+        .map_err(|e| anyhow::anyhow!("cannot open the Zenoh session: {e}"))?;
+    let carrier = ZenohCarrier::open(session.clone())
+        .map_err(|e| anyhow::anyhow!("cannot create the Zenoh carrier: {e}"))?;
+    let prefix = domain.service_prefix();
+    let filter_prefix = prefix.clone();
+    let mut link = Link::new(node, Tunnel::new(carrier, domain.config()))
+        .with_filter(move |name: &ServiceName| name.as_str().starts_with(&filter_prefix));
+    let wake = link.listener().map_err(|e| anyhow::anyhow!("cannot create the link's wake: {e}"))?;
+    let side = match args.read_only {
+        true => "read-only: imports the loop's topics, puts nothing into it",
+        false => "both directions",
+    };
+    let host = args.host.as_deref().unwrap_or("this machine");
+    eprintln!("link: domain `{}` on host `{host}` ({side}); bridging {prefix}*", args.domain);
+    let mut g = Gateway {
+        domain,
+        listeners: Default::default(),
+        bridged: BTreeSet::new(),
+        peers: 0,
+        errors: 0,
+    };
+    let period = args.discover_ms.max(1) * 1_000_000;
+    let mut next_discover = 0;
+    while !shutdown_requested() {
+        let now = now_ns();
+        if now >= next_discover {
+            next_discover = now + period;
+            g.discover(&mut link, &session, args)?;
+        }
+        if let Err(e) = link.propagate() {
+            g.error("propagate", &e);
+        }
+        if !spin {
+            g.wait(&wake, next_discover.saturating_sub(now_ns()))?;
+        }
+    }
+    eprintln!("link: stopping");
+    Ok(())
+}
+
+/// What the loop keeps between passes.
+struct Gateway {
+    domain: Domain,
+    /// A listener per topic whose event service exists here.
+    listeners: [Option<Listener<ipc::Service>>; 3],
+    /// `(service, pattern)` bridged at the last discovery.
+    bridged: BTreeSet<(String, &'static str)>,
+    peers: usize,
+    errors: u64,
+}
+
+impl Gateway {
+    /// One discovery: the link's, then what it bridges and whether the peer is there.
+    fn discover(
+        &mut self,
+        link: &mut ZenohLink,
+        session: &zenoh::Session,
+        args: &LinkArgs,
+    ) -> anyhow::Result<()> {
+        if let Err(e) = link.discover() {
+            self.error("discover", &e);
+        }
+        for (slot, topic) in self.listeners.iter_mut().zip(Topic::ALL) {
+            if slot.is_none() {
+                *slot = self.domain.listener_if_exists(link.node(), topic).ok().flatten();
+            }
+        }
+        let peers = session.info().peers_zid().wait().count();
+        if peers != self.peers {
+            match peers {
+                0 => eprintln!("link: the other host's gateway is gone; waiting for it"),
+                n => eprintln!("link: connected to {n} peer(s)"),
+            }
+            if self.peers == 0 {
+                if let Some(f) = args.ready_file.as_ref().filter(|_| peers > 0) {
+                    std::fs::write(f, b"connected\n")
+                        .with_context(|| format!("cannot write {}", f.display()))?;
+                }
+            }
+            self.peers = peers;
+        }
+        let now = bridged(link, self.domain.config(), &self.domain.service_prefix());
+        for (name, pattern) in now.difference(&self.bridged) {
+            eprintln!("link: bridging {name} ({pattern})");
+        }
+        for (name, pattern) in self.bridged.difference(&now) {
+            eprintln!("link: no longer bridging {name} ({pattern})");
+        }
+        self.bridged = now;
+        Ok(())
+    }
+
+    /// Blocks until the carrier or a local event wakes the gateway, or `timeout_ns`.
+    fn wait(
+        &self,
+        wake: &Listener<iceoryx2_link_backend::WakeService>,
+        timeout_ns: u64,
+    ) -> anyhow::Result<()> {
+        let mut fds = Vec::with_capacity(4);
+        // SAFETY: the listeners own their descriptors and outlive this call; only polled.
+        let fd = |l: &dyn FileDescriptorBased| unsafe { l.file_descriptor().native_handle() };
+        fds.push(libc::pollfd { fd: fd(wake), events: libc::POLLIN, revents: 0 });
+        for l in self.listeners.iter().flatten() {
+            fds.push(libc::pollfd { fd: fd(l), events: libc::POLLIN, revents: 0 });
+        }
+        let ts = libc::timespec {
+            tv_sec: (timeout_ns / 1_000_000_000) as libc::time_t,
+            tv_nsec: (timeout_ns % 1_000_000_000) as libc::c_long,
+        };
+        // SAFETY: valid pollfds and timespec; no signal mask change.
+        let r = unsafe { libc::ppoll(fds.as_mut_ptr(), fds.len() as _, &ts, std::ptr::null()) };
+        if r < 0 && std::io::Error::last_os_error().kind() != std::io::ErrorKind::Interrupted {
+            return Err(std::io::Error::last_os_error()).context("cannot wait for events");
+        }
+        let _ = wake.try_wait(|_| {});
+        for l in self.listeners.iter().flatten() {
+            let _ = l.try_wait(|_| {});
+        }
+        Ok(())
+    }
+
+    /// Reports a failed cycle (the link stays usable): the first ten, then every 1000th.
+    fn error(&mut self, what: &str, e: &dyn std::fmt::Display) {
+        self.errors += 1;
+        if self.errors <= 10 || self.errors % 1000 == 0 {
+            eprintln!("link: warning: {what} failed ({e}); {} so far", self.errors);
+        }
+        std::thread::sleep(Duration::from_micros(100));
+    }
+}
+
+/// The domain's services the link bridges now, by name and pattern.
+fn bridged(
+    link: &ZenohLink,
+    config: &iceoryx2::config::Config,
+    prefix: &str,
+) -> BTreeSet<(String, &'static str)> {
+    let mut out = BTreeSet::new();
+    let _ = ipc::Service::list(config, |details| {
+        let s = &details.static_details;
+        let name = s.name().as_str();
+        if name.starts_with(prefix) && link.bridges().contains(&s.service_hash()) {
+            use iceoryx2::service::static_config::messaging_pattern::MessagingPattern as P;
+            let pattern = match s.messaging_pattern() {
+                P::PublishSubscribe(_) => "publish-subscribe",
+                P::Event(_) => "event",
+                _ => "other",
+            };
+            out.insert((name.to_owned(), pattern));
+        }
+        CallbackProgression::Continue
+    });
+    out
+}

@@ -1,0 +1,232 @@
+//! `rotorloop run --split`: one run over two "hosts", each with its own iceoryx2 space
+//! (`--host`), joined by two link gateways (`rotorloop-link`) over Zenoh on loopback, so
+//! that what a network does to the loop can be studied on one machine; and `rotorloop
+//! link`, which hands over to the gateway binary (the role binaries and this one never
+//! link Zenoh).
+//!
+//! Start order, so that no sample is sent before the other side can take it: both
+//! gateways, until they are connected; the roles of the host without the plant; until
+//! the plant's host has the services those roles use (mirrored there by its gateway,
+//! which means the other side's Zenoh subscriptions exist); then the plant's host.
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+use std::process::Command;
+use std::time::{Duration, Instant};
+
+use rotorloop_common::ipc::{Domain, Topic, shutdown_requested};
+
+use crate::UsageError;
+
+/// Where each role runs: two hosts, in the order given (the first one's gateway listens).
+#[derive(Debug, Clone, PartialEq)]
+pub struct Split {
+    hosts: Vec<String>,
+    role_host: BTreeMap<String, String>,
+}
+
+impl Split {
+    /// Parses `ROLES@HOST ...` (e.g. `plant,reference,monitor@a controller@b`): every role
+    /// on exactly one host (the monitor only if `monitor`), two hosts.
+    pub fn parse(spec: &str, monitor: bool) -> Result<Self, UsageError> {
+        let bad = |why: String| {
+            UsageError(format!(
+                "--split `{spec}` is not allowed: {why} (form ROLES@HOST ..., e.g. \
+                 `plant,reference,monitor@a controller@b`)"
+            ))
+        };
+        let (mut hosts, mut role_host) = (Vec::<String>::new(), BTreeMap::new());
+        for group in spec.split_whitespace() {
+            let (roles, host) =
+                group.split_once('@').ok_or_else(|| bad(format!("`{group}` has no @HOST")))?;
+            Domain::on_host("d", Some(host)).map_err(|_| {
+                bad(format!("host `{host}` must be 1 to 12 characters from a-z 0-9 -"))
+            })?;
+            if !hosts.iter().any(|h| h == host) {
+                hosts.push(host.to_owned());
+            }
+            for role in roles.split(',') {
+                if !crate::launch::ROLES.contains(&role) {
+                    return Err(bad(format!("`{role}` is not a role (plant, reference, controller, monitor)")));
+                }
+                if role_host.insert(role.to_owned(), host.to_owned()).is_some() {
+                    return Err(bad(format!("{role} is placed twice")));
+                }
+            }
+        }
+        for role in crate::launch::ROLES.iter().filter(|r| **r != "monitor" || monitor) {
+            if !role_host.contains_key(*role) {
+                return Err(bad(format!("{role} is on no host")));
+            }
+        }
+        if !monitor && role_host.contains_key("monitor") {
+            return Err(bad("the monitor is placed but --no-monitor is given".into()));
+        }
+        if hosts.len() != 2 {
+            return Err(bad(format!("{} host(s); a split has two", hosts.len())));
+        }
+        Ok(Self { hosts, role_host })
+    }
+
+    /// The two hosts, the listening one first.
+    pub fn hosts(&self) -> &[String] {
+        &self.hosts
+    }
+
+    /// The host of `role` (a role or a gateway `link-HOST`).
+    pub fn host_of(&self, role: &str) -> Option<&str> {
+        match role.strip_prefix("link-") {
+            Some(h) => self.hosts.iter().find(|x| *x == h).map(String::as_str),
+            None => self.role_host.get(role).map(String::as_str),
+        }
+    }
+
+    /// The gateways' names as the launcher knows them (`link-HOST`).
+    pub fn gateways(&self) -> Vec<String> {
+        self.hosts.iter().map(|h| format!("link-{h}")).collect()
+    }
+
+    /// The roles on `host`.
+    pub fn roles_on(&self, host: &str) -> Vec<&str> {
+        let on = |r: &&str| self.role_host.get(*r).is_some_and(|h| h == host);
+        crate::launch::ROLES.iter().copied().filter(on).collect()
+    }
+
+    /// The host that only watches (every role of it is the monitor): its gateway is
+    /// read-only.
+    pub fn read_only(&self, host: &str) -> bool {
+        self.roles_on(host).iter().all(|r| *r == "monitor")
+    }
+
+    /// How many subscribers of the state the plant waits for on its host: the roles there
+    /// and, when a role elsewhere reads states, the gateway's subscriber.
+    pub fn plant_subscribers(&self) -> usize {
+        let here = self.host_of("plant").unwrap_or_default();
+        let readers = ["reference", "controller", "monitor"];
+        let local = readers.iter().filter(|r| self.host_of(r) == Some(here)).count();
+        let remote = readers.iter().any(|r| self.host_of(r).is_some_and(|h| h != here));
+        local + usize::from(remote)
+    }
+
+    /// The topics the plant's host must have (mirrored) before its roles start: those the
+    /// roles of the other host use.
+    pub fn topics_needed_at_plant(&self) -> Vec<Topic> {
+        let here = self.host_of("plant").unwrap_or_default();
+        let remote = |r: &str| self.host_of(r).is_some_and(|h| h != here);
+        let mut topics = Vec::new();
+        if ["reference", "controller", "monitor"].iter().any(|r| remote(r)) {
+            topics.push(Topic::State);
+        }
+        if remote("controller") || remote("monitor") {
+            topics.extend([Topic::Reference, Topic::Torque]);
+        } else if remote("reference") {
+            topics.push(Topic::Reference);
+        }
+        topics
+    }
+
+    /// A fault's target that is not a role must be one of this split's gateways.
+    pub fn check_fault_target(&self, target: &str) -> Result<(), UsageError> {
+        match target.strip_prefix("link-") {
+            Some(h) if self.hosts.iter().any(|x| x == h) => Ok(()),
+            Some(h) => Err(UsageError(format!(
+                "--fault link-{h}: no host `{h}` in --split (hosts: {})",
+                self.hosts.join(", ")
+            ))),
+            None => Ok(()),
+        }
+    }
+}
+
+/// The gateway binary beside this executable, or how to build it.
+pub fn link_binary() -> Result<PathBuf, UsageError> {
+    let exe = std::env::current_exe().map_err(|e| UsageError(format!("cannot find this executable: {e}")))?;
+    let bin = exe.with_file_name("rotorloop-link");
+    if bin.is_file() {
+        Ok(bin)
+    } else {
+        Err(UsageError(format!(
+            "the link gateway `{}` is not built: it is a crate of its own (it brings Zenoh); \
+             build it with `cargo build --release --workspace` (or `-p rotorloop-link`)",
+            bin.display()
+        )))
+    }
+}
+
+/// `rotorloop link ARGS…`: becomes the gateway (same arguments, same exit code).
+pub fn exec_link(args: &[String]) -> anyhow::Result<()> {
+    use std::os::unix::process::CommandExt;
+    let bin = link_binary()?;
+    let err = Command::new(&bin).args(args).exec();
+    Err(anyhow::anyhow!("cannot start {}: {err}", bin.display()))
+}
+
+/// A free TCP port on loopback (bound, read, released) for the first host's gateway.
+pub fn free_port() -> anyhow::Result<u16> {
+    let l = std::net::TcpListener::bind("127.0.0.1:0")?;
+    Ok(l.local_addr()?.port())
+}
+
+/// The command line of `host`'s gateway: the first host listens on `port`, the second
+/// connects to it; a host with only the monitor is read-only. (The launcher checked with
+/// [`link_binary`] that the binary is there.)
+pub fn gateway_command(split: &Split, host: &str, domain: &str, port: u16, out: &Path) -> Command {
+    let bin = link_binary().unwrap_or_else(|_| PathBuf::from("rotorloop-link"));
+    let mut cmd = Command::new(bin);
+    let endpoint = format!("tcp/127.0.0.1:{port}");
+    let side = if split.hosts[0] == host { "--listen" } else { "--connect" };
+    cmd.args(["--domain", domain, "--host", host, side, &endpoint]);
+    cmd.arg("--ready-file").arg(ready_file(out, host));
+    if split.read_only(host) {
+        cmd.arg("--read-only");
+    }
+    cmd
+}
+
+/// Where `host`'s gateway says it is connected.
+pub fn ready_file(out: &Path, host: &str) -> PathBuf {
+    out.join(format!(".link-{host}.ready"))
+}
+
+/// Waits until `ready()` holds, a termination signal, or `timeout`; false unless ready.
+pub fn wait_until(timeout: Duration, mut ready: impl FnMut() -> bool) -> bool {
+    let start = Instant::now();
+    while !ready() {
+        if shutdown_requested() || start.elapsed() > timeout {
+            return false;
+        }
+        std::thread::sleep(Duration::from_millis(5));
+    }
+    true
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_split_places_every_role_once_on_one_of_two_hosts() {
+        let s = Split::parse("plant,reference,monitor@a controller@b", true).expect("valid");
+        assert_eq!(s.hosts(), ["a", "b"]);
+        assert_eq!(s.host_of("controller"), Some("b"));
+        assert_eq!(s.host_of("link-a"), Some("a"));
+        assert_eq!(s.plant_subscribers(), 3); // reference, monitor, the gateway
+        assert_eq!(s.topics_needed_at_plant(), [Topic::State, Topic::Reference, Topic::Torque]);
+        assert!(!s.read_only("b"));
+        let m = Split::parse("plant,reference,controller@a monitor@ground", true).expect("valid");
+        assert!(m.read_only("ground") && !m.read_only("a"));
+        assert_eq!(m.plant_subscribers(), 3);
+        for (spec, why) in [
+            ("plant,reference,monitor@a", "two"),
+            ("plant,reference@a controller@b", "monitor is on no host"),
+            ("plant,reference,monitor@a controller,plant@b", "placed twice"),
+            ("plant,reference,monitor@a pilot@b", "not a role"),
+            ("plant,reference,monitor@A controller@b", "host `A`"),
+            ("plant,reference,monitor controller@b", "no @HOST"),
+        ] {
+            let e = Split::parse(spec, true).expect_err(spec).to_string();
+            assert!(e.contains(why), "{spec}: {e}");
+        }
+        assert!(s.check_fault_target("link-c").is_err() && s.check_fault_target("link-b").is_ok());
+    }
+}
