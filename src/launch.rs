@@ -367,6 +367,13 @@ impl Launch<'_> {
         match role {
             "monitor" => {
                 cmd.arg("--out").arg(&args.out);
+                if let Some(s) = &self.split {
+                    let hosts: Vec<String> = ROLES
+                        .iter()
+                        .filter_map(|r| s.host_of(r).map(|h| format!("{r}={h}")))
+                        .collect();
+                    cmd.arg("--hosts").arg(hosts.join(","));
+                }
                 if !args.quiet {
                     cmd.arg("--status");
                 }
@@ -518,8 +525,10 @@ fn start(launch: &Launch, children: &mut Children, rss: &mut RssLog) -> anyhow::
         children.0.push((g.clone(), launch.spawn(&g, rss)?));
     }
     let ready = |h: &String| crate::split::ready_file(&args.out, h).exists();
-    if !wait_until(Duration::from_secs(30), || split.hosts().iter().all(ready)) {
-        anyhow::bail!("the link gateways did not connect within 30 s (their messages are above)");
+    let gone = |c: &mut Children| c.0.iter_mut().any(|(_, c)| !matches!(c.try_wait(), Ok(None)));
+    wait_until(Duration::from_secs(30), || split.hosts().iter().all(ready) || gone(children));
+    if gone(children) || !split.hosts().iter().all(ready) {
+        anyhow::bail!("the link gateways did not connect (their messages are above)");
     }
     let plant_host = split.host_of("plant").unwrap_or_default().to_owned();
     for role in roles.iter().filter(|r| split.host_of(r) != Some(&plant_host)) {

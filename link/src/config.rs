@@ -157,7 +157,9 @@ pub fn zenoh_config(args: &LinkArgs) -> Result<zenoh::Config, ConfigError> {
             c
         }
     };
-    if !args.listen.is_empty() {
+    // Zenoh's default peer listens on every interface (`tcp/[::]:0`): without a file, a
+    // gateway listens only where it is told.
+    if !args.listen.is_empty() || args.zenoh.is_none() {
         set(&mut config, "listen/endpoints", &json_list(&args.listen))?;
     }
     if !args.connect.is_empty() {

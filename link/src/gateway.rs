@@ -33,8 +33,12 @@ pub fn run(args: &LinkArgs) -> anyhow::Result<()> {
         other => return Err(ConfigError::Bad(format!("--wait `{other}` is not allowed: event or spin")).into()),
     };
     let zenoh_cfg = zenoh_config(args)?;
+    // iceoryx2's notice that no config file was loaded is noise (the domain makes its own);
+    // the link's warnings (a dropped arrival, a failed bridge) are not.
+    rotorloop_common::ipc::quiet_iceoryx_logs();
     let domain = Domain::on_host(&args.domain, args.host.as_deref())
         .map_err(|e| ConfigError::Bad(e.to_string()))?;
+    iceoryx2::prelude::set_log_level_from_env_or(iceoryx2::prelude::LogLevel::Warn);
     install_signal_handlers();
     // A killed predecessor's ports would hold the services' gateway slots.
     let _ = domain.cleanup();
@@ -54,8 +58,10 @@ pub fn run(args: &LinkArgs) -> anyhow::Result<()> {
         false => "both directions",
     };
     let host = args.host.as_deref().unwrap_or("this machine");
-    eprintln!("link: domain `{}` on host `{host}` ({side}); bridging {prefix}*", args.domain);
+    let who = format!("link[{}]", args.host.as_deref().unwrap_or(&args.domain));
+    eprintln!("{who}: domain `{}` on host `{host}` ({side}); bridging {prefix}*", args.domain);
     let mut g = Gateway {
+        who,
         domain,
         listeners: Default::default(),
         bridged: BTreeSet::new(),
@@ -77,12 +83,14 @@ pub fn run(args: &LinkArgs) -> anyhow::Result<()> {
             g.wait(&wake, next_discover.saturating_sub(now_ns()))?;
         }
     }
-    eprintln!("link: stopping");
+    eprintln!("{}: stopping", g.who);
     Ok(())
 }
 
 /// What the loop keeps between passes.
 struct Gateway {
+    /// `link[HOST]`, what its messages start with.
+    who: String,
     domain: Domain,
     /// A listener per topic whose event service exists here.
     listeners: [Option<Listener<ipc::Service>>; 3],
@@ -111,8 +119,8 @@ impl Gateway {
         let peers = session.info().peers_zid().wait().count();
         if peers != self.peers {
             match peers {
-                0 => eprintln!("link: the other host's gateway is gone; waiting for it"),
-                n => eprintln!("link: connected to {n} peer(s)"),
+                0 => eprintln!("{}: the other host's gateway is gone; waiting for it", self.who),
+                n => eprintln!("{}: connected to {n} peer(s)", self.who),
             }
             if self.peers == 0 {
                 if let Some(f) = args.ready_file.as_ref().filter(|_| peers > 0) {
@@ -124,10 +132,10 @@ impl Gateway {
         }
         let now = bridged(link, self.domain.config(), &self.domain.service_prefix());
         for (name, pattern) in now.difference(&self.bridged) {
-            eprintln!("link: bridging {name} ({pattern})");
+            eprintln!("{}: bridging {name} ({pattern})", self.who);
         }
         for (name, pattern) in self.bridged.difference(&now) {
-            eprintln!("link: no longer bridging {name} ({pattern})");
+            eprintln!("{}: no longer bridging {name} ({pattern})", self.who);
         }
         self.bridged = now;
         Ok(())
@@ -166,7 +174,7 @@ impl Gateway {
     fn error(&mut self, what: &str, e: &dyn std::fmt::Display) {
         self.errors += 1;
         if self.errors <= 10 || self.errors % 1000 == 0 {
-            eprintln!("link: warning: {what} failed ({e}); {} so far", self.errors);
+            eprintln!("{}: warning: {what} failed ({e}); {} so far", self.who, self.errors);
         }
         std::thread::sleep(Duration::from_micros(100));
     }

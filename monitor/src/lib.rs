@@ -8,6 +8,7 @@
 //! process around them.
 
 pub mod figures;
+pub mod hosts;
 pub mod latency;
 pub mod metrics;
 pub mod plot;

@@ -50,6 +50,8 @@ pub struct Recording {
     pub latency: Latency,
     /// The stage breakdown of sense-to-actuate.
     pub stages: Stages,
+    /// The roles' hosts: which hops share a clock.
+    pub hosts: crate::hosts::Hosts,
     actuation: Actuation,
     ticks: u64,
     dt: f64,
@@ -163,6 +165,7 @@ impl Recording {
             recorder: Recorder::new(scenario.ticks() + 1),
             latency,
             stages: Stages::default(),
+            hosts: Default::default(),
             actuation,
             ticks: scenario.ticks(),
             dt: scenario.dt(),
@@ -230,24 +233,31 @@ impl Recording {
         self.last_err = row.err_deg;
         self.drift_max = self.drift_max.max(row.h_drift_rel);
         self.record_latencies(j);
-        self.stages.record_row(j);
+        self.stages.record_row(j, self.hosts.controller_apart());
     }
 
     fn record_latencies(&mut self, j: &JoinedRow) {
         let (s, at, l) = (&j.state, j.state.publish_ns, &mut self.latency);
+        // Only hops whose two stamps come from one host's clock (crate::hosts).
+        let hosts = &self.hosts;
+        let mut record = |hop, ns| {
+            if hosts.computable(hop) {
+                l.record(hop, ns, at);
+            }
+        };
         if let Some(t) = j.torque {
-            l.record(Hop::StateTransport, t.state_recv_ns.saturating_sub(s.publish_ns), at);
-            l.record(Hop::ControllerCompute, t.publish_ns.saturating_sub(t.state_recv_ns), at);
+            record(Hop::StateTransport, t.state_recv_ns.saturating_sub(s.publish_ns));
+            record(Hop::ControllerCompute, t.publish_ns.saturating_sub(t.state_recv_ns));
             if let Some(f) = j.following.filter(|f| f.applied_torque_tick == j.tick) {
                 let recv = f.applied_torque_recv_ns;
-                l.record(Hop::TorqueTransport, recv.saturating_sub(t.publish_ns), at);
-                l.record(Hop::SenseToActuate, recv.saturating_sub(s.publish_ns), at);
+                record(Hop::TorqueTransport, recv.saturating_sub(t.publish_ns));
+                record(Hop::SenseToActuate, recv.saturating_sub(s.publish_ns));
             }
         }
         if s.flags & FLAG_REALTIME != 0 {
-            l.record(Hop::TickLateness, s.wake_ns.saturating_sub(s.deadline_ns), at);
+            record(Hop::TickLateness, s.wake_ns.saturating_sub(s.deadline_ns));
         }
-        l.record(Hop::ReferenceLead, s.publish_ns.saturating_sub(j.reference.publish_ns), at);
+        record(Hop::ReferenceLead, s.publish_ns.saturating_sub(j.reference.publish_ns));
     }
 
     /// If rows were taken since the last call: makes them durable, then returns what the

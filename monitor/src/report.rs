@@ -64,6 +64,9 @@ pub struct RunSummary {
     pub hops: BTreeMap<String, HopStats>,
     /// The stage breakdown of sense-to-actuate (ns; `crate::stages`), in tick order.
     pub stages: Vec<StageStats>,
+    /// A run over several hosts: the hosts, and the hops not computed (two clocks).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub cross_host: Option<crate::hosts::CrossHost>,
     /// Attitude error at the first and last row (deg).
     pub err_deg_initial: f64,
     /// See `err_deg_initial`.
@@ -171,6 +174,7 @@ pub fn summary(
         subscribers,
         hops: Hop::ALL.iter().map(|h| (h.name().to_owned(), rec.latency.stats(*h))).collect(),
         stages: rec.stages.stats(),
+        cross_host: rec.hosts.cross_host(),
         err_deg_initial: rec.first_err,
         err_deg_final: rec.last_err,
         momentum_drift_rel_max: rec.drift_max,

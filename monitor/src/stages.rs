@@ -122,8 +122,9 @@ impl Stages {
         self.hists[stage as usize].saturating_record(ns.max(1));
     }
 
-    /// Records the stages of one settled row (those its samples allow).
-    pub fn record_row(&mut self, j: &JoinedRow) {
+    /// Records the stages of one settled row (those its samples allow); with the
+    /// controller on another host (`apart`), not the two deliveries (two clocks).
+    pub fn record_row(&mut self, j: &JoinedRow, apart: bool) {
         let Some(t) = j.torque.filter(|t| t.computed()) else { return };
         let s = &j.state;
         // A restarted plant's first state carries no cost (zero).
@@ -132,7 +133,9 @@ impl Stages {
             self.record(Stage::StateSend, c.send_ns);
             self.record(Stage::StateNotify, c.notify_ns);
             let sent = s.publish_ns + c.send_ns;
-            self.record(Stage::StateDelivery, t.state_recv_ns.saturating_sub(sent));
+            if !apart {
+                self.record(Stage::StateDelivery, t.state_recv_ns.saturating_sub(sent));
+            }
         }
         // Stamps in order (an answer sent again carries its first stamps: not counted).
         let stamps = [t.state_recv_ns, t.validated_ns, t.paired_ns, t.computed_ns, t.publish_ns];
@@ -149,7 +152,7 @@ impl Stages {
         self.record(Stage::TorqueLoan, c.loan_ns);
         self.record(Stage::TorqueSend, c.send_ns);
         self.record(Stage::TorqueNotify, c.notify_ns);
-        if let Some(f) = j.following.filter(|f| f.applied_torque_tick == j.tick) {
+        if let Some(f) = j.following.filter(|f| f.applied_torque_tick == j.tick && !apart) {
             let sent = t.publish_ns + c.send_ns;
             self.record(Stage::TorqueDelivery, f.applied_torque_recv_ns.saturating_sub(sent));
         }
@@ -213,7 +216,7 @@ mod tests {
             first: false,
         };
         let mut stages = Stages::default();
-        stages.record_row(&row);
+        stages.record_row(&row, false);
         let stats = stages.stats();
         let p50 = |name: &str| stats.iter().find(|s| s.stage == name).map(|s| s.stats.p50);
         let in_loop: u64 = stats.iter().filter(|s| s.in_loop).map(|s| s.stats.p50).sum();
@@ -224,7 +227,7 @@ mod tests {
         assert_eq!(p50("state_notify"), Some(900));
         // Without the next torque the torque's send cost is unknown: not counted.
         let mut partial = Stages::default();
-        partial.record_row(&JoinedRow { next_torque: None, ..row });
+        partial.record_row(&JoinedRow { next_torque: None, ..row }, false);
         let counts: Vec<u64> = partial.stats().iter().map(|s| s.stats.count).collect();
         assert_eq!(counts, [1, 1, 1, 1, 1, 1, 0, 0, 1, 0, 1, 0]);
     }

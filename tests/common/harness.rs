@@ -74,17 +74,25 @@ impl Harness {
 
     /// Nothing of this domain remains in /dev/shm or iceoryx2's root directory.
     pub fn assert_no_leftovers(&self) {
-        let prefix = format!("rl_{}_", self.domain);
+        self.assert_none_with_prefix(&format!("rl_{}_", self.domain));
+    }
+
+    /// Nothing of this test's domain on `host` (a `--split` run's host) is left.
+    pub fn assert_no_leftovers_on(&self, host: &str) {
+        self.assert_none_with_prefix(&format!("rh_{host}_{}_", self.domain));
+    }
+
+    fn assert_none_with_prefix(&self, prefix: &str) {
         let shm: Vec<String> = std::fs::read_dir("/dev/shm")
             .map(|d| {
                 d.flatten()
                     .map(|e| e.file_name().to_string_lossy().into_owned())
-                    .filter(|n| n.starts_with(&prefix))
+                    .filter(|n| n.starts_with(prefix))
                     .collect()
             })
             .unwrap_or_default();
         assert!(shm.is_empty(), "left in /dev/shm: {shm:?}");
-        let root = Path::new("/tmp/iceoryx2").join(&prefix);
+        let root = Path::new("/tmp/iceoryx2").join(prefix);
         let files = files_under(&root);
         assert!(files.is_empty(), "left under {}: {files:?}", root.display());
     }

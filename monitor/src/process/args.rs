@@ -19,4 +19,8 @@ pub struct MonitorArgs {
     /// Poll period (µs).
     #[arg(long, allow_negative_numbers = true, default_value_t = 2000, value_parser = clap::value_parser!(u64).range(50..=100_000))]
     pub poll_us: u64,
+    /// The host of each role when the run spans hosts (`plant=a,controller=b,…`): hops
+    /// between two hosts' clocks are then left out (`rotorloop run --split` sets it).
+    #[arg(long, value_parser = crate::hosts::Hosts::parse)]
+    pub hosts: Option<crate::hosts::Hosts>,
 }

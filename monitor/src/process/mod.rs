@@ -26,6 +26,7 @@ pub fn run(args: &MonitorArgs) -> anyhow::Result<()> {
     let ports = Ports::open(role, &args.out)?;
     // A restart continues the report in the same directory.
     let (mut rec, resumed) = Recording::open(&args.out, &scenario, ports.slot.load(), now_ns());
+    rec.hosts = args.hosts.clone().unwrap_or_default();
     let limit = TorqueSample::absurd_limit(scenario.limits_for(scenario.actuation()).rotor_torque);
     let mut joiner = RowJoiner::new(scenario.ticks(), limit, now_ns());
     if let Some(r) = &resumed {

@@ -1,0 +1,112 @@
+//! The loop split over two "hosts" (`rotorloop run --split`): each host its own iceoryx2
+//! space, joined only by two link gateways over Zenoh on `tcp/127.0.0.1`.
+
+mod common;
+
+use std::time::Duration;
+
+use common::harness::{Harness, assert_same_trace, json, ok};
+
+const LIMIT: Duration = Duration::from_secs(180);
+const SPLIT: &str = "plant,reference,monitor@a controller@b";
+
+fn run_split(h: &Harness, out: &std::path::Path, extra: &[&str]) -> String {
+    let mut args = vec!["run", "--scenario", "paper-zero", "--split", SPLIT, "--domain", &h.domain];
+    args.extend_from_slice(extra);
+    args.extend(["--out", out.to_str().expect("utf8")]);
+    ok(&h.rotorloop(&args, LIMIT))
+}
+
+fn assert_nothing_left(h: &Harness) {
+    h.assert_no_leftovers();
+    h.assert_no_leftovers_on("a");
+    h.assert_no_leftovers_on("b");
+}
+
+/// Lockstep with the controller on the other host: the link carries every state,
+/// reference and torque, and the trace equals the in-process simulator's byte for byte.
+#[test]
+fn a_lockstep_split_over_two_hosts_equals_sim_byte_for_byte() {
+    let h = Harness::new("split-ls");
+    let out = h.path("run");
+    run_split(&h, &out, &["--duration", "1", "--mode", "lockstep"]);
+    let sim = h.path("sim");
+    let sim_args = ["sim", "--scenario", "paper-zero", "--duration", "1", "--no-figures", "--out"];
+    let mut sim_args = sim_args.map(str::to_owned).to_vec();
+    sim_args.push(sim.to_str().expect("utf8").to_owned());
+    ok(&h.rotorloop(&sim_args.iter().map(String::as_str).collect::<Vec<_>>(), LIMIT));
+    let run_trace = std::fs::read(out.join("trace.csv")).expect("run trace");
+    let sim_trace = std::fs::read(sim.join("trace.csv")).expect("sim trace");
+    assert_same_trace("split lockstep", &run_trace, &sim_trace);
+    let s = json(&out.join("summary.json"));
+    assert_eq!(s["trace_rows"], 1001);
+    // Each host wrote its own iceoryx2 configuration for `iox2`.
+    for host in ["a", "b"] {
+        let cfg = std::fs::read_to_string(out.join(format!("host-{host}/config/iceoryx2.toml")))
+            .expect("config");
+        assert!(cfg.contains(&format!("rh_{host}_{}_", h.domain)), "{cfg}");
+    }
+    assert_nothing_left(&h);
+}
+
+/// Real time at 1 kHz over the link: the run completes on its grid, the histograms the
+/// monitor can compute across hosts are there, and the ones that would subtract two
+/// hosts' clocks are not (and the summary says why).
+#[test]
+fn a_realtime_split_completes_with_its_histograms() {
+    let h = Harness::new("split-rt");
+    let out = h.path("run");
+    run_split(&h, &out, &["--duration", "2", "--mode", "realtime"]);
+    let s = json(&out.join("summary.json"));
+    assert_eq!(s["completed"], true);
+    assert_eq!(s["trace_rows"], 2001, "the plant kept its grid");
+    let hops = &s["hops"];
+    for hop in ["sense_to_actuate", "controller_compute", "tick_lateness", "reference_lead"] {
+        assert!(hops[hop]["count"].as_u64().unwrap_or(0) > 1000, "{hop}: {}", hops[hop]);
+    }
+    for hop in ["state_transport", "torque_transport"] {
+        assert_eq!(hops[hop]["count"], 0, "{hop} needs two hosts' clocks: {}", hops[hop]);
+    }
+    let cross = s["cross_host"]["not_computed"].as_array().expect("listed");
+    assert!(cross.iter().any(|x| x == "state_transport"), "{cross:?}");
+    assert_nothing_left(&h);
+}
+
+/// Killing the controller host's gateway is a fault like any other: the plant holds,
+/// enters safe mode, and control resumes when the gateway is back; the report lists it.
+#[test]
+fn a_killed_gateway_holds_then_safe_mode_then_recovers() {
+    let h = Harness::new("split-kill");
+    let out = h.path("run");
+    let fault = "link-b:kill@1.0:restart@2.0";
+    let extra = ["--duration", "4", "--mode", "realtime", "--hold-ticks", "40", "--fault", fault];
+    run_split(&h, &out, &extra);
+    let s = json(&out.join("summary.json"));
+    assert_eq!(s["completed"], true);
+    assert_eq!(s["trace_rows"], 4001);
+    let f = s["faults"].as_array().expect("faults").iter().find(|f| f["role"] == "link-b");
+    let f = f.unwrap_or_else(|| panic!("the gateway kill is not in the report: {}", s["faults"]));
+    assert!(f["ticks_without_fresh_torque"].as_u64().expect("ticks") > 40, "{f}");
+    assert!(f["ticks_to_first_fresh_torque"].as_u64().is_some(), "control never resumed: {f}");
+    assert!(s["safe_mode_ticks"].as_u64().expect("safe") > 0);
+    assert_nothing_left(&h);
+}
+
+/// A split that is not one is refused before anything starts, naming what is wrong.
+#[test]
+fn a_bad_split_or_gateway_fault_is_refused_naming_it() {
+    let h = Harness::new("split-bad");
+    let out = h.path("run");
+    let o = h.rotorloop(
+        &["run", "--scenario", "paper-zero", "--split", "plant,monitor@a", "--out", out.to_str().expect("utf8")],
+        LIMIT,
+    );
+    assert_eq!(o.status.code(), Some(2));
+    assert!(String::from_utf8_lossy(&o.stderr).contains("is on no host"));
+    let o = h.rotorloop(
+        &["run", "--scenario", "paper-zero", "--fault", "link-b:kill@1", "--out", out.to_str().expect("utf8")],
+        LIMIT,
+    );
+    assert_eq!(o.status.code(), Some(2));
+    assert!(String::from_utf8_lossy(&o.stderr).contains("only with --split"));
+}
