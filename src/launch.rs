@@ -12,6 +12,7 @@ use clap::Args;
 use rotorloop_common::ipc::REFERENCE_LEAD;
 use rotorloop_common::ipc::{install_signal_handlers, now_ns, shutdown_requested};
 use rotorloop_common::resume::ResumeSlot;
+use rotorloop_common::role::LINGER_S;
 use rotorloop_common::wire::{FLAG_LAST, StateSample, TorqueSample};
 use rotorloop_monitor::policy::MonitorResume;
 use rotorloop_reference::policy::ReferenceResume;
@@ -436,7 +437,11 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
         match &split {
             Some(s) => s.check_fault_target(&f.role)?,
             None if f.role.starts_with("link-") => {
-                return Err(UsageError(format!("--fault {}: gateways exist only with --split", f.role)).into());
+                return Err(UsageError(format!(
+                    "--fault {}: gateways exist only with --split",
+                    f.role
+                ))
+                .into());
             }
             None => {}
         }
@@ -492,9 +497,8 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
     let mut rss = RssLog::create(&args.out);
     let mut children = Children::default();
     let started = start(&launch, &mut children, &mut rss);
-    let supervised = started.and_then(|()| {
-        supervise(&launch, &mut children, &mut rss, FaultSchedule::new(faults))
-    });
+    let supervised = started
+        .and_then(|()| supervise(&launch, &mut children, &mut rss, FaultSchedule::new(faults)));
     stop_gateways(&mut children);
     drop(children);
     // Everything of this domain is gone now: remove what iceoryx2 keeps after its nodes.
@@ -630,6 +634,7 @@ fn supervise(
     // written just before each publish).
     let progress = Progress::open(launch)?;
     let (mut run_t0, mut term_sent_at): (Option<u64>, Option<u64>) = (None, None);
+    let mut plant_ended_at: Option<u64> = None;
     let mut w = Watch {
         events: Vec::new(),
         failures: Vec::new(),
@@ -667,6 +672,23 @@ fn supervise(
         }
         rss.sample_if_due();
         let running = reap(children, &mut w, &progress, stopping, now_s);
+        // Split: a role on another host than the plant cannot read the plant's resume slot
+        // (it learns the end from the last state). If that state was lost with a gateway,
+        // it would wait for ever: once the plant has ended, the rest get their linger
+        // time, then SIGTERM (a clean end, not a fault).
+        if launch.split.is_some() && progress.loop_complete() && !stopping {
+            let plant_gone =
+                children.get_mut("plant").is_none_or(|c| !matches!(c.try_wait(), Ok(None)));
+            let since = *plant_ended_at.get_or_insert_with(now_ns);
+            if plant_gone && now_ns() - since > (LINGER_S + 5) * 1_000_000_000 {
+                eprintln!(
+                    "launcher: the plant ended {} s ago; stopping the roles still waiting",
+                    LINGER_S + 5
+                );
+                term_sent_at = Some(now_ns());
+                children.signal_all(libc::SIGTERM);
+            }
+        }
         let awaiting = schedule.awaiting_restart() || !w.restarts.is_empty();
         if running == 0 && (!awaiting || stopping) {
             break;

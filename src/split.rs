@@ -47,7 +47,9 @@ impl Split {
             }
             for role in roles.split(',') {
                 if !crate::launch::ROLES.contains(&role) {
-                    return Err(bad(format!("`{role}` is not a role (plant, reference, controller, monitor)")));
+                    return Err(bad(format!(
+                        "`{role}` is not a role (plant, reference, controller, monitor)"
+                    )));
                 }
                 if role_host.insert(role.to_owned(), host.to_owned()).is_some() {
                     return Err(bad(format!("{role} is placed twice")));
@@ -140,7 +142,8 @@ impl Split {
 
 /// The gateway binary beside this executable, or how to build it.
 pub fn link_binary() -> Result<PathBuf, UsageError> {
-    let exe = std::env::current_exe().map_err(|e| UsageError(format!("cannot find this executable: {e}")))?;
+    let exe = std::env::current_exe()
+        .map_err(|e| UsageError(format!("cannot find this executable: {e}")))?;
     let bin = exe.with_file_name("rotorloop-link");
     if bin.is_file() {
         Ok(bin)

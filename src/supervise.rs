@@ -80,7 +80,9 @@ pub fn parse_fault(s: &str) -> Result<Fault, UsageError> {
     }
     let gateway = parts[0].strip_prefix("link-").is_some_and(|h| !h.is_empty());
     if !ROLES.contains(&parts[0]) && !gateway {
-        return Err(bad("ROLE is plant, reference, controller, monitor or (with --split) link-HOST"));
+        return Err(bad(
+            "ROLE is plant, reference, controller, monitor or (with --split) link-HOST",
+        ));
     }
     let seconds = |p: &str, what: &str| -> Result<f64, UsageError> {
         p.parse::<f64>()

@@ -29,7 +29,9 @@ pub enum ConfigError {
     )]
     Unauthenticated { which: &'static str, endpoint: String },
     /// Neither an endpoint nor a configuration file.
-    #[error("say where to meet the other host: --listen ENDPOINT, --connect ENDPOINT or --zenoh FILE")]
+    #[error(
+        "say where to meet the other host: --listen ENDPOINT, --connect ENDPOINT or --zenoh FILE"
+    )]
     NoEndpoint,
     /// A bad value.
     #[error("{0}")]
@@ -176,7 +178,10 @@ pub fn zenoh_config(args: &LinkArgs) -> Result<zenoh::Config, ConfigError> {
                 .map_err(|e| bad(format!("--password-file {}: {e}", file.display())))?;
             let password = text.lines().next().unwrap_or_default().trim_end();
             if password.is_empty() {
-                return Err(bad(format!("--password-file {}: the first line is empty", file.display())));
+                return Err(bad(format!(
+                    "--password-file {}: the first line is empty",
+                    file.display()
+                )));
             }
             let json = |s: &str| serde_json::Value::from(s).to_string();
             set(&mut config, "transport/auth/usrpwd/user", &json(user))?;
@@ -195,10 +200,9 @@ pub fn zenoh_config(args: &LinkArgs) -> Result<zenoh::Config, ConfigError> {
     }
     if !authenticates(&config) {
         let open = |which, list: &[String]| {
-            list.iter().find(|e| !is_loopback(e)).map(|e| ConfigError::Unauthenticated {
-                which,
-                endpoint: e.clone(),
-            })
+            list.iter()
+                .find(|e| !is_loopback(e))
+                .map(|e| ConfigError::Unauthenticated { which, endpoint: e.clone() })
         };
         if let Some(e) = open("listen", &listen).or_else(|| open("connect", &connect)) {
             return Err(e);
@@ -233,7 +237,8 @@ mod tests {
         for e in ["tcp/127.0.0.1:7447", "tcp/[::1]:7447", "tcp/localhost:7447", "tls/127.0.0.2:1"] {
             assert!(is_loopback(e), "{e}");
         }
-        for e in ["tcp/0.0.0.0:7447", "tcp/192.168.1.2:7447", "tcp/[::]:7447", "tcp/example.org:1"] {
+        for e in ["tcp/0.0.0.0:7447", "tcp/192.168.1.2:7447", "tcp/[::]:7447", "tcp/example.org:1"]
+        {
             assert!(!is_loopback(e), "{e}");
         }
     }
@@ -253,13 +258,11 @@ mod tests {
         let dir = tempfile::tempdir().expect("tempdir");
         let users = dir.path().join("users");
         std::fs::write(&users, "ground:secret\n").expect("write");
-        let a = LinkArgs {
-            listen: vec!["tcp/0.0.0.0:7447".into()],
-            users: Some(users),
-            ..args()
-        };
+        let a = LinkArgs { listen: vec!["tcp/0.0.0.0:7447".into()], users: Some(users), ..args() };
         let c = zenoh_config(&a).expect("allowed");
-        assert!(c.get_json("transport/auth/usrpwd/dictionary_file").expect("set").contains("users"));
+        assert!(
+            c.get_json("transport/auth/usrpwd/dictionary_file").expect("set").contains("users")
+        );
         let pw = dir.path().join("pw");
         std::fs::write(&pw, "secret\n").expect("write");
         let a = LinkArgs {
@@ -277,7 +280,10 @@ mod tests {
         let a = LinkArgs { connect: vec!["tcp/127.0.0.1:7447".into()], read_only: true, ..args() };
         let c = zenoh_config(&a).expect("allowed");
         let acl = c.get_json("access_control").expect("set");
-        assert!(acl.contains("\"egress\"") && acl.contains("\"put\"") && acl.contains("deny"), "{acl}");
+        assert!(
+            acl.contains("\"egress\"") && acl.contains("\"put\"") && acl.contains("deny"),
+            "{acl}"
+        );
         let open = zenoh_config(&LinkArgs { read_only: false, ..a }).expect("allowed");
         assert!(!open.get_json("access_control/enabled").expect("key").contains("true"));
     }

@@ -30,7 +30,11 @@ pub fn run(args: &LinkArgs) -> anyhow::Result<()> {
     let spin = match args.wait.as_str() {
         "event" => false,
         "spin" => true,
-        other => return Err(ConfigError::Bad(format!("--wait `{other}` is not allowed: event or spin")).into()),
+        other => {
+            return Err(
+                ConfigError::Bad(format!("--wait `{other}` is not allowed: event or spin")).into()
+            );
+        }
     };
     let zenoh_cfg = zenoh_config(args)?;
     // iceoryx2's notice that no config file was loaded is noise (the domain makes its own);
@@ -52,7 +56,8 @@ pub fn run(args: &LinkArgs) -> anyhow::Result<()> {
     let filter_prefix = prefix.clone();
     let mut link = Link::new(node, Tunnel::new(carrier, domain.config()))
         .with_filter(move |name: &ServiceName| name.as_str().starts_with(&filter_prefix));
-    let wake = link.listener().map_err(|e| anyhow::anyhow!("cannot create the link's wake: {e}"))?;
+    let wake =
+        link.listener().map_err(|e| anyhow::anyhow!("cannot create the link's wake: {e}"))?;
     let side = match args.read_only {
         true => "read-only: imports the loop's topics, puts nothing into it",
         false => "both directions",
@@ -190,7 +195,7 @@ fn bridged(
     let _ = ipc::Service::list(config, |details| {
         let s = &details.static_details;
         let name = s.name().as_str();
-        if name.starts_with(prefix) && link.bridges().contains(&s.service_hash()) {
+        if name.starts_with(prefix) && link.bridges().contains(s.service_hash()) {
             use iceoryx2::service::static_config::messaging_pattern::MessagingPattern as P;
             let pattern = match s.messaging_pattern() {
                 P::PublishSubscribe(_) => "publish-subscribe",

@@ -94,7 +94,10 @@ mod tests {
         assert!(!split.computable(Hop::StateTransport) && !split.computable(Hop::TorqueTransport));
         assert!(split.computable(Hop::SenseToActuate) && split.computable(Hop::ReferenceLead));
         let c = split.cross_host().expect("split");
-        assert_eq!(c.not_computed, ["state_transport", "torque_transport", "state_delivery", "torque_delivery"]);
+        assert_eq!(
+            c.not_computed,
+            ["state_transport", "torque_transport", "state_delivery", "torque_delivery"]
+        );
         assert!(Hosts::parse("pilot=b").is_err() && Hosts::parse("plant").is_err());
     }
 }

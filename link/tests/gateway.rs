@@ -1,0 +1,179 @@
+//! Two gateways on loopback, each host its own iceoryx2 space: who may join, and in which
+//! direction samples may go. Each refusal has a positive control beside it (the same
+//! set-up with the permission given carries the samples), so a test cannot pass by
+//! carrying nothing at all.
+
+use std::path::Path;
+use std::process::{Child, Command, Stdio};
+use std::time::{Duration, Instant};
+
+use rotorloop_common::ipc::{Domain, Topic};
+use rotorloop_common::wire::TorqueSample;
+
+const LINK: &str = env!("CARGO_BIN_EXE_rotorloop-link");
+
+/// A gateway process, stopped (SIGKILL) when dropped.
+struct Gateway(Child);
+
+impl Drop for Gateway {
+    fn drop(&mut self) {
+        let _ = self.0.kill();
+        let _ = self.0.wait();
+    }
+}
+
+fn gateway(domain: &str, host: &str, ready: &Path, extra: &[&str]) -> Gateway {
+    let child = Command::new(LINK)
+        .args(["--domain", domain, "--host", host, "--ready-file"])
+        .arg(ready)
+        .args(extra)
+        .stdin(Stdio::null())
+        .spawn()
+        .expect("start rotorloop-link");
+    Gateway(child)
+}
+
+fn free_port() -> u16 {
+    let l = std::net::TcpListener::bind("127.0.0.1:0").expect("bind");
+    l.local_addr().expect("addr").port()
+}
+
+fn wait_for(timeout: Duration, mut f: impl FnMut() -> bool) -> bool {
+    let start = Instant::now();
+    while start.elapsed() < timeout {
+        if f() {
+            return true;
+        }
+        std::thread::sleep(Duration::from_millis(10));
+    }
+    f()
+}
+
+fn torque(tick: u64) -> TorqueSample {
+    TorqueSample { tick, ..Default::default() }
+}
+
+/// What crossed in each direction while both hosts published torques for `secs`: the
+/// ticks host `a` received from `b` (≥ 9000) and host `b` received from `a` (< 9000).
+fn exchange(domain: &str, secs: f64) -> (usize, usize) {
+    let (a, b) = (
+        Domain::on_host(domain, Some("a")).expect("a"),
+        Domain::on_host(domain, Some("b")).expect("b"),
+    );
+    let (na, nb) = (a.node("plant").expect("node a"), b.node("monitor").expect("node b"));
+    let out_a = a.outbox::<TorqueSample>(&na, Topic::Torque).expect("publisher a");
+    let in_a = a.inbox::<TorqueSample>(&na, Topic::Torque, 64, false).expect("subscriber a");
+    let out_b = b.outbox::<TorqueSample>(&nb, Topic::Torque).expect("publisher b");
+    let in_b = b.inbox::<TorqueSample>(&nb, Topic::Torque, 64, false).expect("subscriber b");
+    let (mut from_b_at_a, mut from_a_at_b) = (0, 0);
+    let start = Instant::now();
+    let mut k = 0;
+    while start.elapsed().as_secs_f64() < secs {
+        k += 1;
+        out_a.send(torque(k), |_| {}).expect("send a");
+        out_b.send(torque(9000 + k), |_| {}).expect("send b");
+        in_a.drain(|t| from_b_at_a += usize::from(t.tick >= 9000)).expect("drain a");
+        in_b.drain(|t| from_a_at_b += usize::from(t.tick < 9000)).expect("drain b");
+        std::thread::sleep(Duration::from_millis(2));
+    }
+    (from_b_at_a, from_a_at_b)
+}
+
+fn cleanup(domain: &str) {
+    for h in ["a", "b"] {
+        let _ = Domain::on_host(domain, Some(h)).map(|d| d.cleanup());
+    }
+}
+
+/// A listening gateway with a user/password dictionary: a peer without the credentials
+/// never connects (and so can inject nothing); the same peer with them does, and samples
+/// cross.
+#[test]
+fn a_peer_without_the_credentials_cannot_connect_or_inject() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    std::fs::write(dir.path().join("users"), "loop:s3cret\n").expect("users");
+    std::fs::write(dir.path().join("pw"), "s3cret\n").expect("pw");
+    std::fs::write(dir.path().join("wrong"), "guess\n").expect("pw");
+    let domain = format!("lk-auth-{}", std::process::id());
+    let port = free_port();
+    let listen = format!("tcp/127.0.0.1:{port}");
+    let users = dir.path().join("users");
+    let (ra, rb) = (dir.path().join("a.ready"), dir.path().join("b.ready"));
+    let _a = gateway(
+        &domain,
+        "a",
+        &ra,
+        &["--listen", &listen, "--users", users.to_str().expect("utf8")],
+    );
+    for creds in [None, Some("wrong")] {
+        let mut extra = vec!["--connect", listen.as_str()];
+        let pw = creds.map(|f| dir.path().join(f));
+        if let Some(pw) = &pw {
+            extra.extend(["--user", "loop", "--password-file", pw.to_str().expect("utf8")]);
+        }
+        let b = gateway(&domain, "b", &rb, &extra);
+        assert!(!wait_for(Duration::from_secs(3), || rb.exists()), "{creds:?} connected");
+        let (in_a, _) = exchange(&domain, 1.0);
+        assert_eq!(in_a, 0, "a peer with {creds:?} injected samples");
+        drop(b);
+        cleanup(&domain);
+    }
+    let pw = dir.path().join("pw");
+    let extra =
+        ["--connect", &listen, "--user", "loop", "--password-file", pw.to_str().expect("utf8")];
+    let _b = gateway(&domain, "b", &rb, &extra);
+    assert!(
+        wait_for(Duration::from_secs(10), || rb.exists()),
+        "the right credentials did not connect"
+    );
+    let (in_a, in_b) = exchange(&domain, 3.0);
+    assert!(in_a > 0 && in_b > 0, "with the credentials samples must cross: {in_a} / {in_b}");
+    drop((_a, _b));
+    cleanup(&domain);
+}
+
+/// A read-only gateway (a remote monitor's host) receives the loop's samples but puts
+/// nothing into the loop, even from a process on its host that publishes a torque; the
+/// same set-up without `--read-only` carries that torque in.
+#[test]
+fn a_read_only_gateway_cannot_publish_into_the_loop() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    for read_only in [true, false] {
+        let domain = format!("lk-ro{}-{}", u8::from(read_only), std::process::id());
+        let listen = format!("tcp/127.0.0.1:{}", free_port());
+        let (ra, rb) =
+            (dir.path().join(format!("{read_only}a")), dir.path().join(format!("{read_only}b")));
+        let _a = gateway(&domain, "a", &ra, &["--listen", &listen]);
+        let mut extra = vec!["--connect", listen.as_str()];
+        if read_only {
+            extra.push("--read-only");
+        }
+        let _b = gateway(&domain, "b", &rb, &extra);
+        assert!(wait_for(Duration::from_secs(10), || rb.exists()), "not connected");
+        let (in_a, in_b) = exchange(&domain, 3.0);
+        assert!(
+            in_b > 0,
+            "the monitor's host must receive the loop's samples (read-only {read_only})"
+        );
+        if read_only {
+            assert_eq!(in_a, 0, "a read-only gateway carried {in_a} samples into the loop");
+        } else {
+            assert!(in_a > 0, "without --read-only the torque must cross (the control)");
+        }
+        drop((_a, _b));
+        cleanup(&domain);
+    }
+}
+
+/// A gateway asked to listen beyond loopback without authentication refuses to start,
+/// naming the endpoint (exit code 2), before it opens anything.
+#[test]
+fn an_unauthenticated_network_endpoint_is_refused_before_anything_opens() {
+    let o = Command::new(LINK)
+        .args(["--domain", "lk-open", "--listen", "tcp/0.0.0.0:7447"])
+        .output()
+        .expect("run");
+    assert_eq!(o.status.code(), Some(2));
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(err.contains("tcp/0.0.0.0:7447") && err.contains("not on loopback"), "{err}");
+}
