@@ -31,9 +31,10 @@ pub fn run(args: &LinkArgs) -> anyhow::Result<()> {
         "event" => false,
         "spin" => true,
         other => {
-            return Err(
-                ConfigError::Bad(format!("--wait `{other}` is not allowed: event or spin")).into()
-            );
+            return Err(ConfigError::Bad(format!(
+                "--wait `{other}` is not allowed: event or spin"
+            ))
+            .into());
         }
     };
     let zenoh_cfg = zenoh_config(args)?;
