@@ -5,18 +5,9 @@ mod common;
 
 use std::time::Duration;
 
-use common::harness::{Harness, ROTORLOOP, assert_same_trace, json, ok};
+use common::harness::{Harness, ROTORLOOP, assert_same_trace, json, ok, sim_trace};
 
 const LIMIT: Duration = Duration::from_secs(120);
-
-fn sim_trace(h: &Harness, scenario: &str, duration: &str, extra: &[&str]) -> Vec<u8> {
-    let out = h.path(&format!("sim-{scenario}"));
-    let mut args = vec!["sim", "--scenario", scenario, "--duration", duration, "--no-figures"];
-    args.extend_from_slice(extra);
-    args.extend(["--out", out.to_str().expect("utf8")]);
-    ok(&h.rotorloop(&args, LIMIT));
-    std::fs::read(out.join("trace.csv")).expect("sim trace")
-}
 
 /// A lockstep run of the four processes produces the same trace, bit for bit, as the
 /// in-process simulator (both actuations).

@@ -5,7 +5,7 @@ mod common;
 
 use std::time::Duration;
 
-use common::harness::{Harness, assert_same_trace, json, ok};
+use common::harness::{Harness, assert_same_trace, json, ok, sim_trace};
 
 const LIMIT: Duration = Duration::from_secs(180);
 const SPLIT: &str = "plant,reference,monitor@a controller@b";
@@ -30,14 +30,9 @@ fn a_lockstep_split_over_two_hosts_equals_sim_byte_for_byte() {
     let h = Harness::new("split-ls");
     let out = h.path("run");
     run_split(&h, &out, &["--duration", "1", "--mode", "lockstep"]);
-    let sim = h.path("sim");
-    let sim_args = ["sim", "--scenario", "paper-zero", "--duration", "1", "--no-figures", "--out"];
-    let mut sim_args = sim_args.map(str::to_owned).to_vec();
-    sim_args.push(sim.to_str().expect("utf8").to_owned());
-    ok(&h.rotorloop(&sim_args.iter().map(String::as_str).collect::<Vec<_>>(), LIMIT));
     let run_trace = std::fs::read(out.join("trace.csv")).expect("run trace");
-    let sim_trace = std::fs::read(sim.join("trace.csv")).expect("sim trace");
-    assert_same_trace("split lockstep", &run_trace, &sim_trace);
+    let sim = sim_trace(&h, "paper-zero", "1", &[]);
+    assert_same_trace("split lockstep", &run_trace, &sim);
     let s = json(&out.join("summary.json"));
     assert_eq!(s["trace_rows"], 1001);
     // Each host wrote its own iceoryx2 configuration for `iox2`.
@@ -97,32 +92,14 @@ fn a_killed_gateway_holds_then_safe_mode_then_recovers() {
 fn a_bad_split_or_gateway_fault_is_refused_naming_it() {
     let h = Harness::new("split-bad");
     let out = h.path("run");
-    let o = h.rotorloop(
-        &[
-            "run",
-            "--scenario",
-            "paper-zero",
-            "--split",
-            "plant,monitor@a",
-            "--out",
-            out.to_str().expect("utf8"),
-        ],
-        LIMIT,
-    );
-    assert_eq!(o.status.code(), Some(2));
-    assert!(String::from_utf8_lossy(&o.stderr).contains("is on no host"));
-    let o = h.rotorloop(
-        &[
-            "run",
-            "--scenario",
-            "paper-zero",
-            "--fault",
-            "link-b:kill@1",
-            "--out",
-            out.to_str().expect("utf8"),
-        ],
-        LIMIT,
-    );
-    assert_eq!(o.status.code(), Some(2));
-    assert!(String::from_utf8_lossy(&o.stderr).contains("only with --split"));
+    let out = out.to_str().expect("utf8");
+    for (option, value, why) in [
+        ("--split", "plant,monitor@a", "is on no host"),
+        ("--fault", "link-b:kill@1", "only with --split"),
+    ] {
+        let o =
+            h.rotorloop(&["run", "--scenario", "paper-zero", option, value, "--out", out], LIMIT);
+        assert_eq!(o.status.code(), Some(2), "{option} {value}");
+        assert!(String::from_utf8_lossy(&o.stderr).contains(why), "{option} {value}");
+    }
 }

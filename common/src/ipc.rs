@@ -735,24 +735,37 @@ fn wait_readable(listener: &Listener<ipc::Service>, timeout_ns: u64) -> Result<(
     use iceoryx2_bb_posix::file_descriptor::FileDescriptorBased;
     // SAFETY: the listener owns the descriptor and outlives this call; it is only polled.
     let fd = unsafe { listener.file_descriptor().native_handle() };
-    let mut pfd = libc::pollfd { fd, events: libc::POLLIN, revents: 0 };
+    wait_any_readable(&[fd], timeout_ns)?;
+    match listener.try_wait(|_| {}) {
+        // A signal (SIGTERM to stop, say) is a wake-up like any other.
+        Ok(_) | Err(iceoryx2::port::listener::ListenerWaitError::InterruptSignal) => Ok(()),
+        Err(e) => Err(iox("cannot drain events")(&e)),
+    }
+}
+
+/// Blocks until one of `fds` (at most 8) is readable, `timeout_ns` passes or a signal
+/// arrives: `ppoll`, whose timeout is an hrtimer with nanosecond resolution (unlike
+/// iceoryx2's `SO_RCVTIMEO`; see `wait_readable`). The caller drains what woke it.
+pub fn wait_any_readable(fds: &[i32], timeout_ns: u64) -> Result<(), IpcError> {
+    let mut pfds: [libc::pollfd; 8] = [libc::pollfd { fd: -1, events: 0, revents: 0 }; 8];
+    assert!(fds.len() <= pfds.len(), "at most {} descriptors", pfds.len());
+    for (p, &fd) in pfds.iter_mut().zip(fds) {
+        *p = libc::pollfd { fd, events: libc::POLLIN, revents: 0 };
+    }
     let ts = libc::timespec {
         tv_sec: (timeout_ns / 1_000_000_000) as libc::time_t,
         tv_nsec: (timeout_ns % 1_000_000_000) as libc::c_long,
     };
-    // SAFETY: one valid pollfd, a valid timespec, no signal mask change.
-    let r = unsafe { libc::ppoll(&mut pfd, 1, &ts, std::ptr::null()) };
+    // SAFETY: valid pollfds (the first fds.len()), a valid timespec, no signal mask change.
+    let r =
+        unsafe { libc::ppoll(pfds.as_mut_ptr(), fds.len() as libc::nfds_t, &ts, std::ptr::null()) };
     if r < 0 && std::io::Error::last_os_error().kind() != std::io::ErrorKind::Interrupted {
         return Err(IpcError::Iceoryx {
             what: "cannot wait for an event".into(),
             detail: std::io::Error::last_os_error().to_string(),
         });
     }
-    match listener.try_wait(|_| {}) {
-        // A signal (SIGTERM to stop, say) is a wake-up like any other.
-        Ok(_) | Err(iceoryx2::port::listener::ListenerWaitError::InterruptSignal) => Ok(()),
-        Err(e) => Err(iox("cannot drain events")(&e)),
-    }
+    Ok(())
 }
 
 /// How a process waits for its input.

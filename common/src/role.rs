@@ -285,7 +285,10 @@ impl TickGrid {
 
 /// Waits until `done()` or [`LINGER_S`] seconds or a termination signal.
 pub fn linger(mut done: impl FnMut() -> bool) {
-    linger_until(&mut done);
+    let until = now_ns() + LINGER_S * 1_000_000_000;
+    while !done() && now_ns() < until && !shutdown_requested() {
+        std::thread::sleep(Duration::from_millis(2));
+    }
 }
 
 /// How long a finished publisher gives a link gateway's subscriber (which never leaves:
@@ -304,13 +307,6 @@ where
         out.subscribers_except(&links) == 0
             && (links.is_empty() || now_ns() - start > LINK_GRACE_NS)
     });
-}
-
-fn linger_until(done: &mut impl FnMut() -> bool) {
-    let until = now_ns() + LINGER_S * 1_000_000_000;
-    while !done() && now_ns() < until && !shutdown_requested() {
-        std::thread::sleep(Duration::from_millis(2));
-    }
 }
 
 /// Counts samples received and samples lost (gaps in the tick sequence) on one subscriber.

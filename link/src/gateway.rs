@@ -18,7 +18,9 @@ use iceoryx2_bb_posix::file_descriptor::FileDescriptorBased;
 use iceoryx2_integrations_zenoh_link_carrier::ZenohCarrier;
 use iceoryx2_link::Link;
 use iceoryx2_link_tunnel::Tunnel;
-use rotorloop_common::ipc::{Domain, Topic, install_signal_handlers, now_ns, shutdown_requested};
+use rotorloop_common::ipc::{
+    Domain, Topic, install_signal_handlers, now_ns, shutdown_requested, wait_any_readable,
+};
 use zenoh::Wait;
 
 use crate::config::{ConfigError, LinkArgs, zenoh_config};
@@ -68,6 +70,7 @@ pub fn run(args: &LinkArgs) -> anyhow::Result<()> {
     eprintln!("{who}: domain `{}` on host `{host}` ({side}); bridging {prefix}*", args.domain);
     let mut g = Gateway {
         who,
+        prefix,
         domain,
         listeners: Default::default(),
         bridged: BTreeSet::new(),
@@ -97,6 +100,8 @@ pub fn run(args: &LinkArgs) -> anyhow::Result<()> {
 struct Gateway {
     /// `link[HOST]`, what its messages start with.
     who: String,
+    /// `rotorloop/<domain>/`: the services it bridges.
+    prefix: String,
     domain: Domain,
     /// A listener per topic whose event service exists here.
     listeners: [Option<Listener<ipc::Service>>; 3],
@@ -136,7 +141,7 @@ impl Gateway {
             }
             self.peers = peers;
         }
-        let now = bridged(link, self.domain.config(), &self.domain.service_prefix());
+        let now = bridged(link, self.domain.config(), &self.prefix);
         for (name, pattern) in now.difference(&self.bridged) {
             eprintln!("{}: bridging {name} ({pattern})", self.who);
         }
@@ -153,22 +158,14 @@ impl Gateway {
         wake: &Listener<iceoryx2_link_backend::WakeService>,
         timeout_ns: u64,
     ) -> anyhow::Result<()> {
-        let mut fds = Vec::with_capacity(4);
         // SAFETY: the listeners own their descriptors and outlive this call; only polled.
         let fd = |l: &dyn FileDescriptorBased| unsafe { l.file_descriptor().native_handle() };
-        fds.push(libc::pollfd { fd: fd(wake), events: libc::POLLIN, revents: 0 });
-        for l in self.listeners.iter().flatten() {
-            fds.push(libc::pollfd { fd: fd(l), events: libc::POLLIN, revents: 0 });
+        let mut fds = [fd(wake); 4];
+        for (slot, l) in fds[1..].iter_mut().zip(self.listeners.iter().flatten()) {
+            *slot = fd(l);
         }
-        let ts = libc::timespec {
-            tv_sec: (timeout_ns / 1_000_000_000) as libc::time_t,
-            tv_nsec: (timeout_ns % 1_000_000_000) as libc::c_long,
-        };
-        // SAFETY: valid pollfds and timespec; no signal mask change.
-        let r = unsafe { libc::ppoll(fds.as_mut_ptr(), fds.len() as _, &ts, std::ptr::null()) };
-        if r < 0 && std::io::Error::last_os_error().kind() != std::io::ErrorKind::Interrupted {
-            return Err(std::io::Error::last_os_error()).context("cannot wait for events");
-        }
+        let n = 1 + self.listeners.iter().flatten().count();
+        wait_any_readable(&fds[..n], timeout_ns).context("link")?;
         let _ = wake.try_wait(|_| {});
         for l in self.listeners.iter().flatten() {
             let _ = l.try_wait(|_| {});

@@ -188,3 +188,14 @@ pub fn assert_same_trace(what: &str, got: &[u8], want: &[u8]) {
     }
     panic!("{what}: {} rows vs the simulator's {}", g.lines().count(), w.lines().count());
 }
+
+/// The trace of `rotorloop sim` of `scenario` for `duration` s with `extra` arguments,
+/// written under the harness's directory (`sim-<scenario>`), at most 120 s.
+pub fn sim_trace(h: &Harness, scenario: &str, duration: &str, extra: &[&str]) -> Vec<u8> {
+    let out = h.path(&format!("sim-{scenario}"));
+    let mut args = vec!["sim", "--scenario", scenario, "--duration", duration, "--no-figures"];
+    args.extend_from_slice(extra);
+    args.extend(["--out", out.to_str().expect("utf8")]);
+    ok(&h.rotorloop(&args, Duration::from_secs(120)));
+    std::fs::read(out.join("trace.csv")).expect("sim trace")
+}
