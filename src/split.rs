@@ -220,7 +220,7 @@ mod tests {
         assert!(m.read_only("ground") && !m.read_only("a"));
         assert_eq!(m.plant_subscribers(), 3);
         for (spec, why) in [
-            ("plant,reference,monitor@a", "two"),
+            ("plant,reference,controller,monitor@a", "two"),
             ("plant,reference@a controller@b", "monitor is on no host"),
             ("plant,reference,monitor@a controller,plant@b", "placed twice"),
             ("plant,reference,monitor@a pilot@b", "not a role"),
