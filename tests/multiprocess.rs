@@ -104,7 +104,14 @@ fn realtime_run_populates_every_histogram_and_counts_add_up() {
     }
     let (tr, tl) = sub("monitor.torque");
     let skipped = s["states_skipped_by_controller"].as_u64().expect("skipped");
-    assert_eq!(tr + tl + skipped, ticks + 1, "torque: {tr} + {tl} lost + {skipped} skipped");
+    // A state the controller never took (its buffer overflowed while it was starved) has
+    // no torque: every tick's torque is received, lost, skipped, or its state was lost.
+    let cl = sub("controller.state").1;
+    assert_eq!(
+        tr + tl + skipped + cl,
+        ticks + 1,
+        "torque: {tr} + {tl} lost + {skipped} skipped + {cl} states lost"
+    );
     let (pr, pl) = sub("plant.torque");
     assert!(pr + pl + skipped >= ticks, "plant torque counts: {pr} + {pl} + {skipped}");
     let misses = s["misses"].as_u64().expect("misses");
@@ -348,10 +355,16 @@ fn states_before_the_first_reference_are_answered_as_skipped_and_counted() {
     let s = json(&out.join("summary.json"));
     assert_eq!(s["completed"], true);
     let ticks = s["ticks"].as_u64().expect("ticks");
-    let v = &s["subscribers"]["monitor.torque"];
-    let (tr, tl) = (v["received"].as_u64().expect("r"), v["lost"].as_u64().expect("l"));
+    let count = |name: &str, what: &str| s["subscribers"][name][what].as_u64().expect(what);
+    let (tr, tl) = (count("monitor.torque", "received"), count("monitor.torque", "lost"));
+    let (cr, cl) = (count("controller.state", "received"), count("controller.state", "lost"));
+    assert_eq!(cr + cl, ticks + 1, "controller states: {cr} + {cl} lost");
     let skipped = s["states_skipped_by_controller"].as_u64().expect("skipped");
-    assert_eq!(tr + tl + skipped, ticks + 1, "torque: {tr} + {tl} lost + {skipped} skipped");
+    assert_eq!(
+        tr + tl + skipped + cl,
+        ticks + 1,
+        "torque: {tr} + {tl} lost + {skipped} skipped + {cl} states lost"
+    );
     // The late start really happened: the controller had states without a reference.
     assert!(s["reference_misses"].as_u64().expect("misses") > 0, "{s}");
     h.assert_no_leftovers();

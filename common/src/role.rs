@@ -310,6 +310,10 @@ where
 }
 
 /// Counts samples received and samples lost (gaps in the tick sequence) on one subscriber.
+/// Every topic of a run starts at tick 0: a counter that has seen nothing (a fresh one, or
+/// a restarted subscriber's whose predecessor took nothing) counts the ticks before its
+/// first sample as lost (a starved subscriber whose small buffer overflowed before it
+/// first looked loses the oldest, and they are losses like any gap).
 #[derive(Debug, Clone, Copy, Default)]
 pub struct SeqCounter {
     /// Samples of new ticks taken.
@@ -335,6 +339,7 @@ impl SeqCounter {
             }
             None => {
                 self.received += 1;
+                self.lost += tick;
                 self.last = Some(tick);
             }
         }
@@ -501,4 +506,28 @@ pub fn corrupted<T: Corruptible>(corrupt: &[Corrupt], mut sample: T) -> T {
         }
     }
     sample
+}
+
+#[cfg(test)]
+mod tests {
+    use super::SeqCounter;
+
+    #[test]
+    fn every_tick_is_received_lost_or_repeated_from_tick_zero() {
+        // A starved subscriber whose buffer overflowed before it first looked: 0-3 lost.
+        let mut c = SeqCounter::default();
+        for k in [4, 5, 5, 8, 7, 9] {
+            c.see(k);
+        }
+        assert_eq!((c.received, c.lost, c.repeated), (4, 6, 2), "0-3 and 6-7 lost");
+        assert_eq!(c.received + c.lost, 9 + 1);
+        // A restart whose predecessor took nothing counts the same way; an anchored one
+        // continues after its predecessor's last tick.
+        let mut u = SeqCounter::resume_unanchored(0, 0);
+        u.see(3);
+        assert_eq!((u.received, u.lost), (1, 3));
+        let mut a = SeqCounter::resume(10, 2, 11);
+        a.see(13);
+        assert_eq!((a.received, a.lost, a.last()), (11, 3, Some(13)));
+    }
 }
