@@ -37,9 +37,11 @@ pub struct BenchArgs {
     /// Wait strategies.
     #[arg(long, value_delimiter = ',', default_value = "event,spin,hybrid")]
     pub wait: Vec<Wait>,
-    /// Core placements of plant and controller: same-core, cross-core, unpinned, or
+    /// Core placements of plant and controller: same-core, cross-core, unpinned,
     /// dedicated (every role on its own core, all spinning: `rotorloop run --preset
-    /// dedicated`; needs 4 cores, measured once per rate whatever `--wait` says).
+    /// dedicated`; needs 4 cores, measured once per rate whatever `--wait` says), or
+    /// cross-host (unpinned, the controller on another "host" joined by two link gateways
+    /// over Zenoh on loopback: `rotorloop run --split`; needs `rotorloop-link`).
     #[arg(long, value_delimiter = ',', default_value = "same-core,cross-core,unpinned")]
     pub placement: Vec<String>,
     /// Seconds per measurement.
@@ -112,16 +114,19 @@ pub struct Row {
     pub lateness_p99: f64,
     /// Why the measurement was skipped, if it was.
     pub skipped: String,
+    /// Tracking error at the end of the run (degrees), loop only.
+    pub err_deg_final: f64,
     /// Cell number (for short domain names).
     pub index: usize,
 }
 
-const CSV_HEADER: &str = "cell,kind,rate_hz,wait,placement,load,count,p50_us,p99_us,p99_9_us,max_us,misses,achieved_rate_hz,tick_lateness_p99_us,skipped";
+const CSV_HEADER: &str = "cell,kind,rate_hz,wait,placement,load,count,p50_us,p99_us,p99_9_us,max_us,misses,achieved_rate_hz,tick_lateness_p99_us,skipped,err_deg_final";
 
 impl Row {
     fn parse(line: &str) -> Option<Self> {
         let f: Vec<&str> = line.split(',').collect();
-        if f.len() != 15 {
+        // Bench files written before `err_deg_final` have 15 columns.
+        if f.len() != 15 && f.len() != 16 {
             return None;
         }
         let num = |i: usize| f[i].parse::<f64>().unwrap_or(f64::NAN);
@@ -141,13 +146,14 @@ impl Row {
             achieved: num(12),
             lateness_p99: num(13),
             skipped: f[14].into(),
+            err_deg_final: f.get(15).map_or(f64::NAN, |v| v.parse().unwrap_or(f64::NAN)),
             index: 0,
         })
     }
 
     fn csv(&self) -> String {
         format!(
-            "{},{},{},{},{},{},{},{},{},{},{},{},{},{},{}",
+            "{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{}",
             self.cell,
             self.kind,
             self.rate,
@@ -162,7 +168,8 @@ impl Row {
             self.misses,
             self.achieved,
             self.lateness_p99,
-            self.skipped.replace(',', ";")
+            self.skipped.replace(',', ";"),
+            self.err_deg_final
         )
     }
 }
@@ -173,7 +180,7 @@ fn cores(placement: &str, ncores: usize) -> Option<(usize, usize)> {
         "same-core" => Some((0, 0)),
         "cross-core" => Some((0, 1)),
         "dedicated" => crate::launch::dedicated_cores(ncores).ok().map(|c| (c[0], c[1])),
-        _ => None,
+        _ => None, // unpinned, cross-host
     }
 }
 
@@ -201,7 +208,24 @@ pub fn skip_reason(
     if load == "other-core" && placement != "same-core" {
         return Some("other-core load needs the loop on one core (same-core placement)".into());
     }
+    if placement == "cross-host" {
+        return cross_host_skip(kind, spins, ncores);
+    }
     None
+}
+
+/// Why a cross-host cell cannot be measured here, if it cannot.
+fn cross_host_skip(kind: &str, spins: bool, ncores: usize) -> Option<String> {
+    if kind == "atomic" || kind == "uds" {
+        return Some("shared-memory atomics and a Unix socket do not cross hosts".into());
+    }
+    if spins && ncores < 6 {
+        return Some(format!(
+            "busy-wait across hosts needs a core for each role and each gateway (6); this \
+             machine has {ncores}"
+        ));
+    }
+    crate::split::link_binary().err().map(|e| e.0)
 }
 
 fn validate(a: &BenchArgs) -> Result<(), UsageError> {
@@ -211,9 +235,11 @@ fn validate(a: &BenchArgs) -> Result<(), UsageError> {
         }
     }
     for p in &a.placement {
-        if !["same-core", "cross-core", "unpinned", "dedicated"].contains(&p.as_str()) {
+        if !["same-core", "cross-core", "unpinned", "dedicated", "cross-host"].contains(&p.as_str())
+        {
             return Err(UsageError(format!(
-                "--placement `{p}` is not allowed: same-core, cross-core, unpinned or dedicated"
+                "--placement `{p}` is not allowed: same-core, cross-core, unpinned, dedicated or \
+                 cross-host"
             )));
         }
     }
@@ -419,6 +445,7 @@ fn loop_run_args(
         quiet: true,
         spin_before_tick_us: a.spin_before_tick_us,
         preset: dedicated.then(|| "dedicated".to_owned()),
+        split: (base.placement == "cross-host").then(|| crate::split::CROSS_HOST.to_owned()),
         ..RunArgs::defaults(role, out)
     }
 }
@@ -459,6 +486,7 @@ fn measure_loop(
         row.count = hgrm_count(&hgrm);
         row.lateness_p99 = f64::NAN;
         row.achieved = f64::NAN;
+        row.err_deg_final = f64::NAN;
         std::fs::copy(&hgrm, dir.join("loop-nomon.hgrm"))?;
         return Ok(row);
     }
@@ -483,6 +511,7 @@ fn read_loop_summary(row: &mut Row, out: &Path) -> anyhow::Result<()> {
     row.misses = j["misses"].as_u64().unwrap_or(0);
     row.achieved = j["achieved_rate_hz"].as_f64().unwrap_or(0.0);
     row.lateness_p99 = us(&j["hops"]["tick_lateness"]["p99"]);
+    row.err_deg_final = j["err_deg_final"].as_f64().unwrap_or(f64::NAN);
     Ok(())
 }
 
@@ -546,6 +575,13 @@ fn measure_baseline(
     let name = format!("bb{}-{kind}", std::process::id());
     let (ping_core, pong_core) =
         cores(placement, ncores).map_or((None, None), |(p, c)| (Some(p), Some(c)));
+    // Across hosts: ping on host a, pong on host b, two gateways between them.
+    let split = (placement == "cross-host")
+        .then(|| crate::split::Split::parse(crate::split::CROSS_HOST, true))
+        .transpose()?;
+    let gateways =
+        split.as_ref().map(|s| crate::split::Gateways::start(s, &name, dir)).transpose()?;
+    let hosts = split.as_ref().map(|s| s.hosts().to_vec()).unwrap_or_default();
     let side = |side: &str, core: Option<usize>| {
         let mut cmd = Command::new(exe);
         cmd.args(["role", "pingpong", "--kind", kind, "--side", side, "--name", &name])
@@ -561,6 +597,9 @@ fn measure_baseline(
         if let Some(c) = core {
             cmd.args(["--core", &c.to_string()]);
         }
+        if let Some(h) = hosts.get(usize::from(side == "pong")) {
+            cmd.args(["--host", h]);
+        }
         cmd
     };
     let mut pong = side("pong", pong_core).spawn().context("cannot start the pong side")?;
@@ -571,8 +610,11 @@ fn measure_baseline(
         .status()
         .context("cannot run the ping side")?;
     let _ = pong.wait();
+    drop(gateways);
     if k == Kind::Iceoryx2 {
-        let _ = Domain::new(&name).map(|d| d.cleanup());
+        for h in hosts.iter().map(|h| Some(h.as_str())).chain(split.is_none().then_some(None)) {
+            let _ = Domain::on_host(&name, h).map(|d| d.cleanup());
+        }
     }
     if !ping.success() {
         row.skipped = format!("baseline failed ({ping})");
@@ -589,7 +631,7 @@ fn measure_baseline(
     row.max = us(&r["max"]);
     row.misses = j["misses"].as_u64().unwrap_or(0);
     row.achieved = j["achieved_rate_hz"].as_f64().unwrap_or(0.0);
-    row.lateness_p99 = f64::NAN;
+    (row.lateness_p99, row.err_deg_final) = (f64::NAN, f64::NAN);
     if k == Kind::Atomic {
         row.wait = "spin".into();
     }
@@ -675,8 +717,55 @@ fn write_markdown(a: &BenchArgs, rows: &[Row]) -> anyhow::Result<()> {
     md.push_str(&breakdown_md(a, rows));
     md.push_str(&before_after_md(rows));
     md.push_str(&scale_md(rows));
+    md.push_str(&cross_host_md(rows));
     std::fs::write(a.out.join("bench.md"), md)?;
     Ok(())
+}
+
+/// Each cross-host measurement beside the same one on one host (`unpinned` if measured,
+/// else another placement of this invocation): what the link costs.
+fn cross_host_md(rows: &[Row]) -> String {
+    let measured = |r: &&Row| r.skipped.is_empty() && (r.kind == "loop" || r.kind == "iceoryx2");
+    let far: Vec<&Row> =
+        rows.iter().filter(measured).filter(|r| r.placement == "cross-host").collect();
+    if far.is_empty() {
+        return String::new();
+    }
+    let mut md = String::from(
+        "\n## What the link costs (cross-host against one host, this invocation)\n\n\
+         `loop`: sense-to-actuate; `iceoryx2`: the bare paced round trip, here through the two \
+         gateways. Latencies in µs; error: tracking error at the end (degrees).\n\n\
+         | rate | wait | kind | one host (placement) p50 / p99 | cross-host p50 / p99 | p50 ratio \
+         | misses one host / cross-host | error one host / cross-host |\n\
+         |---|---|---|---|---|---|---|---|\n",
+    );
+    for f in far {
+        let near = rows
+            .iter()
+            .filter(measured)
+            .filter(|r| r.rate == f.rate && r.wait == f.wait && r.kind == f.kind)
+            .filter(|r| r.placement != "cross-host" && r.load == f.load)
+            .min_by_key(|r| r.placement != "unpinned");
+        let Some(n) = near else { continue };
+        let _ = writeln!(
+            md,
+            "| {} | {} | {} | {:.1} / {:.1} ({}) | {:.1} / {:.1} | {:.1} | {} / {} | {:.1} / {:.1} |",
+            f.rate,
+            f.wait,
+            f.kind,
+            n.p50,
+            n.p99,
+            n.placement,
+            f.p50,
+            f.p99,
+            f.p50 / n.p50,
+            n.misses,
+            f.misses,
+            n.err_deg_final,
+            f.err_deg_final
+        );
+    }
+    md
 }
 
 /// The highest rate with zero misses, per wait strategy.

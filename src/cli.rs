@@ -73,6 +73,9 @@ enum Command {
         /// The run domain.
         #[arg(long, default_value = "default")]
         domain: String,
+        /// The host whose space to clean (`--host` of the roles), if any.
+        #[arg(long)]
+        host: Option<String>,
     },
     /// The link gateway of one host: carries a run domain's services to and from another
     /// host over Zenoh (the `rotorloop-link` binary; `rotorloop link --help` for its options).
@@ -252,11 +255,12 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
             println!("output: {}", a.out.display());
         }
         Command::Role(_) => unreachable!("handled in main"),
-        Command::Clean { domain } => {
-            let d = rotorloop_common::ipc::Domain::new(&domain)
+        Command::Clean { domain, host } => {
+            let d = rotorloop_common::ipc::Domain::on_host(&domain, host.as_deref())
                 .map_err(|e| UsageError(e.to_string()))?;
             let (cleaned, alive) = d.cleanup()?;
-            println!("domain {domain}: {cleaned} dead node(s) cleaned, {alive} alive");
+            let on = host.map(|h| format!(" on host {h}")).unwrap_or_default();
+            println!("domain {domain}{on}: {cleaned} dead node(s) cleaned, {alive} alive");
         }
         Command::Montecarlo(a) => montecarlo_command(&a)?,
     }

@@ -350,6 +350,14 @@ impl Launch<'_> {
                 &args.out,
             );
             cmd.stdin(Stdio::null());
+            // Quiet (the bench): what the gateway says goes to OUT/link-HOST.log.
+            let log = args.quiet.then(|| {
+                let path = args.out.join(format!("{role}.log"));
+                std::fs::OpenOptions::new().create(true).append(true).open(path)
+            });
+            if let Some(Ok(f)) = log {
+                cmd.stderr(f);
+            }
             stop_with_parent(&mut cmd);
             return cmd;
         }
@@ -554,15 +562,7 @@ fn start(launch: &Launch, children: &mut Children, rss: &mut RssLog) -> anyhow::
 /// Stops the gateways once the roles are done (SIGTERM, SIGKILL after 5 s).
 fn stop_gateways(children: &mut Children) {
     for (name, c) in children.0.iter_mut().filter(|(n, _)| n.starts_with("link-")) {
-        if let Ok(None) = c.try_wait() {
-            signal(c, libc::SIGTERM);
-            let stopped = wait_until(Duration::from_secs(5), || !matches!(c.try_wait(), Ok(None)));
-            if !stopped {
-                eprintln!("launcher: {name} did not stop on SIGTERM within 5 s; killed");
-                let _ = c.kill();
-            }
-            let _ = c.wait();
-        }
+        crate::split::stop(name, c);
     }
 }
 

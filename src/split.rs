@@ -140,6 +140,56 @@ impl Split {
     }
 }
 
+/// The split of `rotorloop bench --placement cross-host`: the controller on a host of its
+/// own, as on a hardware-in-the-loop rig with a separate flight computer.
+pub const CROSS_HOST: &str = "plant,reference,monitor@a controller@b";
+
+/// The two gateways of a split started outside a run (the bench's bare round trip over
+/// the link); stopped when dropped. Their messages go to `DIR/link-HOST.log`.
+#[derive(Debug)]
+pub struct Gateways(Vec<(String, std::process::Child)>);
+
+impl Gateways {
+    /// Starts both gateways of `split` for `domain` and waits until they are connected.
+    pub fn start(split: &Split, domain: &str, dir: &Path) -> anyhow::Result<Self> {
+        use anyhow::Context;
+        let port = free_port()?;
+        let mut g = Self(Vec::new());
+        for h in split.hosts() {
+            let log = std::fs::File::create(dir.join(format!("link-{h}.log")))?;
+            let mut cmd = gateway_command(split, h, domain, port, dir);
+            cmd.stdin(std::process::Stdio::null()).stdout(log.try_clone()?).stderr(log);
+            g.0.push((format!("link-{h}"), cmd.spawn().context("cannot start a link gateway")?));
+        }
+        let ready = || split.hosts().iter().all(|h| ready_file(dir, h).exists());
+        if !wait_until(Duration::from_secs(30), ready) {
+            anyhow::bail!("the link gateways did not connect within 30 s ({})", dir.display());
+        }
+        Ok(g)
+    }
+}
+
+impl Drop for Gateways {
+    fn drop(&mut self) {
+        for (name, c) in &mut self.0 {
+            stop(name, c);
+        }
+    }
+}
+
+/// Stops a gateway: SIGTERM, then SIGKILL after 5 s.
+pub fn stop(name: &str, c: &mut std::process::Child) {
+    if let Ok(None) = c.try_wait() {
+        crate::supervise::signal(c, libc::SIGTERM);
+        let stopped = wait_until(Duration::from_secs(5), || !matches!(c.try_wait(), Ok(None)));
+        if !stopped {
+            eprintln!("launcher: {name} did not stop on SIGTERM within 5 s; killed");
+            let _ = c.kill();
+        }
+        let _ = c.wait();
+    }
+}
+
 /// The gateway binary beside this executable, or how to build it.
 pub fn link_binary() -> Result<PathBuf, UsageError> {
     let exe = std::env::current_exe()

@@ -522,7 +522,11 @@ mod tests {
         }
         let t =
             a.answer(&StateSample { tick: 6, ..s0 }, 0, None, &ReferencePairing::new(1, DT), DT);
-        assert_eq!((t.states_received, t.states_lost, t.states_skipped), (3, 4, 2), "0-2 and 5 lost");
+        assert_eq!(
+            (t.states_received, t.states_lost, t.states_skipped),
+            (3, 4, 2),
+            "0-2 and 5 lost"
+        );
     }
 
     #[test]

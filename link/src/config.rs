@@ -244,6 +244,21 @@ mod tests {
     }
 
     #[test]
+    fn the_example_zenoh_files_authenticate_and_do_not_scout() {
+        let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../examples/zenoh");
+        let mut n = 0;
+        for e in std::fs::read_dir(&dir).expect("examples/zenoh").flatten() {
+            let a = LinkArgs { zenoh: Some(e.path()), ..args() };
+            let c = zenoh_config(&a).unwrap_or_else(|err| panic!("{}: {err}", e.path().display()));
+            assert!(authenticates(&c), "{}", e.path().display());
+            let scouting = c.get_json("scouting/multicast/enabled").expect("scouting");
+            assert_eq!(scouting, "false", "{}", e.path().display());
+            n += 1;
+        }
+        assert_eq!(n, 3, "plant host, controller host, mTLS");
+    }
+
+    #[test]
     fn a_network_endpoint_without_authentication_is_refused_naming_it() {
         let a = LinkArgs { listen: vec!["tcp/0.0.0.0:7447".into()], ..args() };
         let e = zenoh_config(&a).expect_err("refused").to_string();

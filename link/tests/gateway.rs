@@ -7,8 +7,9 @@ use std::path::Path;
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
-use rotorloop_common::ipc::{Domain, Topic};
-use rotorloop_common::wire::TorqueSample;
+use iceoryx2::prelude::ZeroCopySend;
+use rotorloop_common::ipc::{Domain, IpcError, Topic};
+use rotorloop_common::wire::{LAYOUT_VERSION, StateSample, TorqueSample};
 
 const LINK: &str = env!("CARGO_BIN_EXE_rotorloop-link");
 
@@ -176,4 +177,60 @@ fn an_unauthenticated_network_endpoint_is_refused_before_anything_opens() {
     assert_eq!(o.status.code(), Some(2));
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(err.contains("tcp/0.0.0.0:7447") && err.contains("not on loopback"), "{err}");
+}
+
+/// What an older build's state sample looks like on the wire: another layout version.
+#[derive(Debug, Clone, Copy, ZeroCopySend)]
+#[type_name("rotorloop::StateSample_v2")]
+#[repr(C)]
+struct StateSampleV2 {
+    tick: u64,
+    rest: [f64; 41],
+}
+
+/// The state service of host `a`, published by `T`, as host `b`'s controller opens it
+/// through the link (once its mirror is there).
+fn open_mirrored_state<T>(tag: &str) -> Result<(), IpcError>
+where
+    T: ZeroCopySend + std::fmt::Debug + Copy + 'static,
+{
+    let dir = tempfile::tempdir().expect("tempdir");
+    let domain = format!("lk-{tag}-{}", std::process::id());
+    let listen = format!("tcp/127.0.0.1:{}", free_port());
+    let (ra, rb) = (dir.path().join("a"), dir.path().join("b"));
+    let _a = gateway(&domain, "a", &ra, &["--listen", &listen]);
+    let _b = gateway(&domain, "b", &rb, &["--connect", &listen]);
+    assert!(wait_for(Duration::from_secs(10), || rb.exists()), "not connected");
+    let (a, b) = (
+        Domain::on_host(&domain, Some("a")).expect("a"),
+        Domain::on_host(&domain, Some("b")).expect("b"),
+    );
+    let plant = a.node("plant").expect("node a");
+    let _out = a.outbox::<T>(&plant, Topic::State).expect("state publisher on a");
+    assert!(
+        wait_for(Duration::from_secs(10), || b.topic_exists(Topic::State)),
+        "the state service was not mirrored on b"
+    );
+    let controller = b.node("controller").expect("node b");
+    let opened = b.inbox::<StateSample>(&controller, Topic::State, 8, false).map(drop);
+    drop((controller, plant, _out, _a, _b));
+    cleanup(&domain);
+    opened
+}
+
+/// The link checks nothing but the type's name, size and alignment: a plant of an older
+/// build on the other host is refused when the controller opens its mirrored service,
+/// with the message a process of another layout gets on one host (naming both layout
+/// versions); the same build on both hosts opens it (the control).
+#[test]
+fn a_peer_of_another_sample_layout_is_refused_across_the_link_as_on_one_host() {
+    match open_mirrored_state::<StateSampleV2>("skew") {
+        Err(e @ IpcError::LayoutSkew { .. }) => {
+            let msg = e.to_string();
+            let ours = format!("layout v{LAYOUT_VERSION}");
+            assert!(msg.contains("layout v2") && msg.contains(&ours), "{msg}");
+        }
+        other => panic!("expected a layout skew error, got {other:?}"),
+    }
+    open_mirrored_state::<StateSample>("same").expect("the same layout opens");
 }

@@ -65,6 +65,10 @@ pub struct PingPongArgs {
     /// Ping: output stem (`STEM.hgrm`, `STEM.json`).
     #[arg(long)]
     pub out: Option<PathBuf>,
+    /// iceoryx2 only: the "host" of this side (`--host` of a run), when the two sides are
+    /// joined by link gateways (`rotorloop bench --placement cross-host`).
+    #[arg(long)]
+    pub host: Option<String>,
 }
 
 /// What the ping side reports.
@@ -76,6 +80,10 @@ pub struct PingPongSummary {
     pub ticks: u64,
     /// Round trips not completed before the next tick.
     pub misses: u64,
+    /// Echoes of an earlier ping taken and skipped (across hosts: the handshake's).
+    pub stale_echoes: u64,
+    /// Round trips whose echo never came (a second without it; across hosts only).
+    pub lost: u64,
     /// Achieved tick rate (Hz).
     pub achieved_rate_hz: f64,
     /// Round-trip statistics (ns).
@@ -83,6 +91,9 @@ pub struct PingPongSummary {
 }
 
 const PAYLOAD: usize = size_of::<StateSample>();
+
+/// How long the ping side waits for a late echo before it counts the round trip lost.
+const LOST_AFTER_NS: u64 = 1_000_000_000;
 
 /// Runs one side to the end.
 pub fn run(a: &PingPongArgs) -> anyhow::Result<()> {
@@ -92,12 +103,14 @@ pub fn run(a: &PingPongArgs) -> anyhow::Result<()> {
     let ticks = (a.seconds * a.rate).round().max(1.0) as u64;
     let mut link: Box<dyn Link> = match a.kind {
         Kind::Atomic => Box::new(AtomicLink::open(&a.name, a.side)?),
-        Kind::Iceoryx2 => Box::new(IoxLink::open(&a.name, a.side, a.wait)?),
+        Kind::Iceoryx2 => Box::new(IoxLink::open(&a.name, a.host.as_deref(), a.side, a.wait)?),
         Kind::Uds => Box::new(UdsLink::open(&a.name, a.side, a.wait)?),
     };
     match a.side {
         Side::Pong => {
-            while let Some(seq) = link.recv(u64::MAX)? {
+            // Across hosts the last ping can be lost: give up a minute after the run's end.
+            let until = now_ns() + ((a.seconds + 60.0) * 1e9) as u64;
+            while let Some(seq) = link.recv(until)? {
                 link.send(seq)?;
                 if seq >= ticks {
                     break;
@@ -107,9 +120,12 @@ pub fn run(a: &PingPongArgs) -> anyhow::Result<()> {
         }
         Side::Ping => {
             let mut h = Histogram::<u64>::new_with_bounds(1, 60_000_000_000, 3)?;
+            if a.host.is_some() {
+                handshake(link.as_mut())?;
+            }
             let period = 1e9 / a.rate;
             let start = now_ns() + 50_000_000;
-            let mut misses = 0u64;
+            let (mut misses, mut stale, mut lost) = (0u64, 0u64, 0u64);
             let mut last_wake = start;
             for k in 1..=ticks {
                 let deadline = start + (k as f64 * period).round() as u64;
@@ -120,15 +136,26 @@ pub fn run(a: &PingPongArgs) -> anyhow::Result<()> {
                 let next = start + ((k + 1) as f64 * period).round() as u64;
                 // Wait for this round trip; a late echo is a miss and is still awaited,
                 // so the pair stays in step.
-                let mut got = link.recv(next)?;
+                // Echoes of an earlier ping (the handshake's) are skipped and counted.
+                let mut fresh = |deadline| -> anyhow::Result<Option<u64>> {
+                    loop {
+                        match link.recv(deadline)? {
+                            Some(seq) if seq < k => stale += 1,
+                            got => return Ok(got),
+                        }
+                    }
+                };
+                let mut got = fresh(next)?;
                 if got.is_none() {
                     misses += 1;
-                    got = link.recv(u64::MAX)?;
+                    // Across hosts a sample can be lost: after a second, go on without it.
+                    got = fresh(now_ns() + LOST_AFTER_NS)?;
                 }
                 match got {
                     Some(seq) if seq == k => h.saturating_record(now_ns() - t0),
                     Some(seq) => bail!("echo {seq} for ping {k}"),
-                    None => break, // signal
+                    None if shutdown_requested() => break,
+                    None => lost += 1,
                 }
             }
             let out = a.out.as_ref().context("--out is required for the ping side")?;
@@ -138,6 +165,8 @@ pub fn run(a: &PingPongArgs) -> anyhow::Result<()> {
                 kind: a.kind,
                 ticks,
                 misses,
+                stale_echoes: stale,
+                lost,
                 achieved_rate_hz: (ticks - 1) as f64
                     / ((last_wake - start - period as u64) as f64 / 1e9),
                 rtt: HopStats::of(&h),
@@ -145,6 +174,20 @@ pub fn run(a: &PingPongArgs) -> anyhow::Result<()> {
             crate::sim::write_json(&out.with_extension("json"), &summary)
         }
     }
+}
+
+/// Across hosts: sends sequence 0 every 10 ms until its echo comes back (at most 30 s).
+/// Over link gateways a sample sent before the far side's mirror exists is gone, and the
+/// first measured ping must not be that one.
+fn handshake(link: &mut dyn Link) -> anyhow::Result<()> {
+    let until = now_ns() + 30_000_000_000;
+    while now_ns() < until && !shutdown_requested() {
+        link.send(0)?;
+        if link.recv(now_ns() + 10_000_000)? == Some(0) {
+            return Ok(());
+        }
+    }
+    bail!("the pong side did not answer within 30 s")
 }
 
 trait Link {
@@ -247,8 +290,8 @@ struct IoxLink {
 }
 
 impl IoxLink {
-    fn open(name: &str, side: Side, wait: Wait) -> anyhow::Result<Self> {
-        let domain = Domain::new(name)?;
+    fn open(name: &str, host: Option<&str>, side: Side, wait: Wait) -> anyhow::Result<Self> {
+        let domain = Domain::on_host(name, host)?;
         let node = domain.node(&format!("{side:?}"))?;
         // ping publishes on `state` and listens on `torque`; pong the other way round.
         let (tx, rx) = match side {
