@@ -195,3 +195,63 @@ fn run_presets_are_checked() {
         assert!(stderr.contains("dedicated needs 4 cores"), "{stderr}");
     }
 }
+
+/// `--placement cross-host` measures the split loop and the bare iceoryx2 round trip
+/// through two link gateways, skips what cannot cross hosts with the reason, and sets
+/// each beside the same measurement on one host in "What the link costs".
+#[test]
+fn cross_host_cells_are_measured_through_the_link_beside_one_host() {
+    let h = Harness::new("bench-xh");
+    let out = h.path("bench");
+    ok(&h.rotorloop(
+        &[
+            "bench",
+            "--rates",
+            "200",
+            "--wait",
+            "event",
+            "--placement",
+            "unpinned,cross-host",
+            "--baselines",
+            "iceoryx2,uds",
+            "--seconds",
+            "0.5",
+            "--out",
+            out.to_str().expect("utf8"),
+        ],
+        Duration::from_secs(300),
+    ));
+    let csv = std::fs::read_to_string(out.join("bench.csv")).expect("bench.csv");
+    let rows: Vec<Vec<&str>> = csv.lines().skip(1).map(|l| l.split(',').collect()).collect();
+    let row = |placement: &str, kind: &str| {
+        rows.iter()
+            .find(|r| r[4] == placement && r[1] == kind)
+            .unwrap_or_else(|| panic!("no {placement} {kind} row in {csv}"))
+    };
+    for kind in ["loop", "iceoryx2"] {
+        let r = row("cross-host", kind);
+        assert!(r[14].is_empty(), "measured: {r:?}");
+        assert!(r[6].parse::<u64>().expect("count") > 0, "{r:?}");
+        assert!(r[7].parse::<f64>().expect("p50") > 0.0, "{r:?}");
+    }
+    assert!(row("cross-host", "loop")[15].parse::<f64>().expect("error").is_finite());
+    assert!(row("cross-host", "uds")[14].contains("do not cross hosts"));
+    let md = std::fs::read_to_string(out.join("bench.md")).expect("bench.md");
+    let costs = md.split("What the link costs").nth(1).expect("the link-cost section");
+    assert!(
+        costs.contains("| 200 | event | loop |") && costs.contains("| 200 | event | iceoryx2 |")
+    );
+    let cell = out.join("cells").join("r200-event-cross-host-none");
+    for f in ["loop.hgrm", "iceoryx2.hgrm", "link-a.log", "link-b.log"] {
+        assert!(cell.join(f).is_file(), "{f}");
+    }
+    // The bench's own domains (`bl<pid>-…`, `bb<pid>-…`) on hosts a and b are gone; no
+    // other test of this file uses hosts.
+    let left: Vec<String> = std::fs::read_dir("/dev/shm")
+        .expect("/dev/shm")
+        .flatten()
+        .map(|e| e.file_name().to_string_lossy().into_owned())
+        .filter(|n| n.starts_with("rh_a_b") || n.starts_with("rh_b_b"))
+        .collect();
+    assert!(left.is_empty(), "left in /dev/shm: {left:?}");
+}
