@@ -87,6 +87,25 @@ fn a_killed_gateway_holds_then_safe_mode_then_recovers() {
     assert_nothing_left(&h);
 }
 
+/// Killing a role on the far host works as on one: the controller on host b is killed
+/// and restarted there, and control resumes through the link; the report lists it.
+#[test]
+fn a_controller_killed_on_the_far_host_is_restarted_and_control_resumes() {
+    let h = Harness::new("split-ckill");
+    let out = h.path("run");
+    let fault = "controller:kill@1.0:restart@1.5";
+    run_split(&h, &out, &["--duration", "3", "--mode", "realtime", "--fault", fault]);
+    let s = json(&out.join("summary.json"));
+    assert_eq!(s["completed"], true);
+    assert_eq!(s["trace_rows"], 3001);
+    let f = s["faults"].as_array().expect("faults").iter().find(|f| f["role"] == "controller");
+    let f =
+        f.unwrap_or_else(|| panic!("the controller kill is not in the report: {}", s["faults"]));
+    assert!(f["ticks_without_fresh_torque"].as_u64().expect("ticks") > 0, "{f}");
+    assert!(f["ticks_to_first_fresh_torque"].as_u64().is_some(), "control never resumed: {f}");
+    assert_nothing_left(&h);
+}
+
 /// A split that is not one is refused before anything starts, naming what is wrong.
 #[test]
 fn a_bad_split_or_gateway_fault_is_refused_naming_it() {
