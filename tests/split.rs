@@ -106,6 +106,27 @@ fn a_controller_killed_on_the_far_host_is_restarted_and_control_resumes() {
     assert_nothing_left(&h);
 }
 
+/// The link copies bytes and validates nothing: samples that crossed it are validated by
+/// their receivers like local ones. A corrupted torque from host b and a corrupted state
+/// and reference from host a are each rejected and counted on the other side.
+#[test]
+fn samples_that_crossed_the_link_are_validated_like_local_ones() {
+    let h = Harness::new("split-bad");
+    let out = h.path("run");
+    let mut extra = vec!["--duration", "1", "--mode", "lockstep"];
+    for c in ["controller:nan@100", "plant:skew@300", "reference:huge@500"] {
+        extra.extend(["--corrupt", c]);
+    }
+    run_split(&h, &out, &extra);
+    let s = json(&out.join("summary.json"));
+    assert_eq!(s["completed"], true);
+    let rejected = &s["wire_rejected"];
+    for receiver in ["plant.torque", "controller.state", "controller.reference"] {
+        assert_eq!(rejected[receiver], 1, "{receiver}: {rejected}");
+    }
+    assert_nothing_left(&h);
+}
+
 /// A split that is not one is refused before anything starts, naming what is wrong.
 #[test]
 fn a_bad_split_or_gateway_fault_is_refused_naming_it() {
