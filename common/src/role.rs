@@ -310,10 +310,11 @@ where
 }
 
 /// Counts samples received and samples lost (gaps in the tick sequence) on one subscriber.
-/// Every topic of a run starts at tick 0: a counter that has seen nothing (a fresh one, or
-/// a restarted subscriber's whose predecessor took nothing) counts the ticks before its
-/// first sample as lost (a starved subscriber whose small buffer overflowed before it
-/// first looked loses the oldest, and they are losses like any gap).
+/// Every topic of a run starts at tick 0: a fresh counter counts the ticks before its first
+/// sample as lost (a starved subscriber whose small buffer overflowed before it first
+/// looked loses the oldest, and they are losses like any gap). A restart that does not
+/// know its predecessor's last tick ([`SeqCounter::resume_unanchored`]) cannot, and does
+/// not count the gap before its first sample.
 #[derive(Debug, Clone, Copy, Default)]
 pub struct SeqCounter {
     /// Samples of new ticks taken.
@@ -323,6 +324,8 @@ pub struct SeqCounter {
     /// Samples of a tick already seen (a restarted publisher repeating its last one).
     pub repeated: u64,
     last: Option<u64>,
+    /// Resumed without the predecessor's last tick: the first gap is unknown.
+    unanchored: bool,
 }
 
 impl SeqCounter {
@@ -339,21 +342,23 @@ impl SeqCounter {
             }
             None => {
                 self.received += 1;
-                self.lost += tick;
+                if !self.unanchored {
+                    self.lost += tick;
+                }
                 self.last = Some(tick);
             }
         }
     }
 
-    /// Continue counting from these totals with no tick seen yet (a restarted subscriber
-    /// whose predecessor had taken nothing).
+    /// Continue counting from these totals without the predecessor's last tick (its
+    /// resume slot names none): the gap before the first sample is not counted.
     pub fn resume_unanchored(received: u64, lost: u64) -> Self {
-        Self { received, lost, repeated: 0, last: None }
+        Self { received, lost, repeated: 0, last: None, unanchored: true }
     }
 
     /// Continue counting after `last` (a restarted subscriber).
     pub fn resume(received: u64, lost: u64, last: u64) -> Self {
-        Self { received, lost, repeated: 0, last: Some(last) }
+        Self { received, lost, repeated: 0, last: Some(last), unanchored: false }
     }
 
     /// The newest tick seen.
@@ -521,11 +526,11 @@ mod tests {
         }
         assert_eq!((c.received, c.lost, c.repeated), (4, 6, 2), "0-3 and 6-7 lost");
         assert_eq!(c.received + c.lost, 9 + 1);
-        // A restart whose predecessor took nothing counts the same way; an anchored one
-        // continues after its predecessor's last tick.
-        let mut u = SeqCounter::resume_unanchored(0, 0);
-        u.see(3);
-        assert_eq!((u.received, u.lost), (1, 3));
+        // A restart that does not know its predecessor's last tick cannot count the first
+        // gap; an anchored one continues after that tick.
+        let mut u = SeqCounter::resume_unanchored(4, 0);
+        u.see(10);
+        assert_eq!((u.received, u.lost), (5, 0));
         let mut a = SeqCounter::resume(10, 2, 11);
         a.see(13);
         assert_eq!((a.received, a.lost, a.last()), (11, 3, Some(13)));
