@@ -7,7 +7,8 @@
 //!   `--password-file` on the connecting side) or TLS with client certificates
 //!   (`transport.link.tls.enable_mtls` in a `--zenoh` file). A session that would listen or
 //!   connect beyond this machine without either is refused before it opens.
-//! - **Scouting.** No multicast scouting unless a `--zenoh` file turns it on itself.
+//! - **Scouting.** Never multicast scouting, whatever a `--zenoh` file says: a gateway
+//!   connects only to the endpoints it is given.
 //! - **Direction.** `--read-only` (a remote monitor or ground station): the session may
 //!   put nothing (Zenoh access control, egress `put` and `delete` denied on every key),
 //!   so no sample or event of this host ever enters the loop; it still receives
@@ -155,10 +156,12 @@ pub fn zenoh_config(args: &LinkArgs) -> Result<zenoh::Config, ConfigError> {
         None => {
             let mut c = zenoh::Config::default();
             set(&mut c, "mode", "\"peer\"")?;
-            set(&mut c, "scouting/multicast/enabled", "false")?;
             c
         }
     };
+    // A gateway connects only to the endpoints it is given: no multicast scouting, even
+    // if a file turns it on (it would announce the loop on the local network).
+    set(&mut config, "scouting/multicast/enabled", "false")?;
     // Zenoh's default peer listens on every interface (`tcp/[::]:0`): without a file, a
     // gateway listens only where it is told.
     if !args.listen.is_empty() || args.zenoh.is_none() {
@@ -256,6 +259,14 @@ mod tests {
             n += 1;
         }
         assert_eq!(n, 3, "plant host, controller host, mTLS");
+        let tmp = tempfile::tempdir().expect("tempdir");
+        let file = tmp.path().join("scouting.json5");
+        let text = r#"{ listen: { endpoints: ["tcp/127.0.0.1:7447"] },
+                        scouting: { multicast: { enabled: true } } }"#;
+        std::fs::write(&file, text).expect("write");
+        let c = zenoh_config(&LinkArgs { zenoh: Some(file), ..args() }).expect("loopback");
+        let scouting = c.get_json("scouting/multicast/enabled").expect("scouting");
+        assert_eq!(scouting, "false", "a file cannot turn multicast scouting on");
     }
 
     #[test]
