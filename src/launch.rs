@@ -536,10 +536,9 @@ fn start(launch: &Launch, children: &mut Children, rss: &mut RssLog) -> anyhow::
     for g in split.gateways() {
         children.0.push((g.clone(), launch.spawn(&g, rss)?));
     }
-    let ready = |h: &String| crate::split::ready_file(&args.out, h).exists();
     let gone = |c: &mut Children| c.0.iter_mut().any(|(_, c)| !matches!(c.try_wait(), Ok(None)));
-    wait_until(Duration::from_secs(30), || split.hosts().iter().all(ready) || gone(children));
-    if gone(children) || !split.hosts().iter().all(ready) {
+    wait_until(Duration::from_secs(30), || split.gateways_ready(&args.out) || gone(children));
+    if gone(children) || !split.gateways_ready(&args.out) {
         anyhow::bail!("the link gateways did not connect (their messages are above)");
     }
     let plant_host = split.host_of("plant").unwrap_or_default().to_owned();

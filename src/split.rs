@@ -127,6 +127,11 @@ impl Split {
         topics
     }
 
+    /// Whether every host's gateway has written its ready file in `dir` (is connected).
+    pub fn gateways_ready(&self, dir: &Path) -> bool {
+        self.hosts.iter().all(|h| ready_file(dir, h).exists())
+    }
+
     /// A fault's target that is not a role must be one of this split's gateways.
     pub fn check_fault_target(&self, target: &str) -> Result<(), UsageError> {
         match target.strip_prefix("link-") {
@@ -161,8 +166,7 @@ impl Gateways {
             cmd.stdin(std::process::Stdio::null()).stdout(log.try_clone()?).stderr(log);
             g.0.push((format!("link-{h}"), cmd.spawn().context("cannot start a link gateway")?));
         }
-        let ready = || split.hosts().iter().all(|h| ready_file(dir, h).exists());
-        if !wait_until(Duration::from_secs(30), ready) {
+        if !wait_until(Duration::from_secs(30), || split.gateways_ready(dir)) {
             anyhow::bail!("the link gateways did not connect within 30 s ({})", dir.display());
         }
         Ok(g)

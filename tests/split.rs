@@ -17,6 +17,14 @@ fn run_split(h: &Harness, out: &std::path::Path, extra: &[&str]) -> String {
     ok(&h.rotorloop(&args, LIMIT))
 }
 
+/// The report's fault of `role`, after which control resumed.
+fn recovered_fault<'a>(s: &'a serde_json::Value, role: &str) -> &'a serde_json::Value {
+    let f = s["faults"].as_array().expect("faults").iter().find(|f| f["role"] == role);
+    let f = f.unwrap_or_else(|| panic!("the {role} kill is not in the report: {}", s["faults"]));
+    assert!(f["ticks_to_first_fresh_torque"].as_u64().is_some(), "control never resumed: {f}");
+    f
+}
+
 fn assert_nothing_left(h: &Harness) {
     h.assert_no_leftovers();
     h.assert_no_leftovers_on("a");
@@ -79,10 +87,8 @@ fn a_killed_gateway_holds_then_safe_mode_then_recovers() {
     let s = json(&out.join("summary.json"));
     assert_eq!(s["completed"], true);
     assert_eq!(s["trace_rows"], 4001);
-    let f = s["faults"].as_array().expect("faults").iter().find(|f| f["role"] == "link-b");
-    let f = f.unwrap_or_else(|| panic!("the gateway kill is not in the report: {}", s["faults"]));
+    let f = recovered_fault(&s, "link-b");
     assert!(f["ticks_without_fresh_torque"].as_u64().expect("ticks") > 40, "{f}");
-    assert!(f["ticks_to_first_fresh_torque"].as_u64().is_some(), "control never resumed: {f}");
     assert!(s["safe_mode_ticks"].as_u64().expect("safe") > 0);
     assert_nothing_left(&h);
 }
@@ -98,11 +104,8 @@ fn a_controller_killed_on_the_far_host_is_restarted_and_control_resumes() {
     let s = json(&out.join("summary.json"));
     assert_eq!(s["completed"], true);
     assert_eq!(s["trace_rows"], 3001);
-    let f = s["faults"].as_array().expect("faults").iter().find(|f| f["role"] == "controller");
-    let f =
-        f.unwrap_or_else(|| panic!("the controller kill is not in the report: {}", s["faults"]));
+    let f = recovered_fault(&s, "controller");
     assert!(f["ticks_without_fresh_torque"].as_u64().expect("ticks") > 0, "{f}");
-    assert!(f["ticks_to_first_fresh_torque"].as_u64().is_some(), "control never resumed: {f}");
     assert_nothing_left(&h);
 }
 

@@ -16,7 +16,7 @@
 
 use std::path::PathBuf;
 
-use clap::Args;
+use clap::{Args, ValueEnum};
 
 /// A configuration the gateway refuses (exit code 2).
 #[derive(Debug, thiserror::Error)]
@@ -37,6 +37,15 @@ pub enum ConfigError {
     /// A bad value.
     #[error("{0}")]
     Bad(String),
+}
+
+/// How a gateway waits for work (`--wait`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+pub enum GatewayWait {
+    /// Blocks until the domain's events or the carrier wake it.
+    Event,
+    /// Busy-polls: lowest latency, one core busy.
+    Spin,
 }
 
 /// `rotorloop link` / `rotorloop-link` arguments.
@@ -75,8 +84,8 @@ pub struct LinkArgs {
     pub ready_file: Option<PathBuf>,
     /// How the gateway waits: `event` (the domain's events and the carrier wake it) or
     /// `spin` (busy-poll: lowest latency, one core busy).
-    #[arg(long, default_value = "event")]
-    pub wait: String,
+    #[arg(long, value_enum, default_value_t = GatewayWait::Event)]
+    pub wait: GatewayWait,
     /// How often the gateway looks for services that appeared or went away (ms).
     #[arg(long, default_value_t = 20)]
     pub discover_ms: u64,
@@ -230,7 +239,7 @@ mod tests {
             password_file: None,
             read_only: false,
             ready_file: None,
-            wait: "event".into(),
+            wait: GatewayWait::Event,
             discover_ms: 20,
         }
     }

@@ -23,22 +23,13 @@ use rotorloop_common::ipc::{
 };
 use zenoh::Wait;
 
-use crate::config::{ConfigError, LinkArgs, zenoh_config};
+use crate::config::{ConfigError, GatewayWait, LinkArgs, zenoh_config};
 
 type ZenohLink = Link<ipc::Service, Tunnel<ZenohCarrier>>;
 
 /// Runs the gateway until SIGINT or SIGTERM.
 pub fn run(args: &LinkArgs) -> anyhow::Result<()> {
-    let spin = match args.wait.as_str() {
-        "event" => false,
-        "spin" => true,
-        other => {
-            return Err(ConfigError::Bad(format!(
-                "--wait `{other}` is not allowed: event or spin"
-            ))
-            .into());
-        }
-    };
+    let spin = args.wait == GatewayWait::Spin;
     let zenoh_cfg = zenoh_config(args)?;
     // iceoryx2's notice that no config file was loaded is noise (the domain makes its own);
     // the link's warnings (a dropped arrival, a failed bridge) are not.

@@ -12,5 +12,5 @@
 pub mod config;
 pub mod gateway;
 
-pub use config::{ConfigError, LinkArgs, zenoh_config};
+pub use config::{ConfigError, GatewayWait, LinkArgs, zenoh_config};
 pub use gateway::run;

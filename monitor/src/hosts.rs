@@ -6,6 +6,7 @@
 use serde::Serialize;
 
 use crate::latency::Hop;
+use crate::stages::Stage;
 
 /// The host of each role (`--hosts plant=a,controller=b,…`; none: one host).
 #[derive(Debug, Clone, Default, PartialEq, Serialize)]
@@ -69,7 +70,8 @@ impl Hosts {
         let mut not_computed: Vec<&'static str> =
             Hop::ALL.iter().filter(|h| !self.computable(**h)).map(|h| h.name()).collect();
         if self.controller_apart() {
-            not_computed.extend(["state_delivery", "torque_delivery"]);
+            // The stages `Stages::record_row` leaves out when the controller is apart.
+            not_computed.extend([Stage::StateDelivery, Stage::TorqueDelivery].map(Stage::name));
         }
         Some(CrossHost {
             hosts: self.clone(),
