@@ -106,9 +106,27 @@ fn rotorloop(args: &[String]) -> Output {
     Command::new(env!("CARGO_BIN_EXE_rotorloop")).args(args).output().expect("run rotorloop")
 }
 
+/// Cargo as a newcomer's shell runs it: without the variables cargo set for this test
+/// process (`CARGO_MANIFEST_DIR`, `CARGO_PKG_NAME`, ...). Build scripts watch some of
+/// them (`ring`'s `rerun-if-env-changed`), so with them set the nested cargo rebuilt
+/// the whole Zenoh stack, and the next `cargo test` rebuilt it back (about 3 min each).
 fn cargo() -> Command {
     let mut c = Command::new(std::env::var_os("CARGO").unwrap_or_else(|| "cargo".into()));
     c.current_dir(root());
+    const SET_BY_CARGO_FOR_TESTS: [&str; 6] = [
+        "CARGO_PKG_",
+        "CARGO_MANIFEST_",
+        "CARGO_CRATE_",
+        "CARGO_BIN_",
+        "CARGO_PRIMARY_",
+        "OUT_DIR",
+    ];
+    for (key, _) in std::env::vars_os() {
+        let k = key.to_string_lossy();
+        if SET_BY_CARGO_FOR_TESTS.iter().any(|p| k.starts_with(p)) || k == "CARGO_TARGET_TMPDIR" {
+            c.env_remove(&key);
+        }
+    }
     c
 }
 
