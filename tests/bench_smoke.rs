@@ -45,6 +45,15 @@ fn short_bench_writes_every_output_file() {
             let v: f64 = r[col].parse().expect("latency");
             assert!(v > 0.0, "{}: {v}", header[col]);
         }
+        // The tracking error is the loop's (final and RMS over the run); a baseline has none.
+        for name in ["err_deg_final", "err_deg_rms"] {
+            let col = header.iter().position(|h| *h == name).expect(name);
+            let v: f64 = r[col].parse().expect(name);
+            match r[1] {
+                "loop" => assert!(v.is_finite() && v > 0.0, "{name}: {r:?}"),
+                _ => assert!(v.is_nan(), "{name} of a baseline: {r:?}"),
+            }
+        }
     }
     let md = std::fs::read_to_string(out.join("bench.md")).expect("bench.md");
     assert!(md.contains("loop/iceoryx2 p50") && md.contains("Highest rate with zero misses"));

@@ -3,6 +3,7 @@
 //! clock, absolute-deadline sleep, core pinning, SCHED_FIFO, mlock, and termination
 //! signals. The algorithms never see any of this.
 
+use std::cell::Cell;
 use std::fmt::Debug;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Duration;
@@ -447,13 +448,14 @@ impl Domain {
         })
     }
 
-    /// A listener on `topic`'s event service for `node`, if the service exists (a link
-    /// gateway wakes on the domain's events without creating any service).
-    pub fn listener_if_exists(
+    /// A listener and a notifier on `topic`'s event service for `node`, if the service
+    /// exists (a link gateway wakes on the domain's events, and re-wakes the receivers of
+    /// samples it brought in, without creating any service).
+    pub fn event_ports_if_exists(
         &self,
         node: &Node<ipc::Service>,
         topic: Topic,
-    ) -> Result<Option<Listener<ipc::Service>>, IpcError> {
+    ) -> Result<Option<EventPorts>, IpcError> {
         let name = self.service_name(topic)?;
         let exists = ipc::Service::does_exist(&name, &self.config, MessagingPattern::Event)
             .map_err(|e| iox(format!("cannot look up {name}"))(&e))?;
@@ -465,7 +467,11 @@ impl Domain {
             .listener_builder()
             .create()
             .map_err(|e| iox(format!("cannot listen to {name}"))(&e))?;
-        Ok(Some(listener))
+        let notifier = service
+            .notifier_builder()
+            .create()
+            .map_err(|e| iox(format!("cannot notify {name}"))(&e))?;
+        Ok(Some((listener, notifier)))
     }
 
     fn service_name(&self, topic: Topic) -> Result<ServiceName, IpcError> {
@@ -581,9 +587,12 @@ impl Domain {
         } else {
             None
         };
-        Ok(Inbox { subscriber, listener })
+        Ok(Inbox { subscriber, listener, unnotified: Cell::new(0) })
     }
 }
+
+/// A listener and a notifier on one event service.
+pub type EventPorts = (Listener<ipc::Service>, Notifier<ipc::Service>);
 
 /// A role's iceoryx2 node: it must outlive the role's ports.
 pub type RoleNode = Node<ipc::Service>;
@@ -663,6 +672,8 @@ impl<T: ZeroCopySend + Debug + Copy + 'static> Outbox<T> {
 pub struct Inbox<T: ZeroCopySend + Debug + Copy + 'static> {
     subscriber: Subscriber<ipc::Service, T, ()>,
     listener: Option<Listener<ipc::Service>>,
+    /// See [`Inbox::unnotified`].
+    unnotified: Cell<u64>,
 }
 
 impl<T: ZeroCopySend + Debug + Copy + 'static> Inbox<T> {
@@ -685,6 +696,16 @@ impl<T: ZeroCopySend + Debug + Copy + 'static> Inbox<T> {
         }
     }
 
+    /// Lost wake-ups: how often [`Inbox::wait_for`] found what it waited for only after a
+    /// whole bounded wait (10 ms) passed with no notification. Every publisher notifies
+    /// after it sends, so on one host this stays 0; a sample that comes in through a link
+    /// gateway without a wake-up after it counts here (and costs its receiver up to 10 ms).
+    /// (A sample that lands in the microsecond between the bound's end and the look after
+    /// it counts too, falsely; that needs a 10 ms silence first.)
+    pub fn unnotified(&self) -> u64 {
+        self.unnotified.get()
+    }
+
     /// Waits until `ready()` returns something, the monotonic deadline passes, or a
     /// termination signal arrives. `ready` is polled first, after every wake-up, and in
     /// spin mode continuously; it should drain the inbox.
@@ -696,8 +717,12 @@ impl<T: ZeroCopySend + Debug + Copy + 'static> Inbox<T> {
         mut ready: impl FnMut(&Self) -> Result<Option<R>, IpcError>,
     ) -> Result<Option<R>, IpcError> {
         let start = now_ns();
+        let mut slept_through = false;
         loop {
             if let Some(r) = ready(self)? {
+                if slept_through {
+                    self.unnotified.set(self.unnotified.get() + 1);
+                }
                 return Ok(Some(r));
             }
             let now = now_ns();
@@ -715,11 +740,18 @@ impl<T: ZeroCopySend + Debug + Copy + 'static> Inbox<T> {
                 }
             };
             let left = deadline_ns - now;
-            match (&self.listener, spin || left < 2_000) {
+            slept_through = match (&self.listener, spin || left < 2_000) {
                 // Bounded so that signals are seen; wake-ups merge, so drain after.
-                (Some(l), false) => wait_readable(l, left.min(10_000_000))?,
-                _ => std::hint::spin_loop(),
-            }
+                (Some(l), false) if left > WAIT_BOUND_NS => !wait_readable(l, WAIT_BOUND_NS)?,
+                (Some(l), false) => {
+                    wait_readable(l, left)?;
+                    false
+                }
+                _ => {
+                    std::hint::spin_loop();
+                    false
+                }
+            };
         }
     }
 }
@@ -731,17 +763,23 @@ impl<T: ZeroCopySend + Debug + Copy + 'static> Inbox<T> {
 /// real-time ticks late by up to 8 ms whenever a torque did not come; and a timeout under
 /// 1 µs becomes `{0, 0}`: wait forever). `ppoll` on the listener's socket has an hrtimer
 /// timeout with nanosecond resolution; the listener is drained with `try_wait` after.
-fn wait_readable(listener: &Listener<ipc::Service>, timeout_ns: u64) -> Result<(), IpcError> {
+/// Returns whether a notification (or a signal) came.
+fn wait_readable(listener: &Listener<ipc::Service>, timeout_ns: u64) -> Result<bool, IpcError> {
     use iceoryx2_bb_posix::file_descriptor::FileDescriptorBased;
     // SAFETY: the listener owns the descriptor and outlives this call; it is only polled.
     let fd = unsafe { listener.file_descriptor().native_handle() };
     wait_any_readable(&[fd], timeout_ns)?;
-    match listener.try_wait(|_| {}) {
+    let mut notified = false;
+    match listener.try_wait(|_| notified = true) {
+        Ok(_) => Ok(notified),
         // A signal (SIGTERM to stop, say) is a wake-up like any other.
-        Ok(_) | Err(iceoryx2::port::listener::ListenerWaitError::InterruptSignal) => Ok(()),
+        Err(iceoryx2::port::listener::ListenerWaitError::InterruptSignal) => Ok(true),
         Err(e) => Err(iox("cannot drain events")(&e)),
     }
 }
+
+/// The longest a listener waits before it looks again (signals, lost wake-ups).
+const WAIT_BOUND_NS: u64 = 10_000_000;
 
 /// Blocks until one of `fds` (at most 8) is readable, `timeout_ns` passes or a signal
 /// arrives: `ppoll`, whose timeout is an hrtimer with nanosecond resolution (unlike

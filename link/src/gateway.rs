@@ -4,15 +4,22 @@
 //! `--discover-ms` it runs the link's discovery and says what it bridges.
 //!
 //! The listeners belong to the link's own node, so the link never takes them for a local
-//! offer to export, and the gateway never notifies anything itself: the link's event
-//! bridge carries the roles' notifications, samples first (iceoryx2-link 0.10 propagates
-//! samples before events, so a woken subscriber finds its sample).
+//! offer to export. The link's event bridge carries the roles' notifications, but a
+//! notification can overtake its sample: iceoryx2-link 0.10 propagates samples before
+//! events within one pass, yet when a role publishes and notifies while the sending
+//! gateway is inside a pass, the event leaves in that pass and the sample in the next; on
+//! the other host the receiver is woken before its sample is there, and nothing wakes it
+//! when the sample lands. Its wait is bounded at 10 ms, which was the 10 ms mode of 3-8 %
+//! of link round trips. So after every pass that follows an arrival from the other host,
+//! the gateway notifies the receivers of the topics that come in (those no role here
+//! publishes), skipping the link's own listeners as the link's bridge does.
 
 use std::collections::BTreeSet;
 use std::time::Duration;
 
 use anyhow::Context;
 use iceoryx2::port::listener::Listener;
+use iceoryx2::port::notifier::Notifier;
 use iceoryx2::prelude::*;
 use iceoryx2_bb_posix::file_descriptor::FileDescriptorBased;
 use iceoryx2_integrations_zenoh_link_carrier::ZenohCarrier;
@@ -63,13 +70,14 @@ pub fn run(args: &LinkArgs) -> anyhow::Result<()> {
         who,
         prefix,
         domain,
-        listeners: Default::default(),
+        events: Default::default(),
         bridged: BTreeSet::new(),
         peers: 0,
         errors: 0,
     };
     let period = args.discover_ms.max(1) * 1_000_000;
     let mut next_discover = 0;
+    let mut arrived = false;
     while !shutdown_requested() {
         let now = now_ns();
         if now >= next_discover {
@@ -79,9 +87,13 @@ pub fn run(args: &LinkArgs) -> anyhow::Result<()> {
         if let Err(e) = link.propagate() {
             g.error("propagate", &e);
         }
+        if arrived {
+            g.rewake_incoming();
+        }
         if !spin {
             g.wait(&wake, next_discover.saturating_sub(now_ns()))?;
         }
+        arrived = g.drain(&wake);
     }
     eprintln!("{}: stopping", g.who);
     Ok(())
@@ -94,8 +106,8 @@ struct Gateway {
     /// `rotorloop/<domain>/`: the services it bridges.
     prefix: String,
     domain: Domain,
-    /// A listener per topic whose event service exists here.
-    listeners: [Option<Listener<ipc::Service>>; 3],
+    /// The gateway's ports per topic whose event service exists here.
+    events: [Option<TopicEvents>; 3],
     /// `(service, pattern)` bridged at the last discovery.
     bridged: BTreeSet<(String, &'static str)>,
     peers: usize,
@@ -113,9 +125,14 @@ impl Gateway {
         if let Err(e) = link.discover() {
             self.error("discover", &e);
         }
-        for (slot, topic) in self.listeners.iter_mut().zip(Topic::ALL) {
+        for (slot, topic) in self.events.iter_mut().zip(Topic::ALL) {
             if slot.is_none() {
-                *slot = self.domain.listener_if_exists(link.node(), topic).ok().flatten();
+                let ports = self.domain.event_ports_if_exists(link.node(), topic).ok().flatten();
+                *slot = ports.map(|(listener, notifier)| TopicEvents {
+                    listener,
+                    notifier,
+                    published_here: false,
+                });
             }
         }
         let peers = session.info().peers_zid().wait().count();
@@ -152,16 +169,36 @@ impl Gateway {
         // SAFETY: the listeners own their descriptors and outlive this call; only polled.
         let fd = |l: &dyn FileDescriptorBased| unsafe { l.file_descriptor().native_handle() };
         let mut fds = [fd(wake); 4];
-        for (slot, l) in fds[1..].iter_mut().zip(self.listeners.iter().flatten()) {
-            *slot = fd(l);
+        for (slot, e) in fds[1..].iter_mut().zip(self.events.iter().flatten()) {
+            *slot = fd(&e.listener);
         }
-        let n = 1 + self.listeners.iter().flatten().count();
+        let n = 1 + self.events.iter().flatten().count();
         wait_any_readable(&fds[..n], timeout_ns).context("link")?;
-        let _ = wake.try_wait(|_| {});
-        for l in self.listeners.iter().flatten() {
-            let _ = l.try_wait(|_| {});
-        }
         Ok(())
+    }
+
+    /// Takes the pending wake-ups: whether something arrived from the other host, and
+    /// which topics a role here published (only a role's notification reaches the
+    /// gateway's listeners: the link's own are delivered past them).
+    fn drain(&mut self, wake: &Listener<iceoryx2_link_backend::WakeService>) -> bool {
+        let mut arrived = false;
+        let _ = wake.try_wait(|_| arrived = true);
+        for e in self.events.iter_mut().flatten() {
+            let mut here = false;
+            let _ = e.listener.try_wait(|_| here = true);
+            e.published_here |= here;
+        }
+        arrived
+    }
+
+    /// Wakes the receivers of every topic that comes in from the other host (no role here
+    /// has published it), past the link's own listeners so that nothing goes back.
+    fn rewake_incoming(&self) {
+        for e in self.events.iter().flatten().filter(|e| !e.published_here) {
+            // The call iceoryx2-link's own event bridge delivers with (skip the node's
+            // own listeners); a receiver that is gone is cleaned up by iceoryx2.
+            let _ = e.notifier.__internal_notify(EventId::default(), true);
+        }
     }
 
     /// Reports a failed cycle (the link stays usable): the first ten, then every 1000th.
@@ -172,6 +209,16 @@ impl Gateway {
         }
         std::thread::sleep(Duration::from_micros(100));
     }
+}
+
+/// The gateway's own ports on one topic's event service.
+struct TopicEvents {
+    /// Hears the notifications of this host's roles.
+    listener: Listener<ipc::Service>,
+    /// Re-wakes this host's receivers after a pass that followed an arrival.
+    notifier: Notifier<ipc::Service>,
+    /// A role on this host has published the topic: it goes out, not in.
+    published_here: bool,
 }
 
 /// The domain's services the link bridges now, by name and pattern.

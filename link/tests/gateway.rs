@@ -8,7 +8,7 @@ use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
 use iceoryx2::prelude::ZeroCopySend;
-use rotorloop_common::ipc::{Domain, IpcError, Topic};
+use rotorloop_common::ipc::{Domain, IpcError, Topic, Wait, now_ns};
 use rotorloop_common::wire::{LAYOUT_VERSION, StateSample, TorqueSample};
 
 const LINK: &str = env!("CARGO_BIN_EXE_rotorloop-link");
@@ -233,4 +233,69 @@ fn a_peer_of_another_sample_layout_is_refused_across_the_link_as_on_one_host() {
         other => panic!("expected a layout skew error, got {other:?}"),
     }
     open_mirrored_state::<StateSample>("same").expect("the same layout opens");
+}
+
+/// Every sample that crosses the link wakes its receiver. A ping-pong between a plant on
+/// host `a` and a controller on host `b`, each blocked on its listener (`Wait::Event`):
+/// no receiver may find its sample only after a whole 10 ms bound passed without a
+/// notification (`Inbox::unnotified`). Without the gateway's re-wake, a notification
+/// that overtook its sample on the link left 3-8 % of round trips waiting out the bound.
+#[test]
+fn every_sample_that_crosses_the_link_wakes_its_receiver() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let domain = format!("lk-wake-{}", std::process::id());
+    let listen = format!("tcp/127.0.0.1:{}", free_port());
+    let (ra, rb) = (dir.path().join("a"), dir.path().join("b"));
+    let _a = gateway(&domain, "a", &ra, &["--listen", &listen]);
+    let _b = gateway(&domain, "b", &rb, &["--connect", &listen]);
+    assert!(wait_for(Duration::from_secs(10), || rb.exists()), "not connected");
+    let (a, b) = (
+        Domain::on_host(&domain, Some("a")).expect("a"),
+        Domain::on_host(&domain, Some("b")).expect("b"),
+    );
+    let (na, nb) = (a.node("plant").expect("node a"), b.node("controller").expect("node b"));
+    let state_out = a.outbox::<StateSample>(&na, Topic::State).expect("state publisher");
+    let torque_in = a.inbox::<TorqueSample>(&na, Topic::Torque, 8, true).expect("torque inbox");
+    let state_in = b.inbox::<StateSample>(&nb, Topic::State, 8, true).expect("state inbox");
+    let torque_out = b.outbox::<TorqueSample>(&nb, Topic::Torque).expect("torque publisher");
+    let init = rotorloop_common::Scenario::load("paper-zero").expect("builtin").plant_init;
+    // One round trip of tick `k`: whether both samples came within `wait_ns` each.
+    let trip = |k: u64, wait_ns: u64| {
+        state_out.send(StateSample::of(k, 0.0, &init), |_| {}).expect("send");
+        let got = state_in
+            .wait_for(Wait::Event, now_ns() + wait_ns, |i| {
+                let mut hit = None;
+                i.drain(|s| hit = hit.or((s.tick == k).then_some(())))?;
+                Ok(hit)
+            })
+            .expect("wait for the state");
+        if got.is_none() {
+            return false;
+        }
+        torque_out.send(torque(k), |_| {}).expect("send");
+        let got = torque_in
+            .wait_for(Wait::Event, now_ns() + wait_ns, |i| {
+                let mut hit = None;
+                i.drain(|t| hit = hit.or((t.tick == k).then_some(())))?;
+                Ok(hit)
+            })
+            .expect("wait for the torque");
+        got.is_some()
+    };
+    // Until one round trip has crossed: the mirrors and their bridges are up.
+    let first = (1..=500).find(|&k| trip(k, 20_000_000)).expect("no round trip in 500 tries");
+    let before = (state_in.unnotified(), torque_in.unnotified());
+    const TRIPS: u64 = 1000;
+    for k in first + 1..=first + TRIPS {
+        assert!(trip(k, 2_000_000_000), "round trip {k} lost a sample");
+        std::thread::sleep(Duration::from_micros(500));
+    }
+    let lost = (state_in.unnotified() - before.0, torque_in.unnotified() - before.1);
+    assert_eq!(
+        lost,
+        (0, 0),
+        "(states, torques) of {TRIPS} round trips found only after a 10 ms wait with no wake-up"
+    );
+    drop((state_out, torque_in, state_in, torque_out, na, nb, _a, _b));
+    cleanup(&domain);
 }

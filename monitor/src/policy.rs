@@ -46,7 +46,7 @@ pub const END_QUIET_NS: u64 = 5_000_000_000;
 
 /// What a restarted monitor needs to continue the same report.
 #[derive(Debug, Clone, Copy, ZeroCopySend)]
-#[type_name("rotorloop::MonitorResume_v5")]
+#[type_name("rotorloop::MonitorResume_v6")]
 #[repr(C)]
 pub struct MonitorResume {
     /// The next row to write.
@@ -61,6 +61,10 @@ pub struct MonitorResume {
     pub first_err: f64,
     /// Largest relative momentum drift so far.
     pub drift_max: f64,
+    /// Sum of the squared attitude errors of the rows so far (deg²), and their number.
+    pub err_sq_sum: f64,
+    /// See `err_sq_sum`.
+    pub err_rows: u64,
     /// The metrics' running state.
     pub metrics: [f64; METRICS_STATE_LEN],
     /// Received and lost of state, reference and torque.
@@ -183,6 +187,7 @@ impl RowJoiner {
     pub fn save(
         &self,
         first_err: f64,
+        (err_sq_sum, err_rows): (f64, u64),
         drift_max: f64,
         metrics: [f64; METRICS_STATE_LEN],
     ) -> MonitorResume {
@@ -198,6 +203,8 @@ impl RowJoiner {
             restarts: self.restarts,
             first_err,
             drift_max,
+            err_sq_sum,
+            err_rows,
             metrics,
             counts: [s[0].received, s[0].lost, s[1].received, s[1].lost, s[2].received, s[2].lost],
             rejected: self.rejected,
@@ -535,7 +542,7 @@ mod tests {
         let mut a = RowJoiner::new(100, 1e6, 0);
         feed(&mut a, 0..10, 100);
         assert_eq!(rows(&mut a, false).len(), 9);
-        let saved = a.save(1.0, 0.0, [0.0; METRICS_STATE_LEN]);
+        let saved = a.save(1.0, (0.0, 0), 0.0, [0.0; METRICS_STATE_LEN]);
         let mut b = RowJoiner::new(100, 1e6, 0);
         b.resume(&saved);
         feed(&mut b, 20..30, 100); // down from tick 9 to 19
@@ -544,7 +551,7 @@ mod tests {
         assert_eq!((b.rows_lost(), b.restarts()), (11, 1));
         // Restarted after the end: everything left is its gap.
         let mut c = RowJoiner::new(100, 1e6, 0);
-        c.resume(&b.save(1.0, 0.0, [0.0; METRICS_STATE_LEN]));
+        c.resume(&b.save(1.0, (0.0, 0), 0.0, [0.0; METRICS_STATE_LEN]));
         c.settle_rest();
         assert_eq!(c.gaps().last(), Some(&[29, 100]));
         assert!(c.done());

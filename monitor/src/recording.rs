@@ -62,6 +62,8 @@ pub struct Recording {
     pub first_err: f64,
     /// Attitude error of the last row (deg).
     pub last_err: f64,
+    /// Sum of the squared attitude errors of the rows taken (deg²), and their number.
+    err_sq: (f64, u64),
     /// Largest relative spatial-momentum drift.
     pub drift_max: f64,
     /// Where the trace stopped, if it did.
@@ -173,6 +175,7 @@ impl Recording {
             first_unflushed: None,
             first_err: resumed.map_or(f64::NAN, |r| r.first_err),
             last_err: f64::NAN,
+            err_sq: resumed.map_or((0.0, 0), |r| (r.err_sq_sum, r.err_rows)),
             drift_max: resumed.map_or(0.0, |r| r.drift_max),
             loss: None,
             storage_errors: Vec::new(),
@@ -231,6 +234,10 @@ impl Recording {
             self.first_err = row.err_deg;
         }
         self.last_err = row.err_deg;
+        if row.err_deg.is_finite() {
+            self.err_sq.0 += row.err_deg * row.err_deg;
+            self.err_sq.1 += 1;
+        }
         self.drift_max = self.drift_max.max(row.h_drift_rel);
         self.record_latencies(j);
         self.stages.record_row(j, self.hosts.controller_apart());
@@ -278,7 +285,15 @@ impl Recording {
         }
         self.rows_at_flush = joiner.rows();
         self.first_unflushed = None;
-        Some(joiner.save(self.first_err, self.drift_max, self.metrics.save()))
+        Some(joiner.save(self.first_err, self.err_sq, self.drift_max, self.metrics.save()))
+    }
+
+    /// Root mean square of the attitude error over the rows taken (deg); NaN before any.
+    pub fn err_rms(&self) -> f64 {
+        match self.err_sq {
+            (_, 0) => f64::NAN,
+            (sum, n) => (sum / n as f64).sqrt(),
+        }
     }
 
     /// Rewrites the live status line on stderr, at most twice a second: run time, attitude

@@ -71,6 +71,10 @@ pub struct RunSummary {
     pub err_deg_initial: f64,
     /// See `err_deg_initial`.
     pub err_deg_final: f64,
+    /// Root mean square of the attitude error over the rows recorded (deg): how well the
+    /// loop tracked over the whole run, not only where it ended. Rows the monitor missed
+    /// while it was down (`monitor_gaps`) are not in it.
+    pub err_deg_rms: f64,
     /// Largest relative spatial-momentum drift.
     pub momentum_drift_rel_max: f64,
     /// Whether the run reached its last tick (false after a signal).
@@ -177,6 +181,7 @@ pub fn summary(
         cross_host: rec.hosts.cross_host(),
         err_deg_initial: rec.first_err,
         err_deg_final: rec.last_err,
+        err_deg_rms: rec.err_rms(),
         momentum_drift_rel_max: rec.drift_max,
         completed: j.done(),
         monitor_gaps: j.gaps().to_vec(),
@@ -198,7 +203,7 @@ pub fn summary(
 /// A cyclictest-like summary: one line per hop with count/min/avg/p99/max in µs.
 pub fn console_summary(s: &RunSummary) -> String {
     let mut t = format!(
-        "{} ({}, {} wait): {} ticks, {} rows, {} lost, {} misses, achieved {:.3} Hz of {} Hz, error {:.4}° → {:.3e}°\n",
+        "{} ({}, {} wait): {} ticks, {} rows, {} lost, {} misses, achieved {:.3} Hz of {} Hz, error {:.4}° → {:.3e}° (rms {:.3}°)\n",
         s.name,
         s.mode,
         s.wait,
@@ -209,7 +214,8 @@ pub fn console_summary(s: &RunSummary) -> String {
         s.achieved_rate_hz,
         s.rate_hz,
         s.err_deg_initial,
-        s.err_deg_final
+        s.err_deg_final,
+        s.err_deg_rms
     );
     for e in &s.storage_errors {
         t.push_str(&format!("storage: {e}\n"));
