@@ -746,6 +746,8 @@ fn cross_host_md(rows: &[Row]) -> String {
          | final error one host / cross-host |\n\
          |---|---|---|---|---|---|---|---|---|\n",
     );
+    // A baseline has no tracking error.
+    let deg = |v: f64| if v.is_finite() { format!("{v:.1}") } else { "—".to_owned() };
     for f in far {
         let near = rows
             .iter()
@@ -756,7 +758,7 @@ fn cross_host_md(rows: &[Row]) -> String {
         let Some(n) = near else { continue };
         let _ = writeln!(
             md,
-            "| {} | {} | {} | {:.1} / {:.1} ({}) | {:.1} / {:.1} | {:.1} | {} / {} | {:.1} / {:.1} | {:.1} / {:.1} |",
+            "| {} | {} | {} | {:.1} / {:.1} ({}) | {:.1} / {:.1} | {:.1} | {} / {} | {} / {} | {} / {} |",
             f.rate,
             f.wait,
             f.kind,
@@ -768,10 +770,10 @@ fn cross_host_md(rows: &[Row]) -> String {
             f.p50 / n.p50,
             n.misses,
             f.misses,
-            n.err_deg_rms,
-            f.err_deg_rms,
-            n.err_deg_final,
-            f.err_deg_final
+            deg(n.err_deg_rms),
+            deg(f.err_deg_rms),
+            deg(n.err_deg_final),
+            deg(f.err_deg_final)
         );
     }
     md
