@@ -8,7 +8,7 @@ use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
 use iceoryx2::prelude::ZeroCopySend;
-use rotorloop_common::ipc::{Domain, IpcError, Topic, Wait, now_ns};
+use rotorloop_common::ipc::{Domain, Inbox, IpcError, Topic, Wait, now_ns};
 use rotorloop_common::wire::{LAYOUT_VERSION, StateSample, TorqueSample};
 
 const LINK: &str = env!("CARGO_BIN_EXE_rotorloop-link");
@@ -78,6 +78,32 @@ fn exchange(domain: &str, secs: f64) -> (usize, usize) {
         std::thread::sleep(Duration::from_millis(2));
     }
     (from_b_at_a, from_a_at_b)
+}
+
+/// Two hosts of one domain, `a` listening and `b` connected, on loopback.
+struct Pair {
+    _dir: tempfile::TempDir,
+    domain: String,
+    a: Domain,
+    b: Domain,
+    gateways: (Gateway, Gateway),
+}
+
+fn connected_pair(tag: &str) -> Pair {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let domain = format!("lk-{tag}-{}", std::process::id());
+    let listen = format!("tcp/127.0.0.1:{}", free_port());
+    let (ra, rb) = (dir.path().join("a"), dir.path().join("b"));
+    let ga = gateway(&domain, "a", &ra, &["--listen", &listen]);
+    let gb = gateway(&domain, "b", &rb, &["--connect", &listen]);
+    assert!(wait_for(Duration::from_secs(10), || rb.exists()), "not connected");
+    Pair {
+        a: Domain::on_host(&domain, Some("a")).expect("a"),
+        b: Domain::on_host(&domain, Some("b")).expect("b"),
+        domain,
+        gateways: (ga, gb),
+        _dir: dir,
+    }
 }
 
 fn cleanup(domain: &str) {
@@ -194,17 +220,7 @@ fn open_mirrored_state<T>(tag: &str) -> Result<(), IpcError>
 where
     T: ZeroCopySend + std::fmt::Debug + Copy + 'static,
 {
-    let dir = tempfile::tempdir().expect("tempdir");
-    let domain = format!("lk-{tag}-{}", std::process::id());
-    let listen = format!("tcp/127.0.0.1:{}", free_port());
-    let (ra, rb) = (dir.path().join("a"), dir.path().join("b"));
-    let _a = gateway(&domain, "a", &ra, &["--listen", &listen]);
-    let _b = gateway(&domain, "b", &rb, &["--connect", &listen]);
-    assert!(wait_for(Duration::from_secs(10), || rb.exists()), "not connected");
-    let (a, b) = (
-        Domain::on_host(&domain, Some("a")).expect("a"),
-        Domain::on_host(&domain, Some("b")).expect("b"),
-    );
+    let Pair { domain, a, b, gateways: (_a, _b), .. } = connected_pair(tag);
     let plant = a.node("plant").expect("node a");
     let _out = a.outbox::<T>(&plant, Topic::State).expect("state publisher on a");
     assert!(
@@ -235,6 +251,19 @@ fn a_peer_of_another_sample_layout_is_refused_across_the_link_as_on_one_host() {
     open_mirrored_state::<StateSample>("same").expect("the same layout opens");
 }
 
+/// Whether a sample `is_it` comes into `inbox` within `wait_ns`, waiting on its listener.
+fn arrives<T>(inbox: &Inbox<T>, wait_ns: u64, is_it: impl Fn(&T) -> bool) -> bool
+where
+    T: ZeroCopySend + std::fmt::Debug + Copy + 'static,
+{
+    let got = inbox.wait_for(Wait::Event, now_ns() + wait_ns, |i| {
+        let mut hit = None;
+        i.drain(|x| hit = hit.or(is_it(&x).then_some(())))?;
+        Ok(hit)
+    });
+    got.expect("wait").is_some()
+}
+
 /// Every sample that crosses the link wakes its receiver. A ping-pong between a plant on
 /// host `a` and a controller on host `b`, each blocked on its listener (`Wait::Event`):
 /// no receiver may find its sample only after a whole 10 ms bound passed without a
@@ -242,17 +271,7 @@ fn a_peer_of_another_sample_layout_is_refused_across_the_link_as_on_one_host() {
 /// that overtook its sample on the link left 3-8 % of round trips waiting out the bound.
 #[test]
 fn every_sample_that_crosses_the_link_wakes_its_receiver() {
-    let dir = tempfile::tempdir().expect("tempdir");
-    let domain = format!("lk-wake-{}", std::process::id());
-    let listen = format!("tcp/127.0.0.1:{}", free_port());
-    let (ra, rb) = (dir.path().join("a"), dir.path().join("b"));
-    let _a = gateway(&domain, "a", &ra, &["--listen", &listen]);
-    let _b = gateway(&domain, "b", &rb, &["--connect", &listen]);
-    assert!(wait_for(Duration::from_secs(10), || rb.exists()), "not connected");
-    let (a, b) = (
-        Domain::on_host(&domain, Some("a")).expect("a"),
-        Domain::on_host(&domain, Some("b")).expect("b"),
-    );
+    let Pair { domain, a, b, gateways: (_a, _b), .. } = connected_pair("wake");
     let (na, nb) = (a.node("plant").expect("node a"), b.node("controller").expect("node b"));
     let state_out = a.outbox::<StateSample>(&na, Topic::State).expect("state publisher");
     let torque_in = a.inbox::<TorqueSample>(&na, Topic::Torque, 8, true).expect("torque inbox");
@@ -262,25 +281,10 @@ fn every_sample_that_crosses_the_link_wakes_its_receiver() {
     // One round trip of tick `k`: whether both samples came within `wait_ns` each.
     let trip = |k: u64, wait_ns: u64| {
         state_out.send(StateSample::of(k, 0.0, &init), |_| {}).expect("send");
-        let got = state_in
-            .wait_for(Wait::Event, now_ns() + wait_ns, |i| {
-                let mut hit = None;
-                i.drain(|s| hit = hit.or((s.tick == k).then_some(())))?;
-                Ok(hit)
-            })
-            .expect("wait for the state");
-        if got.is_none() {
-            return false;
+        arrives(&state_in, wait_ns, |s| s.tick == k) && {
+            torque_out.send(torque(k), |_| {}).expect("send");
+            arrives(&torque_in, wait_ns, |t| t.tick == k)
         }
-        torque_out.send(torque(k), |_| {}).expect("send");
-        let got = torque_in
-            .wait_for(Wait::Event, now_ns() + wait_ns, |i| {
-                let mut hit = None;
-                i.drain(|t| hit = hit.or((t.tick == k).then_some(())))?;
-                Ok(hit)
-            })
-            .expect("wait for the torque");
-        got.is_some()
     };
     // Until one round trip has crossed: the mirrors and their bridges are up.
     let first = (1..=500).find(|&k| trip(k, 20_000_000)).expect("no round trip in 500 tries");
