@@ -80,7 +80,8 @@ fn exchange(domain: &str, secs: f64) -> (usize, usize) {
     (from_b_at_a, from_a_at_b)
 }
 
-/// Two hosts of one domain, `a` listening and `b` connected, on loopback.
+/// Two hosts of one domain, `a` listening and `b` connected, on loopback. Bind every
+/// field: the gateways write their ready files into `_dir` and stop when it is gone.
 struct Pair {
     _dir: tempfile::TempDir,
     domain: String,
@@ -220,7 +221,7 @@ fn open_mirrored_state<T>(tag: &str) -> Result<(), IpcError>
 where
     T: ZeroCopySend + std::fmt::Debug + Copy + 'static,
 {
-    let Pair { domain, a, b, gateways: (_a, _b), .. } = connected_pair(tag);
+    let Pair { _dir, domain, a, b, gateways: (_a, _b) } = connected_pair(tag);
     let plant = a.node("plant").expect("node a");
     let _out = a.outbox::<T>(&plant, Topic::State).expect("state publisher on a");
     assert!(
@@ -271,7 +272,7 @@ where
 /// that overtook its sample on the link left 3-8 % of round trips waiting out the bound.
 #[test]
 fn every_sample_that_crosses_the_link_wakes_its_receiver() {
-    let Pair { domain, a, b, gateways: (_a, _b), .. } = connected_pair("wake");
+    let Pair { _dir, domain, a, b, gateways: (_a, _b) } = connected_pair("wake");
     let (na, nb) = (a.node("plant").expect("node a"), b.node("controller").expect("node b"));
     let state_out = a.outbox::<StateSample>(&na, Topic::State).expect("state publisher");
     let torque_in = a.inbox::<TorqueSample>(&na, Topic::Torque, 8, true).expect("torque inbox");
