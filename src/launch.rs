@@ -351,10 +351,7 @@ impl Launch<'_> {
             );
             cmd.stdin(Stdio::null());
             // Quiet (the bench): what the gateway says goes to OUT/link-HOST.log.
-            let log = args.quiet.then(|| {
-                let path = args.out.join(format!("{role}.log"));
-                std::fs::OpenOptions::new().create(true).append(true).open(path)
-            });
+            let log = args.quiet.then(|| crate::split::gateway_log(&args.out, role));
             if let Some(Ok(f)) = log {
                 cmd.stderr(f);
             }

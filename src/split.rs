@@ -161,10 +161,11 @@ impl Gateways {
         let port = free_port()?;
         let mut g = Self(Vec::new());
         for h in split.hosts() {
-            let log = std::fs::File::create(dir.join(format!("link-{h}.log")))?;
+            let name = format!("link-{h}");
+            let log = gateway_log(dir, &name)?;
             let mut cmd = gateway_command(split, h, domain, port, dir);
             cmd.stdin(std::process::Stdio::null()).stdout(log.try_clone()?).stderr(log);
-            g.0.push((format!("link-{h}"), cmd.spawn().context("cannot start a link gateway")?));
+            g.0.push((name, cmd.spawn().context("cannot start a link gateway")?));
         }
         if !wait_until(Duration::from_secs(30), || split.gateways_ready(dir)) {
             anyhow::bail!("the link gateways did not connect within 30 s ({})", dir.display());
@@ -179,6 +180,12 @@ impl Drop for Gateways {
             stop(name, c);
         }
     }
+}
+
+/// Where a gateway `name` (`link-HOST`) of a quiet run or of the bench writes its messages:
+/// `DIR/NAME.log`, appended to (a gateway restarted by a fault continues its log).
+pub fn gateway_log(dir: &Path, name: &str) -> std::io::Result<std::fs::File> {
+    std::fs::OpenOptions::new().create(true).append(true).open(dir.join(format!("{name}.log")))
 }
 
 /// Stops a gateway: SIGTERM, then SIGKILL after 5 s.

@@ -4,32 +4,30 @@
 
 mod common;
 
+use std::path::PathBuf;
 use std::time::Duration;
 
 use common::harness::{Harness, ok};
 
+/// Runs `rotorloop bench ARGS --out DIR` (ARGS split on spaces) to success within
+/// `limit_s` seconds; returns DIR.
+fn bench(h: &Harness, args: &str, limit_s: u64) -> PathBuf {
+    let out = h.path("bench");
+    let mut all = vec!["bench"];
+    all.extend(args.split_whitespace());
+    all.extend(["--out", out.to_str().expect("utf8")]);
+    ok(&h.rotorloop(&all, Duration::from_secs(limit_s)));
+    out
+}
+
 #[test]
 fn short_bench_writes_every_output_file() {
     let h = Harness::new("bench");
-    let out = h.path("bench");
-    ok(&h.rotorloop(
-        &[
-            "bench",
-            "--rates",
-            "500",
-            "--wait",
-            "event",
-            "--placement",
-            "same-core,cross-core",
-            "--baselines",
-            "iceoryx2",
-            "--seconds",
-            "0.3",
-            "--out",
-            out.to_str().expect("utf8"),
-        ],
-        Duration::from_secs(180),
-    ));
+    let out = bench(
+        &h,
+        "--rates 500 --wait event --placement same-core,cross-core --baselines iceoryx2 --seconds 0.3",
+        180,
+    );
     let csv = std::fs::read_to_string(out.join("bench.csv")).expect("bench.csv");
     let mut lines = csv.lines();
     let header: Vec<&str> = lines.next().expect("header").split(',').collect();
@@ -78,25 +76,11 @@ fn short_bench_writes_every_output_file() {
 #[test]
 fn impossible_cells_are_skipped_with_a_reason() {
     let h = Harness::new("benchskip");
-    let out = h.path("bench");
-    ok(&h.rotorloop(
-        &[
-            "bench",
-            "--rates",
-            "500",
-            "--wait",
-            "spin",
-            "--placement",
-            "same-core",
-            "--baselines",
-            "atomic",
-            "--seconds",
-            "0.2",
-            "--out",
-            out.to_str().expect("utf8"),
-        ],
-        Duration::from_secs(60),
-    ));
+    let out = bench(
+        &h,
+        "--rates 500 --wait spin --placement same-core --baselines atomic --seconds 0.2",
+        60,
+    );
     let csv = std::fs::read_to_string(out.join("bench.csv")).expect("bench.csv");
     let rows: Vec<&str> = csv.lines().skip(1).collect();
     assert_eq!(rows.len(), 2);
@@ -112,28 +96,11 @@ fn impossible_cells_are_skipped_with_a_reason() {
 #[test]
 fn before_after_dedicated_and_scale_cells_are_written_or_skipped_with_a_reason() {
     let h = Harness::new("benchscale");
-    let out = h.path("bench");
-    ok(&h.rotorloop(
-        &[
-            "bench",
-            "--rates",
-            "500",
-            "--wait",
-            "event",
-            "--placement",
-            "unpinned,dedicated",
-            "--baselines",
-            "iceoryx2",
-            "--seconds",
-            "0.3",
-            "--before-after",
-            "--loops",
-            "2",
-            "--out",
-            out.to_str().expect("utf8"),
-        ],
-        Duration::from_secs(240),
-    ));
+    let out = bench(
+        &h,
+        "--rates 500 --wait event --placement unpinned,dedicated --baselines iceoryx2 --seconds 0.3 --before-after --loops 2",
+        240,
+    );
     let csv = std::fs::read_to_string(out.join("bench.csv")).expect("bench.csv");
     let rows: Vec<Vec<&str>> = csv.lines().skip(1).map(|l| l.split(',').collect()).collect();
     let row = |cell: &str, kind: &str| {
@@ -211,25 +178,11 @@ fn run_presets_are_checked() {
 #[test]
 fn cross_host_cells_are_measured_through_the_link_beside_one_host() {
     let h = Harness::new("bench-xh");
-    let out = h.path("bench");
-    ok(&h.rotorloop(
-        &[
-            "bench",
-            "--rates",
-            "200",
-            "--wait",
-            "event",
-            "--placement",
-            "unpinned,cross-host",
-            "--baselines",
-            "iceoryx2,uds",
-            "--seconds",
-            "0.5",
-            "--out",
-            out.to_str().expect("utf8"),
-        ],
-        Duration::from_secs(300),
-    ));
+    let out = bench(
+        &h,
+        "--rates 200 --wait event --placement unpinned,cross-host --baselines iceoryx2,uds --seconds 0.5",
+        300,
+    );
     let csv = std::fs::read_to_string(out.join("bench.csv")).expect("bench.csv");
     let rows: Vec<Vec<&str>> = csv.lines().skip(1).map(|l| l.split(',').collect()).collect();
     let row = |placement: &str, kind: &str| {

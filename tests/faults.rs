@@ -6,7 +6,7 @@ mod common;
 
 use std::time::Duration;
 
-use common::harness::{Harness, assert_same_trace, json, ok};
+use common::harness::{Harness, TimingRow, assert_same_trace, json, ok, timing_rows};
 use rotorloop_common::wire::FLAG_SAFE_MODE;
 
 const LIMIT: Duration = Duration::from_secs(180);
@@ -252,27 +252,15 @@ fn realtime_controller_loss_holds_then_safe_mode_then_recovers() {
     // can miss their own tick's wait, and safe mode ends on arrival). Seen loaded: 1003
     // safe-mode ticks of 1048 without a fresh torque.
     let kill = f["kill_tick"].as_u64().expect("kill tick") as i64;
-    let rows: Vec<(i64, i64, u64)> = std::fs::read_to_string(out.join("timing.csv"))
-        .expect("timing")
-        .lines()
-        .skip(1)
-        .map(|l| {
-            let c: Vec<&str> = l.split(',').collect();
-            (
-                c[0].parse().expect("tick"),
-                c[2].parse().expect("applied"),
-                c[3].parse().expect("flags"),
-            )
-        })
-        .collect();
-    let fresh = |&(k, applied, _): &(i64, i64, u64)| k > 0 && applied == k - 1;
-    let safe = |r: &(i64, i64, u64)| r.2 & FLAG_SAFE_MODE != 0;
-    let first_safe = rows.iter().find(|r| r.0 > kill && safe(r)).expect("no safe mode").0;
-    let first_fresh = rows.iter().find(|r| r.0 > first_safe && fresh(r)).expect("no fresh").0;
+    let rows = timing_rows(&out);
+    let fresh = |r: &TimingRow| r.tick > 0 && r.applied == r.tick - 1;
+    let safe = |r: &TimingRow| r.flags & FLAG_SAFE_MODE != 0;
+    let first_safe = rows.iter().find(|r| r.tick > kill && safe(r)).expect("no safe mode").tick;
+    let first_fresh = rows.iter().find(|r| r.tick > first_safe && fresh(r)).expect("no fresh").tick;
     let class: Vec<u8> = rows
         .iter()
-        .filter(|r| r.0 > kill && r.0 <= first_fresh && !fresh(r))
-        .map(|r| match (safe(r), r.1) {
+        .filter(|r| r.tick > kill && r.tick <= first_fresh && !fresh(r))
+        .map(|r| match (safe(r), r.applied) {
             // Safe mode, or no torque at all in the tick (applied -1: the rotors coast,
             // as on the tick where safe mode has ended and the first answer is late).
             (true, _) | (false, ..0) => 1,
@@ -284,7 +272,8 @@ fn realtime_controller_loss_holds_then_safe_mode_then_recovers() {
     assert!(class.is_sorted(), "held, then safe mode, then late answers: {class:?}");
     let held = class.iter().filter(|x| **x == 0).count();
     assert!(held <= 41, "held {held} ticks with --hold-ticks 40");
-    let in_safe_mode = rows.iter().filter(|r| r.0 > kill && r.0 < first_fresh && safe(r)).count();
+    let in_safe_mode =
+        rows.iter().filter(|r| r.tick > kill && r.tick < first_fresh && safe(r)).count();
     assert!(in_safe_mode > 0);
     let safe_total = s["safe_mode_ticks"].as_u64().expect("safe") as usize;
     assert!(safe_total >= in_safe_mode, "summary {safe_total} < {in_safe_mode} safe-mode ticks");
@@ -406,13 +395,11 @@ fn a_tick_the_controller_skipped_at_the_end_does_not_stall_the_report() {
     let s = json(&out.join("summary.json"));
     assert_eq!(s["completed"], true);
     assert_eq!(s["trace_rows"], 301);
-    let timing = std::fs::read_to_string(out.join("timing.csv")).expect("timing");
     // Torque 299 never came, so the plant held an older one over tick 299 and its state
     // 300 says which: 298 on an idle machine, earlier when a loaded controller answered
     // only the newest of several states.
-    let row300 = timing.lines().find(|l| l.starts_with("300,")).expect("row 300");
-    let held: i64 = row300.split(',').nth(2).and_then(|t| t.parse().ok()).expect(row300);
-    assert!(held < 299, "the plant applied a torque for the skipped tick: {row300}");
+    let row300 = timing_rows(&out).into_iter().find(|r| r.tick == 300).expect("row 300");
+    assert!(row300.applied < 299, "the plant applied a torque for the skipped tick: {row300:?}");
     h.assert_no_leftovers();
 }
 

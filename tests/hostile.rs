@@ -10,8 +10,8 @@ use std::path::{Path, PathBuf};
 use std::process::{Command, Output, Stdio};
 use std::time::{Duration, Instant};
 
-use common::harness::{Harness, ROTORLOOP, json, ok, wait_output};
-use iceoryx2::prelude::ZeroCopySend;
+use common::harness::{Harness, ROTORLOOP, json, ok, timing_rows, wait_output};
+use common::old_layout::StateSampleV2;
 use rotorloop_common::ipc::{Domain, IpcError, Topic};
 use rotorloop_common::wire::{LAYOUT_VERSION, StateSample};
 
@@ -36,19 +36,6 @@ fn lockstep(h: &Harness, name: &str, extra: &[&str]) -> PathBuf {
     args.extend_from_slice(extra);
     ok(&h.rotorloop(&args, LIMIT));
     out
-}
-
-/// `tick → applied_torque_tick` from the monitor's timing.csv.
-fn applied_ticks(out: &Path) -> Vec<(u64, i64)> {
-    std::fs::read_to_string(out.join("timing.csv"))
-        .expect("timing")
-        .lines()
-        .skip(1)
-        .map(|l| {
-            let f: Vec<&str> = l.split(',').collect();
-            (f[0].parse().expect("tick"), f[2].parse().expect("applied"))
-        })
-        .collect()
 }
 
 /// Each kind of corrupted sample (NaN, infinity, absurd magnitude, an attitude off SO(3))
@@ -121,10 +108,10 @@ fn every_kind_of_corrupted_sample_is_rejected_counted_and_never_reaches_the_stat
     );
 
     // Hold: over the tick after a rejected torque k, torque k−1 was applied.
-    let applied = applied_ticks(&out);
-    for k in [100u64, 150, 200, 300, 350, 400] {
-        let row = applied.iter().find(|(t, _)| *t == k + 1).expect("row");
-        assert_eq!(row.1, k as i64 - 1, "tick {k}: the plant should hold torque {}", k - 1);
+    let applied = timing_rows(&out);
+    for k in [100i64, 150, 200, 300, 350, 400] {
+        let row = applied.iter().find(|r| r.tick == k + 1).expect("row");
+        assert_eq!(row.applied, k - 1, "tick {k}: the plant should hold torque {}", k - 1);
     }
     // No NaN anywhere in the state columns of the trace.
     let trace = std::fs::read_to_string(out.join("trace.csv")).expect("trace");
@@ -158,8 +145,8 @@ fn rejected_torques_beyond_the_hold_put_the_plant_in_safe_mode_until_a_good_one(
     assert_eq!(s["wire_rejected"]["plant.torque"], 12);
     assert_eq!(s["misses"], 12);
     assert_eq!(s["safe_mode_ticks"], 6, "ticks 6..=11 of the 11 rejected ones");
-    let applied = applied_ticks(&out);
-    let at = |k: u64| applied.iter().find(|(t, _)| *t == k).expect("row").1;
+    let applied = timing_rows(&out);
+    let at = |k: i64| applied.iter().find(|r| r.tick == k).expect("row").applied;
     assert_eq!(at(101), 99, "holding");
     assert_eq!(at(111), -1, "safe mode: no torque applied");
     assert_eq!(at(112), 111, "control back with the first good torque");
@@ -242,15 +229,6 @@ fn a_second_process_of_a_running_role_is_refused_naming_the_domain_and_its_pid()
     assert_eq!(s["trace_rows"], 5001);
     assert_eq!(s["rows_lost"], 0);
     h.assert_no_leftovers();
-}
-
-/// What an older build's state sample looks like on the wire: another layout version.
-#[derive(Debug, Clone, Copy, ZeroCopySend)]
-#[type_name("rotorloop::StateSample_v2")]
-#[repr(C)]
-struct StateSampleV2 {
-    tick: u64,
-    rest: [f64; 41],
 }
 
 /// A process of another sample layout version is refused with a message naming both

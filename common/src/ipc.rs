@@ -741,11 +741,10 @@ impl<T: ZeroCopySend + Debug + Copy + 'static> Inbox<T> {
             };
             let left = deadline_ns - now;
             slept_through = match (&self.listener, spin || left < 2_000) {
-                // Bounded so that signals are seen; wake-ups merge, so drain after.
-                (Some(l), false) if left > WAIT_BOUND_NS => !wait_readable(l, WAIT_BOUND_NS)?,
+                // Bounded so that signals are seen; wake-ups merge, so drain after. A
+                // silent wait counts only when the bound, not the deadline, ended it.
                 (Some(l), false) => {
-                    wait_readable(l, left)?;
-                    false
+                    !wait_readable(l, left.min(WAIT_BOUND_NS))? && left > WAIT_BOUND_NS
                 }
                 _ => {
                     std::hint::spin_loop();

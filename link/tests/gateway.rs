@@ -7,7 +7,11 @@ use std::path::Path;
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
+#[path = "../../tests/common/old_layout.rs"]
+mod old_layout;
+
 use iceoryx2::prelude::ZeroCopySend;
+use old_layout::StateSampleV2;
 use rotorloop_common::ipc::{Domain, Inbox, IpcError, Topic, Wait, now_ns};
 use rotorloop_common::wire::{LAYOUT_VERSION, StateSample, TorqueSample};
 
@@ -204,15 +208,6 @@ fn an_unauthenticated_network_endpoint_is_refused_before_anything_opens() {
     assert_eq!(o.status.code(), Some(2));
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(err.contains("tcp/0.0.0.0:7447") && err.contains("not on loopback"), "{err}");
-}
-
-/// What an older build's state sample looks like on the wire: another layout version.
-#[derive(Debug, Clone, Copy, ZeroCopySend)]
-#[type_name("rotorloop::StateSample_v2")]
-#[repr(C)]
-struct StateSampleV2 {
-    tick: u64,
-    rest: [f64; 41],
 }
 
 /// The state service of host `a`, published by `T`, as host `b`'s controller opens it

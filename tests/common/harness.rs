@@ -166,6 +166,33 @@ pub fn json(path: &Path) -> serde_json::Value {
     serde_json::from_str(&std::fs::read_to_string(path).expect("read json")).expect("json")
 }
 
+/// One row of the monitor's `timing.csv`.
+#[derive(Debug, Clone, Copy)]
+pub struct TimingRow {
+    pub tick: i64,
+    /// The tick whose torque was held over the tick before (−1: none, the rotors coasted).
+    pub applied: i64,
+    /// The state's flags (`rotorloop_common::wire::FLAG_*`).
+    pub flags: u64,
+}
+
+/// The rows of `out/timing.csv`.
+pub fn timing_rows(out: &Path) -> Vec<TimingRow> {
+    std::fs::read_to_string(out.join("timing.csv"))
+        .expect("timing.csv")
+        .lines()
+        .skip(1)
+        .map(|l| {
+            let c: Vec<&str> = l.split(',').collect();
+            TimingRow {
+                tick: c[0].parse().expect("tick"),
+                applied: c[2].parse().expect("applied"),
+                flags: c[3].parse().expect("flags"),
+            }
+        })
+        .collect()
+}
+
 /// Asserts two traces are byte-identical, naming the first differing row and columns.
 pub fn assert_same_trace(what: &str, got: &[u8], want: &[u8]) {
     if got == want {

@@ -4,6 +4,7 @@
 #![allow(dead_code)]
 
 pub mod harness;
+pub mod old_layout;
 
 use nalgebra::{Matrix3, Vector3};
 use rand::{Rng, SeedableRng};
