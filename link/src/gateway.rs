@@ -42,6 +42,14 @@ type ZenohLink = Link<ipc::Service, Tunnel<ZenohCarrier>>;
 /// with this bound, none, and the loop's misses fell from 6268 to 621 of 10000.
 const LOOK_ANYWAY_NS: u64 = 5_000_000;
 
+/// While nothing is bridged yet, and for this long after what is bridged changed, the
+/// gateway discovers every [`SETTLING_PERIOD_NS`] rather than every `--discover-ms`: at
+/// 500 ms from the start a loaded CI run's plant gateway bridged the loop only after the
+/// plant had gone into safe mode, and that run never ended.
+const SETTLE_NS: u64 = 2_000_000_000;
+/// See [`SETTLE_NS`]: the discovery period of earlier versions.
+const SETTLING_PERIOD_NS: u64 = 20_000_000;
+
 /// Runs the gateway until SIGINT or SIGTERM.
 pub fn run(args: &LinkArgs) -> anyhow::Result<()> {
     let spin = args.wait == GatewayWait::Spin;
@@ -83,6 +91,7 @@ pub fn run(args: &LinkArgs) -> anyhow::Result<()> {
         peers: 0,
         errors: 0,
         discovery: Durations::default(),
+        changed_at: 0,
     };
     let period = args.discover_ms.max(1) * 1_000_000;
     let mut next_discover = 0;
@@ -90,8 +99,11 @@ pub fn run(args: &LinkArgs) -> anyhow::Result<()> {
     while !shutdown_requested() {
         let now = now_ns();
         if now >= next_discover {
-            next_discover = now + period;
             g.discover(&mut link, &session, args)?;
+            // Until the domain's services are bridged and have stayed so for a while, look
+            // as often as before (a loop starting up); then every --discover-ms.
+            let settling = g.bridged.is_empty() || now < g.changed_at + SETTLE_NS;
+            next_discover = now + if settling { SETTLING_PERIOD_NS.min(period) } else { period };
             g.discovery.add(now_ns() - now);
         }
         if let Err(e) = link.propagate() {
@@ -132,6 +144,8 @@ struct Gateway {
     errors: u64,
     /// How long discoveries took: the loop propagates nothing while one runs.
     discovery: Durations,
+    /// When the bridged set last changed.
+    changed_at: u64,
 }
 
 /// Count, total and longest of some durations (ns).
@@ -190,6 +204,9 @@ impl Gateway {
         }
         for (name, pattern) in self.bridged.difference(&now) {
             eprintln!("{}: no longer bridging {name} ({pattern})", self.who);
+        }
+        if now != self.bridged {
+            self.changed_at = now_ns();
         }
         self.bridged = now;
         Ok(())
