@@ -88,8 +88,8 @@ pub struct LinkArgs {
     pub wait: GatewayWait,
     /// How often the gateway looks for services that appeared or went away (ms). Nothing
     /// crosses while it looks (3-7 ms each on 2 vCPUs; the gateway says at exit): at 20 ms
-    /// a fifth of the samples waited behind a discovery. A role that starts or restarts is
-    /// bridged within this time.
+    /// a fifth of the samples waited behind a discovery. Every 20 ms while nothing is
+    /// bridged yet and for 2 s after what is bridged changed.
     #[arg(long, default_value_t = 500)]
     pub discover_ms: u64,
 }
