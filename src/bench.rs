@@ -443,6 +443,7 @@ fn loop_run_args(
         rt_priority: None,
         mlock: false,
         plain_hot_path: false,
+        record: None,
     };
     RunArgs {
         pin,

@@ -46,6 +46,12 @@ pub struct RunArgs {
     /// No status line and no per-run console summary.
     #[arg(long)]
     pub quiet: bool,
+    /// Run without flight recorders (each role's record of what it published, in
+    /// `OUT/flight`): the report is then only the monitor's live view, which a monitor
+    /// kill or a monitor falling behind leaves incomplete. For measuring what the
+    /// recorders cost (`bench --before-after`).
+    #[arg(long)]
+    pub no_record: bool,
     /// Real time: the plant sleeps until this many µs before each grid time and spins
     /// the rest (sharper ticks, one core busier).
     #[arg(long, allow_negative_numbers = true, default_value_t = 0)]
@@ -144,6 +150,7 @@ impl RunArgs {
             out,
             no_monitor: false,
             quiet: false,
+            no_record: false,
             spin_before_tick_us: 0,
             hold_ticks: 50,
             fault: Vec::new(),
@@ -437,6 +444,10 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
     let supervisor = Supervisor::new(parse_restart(&args.restart)?, limit);
     let mut role_args = args.role.clone();
     role_args.domain.get_or_insert_with(|| format!("run-{}", std::process::id()));
+    role_args.record = match args.no_record {
+        true => None,
+        false => Some(role_args.record.clone().unwrap_or_else(|| args.out.join("flight"))),
+    };
     let split = args.split.as_deref().map(|s| Split::parse(s, !args.no_monitor)).transpose()?;
     for f in &faults {
         match &split {
@@ -465,6 +476,10 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
     let pins = args.pin.as_deref().map(parse_pins).transpose()?.unwrap_or_default();
     std::fs::create_dir_all(&args.out)
         .with_context(|| format!("cannot create {}", args.out.display()))?;
+    if let Some(dir) = &role_args.record {
+        // An earlier run's records in the same directory are not this run's to continue.
+        clear_flight_records(dir)?;
+    }
     let exe = std::env::current_exe().context("cannot find the rotorloop executable")?;
     install_signal_handlers();
     for domain in &domains {
@@ -517,6 +532,19 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
     }
     let events = supervised?;
     report(&launch, &scenario, &rss, &events)
+}
+
+/// Removes the flight records an earlier run left in `dir`.
+fn clear_flight_records(dir: &std::path::Path) -> anyhow::Result<()> {
+    for stream in rotorloop_common::flight::Stream::ALL {
+        match std::fs::remove_file(stream.path(dir)) {
+            Err(e) if e.kind() != std::io::ErrorKind::NotFound => {
+                return Err(e).with_context(|| format!("cannot remove {}", stream.path(dir).display()));
+            }
+            _ => {}
+        }
+    }
+    Ok(())
 }
 
 /// Starts the roles (and, split, the gateways first: see [`crate::split`]).

@@ -111,6 +111,7 @@ fn four_process_run(out: &Path, name: &str, duration: f64, rate: f64) -> anyhow:
         rt_priority: None,
         mlock: false,
         plain_hot_path: false,
+        record: None,
     };
     crate::launch::run(&crate::launch::RunArgs::defaults(role, run_dir.clone()))
         .with_context(|| format!("four-process run of {name}"))?;

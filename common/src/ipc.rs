@@ -624,7 +624,19 @@ impl<T: ZeroCopySend + Debug + Copy + 'static> Outbox<T> {
     /// `stamp` is called just before the send to set the publish timestamp. Returns what
     /// each step cost (for the stage breakdown; four clock reads).
     #[inline]
-    pub fn send(&self, mut value: T, stamp: impl FnOnce(&mut T)) -> Result<SendCost, IpcError> {
+    pub fn send(&self, value: T, stamp: impl FnOnce(&mut T)) -> Result<SendCost, IpcError> {
+        self.send_then(value, stamp, |_| ())
+    }
+
+    /// [`Outbox::send`], then `after` with the sample as published (its flight record),
+    /// once the listeners are notified: off the hop it starts.
+    #[inline]
+    pub fn send_then(
+        &self,
+        mut value: T,
+        stamp: impl FnOnce(&mut T),
+        after: impl FnOnce(&T),
+    ) -> Result<SendCost, IpcError> {
         let t0 = now_ns();
         let sample = self.publisher.loan_uninit().map_err(|e| iox("cannot loan a sample")(&e))?;
         let t1 = now_ns();
@@ -632,7 +644,9 @@ impl<T: ZeroCopySend + Debug + Copy + 'static> Outbox<T> {
         sample.write_payload(value).send().map_err(|e| iox("cannot send a sample")(&e))?;
         let t2 = now_ns();
         self.notifier.notify().map_err(|e| iox("cannot notify")(&e))?;
-        Ok(SendCost { loan_ns: t1 - t0, send_ns: t2 - t1, notify_ns: now_ns() - t2 })
+        let cost = SendCost { loan_ns: t1 - t0, send_ns: t2 - t1, notify_ns: now_ns() - t2 };
+        after(&value);
+        Ok(cost)
     }
 
     /// Loans a sample and never sends it, until a termination signal: a test hook for

@@ -19,6 +19,7 @@
 //! The conversion happens once, when a scenario is validated ([`scenario`]); nothing
 //! inside a tick converts between them.
 
+pub mod flight;
 pub mod hgrm;
 pub mod ipc;
 pub mod params;

@@ -131,12 +131,27 @@ pub struct RoleArgs {
     /// reading the reference topic every tick.
     #[arg(long, hide = true)]
     pub plain_hot_path: bool,
+    /// Flight-record what this role publishes (the plant: also what it receives) into
+    /// `DIR/*.flight` (`common::flight`); `rotorloop run` records into `OUT/flight`.
+    #[arg(long, value_name = "DIR")]
+    pub record: Option<std::path::PathBuf>,
 }
 
 impl RoleArgs {
     /// The validated scenario with the overrides.
     pub fn scenario(&self) -> Result<Scenario, UsageError> {
         scenario_with_overrides(&self.scenario, self.duration, self.rate, self.actuation)
+    }
+
+    /// The recorder of `stream` for this run's ticks (off without `--record`).
+    pub fn flight<T: crate::flight::Record>(
+        &self,
+        stream: crate::flight::Stream,
+        ticks: u64,
+        role: &str,
+    ) -> crate::flight::FlightRecorder<T> {
+        let capacity = ticks + 1 + crate::flight::SPARE_SLOTS;
+        crate::flight::FlightRecorder::open(self.record.as_deref(), stream, capacity, role)
     }
 
     /// The run domain (`default` unless given).
@@ -196,6 +211,9 @@ impl RoleArgs {
         }
         if self.plain_hot_path {
             a.push("--plain-hot-path".into());
+        }
+        if let Some(d) = &self.record {
+            a.extend(["--record".into(), d.display().to_string()]);
         }
         a
     }

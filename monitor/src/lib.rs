@@ -7,6 +7,7 @@
 //! [`recording`] what it writes, [`report`] its summary, and [`process`] the `monitor`
 //! process around them.
 
+pub mod assemble;
 pub mod figures;
 pub mod hosts;
 pub mod latency;

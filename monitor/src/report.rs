@@ -44,8 +44,15 @@ pub struct RunSummary {
     pub ticks: u64,
     /// Rows written to `trace.csv` (ticks + 1 when complete).
     pub trace_rows: u64,
-    /// Rows the monitor could not assemble (samples lost or never published).
+    /// Rows missing from `trace.csv`: with flight records, ticks no role recorded (a
+    /// sample never published); without, also what the live monitor missed.
     pub rows_lost: u64,
+    /// Rows the live monitor itself missed (its gaps, samples it fell behind on): what
+    /// a report from the live view alone would have lost.
+    pub live_rows_lost: u64,
+    /// The flight records the report was assembled from (absent: run without them).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub flight: Option<crate::assemble::FlightSummary>,
     /// Whether the monitor saw every tick.
     pub monitor_kept_up: bool,
     /// Ticks on which the plant had no fresh torque in time (real time).
@@ -128,14 +135,8 @@ pub fn summary(
         }
         _ => 0.0,
     };
-    let [s_seq, r_seq, t_seq] = j.seq;
-    let mut subscribers = BTreeMap::new();
-    subscribers.insert("monitor.state".to_owned(), s_seq.into());
-    subscribers.insert("monitor.reference".to_owned(), r_seq.into());
-    // Torque ticks the controller skipped are not losses: count against what it published.
-    let monitor_torque_lost = last_torque.map_or(0, |t| t.published.saturating_sub(t_seq.received));
+    let mut subscribers = monitor_counts(j);
     let counts = |received, lost| SubscriberCounts { received, lost };
-    subscribers.insert("monitor.torque".to_owned(), counts(t_seq.received, monitor_torque_lost));
     if let (Some(l), Some(t)) = (last, last_torque) {
         // The plant's counters are as of its last state sample, before the last torque.
         let published_before = t.published - u64::from(t.tick == l.tick);
@@ -165,11 +166,9 @@ pub fn summary(
         ticks,
         trace_rows: rows,
         rows_lost: j.rows_lost(),
-        monitor_kept_up: j.rows_lost() == 0
-            && s_seq.lost == 0
-            && r_seq.lost == 0
-            && monitor_torque_lost == 0
-            && rows == ticks + 1,
+        live_rows_lost: j.rows_lost(),
+        flight: None,
+        monitor_kept_up: kept_up(j, ticks),
         states_skipped_by_controller: last_torque.map_or(0, |t| t.states_skipped),
         misses: last.map_or(0, |s| s.misses),
         reference_misses: last_torque.map_or(0, |t| t.reference_misses),
@@ -198,6 +197,25 @@ pub fn summary(
         storage_errors: rec.storage_errors.clone(),
         report_dir: None,
     }
+}
+
+/// What the monitor's subscribers received and lost (`monitor.state`, …).
+pub fn monitor_counts(j: &RowJoiner) -> BTreeMap<String, SubscriberCounts> {
+    let [s_seq, r_seq, t_seq] = j.seq;
+    let mut subscribers = BTreeMap::new();
+    subscribers.insert("monitor.state".to_owned(), s_seq.into());
+    subscribers.insert("monitor.reference".to_owned(), r_seq.into());
+    // Torque ticks the controller skipped are not losses: count against what it published.
+    let lost = j.last_torque().map_or(0, |t| t.published.saturating_sub(t_seq.received));
+    let torque = SubscriberCounts { received: t_seq.received, lost };
+    subscribers.insert("monitor.torque".to_owned(), torque);
+    subscribers
+}
+
+/// Whether the live monitor saw every tick of `0..=ticks`.
+pub fn kept_up(j: &RowJoiner, ticks: u64) -> bool {
+    let c = monitor_counts(j);
+    j.rows_lost() == 0 && c.values().all(|c| c.lost == 0) && j.rows() == ticks + 1
 }
 
 /// A cyclictest-like summary: one line per hop with count/min/avg/p99/max in µs.

@@ -20,7 +20,7 @@ use ports::Ports;
 pub fn run(args: &ControllerArgs) -> anyhow::Result<()> {
     let (role, scenario) = (&args.role, args.role.scenario()?);
     role.setup("controller");
-    let mut ports = Ports::open(role)?;
+    let mut ports = Ports::open(role, scenario.ticks())?;
     let dt = scenario.dt();
     let skip_at = test_hook("ROTORLOOP_TEST_SKIP_STATE_AT");
     let mut answers = TorqueAnswers::for_scenario(&scenario).leaving_unanswered(skip_at);

@@ -5,6 +5,7 @@ use std::cell::Cell;
 
 use anyhow::Context;
 use rotorloop_common::ReferenceState;
+use rotorloop_common::flight::{FlightRecorder, Stream};
 use rotorloop_common::ipc::{
     Inbox, Outbox, RoleNode, SendCost, Topic, Wait, now_ns, shutdown_requested,
 };
@@ -22,6 +23,8 @@ pub(super) struct Ports {
     pub states: Inbox<StateSample>,
     pub slot: ResumeSlot<TorqueSample>,
     pub plant: PlantWatch,
+    /// Every torque published, in the run's flight record.
+    flight: FlightRecorder<TorqueSample>,
     /// Drain the reference topic only when the reference of the tick is not in hand.
     lazy_refs: bool,
     /// The tick and cost of the last torque published (carried in the next one).
@@ -30,8 +33,9 @@ pub(super) struct Ports {
 }
 
 impl Ports {
-    pub fn open(role: &RoleArgs) -> anyhow::Result<Self> {
+    pub fn open(role: &RoleArgs, ticks: u64) -> anyhow::Result<Self> {
         let domain = role.open_domain()?;
+        let flight = role.flight(Stream::ControllerTorque, ticks, "controller");
         let node = domain.node("controller").context("controller")?;
         let out = domain.outbox::<TorqueSample>(&node, Topic::Torque).context("controller")?;
         // Subscribe to the state last: the plant starts when it sees its state subscribers.
@@ -43,7 +47,7 @@ impl Ports {
         let plant = PlantWatch::open(&domain, "controller").context("controller")?;
         let last_publish = Cell::new((NO_TICK, SendCost::default()));
         let lazy_refs = !role.plain_hot_path;
-        Ok(Self { out, refs, states, slot, plant, lazy_refs, last_publish, _node: node })
+        Ok(Self { out, refs, states, slot, plant, flight, lazy_refs, last_publish, _node: node })
     }
 
     /// Waits until `until` for states; every one goes through `answers` (older ones are
@@ -71,7 +75,7 @@ impl Ports {
         Ok(match decision {
             Decision::AnswerAgain(prev) => {
                 self.out
-                    .send(prev, |s| s.publish_ns = now_ns())
+                    .send_then(prev, |s| s.publish_ns = now_ns(), |s| self.flight.record(s))
                     .context("controller: re-publishing")?;
                 None
             }
@@ -109,7 +113,8 @@ impl Ports {
     /// previous publish cost.
     pub fn publish(&self, mut t: TorqueSample, corrupt: &[Corrupt]) -> anyhow::Result<()> {
         (t.prev_tick, t.prev_publish) = self.last_publish.get();
-        let sent = self.out.send(corrupted(corrupt, t), |s| s.publish_ns = now_ns());
+        let stamp = |s: &mut TorqueSample| s.publish_ns = now_ns();
+        let sent = self.out.send_then(corrupted(corrupt, t), stamp, |s| self.flight.record(s));
         self.last_publish.set((t.tick, sent.context("controller: publishing torque")?));
         Ok(())
     }

@@ -14,6 +14,7 @@ use rotorloop_common::wire::TorqueSample;
 
 pub use args::MonitorArgs;
 
+use crate::assemble::{FlightRecords, LiveView, report, unusable};
 use crate::policy::{END_QUIET_NS, RowJoiner};
 use crate::recording::Recording;
 use crate::report::{console_summary, summary, write_summary};
@@ -59,13 +60,31 @@ pub fn run(args: &MonitorArgs) -> anyhow::Result<()> {
         }
         std::thread::sleep(std::time::Duration::from_micros(args.poll_us));
     }
-    let fallback = std::env::temp_dir().join(format!("rotorloop-report-{}", ports.domain));
-    let (files, dir) = rec.finish(&scenario.file.name, &fallback);
     if joiner.done() {
         ports.slot.clear(); // finished: a later monitor in this domain starts a new report
     }
-    let mut summary = summary(&scenario, role, &joiner, &rec, files);
-    summary.report_dir = (dir != args.out).then(|| dir.display().to_string());
+    let records = args.role.record.as_deref().map(|d| (d, FlightRecords::read(d)));
+    let summary = match records {
+        // The run's files from the roles' own records: complete whatever was killed.
+        Some((dir, Ok(records))) => {
+            let hosts = rec.hosts.clone();
+            drop(rec); // its buffered rows go to disk before the files are rewritten
+            let live = Some(LiveView { joiner: &joiner });
+            report(&args.out, dir, &records, &scenario, role, &hosts, live).0
+        }
+        _ => {
+            let fallback = std::env::temp_dir().join(format!("rotorloop-report-{}", ports.domain));
+            let (files, dir) = rec.finish(&scenario.file.name, &fallback);
+            let mut summary = summary(&scenario, role, &joiner, &rec, files);
+            summary.report_dir = (dir != args.out).then(|| dir.display().to_string());
+            if let Some((dir, Err(e))) = &records {
+                eprintln!("monitor: the report is the live view only: {e}");
+                summary.flight = Some(unusable(dir, e));
+            }
+            summary
+        }
+    };
     println!("{}", console_summary(&summary));
+    let fallback = std::env::temp_dir().join(format!("rotorloop-report-{}", ports.domain));
     write_summary(&args.out, &fallback, &summary)
 }

@@ -21,7 +21,7 @@ use wait::{Ports, SenseToActuate, TorqueWait};
 pub fn run(args: &PlantArgs) -> anyhow::Result<()> {
     let (role, scenario) = (&args.role, args.role.scenario()?);
     role.setup("plant");
-    let ports = Ports::open(role)?;
+    let ports = Ports::open(role, scenario.ticks())?;
     let realtime = role.mode == Mode::Realtime;
     let mut plant = PlantTicker::new(&scenario, args.hold_ticks, realtime, args.actuation_delay);
     match ports.slot.load().filter(|s| plant.can_resume(s)) {
@@ -48,7 +48,8 @@ pub fn run(args: &PlantArgs) -> anyhow::Result<()> {
         ports.slot.store(&sample);
         let stamp = |s: &mut StateSample| (s.publish_ns, s2a.publish_ns) = [now_ns(); 2].into();
         let sample = StateSample { prev_publish: cost, ..corrupted(&args.corrupt, sample) };
-        cost = ports.states.send(sample, stamp).context("plant: publishing state")?;
+        let record = |s: &StateSample| ports.states_flight.record(s);
+        cost = ports.states.send_then(sample, stamp, record).context("plant: publishing state")?;
         let until = if realtime { grid.at(k + 1).saturating_sub(spin_ns) } else { u64::MAX };
         let answer = wait.answer(&ports, &mut plant, role, (k, deadline, until))?;
         if !matches!(answer, Some(Answer::Fresh(..))) && shutdown_requested() {

@@ -4,6 +4,7 @@
 
 use anyhow::Context;
 use hdrhistogram::Histogram;
+use rotorloop_common::flight::{FlightRecorder, Stream};
 use rotorloop_common::hgrm::write_hgrm_file;
 use rotorloop_common::ipc::{Inbox, Outbox, RoleNode, Topic, now_ns};
 use rotorloop_common::resume::ResumeSlot;
@@ -12,22 +13,28 @@ use rotorloop_common::wire::{StateSample, TorqueSample};
 
 use crate::policy::{Answer, PlantTicker, Settled};
 
-/// What the plant opens: its state publisher, torque subscriber and resume slot.
+/// What the plant opens: its state publisher, torque subscriber and resume slot, and its
+/// flight recorders (every state published, every torque received).
 pub(super) struct Ports {
     pub states: Outbox<StateSample>,
     pub torques: Inbox<TorqueSample>,
     pub slot: ResumeSlot<StateSample>,
+    pub states_flight: FlightRecorder<StateSample>,
+    torques_flight: FlightRecorder<TorqueSample>,
     _node: RoleNode,
 }
 
 impl Ports {
-    pub fn open(role: &RoleArgs) -> anyhow::Result<Self> {
+    pub fn open(role: &RoleArgs, ticks: u64) -> anyhow::Result<Self> {
         let domain = role.open_domain()?;
+        let states_flight = role.flight(Stream::PlantState, ticks, "plant");
+        let torques_flight = role.flight(Stream::PlantTorque, ticks, "plant");
         let node = domain.node("plant").context("plant")?;
         let states = domain.outbox::<StateSample>(&node, Topic::State).context("plant")?;
         let torques = domain.inbox::<TorqueSample>(&node, Topic::Torque, 16, role.wait.listens());
         let slot = ResumeSlot::<StateSample>::open(&domain, "plant").context("plant")?;
-        Ok(Self { states, torques: torques.context("plant")?, slot, _node: node })
+        let torques = torques.context("plant")?;
+        Ok(Self { states, torques, slot, states_flight, torques_flight, _node: node })
     }
 }
 
@@ -57,6 +64,7 @@ impl TorqueWait {
             let mut answer: Option<Answer> = None;
             inbox.drain(|t| {
                 let took = plant.take(&t, k, deadline, now_ns());
+                ports.torques_flight.record(&t);
                 answer = took.filter(Answer::answers_the_tick).or(answer);
             })?;
             if answer.is_none() && now_ns() - self.last_update > 5_000_000 {

@@ -8,6 +8,7 @@
 mod args;
 
 use anyhow::Context;
+use rotorloop_common::flight::Stream;
 use rotorloop_common::ipc::{Topic, now_ns, shutdown_requested};
 use rotorloop_common::resume::ResumeSlot;
 use rotorloop_common::role::{PlantWatch, corrupted, linger_publisher, test_hook};
@@ -29,7 +30,9 @@ pub fn run(args: &ReferenceArgs) -> anyhow::Result<()> {
     let slot = ResumeSlot::<ReferenceResume>::open(&domain, "reference").context("reference")?;
     let mut plant = PlantWatch::open(&domain, "reference").context("reference")?;
     let mut lead = LeadWindow::new(&scenario);
-    let send = |s: ReferenceSample| out.send(s, |s| s.publish_ns = now_ns());
+    let flight = role.flight(Stream::Reference, scenario.ticks(), "reference");
+    let send =
+        |s: ReferenceSample| out.send_then(s, |s| s.publish_ns = now_ns(), |s| flight.record(s));
     if let Some(r) = slot.load().filter(|r| lead.can_resume(r)) {
         for again in lead.resume(&scenario, &r) {
             send(again).context("reference: re-publishing")?;

@@ -1,0 +1,192 @@
+//! The run's report from the roles' flight records (`common::flight`), not from what the
+//! monitor happened to see: every sample each role published is in its record, so the
+//! trace, the timing rows, the histograms and the figures are complete whatever was
+//! killed, the monitor included, and whether or not the monitor kept up.
+//!
+//! The records go through the same [`RowJoiner`] and [`Recording`] as the live view, in
+//! tick order, so a row is the row the monitor would have written had it seen every
+//! sample. A torque missing from the controller's record (a controller killed between
+//! its publish and its record) is taken from the plant's record of what it received.
+//!
+//! The live view keeps what only it knows: what the monitor itself received and lost,
+//! its gaps and restarts ([`LiveView`]).
+
+use std::path::Path;
+
+use rotorloop_common::Scenario;
+use rotorloop_common::flight::{FlightError, FlightLog, SPARE_SLOTS, Stream};
+use rotorloop_common::role::RoleArgs;
+use rotorloop_common::wire::{ReferenceSample, StateSample, TorqueSample};
+use serde::Serialize;
+
+use crate::hosts::Hosts;
+use crate::policy::RowJoiner;
+use crate::recording::Recording;
+use crate::report::{RunSummary, summary};
+
+/// The four records of a run.
+#[derive(Debug)]
+pub struct FlightRecords {
+    states: FlightLog<StateSample>,
+    received: FlightLog<TorqueSample>,
+    torques: Option<FlightLog<TorqueSample>>,
+    references: FlightLog<ReferenceSample>,
+}
+
+/// What the flight records held, per stream (in `summary.json`).
+#[derive(Debug, Clone, Serialize, Default)]
+pub struct FlightSummary {
+    /// The directory of the records.
+    pub dir: String,
+    /// Whether the report was assembled from them (else: the monitor's live view, and
+    /// `error` says why).
+    pub assembled: bool,
+    /// Why the records could not be used.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub error: Option<String>,
+    /// Per stream: ticks recorded, ticks of the run missing, how often it was opened.
+    pub streams: Vec<StreamSummary>,
+    /// Torques taken from the plant's record because the controller's had none.
+    pub torques_from_plant: u64,
+}
+
+/// One stream's record.
+#[derive(Debug, Clone, Serialize)]
+pub struct StreamSummary {
+    /// `plant-state`, `plant-torque`, `controller-torque`, `reference`.
+    pub stream: &'static str,
+    /// Ticks recorded.
+    pub records: u64,
+    /// Ticks `0..=last` with no record, `[first, last]` (the first 16 ranges).
+    pub missing: Vec<[u64; 2]>,
+    /// How often the file was opened for writing (1 + the writer's restarts).
+    pub opens: u64,
+    /// Samples whose tick lay beyond the file (not recorded).
+    pub beyond: u64,
+}
+
+impl StreamSummary {
+    fn of<T: rotorloop_common::flight::Record>(
+        stream: Stream,
+        log: &FlightLog<T>,
+        last: u64,
+    ) -> Self {
+        let mut missing = log.missing(last);
+        missing.truncate(16);
+        Self {
+            stream: stream.name(),
+            records: log.records.iter().flatten().count() as u64,
+            missing,
+            opens: log.opens,
+            beyond: log.beyond,
+        }
+    }
+}
+
+impl FlightRecords {
+    /// Reads the records in `dir`. The plant's and the reference's are required; the
+    /// controller's is optional (the plant's record of what it received stands in).
+    pub fn read(dir: &Path) -> Result<Self, FlightError> {
+        Ok(Self {
+            states: FlightLog::read(dir, Stream::PlantState)?,
+            received: FlightLog::read(dir, Stream::PlantTorque)?,
+            torques: FlightLog::read(dir, Stream::ControllerTorque).ok(),
+            references: FlightLog::read(dir, Stream::Reference)?,
+        })
+    }
+
+    /// The newest state recorded.
+    pub fn last_state(&self) -> Option<&StateSample> {
+        self.states.records.iter().rev().flatten().next()
+    }
+
+    fn summary(&self, dir: &Path, ticks: u64) -> FlightSummary {
+        let last = self.last_state().map_or(ticks, |s| s.tick);
+        let mut streams = vec![
+            StreamSummary::of(Stream::PlantState, &self.states, last),
+            StreamSummary::of(Stream::PlantTorque, &self.received, last),
+            StreamSummary::of(Stream::Reference, &self.references, last),
+        ];
+        if let Some(t) = &self.torques {
+            streams.insert(2, StreamSummary::of(Stream::ControllerTorque, t, last));
+        }
+        FlightSummary { dir: dir.display().to_string(), assembled: true, streams, ..Default::default() }
+    }
+}
+
+/// What only the live monitor knows.
+#[derive(Debug, Clone)]
+pub struct LiveView<'a> {
+    /// The live joiner (its receive counts, gaps, restarts).
+    pub joiner: &'a RowJoiner,
+}
+
+/// Writes the run's files into `out` from `records` (module docs) and returns the
+/// summary, with the live view's part taken from `live` when there was a monitor.
+pub fn report(
+    out: &Path,
+    dir: &Path,
+    records: &FlightRecords,
+    scenario: &Scenario,
+    role: &RoleArgs,
+    hosts: &Hosts,
+    live: Option<LiveView<'_>>,
+) -> (RunSummary, std::path::PathBuf) {
+    let ticks = scenario.ticks();
+    let start = records.states.get(0).map_or(0, |s| s.wake_ns);
+    let (mut rec, _) = Recording::open(out, scenario, None, start);
+    rec.hosts = hosts.clone();
+    let limit = TorqueSample::absurd_limit(scenario.limits_for(scenario.actuation()).rotor_torque);
+    let mut joiner = RowJoiner::new(ticks, limit, start);
+    let mut flight = records.summary(dir, ticks);
+    for k in 0..=ticks + SPARE_SLOTS {
+        if let Some(r) = records.references.get(k) {
+            joiner.take_reference(*r);
+        }
+        let torque = records.torques.as_ref().and_then(|t| t.get(k));
+        match (torque, records.received.get(k)) {
+            (Some(t), _) => joiner.take_torque(*t),
+            (None, Some(t)) => {
+                flight.torques_from_plant += 1;
+                joiner.take_torque(*t);
+            }
+            (None, None) => {}
+        }
+        if let Some(s) = records.states.get(k) {
+            joiner.take_state(*s);
+        }
+        while let Some(row) = joiner.next_row(false) {
+            rec.write(&row);
+        }
+    }
+    while let Some(row) = joiner.next_row(true) {
+        rec.write(&row);
+    }
+    let ended = joiner.plant_ended();
+    if ended {
+        joiner.settle_rest();
+    }
+    let fallback = std::env::temp_dir().join(format!("rotorloop-report-{}", role.domain()));
+    let (files, written) = rec.finish(&scenario.file.name, &fallback);
+    let mut s = summary(scenario, role, &joiner, &rec, files);
+    s.report_dir = (written != out).then(|| written.display().to_string());
+    s.live_rows_lost = 0;
+    if let Some(LiveView { joiner: live }) = live {
+        let monitor = crate::report::monitor_counts(live);
+        s.subscribers.extend(monitor);
+        s.monitor_kept_up = crate::report::kept_up(live, ticks);
+        s.monitor_gaps = live.gaps().to_vec();
+        s.monitor_restarts = live.restarts();
+        s.live_rows_lost = live.rows_lost();
+    } else {
+        s.monitor_kept_up = false;
+        s.subscribers.retain(|k, _| !k.starts_with("monitor."));
+    }
+    s.flight = Some(flight);
+    (s, written)
+}
+
+/// The flight summary of records that could not be used.
+pub fn unusable(dir: &Path, e: &FlightError) -> FlightSummary {
+    FlightSummary { dir: dir.display().to_string(), error: Some(e.to_string()), ..Default::default() }
+}
