@@ -8,6 +8,7 @@ use std::process::{Child, Command, Stdio};
 use std::time::Duration;
 
 use anyhow::Context;
+use rotorloop_monitor::hosts::Hosts;
 use clap::Args;
 use rotorloop_common::ipc::REFERENCE_LEAD;
 use rotorloop_common::ipc::{install_signal_handlers, now_ns, shutdown_requested};
@@ -380,12 +381,8 @@ impl Launch<'_> {
         match role {
             "monitor" => {
                 cmd.arg("--out").arg(&args.out);
-                if let Some(s) = &self.split {
-                    let hosts: Vec<String> = ROLES
-                        .iter()
-                        .filter_map(|r| s.host_of(r).map(|h| format!("{r}={h}")))
-                        .collect();
-                    cmd.arg("--hosts").arg(hosts.join(","));
+                if let Some(hosts) = self.monitor_hosts() {
+                    cmd.arg("--hosts").arg(hosts);
                 }
                 if !args.quiet {
                     cmd.arg("--status");
@@ -414,6 +411,44 @@ impl Launch<'_> {
         cmd
     }
 
+    /// The monitor's `--hosts` of a split run.
+    fn monitor_hosts(&self) -> Option<String> {
+        let s = self.split.as_ref()?;
+        let hosts: Vec<String> =
+            ROLES.iter().filter_map(|r| s.host_of(r).map(|h| format!("{r}={h}"))).collect();
+        Some(hosts.join(","))
+    }
+
+    /// A monitor that left no report (killed for good, or its restart refused): the
+    /// report from the flight records, without a live view.
+    fn report_without_monitor(&self, scenario: &rotorloop_common::Scenario) {
+        let (out, Some(dir)) = (&self.args.out, &self.role_args.record) else { return };
+        if self.args.no_monitor || out.join("summary.json").exists() {
+            return;
+        }
+        let records = match rotorloop_monitor::assemble::FlightRecords::read(dir) {
+            Ok(r) => r,
+            Err(e) => return eprintln!("launcher: no summary.json and no report from {e}"),
+        };
+        let hosts = self.monitor_hosts().and_then(|h| Hosts::parse(&h).ok()).unwrap_or_default();
+        let (summary, _) = rotorloop_monitor::assemble::report(
+            out,
+            dir,
+            &records,
+            scenario,
+            &self.role_args,
+            &hosts,
+            None,
+        );
+        let fallback = std::env::temp_dir().join(format!("rotorloop-report-{}", self.role_args.domain()));
+        match rotorloop_monitor::report::write_summary(out, &fallback, &summary) {
+            Ok(()) => eprintln!(
+                "launcher: the monitor left no report; assembled it from the flight records"
+            ),
+            Err(e) => eprintln!("launcher: cannot write the report: {e:#}"),
+        }
+    }
+
     /// Starts `role`, records it for the memory report, and returns the child.
     /// The domain as `role`'s host sees it.
     fn domain_of(&self, role: &str) -> &Domain {
@@ -438,6 +473,7 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
         eprintln!("warning: {w}");
     }
     let faults = args.fault.iter().map(|f| parse_fault(f)).collect::<Result<Vec<_>, _>>()?;
+    crate::supervise::check_overlaps(&args.fault, &faults)?;
     let corrupt = args.corrupt.iter().map(|c| parse_corrupt(c)).collect::<Result<Vec<_>, _>>()?;
     let limit: RestartLimit =
         args.restart_limit.parse().map_err(|e| UsageError(format!("--restart-limit {e}")))?;
@@ -642,6 +678,8 @@ struct Watch {
     supervisor: Supervisor,
     /// The hang watchdog's state.
     watchdog: Watchdog,
+    /// The plant has published its last tick.
+    loop_complete: bool,
 }
 
 /// Runs the fault schedule, the restart policy and the watchdog, samples memory, and
@@ -668,6 +706,7 @@ fn supervise(
         stopped: BTreeMap::new(),
         supervisor: launch.supervisor.clone(),
         watchdog: Watchdog::new(launch.args.watchdog_ms as f64 / 1e3),
+        loop_complete: false,
     };
     let launched_ns = now_ns();
     loop {
@@ -676,6 +715,7 @@ fn supervise(
         }
         // Seconds since tick 0 (before it: negative, since the launch).
         let now_s = (now_ns() as f64 - run_t0.unwrap_or(launched_ns) as f64) / 1e9;
+        w.loop_complete = progress.loop_complete();
         let stopping = term_sent_at.is_some();
         let elapsed = run_t0.map(|_| now_s).filter(|_| !stopping);
         for action in schedule.due(elapsed) {
@@ -831,6 +871,16 @@ fn restart(
     if let Some(c) = children.get_mut(role) {
         let _ = c.wait();
     }
+    // After the last tick a plant, controller or reference has nothing left to do: started
+    // again it would only wait for states that never come (a plant would even start a
+    // new run). The monitor is started again: it finishes the report.
+    if w.loop_complete && role != "monitor" {
+        eprintln!("launcher: {role} not restarted at {at:.3} s: the run has ended");
+        if let Some(e) = w.events.iter_mut().rev().find(|e| e.role == role) {
+            e.detail = format!("{}; not restarted: the run had ended", e.detail);
+        }
+        return Ok(());
+    }
     let child = launch.spawn(role, rss).with_context(|| format!("cannot restart {role}"))?;
     if let Some(c) = children.get_mut(role) {
         *c = child;
@@ -925,6 +975,7 @@ fn report(
     events: &[FaultEvent],
 ) -> anyhow::Result<()> {
     let args = launch.args;
+    launch.report_without_monitor(scenario);
     if !args.no_monitor {
         if let Err(e) = add_resources(&args.out, &rss.tracks) {
             eprintln!("warning: resource report not added to summary.json: {e:#}");

@@ -124,6 +124,42 @@ pub fn parse_fault(s: &str) -> Result<Fault, UsageError> {
     Ok(Fault { role: parts[0].to_owned(), kind, kill_s, restart_s, killed, restarted })
 }
 
+/// Refuses `--fault`s that overlap for one role: a kill or stop while the role is
+/// already down from another (a kill with no restart keeps it down to the end), or two
+/// delays of the controller at once. What a second kill of a dead role or a second
+/// restart of a running one would mean is not defined, so such a schedule is a usage
+/// error naming both faults (`specs[i]` is the text of `faults[i]`).
+pub fn check_overlaps(specs: &[String], faults: &[Fault]) -> Result<(), UsageError> {
+    let window = |f: &Fault| (f.kill_s, f.restart_s.unwrap_or(f64::INFINITY));
+    let delays = |f: &Fault| matches!(f.kind, FaultKind::Delay(_));
+    for (i, a) in faults.iter().enumerate() {
+        for (j, b) in faults.iter().enumerate().skip(i + 1) {
+            if a.role != b.role || delays(a) != delays(b) {
+                continue;
+            }
+            let ((a0, a1), (b0, b1)) = (window(a), window(b));
+            if a0 < b1 && b0 < a1 {
+                let what = if delays(a) { "delayed" } else { "down" };
+                let until = |t: f64| match t.is_finite() {
+                    true => format!("{t} s"),
+                    false => "the end".to_owned(),
+                };
+                return Err(UsageError(format!(
+                    "--fault `{}` and --fault `{}` overlap: {} is {what} from {a0} s to {} and \
+                     from {b0} s to {}; one role takes one fault at a time (end the first \
+                     before the second starts)",
+                    specs[i],
+                    specs[j],
+                    a.role,
+                    until(a1),
+                    until(b1)
+                )));
+            }
+        }
+    }
+    Ok(())
+}
+
 /// What the schedule asks the launcher to do now.
 #[derive(Debug, Clone, PartialEq)]
 pub enum Action {
@@ -537,6 +573,27 @@ mod tests {
             FaultSchedule::new(vec![parse_fault("monitor:kill@1:restart@2").expect("ok")]);
         let both = late.due(Some(5.0));
         assert_eq!(both, [Action::Kill("monitor".into()), Action::Restart("monitor".into())]);
+    }
+
+    #[test]
+    fn overlapping_faults_of_one_role_are_refused_naming_both() {
+        let check = |specs: &[&str]| {
+            let specs: Vec<String> = specs.iter().map(|s| s.to_string()).collect();
+            let faults: Vec<Fault> =
+                specs.iter().map(|s| parse_fault(s).expect("valid")).collect();
+            check_overlaps(&specs, &faults)
+        };
+        let e = check(&["plant:kill@5.47:restart@5.86", "plant:kill@5.83:restart@6.02"])
+            .expect_err("overlap");
+        assert!(e.0.contains("plant:kill@5.47:restart@5.86"), "{e}");
+        assert!(e.0.contains("plant:kill@5.83:restart@6.02"), "{e}");
+        // A kill with no restart keeps the role down to the end.
+        assert!(check(&["monitor:kill@1", "monitor:stop@9:cont@10"]).is_err());
+        assert!(check(&["controller:delay@1=0.01", "controller:delay@2=0.02:until@3"]).is_err());
+        // Back to back, other roles, or a delay during a kill: each is well defined.
+        assert!(check(&["plant:kill@1:restart@2", "plant:kill@2:restart@3"]).is_ok());
+        assert!(check(&["plant:kill@1:restart@2", "controller:kill@1:restart@2"]).is_ok());
+        assert!(check(&["controller:kill@1:restart@2", "controller:delay@1=0.01"]).is_ok());
     }
 
     #[test]

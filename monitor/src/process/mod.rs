@@ -35,12 +35,15 @@ pub fn run(args: &MonitorArgs) -> anyhow::Result<()> {
         eprintln!("monitor: restarted; continuing the report from tick {}", r.next_row);
     }
     let status = args.status && std::io::stderr().is_terminal();
+    // Started after the plant's last tick (a restart after the end): what is still in
+    // the buffers is all there is; no need to wait for a quiet period.
+    let ended_before = ports.plant_end.ended();
     loop {
         ports.drain(&mut joiner)?;
         // The plant has ended (seen here, or in its resume slot by a monitor restarted
         // after the end) and nothing has arrived for a while: what is missing now never
         // comes (a role killed at the very end, say), so settle the rest.
-        let quiet = joiner.quiet_ns(now_ns()) > END_QUIET_NS;
+        let quiet = ended_before || joiner.quiet_ns(now_ns()) > END_QUIET_NS;
         let drained = quiet && (joiner.plant_ended() || ports.plant_end.ended());
         let stopping = shutdown_requested() || drained;
         while let Some(row) = joiner.next_row(stopping) {
