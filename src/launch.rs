@@ -709,6 +709,7 @@ fn supervise(
         loop_complete: false,
     };
     let launched_ns = now_ns();
+    let mut dead_after_end = 0;
     loop {
         if run_t0.is_none() && progress.plant.load().is_some() {
             run_t0 = Some(now_ns());
@@ -736,6 +737,15 @@ fn supervise(
         }
         rss.sample_if_due();
         let running = reap(children, &mut w, &progress, stopping, now_s);
+        // After the last tick nobody is started again: the ports of a dead role would keep
+        // the finished publishers lingering for subscribers that never leave (up to
+        // LINGER_S), so they are removed as soon as the role is seen dead.
+        if w.loop_complete && w.handled.len() != dead_after_end {
+            dead_after_end = w.handled.len();
+            for d in &launch.domains {
+                let _ = d.cleanup();
+            }
+        }
         // Split: a role on another host than the plant cannot read the plant's resume slot
         // (it learns the end from the last state). If that state was lost with a gateway,
         // it would wait for ever: once the plant has ended, the rest get their linger
@@ -753,7 +763,10 @@ fn supervise(
                 children.signal_all(libc::SIGTERM);
             }
         }
-        let awaiting = schedule.awaiting_restart() || !w.restarts.is_empty();
+        // Restarts still to come keep the launcher waiting, but only until the last tick:
+        // after it nobody is started again (see `restart`).
+        let awaiting =
+            (schedule.awaiting_restart() || !w.restarts.is_empty()) && !w.loop_complete;
         if running == 0 && (!awaiting || stopping) {
             break;
         }
@@ -766,6 +779,9 @@ fn supervise(
             children.signal_all(libc::SIGKILL);
         }
         std::thread::sleep(Duration::from_millis(2));
+    }
+    for f in schedule.not_done() {
+        eprintln!("launcher: --fault {f}: not carried out, the run ended first");
     }
     match w.failures.first() {
         Some(f) => anyhow::bail!("{f}; the run was stopped ({} failed)", w.failures.join(", ")),
@@ -871,10 +887,10 @@ fn restart(
     if let Some(c) = children.get_mut(role) {
         let _ = c.wait();
     }
-    // After the last tick a plant, controller or reference has nothing left to do: started
-    // again it would only wait for states that never come (a plant would even start a
-    // new run). The monitor is started again: it finishes the report.
-    if w.loop_complete && role != "monitor" {
+    // After the last tick a role has nothing left to do: started again it would only
+    // wait for states that never come (a plant would even start a new run). A monitor
+    // that is down then has its report assembled by the launcher from the flight records.
+    if w.loop_complete {
         eprintln!("launcher: {role} not restarted at {at:.3} s: the run has ended");
         if let Some(e) = w.events.iter_mut().rev().find(|e| e.role == role) {
             e.detail = format!("{}; not restarted: the run had ended", e.detail);

@@ -215,6 +215,24 @@ impl FaultSchedule {
         actions
     }
 
+    /// The parts of faults not carried out (the run ended first), in words.
+    pub fn not_done(&self) -> Vec<String> {
+        let mut out = Vec::new();
+        for f in &self.faults {
+            let (start, end) = match f.kind {
+                FaultKind::Kill => ("kill", "restart"),
+                FaultKind::Stop => ("stop", "cont"),
+                FaultKind::Delay(_) => ("delay", "until"),
+            };
+            if !f.killed {
+                out.push(format!("{}:{start}@{}", f.role, f.kill_s));
+            } else if let Some(r) = f.restart_s.filter(|_| !f.restarted) {
+                out.push(format!("{}:…:{end}@{r}", f.role));
+            }
+        }
+        out
+    }
+
     /// A role was killed and its restart is still to come: the run is not over even if
     /// no child runs.
     pub fn awaiting_restart(&self) -> bool {
