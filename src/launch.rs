@@ -8,13 +8,13 @@ use std::process::{Child, Command, Stdio};
 use std::time::Duration;
 
 use anyhow::Context;
-use rotorloop_monitor::hosts::Hosts;
 use clap::Args;
 use rotorloop_common::ipc::REFERENCE_LEAD;
 use rotorloop_common::ipc::{install_signal_handlers, now_ns, shutdown_requested};
 use rotorloop_common::resume::ResumeSlot;
 use rotorloop_common::role::LINGER_S;
 use rotorloop_common::wire::{FLAG_LAST, StateSample, TorqueSample};
+use rotorloop_monitor::hosts::Hosts;
 use rotorloop_monitor::policy::MonitorResume;
 use rotorloop_reference::policy::ReferenceResume;
 
@@ -440,7 +440,8 @@ impl Launch<'_> {
             &hosts,
             None,
         );
-        let fallback = std::env::temp_dir().join(format!("rotorloop-report-{}", self.role_args.domain()));
+        let fallback =
+            std::env::temp_dir().join(format!("rotorloop-report-{}", self.role_args.domain()));
         match rotorloop_monitor::report::write_summary(out, &fallback, &summary) {
             Ok(()) => eprintln!(
                 "launcher: the monitor left no report; assembled it from the flight records"
@@ -575,7 +576,8 @@ fn clear_flight_records(dir: &std::path::Path) -> anyhow::Result<()> {
     for stream in rotorloop_common::flight::Stream::ALL {
         match std::fs::remove_file(stream.path(dir)) {
             Err(e) if e.kind() != std::io::ErrorKind::NotFound => {
-                return Err(e).with_context(|| format!("cannot remove {}", stream.path(dir).display()));
+                return Err(e)
+                    .with_context(|| format!("cannot remove {}", stream.path(dir).display()));
             }
             _ => {}
         }
@@ -765,8 +767,7 @@ fn supervise(
         }
         // Restarts still to come keep the launcher waiting, but only until the last tick:
         // after it nobody is started again (see `restart`).
-        let awaiting =
-            (schedule.awaiting_restart() || !w.restarts.is_empty()) && !w.loop_complete;
+        let awaiting = (schedule.awaiting_restart() || !w.restarts.is_empty()) && !w.loop_complete;
         if running == 0 && (!awaiting || stopping) {
             break;
         }

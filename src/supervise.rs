@@ -597,8 +597,7 @@ mod tests {
     fn overlapping_faults_of_one_role_are_refused_naming_both() {
         let check = |specs: &[&str]| {
             let specs: Vec<String> = specs.iter().map(|s| s.to_string()).collect();
-            let faults: Vec<Fault> =
-                specs.iter().map(|s| parse_fault(s).expect("valid")).collect();
+            let faults: Vec<Fault> = specs.iter().map(|s| parse_fault(s).expect("valid")).collect();
             check_overlaps(&specs, &faults)
         };
         let e = check(&["plant:kill@5.47:restart@5.86", "plant:kill@5.83:restart@6.02"])

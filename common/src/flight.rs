@@ -182,8 +182,13 @@ impl<T: Record> FlightRecorder<T> {
         if map == libc::MAP_FAILED {
             return Err(std::io::Error::last_os_error());
         }
-        let r =
-            Self { map: map.cast(), len, capacity, unrecorded: Default::default(), _t: PhantomData };
+        let r = Self {
+            map: map.cast(),
+            len,
+            capacity,
+            unrecorded: Default::default(),
+            _t: PhantomData,
+        };
         let same = r.word(word::MAGIC).load(Ordering::Acquire) == MAGIC
             && r.word(word::VERSION).load(Ordering::Relaxed) == u64::from(LAYOUT_VERSION)
             && r.word(word::SIZE).load(Ordering::Relaxed) == size_of::<T>() as u64
@@ -290,8 +295,7 @@ impl<T: Record> FlightLog<T> {
         if bytes.len() < HEADER || w(word::MAGIC) != MAGIC {
             return Err(foreign("not a flight record (or never written)".into()));
         }
-        if w(word::VERSION) != u64::from(LAYOUT_VERSION) || w(word::SIZE) != size_of::<T>() as u64
-        {
+        if w(word::VERSION) != u64::from(LAYOUT_VERSION) || w(word::SIZE) != size_of::<T>() as u64 {
             return Err(foreign(format!(
                 "written by layout v{} with {}-byte samples; this build reads layout v{} with \
                  {}-byte samples",

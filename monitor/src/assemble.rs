@@ -110,7 +110,12 @@ impl FlightRecords {
         if let Some(t) = &self.torques {
             streams.insert(2, StreamSummary::of(Stream::ControllerTorque, t, last));
         }
-        FlightSummary { dir: dir.display().to_string(), assembled: true, streams, ..Default::default() }
+        FlightSummary {
+            dir: dir.display().to_string(),
+            assembled: true,
+            streams,
+            ..Default::default()
+        }
     }
 }
 
@@ -188,5 +193,9 @@ pub fn report(
 
 /// The flight summary of records that could not be used.
 pub fn unusable(dir: &Path, e: &FlightError) -> FlightSummary {
-    FlightSummary { dir: dir.display().to_string(), error: Some(e.to_string()), ..Default::default() }
+    FlightSummary {
+        dir: dir.display().to_string(),
+        error: Some(e.to_string()),
+        ..Default::default()
+    }
 }
