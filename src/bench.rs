@@ -60,9 +60,10 @@ pub struct BenchArgs {
     /// plant-measured sense-to-actuate p50 (`loop-nomon` rows).
     #[arg(long)]
     pub monitor_cost: bool,
-    /// Also run each loop cell with the hot path as it was before its overhead was cut
-    /// (`loop-before` rows: the real-time reference woken by every state, the controller
-    /// reading the reference topic every tick), in the same invocation.
+    /// Also run each loop cell as it was before the newest change to the hot path, in the
+    /// same invocation: without the flight recorders (`loop-before` rows; `rotorloop run
+    /// --no-record`). The change before that, the cut overhead, is `run --plain-hot-path`
+    /// by hand (docs/overhead.md).
     #[arg(long)]
     pub before_after: bool,
     /// Scale: also run 2, 4, … up to N independent loops (domains) at once per cell, each
@@ -392,7 +393,7 @@ enum Variant {
     Loop,
     /// Without the monitor (the plant's own histogram).
     NoMonitor,
-    /// With `--plain-hot-path`: the hot path before its overhead was cut.
+    /// With `--no-record`: the loop before its flight recorders.
     Before,
 }
 
@@ -479,7 +480,7 @@ fn measure_loop(
     let domain = format!("bl{}-{}{suffix}", std::process::id(), base.index);
     let mut run = loop_run_args(a, base, ncores, domain, out.clone());
     run.no_monitor = without_monitor;
-    run.role.plain_hot_path = variant == Variant::Before;
+    run.no_record = variant == Variant::Before;
     crate::launch::run(&run)?;
     if without_monitor {
         // No monitor, no summary: the plant's own histogram of the loop.
@@ -870,7 +871,8 @@ fn before_after_md(rows: &[Row]) -> String {
         };
         if md.is_empty() {
             md.push_str(
-                "\n## Before and after (same invocation)\n\n| cell | before p50 | after p50 | \
+                "\n## Before and after (same invocation)\n\nBefore: the loop without flight recorders \
+                 (`run --no-record`); after: with them (the default).\n\n| cell | before p50 | after p50 | \
                  change | bare iceoryx2 p50 | before/bare | after/bare | misses before/after/bare |\n\
                  |---|---|---|---|---|---|---|---|\n",
             );

@@ -464,30 +464,12 @@ impl Launch<'_> {
     }
 }
 
-/// Runs the four processes to the end of the scenario.
-pub fn run(args: &RunArgs) -> anyhow::Result<()> {
-    // `--wait` has a default, so "explicit" means: not the default (event).
-    let explicit_wait = args.role.wait != rotorloop_common::ipc::Wait::Event;
-    let args = &with_preset(args, explicit_wait)?;
-    let scenario = args.role.scenario()?;
-    for w in &scenario.warnings {
-        eprintln!("warning: {w}");
-    }
+/// The `--fault`s, checked against each other and against the placement of the roles.
+fn checked_faults(args: &RunArgs, split: Option<&Split>) -> anyhow::Result<Vec<Fault>> {
     let faults = args.fault.iter().map(|f| parse_fault(f)).collect::<Result<Vec<_>, _>>()?;
     crate::supervise::check_overlaps(&args.fault, &faults)?;
-    let corrupt = args.corrupt.iter().map(|c| parse_corrupt(c)).collect::<Result<Vec<_>, _>>()?;
-    let limit: RestartLimit =
-        args.restart_limit.parse().map_err(|e| UsageError(format!("--restart-limit {e}")))?;
-    let supervisor = Supervisor::new(parse_restart(&args.restart)?, limit);
-    let mut role_args = args.role.clone();
-    role_args.domain.get_or_insert_with(|| format!("run-{}", std::process::id()));
-    role_args.record = match args.no_record {
-        true => None,
-        false => Some(role_args.record.clone().unwrap_or_else(|| args.out.join("flight"))),
-    };
-    let split = args.split.as_deref().map(|s| Split::parse(s, !args.no_monitor)).transpose()?;
     for f in &faults {
-        match &split {
+        match split {
             Some(s) => s.check_fault_target(&f.role)?,
             None if f.role.starts_with("link-") => {
                 return Err(UsageError(format!(
@@ -499,6 +481,30 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
             None => {}
         }
     }
+    Ok(faults)
+}
+
+/// Runs the four processes to the end of the scenario.
+pub fn run(args: &RunArgs) -> anyhow::Result<()> {
+    // `--wait` has a default, so "explicit" means: not the default (event).
+    let explicit_wait = args.role.wait != rotorloop_common::ipc::Wait::Event;
+    let args = &with_preset(args, explicit_wait)?;
+    let scenario = args.role.scenario()?;
+    for w in &scenario.warnings {
+        eprintln!("warning: {w}");
+    }
+    let corrupt = args.corrupt.iter().map(|c| parse_corrupt(c)).collect::<Result<Vec<_>, _>>()?;
+    let limit: RestartLimit =
+        args.restart_limit.parse().map_err(|e| UsageError(format!("--restart-limit {e}")))?;
+    let supervisor = Supervisor::new(parse_restart(&args.restart)?, limit);
+    let mut role_args = args.role.clone();
+    role_args.domain.get_or_insert_with(|| format!("run-{}", std::process::id()));
+    role_args.record = match args.no_record {
+        true => None,
+        false => Some(role_args.record.clone().unwrap_or_else(|| args.out.join("flight"))),
+    };
+    let split = args.split.as_deref().map(|s| Split::parse(s, !args.no_monitor)).transpose()?;
+    let faults = checked_faults(args, split.as_ref())?;
     if split.is_some() {
         crate::split::link_binary()?;
     }
@@ -739,15 +745,7 @@ fn supervise(
         }
         rss.sample_if_due();
         let running = reap(children, &mut w, &progress, stopping, now_s);
-        // After the last tick nobody is started again: the ports of a dead role would keep
-        // the finished publishers lingering for subscribers that never leave (up to
-        // LINGER_S), so they are removed as soon as the role is seen dead.
-        if w.loop_complete && w.handled.len() != dead_after_end {
-            dead_after_end = w.handled.len();
-            for d in &launch.domains {
-                let _ = d.cleanup();
-            }
-        }
+        remove_dead_ports_after_the_end(launch, &w, &mut dead_after_end);
         // Split: a role on another host than the plant cannot read the plant's resume slot
         // (it learns the end from the last state). If that state was lost with a gateway,
         // it would wait for ever: once the plant has ended, the rest get their linger
@@ -787,6 +785,18 @@ fn supervise(
     match w.failures.first() {
         Some(f) => anyhow::bail!("{f}; the run was stopped ({} failed)", w.failures.join(", ")),
         None => Ok(w.events),
+    }
+}
+
+/// After the last tick nobody is started again: the ports of a dead role would keep the
+/// finished publishers lingering for subscribers that never leave (up to `LINGER_S`), so
+/// they are removed as soon as a role is seen dead (`dead` counts the ends dealt with).
+fn remove_dead_ports_after_the_end(launch: &Launch, w: &Watch, dead: &mut usize) {
+    if w.loop_complete && w.handled.len() != *dead {
+        *dead = w.handled.len();
+        for d in &launch.domains {
+            let _ = d.cleanup();
+        }
     }
 }
 

@@ -135,6 +135,27 @@ fn monitor_killed_and_restarted_reports_its_gap_and_the_trace_is_complete() {
     h.assert_no_leftovers();
 }
 
+/// A monitor that falls behind (stopped for 2 s in lockstep, where the plant runs at
+/// several kHz: its 4096-sample buffers overflow) loses only its live view: the trace
+/// is still every row, the simulator's bit for bit. Before the flight recorders this is
+/// what a loaded machine did at random to the lockstep fault tests (rows missing,
+/// `delay_s` NaN where the next state was overwritten).
+#[test]
+fn a_monitor_that_falls_behind_loses_only_its_live_view() {
+    let h = Harness::new("stall-monitor");
+    let out = lockstep_with_faults(&h, &["monitor:stop@0.5:cont@2.5"], &[]);
+    let s = assert_faults_mid_run(&out, 1);
+    eprintln!(
+        "live view lost {} rows (monitor.state {})",
+        s["live_rows_lost"], s["subscribers"]["monitor.state"]
+    );
+    assert_eq!(s["rows_lost"], 0, "{s}");
+    assert_eq!(s["trace_rows"], 60_001, "{s}");
+    let run = std::fs::read(out.join("trace.csv")).expect("trace");
+    assert_same_trace("stalled monitor", &run, &sim_trace(&h));
+    h.assert_no_leftovers();
+}
+
 /// The same role killed and restarted five times in one run.
 #[test]
 fn the_same_role_killed_five_times_in_one_run() {

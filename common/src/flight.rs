@@ -268,6 +268,17 @@ pub enum FlightError {
     Foreign { path: String, why: String },
 }
 
+/// Whether `stream`'s file in `dir` holds a complete record of tick `k` (a read of its
+/// tag; false when there is no such file). A role records a sample just after it
+/// published it, so a reader that has seen the sample may have to wait for its record.
+pub fn has_record<T: Record>(dir: &Path, stream: Stream, k: u64) -> bool {
+    use std::os::unix::fs::FileExt;
+    let Ok(f) = std::fs::File::open(stream.path(dir)) else { return false };
+    let mut tag = [0u8; 8];
+    let at = HEADER as u64 + k * slot_len::<T>() as u64;
+    f.read_exact_at(&mut tag, at).is_ok() && u64::from_ne_bytes(tag) == k + 1
+}
+
 /// What a recorder's file holds, read after the run.
 #[derive(Debug, Clone)]
 pub struct FlightLog<T> {

@@ -66,6 +66,9 @@ pub fn run(args: &MonitorArgs) -> anyhow::Result<()> {
     if joiner.done() {
         ports.slot.clear(); // finished: a later monitor in this domain starts a new report
     }
+    if let Some(dir) = args.role.record.as_deref() {
+        wait_for_records(dir, &joiner);
+    }
     let records = args.role.record.as_deref().map(|d| (d, FlightRecords::read(d)));
     let summary = match records {
         // The run's files from the roles' own records: complete whatever was killed.
@@ -90,4 +93,25 @@ pub fn run(args: &MonitorArgs) -> anyhow::Result<()> {
     println!("{}", console_summary(&summary));
     let fallback = std::env::temp_dir().join(format!("rotorloop-report-{}", ports.domain));
     write_summary(&args.out, &fallback, &summary)
+}
+
+/// Waits (at most 2 s) until the roles' records hold the newest state and torque this
+/// monitor saw: a role records a sample just after publishing it, and a writer preempted
+/// between the two would otherwise miss the report by microseconds. A writer killed in
+/// between never writes it; the bound covers that.
+fn wait_for_records(dir: &std::path::Path, joiner: &RowJoiner) {
+    use rotorloop_common::flight::{Stream, has_record};
+    use rotorloop_common::wire::StateSample;
+    let until = now_ns() + 2_000_000_000;
+    let state = joiner.last_state().map(|s| s.tick);
+    let torque = joiner.last_torque().map(|t| t.tick);
+    while now_ns() < until
+        && !(state.is_none_or(|k| has_record::<StateSample>(dir, Stream::PlantState, k))
+            && torque.is_none_or(|k| {
+                has_record::<TorqueSample>(dir, Stream::ControllerTorque, k)
+                    || has_record::<TorqueSample>(dir, Stream::PlantTorque, k)
+            }))
+    {
+        std::thread::sleep(std::time::Duration::from_millis(1));
+    }
 }

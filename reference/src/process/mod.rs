@@ -37,10 +37,7 @@ pub fn run(args: &ReferenceArgs) -> anyhow::Result<()> {
         for again in lead.resume(&scenario, &r) {
             send(again).context("reference: re-publishing")?;
         }
-        eprintln!(
-            "reference: resuming after tick {} from the samples published before a restart",
-            lead.next() - 1
-        );
+        eprintln!("reference: resuming after tick {} (its window re-published)", lead.next() - 1);
     } else if let Some(ms) = test_hook("ROTORLOOP_TEST_REFERENCE_LATE_MS") {
         // Test hook: a first incarnation starts this late, so that the first states reach
         // the controller before any reference does.
