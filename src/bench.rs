@@ -66,6 +66,11 @@ pub struct BenchArgs {
     /// by hand (docs/overhead.md).
     #[arg(long)]
     pub before_after: bool,
+    /// With `--before-after`: measure before and after this many times each, alternating
+    /// (before, after, before, …), and report the run with the median p50 of each (the
+    /// difference between two runs of one loop here is often larger than the change).
+    #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u64).range(1..=99))]
+    pub pairs: u64,
     /// Scale: also run 2, 4, … up to N independent loops (domains) at once per cell, each
     /// with its own four processes (`-xN` cells, a `loop-I` row per loop), and report the
     /// largest N at which every loop has no more misses than the bare iceoryx2 baseline.
@@ -336,7 +341,16 @@ pub fn run(a: &BenchArgs) -> anyhow::Result<()> {
             measured.push(measure_loop(a, &base, ncores, &dir, Variant::NoMonitor)?);
         }
         if a.before_after {
-            measured.push(measure_loop(a, &base, ncores, &dir, Variant::Before)?);
+            let (mut before, mut after) = (Vec::new(), vec![measured.remove(0)]);
+            for i in 0..a.pairs {
+                let d = if i == 0 { dir.clone() } else { dir.join(format!("pair{i}")) };
+                before.push(measure_loop(a, &base, ncores, &d, Variant::Before)?);
+                if i > 0 {
+                    after.push(measure_loop(a, &base, ncores, &d, Variant::Loop)?);
+                }
+            }
+            measured.insert(0, median_p50(after));
+            measured.push(median_p50(before));
         }
         for b in &a.baselines {
             measured.push(measure_baseline(&exe, a, &base, b, *wait, placement, ncores, &dir)?);
@@ -384,6 +398,14 @@ fn cells(a: &BenchArgs) -> Vec<(f64, Wait, String, String)> {
         }
     }
     cells
+}
+
+/// The row with the median p50 of `rows` (the upper one of an even count; skipped rows
+/// sort last).
+fn median_p50(mut rows: Vec<Row>) -> Row {
+    rows.sort_by(|a, b| a.p50.total_cmp(&b.p50));
+    let n = rows.len();
+    rows.swap_remove(n / 2)
 }
 
 /// Which loop a measurement runs.
@@ -722,7 +744,7 @@ fn write_markdown(a: &BenchArgs, rows: &[Row]) -> anyhow::Result<()> {
     }
     md.push_str(&zero_miss_md(a, rows));
     md.push_str(&breakdown_md(a, rows));
-    md.push_str(&before_after_md(rows));
+    md.push_str(&before_after_md(rows, a.pairs));
     md.push_str(&scale_md(rows));
     md.push_str(&cross_host_md(rows));
     std::fs::write(a.out.join("bench.md"), md)?;
@@ -860,7 +882,7 @@ fn breakdown_md(a: &BenchArgs, rows: &[Row]) -> String {
 }
 
 /// The loop before and after its overhead was cut, with the bare baseline of the cell.
-fn before_after_md(rows: &[Row]) -> String {
+fn before_after_md(rows: &[Row], pairs: u64) -> String {
     let mut md = String::new();
     let ok = |cell: &str, kind: &str| {
         rows.iter().find(|r| r.cell == cell && r.kind == kind && r.skipped.is_empty())
@@ -870,12 +892,14 @@ fn before_after_md(rows: &[Row]) -> String {
             continue;
         };
         if md.is_empty() {
-            md.push_str(
+            md.push_str(&format!(
                 "\n## Before and after (same invocation)\n\nBefore: the loop without flight recorders \
-                 (`run --no-record`); after: with them (the default).\n\n| cell | before p50 | after p50 | \
+                 (`run --no-record`); after: with them (the default). \
+                 Each measured {pairs} time(s), alternating; each row is the run with the \
+                 median p50.\n\n| cell | before p50 | after p50 | \
                  change | bare iceoryx2 p50 | before/bare | after/bare | misses before/after/bare |\n\
                  |---|---|---|---|---|---|---|---|\n",
-            );
+            ));
         }
         let bare_p50 = bare.map_or(f64::NAN, |b| b.p50);
         let bare_misses = bare.map_or("—".to_owned(), |b| b.misses.to_string());

@@ -7,10 +7,12 @@
 //! If the physics of the run is what rotorloop says it is, the replayed `trace.csv` is
 //! the run's, byte for byte; the replay says whether it is, and where it first is not.
 //!
-//! What a replay cannot know: torques a killed plant had queued (a delay longer than a
-//! tick) and the limits applied again after a plant restart (the restart resumes the
-//! limited torque), and the rotor work of ticks a killed monitor did not see (its
-//! residual is re-anchored after the gap). Runs with those faults replay up to them.
+//! The run's `trace.csv` and `timing.csv` are assembled from the roles' flight records
+//! (`common::flight`), so they have every tick whatever was killed, the monitor included.
+//! What a replay cannot know: the actuator limits applied again after a plant restart
+//! (the restart resumes the limited torque), which matters only where a saturated torque
+//! was held across the kill. Such a run replays up to it, and says at which tick it first
+//! differs; a run without a row the replay needs is refused naming the tick.
 
 use std::collections::BTreeMap;
 use std::io::Write;

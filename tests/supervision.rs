@@ -196,8 +196,10 @@ fn a_controller_stopped_and_continued_in_real_time_recovers_without_the_watchdog
 }
 
 /// The output directory on a 2 MiB tmpfs fills up about a second into a real-time run: the
-/// loop still completes every tick (exit 0), the monitor reports from which tick the trace
-/// is incomplete, and `summary.json` and the histograms land in its fallback directory.
+/// loop still completes every tick (exit 0), the monitor reports from which tick the
+/// trace is incomplete, `summary.json` and the histograms land in its fallback
+/// directory, and the flight records, which cannot be moved there, stay whole where they
+/// were recorded, named in the report.
 /// Needs `mount` (root with CAP_SYS_ADMIN); skipped with a message elsewhere.
 #[test]
 fn a_full_disk_never_stops_the_loop() {
@@ -232,6 +234,12 @@ fn a_full_disk_never_stops_the_loop() {
     let s = json(&summary);
     assert_eq!(s["completed"], true);
     assert_eq!(s["ticks"], 6000);
+    // The flight records (on /dev/shm during the run) are whole, but cannot be moved onto
+    // the full disk: they stay where they are, and the report says where.
+    let flight = PathBuf::from(s["flight"]["dir"].as_str().expect("the records' place"));
+    assert!(flight.join("plant-state.flight").exists(), "{s}");
+    assert!(stderr(&o).contains("flight records stay in"), "{}", stderr(&o));
+    let _ = std::fs::remove_dir_all(&flight);
     let from = s["trace_incomplete_from_tick"].as_u64().expect("the trace is reported incomplete");
     assert!(from < 6000, "{from}");
     assert!(!s["storage_errors"].as_array().expect("errors").is_empty());

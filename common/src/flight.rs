@@ -193,10 +193,12 @@ impl<T: Record> FlightRecorder<T> {
             && r.word(word::VERSION).load(Ordering::Relaxed) == u64::from(LAYOUT_VERSION)
             && r.word(word::SIZE).load(Ordering::Relaxed) == size_of::<T>() as u64
             && r.word(word::CAPACITY).load(Ordering::Relaxed) == capacity;
-        if fresh || !same {
-            // New, or another run's layout: start empty.
+        if !fresh && !same {
+            // Another run's layout: start empty (a fresh file is all zeros already).
             // SAFETY: the mapping is `len` bytes long and ours.
             unsafe { std::ptr::write_bytes(r.map, 0, len) };
+        }
+        if fresh || !same {
             r.word(word::VERSION).store(u64::from(LAYOUT_VERSION), Ordering::Relaxed);
             r.word(word::SIZE).store(size_of::<T>() as u64, Ordering::Relaxed);
             r.word(word::CAPACITY).store(capacity, Ordering::Relaxed);
@@ -428,5 +430,64 @@ mod tests {
             .join("flight");
         let _ = std::fs::remove_dir_all(&d);
         d
+    }
+}
+
+#[cfg(test)]
+mod cost {
+    use super::*;
+
+    /// What one record costs on the disk of `dir` (not a test of behaviour: run with
+    /// `cargo test -p rotorloop-common --release flight::cost -- --ignored --nocapture`).
+    fn measure(dir: &Path) {
+        let n = 60_000u64;
+        let r = FlightRecorder::<StateSample>::open(Some(dir), Stream::PlantState, n, "cost");
+        let x = crate::RotorBodyState {
+            r: glam::DMat3::IDENTITY,
+            omega: glam::DVec3::ZERO,
+            omega_r: glam::DVec3::ZERO,
+            theta: glam::DVec3::ZERO,
+        };
+        let mut s = StateSample::of(0, 0.0, &x);
+        let faults = || {
+            let mut u: libc::rusage = unsafe { std::mem::zeroed() };
+            // SAFETY: getrusage fills the struct.
+            unsafe { libc::getrusage(libc::RUSAGE_SELF, &mut u) };
+            u.ru_minflt + u.ru_majflt
+        };
+        let f0 = faults();
+        let mut ns = Vec::with_capacity(n as usize);
+        for k in 0..n {
+            if k == n / 2 {
+                // What the kernel's writeback does to a dirty page: clean, write-protected.
+                // SAFETY: syncs the recorder's own mapping.
+                unsafe { libc::msync(r.map.cast(), r.len, libc::MS_SYNC) };
+            }
+            s.tick = k;
+            let t = crate::ipc::now_ns();
+            r.record(&s);
+            ns.push(crate::ipc::now_ns() - t);
+        }
+        ns.sort_unstable();
+        let q = |p: f64| ns[((ns.len() - 1) as f64 * p) as usize];
+        eprintln!(
+            "{}: p50 {} ns, p99 {} ns, p99.9 {} ns, max {} ns, faults {}",
+            dir.display(),
+            q(0.5),
+            q(0.99),
+            q(0.999),
+            q(1.0),
+            faults() - f0
+        );
+    }
+
+    #[test]
+    #[ignore]
+    fn record_cost_on_disk_and_tmpfs() {
+        for base in [std::env::temp_dir(), PathBuf::from("/dev/shm")] {
+            let dir = base.join(format!("rotorloop-flight-cost-{}", std::process::id()));
+            measure(&dir);
+            let _ = std::fs::remove_dir_all(&dir);
+        }
     }
 }

@@ -199,3 +199,56 @@ pub fn unusable(dir: &Path, e: &FlightError) -> FlightSummary {
         ..Default::default()
     }
 }
+
+/// The monitor's report at its end: from the flight records in `record` when they can be
+/// read (waiting briefly for the records of what it saw), else its live view `rec`
+/// (whose files it then finishes, into `fallback` where `out` cannot take them).
+pub fn final_report(
+    out: &Path,
+    record: Option<&Path>,
+    fallback: &Path,
+    (scenario, role): (&Scenario, &RoleArgs),
+    joiner: &RowJoiner,
+    mut rec: Recording,
+) -> RunSummary {
+    if let Some(dir) = record {
+        wait_for_records(dir, joiner);
+    }
+    let records = record.map(|d| (d, FlightRecords::read(d)));
+    if let Some((dir, Ok(records))) = &records {
+        let hosts = rec.hosts.clone();
+        drop(rec); // its buffered rows go to disk before the files are rewritten
+        let live = Some(LiveView { joiner });
+        return report(out, dir, records, scenario, role, &hosts, live).0;
+    }
+    let (files, dir) = rec.finish(&scenario.file.name, fallback);
+    let mut s = summary(scenario, role, joiner, &rec, files);
+    s.report_dir = (dir != out).then(|| dir.display().to_string());
+    if let Some((dir, Err(e))) = &records {
+        eprintln!("monitor: the report is the live view only: {e}");
+        s.flight = Some(unusable(dir, e));
+    }
+    s
+}
+
+/// Waits (at most 2 s) until the roles' records hold the newest state and torque the
+/// monitor saw: a role records a sample just after publishing it, and a writer preempted
+/// between the two would otherwise miss the report by microseconds (seen: a paper run's
+/// last state). A writer killed in between never writes it; the bound covers that.
+fn wait_for_records(dir: &Path, joiner: &RowJoiner) {
+    use rotorloop_common::flight::has_record;
+    use rotorloop_common::ipc::now_ns;
+    let until = now_ns() + 2_000_000_000;
+    let state = joiner.last_state().map(|s| s.tick);
+    let torque = joiner.last_torque().map(|t| t.tick);
+    let recorded = || {
+        state.is_none_or(|k| has_record::<StateSample>(dir, Stream::PlantState, k))
+            && torque.is_none_or(|k| {
+                has_record::<TorqueSample>(dir, Stream::ControllerTorque, k)
+                    || has_record::<TorqueSample>(dir, Stream::PlantTorque, k)
+            })
+    };
+    while !recorded() && now_ns() < until {
+        std::thread::sleep(std::time::Duration::from_millis(1));
+    }
+}

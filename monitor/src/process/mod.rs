@@ -14,10 +14,10 @@ use rotorloop_common::wire::TorqueSample;
 
 pub use args::MonitorArgs;
 
-use crate::assemble::{FlightRecords, LiveView, report, unusable};
+use crate::assemble::final_report;
 use crate::policy::{END_QUIET_NS, RowJoiner};
 use crate::recording::Recording;
-use crate::report::{console_summary, summary, write_summary};
+use crate::report::{console_summary, write_summary};
 use ports::Ports;
 
 /// Runs the monitor until it has the last row, or a termination signal.
@@ -66,52 +66,9 @@ pub fn run(args: &MonitorArgs) -> anyhow::Result<()> {
     if joiner.done() {
         ports.slot.clear(); // finished: a later monitor in this domain starts a new report
     }
-    if let Some(dir) = args.role.record.as_deref() {
-        wait_for_records(dir, &joiner);
-    }
-    let records = args.role.record.as_deref().map(|d| (d, FlightRecords::read(d)));
-    let summary = match records {
-        // The run's files from the roles' own records: complete whatever was killed.
-        Some((dir, Ok(records))) => {
-            let hosts = rec.hosts.clone();
-            drop(rec); // its buffered rows go to disk before the files are rewritten
-            let live = Some(LiveView { joiner: &joiner });
-            report(&args.out, dir, &records, &scenario, role, &hosts, live).0
-        }
-        _ => {
-            let fallback = std::env::temp_dir().join(format!("rotorloop-report-{}", ports.domain));
-            let (files, dir) = rec.finish(&scenario.file.name, &fallback);
-            let mut summary = summary(&scenario, role, &joiner, &rec, files);
-            summary.report_dir = (dir != args.out).then(|| dir.display().to_string());
-            if let Some((dir, Err(e))) = &records {
-                eprintln!("monitor: the report is the live view only: {e}");
-                summary.flight = Some(unusable(dir, e));
-            }
-            summary
-        }
-    };
-    println!("{}", console_summary(&summary));
     let fallback = std::env::temp_dir().join(format!("rotorloop-report-{}", ports.domain));
+    let record = args.role.record.as_deref();
+    let summary = final_report(&args.out, record, &fallback, (&scenario, role), &joiner, rec);
+    println!("{}", console_summary(&summary));
     write_summary(&args.out, &fallback, &summary)
-}
-
-/// Waits (at most 2 s) until the roles' records hold the newest state and torque this
-/// monitor saw: a role records a sample just after publishing it, and a writer preempted
-/// between the two would otherwise miss the report by microseconds. A writer killed in
-/// between never writes it; the bound covers that.
-fn wait_for_records(dir: &std::path::Path, joiner: &RowJoiner) {
-    use rotorloop_common::flight::{Stream, has_record};
-    use rotorloop_common::wire::StateSample;
-    let until = now_ns() + 2_000_000_000;
-    let state = joiner.last_state().map(|s| s.tick);
-    let torque = joiner.last_torque().map(|t| t.tick);
-    while now_ns() < until
-        && !(state.is_none_or(|k| has_record::<StateSample>(dir, Stream::PlantState, k))
-            && torque.is_none_or(|k| {
-                has_record::<TorqueSample>(dir, Stream::ControllerTorque, k)
-                    || has_record::<TorqueSample>(dir, Stream::PlantTorque, k)
-            }))
-    {
-        std::thread::sleep(std::time::Duration::from_millis(1));
-    }
 }
