@@ -542,7 +542,9 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
     role_args.domain.get_or_insert_with(|| format!("run-{}", std::process::id()));
     role_args.record = match args.no_record {
         true => None,
-        false => Some(role_args.record.clone().unwrap_or_else(|| staging_dir(&role_args, &args.out))),
+        false => {
+            Some(role_args.record.clone().unwrap_or_else(|| staging_dir(&role_args, &args.out)))
+        }
     };
     let split = args.split.as_deref().map(|s| Split::parse(s, !args.no_monitor)).transpose()?;
     let faults = checked_faults(args, split.as_ref())?;
