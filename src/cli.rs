@@ -261,6 +261,17 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
             let (cleaned, alive) = d.cleanup()?;
             let on = host.map(|h| format!(" on host {h}")).unwrap_or_default();
             println!("domain {domain}{on}: {cleaned} dead node(s) cleaned, {alive} alive");
+            // A launcher that did not end normally left its run's flight records on
+            // tmpfs: they are the record of that run, so they are kept, and named.
+            let staged =
+                std::path::Path::new("/dev/shm").join(format!("rotorloop-flight-{domain}"));
+            if staged.is_dir() && alive == 0 {
+                println!(
+                    "flight records of domain {domain} kept in {} (its launcher did not \
+                     move them into the run directory: move them into OUT/flight by hand)",
+                    staged.display()
+                );
+            }
         }
         Command::Montecarlo(a) => montecarlo_command(&a)?,
     }

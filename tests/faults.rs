@@ -456,7 +456,13 @@ fn a_killed_launcher_leaves_no_role_running() {
         }
         std::thread::sleep(Duration::from_millis(50));
     }
-    ok(&h.rotorloop(&["clean", "--domain", &h.domain], LIMIT));
+    let said = ok(&h.rotorloop(&["clean", "--domain", &h.domain], LIMIT));
+    // The flight records outlive the launcher (nobody moved them into the run directory)
+    // and `clean` keeps them, saying where they are.
+    let staged = staged_records(&h);
+    assert!(staged.join("plant-state.flight").exists(), "records gone: {}", staged.display());
+    assert!(said.contains(&staged.display().to_string()), "{said}");
+    std::fs::remove_dir_all(&staged).expect("remove the records");
     h.assert_no_leftovers();
 }
 
@@ -537,6 +543,11 @@ fn overlapping_faults_are_refused_and_faults_after_the_end_are_not_waited_for() 
     h.assert_no_leftovers();
 }
 
+/// Where the roles of a run under `rotorloop run` record while it runs.
+fn staged_records(h: &Harness) -> std::path::PathBuf {
+    std::path::Path::new("/dev/shm").join(format!("rotorloop-flight-{}", h.domain))
+}
+
 /// The pid of the newest `rotorloop role ROLE` process of `domain`.
 fn pid_of_role(domain: &str, role: &str) -> Option<u32> {
     let mut newest = None;
@@ -590,7 +601,7 @@ fn the_record_survives_kills_by_hand_of(roles: &[&str], name: &str) {
     let until = std::time::Instant::now() + LIMIT;
     let roles4 = ["plant", "controller", "reference", "monitor"];
     while roles4.iter().any(|r| pid_of_role(&h.domain, r).is_none())
-        || !out.join("flight").join("plant-state.flight").exists()
+        || !staged_records(&h).join("plant-state.flight").exists()
     {
         assert!(std::time::Instant::now() < until, "the run did not start");
         std::thread::sleep(Duration::from_millis(20));
