@@ -636,15 +636,16 @@ fn staging_dir(role: &RoleArgs, out: &std::path::Path) -> PathBuf {
     }
 }
 
-/// Removes the flight records an earlier run left in `dir`.
+/// Removes the flight records an earlier run left in `dir`, naming each.
 fn clear_flight_records(dir: &std::path::Path) -> anyhow::Result<()> {
     for stream in rotorloop_common::flight::Stream::ALL {
-        match std::fs::remove_file(stream.path(dir)) {
+        let path = stream.path(dir);
+        match std::fs::remove_file(&path) {
+            Ok(()) => eprintln!("launcher: removed an earlier run's {}", path.display()),
             Err(e) if e.kind() != std::io::ErrorKind::NotFound => {
-                return Err(e)
-                    .with_context(|| format!("cannot remove {}", stream.path(dir).display()));
+                return Err(e).with_context(|| format!("cannot remove {}", path.display()));
             }
-            _ => {}
+            Err(_) => {}
         }
     }
     Ok(())
