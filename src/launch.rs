@@ -872,7 +872,11 @@ fn watch_for_hangs(
 ) {
     for role in ROLES {
         let pid = children.get_mut(role).map(|c| c.id());
-        let alive = pid.is_some_and(|p| !w.handled.contains(&p));
+        // A pid already killed (by the schedule or by this watchdog) is not judged again:
+        // a stopped process that got its SIGKILL may take a while to die and be reaped on
+        // a loaded machine, and each pass over it counted as another hang (seen: one
+        // SIGSTOP counted six times 2 ms apart, over the restart limit, the run stopped).
+        let alive = pid.is_some_and(|p| !w.handled.contains(&p) && !w.planned.contains(&p));
         let pending = alive && marks.work_waiting(role, lockstep, REFERENCE_LEAD);
         if !w.watchdog.check(role, marks.of(role), pending, now_s) {
             continue;

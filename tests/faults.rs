@@ -589,10 +589,10 @@ fn the_record_survives_kills_by_hand_of(roles: &[&str], name: &str) {
     for i in 1..at.len() {
         at[i].0 = at[i].0.max(at[i - 1].0 + 0.3);
     }
-    let args: Vec<String> = ["run", "--scenario", "paper-zero", "--duration", "7"]
+    let args: Vec<String> = ["run", "--scenario", "paper-zero", "--duration", "8"]
         .iter()
         .map(|s| s.to_string())
-        .chain(["--mode", "realtime", "--quiet", "--watchdog-ms", "400"].map(String::from))
+        .chain(["--mode", "realtime", "--quiet", "--watchdog-ms", "1500"].map(String::from))
         .chain(["--fault", "controller:stop@5"].map(String::from))
         .chain(["--domain", &h.domain, "--out"].map(String::from))
         .chain([out.to_string_lossy().into_owned()])
@@ -645,9 +645,9 @@ fn the_record_survives_kills_by_hand_of(roles: &[&str], name: &str) {
     }
     assert!(kinds.contains(&("controller".into(), "stop".into())), "{kinds:?}");
     assert!(kinds.contains(&("controller".into(), "hang".into())), "{kinds:?}\n{stderr}");
-    assert_eq!(s["trace_rows"], 7001, "{s}");
+    assert_eq!(s["trace_rows"], 8001, "{s}");
     assert_eq!(s["rows_lost"], 0, "{s}");
-    assert_eq!(timing_rows(&out).len(), 7001);
+    assert_eq!(timing_rows(&out).len(), 8001);
     let replay = h.path("replay");
     let said = ok(&h.rotorloop(
         &["sim", "--replay", out.to_str().expect("utf8"), "--out", replay.to_str().expect("utf8")],
