@@ -451,29 +451,48 @@ impl Supervisor {
 pub struct Watchdog {
     timeout_s: f64,
     marks: BTreeMap<String, (Option<u64>, f64)>,
+    /// Roles restarted that have not made progress since (systemd's start phase).
+    starting: std::collections::BTreeSet<String>,
 }
 
+/// How long a restarted role may take to make its first progress before it counts as
+/// hung (systemd's `TimeoutStartSec` beside `WatchdogSec`): starting a process, creating
+/// its node and cleaning up after its dead predecessor took over 500 ms on a loaded
+/// 2-core machine, and a `--watchdog-ms` meant for a running loop killed it again.
+pub const START_TIMEOUT_S: f64 = 10.0;
+
 impl Watchdog {
-    /// Finds a role hung after `timeout_s` without progress while work waits (0: never).
+    /// Finds a role hung after `timeout_s` without progress while work waits (0: never);
+    /// a restarted role, after [`START_TIMEOUT_S`] (or `timeout_s`, if longer) until its
+    /// first progress.
     pub fn new(timeout_s: f64) -> Self {
-        Self { timeout_s, marks: BTreeMap::new() }
+        Self { timeout_s, marks: BTreeMap::new(), starting: Default::default() }
     }
 
     /// `role`'s progress mark is `mark` at `now_s`, and `pending` says whether work waits
     /// for it. Returns whether it is hung.
     pub fn check(&mut self, role: &str, mark: Option<u64>, pending: bool, now_s: f64) -> bool {
         let entry = self.marks.entry(role.to_owned()).or_insert((mark, now_s));
+        if entry.0 != mark {
+            self.starting.remove(role);
+        }
         if entry.0 != mark || !pending {
             *entry = (mark, now_s);
         }
-        self.timeout_s > 0.0 && pending && now_s - entry.1 > self.timeout_s
+        let timeout = match self.starting.contains(role) {
+            true => self.timeout_s.max(START_TIMEOUT_S),
+            false => self.timeout_s,
+        };
+        self.timeout_s > 0.0 && pending && now_s - entry.1 > timeout
     }
 
-    /// `role` was (re)started at `now_s`: its clock starts again.
+    /// `role` was (re)started at `now_s`: its clock starts again, with the start timeout
+    /// until it makes progress.
     pub fn reset(&mut self, role: &str, now_s: f64) {
         if let Some(e) = self.marks.get_mut(role) {
             e.1 = now_s;
         }
+        self.starting.insert(role.to_owned());
     }
 }
 
@@ -591,6 +610,19 @@ mod tests {
             FaultSchedule::new(vec![parse_fault("monitor:kill@1:restart@2").expect("ok")]);
         let both = late.due(Some(5.0));
         assert_eq!(both, [Action::Kill("monitor".into()), Action::Restart("monitor".into())]);
+    }
+
+    #[test]
+    fn a_restarted_role_has_the_start_timeout_until_its_first_progress() {
+        let mut w = Watchdog::new(0.5);
+        assert!(!w.check("controller", Some(10), true, 0.0));
+        assert!(w.check("controller", Some(10), true, 0.6), "running: the watchdog's 0.5 s");
+        w.reset("controller", 1.0);
+        assert!(!w.check("controller", Some(10), true, 2.0), "starting: not yet");
+        assert!(w.check("controller", Some(10), true, 1.0 + START_TIMEOUT_S + 0.1));
+        w.reset("controller", 20.0);
+        assert!(!w.check("controller", Some(11), true, 20.1), "first progress");
+        assert!(w.check("controller", Some(11), true, 20.7), "running again: 0.5 s");
     }
 
     #[test]
@@ -729,7 +761,9 @@ mod tests {
         assert!(!w.check("controller", Some(6), true, 5.5));
         w.reset("controller", 6.0);
         assert!(!w.check("controller", Some(6), true, 6.9));
-        assert!(w.check("controller", Some(6), true, 7.1));
+        // Restarted and no progress yet: the start timeout, not the watchdog's.
+        assert!(!w.check("controller", Some(6), true, 7.1));
+        assert!(w.check("controller", Some(6), true, 6.0 + START_TIMEOUT_S + 0.1));
         let mut off = Watchdog::new(0.0);
         assert!(!off.check("plant", Some(1), true, 0.0) && !off.check("plant", Some(1), true, 1e9));
     }
