@@ -341,16 +341,9 @@ pub fn run(a: &BenchArgs) -> anyhow::Result<()> {
             measured.push(measure_loop(a, &base, ncores, &dir, Variant::NoMonitor)?);
         }
         if a.before_after {
-            let (mut before, mut after) = (Vec::new(), vec![measured.remove(0)]);
-            for i in 0..a.pairs {
-                let d = if i == 0 { dir.clone() } else { dir.join(format!("pair{i}")) };
-                before.push(measure_loop(a, &base, ncores, &d, Variant::Before)?);
-                if i > 0 {
-                    after.push(measure_loop(a, &base, ncores, &d, Variant::Loop)?);
-                }
-            }
-            measured.insert(0, median_p50(after));
-            measured.push(median_p50(before));
+            let (after, before) = before_after(a, &base, ncores, &dir, measured.remove(0))?;
+            measured.insert(0, after);
+            measured.push(before);
         }
         for b in &a.baselines {
             measured.push(measure_baseline(&exe, a, &base, b, *wait, placement, ncores, &dir)?);
@@ -398,6 +391,26 @@ fn cells(a: &BenchArgs) -> Vec<(f64, Wait, String, String)> {
         }
     }
     cells
+}
+
+/// `--before-after`: the loop without flight recorders and with them, `--pairs` times
+/// each, alternating (`first` is the first "after"); the median run of each.
+fn before_after(
+    a: &BenchArgs,
+    base: &Row,
+    ncores: usize,
+    dir: &Path,
+    first: Row,
+) -> anyhow::Result<(Row, Row)> {
+    let (mut before, mut after) = (Vec::new(), vec![first]);
+    for i in 0..a.pairs {
+        let d = if i == 0 { dir.to_owned() } else { dir.join(format!("pair{i}")) };
+        before.push(measure_loop(a, base, ncores, &d, Variant::Before)?);
+        if i > 0 {
+            after.push(measure_loop(a, base, ncores, &d, Variant::Loop)?);
+        }
+    }
+    Ok((median_p50(after), median_p50(before)))
 }
 
 /// The row with the median p50 of `rows` (the upper one of an even count; skipped rows
