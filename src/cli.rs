@@ -263,9 +263,8 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
             println!("domain {domain}{on}: {cleaned} dead node(s) cleaned, {alive} alive");
             // A launcher that did not end normally left its run's flight records on
             // tmpfs: they are the record of that run, so they are kept, and named.
-            let staged =
-                std::path::Path::new("/dev/shm").join(format!("rotorloop-flight-{domain}"));
-            if staged.is_dir() && alive == 0 {
+            let staged = rotorloop_common::flight::staging_dir(&domain);
+            if let Some(staged) = staged.filter(|d| d.is_dir() && alive == 0) {
                 println!(
                     "flight records of domain {domain} kept in {} (its launcher did not \
                      move them into the run directory: move them into OUT/flight by hand)",

@@ -435,7 +435,7 @@ impl Launch<'_> {
             Err(e) => return eprintln!("launcher: no summary.json and no report from {e}"),
         };
         let hosts = self.monitor_hosts().and_then(|h| Hosts::parse(&h).ok()).unwrap_or_default();
-        let (summary, _) = rotorloop_monitor::assemble::report(
+        let summary = rotorloop_monitor::assemble::report(
             out,
             dir,
             &records,
@@ -444,8 +444,7 @@ impl Launch<'_> {
             &hosts,
             None,
         );
-        let fallback =
-            std::env::temp_dir().join(format!("rotorloop-report-{}", self.role_args.domain()));
+        let fallback = rotorloop_monitor::recording::fallback_dir(self.role_args.domain());
         match rotorloop_monitor::report::write_summary(out, &fallback, &summary) {
             Ok(()) => eprintln!(
                 "launcher: the monitor left no report; assembled it from the flight records"
@@ -478,16 +477,11 @@ impl Launch<'_> {
             eprintln!("warning: the flight records stay in {s}: cannot move them into {k}: {e}");
             return Some(staged);
         }
-        let path = self.args.out.join("summary.json");
-        if let Ok(mut j) = std::fs::read_to_string(&path)
-            .map_err(anyhow::Error::from)
-            .and_then(|t| Ok(serde_json::from_str::<serde_json::Value>(&t)?))
-        {
+        let _ = patch_summary(&self.args.out, |j| {
             if j["flight"].is_object() {
                 j["flight"]["dir"] = kept.display().to_string().into();
-                let _ = crate::sim::write_json(&path, &j);
             }
-        }
+        });
         Some(kept)
     }
 
@@ -629,11 +623,7 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
 /// (measured on ext4: p99 of a record 2.5 µs instead of 50 ns); tmpfs has no writeback.
 /// Without `/dev/shm`, `OUT/flight` itself.
 fn staging_dir(role: &RoleArgs, out: &std::path::Path) -> PathBuf {
-    let shm = std::path::Path::new("/dev/shm");
-    match shm.is_dir() {
-        true => shm.join(format!("rotorloop-flight-{}", role.domain())),
-        false => out.join("flight"),
-    }
+    rotorloop_common::flight::staging_dir(role.domain()).unwrap_or_else(|| out.join("flight"))
 }
 
 /// Removes the flight records an earlier run left in `dir`, naming each.
@@ -1168,12 +1158,18 @@ impl RssLog {
 
 /// Adds the per-role memory figures to `out/summary.json` as `resources`.
 fn add_resources(out: &std::path::Path, rss: &BTreeMap<String, RssTrack>) -> anyhow::Result<()> {
+    patch_summary(out, |j| j["resources"] = serde_json::json!({ "rss": rss, "rss_csv": "rss.csv" }))
+}
+
+/// Changes `out/summary.json` with `change`; nothing when there is no summary (the
+/// monitor was stopped early: nothing to add to).
+fn patch_summary(
+    out: &std::path::Path,
+    change: impl FnOnce(&mut serde_json::Value),
+) -> anyhow::Result<()> {
     let path = out.join("summary.json");
-    let Ok(text) = std::fs::read_to_string(&path) else {
-        return Ok(()); // no summary (the monitor was stopped early): nothing to add to
-    };
+    let Ok(text) = std::fs::read_to_string(&path) else { return Ok(()) };
     let mut j: serde_json::Value = serde_json::from_str(&text)?;
-    j["resources"] = serde_json::json!({ "rss": rss, "rss_csv": "rss.csv" });
-    crate::sim::write_json(&path, &j)?;
-    Ok(())
+    change(&mut j);
+    crate::sim::write_json(&path, &j)
 }

@@ -545,7 +545,7 @@ fn overlapping_faults_are_refused_and_faults_after_the_end_are_not_waited_for() 
 
 /// Where the roles of a run under `rotorloop run` record while it runs.
 fn staged_records(h: &Harness) -> std::path::PathBuf {
-    std::path::Path::new("/dev/shm").join(format!("rotorloop-flight-{}", h.domain))
+    rotorloop_common::flight::staging_dir(&h.domain).expect("/dev/shm")
 }
 
 /// The pid of the newest `rotorloop role ROLE` process of `domain`.

@@ -222,7 +222,7 @@ fn a_full_disk_never_stops_the_loop() {
         }
     }
     let _unmount = Unmount(out.clone());
-    let fallback = std::env::temp_dir().join(format!("rotorloop-report-{}", h.domain));
+    let fallback = rotorloop_monitor::recording::fallback_dir(&h.domain);
     let _ = std::fs::remove_dir_all(&fallback);
     let args = ["--scenario", "paper-sinusoid", "--duration", "6", "--mode", "realtime"];
     let o = wait_output(launcher(&h, &out, &args), LIMIT);

@@ -33,6 +33,13 @@ const HEADER: usize = 64;
 /// Slots beyond the run's last tick (the reference publishes ahead of the plant).
 pub const SPARE_SLOTS: u64 = 64;
 
+/// Where `rotorloop run` stages the records of domain `domain` while the run goes on
+/// (tmpfs, moved into `OUT/flight` at the end; `None` without `/dev/shm`).
+pub fn staging_dir(domain: &str) -> Option<PathBuf> {
+    let shm = Path::new("/dev/shm");
+    shm.is_dir().then(|| shm.join(format!("rotorloop-flight-{domain}")))
+}
+
 /// The streams of a run, one file each.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Stream {

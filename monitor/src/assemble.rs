@@ -9,7 +9,7 @@
 //! its publish and its record) is taken from the plant's record of what it received.
 //!
 //! The live view keeps what only it knows: what the monitor itself received and lost,
-//! its gaps and restarts ([`LiveView`]).
+//! its gaps and restarts (the live [`RowJoiner`] handed to [`report`]).
 
 use std::path::Path;
 
@@ -21,7 +21,7 @@ use serde::Serialize;
 
 use crate::hosts::Hosts;
 use crate::policy::RowJoiner;
-use crate::recording::Recording;
+use crate::recording::{Recording, fallback_dir};
 use crate::report::{RunSummary, summary};
 
 /// The four records of a run.
@@ -119,15 +119,9 @@ impl FlightRecords {
     }
 }
 
-/// What only the live monitor knows.
-#[derive(Debug, Clone)]
-pub struct LiveView<'a> {
-    /// The live joiner (its receive counts, gaps, restarts).
-    pub joiner: &'a RowJoiner,
-}
-
 /// Writes the run's files into `out` from `records` (module docs) and returns the
-/// summary, with the live view's part taken from `live` when there was a monitor.
+/// summary, with the live view's part (receive counts, gaps, restarts) taken from the
+/// live monitor's joiner `live` when there was a monitor.
 pub fn report(
     out: &Path,
     dir: &Path,
@@ -135,14 +129,13 @@ pub fn report(
     scenario: &Scenario,
     role: &RoleArgs,
     hosts: &Hosts,
-    live: Option<LiveView<'_>>,
-) -> (RunSummary, std::path::PathBuf) {
+    live: Option<&RowJoiner>,
+) -> RunSummary {
     let ticks = scenario.ticks();
     let start = records.states.get(0).map_or(0, |s| s.wake_ns);
     let (mut rec, _) = Recording::open(out, scenario, None, start);
     rec.hosts = hosts.clone();
-    let limit = TorqueSample::absurd_limit(scenario.limits_for(scenario.actuation()).rotor_torque);
-    let mut joiner = RowJoiner::new(ticks, limit, start);
+    let mut joiner = RowJoiner::for_scenario(scenario, start);
     let mut flight = records.summary(dir, ticks);
     for k in 0..=ticks + SPARE_SLOTS {
         if let Some(r) = records.references.get(k) {
@@ -171,12 +164,11 @@ pub fn report(
     if ended {
         joiner.settle_rest();
     }
-    let fallback = std::env::temp_dir().join(format!("rotorloop-report-{}", role.domain()));
-    let (files, written) = rec.finish(&scenario.file.name, &fallback);
+    let (files, written) = rec.finish(&scenario.file.name, &fallback_dir(role.domain()));
     let mut s = summary(scenario, role, &joiner, &rec, files);
     s.report_dir = (written != out).then(|| written.display().to_string());
     s.live_rows_lost = 0;
-    if let Some(LiveView { joiner: live }) = live {
+    if let Some(live) = live {
         let monitor = crate::report::monitor_counts(live);
         s.subscribers.extend(monitor);
         s.monitor_kept_up = crate::report::kept_up(live, ticks);
@@ -188,7 +180,7 @@ pub fn report(
         s.subscribers.retain(|k, _| !k.starts_with("monitor."));
     }
     s.flight = Some(flight);
-    (s, written)
+    s
 }
 
 /// The flight summary of records that could not be used.
@@ -218,8 +210,7 @@ pub fn final_report(
     if let Some((dir, Ok(records))) = &records {
         let hosts = rec.hosts.clone();
         drop(rec); // its buffered rows go to disk before the files are rewritten
-        let live = Some(LiveView { joiner });
-        return report(out, dir, records, scenario, role, &hosts, live).0;
+        return report(out, dir, records, scenario, role, &hosts, Some(joiner));
     }
     let (files, dir) = rec.finish(&scenario.file.name, fallback);
     let mut s = summary(scenario, role, joiner, &rec, files);

@@ -169,6 +169,13 @@ impl RowJoiner {
         }
     }
 
+    /// Joins the rows of `scenario`'s run, rejecting torques beyond its actuators' absurd
+    /// limit ([`TorqueSample::absurd_limit`]).
+    pub fn for_scenario(scenario: &rotorloop_common::Scenario, now_ns: u64) -> Self {
+        let limits = scenario.limits_for(scenario.actuation());
+        Self::new(scenario.ticks(), TorqueSample::absurd_limit(limits.rotor_torque), now_ns)
+    }
+
     /// Continues the report of a killed predecessor; the ticks between its last row and
     /// the first state this monitor sees become a gap.
     pub fn resume(&mut self, r: &MonitorResume) {

@@ -363,6 +363,11 @@ impl Recording {
     }
 }
 
+/// Where a run of `domain` writes what its output directory cannot take.
+pub fn fallback_dir(domain: &str) -> PathBuf {
+    std::env::temp_dir().join(format!("rotorloop-report-{domain}"))
+}
+
 /// Runs `write` on `out`, again on `out` after 100 ms, then on `fallback` (created);
 /// returns its result and the directory it succeeded in.
 pub fn with_fallback<T>(

@@ -75,8 +75,9 @@ impl Harness {
     /// Nothing of this domain remains in /dev/shm or iceoryx2's root directory.
     pub fn assert_no_leftovers(&self) {
         self.assert_none_with_prefix(&format!("rl_{}_", self.domain));
-        let staged = Path::new("/dev/shm").join(format!("rotorloop-flight-{}", self.domain));
-        assert!(!staged.exists(), "flight records left in {}", staged.display());
+        if let Some(staged) = rotorloop_common::flight::staging_dir(&self.domain) {
+            assert!(!staged.exists(), "flight records left in {}", staged.display());
+        }
     }
 
     /// Nothing of this test's domain on `host` (a `--split` run's host) is left.

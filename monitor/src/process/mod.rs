@@ -10,13 +10,12 @@ mod ports;
 use std::io::IsTerminal;
 
 use rotorloop_common::ipc::{now_ns, shutdown_requested};
-use rotorloop_common::wire::TorqueSample;
 
 pub use args::MonitorArgs;
 
 use crate::assemble::final_report;
 use crate::policy::{END_QUIET_NS, RowJoiner};
-use crate::recording::Recording;
+use crate::recording::{Recording, fallback_dir};
 use crate::report::{console_summary, write_summary};
 use ports::Ports;
 
@@ -28,8 +27,7 @@ pub fn run(args: &MonitorArgs) -> anyhow::Result<()> {
     // A restart continues the report in the same directory.
     let (mut rec, resumed) = Recording::open(&args.out, &scenario, ports.slot.load(), now_ns());
     rec.hosts = args.hosts.clone().unwrap_or_default();
-    let limit = TorqueSample::absurd_limit(scenario.limits_for(scenario.actuation()).rotor_torque);
-    let mut joiner = RowJoiner::new(scenario.ticks(), limit, now_ns());
+    let mut joiner = RowJoiner::for_scenario(&scenario, now_ns());
     if let Some(r) = &resumed {
         joiner.resume(r);
         eprintln!("monitor: restarted; continuing the report from tick {}", r.next_row);
@@ -66,7 +64,7 @@ pub fn run(args: &MonitorArgs) -> anyhow::Result<()> {
     if joiner.done() {
         ports.slot.clear(); // finished: a later monitor in this domain starts a new report
     }
-    let fallback = std::env::temp_dir().join(format!("rotorloop-report-{}", ports.domain));
+    let fallback = fallback_dir(&ports.domain);
     let record = args.role.record.as_deref();
     let summary = final_report(&args.out, record, &fallback, (&scenario, role), &joiner, rec);
     println!("{}", console_summary(&summary));
