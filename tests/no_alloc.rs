@@ -1,7 +1,11 @@
 //! The hot path does not allocate: one closed-loop tick (plant step, reference step,
 //! control law, metrics) is counted by a global allocator wrapper.
+//!
+//! Only the test's own thread is counted: libtest's main thread allocates while it waits
+//! for the test (CI once saw 4 such allocations land inside the ticks' window).
 
 use std::alloc::{GlobalAlloc, Layout, System};
+use std::cell::Cell;
 use std::sync::atomic::{AtomicU64, Ordering};
 
 use rotorloop::ClosedLoop;
@@ -11,10 +15,22 @@ struct Counting;
 
 static ALLOCATIONS: AtomicU64 = AtomicU64::new(0);
 
+thread_local! {
+    /// Whether this thread's allocations are counted (a const initialiser: reading it
+    /// never allocates).
+    static COUNTED: Cell<bool> = const { Cell::new(false) };
+}
+
+fn count() {
+    if COUNTED.with(Cell::get) {
+        ALLOCATIONS.fetch_add(1, Ordering::Relaxed);
+    }
+}
+
 // SAFETY: forwards to the system allocator unchanged; only counts calls.
 unsafe impl GlobalAlloc for Counting {
     unsafe fn alloc(&self, layout: Layout) -> *mut u8 {
-        ALLOCATIONS.fetch_add(1, Ordering::Relaxed);
+        count();
         // SAFETY: same contract as the caller's.
         unsafe { System.alloc(layout) }
     }
@@ -23,7 +39,7 @@ unsafe impl GlobalAlloc for Counting {
         unsafe { System.dealloc(ptr, layout) }
     }
     unsafe fn realloc(&self, ptr: *mut u8, layout: Layout, new_size: usize) -> *mut u8 {
-        ALLOCATIONS.fetch_add(1, Ordering::Relaxed);
+        count();
         // SAFETY: same contract as the caller's.
         unsafe { System.realloc(ptr, layout, new_size) }
     }
@@ -41,11 +57,22 @@ fn a_tick_does_not_allocate() {
         ClosedLoop::new(&s, Actuation::External, None),
         ClosedLoop::new(&s, Actuation::Internal, Some(glam::DVec3::new(0.1, 0.2, 0.3))),
     ];
-    // The counter works: an allocation is seen.
+    COUNTED.with(|c| c.set(true));
+    // The counter works: an allocation on this thread is seen, one on another is not.
     let before = ALLOCATIONS.load(Ordering::Relaxed);
     let v = std::hint::black_box(vec![1u8; 16]);
     drop(v);
     assert!(ALLOCATIONS.load(Ordering::Relaxed) > before, "allocation counter is not wired");
+    let before = ALLOCATIONS.load(Ordering::Relaxed);
+    std::thread::spawn(|| {
+        for n in 0..1000 {
+            drop(std::hint::black_box(vec![1u8; 16 + n]));
+        }
+    })
+    .join()
+    .expect("thread");
+    let seen = ALLOCATIONS.load(Ordering::Relaxed) - before;
+    assert!(seen < 1000, "another thread's 1000 allocations were counted ({seen} seen)");
 
     for lp in &mut loops {
         let before = ALLOCATIONS.load(Ordering::Relaxed);
