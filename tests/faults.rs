@@ -615,14 +615,7 @@ fn the_record_survives_kills_by_hand_of(roles: &[&str], name: &str) {
         unsafe { libc::kill(pid as libc::pid_t, libc::SIGKILL) };
     }
     let statuses = h.wait_all(LIMIT);
-    let stderr = {
-        let mut e = String::new();
-        use std::io::Read;
-        if let Some(p) = h.child(launcher).stderr.as_mut() {
-            let _ = p.read_to_string(&mut e);
-        }
-        e
-    };
+    let stderr = h.stderr_of(launcher);
     assert!(statuses[launcher].success(), "exit {}: {stderr}", statuses[launcher]);
     let s = json(&out.join("summary.json"));
     assert_eq!(s["completed"], true, "{s}");

@@ -244,7 +244,7 @@ fn two_domains_in_parallel_do_not_interfere() {
             .stderr(std::process::Stdio::piped())
             .spawn()
             .expect("spawn");
-        (child, out)
+        (common::harness::Running::from(child), out)
     };
     let d1 = format!("{}-a", h.domain);
     let d2 = format!("{}-b", h.domain);
@@ -289,6 +289,7 @@ fn sigterm_stops_the_run_cleanly_with_a_partial_report() {
         .stderr(std::process::Stdio::piped())
         .spawn()
         .expect("spawn");
+    let child = common::harness::Running::from(child);
     // Wait until the monitor has written interval data, then stop the run.
     let until = std::time::Instant::now() + LIMIT;
     while std::fs::read_to_string(out.join("sense_to_actuate.hlog"))
@@ -372,4 +373,30 @@ fn states_before_the_first_reference_are_answered_as_skipped_and_counted() {
     // The late start really happened: the controller had states without a reference.
     assert!(s["reference_misses"].as_u64().expect("misses") > 0, "{s}");
     h.assert_no_leftovers();
+}
+
+/// The harness reads a child's output while it runs: a child that writes more than a
+/// pipe holds (64 KiB) to stdout and to stderr finishes, and nothing is lost. (A pipe
+/// nobody read blocked a loaded split run's launcher and roles mid-loop until the test's
+/// time limit.)
+#[test]
+fn the_harness_reads_a_childs_output_while_it_runs() {
+    let mut h = Harness::new("pipes");
+    let script =
+        "head -c 1000000 /dev/zero | tr '\\0' o; head -c 1000000 /dev/zero | tr '\\0' e >&2";
+    let child = common::harness::group(&mut std::process::Command::new("sh"))
+        .args(["-c", script])
+        .stdin(std::process::Stdio::null())
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .expect("spawn sh");
+    let o = common::harness::wait_output(child, Duration::from_secs(60));
+    assert!(o.status.success());
+    assert_eq!((o.stdout.len(), o.stderr.len()), (1_000_000, 1_000_000));
+    assert!(o.stdout.iter().all(|b| *b == b'o') && o.stderr.iter().all(|b| *b == b'e'));
+    // The background children of `Harness::spawn` are read too.
+    let i = h.spawn("sh", &["-c".into(), "head -c 1000000 /dev/zero >&2".into()]);
+    assert!(h.wait_all(Duration::from_secs(60))[i].success());
+    assert_eq!(h.stderr_of(i).len(), 1_000_000);
 }

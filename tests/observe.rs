@@ -4,13 +4,13 @@
 
 mod common;
 
-use std::process::{Child, Command, Stdio};
+use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
-use common::harness::{Harness, group, ok, wait_output};
+use common::harness::{Harness, Running, group, ok, wait_output};
 const LIMIT: Duration = Duration::from_secs(240);
 
-fn start(h: &Harness, seconds: &str) -> (Child, std::path::PathBuf) {
+fn start(h: &Harness, seconds: &str) -> (Running, std::path::PathBuf) {
     let out = h.path("run");
     let child = group(&mut Command::new(common::harness::ROTORLOOP))
         .args([
@@ -30,6 +30,7 @@ fn start(h: &Harness, seconds: &str) -> (Child, std::path::PathBuf) {
         .stderr(Stdio::piped())
         .spawn()
         .expect("spawn");
+    let child = Running::from(child);
     // Running: the plant has published and the monitor written rows.
     let until = Instant::now() + LIMIT;
     while std::fs::read(out.join("trace.csv")).map_or(0, |t| t.len()) < 50_000 {
@@ -146,6 +147,7 @@ fn watch_shows_a_running_loop_and_a_restart_as_it_happens() {
         .stderr(Stdio::piped())
         .spawn()
         .expect("watch");
+    let watcher = Running::from(watcher);
     std::thread::sleep(Duration::from_millis(700));
     let ps = json_of(&h, &["ps", "--domain", &h.domain, "--json", "--sample-ms", "10"]);
     // While watched: still only the loop's four nodes on its services, no port of the

@@ -5,15 +5,15 @@
 mod common;
 
 use std::path::{Path, PathBuf};
-use std::process::{Child, Command, Stdio};
+use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
-use common::harness::{Harness, assert_same_trace, group, json, ok, wait_output};
+use common::harness::{Harness, Running, assert_same_trace, group, json, ok, wait_output};
 
 const LIMIT: Duration = Duration::from_secs(240);
 
-fn launcher(h: &Harness, out: &Path, args: &[&str]) -> Child {
-    group(&mut Command::new(common::harness::ROTORLOOP))
+fn launcher(h: &Harness, out: &Path, args: &[&str]) -> Running {
+    let child = group(&mut Command::new(common::harness::ROTORLOOP))
         .args(["run", "--domain", &h.domain, "--out"])
         .arg(out)
         .args(args)
@@ -21,7 +21,8 @@ fn launcher(h: &Harness, out: &Path, args: &[&str]) -> Child {
         .stdout(Stdio::piped())
         .stderr(Stdio::piped())
         .spawn()
-        .expect("spawn the launcher")
+        .expect("spawn the launcher");
+    Running::from(child)
 }
 
 /// The pid of `role` started by the launcher `parent` (`rotorloop role ROLE …`), other

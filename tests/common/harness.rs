@@ -13,7 +13,7 @@ pub const ROTORLOOP: &str = env!("CARGO_BIN_EXE_rotorloop");
 pub struct Harness {
     pub domain: String,
     pub dir: tempfile::TempDir,
-    children: Vec<Child>,
+    children: Vec<Running>,
 }
 
 impl Harness {
@@ -47,12 +47,18 @@ impl Harness {
             .stderr(Stdio::piped())
             .spawn()
             .expect("spawn");
-        self.children.push(child);
+        self.children.push(Running::from(child));
         self.children.len() - 1
     }
 
     pub fn child(&mut self, i: usize) -> &mut Child {
-        &mut self.children[i]
+        &mut self.children[i].child
+    }
+
+    /// What background child `i` wrote to stderr (once it has exited: see [`wait_all`]).
+    pub fn stderr_of(&mut self, i: usize) -> String {
+        let (_, err) = self.children[i].collect(Instant::now() + Duration::from_secs(10));
+        String::from_utf8_lossy(&err).into_owned()
     }
 
     /// Waits for every background child to exit, at most `limit`; panics otherwise.
@@ -61,7 +67,7 @@ impl Harness {
         let mut out = Vec::new();
         for (i, c) in self.children.iter_mut().enumerate() {
             loop {
-                if let Some(st) = c.try_wait().expect("try_wait") {
+                if let Some(st) = c.child.try_wait().expect("try_wait") {
                     out.push(st);
                     break;
                 }
@@ -119,8 +125,8 @@ fn files_under(p: &Path) -> Vec<PathBuf> {
 impl Drop for Harness {
     fn drop(&mut self) {
         for c in &mut self.children {
-            let _ = c.kill();
-            let _ = c.wait();
+            let _ = c.child.kill();
+            let _ = c.child.wait();
         }
     }
 }
@@ -132,23 +138,91 @@ pub fn group(cmd: &mut Command) -> &mut Command {
     cmd.process_group(0)
 }
 
+/// A child whose stdout and stderr are read while it runs. A pipe nobody reads holds
+/// 64 KiB; then the writer blocks, and with it the whole run: the launcher and every role
+/// sharing its stderr stopped mid-loop that way when a loaded split run wrote its
+/// warnings, and the test hung until its time limit.
+pub struct Running {
+    child: Child,
+    stdout: Option<std::thread::JoinHandle<Vec<u8>>>,
+    stderr: Option<std::thread::JoinHandle<Vec<u8>>>,
+}
+
+impl From<Child> for Running {
+    fn from(mut child: Child) -> Self {
+        fn drain(
+            pipe: Option<impl std::io::Read + Send + 'static>,
+        ) -> Option<std::thread::JoinHandle<Vec<u8>>> {
+            pipe.map(|mut p| {
+                std::thread::spawn(move || {
+                    let mut buf = Vec::new();
+                    let _ = p.read_to_end(&mut buf);
+                    buf
+                })
+            })
+        }
+        let stdout = drain(child.stdout.take());
+        let stderr = drain(child.stderr.take());
+        Self { child, stdout, stderr }
+    }
+}
+
+impl Running {
+    pub fn id(&self) -> u32 {
+        self.child.id()
+    }
+
+    /// Kills the child's whole process group (see [`group`]).
+    fn kill_group(&mut self) {
+        // SAFETY: plain syscall; the group is the child's own (see `group`).
+        unsafe { libc::kill(-(self.child.id() as libc::pid_t), libc::SIGKILL) };
+        let _ = self.child.kill();
+    }
+
+    /// What the child wrote. Waits for the pipes to close until `until`, then kills the
+    /// group (a grandchild that outlived the child may hold them) and waits 5 s more; a
+    /// pipe still open then (held outside the group) is left to its thread, unread.
+    fn collect(&mut self, until: Instant) -> (Vec<u8>, Vec<u8>) {
+        type Reader = Option<std::thread::JoinHandle<Vec<u8>>>;
+        let done = |h: &Reader| h.as_ref().is_none_or(|h| h.is_finished());
+        let mut killed = false;
+        while !(done(&self.stdout) && done(&self.stderr)) {
+            if !killed && Instant::now() > until {
+                self.kill_group();
+                killed = true;
+            } else if killed && Instant::now() > until + Duration::from_secs(5) {
+                break;
+            }
+            std::thread::sleep(Duration::from_millis(10));
+        }
+        let join = |h: Reader| match h {
+            Some(h) if h.is_finished() => h.join().expect("reader"),
+            Some(_) => b"(not read: a process outside the group holds the pipe)".to_vec(),
+            None => Vec::new(),
+        };
+        (join(self.stdout.take()), join(self.stderr.take()))
+    }
+}
+
 /// Waits for `child` (started with [`group`], or its grandchildren may survive a
-/// timeout) to finish, at most `limit`; panics with its stderr otherwise.
-pub fn wait_output(mut child: Child, limit: Duration) -> Output {
+/// timeout) to finish, at most `limit`, reading its output meanwhile; panics with its
+/// stderr otherwise.
+pub fn wait_output(child: impl Into<Running>, limit: Duration) -> Output {
+    let mut r = child.into();
     let until = Instant::now() + limit;
     loop {
-        if child.try_wait().expect("try_wait").is_some() {
-            return child.wait_with_output().expect("output");
+        if let Some(status) = r.child.try_wait().expect("try_wait") {
+            let (stdout, stderr) = r.collect(until);
+            return Output { status, stdout, stderr };
         }
         if Instant::now() > until {
             // The whole group: a grandchild holding the pipes would block the read below.
-            // SAFETY: plain syscall; the group is the child's own (see `group`).
-            unsafe { libc::kill(-(child.id() as libc::pid_t), libc::SIGKILL) };
-            let _ = child.kill();
-            let out = child.wait_with_output().expect("output");
+            r.kill_group();
+            let _ = r.child.wait();
+            let (_, stderr) = r.collect(Instant::now() + Duration::from_secs(5));
             panic!(
                 "process did not finish within {limit:?}; stderr:\n{}",
-                String::from_utf8_lossy(&out.stderr)
+                String::from_utf8_lossy(&stderr)
             );
         }
         std::thread::sleep(Duration::from_millis(10));
