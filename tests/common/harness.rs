@@ -57,7 +57,7 @@ impl Harness {
 
     /// What background child `i` wrote to stderr (once it has exited: see [`wait_all`]).
     pub fn stderr_of(&mut self, i: usize) -> String {
-        let (_, err) = self.children[i].collect(Instant::now() + Duration::from_secs(10));
+        let (_, err, _) = self.children[i].collect(Instant::now() + Duration::from_secs(10));
         String::from_utf8_lossy(&err).into_owned()
     }
 
@@ -179,10 +179,11 @@ impl Running {
         let _ = self.child.kill();
     }
 
-    /// What the child wrote. Waits for the pipes to close until `until`, then kills the
-    /// group (a grandchild that outlived the child may hold them) and waits 5 s more; a
-    /// pipe still open then (held outside the group) is left to its thread, unread.
-    fn collect(&mut self, until: Instant) -> (Vec<u8>, Vec<u8>) {
+    /// What the child wrote, and whether its pipes were held open past `until`. Waits
+    /// for the pipes to close until `until`, then kills the group (a grandchild that
+    /// outlived the child may hold them) and waits 5 s more; a pipe still open then (held
+    /// outside the group) is left to its thread, unread.
+    fn collect(&mut self, until: Instant) -> (Vec<u8>, Vec<u8>, bool) {
         type Reader = Option<std::thread::JoinHandle<Vec<u8>>>;
         let done = |h: &Reader| h.as_ref().is_none_or(|h| h.is_finished());
         let mut killed = false;
@@ -200,7 +201,7 @@ impl Running {
             Some(_) => b"(not read: a process outside the group holds the pipe)".to_vec(),
             None => Vec::new(),
         };
-        (join(self.stdout.take()), join(self.stderr.take()))
+        (join(self.stdout.take()), join(self.stderr.take()), killed)
     }
 }
 
@@ -212,14 +213,20 @@ pub fn wait_output(child: impl Into<Running>, limit: Duration) -> Output {
     let until = Instant::now() + limit;
     loop {
         if let Some(status) = r.child.try_wait().expect("try_wait") {
-            let (stdout, stderr) = r.collect(until);
+            let (stdout, stderr, held_open) = r.collect(until);
+            assert!(
+                !held_open,
+                "the process exited ({status}) but a process it started held its output open \
+                 past {limit:?}; stderr:\n{}",
+                String::from_utf8_lossy(&stderr)
+            );
             return Output { status, stdout, stderr };
         }
         if Instant::now() > until {
             // The whole group: a grandchild holding the pipes would block the read below.
             r.kill_group();
             let _ = r.child.wait();
-            let (_, stderr) = r.collect(Instant::now() + Duration::from_secs(5));
+            let (_, stderr, _) = r.collect(Instant::now() + Duration::from_secs(5));
             panic!(
                 "process did not finish within {limit:?}; stderr:\n{}",
                 String::from_utf8_lossy(&stderr)
