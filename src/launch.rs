@@ -775,6 +775,9 @@ fn supervise(
         // Seconds since tick 0 (before it: negative, since the launch).
         let now_s = (now_ns() as f64 - run_t0.unwrap_or(launched_ns) as f64) / 1e9;
         w.loop_complete = progress.loop_complete();
+        if w.loop_complete {
+            continue_stopped_after_the_end(children, &mut w, now_s);
+        }
         let stopping = term_sent_at.is_some();
         let elapsed = run_t0.map(|_| now_s).filter(|_| !stopping);
         for action in schedule.due(elapsed) {
@@ -835,6 +838,26 @@ fn supervise(
     match w.failures.first() {
         Some(f) => anyhow::bail!("{f}; the run was stopped ({} failed)", w.failures.join(", ")),
         None => Ok(w.events),
+    }
+}
+
+/// After the last tick the schedule is moot: a role it stopped and has not continued
+/// would never see the end, and the launcher would wait for it for ever (seen: a
+/// controller killed by hand at 4.9 s, restarted, stopped at 5 s before its first
+/// progress, so under the start timeout, and the 8 s loop ended before the watchdog
+/// judged it). It is continued, sees the end and exits as the others do.
+fn continue_stopped_after_the_end(children: &mut Children, w: &mut Watch, now_s: f64) {
+    for (role, pid) in std::mem::take(&mut w.stopped) {
+        let Some(c) = children.get_mut(&role).filter(|c| c.id() == pid) else { continue };
+        if w.planned.contains(&pid) || !matches!(c.try_wait(), Ok(None)) {
+            continue;
+        }
+        signal(c, libc::SIGCONT);
+        eprintln!("launcher: continued {role} (SIGCONT) at {now_s:.3} s: the loop has ended");
+        if let Some(e) = w.events.iter_mut().rev().find(|e| e.role == role && e.kind == "stop") {
+            e.restart_ns = Some(now_ns());
+            e.detail.push_str("; SIGCONT at the end of the loop");
+        }
     }
 }
 
@@ -1009,6 +1032,7 @@ fn injected(
             if let Some(c) = children.get_mut(&role) {
                 signal(c, libc::SIGSTOP);
                 w.stopped.insert(role.clone(), c.id());
+                w.watchdog.stopped(&role);
                 eprintln!("launcher: stopped {role} (SIGSTOP) at {at:.3} s");
                 let detail = "SIGSTOP (--fault)".to_owned();
                 w.events.push(FaultEvent::now(role, "stop", detail));

@@ -486,6 +486,14 @@ impl Watchdog {
         self.timeout_s > 0.0 && pending && now_s - entry.1 > timeout
     }
 
+    /// `role` was stopped (SIGSTOP) by the fault schedule: a stopped process makes no
+    /// progress, however slowly it was starting, so it is judged by the running timeout
+    /// from now on (a restarted controller stopped before its first progress was otherwise
+    /// given the 10 s start timeout, past the end of the run).
+    pub fn stopped(&mut self, role: &str) {
+        self.starting.remove(role);
+    }
+
     /// `role` was (re)started at `now_s`: its clock starts again, with the start timeout
     /// until it makes progress.
     pub fn reset(&mut self, role: &str, now_s: f64) {
@@ -623,6 +631,13 @@ mod tests {
         w.reset("controller", 20.0);
         assert!(!w.check("controller", Some(11), true, 20.1), "first progress");
         assert!(w.check("controller", Some(11), true, 20.7), "running again: 0.5 s");
+        // Restarted, then stopped by the schedule before its first progress: the running
+        // timeout, from its restart.
+        w.reset("controller", 30.0);
+        assert!(!w.check("controller", Some(11), true, 30.2));
+        w.stopped("controller");
+        assert!(!w.check("controller", Some(11), true, 30.4));
+        assert!(w.check("controller", Some(11), true, 30.6), "stopped: 0.5 s, not 10 s");
     }
 
     #[test]

@@ -522,6 +522,32 @@ fn a_restart_due_after_the_run_ended_is_not_carried_out_and_every_tick_is_report
     }
 }
 
+/// A role stopped (SIGSTOP) with no SIGCONT, and no watchdog to kill it, would never see
+/// the end: the launcher continues it when the loop has ended, and the run completes
+/// (the launcher used to wait for it for ever).
+#[test]
+fn a_role_stopped_until_the_end_is_continued_and_the_run_ends() {
+    let h = Harness::new("stop-end");
+    let out = h.path("rt");
+    let o = h.rotorloop(
+        &["run", "--scenario", "paper-zero", "--duration", "2", "--mode", "realtime"]
+            .into_iter()
+            .chain(["--watchdog-ms", "0", "--fault", "controller:stop@1.5"])
+            .chain(["--domain", &h.domain, "--out", out.to_str().expect("utf8")])
+            .collect::<Vec<_>>(),
+        LIMIT,
+    );
+    let err = ok(&o);
+    let err = format!("{err}{}", String::from_utf8_lossy(&o.stderr));
+    assert!(err.contains("continued controller (SIGCONT)"), "{err}");
+    let s = json(&out.join("summary.json"));
+    assert_eq!(s["completed"], true, "{s}");
+    let stop = s["faults"].as_array().expect("faults").iter().find(|f| f["kind"] == "stop");
+    let stop = stop.unwrap_or_else(|| panic!("no stop in {}", s["faults"]));
+    assert!(stop["detail"].as_str().is_some_and(|d| d.contains("end of the loop")), "{stop}");
+    h.assert_no_leftovers();
+}
+
 /// Overlapping faults of one role are refused before anything starts (exit 2, naming
 /// both); faults after the run's end are not carried out and the run completes (exit 0).
 #[test]

@@ -71,7 +71,15 @@ impl Harness {
                     out.push(st);
                     break;
                 }
-                assert!(Instant::now() < until, "child {i} did not exit within {limit:?}");
+                if Instant::now() > until {
+                    let _ = c.child.kill();
+                    let _ = c.child.wait();
+                    let (_, err, _) = c.collect(Instant::now() + Duration::from_secs(5));
+                    panic!(
+                        "child {i} did not exit within {limit:?}; its stderr:\n{}",
+                        String::from_utf8_lossy(&err)
+                    );
+                }
                 std::thread::sleep(Duration::from_millis(10));
             }
         }
