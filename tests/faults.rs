@@ -537,9 +537,9 @@ fn a_role_stopped_until_the_end_is_continued_and_the_run_ends() {
             .collect::<Vec<_>>(),
         LIMIT,
     );
-    let err = ok(&o);
-    let err = format!("{err}{}", String::from_utf8_lossy(&o.stderr));
-    assert!(err.contains("continued controller (SIGCONT)"), "{err}");
+    // The summary, not the console: the roles share the launcher's stderr, and under
+    // load a role's line once landed inside the launcher's.
+    ok(&o);
     let s = json(&out.join("summary.json"));
     assert_eq!(s["completed"], true, "{s}");
     let stop = s["faults"].as_array().expect("faults").iter().find(|f| f["kind"] == "stop");
@@ -623,10 +623,14 @@ fn the_record_survives_kills_by_hand_of(roles: &[&str], name: &str) {
     for i in 1..at.len() {
         at[i].0 = at[i].0.max(at[i - 1].0 + 0.3);
     }
-    let args: Vec<String> = ["run", "--scenario", "paper-zero", "--duration", "8"]
+    // The watchdog at 3 s, not less: under a busy loop per core the test, the launcher
+    // and a role were once all descheduled for about 1.5 s, and a 1.5 s watchdog judged
+    // the starved monitor hung just before the test's kill -9 landed (listed as `hang`,
+    // not `killed`). The stop at 5 s is judged at 8 s, two seconds before the end.
+    let args: Vec<String> = ["run", "--scenario", "paper-zero", "--duration", "10"]
         .iter()
         .map(|s| s.to_string())
-        .chain(["--mode", "realtime", "--quiet", "--watchdog-ms", "1500"].map(String::from))
+        .chain(["--mode", "realtime", "--quiet", "--watchdog-ms", "3000"].map(String::from))
         .chain(["--fault", "controller:stop@5"].map(String::from))
         .chain(["--domain", &h.domain, "--out"].map(String::from))
         .chain([out.to_string_lossy().into_owned()])
@@ -672,9 +676,9 @@ fn the_record_survives_kills_by_hand_of(roles: &[&str], name: &str) {
     }
     assert!(kinds.contains(&("controller".into(), "stop".into())), "{kinds:?}");
     assert!(kinds.contains(&("controller".into(), "hang".into())), "{kinds:?}\n{stderr}");
-    assert_eq!(s["trace_rows"], 8001, "{s}");
+    assert_eq!(s["trace_rows"], 10001, "{s}");
     assert_eq!(s["rows_lost"], 0, "{s}");
-    assert_eq!(timing_rows(&out).len(), 8001);
+    assert_eq!(timing_rows(&out).len(), 10001);
     let replay = h.path("replay");
     let said = ok(&h.rotorloop(
         &["sim", "--replay", out.to_str().expect("utf8"), "--out", replay.to_str().expect("utf8")],
