@@ -852,13 +852,24 @@ fn continue_stopped_after_the_end(children: &mut Children, w: &mut Watch, now_s:
         if w.planned.contains(&pid) || !matches!(c.try_wait(), Ok(None)) {
             continue;
         }
-        signal(c, libc::SIGCONT);
+        continue_stopped(c, stop_event(&mut w.events, &role), "; SIGCONT at the end of the loop");
         eprintln!("launcher: continued {role} (SIGCONT) at {now_s:.3} s: the loop has ended");
-        if let Some(e) = w.events.iter_mut().rev().find(|e| e.role == role && e.kind == "stop") {
-            e.restart_ns = Some(now_ns());
-            e.detail.push_str("; SIGCONT at the end of the loop");
-        }
     }
+}
+
+/// Continues (SIGCONT) a role the schedule stopped, and marks its `stop` fault continued
+/// now, `how` added to its detail.
+fn continue_stopped(c: &mut Child, stop: Option<&mut FaultEvent>, how: &str) {
+    signal(c, libc::SIGCONT);
+    if let Some(e) = stop {
+        e.restart_ns = Some(now_ns());
+        e.detail.push_str(how);
+    }
+}
+
+/// The newest `stop` fault of `role`.
+fn stop_event<'a>(events: &'a mut [FaultEvent], role: &str) -> Option<&'a mut FaultEvent> {
+    events.iter_mut().rev().find(|e| e.role == role && e.kind == "stop")
 }
 
 /// After the last tick nobody is started again: the ports of a dead role would keep the
@@ -1055,15 +1066,11 @@ fn injected(
         }
         Action::Cont(role) => {
             let stopped = w.stopped.remove(&role);
-            let event = w.events.iter_mut().rev().find(|e| e.role == role && e.kind == "stop");
+            let event = stop_event(&mut w.events, &role);
             match children.get_mut(&role) {
                 Some(c) if Some(c.id()) == stopped && !w.planned.contains(&c.id()) => {
-                    signal(c, libc::SIGCONT);
+                    continue_stopped(c, event, "; SIGCONT (--fault)");
                     eprintln!("launcher: continued {role} (SIGCONT) at {at:.3} s");
-                    if let Some(e) = event {
-                        e.restart_ns = Some(now_ns());
-                        e.detail.push_str("; SIGCONT (--fault)");
-                    }
                 }
                 _ => {
                     eprintln!(
