@@ -22,7 +22,8 @@ pub const RECOVERED_DEG: f64 = 0.1;
 pub struct FaultReport {
     /// The role.
     pub role: String,
-    /// `kill` or `stop` (injected by `--fault`); `killed` (SIGKILL by anyone else),
+    /// `kill` (injected by `--fault`), `stop` (a SIGSTOP or another stop signal, from
+    /// `--fault` or from anyone else: the detail says which); `killed` (SIGKILL by anyone else),
     /// `crash` (another signal or a non-zero exit), `exited` (a clean exit restarted by
     /// `--restart always`) or `hang` (the watchdog found it making no progress).
     pub kind: &'static str,
@@ -30,8 +31,15 @@ pub struct FaultReport {
     pub detail: String,
     /// Kill time (s after the first tick was published).
     pub kill_s: f64,
-    /// Restart time (s), if restarted.
+    /// Restart time (s), if restarted; for a stop, when it was continued.
     pub restart_s: Option<f64>,
+    /// The signal, where it is known (`SIGKILL`, `SIGSTOP`, `SIGTSTP`, …).
+    pub signal: Option<&'static str>,
+    /// How a stop ended: `continued`, `killed`, `crash`, `exited`, `hung` (the watchdog
+    /// killed it), or `still stopped when the launcher ended`.
+    pub ended: Option<&'static str>,
+    /// When a stop ended (s).
+    pub ended_s: Option<f64>,
     /// Newest tick published before the kill.
     pub kill_tick: Option<u64>,
     /// Ticks after the kill whose preceding torque was not fresh (held or safe mode).
@@ -133,6 +141,9 @@ pub fn report(
             detail: e.detail.clone(),
             kill_s: e.kill_ns.saturating_sub(t0) as f64 / 1e9,
             restart_s: e.restart_ns.map(|r| r.saturating_sub(t0) as f64 / 1e9),
+            signal: e.signal,
+            ended: e.ended.map(|(how, _)| how),
+            ended_s: e.ended.map(|(_, at)| at.saturating_sub(t0) as f64 / 1e9),
             kill_tick,
             ticks_without_fresh_torque: without,
             ticks_to_first_fresh_torque: match (restart_tick, first_fresh_after_restart) {

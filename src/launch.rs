@@ -3,6 +3,7 @@
 //! cleanly at the end or on Ctrl-C/SIGTERM, and leaves the report in `--out`.
 
 use std::collections::BTreeMap;
+use std::os::unix::process::ExitStatusExt;
 use std::path::PathBuf;
 use std::process::{Child, Command, Stdio};
 use std::time::Duration;
@@ -219,12 +220,18 @@ pub struct FaultEvent {
     pub kill_ns: u64,
     /// When it was started again (or continued).
     pub restart_ns: Option<u64>,
+    /// The signal, where it is known (`SIGSTOP`, `SIGTSTP`, `SIGKILL`, …).
+    pub signal: Option<&'static str>,
+    /// A stop's end: how (`continued`, `killed`, `crash`, `exited`, `hung`, or `run ended`
+    /// when the launcher continued it after the last tick) and when (ns).
+    pub ended: Option<(&'static str, u64)>,
 }
 
 impl FaultEvent {
     /// A fault of `role` happening now, not (yet) followed by a restart.
     fn now(role: impl Into<String>, kind: &'static str, detail: String) -> Self {
-        Self { role: role.into(), kind, detail, kill_ns: now_ns(), restart_ns: None }
+        let (role, kill_ns) = (role.into(), now_ns());
+        Self { role, kind, detail, kill_ns, restart_ns: None, signal: None, ended: None }
     }
 }
 
@@ -732,6 +739,8 @@ struct Watch {
     planned: std::collections::BTreeSet<u32>,
     /// The pid stopped by each `stop` fault.
     stopped: BTreeMap<String, u32>,
+    /// The stops not yet ended, whoever sent them: pid → index of its event.
+    open_stops: BTreeMap<u32, usize>,
     /// The restart policy's state.
     supervisor: Supervisor,
     /// The hang watchdog's state.
@@ -762,6 +771,7 @@ fn supervise(
         handled: Default::default(),
         planned: Default::default(),
         stopped: BTreeMap::new(),
+        open_stops: BTreeMap::new(),
         supervisor: launch.supervisor.clone(),
         watchdog: Watchdog::new(launch.args.watchdog_ms as f64 / 1e3),
         loop_complete: false,
@@ -797,6 +807,7 @@ fn supervise(
             restart(launch, children, rss, &mut w, &role, now_s)?;
         }
         rss.sample_if_due();
+        watch_for_stops(children, &mut w, now_s);
         let running = reap(children, &mut w, &progress, stopping, now_s);
         remove_dead_ports_after_the_end(launch, &w, &mut dead_after_end);
         // Split: a role on another host than the plant cannot read the plant's resume slot
@@ -835,6 +846,9 @@ fn supervise(
     for f in schedule.not_done() {
         eprintln!("launcher: --fault {f}: not carried out, the run ended first");
     }
+    for pid in w.open_stops.keys().copied().collect::<Vec<_>>() {
+        end_stop(&mut w, pid, "still stopped when the launcher ended");
+    }
     match w.failures.first() {
         Some(f) => anyhow::bail!("{f}; the run was stopped ({} failed)", w.failures.join(", ")),
         None => Ok(w.events),
@@ -870,6 +884,104 @@ fn continue_stopped(c: &mut Child, stop: Option<&mut FaultEvent>, how: &str) {
 /// The newest `stop` fault of `role`.
 fn stop_event<'a>(events: &'a mut [FaultEvent], role: &str) -> Option<&'a mut FaultEvent> {
     events.iter_mut().rev().find(|e| e.role == role && e.kind == "stop")
+}
+
+/// Every stop and continue of a child, whoever sent the signal (the fault schedule, the
+/// user's `kill -STOP`, a debugger's SIGTSTP): a stop the schedule did not make is a fault
+/// of its own, listed with its signal, and every stop is ended in the report as continued,
+/// killed, judged hung, or with the run. A stop and its continue both between two looks
+/// (2 ms apart) show only as the continue, and are listed as a stop of under 2 ms.
+fn watch_for_stops(children: &mut Children, w: &mut Watch, now_s: f64) {
+    for (role, c) in &children.0 {
+        let pid = c.id();
+        match job_control_event(pid) {
+            None => {}
+            Some(JobControl::Stopped(sig)) => {
+                if let Some(&i) = w.open_stops.get(&pid) {
+                    w.events[i].signal.get_or_insert(signal_name(sig));
+                    continue;
+                }
+                let name = signal_name(sig);
+                eprintln!("launcher: {role} was stopped ({name}) at {now_s:.3} s, not by --fault");
+                let detail = format!("{name} from outside the launcher");
+                w.open_stops.insert(pid, w.events.len());
+                let e = FaultEvent {
+                    signal: Some(name),
+                    ..FaultEvent::now(role.as_str(), "stop", detail)
+                };
+                w.events.push(e);
+            }
+            Some(JobControl::Continued) => {
+                if !w.open_stops.contains_key(&pid) {
+                    let detail = "stopped and continued within 2 ms, not by --fault".to_owned();
+                    w.open_stops.insert(pid, w.events.len());
+                    w.events.push(FaultEvent::now(role.as_str(), "stop", detail));
+                }
+                eprintln!("launcher: {role} continued at {now_s:.3} s");
+                end_stop(w, pid, "continued");
+            }
+        }
+    }
+}
+
+/// Ends the open stop of `pid`, if any, `how` and now (a continue is also its restart).
+fn end_stop(w: &mut Watch, pid: u32, how: &'static str) {
+    let Some(i) = w.open_stops.remove(&pid) else { return };
+    let e = &mut w.events[i];
+    let now = now_ns();
+    e.ended.get_or_insert((how, now));
+    if how == "continued" {
+        e.restart_ns.get_or_insert(now);
+    }
+}
+
+/// A change of a child's job-control state.
+enum JobControl {
+    /// Stopped by this signal.
+    Stopped(libc::c_int),
+    /// Continued (SIGCONT).
+    Continued,
+}
+
+/// The child's newest stop or continue not yet seen, if any. `waitid` without `WEXITED`
+/// consumes only job-control events and leaves an exit for `Child::try_wait`.
+fn job_control_event(pid: u32) -> Option<JobControl> {
+    // SAFETY: an all-zero siginfo_t is valid; waitid fills it for our own child's pid.
+    let mut info: libc::siginfo_t = unsafe { std::mem::zeroed() };
+    let opts = libc::WSTOPPED | libc::WCONTINUED | libc::WNOHANG;
+    // SAFETY: as above; a pid that is not (or no longer) our child gives ECHILD.
+    let rc = unsafe { libc::waitid(libc::P_PID, pid as libc::id_t, &mut info, opts) };
+    // SAFETY: si_pid and si_status are set by a successful waitid.
+    if rc != 0 || unsafe { info.si_pid() } == 0 {
+        return None;
+    }
+    match info.si_code {
+        libc::CLD_STOPPED => Some(JobControl::Stopped(unsafe { info.si_status() })),
+        libc::CLD_CONTINUED => Some(JobControl::Continued),
+        _ => None,
+    }
+}
+
+/// The name of signal `sig` (`SIGSTOP`), or `signal N`.
+fn signal_name(sig: libc::c_int) -> &'static str {
+    match sig {
+        libc::SIGSTOP => "SIGSTOP",
+        libc::SIGTSTP => "SIGTSTP",
+        libc::SIGTTIN => "SIGTTIN",
+        libc::SIGTTOU => "SIGTTOU",
+        libc::SIGKILL => "SIGKILL",
+        libc::SIGTERM => "SIGTERM",
+        libc::SIGINT => "SIGINT",
+        libc::SIGSEGV => "SIGSEGV",
+        libc::SIGABRT => "SIGABRT",
+        libc::SIGBUS => "SIGBUS",
+        libc::SIGHUP => "SIGHUP",
+        libc::SIGPIPE => "SIGPIPE",
+        libc::SIGQUIT => "SIGQUIT",
+        libc::SIGFPE => "SIGFPE",
+        libc::SIGILL => "SIGILL",
+        _ => "another signal",
+    }
 }
 
 /// After the last tick nobody is started again: the ports of a dead role would keep the
@@ -913,14 +1025,17 @@ fn watch_for_hangs(
             // loaded machine, seen: 1.5 s): not a hang; `reap` gives its end its own name.
             continue;
         }
-        w.planned.insert(c.id());
+        let pid = c.id();
+        w.planned.insert(pid);
         signal(c, libc::SIGKILL);
+        end_stop(w, pid, "hung");
         let ms = launch.args.watchdog_ms;
         eprintln!(
             "launcher: {role} made no progress for {ms} ms with work waiting: hung; killed (SIGKILL) at {now_s:.3} s"
         );
         let detail = format!("no progress for {ms} ms; killed by the watchdog");
-        w.events.push(FaultEvent::now(role, "hang", detail));
+        let hang = FaultEvent { signal: Some("SIGKILL"), ..FaultEvent::now(role, "hang", detail) };
+        w.events.push(hang);
         let verdict = w.supervisor.on_end(role, Ending::Hang, "hung", None, now_s, false);
         decide(role, verdict, w, now_s);
     }
@@ -941,12 +1056,19 @@ fn reap(
         match c.try_wait() {
             // The gateways run until the roles are done (then they are stopped).
             Ok(None) => running += usize::from(!role.starts_with("link-")),
-            Ok(Some(st)) if w.handled.insert(pid) && !w.planned.contains(&pid) && !stopping => {
+            Ok(Some(st)) if w.open_stops.contains_key(&pid) || !w.handled.contains(&pid) => {
                 let how = Ending::of(st);
+                end_stop(w, pid, how.name());
+                if !w.handled.insert(pid) || w.planned.contains(&pid) || stopping {
+                    continue;
+                }
                 if how != Ending::Exited {
                     eprintln!("launcher: {role} {} ({st}) at {now_s:.3} s", how.name());
                     let detail = st.to_string();
-                    w.events.push(FaultEvent::now(role.as_str(), how.name(), detail));
+                    let signal = st.signal().map(signal_name);
+                    let e =
+                        FaultEvent { signal, ..FaultEvent::now(role.as_str(), how.name(), detail) };
+                    w.events.push(e);
                 }
                 let what = format!("exited with {st}");
                 let complete = progress.loop_complete();
@@ -1027,12 +1149,17 @@ fn injected(
     match action {
         Action::Kill(role) => {
             if let Some(c) = children.get_mut(&role) {
-                w.planned.insert(c.id());
+                let pid = c.id();
+                w.planned.insert(pid);
                 signal(c, libc::SIGKILL);
                 let _ = c.wait(); // reap: an unreaped zombie can delay dead-node detection
+                w.handled.insert(pid);
+                end_stop(w, pid, "killed");
                 eprintln!("launcher: killed {role} (SIGKILL) at {at:.3} s");
                 let detail = "SIGKILL (--fault)".to_owned();
-                w.events.push(FaultEvent::now(role, "kill", detail));
+                let e =
+                    FaultEvent { signal: Some("SIGKILL"), ..FaultEvent::now(role, "kill", detail) };
+                w.events.push(e);
             }
         }
         Action::Restart(role) => {
@@ -1046,7 +1173,10 @@ fn injected(
                 w.watchdog.stopped(&role);
                 eprintln!("launcher: stopped {role} (SIGSTOP) at {at:.3} s");
                 let detail = "SIGSTOP (--fault)".to_owned();
-                w.events.push(FaultEvent::now(role, "stop", detail));
+                w.open_stops.insert(c.id(), w.events.len());
+                let e =
+                    FaultEvent { signal: Some("SIGSTOP"), ..FaultEvent::now(role, "stop", detail) };
+                w.events.push(e);
             }
         }
         Action::Delay(role, d, started) => {

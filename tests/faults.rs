@@ -701,3 +701,106 @@ fn the_record_survives_kills_by_hand_of_every_role_the_plant_included() {
         "rec-all",
     );
 }
+
+/// Every stop of a role is a fault in the report, whoever sent it and however it ended:
+/// the controller stopped by hand (`kill -STOP`, not `--fault`), then `kill -9`ed by hand
+/// 2 s later, inside the default 3 s watchdog window, is listed as a `stop` with its
+/// signal, ended `killed` when the kill came, and the kill is listed beside it. (The
+/// launcher used to list only the kill: the loop had no controller for 2 s, and the
+/// record did not say why.)
+#[test]
+fn a_stop_by_hand_then_a_kill_inside_the_watchdog_window_are_both_listed() {
+    let mut h = Harness::new("stop-kill");
+    let out = h.path("rt");
+    let args: Vec<String> = ["run", "--scenario", "paper-zero", "--duration", "8"]
+        .iter()
+        .map(|s| s.to_string())
+        .chain(["--mode", "realtime", "--quiet", "--domain", &h.domain, "--out"].map(String::from))
+        .chain([out.to_string_lossy().into_owned()])
+        .collect();
+    let launcher = h.spawn(common::harness::ROTORLOOP, &args);
+    let until = std::time::Instant::now() + LIMIT;
+    while pid_of_role(&h.domain, "controller").is_none() || timing_rows(&out).len() < 1000 {
+        assert!(std::time::Instant::now() < until, "the run did not start");
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    let pid = pid_of_role(&h.domain, "controller").expect("controller") as libc::pid_t;
+    // SAFETY: plain syscalls on a process this test's launcher started.
+    unsafe { libc::kill(pid, libc::SIGSTOP) };
+    std::thread::sleep(Duration::from_millis(2000));
+    // SAFETY: as above.
+    unsafe { libc::kill(pid, libc::SIGKILL) };
+    let statuses = h.wait_all(LIMIT);
+    let stderr = h.stderr_of(launcher);
+    assert!(statuses[launcher].success(), "exit {}: {stderr}", statuses[launcher]);
+    let s = json(&out.join("summary.json"));
+    let faults = s["faults"].as_array().expect("faults");
+    let of = |kind: &str| {
+        faults
+            .iter()
+            .find(|f| f["role"] == "controller" && f["kind"] == kind)
+            .unwrap_or_else(|| panic!("no controller {kind} in {faults:?}\n{stderr}"))
+    };
+    let (stop, kill) = (of("stop"), of("killed"));
+    assert_eq!(stop["signal"], "SIGSTOP", "{stop}");
+    assert_eq!(stop["ended"], "killed", "{stop}");
+    assert!(stop["detail"].as_str().is_some_and(|d| d.contains("outside")), "{stop}");
+    let began = stop["kill_s"].as_f64().expect("began");
+    let ended = stop["ended_s"].as_f64().expect("ended");
+    assert!(ended > began, "{stop}");
+    assert!(kill["kill_s"].as_f64().expect("kill") >= began, "{kill} {stop}");
+    assert_eq!(kill["signal"], "SIGKILL", "{kill}");
+    assert!(!faults.iter().any(|f| f["kind"] == "hang"), "the watchdog's judgment: {faults:?}");
+    h.assert_no_leftovers();
+}
+
+/// A stop by hand that is continued by hand is listed, ended `continued`, with its
+/// continue as its restart time; and a stop from the fault schedule carries its signal.
+#[test]
+fn a_stop_and_continue_by_hand_are_listed_and_the_schedules_stop_has_its_signal() {
+    let mut h = Harness::new("stop-cont");
+    let out = h.path("rt");
+    let args: Vec<String> = ["run", "--scenario", "paper-zero", "--duration", "5"]
+        .iter()
+        .map(|s| s.to_string())
+        .chain(
+            ["--mode", "realtime", "--quiet", "--fault", "monitor:stop@3.5:cont@3.8"]
+                .map(String::from),
+        )
+        .chain(["--domain", &h.domain, "--out"].map(String::from))
+        .chain([out.to_string_lossy().into_owned()])
+        .collect();
+    let launcher = h.spawn(common::harness::ROTORLOOP, &args);
+    let until = std::time::Instant::now() + LIMIT;
+    while pid_of_role(&h.domain, "reference").is_none() || timing_rows(&out).len() < 1000 {
+        assert!(std::time::Instant::now() < until, "the run did not start");
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    let pid = pid_of_role(&h.domain, "reference").expect("reference") as libc::pid_t;
+    // SAFETY: plain syscalls on a process this test's launcher started.
+    unsafe { libc::kill(pid, libc::SIGTSTP) };
+    std::thread::sleep(Duration::from_millis(300));
+    // SAFETY: as above.
+    unsafe { libc::kill(pid, libc::SIGCONT) };
+    let statuses = h.wait_all(LIMIT);
+    let stderr = h.stderr_of(launcher);
+    assert!(statuses[launcher].success(), "exit {}: {stderr}", statuses[launcher]);
+    let s = json(&out.join("summary.json"));
+    let faults = s["faults"].as_array().expect("faults");
+    let stop_of = |role: &str| {
+        faults
+            .iter()
+            .find(|f| f["role"] == role && f["kind"] == "stop")
+            .unwrap_or_else(|| panic!("no {role} stop in {faults:?}\n{stderr}"))
+    };
+    let r = stop_of("reference");
+    assert_eq!(r["signal"], "SIGTSTP", "{r}");
+    assert_eq!(r["ended"], "continued", "{r}");
+    assert_eq!(r["ended_s"], r["restart_s"], "{r}");
+    let m = stop_of("monitor");
+    assert_eq!(m["signal"], "SIGSTOP", "{m}");
+    assert_eq!(m["ended"], "continued", "{m}");
+    assert!(m["detail"].as_str().is_some_and(|d| d.contains("--fault")), "{m}");
+    assert_eq!(faults.iter().filter(|f| f["kind"] == "stop").count(), 2, "{faults:?}");
+    h.assert_no_leftovers();
+}
