@@ -810,22 +810,8 @@ fn supervise(
         watch_for_stops(children, &mut w, now_s);
         let running = reap(children, &mut w, &progress, stopping, now_s);
         remove_dead_ports_after_the_end(launch, &w, &mut dead_after_end);
-        // Split: a role on another host than the plant cannot read the plant's resume slot
-        // (it learns the end from the last state). If that state was lost with a gateway,
-        // it would wait for ever: once the plant has ended, the rest get their linger
-        // time, then SIGTERM (a clean end, not a fault).
-        if launch.split.is_some() && progress.loop_complete() && !stopping {
-            let plant_gone =
-                children.get_mut("plant").is_none_or(|c| !matches!(c.try_wait(), Ok(None)));
-            let since = *plant_ended_at.get_or_insert_with(now_ns);
-            if plant_gone && now_ns() - since > (LINGER_S + 5) * 1_000_000_000 {
-                eprintln!(
-                    "launcher: the plant ended {} s ago; stopping the roles still waiting",
-                    LINGER_S + 5
-                );
-                term_sent_at = Some(now_ns());
-                children.signal_all(libc::SIGTERM);
-            }
+        if launch.split.is_some() && w.loop_complete && !stopping {
+            term_sent_at = stop_far_roles_after_the_end(children, &mut plant_ended_at);
         }
         // Restarts still to come keep the launcher waiting, but only until the last tick:
         // after it nobody is started again (see `restart`).
@@ -853,6 +839,21 @@ fn supervise(
         Some(f) => anyhow::bail!("{f}; the run was stopped ({} failed)", w.failures.join(", ")),
         None => Ok(w.events),
     }
+}
+
+/// Split: a role on another host than the plant cannot read the plant's resume slot (it
+/// learns the end from the last state). If that state was lost with a gateway, it would
+/// wait for ever: once the plant has ended, the rest get their linger time, then SIGTERM
+/// (a clean end, not a fault). Returns when the SIGTERM was sent, if it was.
+fn stop_far_roles_after_the_end(children: &mut Children, since: &mut Option<u64>) -> Option<u64> {
+    let plant_gone = children.get_mut("plant").is_none_or(|c| !matches!(c.try_wait(), Ok(None)));
+    let since = *since.get_or_insert_with(now_ns);
+    if !plant_gone || now_ns() - since <= (LINGER_S + 5) * 1_000_000_000 {
+        return None;
+    }
+    eprintln!("launcher: the plant ended {} s ago; stopping the roles still waiting", LINGER_S + 5);
+    children.signal_all(libc::SIGTERM);
+    Some(now_ns())
 }
 
 /// After the last tick the schedule is moot: a role it stopped and has not continued
