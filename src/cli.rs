@@ -193,9 +193,18 @@ fn parse_vec3(s: &str) -> Result<DVec3, String> {
 /// Parses the command line, runs, prints errors with their chain, and returns the exit
 /// code: 0 success, 1 failure, 2 bad arguments or scenario.
 pub fn main() -> ExitCode {
-    use crate::process::{controller, monitor, plant, reference, run_role};
     rotorloop_common::ipc::quiet_iceoryx_logs();
     let cli = Cli::parse();
+    // Output that nobody reads never stops the loop (see `relay`).
+    let relay = rotorloop_common::relay::Stdio::relay();
+    let code = dispatch(cli);
+    relay.finish();
+    code
+}
+
+/// Runs a role or a command, and maps its end to the exit code.
+fn dispatch(cli: Cli) -> ExitCode {
+    use crate::process::{controller, monitor, plant, reference, run_role};
     if let Command::Role(role) = &cli.command {
         return match role {
             RoleCommand::Plant(a) => run_role("plant", a, plant::run),

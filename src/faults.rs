@@ -25,7 +25,9 @@ pub struct FaultReport {
     /// `kill` (injected by `--fault`), `stop` (a SIGSTOP or another stop signal, from
     /// `--fault` or from anyone else: the detail says which); `killed` (SIGKILL by anyone else),
     /// `crash` (another signal or a non-zero exit), `exited` (a clean exit restarted by
-    /// `--restart always`) or `hang` (the watchdog found it making no progress).
+    /// `--restart always`), `hang` (the watchdog found it making no progress) or
+    /// `link-lost` (split: after this role's restart the plant received no torque within
+    /// the start timeout; the run was stopped).
     pub kind: &'static str,
     /// What happened, in words: the exit status, what the watchdog and the supervisor did.
     pub detail: String,

@@ -25,8 +25,8 @@ use crate::UsageError;
 use crate::process::{Corrupt, Mode, RoleArgs};
 use crate::split::{Split, wait_until};
 use crate::supervise::{
-    Action, Children, Ending, FaultSchedule, Marks, RestartLimit, Supervisor, Verdict, Watchdog,
-    parse_restart, signal,
+    Action, Children, Ending, FaultSchedule, LinkWatch, Marks, RestartLimit, START_TIMEOUT_S,
+    Supervisor, Verdict, Watchdog, parse_restart, signal,
 };
 pub use crate::supervise::{Fault, ROLES, parse_fault};
 use rotorloop_plant::policy::ActuationDelay;
@@ -570,25 +570,7 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
     }
     let exe = std::env::current_exe().context("cannot find the rotorloop executable")?;
     install_signal_handlers();
-    for domain in &domains {
-        let dir = match domain.host() {
-            Some(h) => args.out.join(format!("host-{h}")),
-            None => args.out.clone(),
-        };
-        if let Err(e) = domain.write_iox2_config(&dir) {
-            eprintln!("warning: cannot write {}/config/iceoryx2.toml: {e}", dir.display());
-        }
-        // Nothing of this domain may be alive: clear what an earlier, killed run left
-        // (including resume slots, which would otherwise be taken for a restart).
-        let (_, alive) = domain.cleanup()?;
-        if alive > 0 {
-            let name = domain.name();
-            let msg = format!(
-                "domain `{name}` is in use by {alive} running process(es); choose another --domain"
-            );
-            return Err(UsageError(msg).into());
-        }
-    }
+    prepare_domains(&domains, &args.out)?;
     let link_port = if split.is_some() { crate::split::free_port()? } else { 0 };
     let launch = Launch {
         args,
@@ -619,8 +601,38 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
         let _ = std::fs::remove_file(crate::split::ready_file(&args.out, h));
     }
     let flight = launch.keep_flight_records();
-    let events = supervised?;
-    report(&launch, &scenario, &rss, &events, flight.as_deref())
+    // A failure stops the run, but its report (the faults that led to it among them) is
+    // written as for any other end.
+    let (events, failure) = supervised?;
+    let reported = report(&launch, &scenario, &rss, &events, flight.as_deref());
+    match failure {
+        Some(f) => Err(f),
+        None => reported,
+    }
+}
+
+/// Writes each host's iceoryx2 configuration for `iox2`, and clears what an earlier, killed
+/// run of the domain left (resume slots included, which would otherwise be taken for a
+/// restart); a domain still in use by a live process is refused.
+fn prepare_domains(domains: &[Domain], out: &std::path::Path) -> anyhow::Result<()> {
+    for domain in domains {
+        let dir = match domain.host() {
+            Some(h) => out.join(format!("host-{h}")),
+            None => out.to_path_buf(),
+        };
+        if let Err(e) = domain.write_iox2_config(&dir) {
+            eprintln!("warning: cannot write {}/config/iceoryx2.toml: {e}", dir.display());
+        }
+        let (_, alive) = domain.cleanup()?;
+        if alive > 0 {
+            let name = domain.name();
+            let msg = format!(
+                "domain `{name}` is in use by {alive} running process(es); choose another --domain"
+            );
+            return Err(UsageError(msg).into());
+        }
+    }
+    Ok(())
 }
 
 /// Where the roles record during a run: a directory of the domain on tmpfs
@@ -745,19 +757,24 @@ struct Watch {
     supervisor: Supervisor,
     /// The hang watchdog's state.
     watchdog: Watchdog,
+    /// Split: whether the link carries the loop again after a restart.
+    link: LinkWatch,
+    /// Torque samples the plant has received so far.
+    torques_received: u64,
     /// The plant has published its last tick.
     loop_complete: bool,
 }
 
 /// Runs the fault schedule, the restart policy and the watchdog, samples memory, and
 /// waits for every child; on a signal or a failure, forwards SIGTERM, then SIGKILL after
-/// 10 s. Returns the faults as they happened, or the first failure.
+/// 10 s. Returns the faults as they happened, and the failure that stopped the run, if
+/// one did.
 fn supervise(
     launch: &Launch,
     children: &mut Children,
     rss: &mut RssLog,
     mut schedule: FaultSchedule,
-) -> anyhow::Result<Vec<FaultEvent>> {
+) -> anyhow::Result<(Vec<FaultEvent>, Option<anyhow::Error>)> {
     let lockstep = launch.role_args.mode == Mode::Lockstep;
     // The fault clock starts when the plant has published tick 0 (its resume slot is
     // written just before each publish).
@@ -774,6 +791,8 @@ fn supervise(
         open_stops: BTreeMap::new(),
         supervisor: launch.supervisor.clone(),
         watchdog: Watchdog::new(launch.args.watchdog_ms as f64 / 1e3),
+        link: LinkWatch::new(START_TIMEOUT_S.max(launch.args.watchdog_ms as f64 / 1e3)),
+        torques_received: 0,
         loop_complete: false,
     };
     let launched_ns = now_ns();
@@ -793,7 +812,11 @@ fn supervise(
         for action in schedule.due(elapsed) {
             injected(launch, children, rss, &mut w, action, now_s)?;
         }
-        if !stopping && run_t0.is_some() && !progress.loop_complete() {
+        if !stopping && run_t0.is_some() && !w.loop_complete {
+            w.torques_received = progress.plant.load().map_or(0, |s| s.torques_received);
+            watch_the_link(&mut w, now_s);
+        }
+        if !stopping && run_t0.is_some() && !w.loop_complete && w.failures.is_empty() {
             watch_for_hangs(launch, children, &mut w, &progress.marks(), lockstep, now_s);
         }
         let due: Vec<String> = w
@@ -835,10 +858,11 @@ fn supervise(
     for pid in w.open_stops.keys().copied().collect::<Vec<_>>() {
         end_stop(&mut w, pid, "still stopped when the launcher ended");
     }
-    match w.failures.first() {
-        Some(f) => anyhow::bail!("{f}; the run was stopped ({} failed)", w.failures.join(", ")),
-        None => Ok(w.events),
-    }
+    let failure = w
+        .failures
+        .first()
+        .map(|f| anyhow::anyhow!("{f}; the run was stopped ({} failed)", w.failures.join(", ")));
+    Ok((w.events, failure))
 }
 
 /// Split: a role on another host than the plant cannot read the plant's resume slot (it
@@ -885,6 +909,15 @@ fn continue_stopped(c: &mut Child, stop: Option<&mut FaultEvent>, how: &str) {
 /// The newest `stop` fault of `role`.
 fn stop_event<'a>(events: &'a mut [FaultEvent], role: &str) -> Option<&'a mut FaultEvent> {
     events.iter_mut().rev().find(|e| e.role == role && e.kind == "stop")
+}
+
+/// Split: a restart after which the link does not carry the loop again within the start
+/// timeout ends the run (see [`LinkWatch`]), with a fault of its own in the report.
+fn watch_the_link(w: &mut Watch, now_s: f64) {
+    let Some((role, why)) = w.link.check(w.torques_received, now_s) else { return };
+    eprintln!("launcher: {why} ({now_s:.3} s)");
+    w.events.push(FaultEvent::now(role, "link-lost", why.clone()));
+    w.failures.push(why);
 }
 
 /// Every stop and continue of a child, whoever sent the signal (the fault schedule, the
@@ -1131,6 +1164,13 @@ fn restart(
         *c = child;
     }
     w.watchdog.reset(role, at);
+    if let Some(split) = &launch.split {
+        let plant_host = split.host_of("plant");
+        let far = role != "monitor" && split.host_of(role) != plant_host;
+        if far || role.starts_with("link-") {
+            w.link.restarted(role, at, w.torques_received);
+        }
+    }
     if let Some(e) = w.events.iter_mut().rev().find(|e| e.role == role) {
         e.restart_ns = Some(now_ns());
     }

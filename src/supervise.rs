@@ -504,6 +504,56 @@ impl Watchdog {
     }
 }
 
+/// The rule for a loop carried over a link: after a role on the far host or a gateway is
+/// started again, the plant must receive a torque again within the start timeout (the
+/// [`Watchdog`]'s, [`START_TIMEOUT_S`] or `--watchdog-ms` if longer). A far-host controller
+/// can be alive and answering every state it gets while none of its torques reach the
+/// plant (a gateway that does not carry them): no watchdog of a role sees that, so this
+/// rule does, and the run then ends as it does for any role that does not come back,
+/// with its report and exit code 1, instead of running on without its loop.
+#[derive(Debug, Clone, Default)]
+pub struct LinkWatch {
+    /// The restart being waited on: its role, its deadline (s), the plant's torque count
+    /// at the restart.
+    due: Option<(String, f64, u64)>,
+    timeout_s: f64,
+}
+
+impl LinkWatch {
+    /// Waits at most `timeout_s` for the loop after each restart.
+    pub fn new(timeout_s: f64) -> Self {
+        Self { due: None, timeout_s }
+    }
+
+    /// `role` was started again at `now_s`, when the plant had received `torques`. The
+    /// first restart's deadline stands: restarting the same role again (a watchdog that
+    /// blamed it for the link) does not put it off.
+    pub fn restarted(&mut self, role: &str, now_s: f64, torques: u64) {
+        self.due.get_or_insert_with(|| (role.to_owned(), now_s + self.timeout_s, torques));
+    }
+
+    /// The plant has received `torques` by `now_s`: `Some(the restarted role, why)` when
+    /// the deadline has passed with no new torque (once; the rule is then disarmed).
+    pub fn check(&mut self, torques: u64, now_s: f64) -> Option<(String, String)> {
+        let (role, deadline, at_restart) = self.due.as_ref()?;
+        if torques > *at_restart {
+            self.due = None;
+            return None;
+        }
+        if now_s <= *deadline {
+            return None;
+        }
+        let t = self.timeout_s;
+        let why = format!(
+            "the link did not carry the loop again within {t:.1} s of restarting {role}: \
+             the plant received no torque since"
+        );
+        let role = role.clone();
+        self.due = None;
+        Some((role, why))
+    }
+}
+
 /// Each role's progress mark, from the resume slots: the plant's newest tick, the
 /// controller's newest answer, the reference's next tick, the monitor's next row.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
@@ -810,6 +860,29 @@ mod tests {
         assert!(monitor_behind.work_waiting("plant", false, 16));
         assert!(monitor_behind.work_waiting("monitor", false, 16));
         assert!(!m(Some(100), Some(100), Some(117), Some(99)).work_waiting("monitor", false, 16));
+    }
+
+    #[test]
+    fn a_restart_whose_loop_does_not_come_back_within_the_start_timeout_ends_the_run() {
+        let mut l = LinkWatch::new(10.0);
+        assert_eq!(l.check(5, 100.0), None, "nothing restarted, nothing due");
+        l.restarted("controller", 1.5, 700);
+        assert_eq!(l.check(700, 11.5), None, "not before the deadline");
+        l.restarted("controller", 11.0, 700); // the watchdog's restart does not put it off
+        let (role, why) = l.check(700, 11.6).expect("due");
+        assert_eq!(role, "controller");
+        assert!(why.contains("within 10.0 s of restarting controller"), "{why}");
+        assert_eq!(l.check(700, 30.0), None, "once");
+    }
+
+    #[test]
+    fn a_restart_whose_loop_comes_back_disarms_the_rule() {
+        let mut l = LinkWatch::new(10.0);
+        l.restarted("link-b", 2.0, 1000);
+        assert_eq!(l.check(1001, 3.0), None);
+        assert_eq!(l.check(1001, 60.0), None, "the loop came back: nothing is due");
+        l.restarted("link-b", 61.0, 1001);
+        assert!(l.check(1001, 71.1).is_some(), "a later restart is watched again");
     }
 
     #[test]

@@ -150,3 +150,104 @@ fn a_bad_split_or_gateway_fault_is_refused_naming_it() {
         assert!(String::from_utf8_lossy(&o.stderr).contains(why), "{option} {value}");
     }
 }
+
+/// A pipe filled to the brim, whose read end nobody reads until [`drain`]: what a
+/// consumer that stopped reading (`| less` on its first page, a harness that reads after
+/// the exit) gives a process as its output.
+fn full_pipe() -> (std::os::fd::OwnedFd, std::os::fd::OwnedFd) {
+    use std::os::fd::FromRawFd;
+    let mut p = [0; 2];
+    // SAFETY: plain system calls on descriptors this test owns.
+    unsafe {
+        assert_eq!(libc::pipe2(p.as_mut_ptr(), libc::O_CLOEXEC | libc::O_NONBLOCK), 0);
+        let chunk = [b'x'; 4096];
+        while libc::write(p[1], chunk.as_ptr().cast(), chunk.len()) > 0 {}
+        let flags = libc::fcntl(p[1], libc::F_GETFL);
+        libc::fcntl(p[1], libc::F_SETFL, flags & !libc::O_NONBLOCK);
+        (std::os::fd::OwnedFd::from_raw_fd(p[0]), std::os::fd::OwnedFd::from_raw_fd(p[1]))
+    }
+}
+
+/// The cause of the split run that never ended: output nobody reads. A split run whose
+/// stdout and stderr are pipes already full, read by nobody until it exits, with the
+/// far-host controller killed and restarted (its restart and the plant's safe mode write
+/// lines), ends on its own and completes, control resumed. Before the output relay
+/// (`rotorloop_common::relay`) the launcher blocked in its first write, and with it every
+/// role writing to the same pipe: the run never ended.
+#[test]
+fn a_split_run_whose_output_nobody_reads_still_ends_and_recovers_a_far_host_restart() {
+    let h = Harness::new("split-unread");
+    let out = h.path("run");
+    let (out_r, out_w) = full_pipe();
+    let (err_r, err_w) = full_pipe();
+    let mut cmd = std::process::Command::new(common::harness::ROTORLOOP);
+    common::harness::group(&mut cmd)
+        .args(["run", "--scenario", "paper-zero", "--split", SPLIT, "--domain", &h.domain])
+        .args(["--duration", "6", "--mode", "realtime"])
+        .args(["--fault", "controller:kill@1.0:restart@1.5", "--out"])
+        .arg(&out)
+        .stdin(std::process::Stdio::null())
+        .stdout(std::process::Stdio::from(out_w))
+        .stderr(std::process::Stdio::from(err_w));
+    let mut child = cmd.spawn().expect("spawn");
+    drop(cmd); // our copies of the write ends: only the run holds them now
+    let until = std::time::Instant::now() + LIMIT;
+    let status = loop {
+        if let Some(st) = child.try_wait().expect("try_wait") {
+            break st;
+        }
+        if std::time::Instant::now() > until {
+            // SAFETY: kills the run's own process group (see `group`).
+            unsafe { libc::kill(-(child.id() as libc::pid_t), libc::SIGKILL) };
+            let _ = child.wait();
+            panic!("a run whose output nobody read did not end within {LIMIT:?}");
+        }
+        std::thread::sleep(Duration::from_millis(20));
+    };
+    drop((out_r, err_r));
+    assert!(status.success(), "exit {status}");
+    let s = json(&out.join("summary.json"));
+    assert_eq!(s["completed"], true);
+    assert_eq!(s["trace_rows"], 6001);
+    recovered_fault(&s, "controller");
+    assert_nothing_left(&h);
+}
+
+/// A split run that cannot get its loop back ends, with its report and exit code 1: the
+/// near host's gateway is stopped (so nothing crosses the link), then the far-host
+/// controller is killed and restarted. The restarted controller is alive, but no torque
+/// of it reaches the plant; after the start timeout (10 s) the launcher says so, lists a
+/// `link-lost` fault naming the restarted role, and stops the run instead of letting it
+/// run on without its loop.
+#[test]
+fn a_split_run_whose_link_does_not_carry_the_loop_after_a_restart_ends_with_exit_1() {
+    let h = Harness::new("split-lost");
+    let out = h.path("run");
+    let o = h.rotorloop(
+        &["run", "--scenario", "paper-zero", "--split", SPLIT, "--domain", &h.domain]
+            .into_iter()
+            .chain(["--duration", "30", "--mode", "realtime", "--fault", "link-a:stop@1.0"])
+            .chain(["--fault", "controller:kill@1.2:restart@1.5", "--out"])
+            .chain([out.to_str().expect("utf8")])
+            .collect::<Vec<_>>(),
+        LIMIT,
+    );
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(1), "{err}");
+    assert!(
+        err.contains(
+            "the link did not carry the loop again within 10.0 s of restarting controller"
+        ),
+        "{err}"
+    );
+    let s = json(&out.join("summary.json"));
+    assert_eq!(s["completed"], false, "the loop did not reach its last tick");
+    let faults = s["faults"].as_array().expect("faults");
+    let lost = faults.iter().find(|f| f["kind"] == "link-lost");
+    let lost = lost.unwrap_or_else(|| panic!("no link-lost fault in {faults:?}"));
+    assert_eq!(lost["role"], "controller");
+    assert!(faults.iter().any(|f| f["role"] == "link-a" && f["kind"] == "stop"), "{faults:?}");
+    // Stopped about 11.5 s in, long before the 30 s end.
+    assert!(s["trace_rows"].as_u64().expect("rows") < 30_001, "{s}");
+    assert_nothing_left(&h);
+}

@@ -23,6 +23,7 @@ pub mod flight;
 pub mod hgrm;
 pub mod ipc;
 pub mod params;
+pub mod relay;
 pub mod resume;
 pub mod role;
 pub mod scenario;

@@ -403,7 +403,10 @@ pub fn role_main<A: clap::Args + clap::FromArgMatches>(
         Ok(a) => a,
         Err(e) => e.exit(),
     };
-    run_role(name, &args, run)
+    let relay = crate::relay::Stdio::relay();
+    let code = run_role(name, &args, run);
+    relay.finish();
+    code
 }
 
 /// Runs a role with signal handling and error reporting (shared by the role binaries

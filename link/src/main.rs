@@ -12,9 +12,16 @@ struct Cli {
 
 fn main() {
     let cli = Cli::parse();
-    if let Err(e) = rotorloop_link::run(&cli.link) {
-        eprintln!("link: error: {e:#}");
-        let usage = e.downcast_ref::<rotorloop_link::ConfigError>().is_some();
-        std::process::exit(if usage { 2 } else { 1 });
-    }
+    // Output that nobody reads never stops the gateway (see `relay`).
+    let relay = rotorloop_common::relay::Stdio::relay();
+    let code = match rotorloop_link::run(&cli.link) {
+        Ok(()) => 0,
+        Err(e) => {
+            eprintln!("link: error: {e:#}");
+            let usage = e.downcast_ref::<rotorloop_link::ConfigError>().is_some();
+            if usage { 2 } else { 1 }
+        }
+    };
+    relay.finish();
+    std::process::exit(code);
 }
