@@ -77,6 +77,13 @@ enum Command {
         #[arg(long)]
         host: Option<String>,
     },
+    /// The report of a run whose launcher did not end normally (`kill -9` of `rotorloop
+    /// run`): moves its flight records into the run directory and assembles the report from
+    /// them, as the launcher would have.
+    Recover {
+        /// The run directory (the `--out` of `rotorloop run`).
+        dir: PathBuf,
+    },
     /// The link gateway of one host: carries a run domain's services to and from another
     /// host over Zenoh (the `rotorloop-link` binary; `rotorloop link --help` for its options).
     #[command(disable_help_flag = true)]
@@ -274,13 +281,18 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
             // tmpfs: they are the record of that run, so they are kept, and named.
             let staged = rotorloop_common::flight::staging_dir(&domain);
             if let Some(staged) = staged.filter(|d| d.is_dir() && alive == 0) {
+                let how = match crate::recover::run_dir_of(&staged) {
+                    Some(out) => format!("`rotorloop recover {}` makes its report", out.display()),
+                    None => "move them into OUT/flight by hand".to_owned(),
+                };
                 println!(
                     "flight records of domain {domain} kept in {} (its launcher did not \
-                     move them into the run directory: move them into OUT/flight by hand)",
+                     move them into the run directory): {how}",
                     staged.display()
                 );
             }
         }
+        Command::Recover { dir } => crate::recover::run(&dir)?,
         Command::Montecarlo(a) => montecarlo_command(&a)?,
     }
     Ok(())

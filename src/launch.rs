@@ -469,17 +469,7 @@ impl Launch<'_> {
         if self.args.role.record.is_some() || staged == kept {
             return Some(staged); // recorded where the user asked
         }
-        let moved = std::fs::create_dir_all(&kept).and_then(|()| {
-            for stream in rotorloop_common::flight::Stream::ALL {
-                let from = stream.path(&staged);
-                if from.exists() {
-                    std::fs::copy(&from, stream.path(&kept))?;
-                    std::fs::remove_file(&from)?;
-                }
-            }
-            std::fs::remove_dir(&staged)
-        });
-        if let Err(e) = moved {
+        if let Err(e) = rotorloop_common::flight::move_records(&staged, &kept) {
             let (s, k) = (staged.display(), kept.display());
             eprintln!("warning: the flight records stay in {s}: cannot move them into {k}: {e}");
             return Some(staged);
@@ -584,6 +574,17 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
         corrupt,
         exe,
     };
+    // What `rotorloop recover` needs should this launcher not end normally.
+    let record = crate::recover::LaunchRecord {
+        domain: launch.role_args.domain().to_owned(),
+        hosts: launch.monitor_hosts(),
+        role_args: launch.role_args.to_args(),
+        scenario: scenario.file.clone(),
+        staging: launch.role_args.record.clone(),
+        moved: args.role.record.is_none(),
+        launcher_pid: std::process::id(),
+    };
+    record.write(&args.out)?;
     let mut rss = RssLog::create(&args.out);
     let mut children = Children::default();
     let started = start(&launch, &mut children, &mut rss);
@@ -1365,7 +1366,7 @@ fn add_resources(out: &std::path::Path, rss: &BTreeMap<String, RssTrack>) -> any
 
 /// Changes `out/summary.json` with `change`; nothing when there is no summary (the
 /// monitor was stopped early: nothing to add to).
-fn patch_summary(
+pub(crate) fn patch_summary(
     out: &std::path::Path,
     change: impl FnOnce(&mut serde_json::Value),
 ) -> anyhow::Result<()> {

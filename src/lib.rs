@@ -16,6 +16,7 @@ pub mod montecarlo;
 pub mod observe;
 pub mod paper;
 pub mod process;
+pub mod recover;
 pub mod replay;
 pub mod sim;
 pub mod split;

@@ -169,14 +169,17 @@ pub fn run(dir: &Path, out: &Path) -> anyhow::Result<ReplaySummary> {
         unrecorded_effects: Vec::new(),
     };
     let mut work = 0.0;
-    for k in 0..=ticks {
+    // A run that ended early (its launcher killed, then `rotorloop recover`) is replayed
+    // up to its last recorded tick.
+    let last = timing.keys().next_back().map_or(ticks, |k| (*k).min(ticks));
+    for k in 0..=last {
         let t = k as f64 * dt;
         let x = body.state();
         let rd = reference.sample(t);
         let (u, tau) = rows.get(&k).map_or((DVec3::NAN, DVec3::NAN), |r| (r.1, r.2));
         let u_traced = if actuation == Actuation::Internal { u } else { DVec3::ZERO };
         let mut row = metrics.observe_work(k, t, &x, &rd, u_traced, tau, work);
-        if k < ticks {
+        if k < last {
             // What happened in tick k, as the state of tick k + 1 recorded it.
             let next = timing
                 .get(&(k + 1))

@@ -6,7 +6,9 @@ mod common;
 
 use std::time::Duration;
 
-use common::harness::{Harness, TimingRow, assert_same_trace, json, ok, timing_rows};
+use common::harness::{
+    Harness, TimingRow, assert_same_trace, json, live_timing_rows, ok, timing_rows,
+};
 use rotorloop_common::wire::FLAG_SAFE_MODE;
 
 const LIMIT: Duration = Duration::from_secs(180);
@@ -447,7 +449,7 @@ fn a_killed_launcher_leaves_no_role_running() {
         .collect();
     let launcher = h.spawn(common::harness::ROTORLOOP, &args);
     let until = std::time::Instant::now() + LIMIT;
-    while processes_of(&h.domain).len() < 5 || !out.join("timing.csv").exists() {
+    while processes_of(&h.domain).len() < 5 || live_timing_rows(&out) < 2000 {
         assert!(std::time::Instant::now() < until, "the run did not start");
         std::thread::sleep(Duration::from_millis(50));
     }
@@ -466,12 +468,45 @@ fn a_killed_launcher_leaves_no_role_running() {
     }
     let said = ok(&h.rotorloop(&["clean", "--domain", &h.domain], LIMIT));
     // The flight records outlive the launcher (nobody moved them into the run directory)
-    // and `clean` keeps them, saying where they are.
+    // and `clean` keeps them, saying where they are and how to recover them.
     let staged = staged_records(&h);
     assert!(staged.join("plant-state.flight").exists(), "records gone: {}", staged.display());
     assert!(said.contains(&staged.display().to_string()), "{said}");
-    std::fs::remove_dir_all(&staged).expect("remove the records");
+    assert!(said.contains("rotorloop recover"), "{said}");
+    recovers_the_run(&h, &out);
+    assert!(!staged.exists(), "recover moved the records: {}", staged.display());
     h.assert_no_leftovers();
+}
+
+/// `rotorloop recover OUT` of a run whose launcher was killed: the records move into
+/// `OUT/flight`, the report covers every tick recorded (more than the monitor's partial
+/// report, which ended with the launcher), says it was recovered, and `sim --replay`
+/// reproduces it byte for byte.
+fn recovers_the_run(h: &Harness, out: &std::path::Path) {
+    let partial = json(&out.join("summary.json"));
+    let partial_rows = partial["trace_rows"].as_u64().unwrap_or(0);
+    let dir = out.to_str().expect("utf8");
+    let said = ok(&h.rotorloop(&["recover", dir], LIMIT));
+    assert!(said.contains("recovered:"), "{said}");
+    let s = json(&out.join("summary.json"));
+    assert_eq!(s["recovered"]["by"], "rotorloop recover", "{s}");
+    assert_eq!(s["completed"], false, "the loop ended with the launcher");
+    assert!(out.join("flight/plant-state.flight").exists());
+    let streams = s["flight"]["streams"].as_array().expect("streams");
+    let states = streams.iter().find(|x| x["stream"] == "plant-state").expect("plant-state");
+    let (rows, lost) =
+        (s["trace_rows"].as_u64().expect("rows"), s["rows_lost"].as_u64().expect("lost"));
+    assert_eq!(rows + lost, states["records"].as_u64().expect("records"), "{s}");
+    assert!(rows >= partial_rows, "{rows} rows recovered, the monitor had {partial_rows}");
+    assert_eq!(timing_rows(out).len() as u64, rows);
+    let replay = h.path("replay-recovered");
+    let said =
+        ok(&h.rotorloop(&["sim", "--replay", dir, "--out", replay.to_str().expect("utf8")], LIMIT));
+    let r = json(&replay.join("replay.json"));
+    assert_eq!(r["identical"], true, "{said} {r}");
+    // A second recover finds nothing staged and rebuilds the same report.
+    ok(&h.rotorloop(&["recover", dir], LIMIT));
+    assert_eq!(json(&out.join("summary.json"))["trace_rows"], s["trace_rows"]);
 }
 
 /// A role killed just before the end with its restart due after it is not started
@@ -720,7 +755,7 @@ fn a_stop_by_hand_then_a_kill_inside_the_watchdog_window_are_both_listed() {
         .collect();
     let launcher = h.spawn(common::harness::ROTORLOOP, &args);
     let until = std::time::Instant::now() + LIMIT;
-    while pid_of_role(&h.domain, "controller").is_none() || timing_rows(&out).len() < 1000 {
+    while pid_of_role(&h.domain, "controller").is_none() || live_timing_rows(&out) < 1000 {
         assert!(std::time::Instant::now() < until, "the run did not start");
         std::thread::sleep(Duration::from_millis(50));
     }
@@ -772,7 +807,7 @@ fn a_stop_and_continue_by_hand_are_listed_and_the_schedules_stop_has_its_signal(
         .collect();
     let launcher = h.spawn(common::harness::ROTORLOOP, &args);
     let until = std::time::Instant::now() + LIMIT;
-    while pid_of_role(&h.domain, "reference").is_none() || timing_rows(&out).len() < 1000 {
+    while pid_of_role(&h.domain, "reference").is_none() || live_timing_rows(&out) < 1000 {
         assert!(std::time::Instant::now() < until, "the run did not start");
         std::thread::sleep(Duration::from_millis(50));
     }

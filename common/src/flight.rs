@@ -40,6 +40,37 @@ pub fn staging_dir(domain: &str) -> Option<PathBuf> {
     shm.is_dir().then(|| shm.join(format!("rotorloop-flight-{domain}")))
 }
 
+/// The file in a staging directory that names the run directory its records belong to
+/// (so that `rotorloop clean` can say where to recover them).
+pub const RUN_DIR_FILE: &str = "run-dir";
+
+/// Moves every record file (`*.flight`) of `from` into `to` (created if need be; a rename
+/// where both lie on one filesystem, else a copy then a removal, one file at a time, so a
+/// move cut short leaves each record whole in one of the two), then removes `from` with
+/// its [`RUN_DIR_FILE`]. Returns how many files it moved.
+pub fn move_records(from: &Path, to: &Path) -> std::io::Result<usize> {
+    std::fs::create_dir_all(to)?;
+    let mut moved = 0;
+    for entry in std::fs::read_dir(from)? {
+        let path = entry?.path();
+        if path.extension().is_none_or(|e| e != "flight") {
+            continue;
+        }
+        let Some(name) = path.file_name() else { continue };
+        let dest = to.join(name);
+        if std::fs::rename(&path, &dest).is_err() {
+            let part = to.join(format!(".{}.part", name.to_string_lossy()));
+            std::fs::copy(&path, &part)?;
+            std::fs::rename(&part, &dest)?;
+            std::fs::remove_file(&path)?;
+        }
+        moved += 1;
+    }
+    let _ = std::fs::remove_file(from.join(RUN_DIR_FILE));
+    std::fs::remove_dir(from)?;
+    Ok(moved)
+}
+
 /// The streams of a run, one file each.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Stream {

@@ -268,6 +268,13 @@ pub struct TimingRow {
     pub flags: u64,
 }
 
+/// Complete rows so far in `out/timing.csv` of a run that is still going (0 before the
+/// file exists; a row still being written is not counted).
+pub fn live_timing_rows(out: &Path) -> usize {
+    let text = std::fs::read(out.join("timing.csv")).unwrap_or_default();
+    text.iter().filter(|b| **b == b'\n').count().saturating_sub(1)
+}
+
 /// The rows of `out/timing.csv`.
 pub fn timing_rows(out: &Path) -> Vec<TimingRow> {
     std::fs::read_to_string(out.join("timing.csv"))

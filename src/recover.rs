@@ -1,0 +1,178 @@
+//! `rotorloop recover RUN_DIR`: the report of a run whose launcher did not end normally
+//! (`kill -9` of `rotorloop run`, a machine's OOM killer), assembled as the launcher would
+//! have.
+//!
+//! When the launcher dies its roles get SIGTERM from the kernel (their parent-death
+//! signal) and end, and the monitor writes a partial report of what it had seen. The
+//! complete record of the run is the roles' flight records, which nobody moved out of
+//! their staging directory on tmpfs. The launcher writes `RUN_DIR/launch.json` before it
+//! starts anything (the domain, the hosts, the roles' arguments, the scenario as run, the
+//! staging directory), and the staging directory names its run directory, so that:
+//!
+//! - `rotorloop clean --domain D` says which run directory the kept records belong to;
+//! - `rotorloop recover RUN_DIR` refuses a run that still has live processes, moves the
+//!   records into `RUN_DIR/flight`, clears what the dead processes left in shared memory,
+//!   and writes the report from the records (`trace.csv`, `timing.csv`, histograms,
+//!   figures, `summary.json` with `recovered`). `sim --replay RUN_DIR` then works on it.
+
+use std::path::{Path, PathBuf};
+
+use anyhow::Context;
+use clap::Parser;
+use rotorloop_common::Scenario;
+use rotorloop_common::flight::RUN_DIR_FILE;
+use rotorloop_common::ipc::Domain;
+use rotorloop_common::role::RoleArgs;
+use rotorloop_common::scenario::ScenarioFile;
+use rotorloop_monitor::hosts::Hosts;
+use serde::{Deserialize, Serialize};
+
+use crate::UsageError;
+
+/// The file of a run directory that says how the run was launched.
+pub const LAUNCH_FILE: &str = "launch.json";
+
+/// How a run was launched: what [`run`] needs to assemble its report without the launcher.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct LaunchRecord {
+    /// The run's domain.
+    pub domain: String,
+    /// The hosts of a split run (`role=host,…`, the monitor's `--hosts`), else `None`.
+    pub hosts: Option<String>,
+    /// The arguments every role got (`RoleArgs::to_args`).
+    pub role_args: Vec<String>,
+    /// The scenario as run.
+    pub scenario: ScenarioFile,
+    /// Where the roles recorded during the run (`None`: no flight records).
+    pub staging: Option<PathBuf>,
+    /// Whether the launcher moves the records into `RUN_DIR/flight` at the end (its own
+    /// staging directory), or leaves them where the user's `--record` put them.
+    pub moved: bool,
+    /// The launcher's pid.
+    pub launcher_pid: u32,
+}
+
+impl LaunchRecord {
+    /// Writes `out/launch.json`, and the run directory's name into the staging directory.
+    pub fn write(&self, out: &Path) -> anyhow::Result<()> {
+        crate::sim::write_json(&out.join(LAUNCH_FILE), self)?;
+        if let Some(staging) = &self.staging {
+            let out = std::fs::canonicalize(out).unwrap_or_else(|_| out.to_path_buf());
+            std::fs::create_dir_all(staging)
+                .and_then(|()| {
+                    std::fs::write(staging.join(RUN_DIR_FILE), out.as_os_str().as_encoded_bytes())
+                })
+                .with_context(|| format!("cannot write into {}", staging.display()))?;
+        }
+        Ok(())
+    }
+
+    /// Reads `dir/launch.json`.
+    pub fn read(dir: &Path) -> anyhow::Result<Self> {
+        let path = dir.join(LAUNCH_FILE);
+        let text = std::fs::read_to_string(&path).map_err(|e| {
+            UsageError(format!(
+                "{}: {e}: not the directory of a `rotorloop run` (its --out)",
+                path.display()
+            ))
+        })?;
+        serde_json::from_str(&text)
+            .map_err(|e| UsageError(format!("{}: {e}", path.display())).into())
+    }
+
+    /// The roles' arguments, parsed back.
+    fn role_args(&self) -> anyhow::Result<RoleArgs> {
+        #[derive(Parser)]
+        struct Wrap {
+            #[command(flatten)]
+            role: RoleArgs,
+        }
+        let argv = std::iter::once("role".to_owned()).chain(self.role_args.iter().cloned());
+        let w = Wrap::try_parse_from(argv)
+            .map_err(|e| UsageError(format!("{LAUNCH_FILE}: role_args: {e}")))?;
+        Ok(w.role)
+    }
+}
+
+/// The run directory whose records a staging directory holds, if it says.
+pub fn run_dir_of(staging: &Path) -> Option<PathBuf> {
+    std::fs::read_to_string(staging.join(RUN_DIR_FILE)).ok().map(PathBuf::from)
+}
+
+/// `rotorloop recover RUN_DIR` (module docs).
+pub fn run(dir: &Path) -> anyhow::Result<()> {
+    let launch = LaunchRecord::read(dir)?;
+    let role = launch.role_args()?;
+    let scenario = Scenario::from_file(launch.scenario.clone()).map_err(UsageError::from)?;
+    let hosts = match &launch.hosts {
+        Some(h) => Hosts::parse(h).map_err(|e| UsageError(format!("{LAUNCH_FILE}: hosts: {e}")))?,
+        None => Hosts::default(),
+    };
+    let host_names: Vec<Option<String>> = match &launch.hosts {
+        Some(h) => {
+            let mut names: Vec<String> =
+                h.split(',').filter_map(|p| p.split_once('=')).map(|(_, h)| h.to_owned()).collect();
+            names.sort();
+            names.dedup();
+            names.into_iter().map(Some).collect()
+        }
+        None => vec![role.host.clone()],
+    };
+    for host in &host_names {
+        let domain = Domain::on_host(&launch.domain, host.as_deref())
+            .map_err(|e| UsageError(e.to_string()))?;
+        let (cleaned, alive) = domain.cleanup()?;
+        if alive > 0 {
+            return Err(UsageError(format!(
+                "the run in {} is still going ({alive} live process(es) in domain `{}`): \
+                 recover it once it has ended",
+                dir.display(),
+                domain.name()
+            ))
+            .into());
+        }
+        if cleaned > 0 {
+            eprintln!("recover: removed {cleaned} dead node(s) of domain {}", domain.name());
+        }
+    }
+    let mut kept = dir.join("flight");
+    match &launch.staging {
+        Some(staged) if !launch.moved => kept = staged.clone(),
+        Some(staged) if staged.is_dir() && *staged != kept => {
+            let n = rotorloop_common::flight::move_records(staged, &kept).with_context(|| {
+                format!("cannot move the records of {} into {}", staged.display(), kept.display())
+            })?;
+            eprintln!(
+                "recover: moved {n} record file(s) from {} into {}",
+                staged.display(),
+                kept.display()
+            );
+        }
+        Some(_) => {}
+        None => anyhow::bail!(UsageError(format!(
+            "{}: the run had no flight records (--no-record): nothing to recover from",
+            dir.display()
+        ))),
+    }
+    let records = rotorloop_monitor::assemble::FlightRecords::read(&kept)
+        .with_context(|| format!("cannot read the flight records in {}", kept.display()))?;
+    let summary =
+        rotorloop_monitor::assemble::report(dir, &kept, &records, &scenario, &role, &hosts, None);
+    let fallback = rotorloop_monitor::recording::fallback_dir(role.domain());
+    rotorloop_monitor::report::write_summary(dir, &fallback, &summary)?;
+    crate::launch::patch_summary(dir, |j| {
+        j["recovered"] = serde_json::json!({
+            "by": "rotorloop recover",
+            "launcher_pid": launch.launcher_pid,
+            "why": "the launcher did not end normally: no fault report, no memory figures",
+        });
+    })?;
+    println!("{}", rotorloop_monitor::report::console_summary(&summary));
+    println!(
+        "recovered: {} rows from the flight records into {}{}",
+        summary.trace_rows,
+        dir.display(),
+        if summary.completed { "" } else { " (the loop did not reach its last tick)" }
+    );
+    Ok(())
+}
