@@ -480,6 +480,7 @@ fn loop_run_args(
         mlock: false,
         plain_hot_path: false,
         record: None,
+        flight_ring_ticks: rotorloop_common::flight::DEFAULT_RING_TICKS,
     };
     RunArgs {
         pin,

@@ -350,6 +350,8 @@ struct Launch<'a> {
     pins: BTreeMap<String, usize>,
     corrupt: Vec<(String, Corrupt)>,
     exe: PathBuf,
+    /// The run's ticks.
+    ticks: u64,
 }
 
 impl Launch<'_> {
@@ -482,7 +484,17 @@ impl Launch<'_> {
         Some(kept)
     }
 
-    /// Starts `role`, records it for the memory report, and returns the child.
+    /// The mover of the records' finished halves, when the rings are shorter than the run
+    /// and the records are the launcher's to move (see `common::flight`).
+    fn mover(&self) -> Option<rotorloop_common::flight::Mover> {
+        use rotorloop_common::flight::{Mover, SPARE_SLOTS, ring_capacity};
+        let staged = self.role_args.record.as_ref()?;
+        let ring = ring_capacity(self.ticks, self.role_args.flight_ring_ticks);
+        let wraps = ring < self.ticks + 1 + SPARE_SLOTS;
+        (wraps && self.args.role.record.is_none())
+            .then(|| Mover::new(staged, &self.args.out.join("flight")))
+    }
+
     /// The domain as `role`'s host sees it.
     fn domain_of(&self, role: &str) -> &Domain {
         let host = self.split.as_ref().and_then(|s| s.host_of(role));
@@ -573,6 +585,7 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
         pins,
         corrupt,
         exe,
+        ticks: scenario.ticks(),
     };
     // What `rotorloop recover` needs should this launcher not end normally.
     let record = crate::recover::LaunchRecord {
@@ -648,8 +661,10 @@ fn staging_dir(role: &RoleArgs, out: &std::path::Path) -> PathBuf {
 
 /// Removes the flight records an earlier run left in `dir`, naming each.
 fn clear_flight_records(dir: &std::path::Path) -> anyhow::Result<()> {
-    for stream in rotorloop_common::flight::Stream::ALL {
-        let path = stream.path(dir);
+    use rotorloop_common::flight::{Stream, segments};
+    let files =
+        Stream::ALL.into_iter().flat_map(|s| segments(dir, s).into_iter().chain([s.path(dir)]));
+    for path in files {
         match std::fs::remove_file(&path) {
             Ok(()) => eprintln!("launcher: removed an earlier run's {}", path.display()),
             Err(e) if e.kind() != std::io::ErrorKind::NotFound => {
@@ -762,8 +777,48 @@ struct Watch {
     link: LinkWatch,
     /// Torque samples the plant has received so far.
     torques_received: u64,
+    /// Copies the finished halves of the flight records' rings into `OUT/flight` (a run
+    /// longer than the rings).
+    mover: Option<rotorloop_common::flight::Mover>,
     /// The plant has published its last tick.
     loop_complete: bool,
+}
+
+impl Watch {
+    fn new(launch: &Launch) -> Self {
+        let watchdog_s = launch.args.watchdog_ms as f64 / 1e3;
+        Self {
+            events: Vec::new(),
+            failures: Vec::new(),
+            restarts: BTreeMap::new(),
+            handled: Default::default(),
+            planned: Default::default(),
+            stopped: BTreeMap::new(),
+            open_stops: BTreeMap::new(),
+            supervisor: launch.supervisor.clone(),
+            watchdog: Watchdog::new(watchdog_s),
+            link: LinkWatch::new(START_TIMEOUT_S.max(watchdog_s)),
+            torques_received: 0,
+            mover: launch.mover(),
+            loop_complete: false,
+        }
+    }
+
+    /// After the supervision loop: the last records moved, the stops still open ended.
+    fn finish(&mut self, progress: &Progress) {
+        move_due_records(self, progress); // what became due in the last pass
+        if let Some(m) = self.mover.as_ref().filter(|m| m.lost > 0) {
+            eprintln!(
+                "warning: flight records: {} record(s) lost: the rings came round before the \
+                 launcher moved them (it was not running for that long); a longer \
+                 --flight-ring-ticks keeps them",
+                m.lost
+            );
+        }
+        for pid in self.open_stops.keys().copied().collect::<Vec<_>>() {
+            end_stop(self, pid, "still stopped when the launcher ended");
+        }
+    }
 }
 
 /// Runs the fault schedule, the restart policy and the watchdog, samples memory, and
@@ -782,20 +837,7 @@ fn supervise(
     let progress = Progress::open(launch)?;
     let (mut run_t0, mut term_sent_at): (Option<u64>, Option<u64>) = (None, None);
     let mut plant_ended_at: Option<u64> = None;
-    let mut w = Watch {
-        events: Vec::new(),
-        failures: Vec::new(),
-        restarts: BTreeMap::new(),
-        handled: Default::default(),
-        planned: Default::default(),
-        stopped: BTreeMap::new(),
-        open_stops: BTreeMap::new(),
-        supervisor: launch.supervisor.clone(),
-        watchdog: Watchdog::new(launch.args.watchdog_ms as f64 / 1e3),
-        link: LinkWatch::new(START_TIMEOUT_S.max(launch.args.watchdog_ms as f64 / 1e3)),
-        torques_received: 0,
-        loop_complete: false,
-    };
+    let mut w = Watch::new(launch);
     let launched_ns = now_ns();
     let mut dead_after_end = 0;
     loop {
@@ -831,6 +873,7 @@ fn supervise(
             restart(launch, children, rss, &mut w, &role, now_s)?;
         }
         rss.sample_if_due();
+        move_due_records(&mut w, &progress);
         watch_for_stops(children, &mut w, now_s);
         let running = reap(children, &mut w, &progress, stopping, now_s);
         remove_dead_ports_after_the_end(launch, &w, &mut dead_after_end);
@@ -856,9 +899,7 @@ fn supervise(
     for f in schedule.not_done() {
         eprintln!("launcher: --fault {f}: not carried out, the run ended first");
     }
-    for pid in w.open_stops.keys().copied().collect::<Vec<_>>() {
-        end_stop(&mut w, pid, "still stopped when the launcher ended");
-    }
+    w.finish(&progress);
     let failure = w
         .failures
         .first()
@@ -910,6 +951,15 @@ fn continue_stopped(c: &mut Child, stop: Option<&mut FaultEvent>, how: &str) {
 /// The newest `stop` fault of `role`.
 fn stop_event<'a>(events: &'a mut [FaultEvent], role: &str) -> Option<&'a mut FaultEvent> {
     events.iter_mut().rev().find(|e| e.role == role && e.kind == "stop")
+}
+
+/// Copies the halves of the flight records' rings that are due into `OUT/flight`.
+fn move_due_records(w: &mut Watch, progress: &Progress) {
+    if let (Some(m), Some(p)) = (&mut w.mover, progress.plant.load()) {
+        for e in m.pass(p.tick) {
+            eprintln!("warning: flight records: {e}; the loop goes on");
+        }
+    }
 }
 
 /// Split: a restart after which the link does not carry the loop again within the start

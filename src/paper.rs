@@ -112,6 +112,7 @@ fn four_process_run(out: &Path, name: &str, duration: f64, rate: f64) -> anyhow:
         mlock: false,
         plain_hot_path: false,
         record: None,
+        flight_ring_ticks: rotorloop_common::flight::DEFAULT_RING_TICKS,
     };
     crate::launch::run(&crate::launch::RunArgs::defaults(role, run_dir.clone()))
         .with_context(|| format!("four-process run of {name}"))?;

@@ -10,6 +10,17 @@
 //! the same file and goes on; a sample published again for the same tick (a restart
 //! re-answering, say) replaces the earlier one, as it does in a subscriber's view.
 //!
+//! **A ring, moved out while the run goes on.** The file holds `capacity` slots, and tick
+//! `k` goes to slot `k mod capacity` (its tag says which tick it holds), so a record's RAM
+//! on tmpfs is bounded whatever the run's duration: `rotorloop run` sizes it with
+//! `--flight-ring-ticks` (default [`DEFAULT_RING_TICKS`], about 80 MB for the four
+//! streams), or to the whole run when that is shorter. The launcher, off the hot path,
+//! copies each finished half of a ring ([`Mover`]) into a segment file
+//! `DIR/STREAM.NNNNNN.flight` of the run directory before the ring comes round to it; a
+//! reader ([`FlightLog::read`]) takes the segments and the ring together. A launcher killed
+//! mid-run leaves the ring in place (the roles end with it, so it does not come round),
+//! and `rotorloop recover` moves it beside the segments already moved.
+//!
 //! **A recorder never stops the loop.** The whole file is reserved with
 //! `posix_fallocate` and its pages mapped in up front (`MAP_POPULATE`), so a write is a
 //! `memcpy` with no system call, no page fault and no allocation, and it cannot hit a
@@ -21,6 +32,7 @@
 
 use std::marker::PhantomData;
 use std::os::fd::AsRawFd;
+use std::os::unix::ffi::OsStringExt;
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicU64, Ordering, fence};
 
@@ -32,6 +44,19 @@ const MAGIC: u64 = 0x7468_6769_6c66_6c72; // "rlflight"
 const HEADER: usize = 64;
 /// Slots beyond the run's last tick (the reference publishes ahead of the plant).
 pub const SPARE_SLOTS: u64 = 64;
+/// The ring's slots per stream unless `--flight-ring-ticks` says otherwise: 65.5 s at
+/// 1 kHz, 1224 bytes a tick for the four streams (80 MB).
+pub const DEFAULT_RING_TICKS: u64 = 65_536;
+/// The smallest ring: a half must hold more than the reference's lead and the spare slots.
+pub const MIN_RING_TICKS: u64 = 256;
+
+/// The slots of a recorder for a run of `ticks` ticks with a ring of `ring` slots: the whole
+/// run where that is shorter (nothing to move), else the ring, made even (two halves).
+pub fn ring_capacity(ticks: u64, ring: u64) -> u64 {
+    let whole = ticks + 1 + SPARE_SLOTS;
+    let ring = ring.max(MIN_RING_TICKS).next_multiple_of(2);
+    whole.min(ring)
+}
 
 /// Where `rotorloop run` stages the records of domain `domain` while the run goes on
 /// (tmpfs, moved into `OUT/flight` at the end; `None` without `/dev/shm`).
@@ -262,8 +287,8 @@ impl<T: Record> FlightRecorder<T> {
         self.unrecorded.get()
     }
 
-    /// Records `sample` in its tick's slot: a copy and two atomic stores, no system call,
-    /// no allocation.
+    /// Records `sample` in its tick's slot (tick mod capacity): a copy and two atomic
+    /// stores, no system call, no allocation.
     #[inline]
     pub fn record(&self, sample: &T) {
         if self.map.is_null() {
@@ -271,14 +296,11 @@ impl<T: Record> FlightRecorder<T> {
             return;
         }
         let k = sample.tick();
-        if k >= self.capacity {
-            self.word(word::BEYOND).fetch_add(1, Ordering::Relaxed);
-            return;
-        }
-        // SAFETY: slot `k` lies in the mapping (k < capacity); only this process writes
+        let i = k % self.capacity;
+        // SAFETY: slot `i` lies in the mapping (i < capacity); only this process writes
         // it; the tag is 8-byte aligned (header and slot lengths are multiples of 8).
         unsafe {
-            let slot = self.map.add(HEADER + k as usize * slot_len::<T>());
+            let slot = self.map.add(HEADER + i as usize * slot_len::<T>());
             let tag = &*(slot as *const AtomicU64);
             tag.store(0, Ordering::Relaxed);
             fence(Ordering::Release);
@@ -314,9 +336,160 @@ pub enum FlightError {
 pub fn has_record<T: Record>(dir: &Path, stream: Stream, k: u64) -> bool {
     use std::os::unix::fs::FileExt;
     let Ok(f) = std::fs::File::open(stream.path(dir)) else { return false };
-    let mut tag = [0u8; 8];
-    let at = HEADER as u64 + k * slot_len::<T>() as u64;
+    let (mut tag, mut capacity) = ([0u8; 8], [0u8; 8]);
+    if f.read_exact_at(&mut capacity, 8 * word::CAPACITY as u64).is_err() {
+        return false;
+    }
+    let capacity = u64::from_ne_bytes(capacity).max(1);
+    let at = HEADER as u64 + (k % capacity) * slot_len::<T>() as u64;
     f.read_exact_at(&mut tag, at).is_ok() && u64::from_ne_bytes(tag) == k + 1
+}
+
+/// The segment files of `stream` for the records in `dir`, in order (module docs): in
+/// `dir`, and, for a staging directory, in its run directory's `flight/`, where the
+/// launcher moves them during the run.
+pub fn segments(dir: &Path, stream: Stream) -> Vec<PathBuf> {
+    let prefix = format!("{}.", stream.name());
+    let moved_to = std::fs::read(dir.join(RUN_DIR_FILE))
+        .ok()
+        .map(|p| PathBuf::from(std::ffi::OsString::from_vec(p)).join("flight"));
+    let mut out: Vec<(u64, PathBuf)> = std::iter::once(dir.to_path_buf())
+        .chain(moved_to)
+        .flat_map(std::fs::read_dir)
+        .flatten()
+        .flatten()
+        .filter_map(|e| {
+            let name = e.file_name().into_string().ok()?;
+            let j = name.strip_prefix(&prefix)?.strip_suffix(".flight")?.parse().ok()?;
+            Some((j, e.path()))
+        })
+        .collect();
+    out.sort();
+    out.into_iter().map(|(_, p)| p).collect()
+}
+
+/// The segment file of half `j` of `stream`'s ring (ticks `j·H … (j+1)·H − 1`).
+pub fn segment_path(dir: &Path, stream: Stream, j: u64) -> PathBuf {
+    dir.join(format!("{}.{j:06}.flight", stream.name()))
+}
+
+/// Copies the finished halves of the rings in `staged` into segment files in `kept` while
+/// the run goes on (module docs), off the hot path (the launcher's supervision loop).
+///
+/// Half `j` of a ring of `C = 2H` slots holds ticks `jH … (j+1)H − 1`; the writers come
+/// round to it again at tick `(j+2)H`. It is copied once the plant has published tick
+/// `(j+1)H + H/2`: late enough that a sample published again for one of its ticks (a
+/// restarted role re-answering) is in the copy, early enough that the reference, at most
+/// [`SPARE_SLOTS`] ahead, is `H/2 − SPARE_SLOTS` ticks from overwriting it. A slot already
+/// overwritten when it is copied (the launcher stopped for longer than that) is lost, and
+/// counted.
+#[derive(Debug)]
+pub struct Mover {
+    staged: PathBuf,
+    kept: PathBuf,
+    /// The next half to copy, per stream.
+    next: [u64; 4],
+    /// Records lost because the ring came round before they were copied.
+    pub lost: u64,
+    /// Segment files written.
+    pub segments: u64,
+    /// The plant tick before which nothing is due (known once a ring's size is).
+    due_at: u64,
+}
+
+impl Mover {
+    /// The mover of the rings in `staged` into `kept`.
+    pub fn new(staged: &Path, kept: &Path) -> Self {
+        let (staged, kept) = (staged.to_owned(), kept.to_owned());
+        Self { staged, kept, next: [0; 4], lost: 0, segments: 0, due_at: 0 }
+    }
+
+    /// Copies every half that is due now that the plant has published `plant_tick`;
+    /// returns what went wrong (a file that cannot be read or written), in words.
+    pub fn pass(&mut self, plant_tick: u64) -> Vec<String> {
+        let mut errors = Vec::new();
+        if plant_tick < self.due_at {
+            return errors;
+        }
+        let mut half_seen = None;
+        for (n, stream) in Stream::ALL.into_iter().enumerate() {
+            loop {
+                match self.copy_half(stream, self.next[n], plant_tick) {
+                    Ok(Half::Copied) => self.next[n] += 1,
+                    Ok(Half::NotDue(h)) => {
+                        half_seen = Some(h);
+                        break;
+                    }
+                    Ok(Half::NoRing) => break,
+                    Err(e) => {
+                        errors.push(format!("{}: {e}", stream.path(&self.staged).display()));
+                        self.next[n] += 1; // never again: the loop goes on
+                        break;
+                    }
+                }
+            }
+        }
+        // Nothing is due before the lowest next half is (a ring's size is known once read).
+        if let Some(h) = half_seen {
+            let lowest = self.next.iter().min().copied().unwrap_or(0);
+            self.due_at = (lowest + 1) * h + h / 2;
+        }
+        errors
+    }
+
+    /// Copies half `j` of `stream`'s ring if it is due.
+    fn copy_half(&mut self, stream: Stream, j: u64, plant_tick: u64) -> std::io::Result<Half> {
+        use std::os::unix::fs::FileExt;
+        let ring = stream.path(&self.staged);
+        let Ok(f) = std::fs::File::open(&ring) else { return Ok(Half::NoRing) };
+        let mut header = [0u8; HEADER];
+        if f.read_exact_at(&mut header, 0).is_err() {
+            return Ok(Half::NoRing);
+        }
+        let w =
+            |i: usize| u64::from_ne_bytes(header[8 * i..8 * i + 8].try_into().unwrap_or_default());
+        let (capacity, size) = (w(word::CAPACITY), w(word::SIZE) as usize);
+        if w(word::MAGIC) != MAGIC || capacity < MIN_RING_TICKS || capacity % 2 != 0 {
+            return Ok(Half::NoRing);
+        }
+        let half = capacity / 2;
+        if plant_tick < (j + 1) * half + half / 2 {
+            return Ok(Half::NotDue(half));
+        }
+        let slot = 8 + size.next_multiple_of(8);
+        let mut body = vec![0u8; half as usize * slot];
+        let first_slot = (j % 2) * half;
+        f.read_exact_at(&mut body, (HEADER + first_slot as usize * slot) as u64)?;
+        for (i, s) in body.chunks_exact_mut(slot).enumerate() {
+            let tag = u64::from_ne_bytes(s[..8].try_into().unwrap_or_default());
+            let want = j * half + i as u64 + 1;
+            if tag != want {
+                // Never written, torn, or already the next round's (lost: counted).
+                self.lost += u64::from(tag > want);
+                s.fill(0);
+            }
+        }
+        let mut seg_header = header;
+        seg_header[8 * word::CAPACITY..8 * word::CAPACITY + 8].copy_from_slice(&half.to_ne_bytes());
+        seg_header[8 * word::OPENS..8 * word::OPENS + 16].fill(0);
+        std::fs::create_dir_all(&self.kept)?;
+        let path = segment_path(&self.kept, stream, j);
+        let part = path.with_extension("part");
+        std::fs::write(&part, [&seg_header[..], &body].concat())?;
+        std::fs::rename(&part, &path)?;
+        self.segments += 1;
+        Ok(Half::Copied)
+    }
+}
+
+/// What [`Mover::copy_half`] found.
+enum Half {
+    /// No ring of this stream (yet), or not one that wraps.
+    NoRing,
+    /// The half is not due yet; the ring's halves hold this many ticks.
+    NotDue(u64),
+    /// Copied.
+    Copied,
 }
 
 /// What a recorder's file holds, read after the run.
@@ -331,11 +504,23 @@ pub struct FlightLog<T> {
 }
 
 impl<T: Record> FlightLog<T> {
-    /// Reads `stream`'s file in `dir`.
+    /// Reads `stream`'s record in `dir`: the segments the launcher moved there during the
+    /// run, then the ring (whose copy of a tick is the newer one).
     pub fn read(dir: &Path, stream: Stream) -> Result<Self, FlightError> {
-        let path = stream.path(dir);
+        let mut log = Self { records: Vec::new(), opens: 0, beyond: 0 };
+        for seg in segments(dir, stream) {
+            log.add(&seg)?;
+        }
+        let (opens, beyond) = log.add(&stream.path(dir))?;
+        (log.opens, log.beyond) = (opens, beyond);
+        Ok(log)
+    }
+
+    /// Adds the records of one file (each slot's tag says its tick); returns the file's
+    /// opens and beyond words.
+    fn add(&mut self, path: &Path) -> Result<(u64, u64), FlightError> {
         let shown = path.display().to_string();
-        let bytes = std::fs::read(&path)
+        let bytes = std::fs::read(path)
             .map_err(|e| FlightError::Missing { path: shown.clone(), why: e.to_string() })?;
         let foreign = |why: String| FlightError::Foreign { path: shown.clone(), why };
         let w = |i: usize| -> u64 {
@@ -360,18 +545,27 @@ impl<T: Record> FlightLog<T> {
         if bytes.len() != HEADER + capacity as usize * slot_len::<T>() {
             return Err(foreign(format!("{} bytes, not {capacity} slots", bytes.len())));
         }
-        let records = bytes[HEADER..]
-            .chunks_exact(slot_len::<T>())
-            .enumerate()
-            .map(|(k, slot)| {
-                let tag = u64::from_ne_bytes(slot[..8].try_into().unwrap_or_default());
-                // SAFETY: the slot holds `size_of::<T>()` bytes after its tag; T is plain
-                // old data (f64/u64 fields), valid for any bit pattern.
-                (tag == k as u64 + 1)
-                    .then(|| unsafe { std::ptr::read_unaligned(slot[8..].as_ptr() as *const T) })
-            })
-            .collect();
-        Ok(Self { records, opens: w(word::OPENS), beyond: w(word::BEYOND) })
+        for (i, slot) in bytes[HEADER..].chunks_exact(slot_len::<T>()).enumerate() {
+            let tag = u64::from_ne_bytes(slot[..8].try_into().unwrap_or_default());
+            // A slot holds tick `tag - 1`, which is `i` modulo the capacity (else the tag
+            // is torn or stale: skipped).
+            let Some(k) =
+                tag.checked_sub(1).filter(|k| k % capacity.max(1) == i as u64 % capacity.max(1))
+            else {
+                continue;
+            };
+            // SAFETY: the slot holds `size_of::<T>()` bytes after its tag; T is plain old
+            // data (f64/u64 fields), valid for any bit pattern.
+            let sample = unsafe { std::ptr::read_unaligned(slot[8..].as_ptr() as *const T) };
+            if sample.tick() != k {
+                continue;
+            }
+            if self.records.len() <= k as usize {
+                self.records.resize(k as usize + 1, None);
+            }
+            self.records[k as usize] = Some(sample);
+        }
+        Ok((w(word::OPENS), w(word::BEYOND)))
     }
 
     /// The sample of tick `k`, if recorded.
@@ -414,14 +608,15 @@ mod tests {
                 FlightRecorder::<TorqueSample>::open(Some(&dir), Stream::ControllerTorque, 10, "t");
             r.record(&TorqueSample { rotor_torque_nm: [9.0; 3], ..torque(3) });
             r.record(&torque(5));
-            r.record(&torque(12)); // beyond the capacity: counted, not recorded
+            r.record(&torque(12)); // a ring: tick 12 takes tick 2's slot
         }
         let log = FlightLog::<TorqueSample>::read(&dir, Stream::ControllerTorque).expect("read");
         assert_eq!(log.opens, 2);
-        assert_eq!(log.beyond, 1);
+        assert_eq!(log.beyond, 0);
         assert_eq!(log.get(3).map(|t| t.rotor_torque_nm), Some([9.0; 3]));
-        assert_eq!(log.get(2), Some(&torque(2)));
-        assert_eq!(log.missing(6), vec![[4, 4], [6, 6]]);
+        assert_eq!(log.get(1), Some(&torque(1)));
+        assert_eq!(log.get(12), Some(&torque(12)));
+        assert_eq!(log.missing(6), vec![[2, 2], [4, 4], [6, 6]]);
         let _ = std::fs::remove_dir_all(&dir);
     }
 
@@ -460,6 +655,44 @@ mod tests {
             Err(FlightError::Missing { .. })
         ));
         let _ = std::fs::remove_file(&dir);
+    }
+
+    /// A ring of 256 slots over 1000 ticks, its halves moved as the writer goes: every
+    /// tick is read back from the segments and the ring, and the ring's file stays 256
+    /// slots long. A mover that comes too late finds its half overwritten and counts it.
+    #[test]
+    fn a_ring_moved_in_halves_keeps_every_tick_and_a_late_mover_counts_what_it_lost() {
+        let staged = tempfile_dir("ring-staged");
+        let kept = staged.with_file_name("kept");
+        let _ = std::fs::remove_dir_all(&kept);
+        let cap = ring_capacity(1000, 256);
+        assert_eq!(cap, 256);
+        let r = FlightRecorder::<TorqueSample>::open(Some(&staged), Stream::PlantTorque, cap, "t");
+        let mut mover = Mover::new(&staged, &kept);
+        for k in 0..1000 {
+            r.record(&torque(k));
+            assert!(mover.pass(k).is_empty());
+        }
+        assert_eq!(mover.lost, 0);
+        std::fs::copy(Stream::PlantTorque.path(&staged), Stream::PlantTorque.path(&kept))
+            .expect("the ring beside its segments");
+        let log = FlightLog::<TorqueSample>::read(&kept, Stream::PlantTorque).expect("read");
+        assert_eq!(log.missing(999), Vec::<[u64; 2]>::new());
+        assert_eq!(log.get(500), Some(&torque(500)));
+        let len = std::fs::metadata(Stream::PlantTorque.path(&staged)).expect("ring").len();
+        assert_eq!(len, (HEADER + 256 * slot_len::<TorqueSample>()) as u64);
+        // A mover asleep while the writer went round twice: halves lost, and counted.
+        let staged2 = tempfile_dir("ring-late");
+        let kept2 = staged2.with_file_name("kept");
+        let r = FlightRecorder::<TorqueSample>::open(Some(&staged2), Stream::PlantTorque, cap, "t");
+        (0..600).for_each(|k| r.record(&torque(k)));
+        let mut late = Mover::new(&staged2, &kept2);
+        late.pass(599);
+        // Halves 0–3 (ticks 0–511) were due; the ring holds 344–599 by then.
+        assert_eq!(late.lost, 344, "ticks 0–343 were overwritten by 256–599");
+        for d in [&staged, &kept, &staged2, &kept2] {
+            let _ = std::fs::remove_dir_all(d);
+        }
     }
 
     fn tempfile_dir(name: &str) -> PathBuf {

@@ -135,6 +135,12 @@ pub struct RoleArgs {
     /// `DIR/*.flight` (`common::flight`); `rotorloop run` records into `OUT/flight`.
     #[arg(long, value_name = "DIR")]
     pub record: Option<std::path::PathBuf>,
+    /// Slots of each flight record's ring on tmpfs (1224 bytes a tick for the four
+    /// streams): the RAM the records take whatever the run's duration. A run longer than
+    /// that has the finished halves moved into `OUT/flight` while it goes on.
+    #[arg(long, value_name = "TICKS", default_value_t = crate::flight::DEFAULT_RING_TICKS,
+          value_parser = clap::value_parser!(u64).range(crate::flight::MIN_RING_TICKS..))]
+    pub flight_ring_ticks: u64,
 }
 
 impl RoleArgs {
@@ -150,7 +156,7 @@ impl RoleArgs {
         ticks: u64,
         role: &str,
     ) -> crate::flight::FlightRecorder<T> {
-        let capacity = ticks + 1 + crate::flight::SPARE_SLOTS;
+        let capacity = crate::flight::ring_capacity(ticks, self.flight_ring_ticks);
         crate::flight::FlightRecorder::open(self.record.as_deref(), stream, capacity, role)
     }
 
@@ -214,6 +220,9 @@ impl RoleArgs {
         }
         if let Some(d) = &self.record {
             a.extend(["--record".into(), d.display().to_string()]);
+        }
+        if self.flight_ring_ticks != crate::flight::DEFAULT_RING_TICKS {
+            a.extend(["--flight-ring-ticks".into(), self.flight_ring_ticks.to_string()]);
         }
         a
     }
