@@ -202,8 +202,12 @@ fn parse_vec3(s: &str) -> Result<DVec3, String> {
 pub fn main() -> ExitCode {
     rotorloop_common::ipc::quiet_iceoryx_logs();
     let cli = Cli::parse();
-    // Output that nobody reads never stops the loop (see `relay`).
-    let relay = rotorloop_common::relay::Stdio::relay();
+    // Output that nobody reads never stops the loop (see `relay`). Not for `link`, which
+    // becomes the `rotorloop-link` binary (exec), and relays its own.
+    let relay = match cli.command {
+        Command::Link { .. } => rotorloop_common::relay::Stdio::none(),
+        _ => rotorloop_common::relay::Stdio::relay(),
+    };
     let code = dispatch(cli);
     relay.finish();
     code

@@ -105,8 +105,9 @@ fn a_real_time_run_with_misses_and_a_kill_replays_byte_for_byte() {
     let mut measured: Vec<f64> =
         column(&trace, "delay_s").into_iter().filter(|d| d.is_finite()).collect();
     measured.sort_by(f64::total_cmp);
+    // Behaviour, not speed: how late torques arrive is the machine's business (under a
+    // busy loop per core the median once exceeded a tick: the test asserted a latency).
     assert!(measured[0] > 0.0, "real time: a torque takes effect when it arrives, after its tick");
-    assert!(measured[measured.len() / 2] < 1e-3, "most torques arrive within their tick");
     let replay = h.path("replay");
     let text =
         ok(&h.rotorloop(&["sim", "--replay", o, "--out", replay.to_str().expect("utf8")], LIMIT));

@@ -63,6 +63,34 @@ struct State {
     writing: bool,
     /// The real output failed (its reader is gone): discard.
     broken: bool,
+    /// The rest of a line being dropped is still to come.
+    mid_drop: bool,
+}
+
+impl State {
+    /// Takes `bytes` into the buffer, or drops them, whole lines only: a line is never
+    /// cut and joined to another.
+    fn accept(&mut self, mut bytes: &[u8]) {
+        if self.mid_drop {
+            let Some(i) = bytes.iter().position(|b| *b == b'\n') else {
+                self.dropped += bytes.len() as u64;
+                return;
+            };
+            self.dropped += i as u64 + 1;
+            bytes = &bytes[i + 1..];
+            self.mid_drop = false;
+        }
+        if self.buffer.len() + bytes.len() <= BUFFER_BYTES {
+            self.buffer.extend(bytes);
+            return;
+        }
+        // Full: the line begun at the buffer's end goes too, with everything that came.
+        let tail = self.buffer.iter().rev().position(|b| *b == b'\n');
+        let tail = tail.unwrap_or(self.buffer.len());
+        self.buffer.truncate(self.buffer.len() - tail);
+        self.dropped += (tail + bytes.len()) as u64;
+        self.mid_drop = bytes.last() != Some(&b'\n');
+    }
 }
 
 /// Every relay of this process, for the panic hook.
@@ -151,6 +179,11 @@ impl Stdio {
         Self(Relay::install_stdio())
     }
 
+    /// Nothing relayed (output stays as it is).
+    pub fn none() -> Self {
+        Self([None, None])
+    }
+
     /// Flushes both and writes directly again (before the process exits).
     pub fn finish(self) {
         use std::io::Write;
@@ -159,26 +192,40 @@ impl Stdio {
     }
 }
 
-/// Pipe → buffer; drops what does not fit.
+/// Pipe → buffer; drops what does not fit. Bytes leave the pipe only while the lock is
+/// held, so [`flush`] never sees them in neither place (a read outside the lock once lost
+/// a process's last line: out of the pipe, not yet in the buffer, the process gone).
 fn read_loop(pipe: OwnedFd, shared: &Shared) {
+    let fd = pipe.as_raw_fd();
     let mut chunk = vec![0u8; 64 * 1024];
     loop {
-        // SAFETY: reads into our own buffer from our own descriptor.
-        let n = unsafe { libc::read(pipe.as_raw_fd(), chunk.as_mut_ptr().cast(), chunk.len()) };
-        if n < 0 && std::io::Error::last_os_error().kind() == std::io::ErrorKind::Interrupted {
-            continue;
-        }
-        if n <= 0 {
-            return; // every writer is gone
+        let mut p = libc::pollfd { fd, events: libc::POLLIN, revents: 0 };
+        // SAFETY: polls one descriptor of ours.
+        let rc = unsafe { libc::poll(&mut p, 1, -1) };
+        if rc < 0 {
+            if std::io::Error::last_os_error().kind() == std::io::ErrorKind::Interrupted {
+                continue;
+            }
+            return;
         }
         let Ok(mut st) = shared.state.lock() else { return };
+        let ready = in_pipe(shared).min(chunk.len());
+        if ready == 0 {
+            if p.revents & (libc::POLLHUP | libc::POLLERR) != 0 {
+                return; // every writer is gone
+            }
+            continue;
+        }
+        // SAFETY: reads at most what the pipe holds (no wait) into our own buffer.
+        let n = unsafe { libc::read(fd, chunk.as_mut_ptr().cast(), ready) };
+        if n <= 0 {
+            continue;
+        }
         let n = n as usize;
         if st.broken {
             st.written += n as u64;
-        } else if st.buffer.len() + n > BUFFER_BYTES {
-            st.dropped += n as u64;
         } else {
-            st.buffer.extend(&chunk[..n]);
+            st.accept(&chunk[..n]);
         }
         drop(st);
         shared.changed.notify_all();
@@ -251,8 +298,8 @@ fn flush(shared: &Shared) {
     let mut last = (u64::MAX, usize::MAX);
     let mut since = Instant::now();
     loop {
-        let pending = in_pipe(shared);
         let Ok(st) = shared.state.lock() else { return };
+        let pending = in_pipe(shared); // under the lock: the reader moves bytes only under it
         if pending == 0 && st.buffer.is_empty() && st.dropped == 0 && !st.writing {
             return;
         }
