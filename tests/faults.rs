@@ -737,6 +737,30 @@ fn the_record_survives_kills_by_hand_of_every_role_the_plant_included() {
     );
 }
 
+/// Starts a quiet real-time run of paper-zero with `extra` arguments into `out`, and waits
+/// until it has 1000 timing rows; returns the launcher (of `h`) and the pid of `role`.
+fn started_realtime(
+    h: &mut Harness,
+    out: &std::path::Path,
+    extra: &[&str],
+    role: &str,
+) -> (usize, libc::pid_t) {
+    let args: Vec<String> = ["run", "--scenario", "paper-zero", "--mode", "realtime", "--quiet"]
+        .iter()
+        .chain(extra)
+        .map(|s| s.to_string())
+        .chain(["--domain".into(), h.domain.clone(), "--out".into()])
+        .chain([out.to_string_lossy().into_owned()])
+        .collect();
+    let launcher = h.spawn(common::harness::ROTORLOOP, &args);
+    let until = std::time::Instant::now() + LIMIT;
+    while pid_of_role(&h.domain, role).is_none() || live_timing_rows(out) < 1000 {
+        assert!(std::time::Instant::now() < until, "the run did not start");
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    (launcher, pid_of_role(&h.domain, role).expect("running") as libc::pid_t)
+}
+
 /// Every stop of a role is a fault in the report, whoever sent it and however it ended:
 /// the controller stopped by hand (`kill -STOP`, not `--fault`), then `kill -9`ed by hand
 /// 2 s later, inside the default 3 s watchdog window, is listed as a `stop` with its
@@ -747,19 +771,7 @@ fn the_record_survives_kills_by_hand_of_every_role_the_plant_included() {
 fn a_stop_by_hand_then_a_kill_inside_the_watchdog_window_are_both_listed() {
     let mut h = Harness::new("stop-kill");
     let out = h.path("rt");
-    let args: Vec<String> = ["run", "--scenario", "paper-zero", "--duration", "8"]
-        .iter()
-        .map(|s| s.to_string())
-        .chain(["--mode", "realtime", "--quiet", "--domain", &h.domain, "--out"].map(String::from))
-        .chain([out.to_string_lossy().into_owned()])
-        .collect();
-    let launcher = h.spawn(common::harness::ROTORLOOP, &args);
-    let until = std::time::Instant::now() + LIMIT;
-    while pid_of_role(&h.domain, "controller").is_none() || live_timing_rows(&out) < 1000 {
-        assert!(std::time::Instant::now() < until, "the run did not start");
-        std::thread::sleep(Duration::from_millis(50));
-    }
-    let pid = pid_of_role(&h.domain, "controller").expect("controller") as libc::pid_t;
+    let (launcher, pid) = started_realtime(&mut h, &out, &["--duration", "8"], "controller");
     // SAFETY: plain syscalls on a process this test's launcher started.
     unsafe { libc::kill(pid, libc::SIGSTOP) };
     std::thread::sleep(Duration::from_millis(2000));
@@ -796,23 +808,8 @@ fn a_stop_by_hand_then_a_kill_inside_the_watchdog_window_are_both_listed() {
 fn a_stop_and_continue_by_hand_are_listed_and_the_schedules_stop_once_with_its_signal() {
     let mut h = Harness::new("stop-cont");
     let out = h.path("rt");
-    let args: Vec<String> = ["run", "--scenario", "paper-zero", "--duration", "5"]
-        .iter()
-        .map(|s| s.to_string())
-        .chain(
-            ["--mode", "realtime", "--quiet", "--fault", "monitor:stop@3.5:cont@3.8"]
-                .map(String::from),
-        )
-        .chain(["--domain", &h.domain, "--out"].map(String::from))
-        .chain([out.to_string_lossy().into_owned()])
-        .collect();
-    let launcher = h.spawn(common::harness::ROTORLOOP, &args);
-    let until = std::time::Instant::now() + LIMIT;
-    while pid_of_role(&h.domain, "reference").is_none() || live_timing_rows(&out) < 1000 {
-        assert!(std::time::Instant::now() < until, "the run did not start");
-        std::thread::sleep(Duration::from_millis(50));
-    }
-    let pid = pid_of_role(&h.domain, "reference").expect("reference") as libc::pid_t;
+    let extra = ["--duration", "5", "--fault", "monitor:stop@3.5:cont@3.8"];
+    let (launcher, pid) = started_realtime(&mut h, &out, &extra, "reference");
     // SIGSTOP, not SIGTSTP: the kernel discards SIGTSTP sent to a process of an orphaned
     // process group (the repeat harness, run in the background, makes one), so the stop
     // never happened there.

@@ -135,9 +135,10 @@ pub struct RoleArgs {
     /// `DIR/*.flight` (`common::flight`); `rotorloop run` records into `OUT/flight`.
     #[arg(long, value_name = "DIR")]
     pub record: Option<std::path::PathBuf>,
-    /// Slots of each flight record's ring on tmpfs (1224 bytes a tick for the four
-    /// streams): the RAM the records take whatever the run's duration. A run longer than
-    /// that has the finished halves moved into `OUT/flight` while it goes on.
+    /// Slots of each flight record's ring on tmpfs (rounded up to a power of two; 1224
+    /// bytes a tick for the four streams): the RAM the records take whatever the run's
+    /// duration. A run longer than that has the finished halves moved into `OUT/flight`
+    /// while it goes on.
     #[arg(long, value_name = "TICKS", default_value_t = crate::flight::DEFAULT_RING_TICKS,
           value_parser = clap::value_parser!(u64).range(crate::flight::MIN_RING_TICKS..))]
     pub flight_ring_ticks: u64,
