@@ -299,15 +299,21 @@ fn realtime_controller_loss_holds_then_safe_mode_then_recovers() {
 }
 
 /// Killing and restarting by hand works as well: `kill -9` the controller of a run
-/// started by hand and start it again with its original command line.
+/// started by hand and start it again with its original command line. The roles record
+/// (`--record`), as `rotorloop run` has them do: without records the report is the
+/// monitor's live view, which a monitor falling behind leaves incomplete (under a busy
+/// loop per core the live view once missed the state that says when torque 44899 took
+/// effect, and its row had no `delay_s`).
 #[test]
 fn controller_killed_by_hand_and_restarted_with_its_command_line() {
     let mut h = Harness::new("by-hand");
     let out = h.path("mon");
+    let record = h.path("flight");
     let base: Vec<String> =
         ["--domain", &h.domain, "--scenario", "paper-sinusoid", "--duration", "60"]
             .iter()
             .map(|s| s.to_string())
+            .chain(["--record".to_owned(), record.to_string_lossy().into_owned()])
             .collect();
     let with = |extra: &[&str]| {
         base.iter().cloned().chain(extra.iter().map(|s| s.to_string())).collect::<Vec<_>>()
