@@ -2,12 +2,10 @@
 //! in the paper's runs): the paper's remark on the integral term, anti-windup under
 //! saturation, and the invariants that still hold with an external torque.
 
-mod common;
-
 use std::time::Duration;
 
-use common::harness::{Harness, assert_same_trace, json, ok};
-use common::{M3, V3, to_na};
+use crate::common::harness::{Harness, assert_same_trace, json, ok};
+use crate::common::{M3, V3, to_na};
 use glam::DVec3;
 use rotorloop::ClosedLoop;
 use rotorloop_common::{Actuation, Scenario};
@@ -37,7 +35,7 @@ fn mat(rows9: &[f64; 9]) -> M3 {
 /// `s = vee(PE − EᵀP)` of a row, from its `R` and `R_d`.
 fn s_of(row: &TraceRow, p: &M3) -> V3 {
     let e = mat(&row.r_d) * mat(&row.r).transpose();
-    common::vee(&(p * e - e.transpose() * p))
+    crate::common::vee(&(p * e - e.transpose() * p))
 }
 
 /// The paper's remark: with a constant disturbance torque the PID law drives the error to

@@ -2,12 +2,10 @@
 //! produces every output file, well formed. Numbers are not asserted: timing lives in
 //! the bench itself, not in tests.
 
-mod common;
-
 use std::path::PathBuf;
 use std::time::Duration;
 
-use common::harness::{Harness, ok};
+use crate::common::harness::{Harness, ok};
 
 /// Runs `rotorloop bench ARGS --out DIR` (ARGS split on spaces) to success within
 /// `limit_s` seconds; returns DIR.

@@ -2,11 +2,9 @@
 //! simulator, lockstep and real time; replay of real-time runs; delays drawn from a
 //! measured distribution; an injected controller delay; and the delay-margin study.
 
-mod common;
-
 use std::time::Duration;
 
-use common::harness::{Harness, assert_same_trace, json, ok};
+use crate::common::harness::{Harness, assert_same_trace, json, ok};
 
 const LIMIT: Duration = Duration::from_secs(240);
 

@@ -2,11 +2,9 @@
 //! nothing lost. In lockstep the recovered run is checked against the simulator bit for
 //! bit, which is the strongest statement of "nothing lost" there is.
 
-mod common;
-
 use std::time::Duration;
 
-use common::harness::{
+use crate::common::harness::{
     Harness, TimingRow, assert_same_trace, json, live_timing_rows, ok, timing_rows,
 };
 use rotorloop_common::wire::FLAG_SAFE_MODE;
@@ -16,8 +14,8 @@ const LIMIT: Duration = Duration::from_secs(180);
 /// A lockstep run of 60 s of simulated time with the given faults; returns the report dir.
 fn lockstep_with_faults(h: &Harness, faults: &[&str], env: &[(&str, &str)]) -> std::path::PathBuf {
     let out = h.path("run");
-    let mut cmd = std::process::Command::new(common::harness::ROTORLOOP);
-    common::harness::group(&mut cmd);
+    let mut cmd = std::process::Command::new(crate::common::harness::ROTORLOOP);
+    crate::common::harness::group(&mut cmd);
     cmd.args(["run", "--scenario", "paper-sinusoid", "--duration", "60", "--mode", "lockstep"])
         .args(["--domain", &h.domain, "--out"])
         .arg(&out)
@@ -30,7 +28,7 @@ fn lockstep_with_faults(h: &Harness, faults: &[&str], env: &[(&str, &str)]) -> s
     for (k, v) in env {
         cmd.env(k, v);
     }
-    ok(&common::harness::wait_output(cmd.spawn().expect("spawn"), LIMIT));
+    ok(&crate::common::harness::wait_output(cmd.spawn().expect("spawn"), LIMIT));
     out
 }
 
@@ -339,7 +337,7 @@ fn controller_killed_by_hand_and_restarted_with_its_command_line() {
     h.assert_no_leftovers();
 }
 
-/// Soak (not in CI: `cargo test --release --test faults -- --ignored`): random kills of
+/// Soak (not in CI: `cargo test --release --test tests faults:: -- --ignored`): random kills of
 /// random roles for several minutes in real time; prints the recovery statistics.
 #[test]
 #[ignore]
@@ -405,8 +403,8 @@ fn soak_random_kills_of_random_roles() {
 fn a_tick_the_controller_skipped_at_the_end_does_not_stall_the_report() {
     let h = Harness::new("skip-end");
     let out = h.path("rt");
-    let mut cmd = std::process::Command::new(common::harness::ROTORLOOP);
-    common::harness::group(&mut cmd)
+    let mut cmd = std::process::Command::new(crate::common::harness::ROTORLOOP);
+    crate::common::harness::group(&mut cmd)
         .args(["run", "--scenario", "paper-zero", "--duration", "0.3", "--mode", "realtime"])
         .args(["--domain", &h.domain, "--out"])
         .arg(&out)
@@ -414,7 +412,7 @@ fn a_tick_the_controller_skipped_at_the_end_does_not_stall_the_report() {
         .stdin(std::process::Stdio::null())
         .stdout(std::process::Stdio::piped())
         .stderr(std::process::Stdio::piped());
-    ok(&common::harness::wait_output(cmd.spawn().expect("spawn"), Duration::from_secs(60)));
+    ok(&crate::common::harness::wait_output(cmd.spawn().expect("spawn"), Duration::from_secs(60)));
     let s = json(&out.join("summary.json"));
     assert_eq!(s["completed"], true);
     assert_eq!(s["trace_rows"], 301);
@@ -453,7 +451,7 @@ fn a_killed_launcher_leaves_no_role_running() {
         .chain(["--mode", "realtime", "--domain", &h.domain, "--out"].map(String::from))
         .chain([out.to_string_lossy().into_owned()])
         .collect();
-    let launcher = h.spawn(common::harness::ROTORLOOP, &args);
+    let launcher = h.spawn(crate::common::harness::ROTORLOOP, &args);
     let until = std::time::Instant::now() + LIMIT;
     while processes_of(&h.domain).len() < 5 || live_timing_rows(&out) < 2000 {
         assert!(std::time::Instant::now() < until, "the run did not start");
@@ -531,8 +529,8 @@ fn a_restart_due_after_the_run_ended_is_not_carried_out_and_every_tick_is_report
             _ => format!("{role}:kill@0.9:restart@30"),
         };
         let args = ["run", "--scenario", "paper-zero", "--duration", "1", "--mode", "realtime"];
-        let mut cmd = std::process::Command::new(common::harness::ROTORLOOP);
-        common::harness::group(&mut cmd)
+        let mut cmd = std::process::Command::new(crate::common::harness::ROTORLOOP);
+        crate::common::harness::group(&mut cmd)
             .args(args)
             .args(["--fault", &fault, "--domain", &h.domain, "--out"])
             .arg(&out)
@@ -540,7 +538,10 @@ fn a_restart_due_after_the_run_ended_is_not_carried_out_and_every_tick_is_report
             .stdout(std::process::Stdio::piped())
             .stderr(std::process::Stdio::piped());
         // Well under the 30 s restart time: the launcher did not wait for it.
-        let o = common::harness::wait_output(cmd.spawn().expect("spawn"), Duration::from_secs(25));
+        let o = crate::common::harness::wait_output(
+            cmd.spawn().expect("spawn"),
+            Duration::from_secs(25),
+        );
         ok(&o);
         let err = String::from_utf8_lossy(&o.stderr);
         if role != "plant" {
@@ -676,7 +677,7 @@ fn the_record_survives_kills_by_hand_of(roles: &[&str], name: &str) {
         .chain(["--domain", &h.domain, "--out"].map(String::from))
         .chain([out.to_string_lossy().into_owned()])
         .collect();
-    let launcher = h.spawn(common::harness::ROTORLOOP, &args);
+    let launcher = h.spawn(crate::common::harness::ROTORLOOP, &args);
     let until = std::time::Instant::now() + LIMIT;
     let roles4 = ["plant", "controller", "reference", "monitor"];
     while roles4.iter().any(|r| pid_of_role(&h.domain, r).is_none())
@@ -758,7 +759,7 @@ fn started_realtime(
         .chain(["--domain".into(), h.domain.clone(), "--out".into()])
         .chain([out.to_string_lossy().into_owned()])
         .collect();
-    let launcher = h.spawn(common::harness::ROTORLOOP, &args);
+    let launcher = h.spawn(crate::common::harness::ROTORLOOP, &args);
     let until = std::time::Instant::now() + LIMIT;
     while pid_of_role(&h.domain, role).is_none() || live_timing_rows(out) < 1000 {
         assert!(std::time::Instant::now() < until, "the run did not start");

@@ -3,13 +3,11 @@
 //! valid run or a clear error with exit code 2; never a panic, never an output directory
 //! that looks like a finished run (one with `summary.json`) after an error.
 
-mod common;
-
 use std::path::Path;
 use std::time::Duration;
 
-use common::harness::Harness;
-use common::rng;
+use crate::common::harness::Harness;
+use crate::common::rng;
 use rand::Rng;
 use rand::seq::IndexedRandom;
 use rotorloop::ClosedLoop;

@@ -2,16 +2,14 @@
 //! process for a role that runs, a process of another sample layout, and a second OS
 //! user.
 
-mod common;
-
 use std::os::unix::fs::PermissionsExt;
 use std::os::unix::process::CommandExt;
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output, Stdio};
 use std::time::{Duration, Instant};
 
-use common::harness::{Harness, ROTORLOOP, json, ok, timing_rows, wait_output};
-use common::old_layout::StateSampleV2;
+use crate::common::harness::{Harness, ROTORLOOP, json, ok, timing_rows, wait_output};
+use crate::common::old_layout::StateSampleV2;
 use rotorloop_common::ipc::{Domain, IpcError, Topic};
 use rotorloop_common::wire::{LAYOUT_VERSION, StateSample};
 
@@ -307,7 +305,7 @@ impl Drop for TempUser {
 
 fn probe(binary: &Path, domain: &str, uid: Option<u32>) -> String {
     let mut cmd = Command::new(binary);
-    common::harness::group(&mut cmd);
+    crate::common::harness::group(&mut cmd);
     cmd.args(["role", "probe", "--domain", domain])
         .stdin(Stdio::null())
         .stdout(Stdio::piped())

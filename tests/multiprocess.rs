@@ -1,11 +1,9 @@
 //! The four processes over iceoryx2: system contracts of `rotorloop run` and of the role
 //! binaries started by hand.
 
-mod common;
-
 use std::time::Duration;
 
-use common::harness::{Harness, ROTORLOOP, assert_same_trace, json, ok, sim_trace};
+use crate::common::harness::{Harness, ROTORLOOP, assert_same_trace, json, ok, sim_trace};
 
 const LIMIT: Duration = Duration::from_secs(120);
 
@@ -238,7 +236,7 @@ fn two_domains_in_parallel_do_not_interfere() {
     let h = Harness::new("domains");
     let spawn = |scenario: &str, domain: &str| {
         let out = h.path(&format!("run-{scenario}"));
-        let child = common::harness::group(&mut std::process::Command::new(ROTORLOOP))
+        let child = crate::common::harness::group(&mut std::process::Command::new(ROTORLOOP))
             .args(["run", "--scenario", scenario, "--duration", "1", "--domain", domain, "--out"])
             .arg(&out)
             .stdin(std::process::Stdio::null())
@@ -246,14 +244,14 @@ fn two_domains_in_parallel_do_not_interfere() {
             .stderr(std::process::Stdio::piped())
             .spawn()
             .expect("spawn");
-        (common::harness::Running::from(child), out)
+        (crate::common::harness::Running::from(child), out)
     };
     let d1 = format!("{}-a", h.domain);
     let d2 = format!("{}-b", h.domain);
     let (c1, o1) = spawn("paper-zero", &d1);
     let (c2, o2) = spawn("paper-sinusoid", &d2);
-    ok(&common::harness::wait_output(c1, LIMIT));
-    ok(&common::harness::wait_output(c2, LIMIT));
+    ok(&crate::common::harness::wait_output(c1, LIMIT));
+    ok(&crate::common::harness::wait_output(c2, LIMIT));
     let t1 = std::fs::read(o1.join("trace.csv")).expect("t1");
     assert_same_trace("domain a", &t1, &sim_trace(&h, "paper-zero", "1", &[]));
     let t2 = std::fs::read(o2.join("trace.csv")).expect("t2");
@@ -272,7 +270,7 @@ fn two_domains_in_parallel_do_not_interfere() {
 fn sigterm_stops_the_run_cleanly_with_a_partial_report() {
     let h = Harness::new("sigterm");
     let out = h.path("rt");
-    let child = common::harness::group(&mut std::process::Command::new(ROTORLOOP))
+    let child = crate::common::harness::group(&mut std::process::Command::new(ROTORLOOP))
         .args([
             "run",
             "--scenario",
@@ -291,7 +289,7 @@ fn sigterm_stops_the_run_cleanly_with_a_partial_report() {
         .stderr(std::process::Stdio::piped())
         .spawn()
         .expect("spawn");
-    let child = common::harness::Running::from(child);
+    let child = crate::common::harness::Running::from(child);
     // Wait until the monitor has written interval data, then stop the run.
     let until = std::time::Instant::now() + LIMIT;
     while std::fs::read_to_string(out.join("sense_to_actuate.hlog"))
@@ -302,7 +300,7 @@ fn sigterm_stops_the_run_cleanly_with_a_partial_report() {
     }
     // SAFETY: signals our own child.
     unsafe { libc::kill(child.id() as libc::pid_t, libc::SIGTERM) };
-    let o = common::harness::wait_output(child, LIMIT);
+    let o = crate::common::harness::wait_output(child, LIMIT);
     assert_eq!(o.status.code(), Some(3), "{}", String::from_utf8_lossy(&o.stderr));
     let s = json(&out.join("summary.json"));
     assert_eq!(s["completed"], false);
@@ -350,7 +348,7 @@ fn states_before_the_first_reference_are_answered_as_skipped_and_counted() {
     let h = Harness::new("ref-late");
     let out = h.path("rt");
     let mut cmd = std::process::Command::new(ROTORLOOP);
-    common::harness::group(&mut cmd)
+    crate::common::harness::group(&mut cmd)
         .args(["run", "--scenario", "paper-zero", "--duration", "0.5", "--mode", "realtime"])
         .args(["--domain", &h.domain, "--out"])
         .arg(&out)
@@ -358,7 +356,7 @@ fn states_before_the_first_reference_are_answered_as_skipped_and_counted() {
         .stdin(std::process::Stdio::null())
         .stdout(std::process::Stdio::piped())
         .stderr(std::process::Stdio::piped());
-    ok(&common::harness::wait_output(cmd.spawn().expect("spawn"), LIMIT));
+    ok(&crate::common::harness::wait_output(cmd.spawn().expect("spawn"), LIMIT));
     let s = json(&out.join("summary.json"));
     assert_eq!(s["completed"], true);
     let ticks = s["ticks"].as_u64().expect("ticks");
@@ -386,14 +384,14 @@ fn the_harness_reads_a_childs_output_while_it_runs() {
     let mut h = Harness::new("pipes");
     let script =
         "head -c 1000000 /dev/zero | tr '\\0' o; head -c 1000000 /dev/zero | tr '\\0' e >&2";
-    let child = common::harness::group(&mut std::process::Command::new("sh"))
+    let child = crate::common::harness::group(&mut std::process::Command::new("sh"))
         .args(["-c", script])
         .stdin(std::process::Stdio::null())
         .stdout(std::process::Stdio::piped())
         .stderr(std::process::Stdio::piped())
         .spawn()
         .expect("spawn sh");
-    let o = common::harness::wait_output(child, Duration::from_secs(60));
+    let o = crate::common::harness::wait_output(child, Duration::from_secs(60));
     assert!(o.status.success());
     assert_eq!((o.stdout.len(), o.stderr.len()), (1_000_000, 1_000_000));
     assert!(o.stdout.iter().all(|b| *b == b'o') && o.stderr.iter().all(|b| *b == b'e'));

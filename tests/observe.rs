@@ -2,17 +2,15 @@
 //! finding a run's services from the config the run writes. The observers are passive:
 //! a run watched has the same ports on its services as one that is not.
 
-mod common;
-
 use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
-use common::harness::{Harness, Running, group, ok, wait_output};
+use crate::common::harness::{Harness, Running, group, ok, wait_output};
 const LIMIT: Duration = Duration::from_secs(240);
 
 fn start(h: &Harness, seconds: &str) -> (Running, std::path::PathBuf) {
     let out = h.path("run");
-    let child = group(&mut Command::new(common::harness::ROTORLOOP))
+    let child = group(&mut Command::new(crate::common::harness::ROTORLOOP))
         .args([
             "run",
             "--scenario",
@@ -141,7 +139,7 @@ fn watch_shows_a_running_loop_and_a_restart_as_it_happens() {
     assert!(first["tick_lateness_1s"]["count"].as_u64().expect("count") > 50, "{first}");
     assert!(first["actuation_delay_1s"]["p50"].as_f64().expect("p50") > 0.0, "{first}");
     assert!(first["err_deg"].is_f64(), "{first}");
-    let watcher = group(&mut Command::new(common::harness::ROTORLOOP))
+    let watcher = group(&mut Command::new(crate::common::harness::ROTORLOOP))
         .args(["watch", "--domain", &h.domain, "--once", "--seconds", "5"])
         .stdout(Stdio::piped())
         .stderr(Stdio::piped())

@@ -1,9 +1,7 @@
 //! Physical invariants of the plant (spec, "The plant"): they must hold for every torque
 //! history, so the tests drive the plant with seeded random piecewise-constant torques.
 
-mod common;
-
-use common::*;
+use crate::common::*;
 use glam::DVec3;
 use rotorloop_common::so3::orthonormality_error;
 use rotorloop_common::{ReferenceState, Scenario};

@@ -1,11 +1,9 @@
 //! The loop split over two "hosts" (`rotorloop run --split`): each host its own iceoryx2
 //! space, joined only by two link gateways over Zenoh on `tcp/127.0.0.1`.
 
-mod common;
-
 use std::time::Duration;
 
-use common::harness::{Harness, assert_same_trace, json, ok, sim_trace};
+use crate::common::harness::{Harness, assert_same_trace, json, ok, sim_trace};
 
 const LIMIT: Duration = Duration::from_secs(180);
 const SPLIT: &str = "plant,reference,monitor@a controller@b";
@@ -180,8 +178,8 @@ fn a_split_run_whose_output_nobody_reads_still_ends_and_recovers_a_far_host_rest
     let out = h.path("run");
     let (out_r, out_w) = full_pipe();
     let (err_r, err_w) = full_pipe();
-    let mut cmd = std::process::Command::new(common::harness::ROTORLOOP);
-    common::harness::group(&mut cmd)
+    let mut cmd = std::process::Command::new(crate::common::harness::ROTORLOOP);
+    crate::common::harness::group(&mut cmd)
         .args(["run", "--scenario", "paper-zero", "--split", SPLIT, "--domain", &h.domain])
         .args(["--duration", "6", "--mode", "realtime"])
         .args(["--fault", "controller:kill@1.0:restart@1.5", "--out"])

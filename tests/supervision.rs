@@ -2,18 +2,16 @@
 //! crash) or hangs is restarted by its policy, a restart-intensity breach stops the run
 //! naming the role, and an observer that cannot write never stops the loop.
 
-mod common;
-
 use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
-use common::harness::{Harness, Running, assert_same_trace, group, json, ok, wait_output};
+use crate::common::harness::{Harness, Running, assert_same_trace, group, json, ok, wait_output};
 
 const LIMIT: Duration = Duration::from_secs(240);
 
 fn launcher(h: &Harness, out: &Path, args: &[&str]) -> Running {
-    let child = group(&mut Command::new(common::harness::ROTORLOOP))
+    let child = group(&mut Command::new(crate::common::harness::ROTORLOOP))
         .args(["run", "--domain", &h.domain, "--out"])
         .arg(out)
         .args(args)

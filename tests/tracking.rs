@@ -1,9 +1,7 @@
 //! The closed loop: the paper's runs converge, the law matches an independent
 //! re-derivation from the spec, and the spec's structural claims hold.
 
-mod common;
-
-use common::*;
+use crate::common::*;
 use glam::DVec3;
 use rotorloop::ClosedLoop;
 use rotorloop_common::so3::rotation_angle;

@@ -1,0 +1,28 @@
+//! Every integration test, in one binary (ripgrep's pattern: `autotests = false` in
+//! `Cargo.toml`). One binary links the workspace once instead of once per file, which
+//! is most of a cold `cargo test`'s link time and of `target`'s size.
+//!
+//! One test binary stays apart: `no_alloc` installs a counting global allocator, which
+//! would count every other test's allocations too.
+//!
+//! Run one file's tests with a filter: `cargo test --test tests faults::`.
+
+mod common;
+
+mod actuators;
+mod almost_global;
+mod bad_input;
+mod bench_smoke;
+mod cli_outputs;
+mod delay;
+mod faults;
+mod fuzz_inputs;
+mod hostile;
+mod layout;
+mod multiprocess;
+mod observe;
+mod physics;
+mod readme_commands;
+mod split;
+mod supervision;
+mod tracking;
