@@ -9,10 +9,11 @@ use clap::{Parser, Subcommand};
 use glam::DVec3;
 use rotorloop_common::Actuation;
 
-use crate::UsageError;
-use crate::gains;
-use crate::montecarlo::{self, McOptions};
-use crate::sim::{self, SimOptions, scenario_with_overrides, summary_table};
+use crate::sim::{self, SimOptions, summary_table};
+use crate::study::gains;
+use crate::study::montecarlo::{self, McOptions};
+use rotorloop_common::role::UsageError;
+use rotorloop_common::role::scenario_with_overrides;
 use rotorloop_plant::policy::ActuationDelay;
 
 /// Attitude tracking of a rigid body with three internal rotors (geometric PID,
@@ -56,9 +57,9 @@ enum Command {
     /// Random initial attitudes and rates, including errors within 2° of 180°.
     Montecarlo(McArgs),
     /// The four processes over iceoryx2 shared memory, with the monitor's report.
-    Run(crate::launch::RunArgs),
+    Run(crate::run::launch::RunArgs),
     /// The latency study: the loop against same-invocation baselines, per cell.
-    Bench(crate::bench::BenchArgs),
+    Bench(crate::study::bench::BenchArgs),
     /// The rotorloop domains on this machine: roles with pid, core, policy, state, ticks,
     /// rate, and the services (read-only: no node, no port).
     Ps(crate::observe::PsArgs),
@@ -66,7 +67,7 @@ enum Command {
     Watch(crate::observe::WatchArgs),
     /// How much actuation delay the loop tolerates: the linearised prediction per mode and
     /// a sweep of the nonlinear loop in process.
-    Margin(crate::margin::MarginArgs),
+    Margin(crate::study::margin::MarginArgs),
     /// Remove what dead processes of a domain left in shared memory (and, when none of
     /// its processes is alive, the domain's last iceoryx2 file).
     Clean {
@@ -100,14 +101,14 @@ enum Command {
 
 #[derive(Debug, Subcommand)]
 enum RoleCommand {
-    Plant(crate::process::plant::PlantArgs),
-    Reference(crate::process::reference::ReferenceArgs),
-    Controller(crate::process::controller::ControllerArgs),
-    Monitor(crate::process::monitor::MonitorArgs),
-    Pingpong(crate::process::pingpong::PingPongArgs),
-    Hog(crate::process::pingpong::HogArgs),
+    Plant(rotorloop_plant::process::PlantArgs),
+    Reference(rotorloop_reference::process::ReferenceArgs),
+    Controller(rotorloop_controller::process::ControllerArgs),
+    Monitor(rotorloop_monitor::process::MonitorArgs),
+    Pingpong(crate::baseline::pingpong::PingPongArgs),
+    Hog(crate::baseline::pingpong::HogArgs),
     /// Try to reach a run's services and files from outside; print what was granted.
-    Probe(crate::process::probe::ProbeArgs),
+    Probe(crate::baseline::probe::ProbeArgs),
 }
 
 #[derive(Debug, clap::Args)]
@@ -215,16 +216,20 @@ pub fn main() -> ExitCode {
 
 /// Runs a role or a command, and maps its end to the exit code.
 fn dispatch(cli: Cli) -> ExitCode {
-    use crate::process::{controller, monitor, plant, reference, run_role};
+    use rotorloop_common::role::run_role;
+    use rotorloop_controller::process as controller;
+    use rotorloop_monitor::process as monitor;
+    use rotorloop_plant::process as plant;
+    use rotorloop_reference::process as reference;
     if let Command::Role(role) = &cli.command {
         return match role {
             RoleCommand::Plant(a) => run_role("plant", a, plant::run),
             RoleCommand::Reference(a) => run_role("reference", a, reference::run),
             RoleCommand::Controller(a) => run_role("controller", a, controller::run),
             RoleCommand::Monitor(a) => run_role("monitor", a, monitor::run),
-            RoleCommand::Pingpong(a) => run_role("pingpong", a, crate::process::pingpong::run),
-            RoleCommand::Hog(a) => run_role("hog", a, crate::process::pingpong::hog),
-            RoleCommand::Probe(a) => run_role("probe", a, crate::process::probe::run),
+            RoleCommand::Pingpong(a) => run_role("pingpong", a, crate::baseline::pingpong::run),
+            RoleCommand::Hog(a) => run_role("hog", a, crate::baseline::pingpong::hog),
+            RoleCommand::Probe(a) => run_role("probe", a, crate::baseline::probe::run),
         };
     }
     match run(cli) {
@@ -233,7 +238,7 @@ fn dispatch(cli: Cli) -> ExitCode {
             eprintln!("error: {e:#}");
             if e.downcast_ref::<UsageError>().is_some() {
                 ExitCode::from(2)
-            } else if e.downcast_ref::<crate::launch::RunEnd>().is_some() {
+            } else if e.downcast_ref::<crate::run::launch::RunEnd>().is_some() {
                 ExitCode::from(3)
             } else {
                 ExitCode::FAILURE
@@ -253,7 +258,7 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
     match cli.command {
         Command::Sim(a) => sim_command(&a)?,
         Command::Paper { out, duration, rate, in_process } => {
-            crate::paper::run(&out, duration, rate, in_process)?
+            crate::study::paper::run(&out, duration, rate, in_process)?
         }
         Command::Gains { scenario, json } => {
             let s = rotorloop_common::Scenario::load(&scenario).map_err(UsageError::from)?;
@@ -265,13 +270,13 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
                 print!("{}", gains::render(&r));
             }
         }
-        Command::Run(a) => crate::launch::run(&a)?,
-        Command::Link { args } => crate::split::exec_link(&args)?,
-        Command::Bench(a) => crate::bench::run(&a)?,
+        Command::Run(a) => crate::run::launch::run(&a)?,
+        Command::Link { args } => crate::run::split::exec_link(&args)?,
+        Command::Bench(a) => crate::study::bench::run(&a)?,
         Command::Ps(a) => crate::observe::ps(&a)?,
         Command::Watch(a) => crate::observe::watch(&a)?,
         Command::Margin(a) => {
-            crate::margin::run(&a)?;
+            crate::study::margin::run(&a)?;
             println!("output: {}", a.out.display());
         }
         Command::Role(_) => unreachable!("handled in main"),
@@ -285,7 +290,7 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
             // tmpfs: they are the record of that run, so they are kept, and named.
             let staged = rotorloop_common::flight::staging_dir(&domain);
             if let Some(staged) = staged.filter(|d| d.is_dir() && alive == 0) {
-                let how = match crate::recover::run_dir_of(&staged) {
+                let how = match crate::run::recover::run_dir_of(&staged) {
                     Some(out) => format!("`rotorloop recover {}` makes its report", out.display()),
                     None => "move them into OUT/flight by hand".to_owned(),
                 };
@@ -296,7 +301,7 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
                 );
             }
         }
-        Command::Recover { dir } => crate::recover::run(&dir)?,
+        Command::Recover { dir } => crate::run::recover::run(&dir)?,
         Command::Montecarlo(a) => montecarlo_command(&a)?,
     }
     Ok(())
@@ -305,7 +310,7 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
 /// `rotorloop sim`: a replay, or an in-process run of a scenario.
 fn sim_command(a: &SimArgs) -> anyhow::Result<()> {
     if let Some(dir) = &a.replay {
-        let r = crate::replay::run(dir, &a.out)?;
+        let r = crate::sim::replay::run(dir, &a.out)?;
         println!("{}", r.describe());
         return Ok(());
     }

@@ -1,27 +1,28 @@
-//! rotorloop: attitude tracking of a rigid body with three internal rotors.
+//! rotorloop: attitude tracking of a rigid body with three internal rotors, run as four
+//! processes (plant, reference, controller, monitor) over iceoryx2 shared memory, or in
+//! one process faster than real time.
 //!
-//! This crate is the user's entry point (`rotorloop` binary) and holds what combines the
-//! role crates: the closed loop in one process ([`closed_loop`]), the `sim` command and
-//! its report ([`sim`]), the paper's gain analysis ([`gains`]) and the Monte Carlo study
-//! of almost-global convergence ([`montecarlo`]).
+//! The four roles live in their own crates (`rotorloop_plant`, `rotorloop_reference`,
+//! `rotorloop_controller`, `rotorloop_monitor`), each with its mathematics, its policy
+//! (the rules, as plain tested structs) and its process shell; what they share is in
+//! `rotorloop_common`. This crate is the user's entry point (the `rotorloop` binary,
+//! [`cli`]) and holds what combines the roles, one room per application:
+//!
+//! - [`run`]: `rotorloop run` and what keeps a run honest: the launcher, supervision
+//!   (restart policy, watchdog), cross-host placement (`--split`), recovery of a run
+//!   whose launcher was killed, and [`run::fault`], the one home of fault kinds;
+//! - [`sim`]: the loop in one process ([`sim::closed_loop`]), `rotorloop sim` and its
+//!   report, and `--replay` of a real-time run from its flight records;
+//! - [`study`]: what is computed from many runs: the paper's gain analysis, the delay
+//!   margin, Monte Carlo of almost-global convergence, the paper's scenarios, and the
+//!   latency bench;
+//! - [`observe`]: `rotorloop ps` and `watch`, which see a live loop without touching it;
+//! - [`baseline`]: what the bench compares the loop with (ping-pong over atomics, bare
+//!   iceoryx2 and Unix sockets) and the access probe of the security tests.
 
-pub mod bench;
+pub mod baseline;
 pub mod cli;
-pub mod closed_loop;
-pub mod faults;
-pub mod gains;
-pub mod launch;
-pub mod margin;
-pub mod montecarlo;
 pub mod observe;
-pub mod paper;
-pub mod process;
-pub mod recover;
-pub mod replay;
+pub mod run;
 pub mod sim;
-pub mod split;
-pub mod supervise;
-
-pub use closed_loop::ClosedLoop;
-
-pub use rotorloop_common::role::UsageError;
+pub mod study;

@@ -7,7 +7,7 @@ use std::time::Duration;
 use crate::common::harness::{Harness, assert_same_trace, json, ok};
 use crate::common::{M3, V3, to_na};
 use glam::DVec3;
-use rotorloop::ClosedLoop;
+use rotorloop::sim::closed_loop::ClosedLoop;
 use rotorloop_common::{Actuation, Scenario};
 use rotorloop_monitor::TraceRow;
 

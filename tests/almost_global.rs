@@ -1,7 +1,7 @@
 //! Almost-global convergence: random initial attitudes and rates, a third of them within
 //! 2° of a 180° attitude error, all converge.
 
-use rotorloop::montecarlo::{self, McOptions};
+use rotorloop::study::montecarlo::{self, McOptions};
 use rotorloop_common::Scenario;
 
 /// 120 runs of 60 s at 1 kHz, 40 of them starting within 2° of 180°: every one ends

@@ -10,7 +10,7 @@ use crate::common::harness::Harness;
 use crate::common::rng;
 use rand::Rng;
 use rand::seq::IndexedRandom;
-use rotorloop::ClosedLoop;
+use rotorloop::sim::closed_loop::ClosedLoop;
 use rotorloop_common::scenario::BUILTIN;
 use rotorloop_common::{Actuation, Scenario, ScenarioError};
 

@@ -1,7 +1,8 @@
-//! The code's shape, as `docs/architecture.md` promises it: every role's process shell
+//! The code's shape, as the README's Architecture section promises it: every role's process shell
 //! (`*/src/process/mod.rs`) is under 80 lines. No function is over 100 lines: clippy's
 //! `too_many_lines` enforces that (workspace lints in `Cargo.toml`, the threshold in
-//! `clippy.toml`), and the last test here checks it stays switched on.
+//! `clippy.toml`), and a test here checks it stays switched on. No crate has an import
+//! circle between its modules.
 
 use std::path::Path;
 
@@ -32,4 +33,153 @@ fn clippy_refuses_functions_over_100_lines() {
         lints.lines().any(|l| l.replace(' ', "") == "too_many_lines=\"warn\""),
         "[workspace.lints.clippy] has too_many_lines = \"warn\" (CI denies warnings):\n{lints}"
     );
+}
+
+/// The modules of one crate that `path`'s code (comments and its `#[cfg(test)]` part left
+/// out) names through `crate::`: each the longest known module prefix of the path.
+fn imports(text: &str, modules: &[Vec<String>]) -> Vec<Vec<String>> {
+    let code = text.split("#[cfg(test)]").next().unwrap_or_default();
+    let mut found = Vec::new();
+    for line in code.lines().filter(|l| !l.trim_start().starts_with("//")) {
+        for (at, _) in line.match_indices("crate::") {
+            let rest = &line[at + "crate::".len()..];
+            let mut paths: Vec<Vec<String>> = Vec::new();
+            if let Some(group) = rest.strip_prefix('{') {
+                let group = group.split('}').next().unwrap_or_default();
+                paths.extend(group.split(',').map(|p| path_of(p.trim())));
+            } else {
+                paths.push(path_of(rest));
+            }
+            for p in paths {
+                if let Some(m) =
+                    (1..=p.len()).rev().map(|k| &p[..k]).find(|m| modules.contains(&m.to_vec()))
+                {
+                    found.push(m.to_vec());
+                }
+            }
+        }
+    }
+    found
+}
+
+fn path_of(s: &str) -> Vec<String> {
+    s.split(|c: char| !(c.is_ascii_lowercase() || c.is_ascii_digit() || c == '_' || c == ':'))
+        .next()
+        .unwrap_or_default()
+        .split("::")
+        .filter(|p| !p.is_empty())
+        .map(str::to_string)
+        .collect()
+}
+
+/// Every module of the crate under `src` with its file's text.
+fn modules_of(src: &Path) -> Vec<(Vec<String>, String)> {
+    let mut out = Vec::new();
+    let mut dirs = vec![src.to_path_buf()];
+    while let Some(dir) = dirs.pop() {
+        for entry in std::fs::read_dir(&dir).expect("a source folder").flatten() {
+            let path = entry.path();
+            if path.is_dir() {
+                if path.file_name().is_some_and(|n| n != "bin") {
+                    dirs.push(path);
+                }
+                continue;
+            }
+            if path.extension().is_none_or(|e| e != "rs") {
+                continue;
+            }
+            let rel = path.strip_prefix(src).expect("under src").with_extension("");
+            let mut m: Vec<String> = rel.iter().map(|p| p.to_string_lossy().into_owned()).collect();
+            if matches!(m.last().map(String::as_str), Some("mod" | "lib" | "main")) {
+                m.pop();
+            }
+            out.push((m, std::fs::read_to_string(&path).expect("a source file")));
+        }
+    }
+    out
+}
+
+/// A cycle of imports between the modules of one crate, if there is one.
+fn import_cycle(src: &Path) -> Option<Vec<String>> {
+    let mods = modules_of(src);
+    let names: Vec<Vec<String>> = mods.iter().map(|(m, _)| m.clone()).collect();
+    let edges: Vec<Vec<usize>> = mods
+        .iter()
+        .map(|(m, text)| {
+            let mut to: Vec<usize> = imports(text, &names)
+                .iter()
+                // A module's own ancestors and descendants are not an import circle.
+                .filter(|t| !m.starts_with(t) && !t.starts_with(m))
+                .filter_map(|t| names.iter().position(|n| n == t))
+                .collect();
+            to.dedup();
+            to
+        })
+        .collect();
+    // Depth-first search with colours: 1 on the stack, 2 done.
+    fn visit(
+        u: usize,
+        edges: &[Vec<usize>],
+        colour: &mut [u8],
+        stack: &mut Vec<usize>,
+    ) -> Option<Vec<usize>> {
+        colour[u] = 1;
+        stack.push(u);
+        for &v in &edges[u] {
+            if colour[v] == 1 {
+                let from = stack.iter().position(|s| *s == v).expect("on the stack");
+                return Some([&stack[from..], &[v]].concat());
+            }
+            if colour[v] == 0 {
+                if let Some(c) = visit(v, edges, colour, stack) {
+                    return Some(c);
+                }
+            }
+        }
+        stack.pop();
+        colour[u] = 2;
+        None
+    }
+    let mut colour = vec![0; mods.len()];
+    (0..mods.len())
+        .find_map(|u| {
+            (colour[u] == 0).then(|| visit(u, &edges, &mut colour, &mut Vec::new())).flatten()
+        })
+        .map(|c| c.iter().map(|&i| format!("crate::{}", names[i].join("::"))).collect())
+}
+
+#[test]
+fn no_crate_has_an_import_circle_between_its_modules() {
+    for src in [
+        "src",
+        "common/src",
+        "plant/src",
+        "controller/src",
+        "reference/src",
+        "monitor/src",
+        "link/src",
+    ] {
+        if let Some(cycle) = import_cycle(&root().join(src)) {
+            panic!("{src}: an import circle: {}", cycle.join(" → "));
+        }
+    }
+}
+
+#[test]
+fn the_circle_check_finds_a_circle() {
+    let dir = std::env::temp_dir().join(format!("rotorloop-circle-{}", std::process::id()));
+    std::fs::create_dir_all(dir.join("room")).expect("a temporary folder");
+    let write = |p: &str, t: &str| std::fs::write(dir.join(p), t).expect("write");
+    write("lib.rs", "pub mod a;\npub mod room;\n");
+    write("a.rs", "use crate::room::b::B;\n// crate::nothing\n");
+    write("room/mod.rs", "pub mod b;\n");
+    write(
+        "room/b.rs",
+        "pub struct B;\nfn f() { crate::a::g(); }\n#[cfg(test)]\nmod t { use crate::a; }\n",
+    );
+    let cycle = import_cycle(&dir).expect("a → room::b → a");
+    assert_eq!(cycle.len(), 3, "{cycle:?}");
+    write("room/b.rs", "pub struct B;\n#[cfg(test)]\nmod t { use crate::a; }\n");
+    assert_eq!(import_cycle(&dir), None, "a test module's import is not a circle");
+    std::fs::remove_dir_all(&dir).expect("remove");
 }

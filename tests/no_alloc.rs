@@ -8,7 +8,7 @@ use std::alloc::{GlobalAlloc, Layout, System};
 use std::cell::Cell;
 use std::sync::atomic::{AtomicU64, Ordering};
 
-use rotorloop::ClosedLoop;
+use rotorloop::sim::closed_loop::ClosedLoop;
 use rotorloop_common::{Actuation, Scenario};
 
 struct Counting;

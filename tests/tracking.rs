@@ -3,7 +3,7 @@
 
 use crate::common::*;
 use glam::DVec3;
-use rotorloop::ClosedLoop;
+use rotorloop::sim::closed_loop::ClosedLoop;
 use rotorloop_common::so3::rotation_angle;
 use rotorloop_common::{Actuation, ReferenceState, RotorBodyState, Scenario};
 use rotorloop_controller::GeometricPid;

@@ -16,7 +16,7 @@ use iceoryx2::port::update_connections::UpdateConnections;
 use iceoryx2::prelude::*;
 use iceoryx2::service::port_factory::publish_subscribe::PortFactory as PubSubFactory;
 
-pub use crate::wire::SendCost;
+use crate::wire::SendCost;
 
 /// An IPC failure, with what was being done.
 #[derive(Debug, thiserror::Error)]

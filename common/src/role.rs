@@ -73,6 +73,19 @@ pub fn write_json(path: &Path, value: &impl Serialize) -> anyhow::Result<()> {
     written.with_context(|| format!("cannot write {}", path.display()))
 }
 
+/// Changes `out/summary.json` with `change`; nothing when there is no summary (the
+/// monitor was stopped early: nothing to add to).
+pub fn patch_summary(
+    out: &std::path::Path,
+    change: impl FnOnce(&mut serde_json::Value),
+) -> anyhow::Result<()> {
+    let path = out.join("summary.json");
+    let Ok(text) = std::fs::read_to_string(&path) else { return Ok(()) };
+    let mut j: serde_json::Value = serde_json::from_str(&text)?;
+    change(&mut j);
+    write_json(&path, &j)
+}
+
 /// Longest a finished role waits for its subscribers to leave (s).
 pub const LINGER_S: u64 = 10;
 

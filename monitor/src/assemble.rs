@@ -17,12 +17,11 @@ use rotorloop_common::Scenario;
 use rotorloop_common::flight::{FlightError, FlightLog, SPARE_SLOTS, Stream};
 use rotorloop_common::role::RoleArgs;
 use rotorloop_common::wire::{ReferenceSample, StateSample, TorqueSample};
-use serde::Serialize;
 
 use crate::hosts::Hosts;
 use crate::policy::RowJoiner;
 use crate::recording::{Recording, fallback_dir};
-use crate::report::{RunSummary, summary};
+use crate::report::{FlightSummary, RunSummary, StreamSummary, summary};
 
 /// The four records of a run.
 #[derive(Debug)]
@@ -31,38 +30,6 @@ pub struct FlightRecords {
     received: FlightLog<TorqueSample>,
     torques: Option<FlightLog<TorqueSample>>,
     references: FlightLog<ReferenceSample>,
-}
-
-/// What the flight records held, per stream (in `summary.json`).
-#[derive(Debug, Clone, Serialize, Default)]
-pub struct FlightSummary {
-    /// The directory of the records.
-    pub dir: String,
-    /// Whether the report was assembled from them (else: the monitor's live view, and
-    /// `error` says why).
-    pub assembled: bool,
-    /// Why the records could not be used.
-    #[serde(skip_serializing_if = "Option::is_none")]
-    pub error: Option<String>,
-    /// Per stream: ticks recorded, ticks of the run missing, how often it was opened.
-    pub streams: Vec<StreamSummary>,
-    /// Torques taken from the plant's record because the controller's had none.
-    pub torques_from_plant: u64,
-}
-
-/// One stream's record.
-#[derive(Debug, Clone, Serialize)]
-pub struct StreamSummary {
-    /// `plant-state`, `plant-torque`, `controller-torque`, `reference`.
-    pub stream: &'static str,
-    /// Ticks recorded.
-    pub records: u64,
-    /// Ticks `0..=last` with no record, `[first, last]` (the first 16 ranges).
-    pub missing: Vec<[u64; 2]>,
-    /// How often the file was opened for writing (1 + the writer's restarts).
-    pub opens: u64,
-    /// Samples whose tick lay beyond the file (not recorded).
-    pub beyond: u64,
 }
 
 impl StreamSummary {

@@ -316,7 +316,7 @@ impl Latency {
         for hop in Hop::ALL {
             let name = format!("{}.hgrm", hop.name());
             let mut out = BufWriter::new(File::create(dir.join(&name))?);
-            write_percentile_distribution(self.histogram(hop), &mut out)?;
+            rotorloop_common::hgrm::write_percentile_distribution(self.histogram(hop), &mut out)?;
             out.flush()?;
             files.push(name);
         }
@@ -385,8 +385,6 @@ impl Latency {
         Ok(files)
     }
 }
-
-pub use rotorloop_common::hgrm::write_percentile_distribution;
 
 #[cfg(test)]
 mod tests {

@@ -52,7 +52,7 @@ pub struct RunSummary {
     pub live_rows_lost: u64,
     /// The flight records the report was assembled from (absent: run without them).
     #[serde(skip_serializing_if = "Option::is_none")]
-    pub flight: Option<crate::assemble::FlightSummary>,
+    pub flight: Option<FlightSummary>,
     /// Whether the monitor saw every tick.
     pub monitor_kept_up: bool,
     /// Ticks on which the plant had no fresh torque in time (real time).
@@ -276,4 +276,36 @@ pub fn write_summary(out: &Path, fallback: &Path, summary: &RunSummary) -> anyho
         }
     }
     Ok(())
+}
+
+/// What the flight records held, per stream (in `summary.json`).
+#[derive(Debug, Clone, Serialize, Default)]
+pub struct FlightSummary {
+    /// The directory of the records.
+    pub dir: String,
+    /// Whether the report was assembled from them (else: the monitor's live view, and
+    /// `error` says why).
+    pub assembled: bool,
+    /// Why the records could not be used.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub error: Option<String>,
+    /// Per stream: ticks recorded, ticks of the run missing, how often it was opened.
+    pub streams: Vec<StreamSummary>,
+    /// Torques taken from the plant's record because the controller's had none.
+    pub torques_from_plant: u64,
+}
+
+/// One stream's record.
+#[derive(Debug, Clone, Serialize)]
+pub struct StreamSummary {
+    /// `plant-state`, `plant-torque`, `controller-torque`, `reference`.
+    pub stream: &'static str,
+    /// Ticks recorded.
+    pub records: u64,
+    /// Ticks `0..=last` with no record, `[first, last]` (the first 16 ranges).
+    pub missing: Vec<[u64; 2]>,
+    /// How often the file was opened for writing (1 + the writer's restarts).
+    pub opens: u64,
+    /// Samples whose tick lay beyond the file (not recorded).
+    pub beyond: u64,
 }

@@ -35,7 +35,7 @@ pub mod process;
 
 use glam::{DMat3, DVec3};
 use rotorloop_common::so3::{dexp_inv, exp};
-pub use rotorloop_common::{BodyParams, RotorBodyState};
+use rotorloop_common::{BodyParams, RotorBodyState};
 
 /// Inputs held constant over one tick (zero-order hold).
 #[derive(Debug, Clone, Copy, PartialEq, Default)]

@@ -1,8 +1,8 @@
-//! The `controller` process of the loop: a thin shell over `rotorloop::process::controller`.
+//! The `controller` process of the loop: a thin shell over `rotorloop_controller::process`.
 
 fn main() -> std::process::ExitCode {
-    rotorloop::process::role_main::<rotorloop::process::controller::ControllerArgs>(
+    rotorloop_common::role::role_main::<rotorloop_controller::process::ControllerArgs>(
         "controller",
-        rotorloop::process::controller::run,
+        rotorloop_controller::process::run,
     )
 }

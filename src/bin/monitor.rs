@@ -1,8 +1,8 @@
-//! The `monitor` process of the loop: a thin shell over `rotorloop::process::monitor`.
+//! The `monitor` process of the loop: a thin shell over `rotorloop_monitor::process`.
 
 fn main() -> std::process::ExitCode {
-    rotorloop::process::role_main::<rotorloop::process::monitor::MonitorArgs>(
+    rotorloop_common::role::role_main::<rotorloop_monitor::process::MonitorArgs>(
         "monitor",
-        rotorloop::process::monitor::run,
+        rotorloop_monitor::process::run,
     )
 }

@@ -1,8 +1,8 @@
-//! The `plant` process of the loop: a thin shell over `rotorloop::process::plant`.
+//! The `plant` process of the loop: a thin shell over `rotorloop_plant::process`.
 
 fn main() -> std::process::ExitCode {
-    rotorloop::process::role_main::<rotorloop::process::plant::PlantArgs>(
+    rotorloop_common::role::role_main::<rotorloop_plant::process::PlantArgs>(
         "plant",
-        rotorloop::process::plant::run,
+        rotorloop_plant::process::run,
     )
 }

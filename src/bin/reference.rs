@@ -1,8 +1,8 @@
-//! The `reference` process of the loop: a thin shell over `rotorloop::process::reference`.
+//! The `reference` process of the loop: a thin shell over `rotorloop_reference::process`.
 
 fn main() -> std::process::ExitCode {
-    rotorloop::process::role_main::<rotorloop::process::reference::ReferenceArgs>(
+    rotorloop_common::role::role_main::<rotorloop_reference::process::ReferenceArgs>(
         "reference",
-        rotorloop::process::reference::run,
+        rotorloop_reference::process::run,
     )
 }

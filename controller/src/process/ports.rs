@@ -6,11 +6,10 @@ use std::cell::Cell;
 use anyhow::Context;
 use rotorloop_common::ReferenceState;
 use rotorloop_common::flight::{FlightRecorder, Stream};
-use rotorloop_common::ipc::{
-    Inbox, Outbox, RoleNode, SendCost, Topic, Wait, now_ns, shutdown_requested,
-};
+use rotorloop_common::ipc::{Inbox, Outbox, RoleNode, Topic, Wait, now_ns, shutdown_requested};
 use rotorloop_common::resume::ResumeSlot;
 use rotorloop_common::role::{Corrupt, PlantWatch, RoleArgs, corrupted};
+use rotorloop_common::wire::SendCost;
 use rotorloop_common::wire::{NO_TICK, ReferenceSample, StateSample, TorqueSample, WireFault};
 
 use crate::policy::{Decision, DelayedSends, ReferencePairing, TorqueAnswers};

@@ -8,8 +8,9 @@ mod args;
 mod wait;
 
 use anyhow::Context;
-use rotorloop_common::ipc::{SendCost, now_ns, shutdown_requested, sleep_until_ns};
+use rotorloop_common::ipc::{now_ns, shutdown_requested, sleep_until_ns};
 use rotorloop_common::role::{Mode, TickGrid, corrupted, linger_publisher};
+use rotorloop_common::wire::SendCost;
 use rotorloop_common::wire::StateSample;
 
 pub use args::PlantArgs;

@@ -21,14 +21,14 @@ use rotorloop_reference::policy::ReferenceResume;
 
 use rotorloop_common::ipc::Domain;
 
-use crate::UsageError;
-use crate::process::{Corrupt, Mode, RoleArgs};
-use crate::split::{Split, wait_until};
-use crate::supervise::{
-    Action, Children, Ending, FaultSchedule, LinkWatch, Marks, RestartLimit, START_TIMEOUT_S,
-    Supervisor, Verdict, Watchdog, parse_restart, signal,
+use crate::run::fault::{Action, Fault, FaultEvent, FaultSchedule, parse_fault};
+use crate::run::split::{Split, wait_until};
+use crate::run::supervise::{
+    Children, Ending, LinkWatch, Marks, ROLES, RestartLimit, START_TIMEOUT_S, Supervisor, Verdict,
+    Watchdog, parse_restart, signal,
 };
-pub use crate::supervise::{Fault, ROLES, parse_fault};
+use rotorloop_common::role::UsageError;
+use rotorloop_common::role::{Corrupt, Mode, RoleArgs};
 use rotorloop_plant::policy::ActuationDelay;
 
 /// `rotorloop run` arguments.
@@ -169,7 +169,7 @@ impl RunArgs {
 
 /// Parses `--corrupt ROLE:KIND@TICK`.
 pub fn parse_corrupt(s: &str) -> Result<(String, Corrupt), UsageError> {
-    use crate::process::CorruptKind;
+    use rotorloop_common::role::CorruptKind;
     let bad = |why: &str| {
         UsageError(format!(
             "--corrupt `{s}` is not allowed: {why} (form ROLE:KIND@TICK, e.g. controller:nan@500)"
@@ -203,35 +203,6 @@ fn stop_with_parent(cmd: &mut Command) {
             }
             Ok(())
         });
-    }
-}
-
-/// A fault as it happened (monotonic ns): injected (`kill`, `stop`) or not (`killed`,
-/// `crash`, `exited`, `hang`: what the supervisor saw).
-#[derive(Debug, Clone, PartialEq)]
-pub struct FaultEvent {
-    /// The role.
-    pub role: String,
-    /// `kill` or `stop` (injected by `--fault`), `killed`, `crash`, `exited` or `hang`.
-    pub kind: &'static str,
-    /// What happened, in words (the exit status, what the watchdog did).
-    pub detail: String,
-    /// When it was killed, stopped, or found dead or hung.
-    pub kill_ns: u64,
-    /// When it was started again (or continued).
-    pub restart_ns: Option<u64>,
-    /// The signal, where it is known (`SIGSTOP`, `SIGTSTP`, `SIGKILL`, …).
-    pub signal: Option<&'static str>,
-    /// A stop's end: how (`continued`, `killed`, `crash`, `exited`, `hung`, or `run ended`
-    /// when the launcher continued it after the last tick) and when (ns).
-    pub ended: Option<(&'static str, u64)>,
-}
-
-impl FaultEvent {
-    /// A fault of `role` happening now, not (yet) followed by a restart.
-    fn now(role: impl Into<String>, kind: &'static str, detail: String) -> Self {
-        let (role, kill_ns) = (role.into(), now_ns());
-        Self { role, kind, detail, kill_ns, restart_ns: None, signal: None, ended: None }
     }
 }
 
@@ -359,7 +330,7 @@ impl Launch<'_> {
     fn command(&self, role: &str) -> Command {
         let args = self.args;
         if let (Some(split), Some(host)) = (&self.split, role.strip_prefix("link-")) {
-            let mut cmd = crate::split::gateway_command(
+            let mut cmd = crate::run::split::gateway_command(
                 split,
                 host,
                 self.role_args.domain(),
@@ -368,7 +339,7 @@ impl Launch<'_> {
             );
             cmd.stdin(Stdio::null());
             // Quiet (the bench): what the gateway says goes to OUT/link-HOST.log.
-            let log = args.quiet.then(|| crate::split::gateway_log(&args.out, role));
+            let log = args.quiet.then(|| crate::run::split::gateway_log(&args.out, role));
             if let Some(Ok(f)) = log {
                 cmd.stderr(f);
             }
@@ -476,7 +447,7 @@ impl Launch<'_> {
             eprintln!("warning: the flight records stay in {s}: cannot move them into {k}: {e}");
             return Some(staged);
         }
-        let _ = patch_summary(&self.args.out, |j| {
+        let _ = rotorloop_common::role::patch_summary(&self.args.out, |j| {
             if j["flight"].is_object() {
                 j["flight"]["dir"] = kept.display().to_string().into();
             }
@@ -511,7 +482,7 @@ impl Launch<'_> {
 /// The `--fault`s, checked against each other and against the placement of the roles.
 fn checked_faults(args: &RunArgs, split: Option<&Split>) -> anyhow::Result<Vec<Fault>> {
     let faults = args.fault.iter().map(|f| parse_fault(f)).collect::<Result<Vec<_>, _>>()?;
-    crate::supervise::check_overlaps(&args.fault, &faults)?;
+    crate::run::fault::check_overlaps(&args.fault, &faults)?;
     for f in &faults {
         match split {
             Some(s) => s.check_fault_target(&f.role)?,
@@ -552,7 +523,7 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
     let split = args.split.as_deref().map(|s| Split::parse(s, !args.no_monitor)).transpose()?;
     let faults = checked_faults(args, split.as_ref())?;
     if split.is_some() {
-        crate::split::link_binary()?;
+        crate::run::split::link_binary()?;
     }
     let hosts: Vec<Option<&str>> = match &split {
         Some(s) => s.hosts().iter().map(|h| Some(h.as_str())).collect(),
@@ -573,7 +544,7 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
     let exe = std::env::current_exe().context("cannot find the rotorloop executable")?;
     install_signal_handlers();
     prepare_domains(&domains, &args.out)?;
-    let link_port = if split.is_some() { crate::split::free_port()? } else { 0 };
+    let link_port = if split.is_some() { crate::run::split::free_port()? } else { 0 };
     let launch = Launch {
         args,
         domains,
@@ -588,7 +559,7 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
         ticks: scenario.ticks(),
     };
     // What `rotorloop recover` needs should this launcher not end normally.
-    let record = crate::recover::LaunchRecord {
+    let record = crate::run::recover::LaunchRecord {
         domain: launch.role_args.domain().to_owned(),
         hosts: launch.monitor_hosts(),
         role_args: launch.role_args.to_args(),
@@ -612,7 +583,7 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
         }
     }
     for h in launch.split.iter().flat_map(|s| s.hosts()) {
-        let _ = std::fs::remove_file(crate::split::ready_file(&args.out, h));
+        let _ = std::fs::remove_file(crate::run::split::ready_file(&args.out, h));
     }
     let flight = launch.keep_flight_records();
     // A failure stops the run, but its report (the faults that led to it among them) is
@@ -676,7 +647,7 @@ fn clear_flight_records(dir: &std::path::Path) -> anyhow::Result<()> {
     Ok(())
 }
 
-/// Starts the roles (and, split, the gateways first: see [`crate::split`]).
+/// Starts the roles (and, split, the gateways first: see [`crate::run::split`]).
 fn start(launch: &Launch, children: &mut Children, rss: &mut RssLog) -> anyhow::Result<()> {
     let args = launch.args;
     let roles: Vec<&str> =
@@ -715,7 +686,7 @@ fn start(launch: &Launch, children: &mut Children, rss: &mut RssLog) -> anyhow::
 /// Stops the gateways once the roles are done (SIGTERM, SIGKILL after 5 s).
 fn stop_gateways(children: &mut Children) {
     for (name, c) in children.0.iter_mut().filter(|(n, _)| n.starts_with("link-")) {
-        crate::split::stop(name, c);
+        crate::run::split::stop(name, c);
     }
 }
 
@@ -1335,7 +1306,7 @@ fn report(
         }
     }
     if !events.is_empty() && !args.no_monitor {
-        if let Err(e) = crate::faults::report(&args.out, scenario, events) {
+        if let Err(e) = crate::run::fault::report::report(&args.out, scenario, events) {
             eprintln!("warning: no fault report: {e:#}");
             for e in events {
                 eprintln!("  {} {}: {}", e.kind, e.role, e.detail);
@@ -1411,18 +1382,7 @@ impl RssLog {
 
 /// Adds the per-role memory figures to `out/summary.json` as `resources`.
 fn add_resources(out: &std::path::Path, rss: &BTreeMap<String, RssTrack>) -> anyhow::Result<()> {
-    patch_summary(out, |j| j["resources"] = serde_json::json!({ "rss": rss, "rss_csv": "rss.csv" }))
-}
-
-/// Changes `out/summary.json` with `change`; nothing when there is no summary (the
-/// monitor was stopped early: nothing to add to).
-pub(crate) fn patch_summary(
-    out: &std::path::Path,
-    change: impl FnOnce(&mut serde_json::Value),
-) -> anyhow::Result<()> {
-    let path = out.join("summary.json");
-    let Ok(text) = std::fs::read_to_string(&path) else { return Ok(()) };
-    let mut j: serde_json::Value = serde_json::from_str(&text)?;
-    change(&mut j);
-    crate::sim::write_json(&path, &j)
+    rotorloop_common::role::patch_summary(out, |j| {
+        j["resources"] = serde_json::json!({ "rss": rss, "rss_csv": "rss.csv" })
+    })
 }

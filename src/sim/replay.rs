@@ -28,7 +28,7 @@ use rotorloop_plant::{Body, BodyInput};
 use rotorloop_reference::Reference;
 use serde::Serialize;
 
-use crate::UsageError;
+use rotorloop_common::role::UsageError;
 
 /// What a replay found.
 #[derive(Debug, Clone, Serialize)]

@@ -11,8 +11,8 @@ use rotorloop_common::Scenario;
 use rotorloop_monitor::plot::{Series, YScale, line_chart};
 use serde::Serialize;
 
-use crate::ClosedLoop;
-use crate::launch::FaultEvent;
+use crate::run::fault::FaultEvent;
+use crate::sim::closed_loop::ClosedLoop;
 
 /// How far from the no-fault error a run counts as recovered (deg).
 pub const RECOVERED_DEG: f64 = 0.1;
@@ -161,7 +161,7 @@ pub fn report(
     if let Ok(text) = std::fs::read_to_string(&summary_path) {
         let mut j: serde_json::Value = serde_json::from_str(&text)?;
         j["faults"] = serde_json::to_value(&reports)?;
-        crate::sim::write_json(&summary_path, &j)?;
+        rotorloop_common::role::write_json(&summary_path, &j)?;
     }
 
     draw(out, scenario, &errors, &nofault, &reports)?;

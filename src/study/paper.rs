@@ -9,8 +9,10 @@ use std::path::Path;
 
 use anyhow::Context;
 
-use crate::sim::{self, SimOptions, scenario_with_overrides, summary_table};
-use crate::{UsageError, gains};
+use crate::sim::{self, SimOptions, summary_table};
+use crate::study::gains;
+use rotorloop_common::role::UsageError;
+use rotorloop_common::role::scenario_with_overrides;
 
 /// The built-in scenarios of the paper, in its order.
 pub const PAPER_SCENARIOS: [&str; 3] = ["paper-zero", "paper-constant", "paper-sinusoid"];
@@ -98,14 +100,14 @@ pub fn run(out: &Path, duration: f64, rate: f64, in_process: bool) -> anyhow::Re
 fn four_process_run(out: &Path, name: &str, duration: f64, rate: f64) -> anyhow::Result<String> {
     println!("{name}: four processes, real time");
     let run_dir = out.join(name);
-    let role = crate::process::RoleArgs {
+    let role = rotorloop_common::role::RoleArgs {
         domain: None,
         host: None,
         scenario: name.to_owned(),
         duration: Some(duration),
         rate: Some(rate),
         actuation: None,
-        mode: crate::process::Mode::Realtime,
+        mode: rotorloop_common::role::Mode::Realtime,
         wait: rotorloop_common::ipc::Wait::Event,
         core: None,
         rt_priority: None,
@@ -114,7 +116,7 @@ fn four_process_run(out: &Path, name: &str, duration: f64, rate: f64) -> anyhow:
         record: None,
         flight_ring_ticks: rotorloop_common::flight::DEFAULT_RING_TICKS,
     };
-    crate::launch::run(&crate::launch::RunArgs::defaults(role, run_dir.clone()))
+    crate::run::launch::run(&crate::run::launch::RunArgs::defaults(role, run_dir.clone()))
         .with_context(|| format!("four-process run of {name}"))?;
     let j: serde_json::Value = serde_json::from_str(
         &std::fs::read_to_string(run_dir.join("summary.json"))

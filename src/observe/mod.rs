@@ -27,8 +27,8 @@ use rotorloop_monitor::policy::MonitorResume;
 use rotorloop_reference::policy::ReferenceResume;
 use serde::Serialize;
 
-use crate::UsageError;
-use crate::supervise::ROLES;
+use crate::run::supervise::ROLES;
+use rotorloop_common::role::UsageError;
 
 /// `rotorloop ps` arguments.
 #[derive(Debug, Clone, clap::Args)]

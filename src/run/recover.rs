@@ -27,7 +27,7 @@ use rotorloop_common::scenario::ScenarioFile;
 use rotorloop_monitor::hosts::Hosts;
 use serde::{Deserialize, Serialize};
 
-use crate::UsageError;
+use rotorloop_common::role::UsageError;
 
 /// The file of a run directory that says how the run was launched.
 pub const LAUNCH_FILE: &str = "launch.json";
@@ -55,7 +55,7 @@ pub struct LaunchRecord {
 impl LaunchRecord {
     /// Writes `out/launch.json`, and the run directory's name into the staging directory.
     pub fn write(&self, out: &Path) -> anyhow::Result<()> {
-        crate::sim::write_json(&out.join(LAUNCH_FILE), self)?;
+        rotorloop_common::role::write_json(&out.join(LAUNCH_FILE), self)?;
         if let Some(staging) = &self.staging {
             let out = std::fs::canonicalize(out).unwrap_or_else(|_| out.to_path_buf());
             std::fs::create_dir_all(staging)
@@ -160,7 +160,7 @@ pub fn run(dir: &Path) -> anyhow::Result<()> {
         rotorloop_monitor::assemble::report(dir, &kept, &records, &scenario, &role, &hosts, None);
     let fallback = rotorloop_monitor::recording::fallback_dir(role.domain());
     rotorloop_monitor::report::write_summary(dir, &fallback, &summary)?;
-    crate::launch::patch_summary(dir, |j| {
+    rotorloop_common::role::patch_summary(dir, |j| {
         j["recovered"] = serde_json::json!({
             "by": "rotorloop recover",
             "launcher_pid": launch.launcher_pid,

@@ -13,7 +13,7 @@ use rotorloop_common::{Actuation, Scenario};
 use rotorloop_monitor::plot::histogram;
 use serde::Serialize;
 
-use crate::ClosedLoop;
+use crate::sim::closed_loop::ClosedLoop;
 
 /// Convergence criterion on the final attitude error (deg).
 pub const CONVERGED_DEG: f64 = 0.1;
@@ -226,5 +226,5 @@ fn write_outputs(dir: &Path, summary: &McSummary, runs: &[McRun]) -> anyhow::Res
         &initial,
         36,
     )?;
-    crate::sim::write_json(&dir.join("summary.json"), summary)
+    rotorloop_common::role::write_json(&dir.join("summary.json"), summary)
 }

@@ -18,10 +18,10 @@ use clap::Args;
 use rotorloop_common::ipc::{Domain, Wait, shutdown_requested};
 use rotorloop_monitor::plot::{Series, YScale, line_chart};
 
-use crate::UsageError;
-use crate::launch::RunArgs;
-use crate::process::pingpong::Kind;
-use crate::process::{Mode, RoleArgs};
+use crate::baseline::pingpong::Kind;
+use crate::run::launch::RunArgs;
+use rotorloop_common::role::UsageError;
+use rotorloop_common::role::{Mode, RoleArgs};
 
 /// `rotorloop bench` arguments.
 #[derive(Debug, Clone, Args)]
@@ -189,7 +189,7 @@ fn cores(placement: &str, ncores: usize) -> Option<(usize, usize)> {
     match placement {
         "same-core" => Some((0, 0)),
         "cross-core" => Some((0, 1)),
-        "dedicated" => crate::launch::dedicated_cores(ncores).ok().map(|c| (c[0], c[1])),
+        "dedicated" => crate::run::launch::dedicated_cores(ncores).ok().map(|c| (c[0], c[1])),
         _ => None, // unpinned, cross-host
     }
 }
@@ -203,7 +203,7 @@ pub fn skip_reason(
     ncores: usize,
 ) -> Option<String> {
     if placement == "dedicated" {
-        return crate::launch::dedicated_cores(ncores).err();
+        return crate::run::launch::dedicated_cores(ncores).err();
     }
     let spins = matches!(wait, Wait::Spin) || kind == "atomic";
     if spins && placement == "same-core" {
@@ -235,7 +235,7 @@ fn cross_host_skip(kind: &str, spins: bool, ncores: usize) -> Option<String> {
              machine has {ncores}"
         ));
     }
-    crate::split::link_binary().err().map(|e| e.0)
+    crate::run::split::link_binary().err().map(|e| e.0)
 }
 
 fn validate(a: &BenchArgs) -> Result<(), UsageError> {
@@ -286,7 +286,12 @@ pub fn run(a: &BenchArgs) -> anyhow::Result<()> {
         println!("bench: {} measurements re-plotted in {}", rows.len(), a.out.display());
         return Ok(());
     }
-    crate::sim::scenario_with_overrides(&a.scenario, Some(a.seconds), Some(a.rates[0]), None)?;
+    rotorloop_common::role::scenario_with_overrides(
+        &a.scenario,
+        Some(a.seconds),
+        Some(a.rates[0]),
+        None,
+    )?;
     std::fs::create_dir_all(&a.out)
         .with_context(|| format!("cannot create {}", a.out.display()))?;
     let exe = std::env::current_exe().context("cannot find the rotorloop executable")?;
@@ -487,7 +492,7 @@ fn loop_run_args(
         quiet: true,
         spin_before_tick_us: a.spin_before_tick_us,
         preset: dedicated.then(|| "dedicated".to_owned()),
-        split: (base.placement == "cross-host").then(|| crate::split::CROSS_HOST.to_owned()),
+        split: (base.placement == "cross-host").then(|| crate::run::split::CROSS_HOST.to_owned()),
         ..RunArgs::defaults(role, out)
     }
 }
@@ -517,7 +522,7 @@ fn measure_loop(
     let mut run = loop_run_args(a, base, ncores, domain, out.clone());
     run.no_monitor = without_monitor;
     run.no_record = variant == Variant::Before;
-    crate::launch::run(&run)?;
+    crate::run::launch::run(&run)?;
     if without_monitor {
         // No monitor, no summary: the plant's own histogram of the loop.
         let hgrm = out.join("plant_sense_to_actuate.hgrm");
@@ -572,7 +577,7 @@ fn measure_loops(a: &BenchArgs, base: &Row, ncores: usize, n: usize) -> anyhow::
             .map(|i| {
                 let domain = format!("bs{}-{}-{n}-{i}", std::process::id(), base.index);
                 let run = loop_run_args(a, base, ncores, domain, dir.join(format!("loop-{i}")));
-                scope.spawn(move || crate::launch::run(&run))
+                scope.spawn(move || crate::run::launch::run(&run))
             })
             .collect();
         handles
@@ -620,10 +625,10 @@ fn measure_baseline(
         cores(placement, ncores).map_or((None, None), |(p, c)| (Some(p), Some(c)));
     // Across hosts: ping on host a, pong on host b, two gateways between them.
     let split = (placement == "cross-host")
-        .then(|| crate::split::Split::parse(crate::split::CROSS_HOST, true))
+        .then(|| crate::run::split::Split::parse(crate::run::split::CROSS_HOST, true))
         .transpose()?;
     let gateways =
-        split.as_ref().map(|s| crate::split::Gateways::start(s, &name, dir)).transpose()?;
+        split.as_ref().map(|s| crate::run::split::Gateways::start(s, &name, dir)).transpose()?;
     let hosts = split.as_ref().map(|s| s.hosts().to_vec()).unwrap_or_default();
     let side = |side: &str, core: Option<usize>| {
         let mut cmd = Command::new(exe);

@@ -24,8 +24,8 @@ use rotorloop_monitor::plot::{Series, YScale, line_chart};
 use rotorloop_plant::policy::ActuationDelay;
 use serde::Serialize;
 
-use crate::ClosedLoop;
-use crate::gains::cubic_roots;
+use crate::sim::closed_loop::ClosedLoop;
+use crate::study::gains::cubic_roots;
 
 /// `rotorloop margin` arguments.
 #[derive(Debug, Clone, clap::Args)]
@@ -196,7 +196,12 @@ pub fn sweep_run(s: &Scenario, delay_s: f64) -> SweepRun {
 
 /// Runs the study and writes its files; returns the predicted margins and the sweep.
 pub fn run(a: &MarginArgs) -> anyhow::Result<(Vec<ModeMargin>, Vec<SweepRun>)> {
-    let s = crate::sim::scenario_with_overrides(&a.scenario, Some(a.duration), Some(a.rate), None)?;
+    let s = rotorloop_common::role::scenario_with_overrides(
+        &a.scenario,
+        Some(a.duration),
+        Some(a.rate),
+        None,
+    )?;
     let modes = predicted(&s);
     let tau_star = modes.iter().map(|m| m.tau_star_s).fold(f64::INFINITY, f64::min);
     let delays = match &a.delays {
@@ -204,7 +209,7 @@ pub fn run(a: &MarginArgs) -> anyhow::Result<(Vec<ModeMargin>, Vec<SweepRun>)> {
         None => default_delays(tau_star),
     };
     if let Some(bad) = delays.iter().find(|d| !(d.is_finite() && **d >= 0.0 && **d <= 60.0)) {
-        return Err(crate::UsageError(format!(
+        return Err(rotorloop_common::role::UsageError(format!(
             "--delays {bad} is not allowed: seconds from 0 to 60"
         ))
         .into());
@@ -264,7 +269,7 @@ fn read_latency(path: &Path) -> anyhow::Result<(f64, f64, f64)> {
     let s = |q: &str| h[q].as_f64().map(|ns| ns / 1e9);
     match (s("p50"), s("p99"), s("max")) {
         (Some(a), Some(b), Some(c)) => Ok((a, b, c)),
-        _ => Err(crate::UsageError(format!(
+        _ => Err(rotorloop_common::role::UsageError(format!(
             "--latency-from {}: no sense_to_actuate figures",
             path.display()
         ))

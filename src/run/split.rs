@@ -16,7 +16,7 @@ use std::time::{Duration, Instant};
 
 use rotorloop_common::ipc::{Domain, Topic, shutdown_requested};
 
-use crate::UsageError;
+use rotorloop_common::role::UsageError;
 
 /// Where each role runs: two hosts, in the order given (the first one's gateway listens).
 #[derive(Debug, Clone, PartialEq)]
@@ -46,7 +46,7 @@ impl Split {
                 hosts.push(host.to_owned());
             }
             for role in roles.split(',') {
-                if !crate::launch::ROLES.contains(&role) {
+                if !crate::run::supervise::ROLES.contains(&role) {
                     return Err(bad(format!(
                         "`{role}` is not a role (plant, reference, controller, monitor)"
                     )));
@@ -56,7 +56,7 @@ impl Split {
                 }
             }
         }
-        for role in crate::launch::ROLES.iter().filter(|r| **r != "monitor" || monitor) {
+        for role in crate::run::supervise::ROLES.iter().filter(|r| **r != "monitor" || monitor) {
             if !role_host.contains_key(*role) {
                 return Err(bad(format!("{role} is on no host")));
             }
@@ -91,7 +91,7 @@ impl Split {
     /// The roles on `host`.
     pub fn roles_on(&self, host: &str) -> Vec<&str> {
         let on = |r: &&str| self.role_host.get(*r).is_some_and(|h| h == host);
-        crate::launch::ROLES.iter().copied().filter(on).collect()
+        crate::run::supervise::ROLES.iter().copied().filter(on).collect()
     }
 
     /// The host that only watches (every role of it is the monitor): its gateway is
@@ -191,7 +191,7 @@ pub fn gateway_log(dir: &Path, name: &str) -> std::io::Result<std::fs::File> {
 /// Stops a gateway: SIGTERM, then SIGKILL after 5 s.
 pub fn stop(name: &str, c: &mut std::process::Child) {
     if let Ok(None) = c.try_wait() {
-        crate::supervise::signal(c, libc::SIGTERM);
+        crate::run::supervise::signal(c, libc::SIGTERM);
         let stopped = wait_until(Duration::from_secs(5), || !matches!(c.try_wait(), Ok(None)));
         if !stopped {
             eprintln!("launcher: {name} did not stop on SIGTERM within 5 s; killed");

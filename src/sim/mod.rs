@@ -1,7 +1,12 @@
 //! `rotorloop sim`: one scenario in one process, faster than real time, with its trace,
 //! summary and figures.
+//!
+//! - [`closed_loop`]: the loop in one process, the same structs as the four processes;
+//! - [`replay`]: a real-time run replayed from its flight records, bit for bit.
 
-pub use rotorloop_common::role::{diverged, scenario_with_overrides, write_json};
+pub mod closed_loop;
+pub mod replay;
+
 use std::fs::File;
 use std::io::{BufWriter, IsTerminal, Write};
 use std::path::{Path, PathBuf};
@@ -9,6 +14,7 @@ use std::time::Instant;
 
 use anyhow::Context;
 use glam::DVec3;
+use rotorloop_common::role::{diverged, write_json};
 use rotorloop_common::so3::orthonormality_error;
 use rotorloop_common::{Actuation, Scenario};
 use rotorloop_monitor::figures::tracking_figures;
@@ -16,8 +22,9 @@ use rotorloop_monitor::figures::tracking_figures;
 use rotorloop_monitor::{Recorder, TraceRow, TraceWriter};
 use serde::Serialize;
 
-use crate::closed_loop::DrawnDelays;
-use crate::{ClosedLoop, UsageError};
+use crate::sim::closed_loop::ClosedLoop;
+use crate::sim::closed_loop::DrawnDelays;
+use rotorloop_common::role::UsageError;
 use rotorloop_plant::policy::ActuationDelay;
 
 /// What to simulate.

@@ -16,11 +16,12 @@ use std::sync::atomic::{AtomicU64, Ordering};
 use anyhow::{Context, bail};
 use clap::{Args, ValueEnum};
 use hdrhistogram::Histogram;
+use rotorloop_common::hgrm::write_percentile_distribution;
 use rotorloop_common::ipc::{
     Domain, RtSetup, Topic, Wait, now_ns, shutdown_requested, sleep_until_ns,
 };
 use rotorloop_common::wire::StateSample;
-use rotorloop_monitor::latency::{HopStats, write_percentile_distribution};
+use rotorloop_monitor::latency::HopStats;
 use serde::Serialize;
 
 /// Transport of a baseline.
@@ -171,7 +172,7 @@ pub fn run(a: &PingPongArgs) -> anyhow::Result<()> {
                     / ((last_wake - start - period as u64) as f64 / 1e9),
                 rtt: HopStats::of(&h),
             };
-            crate::sim::write_json(&out.with_extension("json"), &summary)
+            rotorloop_common::role::write_json(&out.with_extension("json"), &summary)
         }
     }
 }

@@ -1,0 +1,6 @@
+//! What the loop is measured against and probed with, started as `rotorloop role …`
+//! processes: the bench's paced ping-pong baselines and CPU hogs ([`pingpong`]), and the
+//! access probe of the security tests ([`probe`]).
+
+pub mod pingpong;
+pub mod probe;
