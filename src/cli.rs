@@ -1,6 +1,7 @@
 //! The `rotorloop` command line: argument types (clap derive) and the dispatch to the
 //! library. `main.rs` only calls [`main`].
 
+use rotorloop_common::graph::Role;
 use std::path::PathBuf;
 use std::process::ExitCode;
 
@@ -223,10 +224,10 @@ fn dispatch(cli: Cli) -> ExitCode {
     use rotorloop_reference::process as reference;
     if let Command::Role(role) = &cli.command {
         return match role {
-            RoleCommand::Plant(a) => run_role("plant", a, plant::run),
-            RoleCommand::Reference(a) => run_role("reference", a, reference::run),
-            RoleCommand::Controller(a) => run_role("controller", a, controller::run),
-            RoleCommand::Monitor(a) => run_role("monitor", a, monitor::run),
+            RoleCommand::Plant(a) => run_role(Role::Plant.name(), a, plant::run),
+            RoleCommand::Reference(a) => run_role(Role::Reference.name(), a, reference::run),
+            RoleCommand::Controller(a) => run_role(Role::Controller.name(), a, controller::run),
+            RoleCommand::Monitor(a) => run_role(Role::Monitor.name(), a, monitor::run),
             RoleCommand::Pingpong(a) => run_role("pingpong", a, crate::baseline::pingpong::run),
             RoleCommand::Hog(a) => run_role("hog", a, crate::baseline::pingpong::hog),
             RoleCommand::Probe(a) => run_role("probe", a, crate::baseline::probe::run),

@@ -2,8 +2,9 @@
 //! `Cargo.toml`). One binary links the workspace once instead of once per file, which
 //! is most of a cold `cargo test`'s link time and of `target`'s size.
 //!
-//! One test binary stays apart: `no_alloc` installs a counting global allocator, which
-//! would count every other test's allocations too.
+//! Two test binaries stay apart: `no_alloc` installs a counting global allocator, which
+//! would count every other test's allocations too, and `readme_commands` runs cargo
+//! builds that would starve the loops of the process tests beside it (`Cargo.toml`).
 //!
 //! Run one file's tests with a filter: `cargo test --test tests faults::`.
 
@@ -22,7 +23,6 @@ mod layout;
 mod multiprocess;
 mod observe;
 mod physics;
-mod readme_commands;
 mod split;
 mod supervision;
 mod tracking;

@@ -6,7 +6,8 @@ use glam::DVec3;
 use rotorloop::sim::closed_loop::ClosedLoop;
 use rotorloop_common::so3::rotation_angle;
 use rotorloop_common::{Actuation, ReferenceState, RotorBodyState, Scenario};
-use rotorloop_controller::GeometricPid;
+use rotorloop_controller::law::Law;
+use rotorloop_controller::law::geometric_pid::GeometricPid;
 
 const PAPER: [&str; 3] = ["paper-zero", "paper-constant", "paper-sinusoid"];
 
@@ -147,7 +148,7 @@ fn closed_loop_realises_the_commanded_error_dynamics() {
         let x = lp.plant().state();
         let t = lp.tick_index() as f64 * dt;
         let rd = lp.reference().sample(t);
-        let out = rotorloop_controller::control_law(&g, &s.plant, &x, &rd, xi);
+        let out = rotorloop_controller::law::geometric_pid::control_law(&g, &s.plant, &x, &rd, xi);
         let a = -g.kp * out.s - g.kd * out.eta - g.ki * xi;
         xi += dt * out.s;
         if let Some((eta_prev, a_prev)) = prev {

@@ -16,6 +16,7 @@ use iceoryx2::port::update_connections::UpdateConnections;
 use iceoryx2::prelude::*;
 use iceoryx2::service::port_factory::publish_subscribe::PortFactory as PubSubFactory;
 
+use crate::graph::Topic;
 use crate::wire::SendCost;
 
 /// An IPC failure, with what was being done.
@@ -65,41 +66,16 @@ fn iox(what: impl Into<String>) -> impl FnOnce(&dyn Debug) -> IpcError {
     move |e| IpcError::Iceoryx { what: what.into(), detail: format!("{e:?}") }
 }
 
-/// The topics of a run. Each is a publish-subscribe service and an event service of the
-/// same name (the publisher notifies after each send).
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum Topic {
-    /// Plant → everyone: [`crate::wire::StateSample`].
-    State,
-    /// Reference → controller, monitor: [`crate::wire::ReferenceSample`].
-    Reference,
-    /// Controller → plant, monitor: [`crate::wire::TorqueSample`].
-    Torque,
-}
-
 /// How many reference samples the generator may publish ahead of the newest state.
 pub const REFERENCE_LEAD: u64 = 16;
 /// Largest subscriber buffer a service allows (the monitor's).
 pub const MAX_BUFFER: usize = 4096;
 
-impl Topic {
-    /// Every topic.
-    pub const ALL: [Topic; 3] = [Topic::State, Topic::Reference, Topic::Torque];
-
-    /// The topic's service name under the domain (`state`, `reference`, `torque`).
-    pub fn name(self) -> &'static str {
-        match self {
-            Self::State => "state",
-            Self::Reference => "reference",
-            Self::Torque => "torque",
-        }
-    }
-    /// History kept for late subscribers: the reference keeps its whole lead.
-    fn history(self) -> usize {
-        match self {
-            Self::Reference => 2 * REFERENCE_LEAD as usize,
-            _ => 1,
-        }
+/// History kept for late subscribers: the reference keeps its whole lead.
+fn history(topic: Topic) -> usize {
+    match topic {
+        Topic::Reference => 2 * REFERENCE_LEAD as usize,
+        _ => 1,
     }
 }
 
@@ -148,7 +124,7 @@ fn set_mirror_defaults(config: &mut Config) {
     ps.subscriber_max_buffer_size = PUBSUB_QOS.subscriber_max_buffer_size;
     ps.subscriber_max_borrowed_samples = PUBSUB_QOS.subscriber_max_borrowed_samples;
     ps.enable_safe_overflow = PUBSUB_QOS.enable_safe_overflow;
-    ps.publisher_history_size = Topic::Reference.history();
+    ps.publisher_history_size = history(Topic::Reference);
     let ev = &mut config.defaults.event;
     ev.max_notifiers = EVENT_QOS.max_notifiers;
     ev.max_listeners = EVENT_QOS.max_listeners;
@@ -491,7 +467,7 @@ impl Domain {
             .max_publishers(PUBSUB_QOS.max_publishers)
             .max_subscribers(PUBSUB_QOS.max_subscribers)
             .max_nodes(PUBSUB_QOS.max_nodes)
-            .history_size(topic.history())
+            .history_size(history(topic))
             .subscriber_max_buffer_size(PUBSUB_QOS.subscriber_max_buffer_size)
             .subscriber_max_borrowed_samples(PUBSUB_QOS.subscriber_max_borrowed_samples)
             .enable_safe_overflow(PUBSUB_QOS.enable_safe_overflow)
@@ -574,7 +550,7 @@ impl Domain {
         let subscriber = service
             .subscriber_builder()
             .buffer_size(buffer.clamp(1, MAX_BUFFER))
-            .history_request(topic.history())
+            .history_request(history(topic))
             .create()
             .map_err(|e| iox(format!("cannot subscribe to `{}`", topic.name()))(&e))?;
         let listener = if listen {

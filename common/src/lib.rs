@@ -20,6 +20,7 @@
 //! inside a tick converts between them.
 
 pub mod flight;
+pub mod graph;
 pub mod hgrm;
 pub mod ipc;
 pub mod params;

@@ -14,7 +14,7 @@ use glam::{DMat3, DVec3};
 use nalgebra::{Matrix3, SymmetricEigen};
 use serde::{Deserialize, Serialize};
 
-use crate::params::{ActuatorLimits, AntiWindup, BodyParams, Gains, RotorBodyState};
+use crate::params::{ActuatorLimits, AntiWindup, BodyParams, Gains, LawName, RotorBodyState};
 use crate::so3;
 
 /// Scenarios that ship with rotorloop, by name: the paper's three reference torques, and
@@ -238,6 +238,9 @@ pub struct TorqueFile {
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct ControllerFile {
+    /// The law: `geometric-pid` (the default, the paper's).
+    #[serde(default, skip_serializing_if = "LawName::is_default")]
+    pub law: LawName,
     /// `k_p` (> 0).
     pub kp: f64,
     /// `k_d` (> 0).
@@ -322,6 +325,8 @@ pub struct Scenario {
     pub disturbance: DVec3,
     /// Anti-windup rule of the controller.
     pub anti_windup: AntiWindup,
+    /// The control law.
+    pub law: LawName,
     /// Eigenvalues of the plant's `I`, ascending (for the gain bounds).
     pub plant_principal_moments: [f64; 3],
     /// Eigenvalues of `P`, ascending.
@@ -399,6 +404,7 @@ impl Scenario {
             limits,
             disturbance,
             anti_windup: c.anti_windup,
+            law: c.law,
             plant_principal_moments: plant_moments,
             p_eigenvalues: p_eig,
             warnings,
@@ -786,6 +792,22 @@ mod tests {
             let iw = s.plant.inertia * s.plant_init.omega;
             assert!((iw - DVec3::new(1.0, 2.2, 5.1)).length() < 1e-12);
         }
+    }
+
+    #[test]
+    fn the_law_is_named_in_the_controller_section_and_a_file_without_it_runs_the_paper_law() {
+        let text = BUILTIN.iter().find(|(n, _)| *n == "paper-zero").expect("built-in").1;
+        let plain = Scenario::from_toml(text, "test").expect("valid");
+        assert_eq!(plain.law, LawName::GeometricPid);
+        let named = text.replace("[controller]\n", "[controller]\nlaw = \"geometric-pid\"\n");
+        assert_ne!(named, text, "the file has a [controller] section");
+        let named = Scenario::from_toml(&named, "test").expect("valid");
+        assert_eq!((named.law, &named.gains), (plain.law, &plain.gains));
+        // Written out, the default law is left out: reports of today's files are unchanged.
+        assert!(!toml::to_string(&plain.file).expect("toml").contains("law"));
+        let bad = text.replace("[controller]\n", "[controller]\nlaw = \"bang-bang\"\n");
+        let e = Scenario::from_toml(&bad, "test").expect_err("no such law").to_string();
+        assert!(e.contains("bang-bang") && e.contains("geometric-pid"), "{e}");
     }
 
     #[test]

@@ -24,7 +24,7 @@ use rotorloop_common::wire::{
     FLAG_LAST, NO_TICK, ReferenceSample, StateSample, TORQUE_SKIPPED, TorqueSample, WireFault,
 };
 
-use crate::GeometricPid;
+use crate::law::{AnyLaw, Law, LawState};
 
 /// Reference samples kept for pairing.
 pub const RING: usize = 256;
@@ -183,7 +183,7 @@ pub enum Decision {
 /// The answering rule (module docs), around the law.
 #[derive(Debug, Clone)]
 pub struct TorqueAnswers {
-    pid: GeometricPid,
+    law: AnyLaw,
     seq: SeqCounter,
     skipped: u64,
     published: u64,
@@ -194,10 +194,10 @@ pub struct TorqueAnswers {
 }
 
 impl TorqueAnswers {
-    /// Answers with the law `pid`.
-    pub fn new(pid: GeometricPid) -> Self {
+    /// Answers with `law`.
+    pub fn new(law: AnyLaw) -> Self {
         Self {
-            pid,
+            law,
             seq: SeqCounter::default(),
             skipped: 0,
             published: 0,
@@ -218,17 +218,13 @@ impl TorqueAnswers {
     /// The law of `scenario` (gains, the controller's body model, actuator limits and
     /// anti-windup), answering from tick 0.
     pub fn for_scenario(scenario: &rotorloop_common::Scenario) -> Self {
-        let a = scenario.actuation();
-        Self::new(
-            GeometricPid::new(scenario.gains, scenario.controller_params(a))
-                .with_limits(scenario.limits_for(a), scenario.anti_windup),
-        )
+        Self::new(AnyLaw::for_scenario(scenario, scenario.actuation()))
     }
 
     /// Continues bumplessly from the last answer `t` a killed predecessor published:
     /// its `ξ_I`, its counters, its tick.
     pub fn resume(&mut self, t: &TorqueSample) {
-        self.pid = self.pid.with_integral_state(DVec3::from_array(t.xi_i));
+        self.law.restore(&LawState::of_vector(DVec3::from_array(t.xi_i)));
         self.published = t.published;
         self.skipped = t.states_skipped;
         self.rejected = t.states_rejected;
@@ -279,7 +275,7 @@ impl TorqueAnswers {
         dt: f64,
     ) -> TorqueSample {
         let out = match rd {
-            Some(rd) => self.pid.step(&s.body_state(), rd, dt),
+            Some(rd) => self.law.step(&s.body_state(), rd, dt),
             None => Default::default(),
         };
         self.published += 1;
@@ -287,7 +283,7 @@ impl TorqueAnswers {
             tick: s.tick,
             rotor_torque_nm: out.rotor_torque.to_array(),
             body_torque_nm: out.body_torque.to_array(),
-            xi_i: self.pid.integral_state().to_array(),
+            xi_i: self.law.state().vector().to_array(),
             state_recv_ns: recv_ns,
             publish_ns: 0,
             states_received: self.seq.received,
@@ -397,6 +393,7 @@ impl DelayedSends {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::law::geometric_pid::GeometricPid;
     use glam::DMat3;
     use rotorloop_common::Scenario;
     use rotorloop_common::so3::to_row_major;
@@ -477,7 +474,10 @@ mod tests {
         let scenario = Scenario::load("paper-constant").expect("built-in");
         let a = scenario.actuation();
         let pid = GeometricPid::new(scenario.gains, scenario.controller_params(a));
-        (TorqueAnswers::new(pid), StateSample::of(0, 0.0, &scenario.plant_init))
+        (
+            TorqueAnswers::new(AnyLaw::GeometricPid(pid)),
+            StateSample::of(0, 0.0, &scenario.plant_init),
+        )
     }
 
     #[test]

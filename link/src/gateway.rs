@@ -26,8 +26,9 @@ use iceoryx2_bb_posix::file_descriptor::FileDescriptorBased;
 use iceoryx2_integrations_zenoh_link_carrier::ZenohCarrier;
 use iceoryx2_link::Link;
 use iceoryx2_link_tunnel::Tunnel;
+use rotorloop_common::graph::Topic;
 use rotorloop_common::ipc::{
-    Domain, Topic, install_signal_handlers, now_ns, shutdown_requested, wait_any_readable,
+    Domain, install_signal_handlers, now_ns, shutdown_requested, wait_any_readable,
 };
 use zenoh::Wait;
 

@@ -12,7 +12,8 @@ mod old_layout;
 
 use iceoryx2::prelude::ZeroCopySend;
 use old_layout::StateSampleV2;
-use rotorloop_common::ipc::{Domain, Inbox, IpcError, Topic, Wait, now_ns};
+use rotorloop_common::graph::Topic;
+use rotorloop_common::ipc::{Domain, Inbox, IpcError, Wait, now_ns};
 use rotorloop_common::wire::{LAYOUT_VERSION, StateSample, TorqueSample};
 
 const LINK: &str = env!("CARGO_BIN_EXE_rotorloop-link");

@@ -7,6 +7,7 @@ use serde::Serialize;
 
 use crate::latency::Hop;
 use crate::stages::Stage;
+use rotorloop_common::graph::Role;
 
 /// The host of each role (`--hosts plant=a,controller=b,…`; none: one host).
 #[derive(Debug, Clone, Default, PartialEq, Serialize)]
@@ -36,12 +37,12 @@ impl Hosts {
             let (role, host) = part
                 .split_once('=')
                 .ok_or_else(|| format!("--hosts `{part}` is not allowed: ROLE=HOST"))?;
-            let slot = match role {
-                "plant" => &mut h.plant,
-                "controller" => &mut h.controller,
-                "reference" => &mut h.reference,
-                "monitor" => &mut h.monitor,
-                _ => return Err(format!("--hosts `{role}` is not a role")),
+            let slot = match role.parse::<Role>() {
+                Ok(Role::Plant) => &mut h.plant,
+                Ok(Role::Controller) => &mut h.controller,
+                Ok(Role::Reference) => &mut h.reference,
+                Ok(Role::Monitor) => &mut h.monitor,
+                Err(e) => return Err(format!("--hosts: {e}")),
             };
             *slot = Some(host.to_owned());
         }

@@ -20,6 +20,9 @@ pub mod report;
 pub mod stages;
 pub mod trace;
 
+/// This crate's role in the loop, by name (its node, resume slot and flight record).
+pub const ROLE: &str = rotorloop_common::graph::Role::Monitor.name();
+
 pub use figures::Recorder;
 pub use metrics::{Metrics, TraceRow};
 pub use trace::TraceWriter;

@@ -221,12 +221,11 @@ impl RowJoiner {
     }
 
     fn fault(&mut self, topic: usize, tick: u64, f: WireFault) {
-        const TOPICS: [&str; 3] = ["state", "reference", "torque"];
         self.rejected[topic] += 1;
         if self.wire_faults.len() < MAX_FAULT_EVENTS {
             let detail = f.to_string();
             self.wire_faults.push(WireFaultEvent {
-                topic: TOPICS[topic],
+                topic: rotorloop_common::graph::Topic::ALL[topic].name(),
                 tick,
                 kind: f.kind(),
                 detail,

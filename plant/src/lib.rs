@@ -33,6 +33,9 @@
 pub mod policy;
 pub mod process;
 
+/// This crate's role in the loop, by name (its node, resume slot and flight record).
+pub const ROLE: &str = rotorloop_common::graph::Role::Plant.name();
+
 use glam::{DMat3, DVec3};
 use rotorloop_common::so3::{dexp_inv, exp};
 use rotorloop_common::{BodyParams, RotorBodyState};

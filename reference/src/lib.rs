@@ -12,6 +12,9 @@
 pub mod policy;
 pub mod process;
 
+/// This crate's role in the loop, by name (its node, resume slot and flight record).
+pub const ROLE: &str = rotorloop_common::graph::Role::Reference.name();
+
 use glam::{DMat3, DVec3};
 use rotorloop_common::{BodyParams, ReferenceState, RotorBodyState, TorqueProfile};
 use rotorloop_plant::{Body, BodyInput};

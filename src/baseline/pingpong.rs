@@ -16,10 +16,9 @@ use std::sync::atomic::{AtomicU64, Ordering};
 use anyhow::{Context, bail};
 use clap::{Args, ValueEnum};
 use hdrhistogram::Histogram;
+use rotorloop_common::graph::Topic;
 use rotorloop_common::hgrm::write_percentile_distribution;
-use rotorloop_common::ipc::{
-    Domain, RtSetup, Topic, Wait, now_ns, shutdown_requested, sleep_until_ns,
-};
+use rotorloop_common::ipc::{Domain, RtSetup, Wait, now_ns, shutdown_requested, sleep_until_ns};
 use rotorloop_common::wire::StateSample;
 use rotorloop_monitor::latency::HopStats;
 use serde::Serialize;

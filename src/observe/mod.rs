@@ -27,7 +27,7 @@ use rotorloop_monitor::policy::MonitorResume;
 use rotorloop_reference::policy::ReferenceResume;
 use serde::Serialize;
 
-use crate::run::supervise::ROLES;
+use rotorloop_common::graph::Role;
 use rotorloop_common::role::UsageError;
 
 /// `rotorloop ps` arguments.
@@ -175,7 +175,7 @@ fn roles(domain: &Domain) -> Result<Vec<RoleView>, UsageError> {
     .map_err(|e| {
         UsageError(format!("cannot list the nodes of domain `{}`: {e:?}", domain.name()))
     })?;
-    out.sort_by_key(|r| (ROLES.iter().position(|x| *x == r.role).unwrap_or(9), r.pid));
+    out.sort_by_key(|r| (Role::ALL.iter().position(|x| x.name() == r.role).unwrap_or(9), r.pid));
     Ok(out)
 }
 
@@ -242,10 +242,10 @@ struct Slots {
 impl Slots {
     fn open(domain: &Domain) -> Self {
         Self {
-            plant: ResumeSlot::open_existing(domain, "plant").ok().flatten(),
-            controller: ResumeSlot::open_existing(domain, "controller").ok().flatten(),
-            reference: ResumeSlot::open_existing(domain, "reference").ok().flatten(),
-            monitor: ResumeSlot::open_existing(domain, "monitor").ok().flatten(),
+            plant: ResumeSlot::open_existing(domain, Role::Plant.name()).ok().flatten(),
+            controller: ResumeSlot::open_existing(domain, Role::Controller.name()).ok().flatten(),
+            reference: ResumeSlot::open_existing(domain, Role::Reference.name()).ok().flatten(),
+            monitor: ResumeSlot::open_existing(domain, Role::Monitor.name()).ok().flatten(),
         }
     }
 
@@ -270,16 +270,16 @@ impl Slots {
     fn ticks(&self) -> BTreeMap<String, u64> {
         let mut t = BTreeMap::new();
         if let Some(s) = self.plant() {
-            t.insert("plant".into(), s.tick);
+            t.insert(Role::Plant.name().into(), s.tick);
         }
         if let Some(c) = self.controller.as_ref().and_then(ResumeSlot::load) {
-            t.insert("controller".into(), c.tick);
+            t.insert(Role::Controller.name().into(), c.tick);
         }
         if let Some(r) = self.reference.as_ref().and_then(ResumeSlot::load) {
-            t.insert("reference".into(), r.next());
+            t.insert(Role::Reference.name().into(), r.next());
         }
         if let Some(m) = self.monitor.as_ref().and_then(ResumeSlot::load) {
-            t.insert("monitor".into(), m.next_row);
+            t.insert(Role::Monitor.name().into(), m.next_row);
         }
         t
     }
@@ -334,7 +334,7 @@ pub fn ps(a: &PsArgs) -> anyhow::Result<()> {
     for v in &views {
         let rate = v.rate_hz.map_or("not ticking".to_owned(), |r| format!("{r:.1} Hz"));
         let done = if v.completed { ", completed" } else { "" };
-        let tick = v.ticks.get("plant").map_or("-".into(), |t| t.to_string());
+        let tick = v.ticks.get(Role::Plant.name()).map_or("-".into(), |t| t.to_string());
         let _ = writeln!(t, "domain {}: plant at tick {tick}, {rate}{done}", v.domain);
         let _ = writeln!(
             t,

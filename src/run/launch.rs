@@ -19,12 +19,13 @@ use rotorloop_monitor::hosts::Hosts;
 use rotorloop_monitor::policy::MonitorResume;
 use rotorloop_reference::policy::ReferenceResume;
 
+use rotorloop_common::graph::{Role, Topic};
 use rotorloop_common::ipc::Domain;
 
 use crate::run::fault::{Action, Fault, FaultEvent, FaultSchedule, parse_fault};
 use crate::run::split::{Split, wait_until};
 use crate::run::supervise::{
-    Children, Ending, LinkWatch, Marks, ROLES, RestartLimit, START_TIMEOUT_S, Supervisor, Verdict,
+    Children, Ending, LinkWatch, Marks, RestartLimit, START_TIMEOUT_S, Supervisor, Verdict,
     Watchdog, parse_restart, signal,
 };
 use rotorloop_common::role::UsageError;
@@ -176,11 +177,11 @@ pub fn parse_corrupt(s: &str) -> Result<(String, Corrupt), UsageError> {
         ))
     };
     let (role, rest) = s.split_once(':').ok_or_else(|| bad("no ROLE:"))?;
-    if !["plant", "reference", "controller"].contains(&role) {
+    if ![Role::Plant, Role::Reference, Role::Controller].map(Role::name).contains(&role) {
         return Err(bad("ROLE is plant, reference or controller"));
     }
     let c: Corrupt = rest.parse().map_err(|e: String| bad(&e))?;
-    if role == "controller" && c.kind == CorruptKind::Skew {
+    if role == Role::Controller.name() && c.kind == CorruptKind::Skew {
         return Err(bad("`skew` needs an attitude: plant or reference"));
     }
     Ok((role.to_owned(), c))
@@ -214,7 +215,7 @@ pub fn parse_pins(s: &str) -> Result<BTreeMap<String, usize>, UsageError> {
         let (role, core) = part.split_once('=').ok_or_else(|| {
             UsageError(format!("--pin `{part}` is not allowed: role=core, e.g. plant=0"))
         })?;
-        if !ROLES.contains(&role) {
+        if role.parse::<Role>().is_err() {
             return Err(UsageError(format!(
                 "--pin role `{role}` is not allowed: plant, reference, controller or monitor"
             )));
@@ -358,8 +359,8 @@ impl Launch<'_> {
         if args.quiet {
             cmd.stdout(Stdio::null());
         }
-        match role {
-            "monitor" => {
+        match role.parse::<Role>() {
+            Ok(Role::Monitor) => {
                 cmd.arg("--out").arg(&args.out);
                 if let Some(hosts) = self.monitor_hosts() {
                     cmd.arg("--hosts").arg(hosts);
@@ -368,10 +369,14 @@ impl Launch<'_> {
                     cmd.arg("--status");
                 }
             }
-            "plant" => {
+            Ok(Role::Plant) => {
                 let n = match &self.split {
                     Some(s) => s.plant_subscribers(),
-                    None => 3 - usize::from(args.no_monitor),
+                    None => Topic::State
+                        .subscribers()
+                        .iter()
+                        .filter(|r| **r != Role::Monitor || !args.no_monitor)
+                        .count(),
                 };
                 cmd.arg("--subscribers").arg(n.to_string());
                 cmd.arg("--spin-before-tick-us").arg(args.spin_before_tick_us.to_string());
@@ -379,7 +384,7 @@ impl Launch<'_> {
                 cmd.arg("--latency-out").arg(&args.out);
                 cmd.arg("--actuation-delay").arg(args.actuation_delay.to_string());
             }
-            "controller" => {
+            Ok(Role::Controller) => {
                 for f in &self.faults {
                     if let Some(d) = f.inject_delay_arg() {
                         cmd.arg("--inject-delay").arg(d);
@@ -395,7 +400,7 @@ impl Launch<'_> {
     fn monitor_hosts(&self) -> Option<String> {
         let s = self.split.as_ref()?;
         let hosts: Vec<String> =
-            ROLES.iter().filter_map(|r| s.host_of(r).map(|h| format!("{r}={h}"))).collect();
+            Role::ALL.iter().filter_map(|r| s.host(*r).map(|h| format!("{r}={h}"))).collect();
         Some(hosts.join(","))
     }
 
@@ -650,8 +655,11 @@ fn clear_flight_records(dir: &std::path::Path) -> anyhow::Result<()> {
 /// Starts the roles (and, split, the gateways first: see [`crate::run::split`]).
 fn start(launch: &Launch, children: &mut Children, rss: &mut RssLog) -> anyhow::Result<()> {
     let args = launch.args;
-    let roles: Vec<&str> =
-        ROLES.iter().copied().filter(|r| *r != "monitor" || !args.no_monitor).collect();
+    let roles: Vec<&str> = Role::ALL
+        .iter()
+        .filter(|r| **r != Role::Monitor || !args.no_monitor)
+        .map(|r| r.name())
+        .collect();
     let Some(split) = &launch.split else {
         for role in roles {
             children.0.push((role.to_string(), launch.spawn(role, rss)?));
@@ -666,11 +674,11 @@ fn start(launch: &Launch, children: &mut Children, rss: &mut RssLog) -> anyhow::
     if gone(children) || !split.gateways_ready(&args.out) {
         anyhow::bail!("the link gateways did not connect (their messages are above)");
     }
-    let plant_host = split.host_of("plant").unwrap_or_default().to_owned();
+    let plant_host = split.host_of(Role::Plant.name()).unwrap_or_default().to_owned();
     for role in roles.iter().filter(|r| split.host_of(r) != Some(&plant_host)) {
         children.0.push((role.to_string(), launch.spawn(role, rss)?));
     }
-    let at_plant = launch.domain_of("plant");
+    let at_plant = launch.domain_of(Role::Plant.name());
     let needed = split.topics_needed_at_plant();
     if !wait_until(Duration::from_secs(30), || needed.iter().all(|t| at_plant.topic_exists(*t))) {
         anyhow::bail!(
@@ -704,10 +712,13 @@ impl Progress {
         let ctx = "the resume slots";
         let d = |role| launch.domain_of(role);
         Ok(Self {
-            plant: ResumeSlot::open(d("plant"), "plant").context(ctx)?,
-            controller: ResumeSlot::open(d("controller"), "controller").context(ctx)?,
-            reference: ResumeSlot::open(d("reference"), "reference").context(ctx)?,
-            monitor: ResumeSlot::open(d("monitor"), "monitor").context(ctx)?,
+            plant: ResumeSlot::open(d(Role::Plant.name()), Role::Plant.name()).context(ctx)?,
+            controller: ResumeSlot::open(d(Role::Controller.name()), Role::Controller.name())
+                .context(ctx)?,
+            reference: ResumeSlot::open(d(Role::Reference.name()), Role::Reference.name())
+                .context(ctx)?,
+            monitor: ResumeSlot::open(d(Role::Monitor.name()), Role::Monitor.name())
+                .context(ctx)?,
         })
     }
 
@@ -883,7 +894,8 @@ fn supervise(
 /// wait for ever: once the plant has ended, the rest get their linger time, then SIGTERM
 /// (a clean end, not a fault). Returns when the SIGTERM was sent, if it was.
 fn stop_far_roles_after_the_end(children: &mut Children, since: &mut Option<u64>) -> Option<u64> {
-    let plant_gone = children.get_mut("plant").is_none_or(|c| !matches!(c.try_wait(), Ok(None)));
+    let plant_gone =
+        children.get_mut(Role::Plant.name()).is_none_or(|c| !matches!(c.try_wait(), Ok(None)));
     let since = *since.get_or_insert_with(now_ns);
     if !plant_gone || now_ns() - since <= (LINGER_S + 5) * 1_000_000_000 {
         return None;
@@ -1064,15 +1076,16 @@ fn watch_for_hangs(
     lockstep: bool,
     now_s: f64,
 ) {
-    for role in ROLES {
+    for r in Role::ALL {
+        let role = r.name();
         let pid = children.get_mut(role).map(|c| c.id());
         // A pid already killed (by the schedule or by this watchdog) is not judged again:
         // a stopped process that got its SIGKILL may take a while to die and be reaped on
         // a loaded machine, and each pass over it counted as another hang (seen: one
         // SIGSTOP counted six times 2 ms apart, over the restart limit, the run stopped).
         let alive = pid.is_some_and(|p| !w.handled.contains(&p) && !w.planned.contains(&p));
-        let pending = alive && marks.work_waiting(role, lockstep, REFERENCE_LEAD);
-        if !w.watchdog.check(role, marks.of(role), pending, now_s) {
+        let pending = alive && marks.work_waiting(r, lockstep, REFERENCE_LEAD);
+        if !w.watchdog.check(role, marks.of(r), pending, now_s) {
             continue;
         }
         let c = children.get_mut(role).expect("alive");
@@ -1148,7 +1161,7 @@ fn decide(role: &str, verdict: Verdict, w: &mut Watch, now_s: f64) {
             }
             w.restarts.insert(role.to_owned(), at_s);
         }
-        Verdict::Fail(msg) if role == "monitor" => {
+        Verdict::Fail(msg) if role == Role::Monitor.name() => {
             eprintln!("launcher: {msg}; the loop goes on without a monitor");
             if let Some(e) = w.events.last_mut().filter(|e| e.role == role) {
                 e.detail = format!("{}; given up: {msg}", e.detail);
@@ -1187,8 +1200,8 @@ fn restart(
     }
     w.watchdog.reset(role, at);
     if let Some(split) = &launch.split {
-        let plant_host = split.host_of("plant");
-        let far = role != "monitor" && split.host_of(role) != plant_host;
+        let plant_host = split.host_of(Role::Plant.name());
+        let far = role != Role::Monitor.name() && split.host_of(role) != plant_host;
         if far || role.starts_with("link-") {
             w.link.restarted(role, at, w.torques_received);
         }

@@ -14,7 +14,8 @@ use std::path::{Path, PathBuf};
 use std::process::Command;
 use std::time::{Duration, Instant};
 
-use rotorloop_common::ipc::{Domain, Topic, shutdown_requested};
+use rotorloop_common::graph::{Role, Topic};
+use rotorloop_common::ipc::{Domain, shutdown_requested};
 
 use rotorloop_common::role::UsageError;
 
@@ -22,7 +23,7 @@ use rotorloop_common::role::UsageError;
 #[derive(Debug, Clone, PartialEq)]
 pub struct Split {
     hosts: Vec<String>,
-    role_host: BTreeMap<String, String>,
+    role_host: BTreeMap<Role, String>,
 }
 
 impl Split {
@@ -46,22 +47,18 @@ impl Split {
                 hosts.push(host.to_owned());
             }
             for role in roles.split(',') {
-                if !crate::run::supervise::ROLES.contains(&role) {
-                    return Err(bad(format!(
-                        "`{role}` is not a role (plant, reference, controller, monitor)"
-                    )));
-                }
-                if role_host.insert(role.to_owned(), host.to_owned()).is_some() {
+                let role: Role = role.parse().map_err(|e| bad(format!("{e}")))?;
+                if role_host.insert(role, host.to_owned()).is_some() {
                     return Err(bad(format!("{role} is placed twice")));
                 }
             }
         }
-        for role in crate::run::supervise::ROLES.iter().filter(|r| **r != "monitor" || monitor) {
-            if !role_host.contains_key(*role) {
+        for role in Role::ALL.iter().filter(|r| **r != Role::Monitor || monitor) {
+            if !role_host.contains_key(role) {
                 return Err(bad(format!("{role} is on no host")));
             }
         }
-        if !monitor && role_host.contains_key("monitor") {
+        if !monitor && role_host.contains_key(&Role::Monitor) {
             return Err(bad("the monitor is placed but --no-monitor is given".into()));
         }
         if hosts.len() != 2 {
@@ -79,8 +76,13 @@ impl Split {
     pub fn host_of(&self, role: &str) -> Option<&str> {
         match role.strip_prefix("link-") {
             Some(h) => self.hosts.iter().find(|x| *x == h).map(String::as_str),
-            None => self.role_host.get(role).map(String::as_str),
+            None => role.parse().ok().and_then(|r| self.host(r)),
         }
+    }
+
+    /// The host of `role`.
+    pub fn host(&self, role: Role) -> Option<&str> {
+        self.role_host.get(&role).map(String::as_str)
     }
 
     /// The gateways' names as the launcher knows them (`link-HOST`).
@@ -89,42 +91,35 @@ impl Split {
     }
 
     /// The roles on `host`.
-    pub fn roles_on(&self, host: &str) -> Vec<&str> {
-        let on = |r: &&str| self.role_host.get(*r).is_some_and(|h| h == host);
-        crate::run::supervise::ROLES.iter().copied().filter(on).collect()
+    pub fn roles_on(&self, host: &str) -> Vec<Role> {
+        Role::ALL.into_iter().filter(|r| self.host(*r) == Some(host)).collect()
     }
 
     /// The host that only watches (every role of it is the monitor): its gateway is
     /// read-only.
     pub fn read_only(&self, host: &str) -> bool {
-        self.roles_on(host).iter().all(|r| *r == "monitor")
+        self.roles_on(host).iter().all(|r| *r == Role::Monitor)
     }
 
     /// How many subscribers of the state the plant waits for on its host: the roles there
     /// and, when a role elsewhere reads states, the gateway's subscriber.
     pub fn plant_subscribers(&self) -> usize {
-        let here = self.host_of("plant").unwrap_or_default();
-        let readers = ["reference", "controller", "monitor"];
-        let local = readers.iter().filter(|r| self.host_of(r) == Some(here)).count();
-        let remote = readers.iter().any(|r| self.host_of(r).is_some_and(|h| h != here));
+        let here = self.host(Role::Plant);
+        let readers = Topic::State.subscribers().iter().filter_map(|r| self.host(*r));
+        let local = readers.clone().filter(|h| Some(*h) == here).count();
+        let remote = readers.into_iter().any(|h| Some(h) != here);
         local + usize::from(remote)
     }
 
     /// The topics the plant's host must have (mirrored) before its roles start: those the
     /// roles of the other host use.
     pub fn topics_needed_at_plant(&self) -> Vec<Topic> {
-        let here = self.host_of("plant").unwrap_or_default();
-        let remote = |r: &str| self.host_of(r).is_some_and(|h| h != here);
-        let mut topics = Vec::new();
-        if ["reference", "controller", "monitor"].iter().any(|r| remote(r)) {
-            topics.push(Topic::State);
-        }
-        if remote("controller") || remote("monitor") {
-            topics.extend([Topic::Reference, Topic::Torque]);
-        } else if remote("reference") {
-            topics.push(Topic::Reference);
-        }
-        topics
+        let here = self.host(Role::Plant);
+        let remote: Vec<Role> = Role::ALL
+            .into_iter()
+            .filter(|r| self.host(*r).is_some_and(|h| Some(h) != here))
+            .collect();
+        Topic::ALL.into_iter().filter(|t| remote.iter().any(|r| r.uses(*t))).collect()
     }
 
     /// Whether every host's gateway has written its ready file in `dir` (is connected).

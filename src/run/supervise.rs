@@ -19,10 +19,9 @@ use std::collections::BTreeMap;
 use std::os::unix::process::ExitStatusExt;
 use std::process::{Child, ExitStatus};
 
-use rotorloop_common::role::UsageError;
+use rotorloop_common::graph::Role;
 
-/// The roles, in start order (the monitor first, so it sees tick 0).
-pub const ROLES: [&str; 4] = ["monitor", "reference", "controller", "plant"];
+use rotorloop_common::role::UsageError;
 
 /// When a role that ended on its own is started again (systemd's `Restart=`).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -70,7 +69,7 @@ pub fn parse_restart(s: &str) -> Result<BTreeMap<String, RestartPolicy>, UsageEr
     let mut by_role = BTreeMap::new();
     for part in s.split(',').filter(|p| !p.is_empty()) {
         match part.split_once('=') {
-            Some((role, p)) if ROLES.contains(&role) => {
+            Some((role, p)) if role.parse::<Role>().is_ok() => {
                 by_role.insert(role.to_owned(), p.parse().map_err(bad)?);
             }
             Some((role, _)) => {
@@ -81,7 +80,10 @@ pub fn parse_restart(s: &str) -> Result<BTreeMap<String, RestartPolicy>, UsageEr
             None => default = part.parse().map_err(bad)?,
         }
     }
-    Ok(ROLES.iter().map(|r| (r.to_string(), by_role.get(*r).copied().unwrap_or(default))).collect())
+    Ok(Role::ALL
+        .iter()
+        .map(|r| (r.to_string(), by_role.get(r.name()).copied().unwrap_or(default)))
+        .collect())
 }
 
 /// At most `burst` unplanned restarts of one role within `window_s` seconds.
@@ -352,12 +354,12 @@ pub struct Marks {
 
 impl Marks {
     /// The mark of `role`.
-    pub fn of(&self, role: &str) -> Option<u64> {
+    pub fn of(&self, role: Role) -> Option<u64> {
         match role {
-            "plant" => self.plant,
-            "controller" => self.controller,
-            "reference" => self.reference_next,
-            _ => self.monitor_next,
+            Role::Plant => self.plant,
+            Role::Controller => self.controller,
+            Role::Reference => self.reference_next,
+            Role::Monitor => self.monitor_next,
         }
     }
 
@@ -368,17 +370,17 @@ impl Marks {
     /// last answer (in lockstep, only once that state's reference is there). The reference:
     /// the plant has reached the tick it has yet to publish. The monitor: rows of which
     /// every sample is out (two ticks behind the slowest of the others).
-    pub fn work_waiting(&self, role: &str, lockstep: bool, lead: u64) -> bool {
+    pub fn work_waiting(&self, role: Role, lockstep: bool, lead: u64) -> bool {
         let Some(p) = self.plant else { return false };
         let answered = |c: Option<u64>| c.is_some_and(|c| c >= p);
         match role {
-            "plant" => !lockstep || answered(self.controller),
-            "controller" => {
+            Role::Plant => !lockstep || answered(self.controller),
+            Role::Controller => {
                 !answered(self.controller)
                     && (!lockstep || self.reference_next.is_some_and(|n| n > p))
             }
-            "reference" => self.reference_next.is_none_or(|n| n <= p.min(p + lead)),
-            _ => {
+            Role::Reference => self.reference_next.is_none_or(|n| n <= p.min(p + lead)),
+            Role::Monitor => {
                 let out = p
                     .min(self.controller.unwrap_or(0))
                     .min(self.reference_next.unwrap_or(0).saturating_sub(1));
@@ -559,24 +561,30 @@ mod tests {
             monitor_next,
         };
         // Before tick 0 nothing waits.
-        assert!(ROLES.iter().all(|r| !m(None, None, Some(17), None).work_waiting(r, true, 16)));
+        assert!(
+            Role::ALL.iter().all(|r| !m(None, None, Some(17), None).work_waiting(*r, true, 16))
+        );
         // Lockstep, the controller hangs at tick 10: it is to blame; the plant waits.
         let hung_controller = m(Some(10), Some(9), Some(27), Some(8));
-        assert!(hung_controller.work_waiting("controller", true, 16));
-        assert!(!hung_controller.work_waiting("plant", true, 16));
-        assert!(!hung_controller.work_waiting("reference", true, 16));
-        assert!(!hung_controller.work_waiting("monitor", true, 16));
+        assert!(hung_controller.work_waiting(Role::Controller, true, 16));
+        assert!(!hung_controller.work_waiting(Role::Plant, true, 16));
+        assert!(!hung_controller.work_waiting(Role::Reference, true, 16));
+        assert!(!hung_controller.work_waiting(Role::Monitor, true, 16));
         // Lockstep, the reference hangs before tick 10: it is to blame, not the controller.
         let hung_reference = m(Some(10), Some(9), Some(10), Some(8));
-        assert!(hung_reference.work_waiting("reference", true, 16));
-        assert!(!hung_reference.work_waiting("controller", true, 16));
+        assert!(hung_reference.work_waiting(Role::Reference, true, 16));
+        assert!(!hung_reference.work_waiting(Role::Controller, true, 16));
         // Lockstep, the controller answered 10 and the plant has not moved on: the plant.
-        assert!(m(Some(10), Some(10), Some(27), Some(8)).work_waiting("plant", true, 16));
+        assert!(m(Some(10), Some(10), Some(27), Some(8)).work_waiting(Role::Plant, true, 16));
         // Real time: the plant always has work; the monitor has rows waiting.
         let monitor_behind = m(Some(100), Some(100), Some(117), Some(50));
-        assert!(monitor_behind.work_waiting("plant", false, 16));
-        assert!(monitor_behind.work_waiting("monitor", false, 16));
-        assert!(!m(Some(100), Some(100), Some(117), Some(99)).work_waiting("monitor", false, 16));
+        assert!(monitor_behind.work_waiting(Role::Plant, false, 16));
+        assert!(monitor_behind.work_waiting(Role::Monitor, false, 16));
+        assert!(!m(Some(100), Some(100), Some(117), Some(99)).work_waiting(
+            Role::Monitor,
+            false,
+            16
+        ));
     }
 
     #[test]

@@ -6,7 +6,7 @@ use glam::DVec3;
 use rand::Rng;
 use rand_chacha::ChaCha8Rng;
 use rotorloop_common::{Actuation, ActuatorLimits, Scenario};
-use rotorloop_controller::{ControlOutput, GeometricPid};
+use rotorloop_controller::law::{AnyLaw, ControlOutput, Law};
 use rotorloop_monitor::{Metrics, TraceRow};
 use rotorloop_plant::policy::{ActuationDelay, DelayLine, integrate_tick};
 use rotorloop_plant::{Body, BodyInput};
@@ -46,7 +46,7 @@ impl DrawnDelays {
 pub struct ClosedLoop {
     plant: Body,
     reference: Reference,
-    pid: GeometricPid,
+    law: AnyLaw,
     /// The controller switched off and this rotor torque held (N m): for checking the
     /// physics against other simulators.
     open_loop: Option<DVec3>,
@@ -73,13 +73,12 @@ impl ClosedLoop {
         let body = scenario.plant_params(actuation);
         let plant = Body::new(body, scenario.plant_init);
         let limits = scenario.limits_for(actuation);
-        let pid = GeometricPid::new(scenario.gains, scenario.controller_params(actuation))
-            .with_limits(limits, scenario.anti_windup);
+        let law = AnyLaw::for_scenario(scenario, actuation);
         let metrics = Metrics::new(body, &plant.state()).with_disturbance(scenario.disturbance);
         Self {
             plant,
             reference,
-            pid,
+            law,
             open_loop,
             metrics,
             actuation,
@@ -143,7 +142,7 @@ impl ClosedLoop {
         let x = self.plant.state();
         let rd = self.reference.sample(t);
         let out = match self.open_loop {
-            None => self.pid.step(&x, &rd, self.dt),
+            None => self.law.step(&x, &rd, self.dt),
             Some(u) => ControlOutput { rotor_torque: u, ..ControlOutput::default() },
         };
         // The motors deliver what their limits allow (the trace keeps the command).

@@ -13,13 +13,14 @@ use rotorloop_common::wire::FLAG_LAST;
 
 pub use args::ControllerArgs;
 
+use crate::ROLE;
 use crate::policy::{DelayedSends, ReferencePairing, TorqueAnswers};
 use ports::Ports;
 
 /// Runs the controller until the plant's last tick or a termination signal.
 pub fn run(args: &ControllerArgs) -> anyhow::Result<()> {
     let (role, scenario) = (&args.role, args.role.scenario()?);
-    role.setup("controller");
+    role.setup(ROLE);
     let mut ports = Ports::open(role, scenario.ticks())?;
     let dt = scenario.dt();
     let skip_at = test_hook("ROTORLOOP_TEST_SKIP_STATE_AT");

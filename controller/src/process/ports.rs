@@ -6,12 +6,14 @@ use std::cell::Cell;
 use anyhow::Context;
 use rotorloop_common::ReferenceState;
 use rotorloop_common::flight::{FlightRecorder, Stream};
-use rotorloop_common::ipc::{Inbox, Outbox, RoleNode, Topic, Wait, now_ns, shutdown_requested};
+use rotorloop_common::graph::Topic;
+use rotorloop_common::ipc::{Inbox, Outbox, RoleNode, Wait, now_ns, shutdown_requested};
 use rotorloop_common::resume::ResumeSlot;
 use rotorloop_common::role::{Corrupt, PlantWatch, RoleArgs, corrupted};
 use rotorloop_common::wire::SendCost;
 use rotorloop_common::wire::{NO_TICK, ReferenceSample, StateSample, TorqueSample, WireFault};
 
+use crate::ROLE;
 use crate::policy::{Decision, DelayedSends, ReferencePairing, TorqueAnswers};
 
 /// What the controller opens: its torque publisher, reference and state subscribers,
@@ -34,16 +36,16 @@ pub(super) struct Ports {
 impl Ports {
     pub fn open(role: &RoleArgs, ticks: u64) -> anyhow::Result<Self> {
         let domain = role.open_domain()?;
-        let flight = role.flight(Stream::ControllerTorque, ticks, "controller");
-        let node = domain.node("controller").context("controller")?;
-        let out = domain.outbox::<TorqueSample>(&node, Topic::Torque).context("controller")?;
+        let flight = role.flight(Stream::ControllerTorque, ticks, ROLE);
+        let node = domain.node(ROLE).context(ROLE)?;
+        let out = domain.outbox::<TorqueSample>(&node, Topic::Torque).context(ROLE)?;
         // Subscribe to the state last: the plant starts when it sees its state subscribers.
         let refs = domain.inbox::<ReferenceSample>(&node, Topic::Reference, 128, false);
-        let refs = refs.context("controller")?;
+        let refs = refs.context(ROLE)?;
         let states = domain.inbox::<StateSample>(&node, Topic::State, 8, role.wait.listens());
-        let states = states.context("controller")?;
-        let slot = ResumeSlot::<TorqueSample>::open(&domain, "controller").context("controller")?;
-        let plant = PlantWatch::open(&domain, "controller").context("controller")?;
+        let states = states.context(ROLE)?;
+        let slot = ResumeSlot::<TorqueSample>::open(&domain, ROLE).context(ROLE)?;
+        let plant = PlantWatch::open(&domain, ROLE).context(ROLE)?;
         let last_publish = Cell::new((NO_TICK, SendCost::default()));
         let lazy_refs = !role.plain_hot_path;
         Ok(Self { out, refs, states, slot, plant, flight, lazy_refs, last_publish, _node: node })

@@ -13,6 +13,7 @@ use rotorloop_common::ipc::{now_ns, shutdown_requested};
 
 pub use args::MonitorArgs;
 
+use crate::ROLE;
 use crate::assemble::final_report;
 use crate::policy::{END_QUIET_NS, RowJoiner};
 use crate::recording::{Recording, fallback_dir};
@@ -22,7 +23,7 @@ use ports::Ports;
 /// Runs the monitor until it has the last row, or a termination signal.
 pub fn run(args: &MonitorArgs) -> anyhow::Result<()> {
     let (role, scenario) = (&args.role, args.role.scenario()?);
-    role.setup("monitor");
+    role.setup(ROLE);
     let ports = Ports::open(role, &args.out)?;
     // A restart continues the report in the same directory.
     let (mut rec, resumed) = Recording::open(&args.out, &scenario, ports.slot.load(), now_ns());

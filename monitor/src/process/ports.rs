@@ -2,11 +2,13 @@
 //! listener: it polls), its resume slot, and its view of the plant's end.
 
 use anyhow::Context;
-use rotorloop_common::ipc::{Inbox, MAX_BUFFER, RoleNode, Topic};
+use rotorloop_common::graph::Topic;
+use rotorloop_common::ipc::{Inbox, MAX_BUFFER, RoleNode};
 use rotorloop_common::resume::ResumeSlot;
 use rotorloop_common::role::{PlantEnd, RoleArgs};
 use rotorloop_common::wire::{ReferenceSample, StateSample, TorqueSample};
 
+use crate::ROLE;
 use crate::policy::{MonitorResume, RowJoiner};
 
 /// The monitor's subscribers, resume slot and plant-end view.
@@ -24,14 +26,14 @@ pub(super) struct Ports {
 impl Ports {
     pub fn open(role: &RoleArgs, out: &std::path::Path) -> anyhow::Result<Self> {
         let domain = role.open_domain()?;
-        let node = domain.node("monitor").context("monitor")?;
+        let node = domain.node(ROLE).context(ROLE)?;
         // Subscribe to the state last: the plant starts when it sees its state subscribers,
         // so everything else must already be connected by then.
         let refs = domain.inbox::<ReferenceSample>(&node, Topic::Reference, MAX_BUFFER, false)?;
         let torques = domain.inbox::<TorqueSample>(&node, Topic::Torque, MAX_BUFFER, false)?;
         let states = domain.inbox::<StateSample>(&node, Topic::State, MAX_BUFFER, false)?;
-        let slot = ResumeSlot::<MonitorResume>::open(&domain, "monitor").context("monitor")?;
-        let plant_end = PlantEnd::open(&domain).context("monitor")?;
+        let slot = ResumeSlot::<MonitorResume>::open(&domain, ROLE).context(ROLE)?;
+        let plant_end = PlantEnd::open(&domain).context(ROLE)?;
         // iceoryx2's own CLI finds the domain from here: `cd OUT && iox2 service list`.
         let _ = domain.write_iox2_config(out);
         let domain_name = domain.name().to_owned();

@@ -15,13 +15,14 @@ use rotorloop_common::wire::StateSample;
 
 pub use args::PlantArgs;
 
+use crate::ROLE;
 use crate::policy::{Answer, PlantTicker};
 use wait::{Ports, SenseToActuate, TorqueWait};
 
 /// Runs the plant until its last tick or a termination signal.
 pub fn run(args: &PlantArgs) -> anyhow::Result<()> {
     let (role, scenario) = (&args.role, args.role.scenario()?);
-    role.setup("plant");
+    role.setup(ROLE);
     let ports = Ports::open(role, scenario.ticks())?;
     let realtime = role.mode == Mode::Realtime;
     let mut plant = PlantTicker::new(&scenario, args.hold_ticks, realtime, args.actuation_delay);

@@ -5,12 +5,14 @@
 use anyhow::Context;
 use hdrhistogram::Histogram;
 use rotorloop_common::flight::{FlightRecorder, Stream};
+use rotorloop_common::graph::Topic;
 use rotorloop_common::hgrm::write_hgrm_file;
-use rotorloop_common::ipc::{Inbox, Outbox, RoleNode, Topic, now_ns};
+use rotorloop_common::ipc::{Inbox, Outbox, RoleNode, now_ns};
 use rotorloop_common::resume::ResumeSlot;
 use rotorloop_common::role::RoleArgs;
 use rotorloop_common::wire::{StateSample, TorqueSample};
 
+use crate::ROLE;
 use crate::policy::{Answer, PlantTicker, Settled};
 
 /// What the plant opens: its state publisher, torque subscriber and resume slot, and its
@@ -27,13 +29,13 @@ pub(super) struct Ports {
 impl Ports {
     pub fn open(role: &RoleArgs, ticks: u64) -> anyhow::Result<Self> {
         let domain = role.open_domain()?;
-        let states_flight = role.flight(Stream::PlantState, ticks, "plant");
-        let torques_flight = role.flight(Stream::PlantTorque, ticks, "plant");
-        let node = domain.node("plant").context("plant")?;
-        let states = domain.outbox::<StateSample>(&node, Topic::State).context("plant")?;
+        let states_flight = role.flight(Stream::PlantState, ticks, ROLE);
+        let torques_flight = role.flight(Stream::PlantTorque, ticks, ROLE);
+        let node = domain.node(ROLE).context(ROLE)?;
+        let states = domain.outbox::<StateSample>(&node, Topic::State).context(ROLE)?;
         let torques = domain.inbox::<TorqueSample>(&node, Topic::Torque, 16, role.wait.listens());
-        let slot = ResumeSlot::<StateSample>::open(&domain, "plant").context("plant")?;
-        let torques = torques.context("plant")?;
+        let slot = ResumeSlot::<StateSample>::open(&domain, ROLE).context(ROLE)?;
+        let torques = torques.context(ROLE)?;
         Ok(Self { states, torques, slot, states_flight, torques_flight, _node: node })
     }
 }

@@ -1,36 +1,37 @@
-//! The `reference` process: a thin shell over [`LeadWindow`] (the rule, in
-//! [`crate::policy`]). It publishes `R_d, Ω_d, Ω̇_d` up to the lead ahead of the newest
-//! state, so the controller never waits for it; a restart re-publishes its window and
-//! continues. It reads only the tick and the flags of state samples, so it needs no
-//! validation. Whatever `--wait` says it never spins (it is off the hot path, and a spinning
-//! loop must not get a third busy process): see [`ReferenceArgs::wait`].
+//! The `reference` process: a thin shell over [`LeadWindow`] (the rule, in [`crate::policy`]).
+//! It publishes `R_d, Ω_d, Ω̇_d` up to the lead ahead of the newest state, so the controller
+//! never waits for it; a restart re-publishes its window and continues. It reads only the
+//! tick and flags of states, so it needs no validation. It never spins, whatever `--wait`
+//! says (it is off the hot path; a spinning loop must not get a third busy process).
 
 mod args;
 
 use anyhow::Context;
 use rotorloop_common::flight::Stream;
-use rotorloop_common::ipc::{Topic, now_ns, shutdown_requested};
+use rotorloop_common::graph::Topic;
+use rotorloop_common::ipc::{now_ns, shutdown_requested};
 use rotorloop_common::resume::ResumeSlot;
 use rotorloop_common::role::{PlantWatch, corrupted, linger_publisher, test_hook};
 use rotorloop_common::wire::{FLAG_LAST, ReferenceSample, StateSample};
 
 pub use args::ReferenceArgs;
 
+use crate::ROLE;
 use crate::policy::{LeadWindow, ReferenceResume};
 
 /// Runs the reference generator until the plant's last tick or a termination signal.
 pub fn run(args: &ReferenceArgs) -> anyhow::Result<()> {
     let (role, scenario) = (&args.role, args.role.scenario()?);
-    role.setup("reference");
+    role.setup(ROLE);
     let domain = role.open_domain()?;
-    let node = domain.node("reference").context("reference")?;
-    let out = domain.outbox::<ReferenceSample>(&node, Topic::Reference).context("reference")?;
+    let node = domain.node(ROLE).context(ROLE)?;
+    let out = domain.outbox::<ReferenceSample>(&node, Topic::Reference).context(ROLE)?;
     let wait = args.wait(scenario.dt());
     let states = domain.inbox::<StateSample>(&node, Topic::State, 8, wait.listens())?;
-    let slot = ResumeSlot::<ReferenceResume>::open(&domain, "reference").context("reference")?;
-    let mut plant = PlantWatch::open(&domain, "reference").context("reference")?;
+    let slot = ResumeSlot::<ReferenceResume>::open(&domain, ROLE).context(ROLE)?;
+    let mut plant = PlantWatch::open(&domain, ROLE).context(ROLE)?;
     let mut lead = LeadWindow::new(&scenario);
-    let flight = role.flight(Stream::Reference, scenario.ticks(), "reference");
+    let flight = role.flight(Stream::Reference, scenario.ticks(), ROLE);
     let send =
         |s: ReferenceSample| out.send_then(s, |s| s.publish_ns = now_ns(), |s| flight.record(s));
     if let Some(r) = slot.load().filter(|r| lead.can_resume(r)) {
@@ -39,8 +40,7 @@ pub fn run(args: &ReferenceArgs) -> anyhow::Result<()> {
         }
         eprintln!("reference: resuming after tick {} (its window re-published)", lead.next() - 1);
     } else if let Some(ms) = test_hook("ROTORLOOP_TEST_REFERENCE_LATE_MS") {
-        // Test hook: a first incarnation starts this late, so that the first states reach
-        // the controller before any reference does.
+        // Test hook: a first incarnation starts late; states reach the controller first.
         std::thread::sleep(std::time::Duration::from_millis(ms));
     }
     let mut saw_last = false;

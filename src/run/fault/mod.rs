@@ -10,7 +10,7 @@ pub mod report;
 
 use rotorloop_common::ipc::now_ns;
 
-use crate::run::supervise::ROLES;
+use rotorloop_common::graph::Role;
 use rotorloop_common::role::UsageError;
 
 /// What a `--fault` does.
@@ -68,7 +68,7 @@ pub fn parse_fault(s: &str) -> Result<Fault, UsageError> {
         return Err(bad("two or three parts"));
     }
     let gateway = parts[0].strip_prefix("link-").is_some_and(|h| !h.is_empty());
-    if !ROLES.contains(&parts[0]) && !gateway {
+    if parts[0].parse::<Role>().is_err() && !gateway {
         return Err(bad(
             "ROLE is plant, reference, controller, monitor or (with --split) link-HOST",
         ));
@@ -92,7 +92,7 @@ pub fn parse_fault(s: &str) -> Result<Fault, UsageError> {
                 true => Ok(d),
                 false => Err(bad("the delay must be > 0 and ≤ 60 s")),
             })?;
-            if parts[0] != "controller" {
+            if parts[0] != Role::Controller.name() {
                 return Err(bad("only the controller's answers can be delayed"));
             }
             (FaultKind::Delay(d), "delay@", "until@")

@@ -1,0 +1,143 @@
+//! The control laws, behind one interface: [`Law`]. A law is built in one place
+//! ([`AnyLaw::for_scenario`]) for the `controller` process and the in-process loop alike,
+//! so the lockstep run and the simulator run the same law with the same state.
+//!
+//! Adding a law: a module here with its struct and its `impl Law`, a variant of
+//! [`AnyLaw`] (and its arm in `for_scenario`), and its name in the scenario file's
+//! `[controller] law` (`rotorloop_common::params::LawName`).
+//!
+//! - [`geometric_pid`]: the paper's geometric PID almost-global tracking law.
+
+pub mod geometric_pid;
+
+use glam::DVec3;
+use rotorloop_common::params::LawName;
+use rotorloop_common::{Actuation, ReferenceState, RotorBodyState, Scenario};
+
+use geometric_pid::GeometricPid;
+
+/// Everything the law computes in one tick.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct ControlOutput {
+    /// Rotor torque `u = K(Ω+Ω_r)×Ω − τ` (N m).
+    pub rotor_torque: DVec3,
+    /// Body torque `τ = IΩ̇* − (IΩ)×Ω` (N m): what a gas-jet body would apply.
+    pub body_torque: DVec3,
+    /// `s = vee(PE − EᵀP)`, the gradient of ψ.
+    pub s: DVec3,
+    /// `η = R(Ω_d − Ω)`, the error velocity.
+    pub eta: DVec3,
+    /// `ψ(E) = tr(P(I − E))`.
+    pub psi: f64,
+    /// The integral state used at this tick, `ξ_I,k`.
+    pub xi_i: DVec3,
+    /// Whether the actuator limits change `u` at this tick (set by [`GeometricPid::step`]).
+    pub saturated: bool,
+}
+
+/// A law's internal state, as a restarted controller takes it over (bumpless restart):
+/// fixed-size, so it fits a resume slot. The geometric PID uses the first three numbers
+/// (`ξ_I`).
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct LawState(pub [f64; LawState::LEN]);
+
+impl LawState {
+    /// Numbers a law may keep.
+    pub const LEN: usize = 8;
+
+    /// The state of a law whose whole state is one vector (the PID's `ξ_I`).
+    pub fn of_vector(v: DVec3) -> Self {
+        let mut s = [0.0; Self::LEN];
+        s[..3].copy_from_slice(&v.to_array());
+        Self(s)
+    }
+
+    /// The first three numbers as a vector.
+    pub fn vector(&self) -> DVec3 {
+        DVec3::new(self.0[0], self.0[1], self.0[2])
+    }
+}
+
+/// A control law: one tick's torques from the state and the reference at that tick.
+pub trait Law {
+    /// Computes the tick's torques from the state and reference at tick `k`, then
+    /// advances the law's internal state over the tick.
+    fn step(&mut self, x: &RotorBodyState, reference: &ReferenceState, dt: f64) -> ControlOutput;
+
+    /// The internal state a restarted controller continues from.
+    fn state(&self) -> LawState;
+
+    /// Continues from `state` (bumpless restart).
+    fn restore(&mut self, state: &LawState);
+}
+
+/// Every law, as one type: what the controller and the in-process loop hold. An enum,
+/// not a `Box<dyn Law>`: no allocation, and the tick's call is a match.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum AnyLaw {
+    /// The paper's law.
+    GeometricPid(GeometricPid),
+}
+
+impl AnyLaw {
+    /// The law `scenario` names, with its gains, the controller's body model for
+    /// `actuation`, and the actuator limits it knows of; internal state zero.
+    pub fn for_scenario(scenario: &Scenario, actuation: Actuation) -> Self {
+        match scenario.law {
+            LawName::GeometricPid => Self::GeometricPid(
+                GeometricPid::new(scenario.gains, scenario.controller_params(actuation))
+                    .with_limits(scenario.limits_for(actuation), scenario.anti_windup),
+            ),
+        }
+    }
+}
+
+impl Law for AnyLaw {
+    #[inline]
+    fn step(&mut self, x: &RotorBodyState, reference: &ReferenceState, dt: f64) -> ControlOutput {
+        match self {
+            Self::GeometricPid(l) => l.step(x, reference, dt),
+        }
+    }
+
+    fn state(&self) -> LawState {
+        match self {
+            Self::GeometricPid(l) => l.state(),
+        }
+    }
+
+    fn restore(&mut self, state: &LawState) {
+        match self {
+            Self::GeometricPid(l) => l.restore(state),
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_scenario_names_the_law_and_a_restored_law_continues_bit_for_bit() {
+        let s = Scenario::load("paper-sinusoid").expect("built-in");
+        assert_eq!(s.law, LawName::GeometricPid, "the default law");
+        let a = s.actuation();
+        let mut law = AnyLaw::for_scenario(&s, a);
+        let AnyLaw::GeometricPid(pid) = law;
+        assert_eq!(pid.gains(), &s.gains);
+        let (x, dt) = (s.plant_init, s.dt());
+        let rd = ReferenceState {
+            r_d: s.reference_attitude,
+            omega_d: s.reference_omega,
+            omega_d_dot: DVec3::ZERO,
+        };
+        for _ in 0..3 {
+            law.step(&x, &rd, dt);
+        }
+        assert_ne!(law.state(), LawState::default(), "ξ_I moved");
+        let mut restarted = AnyLaw::for_scenario(&s, a);
+        restarted.restore(&law.state());
+        assert_eq!(restarted.step(&x, &rd, dt), law.step(&x, &rd, dt));
+        assert_eq!(restarted.state(), law.state());
+    }
+}
