@@ -119,13 +119,13 @@ struct SimArgs {
     /// or the path of a TOML file.
     #[arg(long, required_unless_present = "replay")]
     scenario: Option<String>,
-    /// Simulated seconds [default: the scenario's, 30].
+    /// Simulated seconds (default: the scenario's, 30).
     #[arg(long, allow_negative_numbers = true)]
     duration: Option<f64>,
-    /// Tick rate in Hz [default: the scenario's, 1000].
+    /// Tick rate in Hz (default: the scenario's, 1000).
     #[arg(long, allow_negative_numbers = true)]
     rate: Option<f64>,
-    /// `internal` (rotors) or `external` (gas jets) [default: the scenario's].
+    /// `internal` (rotors) or `external` (gas jets) (default: the scenario's).
     #[arg(long)]
     actuation: Option<Actuation>,
     /// Switch the controller off and hold this rotor torque (N m): U1,U2,U3.

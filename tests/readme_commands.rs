@@ -5,9 +5,12 @@
 //! - the two set-up commands (the first code block under "Two commands") resolve and
 //!   start exactly as written (`--help` appended to the program's arguments, or `--list`
 //!   to the test harness's, so nothing long runs), and `.ci/run` calls the test command;
-//! - every other `rotorloop …` command line in the README (code blocks and inline code)
-//!   names a subcommand that exists and only flags that subcommand accepts; the ones in
-//!   code blocks, which are meant to be pasted, also parse with their values.
+//! - every other `rotorloop …` command line in the README and in `docs/*.md` (code blocks
+//!   and inline code) names a subcommand that exists and only flags that subcommand
+//!   accepts; the ones in code blocks, which are meant to be pasted, also parse with
+//!   their values;
+//! - the README is a front page (at most 200 lines) whose links to `docs/` all resolve,
+//!   and every page in `docs/` is linked from it.
 
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
@@ -185,28 +188,54 @@ fn readme_test_command_resolves_and_ci_runs_it() {
     );
 }
 
-/// Every `rotorloop …` command line of the README names an existing subcommand and only
-/// flags it accepts; those in code blocks parse with their values as written.
+/// The guide's pages: `docs/*.md`, with their text.
+fn docs_pages() -> Vec<(String, String)> {
+    let mut pages: Vec<(String, String)> = std::fs::read_dir(root().join("docs"))
+        .expect("docs/")
+        .flatten()
+        .map(|e| e.path())
+        .filter(|p| p.extension().is_some_and(|e| e == "md"))
+        .map(|p| {
+            let name = format!("docs/{}", p.file_name().expect("a name").to_string_lossy());
+            (name, std::fs::read_to_string(&p).expect("a page"))
+        })
+        .collect();
+    pages.sort();
+    pages
+}
+
+/// Every `rotorloop …` command line of the README and of the guide names an existing
+/// subcommand and only flags it accepts; those in code blocks parse with their values as
+/// written.
 #[test]
-fn every_readme_command_line_parses() {
-    let lines = command_lines(&readme());
-    assert!(lines.len() > 15, "found only {} command lines in README.md", lines.len());
+fn every_command_line_of_the_readme_and_the_docs_parses() {
+    let mut lines: Vec<(String, (String, bool))> =
+        command_lines(&readme()).into_iter().map(|l| ("README.md".to_owned(), l)).collect();
+    let in_readme = lines.len();
+    for (page, text) in docs_pages() {
+        lines.extend(command_lines(&text).into_iter().map(|l| (page.clone(), l)));
+    }
+    assert!(in_readme >= 3, "found only {in_readme} command lines in README.md");
+    assert!(lines.len() > 40, "found only {} command lines in README.md and docs/", lines.len());
     let mut problems = Vec::new();
-    for (line, pasteable) in &lines {
+    for (page, (line, pasteable)) in &lines {
         let (sub, rest) = split_command(line);
         let mut help_args = sub.clone();
         help_args.push("--help".into());
         let o = rotorloop(&help_args);
         if !o.status.success() {
-            problems.push(format!("`{line}`: `rotorloop {}` is not a command", sub.join(" ")));
+            problems
+                .push(format!("{page}: `{line}`: `rotorloop {}` is not a command", sub.join(" ")));
             continue;
         }
         let help = String::from_utf8_lossy(&o.stdout).into_owned();
         let accepted = flags_in(&help);
         for flag in flags_in(&rest.join(" ")) {
             if !accepted.contains(&flag) {
-                problems
-                    .push(format!("`{line}`: `rotorloop {}` has no flag `{flag}`", sub.join(" ")));
+                problems.push(format!(
+                    "{page}: `{line}`: `rotorloop {}` has no flag `{flag}`",
+                    sub.join(" ")
+                ));
             }
         }
         if *pasteable {
@@ -215,11 +244,34 @@ fn every_readme_command_line_parses() {
             args.push("--help".into());
             let o = rotorloop(&args);
             if !o.status.success() {
-                problems.push(format!("`{line}` does not parse: {}", text(&o).trim()));
+                problems.push(format!("{page}: `{line}` does not parse: {}", text(&o).trim()));
             }
         }
     }
-    assert!(problems.is_empty(), "README command lines that do not work:\n{}", problems.join("\n"));
+    assert!(problems.is_empty(), "command lines that do not work:\n{}", problems.join("\n"));
+}
+
+/// The README is a front page: at most 200 lines, its links into `docs/` resolve, and
+/// every page of the guide is linked from it (a page nobody links is a page nobody reads).
+#[test]
+fn the_readme_is_a_front_page_that_links_every_page_of_the_guide() {
+    let readme = readme();
+    let lines = readme.lines().count();
+    assert!(lines <= 200, "README.md has {lines} lines; the front page keeps to 200");
+    let links: Vec<&str> = readme
+        .split("](")
+        .skip(1)
+        .filter_map(|l| l.split(')').next())
+        .filter(|l| l.starts_with("docs/"))
+        .collect();
+    for link in &links {
+        assert!(root().join(link).exists(), "README.md links `{link}`, which does not exist");
+    }
+    let pages = docs_pages();
+    assert!(pages.len() >= 9, "docs/ has only {} pages", pages.len());
+    for (page, _) in &pages {
+        assert!(links.contains(&page.as_str()), "README.md does not link {page}");
+    }
 }
 
 /// The extraction itself: the set-up block is two commands, and a table cell's escaped

@@ -329,10 +329,20 @@ impl<T: Record> Drop for FlightRecorder<T> {
 pub enum FlightError {
     /// No file (the role ran without `--record`, or could not create it).
     #[error("{path}: no flight record ({why})")]
-    Missing { path: String, why: String },
+    Missing {
+        /// The file.
+        path: String,
+        /// Why there is none.
+        why: String,
+    },
     /// A file of another build or another sample type.
     #[error("{path}: {why}")]
-    Foreign { path: String, why: String },
+    Foreign {
+        /// The file.
+        path: String,
+        /// What does not match.
+        why: String,
+    },
 }
 
 /// Whether `stream`'s file in `dir` holds a complete record of tick `k` (a read of its

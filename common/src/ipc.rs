@@ -31,16 +31,33 @@ pub enum IpcError {
          characters with the domain's name (`{domain}` has {})",
         .domain.len()
     )]
-    Host { host: String, domain: String },
+    Host {
+        /// The host name given.
+        host: String,
+        /// The domain it was given for.
+        domain: String,
+    },
     /// iceoryx2 refused something.
     #[error("{what}: {detail}")]
-    Iceoryx { what: String, detail: String },
+    Iceoryx {
+        /// What was being done.
+        what: String,
+        /// iceoryx2's error.
+        detail: String,
+    },
     /// The role already runs in the domain.
     #[error(
         "role `{role}` is already running in domain `{domain}` (pid {pid}); refusing to start a second one \
          (stop it first, or use another --domain)"
     )]
-    DuplicateRole { role: String, domain: String, pid: String },
+    DuplicateRole {
+        /// The role.
+        role: String,
+        /// The domain.
+        domain: String,
+        /// The pid of the one that runs.
+        pid: String,
+    },
     /// The domain's services were made by a build with another sample layout.
     #[error(
         "the `{topic}` service of domain `{domain}` carries `{theirs}` (sample layout v{}) \
@@ -49,7 +66,16 @@ pub enum IpcError {
         layout_version_of(.theirs),
         layout_version_of(.ours)
     )]
-    LayoutSkew { topic: &'static str, domain: String, theirs: String, ours: String },
+    LayoutSkew {
+        /// The service.
+        topic: &'static str,
+        /// The domain.
+        domain: String,
+        /// The service's type name.
+        theirs: String,
+        /// This build's type name.
+        ours: String,
+    },
 }
 
 /// The layout version at the end of a type name (`…_v3` → `3`), or `?`.

@@ -104,24 +104,24 @@ pub enum Mode {
 #[derive(Debug, Clone, Args)]
 pub struct RoleArgs {
     /// Run domain: services and shared memory of different domains never meet
-    /// [default: `default` for a role started by hand, `run-<pid>` for `rotorloop run`].
+    /// (default: `default` for a role started by hand, `run-<pid>` for `rotorloop run`).
     #[arg(long)]
     pub domain: Option<String>,
     /// The host this process runs on, when a run spans hosts joined by link gateways
     /// (`rotorloop link`): its own iceoryx2 prefix and root, so that two "hosts" on one
-    /// machine share nothing but the link [default: none, this machine is the only host].
+    /// machine share nothing but the link (default: none, this machine is the only host).
     #[arg(long)]
     pub host: Option<String>,
     /// Built-in scenario name or TOML path (every role reads the same one).
     #[arg(long)]
     pub scenario: String,
-    /// Simulated seconds [default: the scenario's].
+    /// Simulated seconds (default: the scenario's).
     #[arg(long, allow_negative_numbers = true)]
     pub duration: Option<f64>,
-    /// Tick rate in Hz [default: the scenario's].
+    /// Tick rate in Hz (default: the scenario's).
     #[arg(long, allow_negative_numbers = true)]
     pub rate: Option<f64>,
-    /// `internal` or `external` [default: the scenario's].
+    /// `internal` or `external` (default: the scenario's).
     #[arg(long)]
     pub actuation: Option<Actuation>,
     /// `lockstep` or `realtime`.

@@ -46,18 +46,40 @@ pub const MAX_MAGNITUDE: f64 = 1e6;
 pub enum ScenarioError {
     /// The file could not be read.
     #[error("cannot read scenario file {path}: {source}")]
-    Io { path: PathBuf, source: std::io::Error },
+    Io {
+        /// The file.
+        path: PathBuf,
+        /// The read error.
+        source: std::io::Error,
+    },
     /// The TOML did not parse or did not match the schema (includes unknown keys).
     #[error("scenario {origin}: {message}")]
-    Parse { origin: String, message: String },
+    Parse {
+        /// The file or built-in name.
+        origin: String,
+        /// The parser's message (line, column, what was expected).
+        message: String,
+    },
     /// Neither a built-in name nor an existing file.
     #[error(
         "unknown scenario `{name}`: not a built-in scenario (allowed: {allowed}) and no such file"
     )]
-    Unknown { name: String, allowed: String },
+    Unknown {
+        /// The name given.
+        name: String,
+        /// The built-in names.
+        allowed: String,
+    },
     /// A value out of its allowed set.
     #[error("{field} = {value} is not allowed: {allowed}")]
-    Invalid { field: String, value: String, allowed: String },
+    Invalid {
+        /// The field, as `section.key`.
+        field: String,
+        /// The value given.
+        value: String,
+        /// What is allowed.
+        allowed: String,
+    },
 }
 
 impl ScenarioError {
@@ -109,7 +131,14 @@ pub enum TorqueProfile {
     /// `u_d = value`.
     Constant(DVec3),
     /// `u_d,i = amplitude_i sin(frequency_i t + phase_i)` (frequency in rad/s).
-    Sinusoid { amplitude: DVec3, frequency: DVec3, phase: DVec3 },
+    Sinusoid {
+        /// `a_i` (N m).
+        amplitude: DVec3,
+        /// `ω_i` (rad/s).
+        frequency: DVec3,
+        /// `φ_i` (rad).
+        phase: DVec3,
+    },
 }
 
 impl TorqueProfile {

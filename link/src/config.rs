@@ -28,7 +28,12 @@ pub enum ConfigError {
          (connecting side), or a --zenoh file with TLS client certificates \
          (transport.link.tls.enable_mtls), or use tcp/127.0.0.1:PORT"
     )]
-    Unauthenticated { which: &'static str, endpoint: String },
+    Unauthenticated {
+        /// `--listen` or `--connect`.
+        which: &'static str,
+        /// The endpoint given.
+        endpoint: String,
+    },
     /// Neither an endpoint nor a configuration file.
     #[error(
         "say where to meet the other host: --listen ENDPOINT, --connect ENDPOINT or --zenoh FILE"
@@ -54,8 +59,8 @@ pub struct LinkArgs {
     /// The run domain whose services (`rotorloop/<domain>/…`, only those) are bridged.
     #[arg(long)]
     pub domain: String,
-    /// This side's host (`--host` of the roles here) [default: none, the machine's own
-    /// iceoryx2 space].
+    /// This side's host (`--host` of the roles here) (default: none, the machine's own
+    /// iceoryx2 space).
     #[arg(long)]
     pub host: Option<String>,
     /// A Zenoh configuration file (Zenoh's own JSON5); `--listen`/`--connect` add to it.

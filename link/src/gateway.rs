@@ -1,6 +1,6 @@
 //! The gateway loop: one thread drives iceoryx2's link. It blocks (ppoll) on the
 //! carrier's wake (something arrived from the other host) and on listeners of the
-//! domain's own event services (a role here published), at most [`LOOK_ANYWAY_NS`], then
+//! domain's own event services (a role here published), at most `LOOK_ANYWAY_NS`, then
 //! propagates; every `--discover-ms` it runs the link's discovery and says what it
 //! bridges. Nothing crosses while a discovery runs (3-7 ms on 2 vCPUs), so it is rare.
 //!

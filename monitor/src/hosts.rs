@@ -12,9 +12,13 @@ use rotorloop_common::graph::Role;
 /// The host of each role (`--hosts plant=a,controller=b,…`; none: one host).
 #[derive(Debug, Clone, Default, PartialEq, Serialize)]
 pub struct Hosts {
+    /// The plant's host.
     pub plant: Option<String>,
+    /// The controller's host.
     pub controller: Option<String>,
+    /// The reference's host.
     pub reference: Option<String>,
+    /// The monitor's host.
     pub monitor: Option<String>,
 }
 

@@ -47,19 +47,25 @@ pub enum Side {
 /// Arguments of one side.
 #[derive(Debug, Clone, Args)]
 pub struct PingPongArgs {
+    /// What carries the exchange.
     #[arg(long, value_enum)]
     pub kind: Kind,
+    /// Which end of the exchange this process is.
     #[arg(long, value_enum)]
     pub side: Side,
     /// Rendezvous name (domain / file stem).
     #[arg(long)]
     pub name: String,
+    /// Exchanges per second, on an absolute grid.
     #[arg(long, allow_negative_numbers = true, default_value_t = 1000.0)]
     pub rate: f64,
+    /// How long to exchange.
     #[arg(long, allow_negative_numbers = true, default_value_t = 3.0)]
     pub seconds: f64,
+    /// How each side waits for the other (as the loop's `--wait`).
     #[arg(long, default_value = "event")]
     pub wait: Wait,
+    /// The core to pin this side to.
     #[arg(long, allow_negative_numbers = true)]
     pub core: Option<usize>,
     /// Ping: output stem (`STEM.hgrm`, `STEM.json`).
@@ -430,6 +436,7 @@ impl Link for UdsLink {
 /// Arguments of the CPU hog.
 #[derive(Debug, Clone, Args)]
 pub struct HogArgs {
+    /// The core to keep busy.
     #[arg(long, allow_negative_numbers = true)]
     pub core: Option<usize>,
 }

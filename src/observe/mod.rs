@@ -33,7 +33,7 @@ use rotorloop_common::role::UsageError;
 /// `rotorloop ps` arguments.
 #[derive(Debug, Clone, clap::Args)]
 pub struct PsArgs {
-    /// Only this domain [default: every domain on this machine].
+    /// Only this domain (default: every domain on this machine).
     #[arg(long)]
     pub domain: Option<String>,
     /// JSON instead of a table.

@@ -35,6 +35,7 @@ use rotorloop_plant::policy::ActuationDelay;
 /// `rotorloop run` arguments.
 #[derive(Debug, Clone, Args)]
 pub struct RunArgs {
+    /// What every role takes, passed on to each.
     #[command(flatten)]
     pub role: RoleArgs,
     /// Cores per role, e.g. `plant=0,controller=1,reference=0,monitor=1`.

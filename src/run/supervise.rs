@@ -1,7 +1,7 @@
 //! What the launcher decides about its children, as plain structs with the time passed in
 //! (seconds since the plant published tick 0):
 //!
-//! - [`FaultSchedule`]: which `--fault` kill, restart, stop (SIGSTOP) or continue
+//! - [`FaultSchedule`](super::fault::FaultSchedule): which `--fault` kill, restart, stop (SIGSTOP) or continue
 //!   (SIGCONT) is due.
 //! - [`Supervisor`]: what happens when a role exits or hangs that nobody planned: started
 //!   again by its [`RestartPolicy`] (systemd's `Restart=`), after a backoff, unless it

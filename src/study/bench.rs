@@ -63,7 +63,7 @@ pub struct BenchArgs {
     /// Also run each loop cell as it was before the newest change to the hot path, in the
     /// same invocation: without the flight recorders (`loop-before` rows; `rotorloop run
     /// --no-record`). The change before that, the cut overhead, is `run --plain-hot-path`
-    /// by hand (docs/overhead.md).
+    /// by hand (docs/measured/overhead.md).
     #[arg(long)]
     pub before_after: bool,
     /// With `--before-after`: measure before and after this many times each, alternating

@@ -33,7 +33,7 @@ pub struct MarginArgs {
     /// Built-in scenario name or TOML path.
     #[arg(long, default_value = "paper-sinusoid")]
     pub scenario: String,
-    /// Delays to run (s), comma-separated [default: 0 to twice the predicted margin].
+    /// Delays to run (s), comma-separated (default: 0 to twice the predicted margin).
     #[arg(long, value_delimiter = ',', allow_negative_numbers = true)]
     pub delays: Option<Vec<f64>>,
     /// Simulated seconds per run.

@@ -4,7 +4,7 @@
 //! - [`margin`]: the delay margin, measured against the computed one;
 //! - [`montecarlo`]: almost-global convergence from near-π errors;
 //! - [`paper`]: the paper's scenarios, in process and in real time, with one report;
-//! - [`bench`]: the latency bench, the loop against its baselines in one invocation.
+//! - [`bench`](mod@bench): the latency bench, the loop against its baselines in one invocation.
 
 pub mod bench;
 pub mod gains;

@@ -9,6 +9,7 @@ use crate::policy::InjectedDelay;
 /// `controller` arguments.
 #[derive(Debug, Clone, Args)]
 pub struct ControllerArgs {
+    /// What every role takes (scenario, mode, domain, wait, core, records).
     #[command(flatten)]
     pub role: RoleArgs,
     /// Fault injection: publish this tick's sample corrupted (`nan@TICK`, `inf@TICK`,

@@ -8,6 +8,7 @@ use rotorloop_common::role::RoleArgs;
 /// `monitor` arguments.
 #[derive(Debug, Clone, Args)]
 pub struct MonitorArgs {
+    /// What every role takes (scenario, mode, domain, wait, core, records).
     #[command(flatten)]
     pub role: RoleArgs,
     /// Output directory for trace, histograms, logs, plots and summary.

@@ -8,6 +8,7 @@ use crate::policy::ActuationDelay;
 /// `plant` arguments.
 #[derive(Debug, Clone, Args)]
 pub struct PlantArgs {
+    /// What every role takes (scenario, mode, domain, wait, core, records).
     #[command(flatten)]
     pub role: RoleArgs,
     /// Fault injection: publish this tick's sample corrupted (`nan@TICK`, `inf@TICK`,

@@ -8,6 +8,7 @@ use rotorloop_common::role::{Corrupt, Mode, RoleArgs};
 /// `reference` arguments.
 #[derive(Debug, Clone, Args)]
 pub struct ReferenceArgs {
+    /// What every role takes (scenario, mode, domain, wait, core, records).
     #[command(flatten)]
     pub role: RoleArgs,
     /// Fault injection: publish this tick's sample corrupted (`nan@TICK`, `inf@TICK`,
