@@ -14,8 +14,8 @@ use crate::sim::{self, SimOptions, summary_table};
 use crate::study::gains;
 use crate::study::montecarlo::{self, McOptions};
 use rotorloop_common::role::UsageError;
-use rotorloop_common::role::scenario_with_overrides;
-use rotorloop_plant::policy::ActuationDelay;
+use rotorloop_common::role::args::scenario_with_overrides;
+use rotorloop_plant::actuator::ActuationDelay;
 
 /// Attitude tracking of a rigid body with three internal rotors (geometric PID,
 /// almost-global), simulated and analysed.
@@ -282,7 +282,7 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         }
         Command::Role(_) => unreachable!("handled in main"),
         Command::Clean { domain, host } => {
-            let d = rotorloop_common::ipc::Domain::on_host(&domain, host.as_deref())
+            let d = rotorloop_common::ipc::domain::Domain::on_host(&domain, host.as_deref())
                 .map_err(|e| UsageError(e.to_string()))?;
             let (cleaned, alive) = d.cleanup()?;
             let on = host.map(|h| format!(" on host {h}")).unwrap_or_default();

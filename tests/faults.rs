@@ -12,7 +12,7 @@ use rotorloop_common::wire::FLAG_SAFE_MODE;
 const LIMIT: Duration = Duration::from_secs(180);
 
 /// A lockstep run of 60 s of simulated time with the given faults; returns the report dir.
-fn lockstep_with_faults(h: &Harness, faults: &[&str], env: &[(&str, &str)]) -> std::path::PathBuf {
+fn lockstep_with_faults(h: &Harness, faults: &[&str], extra: &[&str]) -> std::path::PathBuf {
     let out = h.path("run");
     let mut cmd = std::process::Command::new(crate::common::harness::ROTORLOOP);
     crate::common::harness::group(&mut cmd);
@@ -25,9 +25,7 @@ fn lockstep_with_faults(h: &Harness, faults: &[&str], env: &[(&str, &str)]) -> s
     for f in faults {
         cmd.args(["--fault", f]);
     }
-    for (k, v) in env {
-        cmd.env(k, v);
-    }
+    cmd.args(extra);
     ok(&crate::common::harness::wait_output(cmd.spawn().expect("spawn"), LIMIT));
     out
 }
@@ -206,7 +204,7 @@ fn controller_killed_while_holding_a_loan_restarts() {
     let out = lockstep_with_faults(
         &h,
         &["controller:kill@0.8:restart@1.0"],
-        &[("ROTORLOOP_TEST_STALL_WITH_LOAN_AT", "500")],
+        &["--test-stall-with-loan-at", "500"],
     );
     let s = assert_faults_mid_run(&out, 1);
     assert_eq!(s["faults"][0]["kill_tick"], 500, "the controller stalled at tick 500");
@@ -408,7 +406,7 @@ fn a_tick_the_controller_skipped_at_the_end_does_not_stall_the_report() {
         .args(["run", "--scenario", "paper-zero", "--duration", "0.3", "--mode", "realtime"])
         .args(["--domain", &h.domain, "--out"])
         .arg(&out)
-        .env("ROTORLOOP_TEST_SKIP_STATE_AT", "299")
+        .args(["--test-skip-state-at", "299"])
         .stdin(std::process::Stdio::null())
         .stdout(std::process::Stdio::piped())
         .stderr(std::process::Stdio::piped());

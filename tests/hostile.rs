@@ -11,7 +11,8 @@ use std::time::{Duration, Instant};
 use crate::common::harness::{Harness, ROTORLOOP, json, ok, timing_rows, wait_output};
 use crate::common::old_layout::StateSampleV2;
 use rotorloop_common::graph::Topic;
-use rotorloop_common::ipc::{Domain, IpcError};
+use rotorloop_common::ipc::IpcError;
+use rotorloop_common::ipc::domain::Domain;
 use rotorloop_common::wire::{LAYOUT_VERSION, StateSample};
 
 const LIMIT: Duration = Duration::from_secs(120);

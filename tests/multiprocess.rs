@@ -352,7 +352,7 @@ fn states_before_the_first_reference_are_answered_as_skipped_and_counted() {
         .args(["run", "--scenario", "paper-zero", "--duration", "0.5", "--mode", "realtime"])
         .args(["--domain", &h.domain, "--out"])
         .arg(&out)
-        .env("ROTORLOOP_TEST_REFERENCE_LATE_MS", "100")
+        .args(["--test-reference-late-ms", "100"])
         .stdin(std::process::Stdio::null())
         .stdout(std::process::Stdio::piped())
         .stderr(std::process::Stdio::piped());

@@ -167,7 +167,7 @@ fn gas_jet_body_matches_direct_integration_of_euler_equations() {
 /// takes effect `delay` after its tick (a queue when longer than a tick), integrated
 /// piecewise; returns (max drift, max |energy residual|, max orthonormality error).
 fn drive_delayed(seed: u64, ticks: u64, dt: f64, delay: f64) -> (f64, f64, f64) {
-    use rotorloop_plant::policy::{ActuationDelay, DelayLine, integrate_tick};
+    use rotorloop_plant::actuator::{ActuationDelay, DelayLine, integrate_tick};
     let s = paper();
     let mut rng = rng(seed);
     let mut body = Body::new(s.plant, s.plant_init);

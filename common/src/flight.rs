@@ -750,9 +750,9 @@ mod cost {
                 unsafe { libc::msync(r.map.cast(), r.len, libc::MS_SYNC) };
             }
             s.tick = k;
-            let t = crate::ipc::now_ns();
+            let t = crate::clock::now_ns();
             r.record(&s);
-            ns.push(crate::ipc::now_ns() - t);
+            ns.push(crate::clock::now_ns() - t);
         }
         ns.sort_unstable();
         let q = |p: f64| ns[((ns.len() - 1) as f64 * p) as usize];

@@ -1,6 +1,6 @@
 //! Shared by every rotorloop role: SO(3) helpers for the per-tick math, the parameter
 //! types of a body with rotors and of the control law, scenario files, the wire samples,
-//! the IPC helpers, and what every role process shares ([`role`]: arguments, start,
+//! the IPC helpers ([`ipc`]), the clock, signals and real-time set-up, and what every role process shares ([`role`]: arguments, start,
 //! counting, ending).
 //!
 //! # Conventions (stated once, used everywhere)
@@ -19,15 +19,19 @@
 //! The conversion happens once, when a scenario is validated ([`scenario`]); nothing
 //! inside a tick converts between them.
 
+pub mod clock;
 pub mod flight;
 pub mod graph;
 pub mod hgrm;
 pub mod ipc;
+pub mod output;
 pub mod params;
 pub mod relay;
 pub mod resume;
 pub mod role;
+pub mod rt;
 pub mod scenario;
+pub mod signals;
 pub mod so3;
 pub mod wire;
 

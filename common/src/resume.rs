@@ -15,7 +15,8 @@ use std::sync::atomic::{AtomicU64, Ordering, fence};
 
 use iceoryx2::prelude::ZeroCopySend;
 
-use crate::ipc::{Domain, IpcError};
+use crate::ipc::IpcError;
+use crate::ipc::domain::Domain;
 use crate::wire::LAYOUT_VERSION;
 
 const MAGIC: u64 = 0x726c_7265_7375_6d65; // "rlresume"
@@ -176,8 +177,11 @@ mod tests {
     #[test]
     fn a_slot_returns_the_last_stored_sample_across_reopen() {
         let domain = Domain::new(&format!("slot{}", std::process::id())).expect("domain");
-        let mut t =
-            TorqueSample { rotor_torque_nm: [1.0, 2.0, 3.0], xi_i: [0.5; 3], ..Default::default() };
+        let mut t = TorqueSample {
+            rotor_torque_nm: [1.0, 2.0, 3.0],
+            body_torque_nm: [0.5; 3],
+            ..Default::default()
+        };
         {
             let slot = ResumeSlot::<TorqueSample>::open(&domain, "controller").expect("open");
             assert!(slot.load().is_none());

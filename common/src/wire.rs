@@ -16,7 +16,7 @@ use crate::so3::{from_rows, to_row_major};
 use crate::{ReferenceState, RotorBodyState};
 
 /// The layout version carried in every type name.
-pub const LAYOUT_VERSION: u32 = 5;
+pub const LAYOUT_VERSION: u32 = 6;
 
 /// How many of the torques that took effect in one tick a state sample records (tick and
 /// offset each): what `sim --replay` can reconstruct. A plant catching up after a stall of
@@ -43,7 +43,7 @@ pub const TORQUE_SKIPPED: u64 = 1;
 
 /// The plant's state at tick `tick`, published once per tick.
 #[derive(Debug, Clone, Copy, PartialEq, ZeroCopySend)]
-#[type_name("rotorloop::StateSample_v5")]
+#[type_name("rotorloop::StateSample_v6")]
 #[repr(C)]
 pub struct StateSample {
     /// Tick index `k`.
@@ -106,7 +106,7 @@ const _: () = assert!(size_of::<StateSample>() == 520);
 
 /// The desired attitude for tick `tick`, published ahead of the plant.
 #[derive(Debug, Clone, Copy, PartialEq, ZeroCopySend)]
-#[type_name("rotorloop::ReferenceSample_v5")]
+#[type_name("rotorloop::ReferenceSample_v6")]
 #[repr(C)]
 pub struct ReferenceSample {
     /// Tick index `k`.
@@ -134,7 +134,7 @@ const _: () = assert!(size_of::<ReferenceSample>() == 240);
 
 /// The controller's answer to state sample `tick`.
 #[derive(Debug, Clone, Copy, PartialEq, Default, ZeroCopySend)]
-#[type_name("rotorloop::TorqueSample_v5")]
+#[type_name("rotorloop::TorqueSample_v6")]
 #[repr(C)]
 pub struct TorqueSample {
     /// The state tick this answers.
@@ -143,8 +143,6 @@ pub struct TorqueSample {
     pub rotor_torque_nm: [f64; 3],
     /// Body torque `τ` (N m).
     pub body_torque_nm: [f64; 3],
-    /// The integral state `ξ_I` after this tick (for a bumpless restart).
-    pub xi_i: [f64; 3],
     /// When the controller received the state sample (ns).
     pub state_recv_ns: u64,
     /// When this sample was published (ns).
@@ -177,7 +175,7 @@ pub struct TorqueSample {
     /// What publishing it cost.
     pub prev_publish: SendCost,
 }
-const _: () = assert!(size_of::<TorqueSample>() == 216);
+const _: () = assert!(size_of::<TorqueSample>() == 192);
 
 /// What one publish cost (ns): loaning the sample, from the publish timestamp until
 /// `send` returned, and notifying the listeners after it. Carried in the publisher's
@@ -445,13 +443,11 @@ impl TorqueSample {
             .map_or(MAX_WIRE_MAGNITUDE, |u| (u * ABSURD_TORQUE_FACTOR).min(MAX_WIRE_MAGNITUDE))
     }
 
-    /// Checks the torques against `limit` (see [`TorqueSample::absurd_limit`]) and the
-    /// integral state for finiteness.
+    /// Checks the torques against `limit` (see [`TorqueSample::absurd_limit`]).
     #[inline]
     pub fn validate(&self, limit: f64) -> Result<(), WireFault> {
         check_entries("torque.rotor_torque", &self.rotor_torque_nm, limit)?;
-        check_entries("torque.body_torque", &self.body_torque_nm, limit)?;
-        check_entries("torque.xi_i", &self.xi_i, MAX_WIRE_ACCUMULATED)
+        check_entries("torque.body_torque", &self.body_torque_nm, limit)
     }
 
     /// Whether the controller computed this tick (not [`TORQUE_SKIPPED`]).
@@ -522,8 +518,8 @@ mod tests {
             t2.validate(TorqueSample::absurd_limit(Some(1.0))),
             Err(WireFault::Absurd { field: "torque.rotor_torque", .. })
         ));
-        let t3 = TorqueSample { xi_i: [f64::INFINITY, 0.0, 0.0], ..t };
-        assert_eq!(t3.validate(1e6), Err(WireFault::NonFinite { field: "torque.xi_i" }));
+        let t3 = TorqueSample { body_torque_nm: [f64::INFINITY, 0.0, 0.0], ..t };
+        assert_eq!(t3.validate(1e6), Err(WireFault::NonFinite { field: "torque.body_torque" }));
         assert!(t.computed());
         assert!(!TorqueSample { flags: TORQUE_SKIPPED, ..t }.computed());
     }

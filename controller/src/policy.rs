@@ -13,18 +13,32 @@
 //!   restarted plant re-publishes its last one) gets the same answer again, never a second
 //!   integration; a rejected state, or one with nothing to track, gets a
 //!   [`TORQUE_SKIPPED`] answer (zero torque, `ξ_I` untouched), so every state taken is
-//!   answered or counted skipped. A restart resumes `ξ_I` and the counters from the last
-//!   answer its predecessor published (bumpless).
+//!   answered or counted skipped. A restart resumes the law's state (`ξ_I`) and the
+//!   counters from its predecessor's resume slot ([`ControllerResume`]: the last answer
+//!   and the law's state after it), bumpless; no law state rides on a wire sample.
 
-use glam::DVec3;
+use iceoryx2::prelude::ZeroCopySend;
 use rotorloop_common::ReferenceState;
-use rotorloop_common::role::SeqCounter;
+use rotorloop_common::role::count::SeqCounter;
 use rotorloop_common::so3::exp;
 use rotorloop_common::wire::{
     FLAG_LAST, NO_TICK, ReferenceSample, StateSample, TORQUE_SKIPPED, TorqueSample, WireFault,
 };
 
 use crate::law::{AnyLaw, Law, LawState};
+
+/// What the controller keeps in its resume slot: its last answer and the law's internal
+/// state after it. A restart continues from both (bumpless), so a law's state never rides
+/// on a wire sample and a new law never changes one.
+#[derive(Debug, Clone, Copy, PartialEq, ZeroCopySend)]
+#[type_name("rotorloop::ControllerResume_v1")]
+#[repr(C)]
+pub struct ControllerResume {
+    /// The last answer published (or about to be: the slot is written first).
+    pub last: TorqueSample,
+    /// The law's state after it ([`LawState`]).
+    pub law: [f64; LawState::LEN],
+}
 
 /// Reference samples kept for pairing.
 pub const RING: usize = 256;
@@ -221,15 +235,21 @@ impl TorqueAnswers {
         Self::new(AnyLaw::for_scenario(scenario, scenario.actuation()))
     }
 
-    /// Continues bumplessly from the last answer `t` a killed predecessor published:
-    /// its `ξ_I`, its counters, its tick.
-    pub fn resume(&mut self, t: &TorqueSample) {
-        self.law.restore(&LawState::of_vector(DVec3::from_array(t.xi_i)));
+    /// Continues bumplessly from what a killed predecessor kept in its resume slot: its
+    /// law's state, its counters, its tick.
+    pub fn resume(&mut self, r: &ControllerResume) {
+        let t = &r.last;
+        self.law.restore(&LawState(r.law));
         self.published = t.published;
         self.skipped = t.states_skipped;
         self.rejected = t.states_rejected;
         self.seq = SeqCounter::resume(t.states_received, t.states_lost, t.tick);
         self.last = Some(*t);
+    }
+
+    /// What the resume slot keeps after answer `last`: it and the law's state now.
+    pub fn resume_record(&self, last: &TorqueSample) -> ControllerResume {
+        ControllerResume { last: *last, law: self.law.state().0 }
     }
 
     /// Whether this controller resumed from (or has sent) an answer.
@@ -283,7 +303,6 @@ impl TorqueAnswers {
             tick: s.tick,
             rotor_torque_nm: out.rotor_torque.to_array(),
             body_torque_nm: out.body_torque.to_array(),
-            xi_i: self.law.state().vector().to_array(),
             state_recv_ns: recv_ns,
             publish_ns: 0,
             states_received: self.seq.received,
@@ -501,6 +520,7 @@ mod tests {
         let p = ReferencePairing::new(10, DT);
         let rd = reference(0, 0.1).reference_state();
         let t0 = a.answer(&s0, 0, Some(&rd), &p, DT);
+        let law_before = a.resume_record(&t0).law;
         let mut bad = StateSample { tick: 1, ..s0 };
         bad.omega_body_rad_s[1] = f64::INFINITY;
         let Decision::Answer { fault: Some(f), first_rejection: true } = a.decide(&bad) else {
@@ -510,7 +530,7 @@ mod tests {
         let t1 = a.answer(&bad, 0, None, &p, DT);
         assert_eq!(t1.flags, TORQUE_SKIPPED);
         assert_eq!(t1.rotor_torque_nm, [0.0; 3]);
-        assert_eq!(t1.xi_i, t0.xi_i, "ξ_I untouched by a skipped tick");
+        assert_eq!(a.resume_record(&t1).law, law_before, "ξ_I untouched by a skipped tick");
         assert_eq!(t1.states_rejected, 1);
     }
 
@@ -572,7 +592,7 @@ mod tests {
             last = a.answer(&StateSample { tick: k, ..s0 }, 0, Some(&rd), &p, DT);
         }
         let (mut b, _) = answers();
-        b.resume(&last);
+        b.resume(&a.resume_record(&last));
         let s5 = StateSample { tick: 5, ..s0 };
         assert_eq!(b.decide(&s5), Decision::Answer { fault: None, first_rejection: false });
         let (ta, tb) = (a.answer(&s5, 0, Some(&rd), &p, DT), b.answer(&s5, 0, Some(&rd), &p, DT));

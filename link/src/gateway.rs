@@ -26,10 +26,11 @@ use iceoryx2_bb_posix::file_descriptor::FileDescriptorBased;
 use iceoryx2_integrations_zenoh_link_carrier::ZenohCarrier;
 use iceoryx2_link::Link;
 use iceoryx2_link_tunnel::Tunnel;
+use rotorloop_common::clock::now_ns;
 use rotorloop_common::graph::Topic;
-use rotorloop_common::ipc::{
-    Domain, install_signal_handlers, now_ns, shutdown_requested, wait_any_readable,
-};
+use rotorloop_common::ipc::domain::Domain;
+use rotorloop_common::ipc::wait::wait_any_readable;
+use rotorloop_common::signals::{install_signal_handlers, shutdown_requested};
 use zenoh::Wait;
 
 use crate::config::{ConfigError, GatewayWait, LinkArgs, zenoh_config};

@@ -12,8 +12,12 @@ mod old_layout;
 
 use iceoryx2::prelude::ZeroCopySend;
 use old_layout::StateSampleV2;
+use rotorloop_common::clock::now_ns;
 use rotorloop_common::graph::Topic;
-use rotorloop_common::ipc::{Domain, Inbox, IpcError, Wait, now_ns};
+use rotorloop_common::ipc::IpcError;
+use rotorloop_common::ipc::domain::Domain;
+use rotorloop_common::ipc::ports::Inbox;
+use rotorloop_common::ipc::wait::Wait;
 use rotorloop_common::wire::{LAYOUT_VERSION, StateSample, TorqueSample};
 
 const LINK: &str = env!("CARGO_BIN_EXE_rotorloop-link");

@@ -15,7 +15,7 @@ use std::path::Path;
 
 use rotorloop_common::Scenario;
 use rotorloop_common::flight::{FlightError, FlightLog, SPARE_SLOTS, Stream};
-use rotorloop_common::role::RoleArgs;
+use rotorloop_common::role::args::RoleArgs;
 use rotorloop_common::wire::{ReferenceSample, StateSample, TorqueSample};
 
 use crate::hosts::Hosts;
@@ -194,8 +194,8 @@ pub fn final_report(
 /// between the two would otherwise miss the report by microseconds (seen: a paper run's
 /// last state). A writer killed in between never writes it; the bound covers that.
 fn wait_for_records(dir: &Path, joiner: &RowJoiner) {
+    use rotorloop_common::clock::now_ns;
     use rotorloop_common::flight::has_record;
-    use rotorloop_common::ipc::now_ns;
     let until = now_ns() + 2_000_000_000;
     let state = joiner.last_state().map(|s| s.tick);
     let torque = joiner.last_torque().map(|t| t.tick);

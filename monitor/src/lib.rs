@@ -18,6 +18,7 @@ pub mod process;
 pub mod recording;
 pub mod report;
 pub mod stages;
+pub mod timing;
 pub mod trace;
 
 /// This crate's role in the loop, by name (its node, resume slot and flight record).

@@ -22,7 +22,7 @@
 //!   sees tells how many ticks it missed: that is a **gap**, its rows are lost.
 
 use iceoryx2::prelude::ZeroCopySend;
-use rotorloop_common::role::SeqCounter;
+use rotorloop_common::role::count::SeqCounter;
 use rotorloop_common::wire::{FLAG_LAST, ReferenceSample, StateSample, TorqueSample, WireFault};
 use serde::Serialize;
 

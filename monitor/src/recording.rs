@@ -16,7 +16,7 @@ use std::path::{Path, PathBuf};
 
 use anyhow::Context;
 use glam::DVec3;
-use rotorloop_common::wire::{FLAG_REALTIME, MAX_EFFECTS, StateSample};
+use rotorloop_common::wire::{FLAG_REALTIME, StateSample};
 use rotorloop_common::{Actuation, Scenario};
 use serde::Serialize;
 
@@ -74,35 +74,6 @@ pub struct Recording {
     status_at_ns: Option<u64>,
 }
 
-/// The columns of `timing.csv`, one row per state sample `k`: when it was published, the
-/// torque in force at the end of tick `k − 1` (−1: none), the flags, and the torques that
-/// took effect during tick `k − 1` (how many, then tick and offset from `t_k−1` in s of
-/// the first [`MAX_EFFECTS`]; empty when fewer): with the trace's torques, what `sim
-/// --replay` needs.
-pub fn timing_header() -> String {
-    let mut h = "tick,state_publish_ns,applied_torque_tick,flags,effects".to_owned();
-    for i in 1..=MAX_EFFECTS {
-        h += &format!(",effect{i}_tick,effect{i}_offset_s");
-    }
-    h
-}
-
-fn timing_row(out: &mut impl Write, s: &StateSample) -> std::io::Result<()> {
-    write!(
-        out,
-        "{},{},{},{},{}",
-        s.tick, s.publish_ns, s.applied_torque_tick as i64, s.flags, s.effects
-    )?;
-    for i in 0..MAX_EFFECTS {
-        if (i as u64) < s.effects {
-            write!(out, ",{},{}", s.effect_ticks[i], s.effect_offsets_s[i])?;
-        } else {
-            write!(out, ",,")?;
-        }
-    }
-    writeln!(out)
-}
-
 fn open_files(
     out: &Path,
     resumed: Option<&MonitorResume>,
@@ -124,7 +95,7 @@ fn open_files(
     };
     let mut timing = open("timing.csv")?;
     if resumed.is_none() {
-        writeln!(timing, "{}", timing_header()).context("cannot write timing.csv")?;
+        writeln!(timing, "{}", crate::timing::header()).context("cannot write timing.csv")?;
     }
     Ok((trace, timing))
 }
@@ -221,10 +192,11 @@ impl Recording {
         row.delay_s = j.following.map_or(f64::NAN, |f| f.first_effect_delay_s(self.dt));
         self.first_unflushed.get_or_insert(k);
         if let Some((trace, timing)) = &mut self.files {
-            let written = trace
-                .write(&row)
-                .map_err(|e| format!("trace.csv: {e}"))
-                .and_then(|()| timing_row(timing, s).map_err(|e| format!("timing.csv: {e}")));
+            let written = trace.write(&row).map_err(|e| format!("trace.csv: {e}")).and_then(|()| {
+                crate::timing::TimingRow::of(s)
+                    .write(timing)
+                    .map_err(|e| format!("timing.csv: {e}"))
+            });
             if let Err(reason) = written {
                 self.lose(k, reason);
             }

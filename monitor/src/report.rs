@@ -6,7 +6,9 @@ use std::collections::BTreeMap;
 use std::path::Path;
 
 use rotorloop_common::Scenario;
-use rotorloop_common::role::{Mode, RoleArgs, SeqCounter, write_json};
+use rotorloop_common::output::write_json;
+use rotorloop_common::role::args::{Mode, RoleArgs};
+use rotorloop_common::role::count::SeqCounter;
 use serde::Serialize;
 
 use crate::latency::{Hop, HopStats};

@@ -27,9 +27,12 @@
 //! stage rates, so the rotor work `u·ΔΘ` matches the energy change to truncation level.
 //! Cost: four `exp` and three `dexp⁻¹` per step; no allocation.
 //!
-//! [`policy`] holds what the plant decides beyond the dynamics (the hold rule, misses,
-//! safe mode, restarts, the state sample) and [`process`] the `plant` process around it.
+//! [`actuator`] is the actuator model (the delayed zero-order hold, one tick's piecewise
+//! integration through the limits), [`policy`] what the plant decides beyond the dynamics
+//! (the hold rule, misses, safe mode, restarts, the state sample), and [`process`] the
+//! `plant` process around it.
 
+pub mod actuator;
 pub mod policy;
 pub mod process;
 

@@ -16,9 +16,13 @@ use std::sync::atomic::{AtomicU64, Ordering};
 use anyhow::{Context, bail};
 use clap::{Args, ValueEnum};
 use hdrhistogram::Histogram;
+use rotorloop_common::clock::{now_ns, sleep_until_ns};
 use rotorloop_common::graph::Topic;
 use rotorloop_common::hgrm::write_percentile_distribution;
-use rotorloop_common::ipc::{Domain, RtSetup, Wait, now_ns, shutdown_requested, sleep_until_ns};
+use rotorloop_common::ipc::domain::Domain;
+use rotorloop_common::ipc::wait::Wait;
+use rotorloop_common::rt::RtSetup;
+use rotorloop_common::signals::shutdown_requested;
 use rotorloop_common::wire::StateSample;
 use rotorloop_monitor::latency::HopStats;
 use serde::Serialize;
@@ -177,7 +181,7 @@ pub fn run(a: &PingPongArgs) -> anyhow::Result<()> {
                     / ((last_wake - start - period as u64) as f64 / 1e9),
                 rtt: HopStats::of(&h),
             };
-            rotorloop_common::role::write_json(&out.with_extension("json"), &summary)
+            rotorloop_common::output::write_json(&out.with_extension("json"), &summary)
         }
     }
 }
@@ -290,8 +294,8 @@ impl Link for AtomicLink {
 /// Bare iceoryx2: ping and pong services of a state-sized payload.
 struct IoxLink {
     _node: iceoryx2::node::Node<iceoryx2::prelude::ipc::Service>,
-    out: rotorloop_common::ipc::Outbox<StateSample>,
-    inbox: rotorloop_common::ipc::Inbox<StateSample>,
+    out: rotorloop_common::ipc::ports::Outbox<StateSample>,
+    inbox: rotorloop_common::ipc::ports::Inbox<StateSample>,
     wait: Wait,
 }
 

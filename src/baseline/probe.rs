@@ -8,8 +8,9 @@
 use std::time::Duration;
 
 use clap::Args;
+use rotorloop_common::clock::now_ns;
 use rotorloop_common::graph::Topic;
-use rotorloop_common::ipc::{Domain, now_ns};
+use rotorloop_common::ipc::domain::Domain;
 use rotorloop_common::wire::{StateSample, TorqueSample};
 
 /// `probe` arguments.

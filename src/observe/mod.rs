@@ -17,12 +17,13 @@ use std::io::IsTerminal;
 use std::time::Duration;
 
 use iceoryx2::prelude::*;
-use rotorloop_common::ipc::{Domain, now_ns, shutdown_requested};
+use rotorloop_common::clock::now_ns;
+use rotorloop_common::ipc::domain::Domain;
 use rotorloop_common::resume::ResumeSlot;
+use rotorloop_common::signals::shutdown_requested;
 use rotorloop_common::so3::rotation_angle;
-use rotorloop_common::wire::{
-    FLAG_LAST, FLAG_SAFE_MODE, StateSample, TorqueSample, effect_delay_s,
-};
+use rotorloop_common::wire::{FLAG_LAST, FLAG_SAFE_MODE, StateSample, effect_delay_s};
+use rotorloop_controller::policy::ControllerResume;
 use rotorloop_monitor::policy::MonitorResume;
 use rotorloop_reference::policy::ReferenceResume;
 use serde::Serialize;
@@ -234,7 +235,7 @@ fn services(domain: &Domain) -> Vec<ServiceView> {
 /// The resume slots of a domain, opened read-only (none is created).
 struct Slots {
     plant: Option<ResumeSlot<StateSample>>,
-    controller: Option<ResumeSlot<TorqueSample>>,
+    controller: Option<ResumeSlot<ControllerResume>>,
     reference: Option<ResumeSlot<ReferenceResume>>,
     monitor: Option<ResumeSlot<MonitorResume>>,
 }
@@ -273,7 +274,7 @@ impl Slots {
             t.insert(Role::Plant.name().into(), s.tick);
         }
         if let Some(c) = self.controller.as_ref().and_then(ResumeSlot::load) {
-            t.insert(Role::Controller.name().into(), c.tick);
+            t.insert(Role::Controller.name().into(), c.last.tick);
         }
         if let Some(r) = self.reference.as_ref().and_then(ResumeSlot::load) {
             t.insert(Role::Reference.name().into(), r.next());
@@ -685,7 +686,7 @@ pub fn render(v: &WatchView) -> Vec<String> {
 
 /// `rotorloop watch`.
 pub fn watch(a: &WatchArgs) -> anyhow::Result<()> {
-    rotorloop_common::ipc::install_signal_handlers();
+    rotorloop_common::signals::install_signal_handlers();
     let mut w = Watcher::new(&a.domain)?;
     w.roles();
     if a.once {

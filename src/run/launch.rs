@@ -10,27 +10,30 @@ use std::time::Duration;
 
 use anyhow::Context;
 use clap::Args;
+use rotorloop_common::clock::now_ns;
 use rotorloop_common::ipc::REFERENCE_LEAD;
-use rotorloop_common::ipc::{install_signal_handlers, now_ns, shutdown_requested};
 use rotorloop_common::resume::ResumeSlot;
-use rotorloop_common::role::LINGER_S;
-use rotorloop_common::wire::{FLAG_LAST, StateSample, TorqueSample};
+use rotorloop_common::role::end::LINGER_S;
+use rotorloop_common::signals::{install_signal_handlers, shutdown_requested};
+use rotorloop_common::wire::{FLAG_LAST, StateSample};
+use rotorloop_controller::policy::ControllerResume;
 use rotorloop_monitor::hosts::Hosts;
 use rotorloop_monitor::policy::MonitorResume;
 use rotorloop_reference::policy::ReferenceResume;
 
 use rotorloop_common::graph::{Role, Topic};
-use rotorloop_common::ipc::Domain;
+use rotorloop_common::ipc::domain::Domain;
 
-use crate::run::fault::{Action, Fault, FaultEvent, FaultSchedule, parse_fault};
+use crate::run::fault::{Action, Apply, Fault, FaultEvent, FaultKind, FaultSchedule, parse_fault};
 use crate::run::split::{Split, wait_until};
 use crate::run::supervise::{
     Children, Ending, LinkWatch, Marks, RestartLimit, START_TIMEOUT_S, Supervisor, Verdict,
     Watchdog, parse_restart, signal,
 };
 use rotorloop_common::role::UsageError;
-use rotorloop_common::role::{Corrupt, Mode, RoleArgs};
-use rotorloop_plant::policy::ActuationDelay;
+use rotorloop_common::role::args::{Mode, RoleArgs};
+use rotorloop_common::role::inject::Corrupt;
+use rotorloop_plant::actuator::ActuationDelay;
 
 /// `rotorloop run` arguments.
 #[derive(Debug, Clone, Args)]
@@ -63,10 +66,8 @@ pub struct RunArgs {
     /// Real time: ticks the plant holds the last torque before safe mode.
     #[arg(long, allow_negative_numbers = true, default_value_t = 50)]
     pub hold_ticks: u64,
-    /// Inject a fault: `ROLE:kill@T[:restart@T2]` (seconds since the plant published tick
-    /// 0, so a slow start never moves a fault before the run; ROLE is plant, reference,
-    /// controller or monitor). Repeatable.
-    #[arg(long)]
+    /// Inject a fault (each kind, its syntax and its help: `run::fault::KINDS`).
+    #[arg(long, help = crate::run::fault::help())]
     pub fault: Vec<String>,
     /// Inject a corrupted sample: `ROLE:KIND@TICK` makes ROLE (plant, reference or
     /// controller) publish tick TICK with a NaN (`nan`), an infinity (`inf`), an absurd
@@ -132,7 +133,7 @@ fn with_preset(args: &RunArgs, explicit_wait: bool) -> Result<RunArgs, UsageErro
                 format!("plant={p},controller={c},reference={r},monitor={m}")
             });
             if !explicit_wait {
-                a.role.wait = rotorloop_common::ipc::Wait::Spin;
+                a.role.wait = rotorloop_common::ipc::wait::Wait::Spin;
             }
             if a.spin_before_tick_us == 0 {
                 a.spin_before_tick_us = 50;
@@ -167,25 +168,6 @@ impl RunArgs {
             split: None,
         }
     }
-}
-
-/// Parses `--corrupt ROLE:KIND@TICK`.
-pub fn parse_corrupt(s: &str) -> Result<(String, Corrupt), UsageError> {
-    use rotorloop_common::role::CorruptKind;
-    let bad = |why: &str| {
-        UsageError(format!(
-            "--corrupt `{s}` is not allowed: {why} (form ROLE:KIND@TICK, e.g. controller:nan@500)"
-        ))
-    };
-    let (role, rest) = s.split_once(':').ok_or_else(|| bad("no ROLE:"))?;
-    if ![Role::Plant, Role::Reference, Role::Controller].map(Role::name).contains(&role) {
-        return Err(bad("ROLE is plant, reference or controller"));
-    }
-    let c: Corrupt = rest.parse().map_err(|e: String| bad(&e))?;
-    if role == Role::Controller.name() && c.kind == CorruptKind::Skew {
-        return Err(bad("`skew` needs an attitude: plant or reference"));
-    }
-    Ok((role.to_owned(), c))
 }
 
 /// A role started by the launcher gets SIGTERM when the launcher dies, however it dies
@@ -386,10 +368,8 @@ impl Launch<'_> {
                 cmd.arg("--actuation-delay").arg(args.actuation_delay.to_string());
             }
             Ok(Role::Controller) => {
-                for f in &self.faults {
-                    if let Some(d) = f.inject_delay_arg() {
-                        cmd.arg("--inject-delay").arg(d);
-                    }
+                for (flag, value) in self.faults.iter().filter_map(|f| f.role_arg()) {
+                    cmd.arg(flag).arg(value);
                 }
             }
             _ => {}
@@ -453,7 +433,7 @@ impl Launch<'_> {
             eprintln!("warning: the flight records stay in {s}: cannot move them into {k}: {e}");
             return Some(staged);
         }
-        let _ = rotorloop_common::role::patch_summary(&self.args.out, |j| {
+        let _ = rotorloop_common::output::patch_summary(&self.args.out, |j| {
             if j["flight"].is_object() {
                 j["flight"]["dir"] = kept.display().to_string().into();
             }
@@ -508,13 +488,17 @@ fn checked_faults(args: &RunArgs, split: Option<&Split>) -> anyhow::Result<Vec<F
 /// Runs the four processes to the end of the scenario.
 pub fn run(args: &RunArgs) -> anyhow::Result<()> {
     // `--wait` has a default, so "explicit" means: not the default (event).
-    let explicit_wait = args.role.wait != rotorloop_common::ipc::Wait::Event;
+    let explicit_wait = args.role.wait != rotorloop_common::ipc::wait::Wait::Event;
     let args = &with_preset(args, explicit_wait)?;
     let scenario = args.role.scenario()?;
     for w in &scenario.warnings {
         eprintln!("warning: {w}");
     }
-    let corrupt = args.corrupt.iter().map(|c| parse_corrupt(c)).collect::<Result<Vec<_>, _>>()?;
+    let corrupt = args
+        .corrupt
+        .iter()
+        .map(|c| crate::run::fault::parse_corrupt(c))
+        .collect::<Result<Vec<_>, _>>()?;
     let limit: RestartLimit =
         args.restart_limit.parse().map_err(|e| UsageError(format!("--restart-limit {e}")))?;
     let supervisor = Supervisor::new(parse_restart(&args.restart)?, limit);
@@ -702,7 +686,7 @@ fn stop_gateways(children: &mut Children) {
 /// Where each role stands, from the resume slots (what the watchdog reads).
 struct Progress {
     plant: ResumeSlot<StateSample>,
-    controller: ResumeSlot<TorqueSample>,
+    controller: ResumeSlot<ControllerResume>,
     reference: ResumeSlot<ReferenceResume>,
     monitor: ResumeSlot<MonitorResume>,
 }
@@ -726,7 +710,7 @@ impl Progress {
     fn marks(&self) -> Marks {
         Marks {
             plant: self.plant.load().map(|s| s.tick),
-            controller: self.controller.load().map(|t| t.tick),
+            controller: self.controller.load().map(|r| r.last.tick),
             reference_next: self.reference.load().map(|r| r.next()),
             monitor_next: self.monitor.load().map(|m| m.next_row),
         }
@@ -1214,7 +1198,7 @@ fn restart(
     Ok(())
 }
 
-/// Carries out one action of the `--fault` schedule.
+/// Carries out one action of the `--fault` schedule, as its row of `fault::KINDS` says.
 fn injected(
     launch: &Launch,
     children: &mut Children,
@@ -1223,70 +1207,70 @@ fn injected(
     action: Action,
     at: f64,
 ) -> anyhow::Result<()> {
-    match action {
-        Action::Kill(role) => {
-            if let Some(c) = children.get_mut(&role) {
-                let pid = c.id();
-                w.planned.insert(pid);
-                signal(c, libc::SIGKILL);
-                let _ = c.wait(); // reap: an unreaped zombie can delay dead-node detection
-                w.handled.insert(pid);
-                end_stop(w, pid, "killed");
-                eprintln!("launcher: killed {role} (SIGKILL) at {at:.3} s");
-                let detail = "SIGKILL (--fault)".to_owned();
-                let e =
-                    FaultEvent { signal: Some("SIGKILL"), ..FaultEvent::now(role, "kill", detail) };
-                w.events.push(e);
-            }
-        }
-        Action::Restart(role) => {
-            w.restarts.remove(&role); // the schedule's restart replaces a supervisor's
-            restart(launch, children, rss, w, &role, at)?;
-        }
-        Action::Stop(role) => {
-            if let Some(c) = children.get_mut(&role) {
-                signal(c, libc::SIGSTOP);
-                w.stopped.insert(role.clone(), c.id());
-                w.watchdog.stopped(&role);
-                eprintln!("launcher: stopped {role} (SIGSTOP) at {at:.3} s");
-                let detail = "SIGSTOP (--fault)".to_owned();
-                w.open_stops.insert(c.id(), w.events.len());
-                let e =
-                    FaultEvent { signal: Some("SIGSTOP"), ..FaultEvent::now(role, "stop", detail) };
-                w.events.push(e);
-            }
-        }
-        Action::Delay(role, d, started) => {
-            let ms = d * 1e3;
-            if started {
-                eprintln!("launcher: {role} answers {ms} ms late from {at:.3} s (injected)");
-                let detail = format!("each answer sent {ms} ms late (--fault delay)");
-                w.events.push(FaultEvent::now(role, "delay", detail));
-            } else {
-                eprintln!("launcher: {role} answers on time again from {at:.3} s");
-                if let Some(e) =
-                    w.events.iter_mut().rev().find(|e| e.role == role && e.kind == "delay")
-                {
-                    e.restart_ns = Some(now_ns());
-                }
-            }
-        }
-        Action::Cont(role) => {
-            let stopped = w.stopped.remove(&role);
-            let event = stop_event(&mut w.events, &role);
-            match children.get_mut(&role) {
+    let (kind, role) = (action.kind.spec().start, action.role.as_str());
+    match action.apply() {
+        Apply::Signal(sig, name) if sig == libc::SIGCONT => {
+            let stopped = w.stopped.remove(role);
+            let event = stop_event(&mut w.events, role);
+            match children.get_mut(role) {
                 Some(c) if Some(c.id()) == stopped && !w.planned.contains(&c.id()) => {
-                    continue_stopped(c, event, "; SIGCONT (--fault)");
-                    eprintln!("launcher: continued {role} (SIGCONT) at {at:.3} s");
+                    continue_stopped(c, event, &format!("; {name} (--fault)"));
+                    eprintln!("launcher: continued {role} ({name}) at {at:.3} s");
                 }
                 _ => {
                     eprintln!(
-                        "launcher: {role} was restarted by the watchdog before its SIGCONT at {at:.3} s"
+                        "launcher: {role} was restarted by the watchdog before its {name} at {at:.3} s"
                     );
                     if let Some(e) = event {
-                        e.detail.push_str("; the watchdog restarted it before the SIGCONT");
+                        e.detail
+                            .push_str(&format!("; the watchdog restarted it before the {name}"));
                     }
                 }
+            }
+        }
+        Apply::Signal(sig, name) => {
+            let Some(c) = children.get_mut(role) else { return Ok(()) };
+            let pid = c.id();
+            let e = FaultEvent {
+                signal: Some(name),
+                ..FaultEvent::now(role, kind, format!("{name} (--fault)"))
+            };
+            if sig == libc::SIGKILL {
+                w.planned.insert(pid);
+            }
+            signal(c, sig);
+            if sig == libc::SIGKILL {
+                let _ = c.wait(); // reap: an unreaped zombie can delay dead-node detection
+                w.handled.insert(pid);
+                end_stop(w, pid, "killed");
+            } else if sig == libc::SIGSTOP {
+                w.stopped.insert(role.to_owned(), pid);
+                w.watchdog.stopped(role);
+                w.open_stops.insert(pid, w.events.len());
+            }
+            let verb = match sig {
+                libc::SIGKILL => "killed",
+                libc::SIGSTOP => "stopped",
+                _ => "signalled",
+            };
+            eprintln!("launcher: {verb} {role} ({name}) at {at:.3} s");
+            w.events.push(e);
+        }
+        Apply::Restart => {
+            w.restarts.remove(role); // the schedule's restart replaces a supervisor's
+            restart(launch, children, rss, w, role, at)?;
+        }
+        Apply::ByTheRole(flag) if action.starts => {
+            let FaultKind::Delay(d) = action.kind else { return Ok(()) };
+            let ms = d * 1e3;
+            eprintln!("launcher: {role} answers {ms} ms late from {at:.3} s ({flag})");
+            let detail = format!("each answer sent {ms} ms late (--fault {kind})");
+            w.events.push(FaultEvent::now(role, kind, detail));
+        }
+        Apply::ByTheRole(_) => {
+            eprintln!("launcher: {role}'s {kind} ends at {at:.3} s");
+            if let Some(e) = w.events.iter_mut().rev().find(|e| e.role == role && e.kind == kind) {
+                e.restart_ns = Some(now_ns());
             }
         }
     }
@@ -1396,7 +1380,7 @@ impl RssLog {
 
 /// Adds the per-role memory figures to `out/summary.json` as `resources`.
 fn add_resources(out: &std::path::Path, rss: &BTreeMap<String, RssTrack>) -> anyhow::Result<()> {
-    rotorloop_common::role::patch_summary(out, |j| {
+    rotorloop_common::output::patch_summary(out, |j| {
         j["resources"] = serde_json::json!({ "rss": rss, "rss_csv": "rss.csv" })
     })
 }

@@ -21,8 +21,8 @@ use anyhow::Context;
 use clap::Parser;
 use rotorloop_common::Scenario;
 use rotorloop_common::flight::RUN_DIR_FILE;
-use rotorloop_common::ipc::Domain;
-use rotorloop_common::role::RoleArgs;
+use rotorloop_common::ipc::domain::Domain;
+use rotorloop_common::role::args::RoleArgs;
 use rotorloop_common::scenario::ScenarioFile;
 use rotorloop_monitor::hosts::Hosts;
 use serde::{Deserialize, Serialize};
@@ -55,7 +55,7 @@ pub struct LaunchRecord {
 impl LaunchRecord {
     /// Writes `out/launch.json`, and the run directory's name into the staging directory.
     pub fn write(&self, out: &Path) -> anyhow::Result<()> {
-        rotorloop_common::role::write_json(&out.join(LAUNCH_FILE), self)?;
+        rotorloop_common::output::write_json(&out.join(LAUNCH_FILE), self)?;
         if let Some(staging) = &self.staging {
             let out = std::fs::canonicalize(out).unwrap_or_else(|_| out.to_path_buf());
             std::fs::create_dir_all(staging)
@@ -160,7 +160,7 @@ pub fn run(dir: &Path) -> anyhow::Result<()> {
         rotorloop_monitor::assemble::report(dir, &kept, &records, &scenario, &role, &hosts, None);
     let fallback = rotorloop_monitor::recording::fallback_dir(role.domain());
     rotorloop_monitor::report::write_summary(dir, &fallback, &summary)?;
-    rotorloop_common::role::patch_summary(dir, |j| {
+    rotorloop_common::output::patch_summary(dir, |j| {
         j["recovered"] = serde_json::json!({
             "by": "rotorloop recover",
             "launcher_pid": launch.launcher_pid,

@@ -15,7 +15,8 @@ use std::process::Command;
 use std::time::{Duration, Instant};
 
 use rotorloop_common::graph::{Role, Topic};
-use rotorloop_common::ipc::{Domain, shutdown_requested};
+use rotorloop_common::ipc::domain::Domain;
+use rotorloop_common::signals::shutdown_requested;
 
 use rotorloop_common::role::UsageError;
 

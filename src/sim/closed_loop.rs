@@ -8,7 +8,7 @@ use rand_chacha::ChaCha8Rng;
 use rotorloop_common::{Actuation, ActuatorLimits, Scenario};
 use rotorloop_controller::law::{AnyLaw, ControlOutput, Law};
 use rotorloop_monitor::{Metrics, TraceRow};
-use rotorloop_plant::policy::{ActuationDelay, DelayLine, integrate_tick};
+use rotorloop_plant::actuator::{ActuationDelay, DelayLine, integrate_tick};
 use rotorloop_plant::{Body, BodyInput};
 use rotorloop_reference::Reference;
 

@@ -14,7 +14,8 @@ use std::time::Instant;
 
 use anyhow::Context;
 use glam::DVec3;
-use rotorloop_common::role::{diverged, write_json};
+use rotorloop_common::output::write_json;
+use rotorloop_common::role::diverged;
 use rotorloop_common::so3::orthonormality_error;
 use rotorloop_common::{Actuation, Scenario};
 use rotorloop_monitor::figures::tracking_figures;
@@ -25,7 +26,7 @@ use serde::Serialize;
 use crate::sim::closed_loop::ClosedLoop;
 use crate::sim::closed_loop::DrawnDelays;
 use rotorloop_common::role::UsageError;
-use rotorloop_plant::policy::ActuationDelay;
+use rotorloop_plant::actuator::ActuationDelay;
 
 /// What to simulate.
 #[derive(Debug, Clone)]

@@ -20,10 +20,11 @@ use std::path::Path;
 
 use anyhow::Context;
 use glam::DVec3;
-use rotorloop_common::wire::{FLAG_SAFE_MODE, MAX_EFFECTS};
+use rotorloop_common::wire::FLAG_SAFE_MODE;
 use rotorloop_common::{Actuation, Scenario};
+use rotorloop_monitor::timing::TimingRow;
 use rotorloop_monitor::{Metrics, TraceWriter};
-use rotorloop_plant::policy::{ActuationDelay, DelayLine, integrate_tick};
+use rotorloop_plant::actuator::{ActuationDelay, DelayLine, integrate_tick};
 use rotorloop_plant::{Body, BodyInput};
 use rotorloop_reference::Reference;
 use serde::Serialize;
@@ -62,41 +63,13 @@ impl ReplaySummary {
     }
 }
 
-/// One row of `timing.csv`: the state's flags and the torques that took effect in the
-/// tick before it.
-struct Timing {
-    flags: u64,
-    effects: u64,
-    recorded: Vec<(u64, f64)>,
-}
-
 fn bad(dir: &Path, what: &str) -> UsageError {
     UsageError(format!("--replay {}: {what}", dir.display()))
 }
 
-fn read_timing(dir: &Path) -> anyhow::Result<BTreeMap<u64, Timing>> {
-    let path = dir.join("timing.csv");
-    let text = std::fs::read_to_string(&path).map_err(|e| bad(dir, &format!("timing.csv: {e}")))?;
-    let mut out = BTreeMap::new();
-    for (i, line) in text.lines().enumerate().skip(1) {
-        let f: Vec<&str> = line.split(',').collect();
-        let num = |j: usize| f.get(j).and_then(|v| v.parse::<u64>().ok());
-        let (Some(tick), Some(flags), Some(effects)) = (num(0), num(3), num(4)) else {
-            return Err(bad(
-                dir,
-                &format!(
-                    "timing.csv line {}: not a row of this version (tick, …, flags, effects, …)",
-                    i + 1
-                ),
-            )
-            .into());
-        };
-        let recorded = (0..MAX_EFFECTS)
-            .filter_map(|e| Some((num(5 + 2 * e)?, f.get(6 + 2 * e)?.parse::<f64>().ok()?)))
-            .collect();
-        out.insert(tick, Timing { flags, effects, recorded });
-    }
-    Ok(out)
+fn read_timing(dir: &Path) -> anyhow::Result<BTreeMap<u64, TimingRow>> {
+    rotorloop_monitor::timing::read(&dir.join("timing.csv"))
+        .map_err(|e| bad(dir, &format!("{e:#}")).into())
 }
 
 /// A trace row: the whole line, and its torques `u`, `τ`.
@@ -187,10 +160,10 @@ pub fn run(dir: &Path, out: &Path) -> anyhow::Result<ReplaySummary> {
             if next.flags & FLAG_SAFE_MODE != 0 {
                 line.clear();
             }
-            if next.effects > next.recorded.len() as u64 {
+            if next.effects > next.recorded().len() as u64 {
                 result.unrecorded_effects.push(k);
             }
-            for (source, offset) in &next.recorded {
+            for (source, offset) in next.recorded() {
                 line.schedule(k, *offset, *source, input_of(*source)?);
             }
             let step = integrate_tick(&mut body, &mut line, k, &limits, scenario.disturbance);

@@ -15,13 +15,15 @@ use std::process::{Command, Stdio};
 
 use anyhow::Context;
 use clap::Args;
-use rotorloop_common::ipc::{Domain, Wait, shutdown_requested};
+use rotorloop_common::ipc::domain::Domain;
+use rotorloop_common::ipc::wait::Wait;
+use rotorloop_common::signals::shutdown_requested;
 use rotorloop_monitor::plot::{Series, YScale, line_chart};
 
 use crate::baseline::pingpong::Kind;
 use crate::run::launch::RunArgs;
 use rotorloop_common::role::UsageError;
-use rotorloop_common::role::{Mode, RoleArgs};
+use rotorloop_common::role::args::{Mode, RoleArgs};
 
 /// `rotorloop bench` arguments.
 #[derive(Debug, Clone, Args)]
@@ -286,7 +288,7 @@ pub fn run(a: &BenchArgs) -> anyhow::Result<()> {
         println!("bench: {} measurements re-plotted in {}", rows.len(), a.out.display());
         return Ok(());
     }
-    rotorloop_common::role::scenario_with_overrides(
+    rotorloop_common::role::args::scenario_with_overrides(
         &a.scenario,
         Some(a.seconds),
         Some(a.rates[0]),
@@ -296,7 +298,7 @@ pub fn run(a: &BenchArgs) -> anyhow::Result<()> {
         .with_context(|| format!("cannot create {}", a.out.display()))?;
     let exe = std::env::current_exe().context("cannot find the rotorloop executable")?;
     let ncores = std::thread::available_parallelism().map_or(1, |n| n.get());
-    rotorloop_common::ipc::install_signal_handlers();
+    rotorloop_common::signals::install_signal_handlers();
 
     let csv_path = a.out.join("bench.csv");
     std::fs::write(&csv_path, format!("{CSV_HEADER}\n"))?;
@@ -486,6 +488,7 @@ fn loop_run_args(
         plain_hot_path: false,
         record: None,
         flight_ring_ticks: rotorloop_common::flight::DEFAULT_RING_TICKS,
+        hooks: Default::default(),
     };
     RunArgs {
         pin,

@@ -21,7 +21,7 @@ use std::path::{Path, PathBuf};
 use anyhow::Context;
 use rotorloop_common::Scenario;
 use rotorloop_monitor::plot::{Series, YScale, line_chart};
-use rotorloop_plant::policy::ActuationDelay;
+use rotorloop_plant::actuator::ActuationDelay;
 use serde::Serialize;
 
 use crate::sim::closed_loop::ClosedLoop;
@@ -196,7 +196,7 @@ pub fn sweep_run(s: &Scenario, delay_s: f64) -> SweepRun {
 
 /// Runs the study and writes its files; returns the predicted margins and the sweep.
 pub fn run(a: &MarginArgs) -> anyhow::Result<(Vec<ModeMargin>, Vec<SweepRun>)> {
-    let s = rotorloop_common::role::scenario_with_overrides(
+    let s = rotorloop_common::role::args::scenario_with_overrides(
         &a.scenario,
         Some(a.duration),
         Some(a.rate),

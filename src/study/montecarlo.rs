@@ -226,5 +226,5 @@ fn write_outputs(dir: &Path, summary: &McSummary, runs: &[McRun]) -> anyhow::Res
         &initial,
         36,
     )?;
-    rotorloop_common::role::write_json(&dir.join("summary.json"), summary)
+    rotorloop_common::output::write_json(&dir.join("summary.json"), summary)
 }

@@ -12,7 +12,7 @@ use anyhow::Context;
 use crate::sim::{self, SimOptions, summary_table};
 use crate::study::gains;
 use rotorloop_common::role::UsageError;
-use rotorloop_common::role::scenario_with_overrides;
+use rotorloop_common::role::args::scenario_with_overrides;
 
 /// The built-in scenarios of the paper, in its order.
 pub const PAPER_SCENARIOS: [&str; 3] = ["paper-zero", "paper-constant", "paper-sinusoid"];
@@ -100,21 +100,22 @@ pub fn run(out: &Path, duration: f64, rate: f64, in_process: bool) -> anyhow::Re
 fn four_process_run(out: &Path, name: &str, duration: f64, rate: f64) -> anyhow::Result<String> {
     println!("{name}: four processes, real time");
     let run_dir = out.join(name);
-    let role = rotorloop_common::role::RoleArgs {
+    let role = rotorloop_common::role::args::RoleArgs {
         domain: None,
         host: None,
         scenario: name.to_owned(),
         duration: Some(duration),
         rate: Some(rate),
         actuation: None,
-        mode: rotorloop_common::role::Mode::Realtime,
-        wait: rotorloop_common::ipc::Wait::Event,
+        mode: rotorloop_common::role::args::Mode::Realtime,
+        wait: rotorloop_common::ipc::wait::Wait::Event,
         core: None,
         rt_priority: None,
         mlock: false,
         plain_hot_path: false,
         record: None,
         flight_ring_ticks: rotorloop_common::flight::DEFAULT_RING_TICKS,
+        hooks: Default::default(),
     };
     crate::run::launch::run(&crate::run::launch::RunArgs::defaults(role, run_dir.clone()))
         .with_context(|| format!("four-process run of {name}"))?;

@@ -2,7 +2,8 @@
 //! controller`).
 
 use clap::Args;
-use rotorloop_common::role::{Corrupt, RoleArgs};
+use rotorloop_common::role::args::RoleArgs;
+use rotorloop_common::role::inject::Corrupt;
 
 use crate::policy::InjectedDelay;
 

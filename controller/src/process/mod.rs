@@ -7,8 +7,10 @@
 mod args;
 mod ports;
 
-use rotorloop_common::ipc::{now_ns, shutdown_requested};
-use rotorloop_common::role::{Mode, linger_publisher, test_hook};
+use rotorloop_common::clock::now_ns;
+use rotorloop_common::role::args::Mode;
+use rotorloop_common::role::end::linger_publisher;
+use rotorloop_common::signals::shutdown_requested;
 use rotorloop_common::wire::FLAG_LAST;
 
 pub use args::ControllerArgs;
@@ -23,17 +25,16 @@ pub fn run(args: &ControllerArgs) -> anyhow::Result<()> {
     role.setup(ROLE);
     let mut ports = Ports::open(role, scenario.ticks())?;
     let dt = scenario.dt();
-    let skip_at = test_hook("ROTORLOOP_TEST_SKIP_STATE_AT");
+    let skip_at = role.hooks.test_skip_state_at;
     let mut answers = TorqueAnswers::for_scenario(&scenario).leaving_unanswered(skip_at);
     let mut pairing = ReferencePairing::new(args.reference_hold_ticks, dt);
-    if let Some(t) = ports.slot.load().filter(|t| t.tick < scenario.ticks()) {
-        answers.resume(&t);
-        pairing.resume(&t);
-        eprintln!("controller: resuming after tick {} with its last integral state", t.tick);
+    if let Some(r) = ports.slot.load().filter(|r| r.last.tick < scenario.ticks()) {
+        answers.resume(&r);
+        pairing.resume(&r.last);
+        eprintln!("controller: resuming after tick {} with its law's last state", r.last.tick);
     }
     // Test hook: a first incarnation stalls holding a loan at this tick, to be killed so.
-    let stall_at =
-        test_hook("ROTORLOOP_TEST_STALL_WITH_LOAN_AT").filter(|_| answers.last().is_none());
+    let stall_at = role.hooks.test_stall_with_loan_at.filter(|_| answers.last().is_none());
     let mut sends = DelayedSends::new(args.inject_delay.clone());
     loop {
         ports.send_due(&mut sends, &args.corrupt, false)?;
@@ -61,8 +62,8 @@ pub fn run(args: &ControllerArgs) -> anyhow::Result<()> {
         let mut sample = answers.answer(&state, recv_ns, rd.as_ref(), &pairing, dt);
         (sample.validated_ns, sample.paired_ns, sample.computed_ns) = (validated, paired, now_ns());
         // Slot first: killed between the two, the restart re-sends this very answer when
-        // the plant asks again; the other order would resume with a stale ξ_I.
-        ports.slot.store(&sample);
+        // the plant asks again; the other order would resume with a stale law state.
+        ports.slot.store(&answers.resume_record(&sample));
         if let Some(t) = sends.hold(sample, state.t_s, now_ns()) {
             ports.publish(t, &args.corrupt)?;
         }

@@ -5,16 +5,21 @@ use std::cell::Cell;
 
 use anyhow::Context;
 use rotorloop_common::ReferenceState;
+use rotorloop_common::clock::now_ns;
 use rotorloop_common::flight::{FlightRecorder, Stream};
 use rotorloop_common::graph::Topic;
-use rotorloop_common::ipc::{Inbox, Outbox, RoleNode, Wait, now_ns, shutdown_requested};
+use rotorloop_common::ipc::ports::{Inbox, Outbox, RoleNode};
+use rotorloop_common::ipc::wait::Wait;
 use rotorloop_common::resume::ResumeSlot;
-use rotorloop_common::role::{Corrupt, PlantWatch, RoleArgs, corrupted};
+use rotorloop_common::role::args::RoleArgs;
+use rotorloop_common::role::end::PlantWatch;
+use rotorloop_common::role::inject::{Corrupt, corrupted};
+use rotorloop_common::signals::shutdown_requested;
 use rotorloop_common::wire::SendCost;
 use rotorloop_common::wire::{NO_TICK, ReferenceSample, StateSample, TorqueSample, WireFault};
 
 use crate::ROLE;
-use crate::policy::{Decision, DelayedSends, ReferencePairing, TorqueAnswers};
+use crate::policy::{ControllerResume, Decision, DelayedSends, ReferencePairing, TorqueAnswers};
 
 /// What the controller opens: its torque publisher, reference and state subscribers,
 /// resume slot, and its watch on the plant's end.
@@ -22,7 +27,7 @@ pub(super) struct Ports {
     pub out: Outbox<TorqueSample>,
     pub refs: Inbox<ReferenceSample>,
     pub states: Inbox<StateSample>,
-    pub slot: ResumeSlot<TorqueSample>,
+    pub slot: ResumeSlot<ControllerResume>,
     pub plant: PlantWatch,
     /// Every torque published, in the run's flight record.
     flight: FlightRecorder<TorqueSample>,
@@ -44,7 +49,7 @@ impl Ports {
         let refs = refs.context(ROLE)?;
         let states = domain.inbox::<StateSample>(&node, Topic::State, 8, role.wait.listens());
         let states = states.context(ROLE)?;
-        let slot = ResumeSlot::<TorqueSample>::open(&domain, ROLE).context(ROLE)?;
+        let slot = ResumeSlot::<ControllerResume>::open(&domain, ROLE).context(ROLE)?;
         let plant = PlantWatch::open(&domain, ROLE).context(ROLE)?;
         let last_publish = Cell::new((NO_TICK, SendCost::default()));
         let lazy_refs = !role.plain_hot_path;

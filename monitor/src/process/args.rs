@@ -3,7 +3,7 @@
 use std::path::PathBuf;
 
 use clap::Args;
-use rotorloop_common::role::RoleArgs;
+use rotorloop_common::role::args::RoleArgs;
 
 /// `monitor` arguments.
 #[derive(Debug, Clone, Args)]

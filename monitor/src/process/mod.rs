@@ -9,7 +9,8 @@ mod ports;
 
 use std::io::IsTerminal;
 
-use rotorloop_common::ipc::{now_ns, shutdown_requested};
+use rotorloop_common::clock::now_ns;
+use rotorloop_common::signals::shutdown_requested;
 
 pub use args::MonitorArgs;
 

@@ -3,9 +3,11 @@
 
 use anyhow::Context;
 use rotorloop_common::graph::Topic;
-use rotorloop_common::ipc::{Inbox, MAX_BUFFER, RoleNode};
+use rotorloop_common::ipc::MAX_BUFFER;
+use rotorloop_common::ipc::ports::{Inbox, RoleNode};
 use rotorloop_common::resume::ResumeSlot;
-use rotorloop_common::role::{PlantEnd, RoleArgs};
+use rotorloop_common::role::args::RoleArgs;
+use rotorloop_common::role::end::PlantEnd;
 use rotorloop_common::wire::{ReferenceSample, StateSample, TorqueSample};
 
 use crate::ROLE;

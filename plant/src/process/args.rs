@@ -1,9 +1,10 @@
 //! `plant` arguments (the same for the `plant` binary and `rotorloop role plant`).
 
 use clap::Args;
-use rotorloop_common::role::{Corrupt, RoleArgs};
+use rotorloop_common::role::args::RoleArgs;
+use rotorloop_common::role::inject::Corrupt;
 
-use crate::policy::ActuationDelay;
+use crate::actuator::ActuationDelay;
 
 /// `plant` arguments.
 #[derive(Debug, Clone, Args)]

@@ -8,8 +8,12 @@ mod args;
 mod wait;
 
 use anyhow::Context;
-use rotorloop_common::ipc::{now_ns, shutdown_requested, sleep_until_ns};
-use rotorloop_common::role::{Mode, TickGrid, corrupted, linger_publisher};
+use rotorloop_common::clock::TickGrid;
+use rotorloop_common::clock::{now_ns, sleep_until_ns};
+use rotorloop_common::role::args::Mode;
+use rotorloop_common::role::end::linger_publisher;
+use rotorloop_common::role::inject::corrupted;
+use rotorloop_common::signals::shutdown_requested;
 use rotorloop_common::wire::SendCost;
 use rotorloop_common::wire::StateSample;
 

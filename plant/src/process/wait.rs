@@ -4,12 +4,13 @@
 
 use anyhow::Context;
 use hdrhistogram::Histogram;
+use rotorloop_common::clock::now_ns;
 use rotorloop_common::flight::{FlightRecorder, Stream};
 use rotorloop_common::graph::Topic;
 use rotorloop_common::hgrm::write_hgrm_file;
-use rotorloop_common::ipc::{Inbox, Outbox, RoleNode, now_ns};
+use rotorloop_common::ipc::ports::{Inbox, Outbox, RoleNode};
 use rotorloop_common::resume::ResumeSlot;
-use rotorloop_common::role::RoleArgs;
+use rotorloop_common::role::args::RoleArgs;
 use rotorloop_common::wire::{StateSample, TorqueSample};
 
 use crate::ROLE;

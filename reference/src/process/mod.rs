@@ -9,10 +9,10 @@ mod args;
 use anyhow::Context;
 use rotorloop_common::flight::Stream;
 use rotorloop_common::graph::Topic;
-use rotorloop_common::ipc::{now_ns, shutdown_requested};
 use rotorloop_common::resume::ResumeSlot;
-use rotorloop_common::role::{PlantWatch, corrupted, linger_publisher, test_hook};
+use rotorloop_common::role::{end::PlantWatch, end::linger_publisher, inject::corrupted};
 use rotorloop_common::wire::{FLAG_LAST, ReferenceSample, StateSample};
+use rotorloop_common::{clock::now_ns, signals::shutdown_requested};
 
 pub use args::ReferenceArgs;
 
@@ -39,7 +39,7 @@ pub fn run(args: &ReferenceArgs) -> anyhow::Result<()> {
             send(again).context("reference: re-publishing")?;
         }
         eprintln!("reference: resuming after tick {} (its window re-published)", lead.next() - 1);
-    } else if let Some(ms) = test_hook("ROTORLOOP_TEST_REFERENCE_LATE_MS") {
+    } else if let Some(ms) = args.role.hooks.test_reference_late_ms {
         // Test hook: a first incarnation starts late; states reach the controller first.
         std::thread::sleep(std::time::Duration::from_millis(ms));
     }

@@ -3,17 +3,23 @@
 //! happened ([`FaultEvent`]), whether the schedule injected it or the supervisor saw it.
 //! What each fault cost is computed after the run in [`report`].
 //!
-//! The launcher applies the due [`Action`]s (a signal to a child, or the controller's
-//! `--inject-delay` for a delay) in `run::launch`.
+//! Each kind is one row of [`KINDS`]: its syntax, the roles it allows, its help line (the
+//! `--help` of `--fault` is made from them), how its start and end are applied
+//! ([`Apply`]: a signal, a restart, or an argument the role applies itself) and the word
+//! its events and report rows use. The launcher carries out the due [`Action`]s by that
+//! column in `run::launch`. `--corrupt` ([`parse_corrupt`]) is addressed by tick, not by
+//! time: the role corrupts its own sample (`rotorloop_common::role::inject`, with the
+//! tests' hidden hooks).
 
 pub mod report;
 
-use rotorloop_common::ipc::now_ns;
+use rotorloop_common::clock::now_ns;
 
 use rotorloop_common::graph::Role;
 use rotorloop_common::role::UsageError;
+use rotorloop_common::role::inject::Corrupt;
 
-/// What a `--fault` does.
+/// What a `--fault` does (its row in [`KINDS`] says everything else).
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub enum FaultKind {
     /// SIGKILL, then (if given) start it again.
@@ -26,8 +32,106 @@ pub enum FaultKind {
     Delay(f64),
 }
 
-/// One `--fault`: `ROLE:kill@T[:restart@T2]`, `ROLE:stop@T[:cont@T2]` or
-/// `controller:delay@T=SECONDS[:until@T2]`.
+/// How the launcher carries out the start or the end of a fault.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Apply {
+    /// Send this signal to the role's process (`SIGKILL`, `SIGSTOP`, `SIGCONT`).
+    Signal(libc::c_int, &'static str),
+    /// Start the role again with its original arguments.
+    Restart,
+    /// The role applies it itself from an argument it was started with (the launcher
+    /// only reports it).
+    ByTheRole(&'static str),
+}
+
+/// Which roles a fault kind may target.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Targets {
+    /// Any role, and with `--split` a link gateway (`link-HOST`).
+    AnyProcess,
+    /// Only this role.
+    Only(Role),
+}
+
+/// One kind of `--fault`, all of it in one row: its syntax, the roles it allows, its help,
+/// how its start and end are applied, and the word its report and events use.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct KindSpec {
+    /// The word of its start, before `@T` (also the kind of its [`FaultEvent`] and of its
+    /// row in the report).
+    pub start: &'static str,
+    /// The word of its optional end, before `@T2`.
+    pub end: &'static str,
+    /// A value after the start time (`=SECONDS`): its name and the range allowed.
+    pub value: Option<(&'static str, f64, f64)>,
+    /// Which roles it may target.
+    pub targets: Targets,
+    /// How the start and the end are applied.
+    pub apply: (Apply, Apply),
+    /// One line of `--help`.
+    pub help: &'static str,
+}
+
+/// Every `--fault` kind. A new kind is a row here, a variant of [`FaultKind`] and, when
+/// the role applies it itself, the role's side (the controller's `--inject-delay`).
+pub const KINDS: [KindSpec; 3] = [
+    KindSpec {
+        start: "kill",
+        end: "restart",
+        value: None,
+        targets: Targets::AnyProcess,
+        apply: (Apply::Signal(libc::SIGKILL, "SIGKILL"), Apply::Restart),
+        help: "ROLE:kill@T[:restart@T2]: SIGKILL at T; at T2 start it again",
+    },
+    KindSpec {
+        start: "stop",
+        end: "cont",
+        value: None,
+        targets: Targets::AnyProcess,
+        apply: (Apply::Signal(libc::SIGSTOP, "SIGSTOP"), Apply::Signal(libc::SIGCONT, "SIGCONT")),
+        help: "ROLE:stop@T[:cont@T2]: SIGSTOP (a hang) at T; SIGCONT at T2",
+    },
+    KindSpec {
+        start: "delay",
+        end: "until",
+        value: Some(("SECONDS", 0.0, 60.0)),
+        targets: Targets::Only(Role::Controller),
+        apply: (Apply::ByTheRole("--inject-delay"), Apply::ByTheRole("--inject-delay")),
+        help: "controller:delay@T=SECONDS[:until@T2]: each answer sent SECONDS late (> 0, ≤ 60) from T to T2",
+    },
+];
+
+impl FaultKind {
+    /// Its row in [`KINDS`].
+    pub fn spec(self) -> &'static KindSpec {
+        &KINDS[match self {
+            Self::Kill => 0,
+            Self::Stop => 1,
+            Self::Delay(_) => 2,
+        }]
+    }
+
+    fn of(spec: &KindSpec, value: Option<f64>) -> Self {
+        match (spec.start, value) {
+            ("stop", _) => Self::Stop,
+            ("delay", Some(d)) => Self::Delay(d),
+            _ => Self::Kill,
+        }
+    }
+}
+
+/// The `--help` of `--fault`, from [`KINDS`].
+pub fn help() -> String {
+    let kinds: Vec<&str> = KINDS.iter().map(|k| k.help).collect();
+    format!(
+        "Inject a fault at T seconds after the plant published tick 0 (so a slow start never \
+         moves a fault before the run): {}. ROLE is plant, reference, controller, monitor or, \
+         with --split, a gateway (link-HOST). Repeatable; one role takes one fault at a time",
+        kinds.join("; ")
+    )
+}
+
+/// One `--fault`: a row of [`KINDS`] for a role, its start and its optional end.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Fault {
     /// The role.
@@ -43,24 +147,30 @@ pub struct Fault {
 }
 
 impl Fault {
-    /// The controller's `--inject-delay FROM=SECONDS[:UNTIL]` of a delay fault.
-    pub fn inject_delay_arg(&self) -> Option<String> {
-        match self.kind {
-            FaultKind::Delay(d) => Some(match self.restart_s {
-                Some(u) => format!("{}={d}:{u}", self.kill_s),
-                None => format!("{}={d}", self.kill_s),
-            }),
+    /// The argument a role that applies this fault itself is started with (the
+    /// controller's `--inject-delay FROM=SECONDS[:UNTIL]` of a delay).
+    pub fn role_arg(&self) -> Option<(&'static str, String)> {
+        match (self.kind, self.kind.spec().apply.0) {
+            (FaultKind::Delay(d), Apply::ByTheRole(flag)) => Some((
+                flag,
+                match self.restart_s {
+                    Some(u) => format!("{}={d}:{u}", self.kill_s),
+                    None => format!("{}={d}", self.kill_s),
+                },
+            )),
             _ => None,
         }
     }
 }
 
-/// Parses a `--fault` (see [`Fault`]).
+/// Parses a `--fault` by the rows of [`KINDS`].
 pub fn parse_fault(s: &str) -> Result<Fault, UsageError> {
+    let forms: Vec<&str> =
+        KINDS.iter().map(|k| k.help.split_once(':').map_or(k.help, |(f, _)| f)).collect();
     let bad = |why: &str| {
         UsageError(format!(
-            "--fault `{s}` is not allowed: {why} (form ROLE:kill@T[:restart@T2], \
-             ROLE:stop@T[:cont@T2] or controller:delay@T=SECONDS[:until@T2], e.g. controller:kill@2:restart@2.5)"
+            "--fault `{s}` is not allowed: {why} (form {}, e.g. controller:kill@2:restart@2.5)",
+            forms.join(", ")
         ))
     };
     let parts: Vec<&str> = s.split(':').collect();
@@ -79,38 +189,66 @@ pub fn parse_fault(s: &str) -> Result<Fault, UsageError> {
             .filter(|t| t.is_finite() && *t >= 0.0)
             .ok_or_else(|| bad(&format!("`{p}` must be {what}, seconds ≥ 0")))
     };
-    let time = |p: &str, key: &str| match p.strip_prefix(key) {
-        Some(t) => seconds(t, &format!("the time of {key}")),
-        None => Err(bad(&format!("`{p}` must be {key}SECONDS"))),
+    let kinds: Vec<&str> = KINDS.iter().map(|k| k.start).collect();
+    let Some((word, rest)) = parts[1].split_once('@') else {
+        return Err(bad(&format!(
+            "`{}` must be KIND@SECONDS, KIND {}",
+            parts[1],
+            kinds.join(", ")
+        )));
     };
-    let (kind, first, then) = match parts[1].split_once('@').map(|(k, _)| k) {
-        Some("stop") => (FaultKind::Stop, "stop@", "cont@"),
-        Some("delay") => {
-            let (_, spec) = parts[1].split_once('@').unwrap_or_default();
-            let (_, d) = spec.split_once('=').ok_or_else(|| bad("delay@T=SECONDS"))?;
-            let d = seconds(d, "the delay").and_then(|d| match d > 0.0 && d <= 60.0 {
-                true => Ok(d),
-                false => Err(bad("the delay must be > 0 and ≤ 60 s")),
-            })?;
-            if parts[0] != Role::Controller.name() {
-                return Err(bad("only the controller's answers can be delayed"));
+    let spec = KINDS
+        .iter()
+        .find(|k| k.start == word)
+        .ok_or_else(|| bad(&format!("`{word}` is not a kind: {}", kinds.join(", "))))?;
+    let (at, value) = match spec.value {
+        None => (rest, None),
+        Some((name, lo, hi)) => {
+            let (at, v) = rest.split_once('=').ok_or_else(|| bad(&format!("{word}@T={name}")))?;
+            let v = seconds(v, &format!("the {word}"))?;
+            if !(v > lo && v <= hi) {
+                return Err(bad(&format!("the {word} must be > {lo} and ≤ {hi} s")));
             }
-            (FaultKind::Delay(d), "delay@", "until@")
+            (at, Some(v))
         }
-        _ => (FaultKind::Kill, "kill@", "restart@"),
     };
-    let start = match kind {
-        FaultKind::Delay(_) => parts[1].split_once('=').map_or(parts[1], |(t, _)| t),
-        _ => parts[1],
-    };
-    let kill_s = time(start, first)?;
-    let restart_s = parts.get(2).map(|p| time(p, then)).transpose()?;
-    if restart_s.is_some_and(|r| r <= kill_s) {
-        let (a, b) = (&then[..then.len() - 1], &first[..first.len() - 1]);
-        return Err(bad(&format!("the {a} must come after the {b}")));
+    if let Targets::Only(role) = spec.targets
+        && parts[0] != role.name()
+    {
+        return Err(bad(&format!("only the {}'s answers can take a {word}", role.name())));
     }
+    let kill_s = seconds(at, &format!("the time of {word}@"))?;
+    let time = |p: &str, key: &str| match p.strip_prefix(key).and_then(|p| p.strip_prefix('@')) {
+        Some(t) => seconds(t, &format!("the time of {key}@")),
+        None => Err(bad(&format!("`{p}` must be {key}@SECONDS"))),
+    };
+    let restart_s = parts.get(2).map(|p| time(p, spec.end)).transpose()?;
+    if restart_s.is_some_and(|r| r <= kill_s) {
+        return Err(bad(&format!("the {} must come after the {}", spec.end, spec.start)));
+    }
+    let kind = FaultKind::of(spec, value);
     let (killed, restarted) = (false, false);
     Ok(Fault { role: parts[0].to_owned(), kind, kill_s, restart_s, killed, restarted })
+}
+
+/// Parses `--corrupt ROLE:KIND@TICK`: a fault the role applies to its own sample of
+/// that tick (`rotorloop_common::role::inject`), so it is addressed by tick, not by time.
+pub fn parse_corrupt(s: &str) -> Result<(String, Corrupt), UsageError> {
+    use rotorloop_common::role::inject::CorruptKind;
+    let bad = |why: &str| {
+        UsageError(format!(
+            "--corrupt `{s}` is not allowed: {why} (form ROLE:KIND@TICK, e.g. controller:nan@500)"
+        ))
+    };
+    let (role, rest) = s.split_once(':').ok_or_else(|| bad("no ROLE:"))?;
+    if ![Role::Plant, Role::Reference, Role::Controller].map(Role::name).contains(&role) {
+        return Err(bad("ROLE is plant, reference or controller"));
+    }
+    let c: Corrupt = rest.parse().map_err(|e: String| bad(&e))?;
+    if role == Role::Controller.name() && c.kind == CorruptKind::Skew {
+        return Err(bad("`skew` needs an attitude: plant or reference"));
+    }
+    Ok((role.to_owned(), c))
 }
 
 /// Refuses `--fault`s that overlap for one role: a kill or stop while the role is
@@ -149,20 +287,24 @@ pub fn check_overlaps(specs: &[String], faults: &[Fault]) -> Result<(), UsageErr
     Ok(())
 }
 
-/// What the schedule asks the launcher to do now.
+/// What the schedule asks the launcher to do now: the start or the end of a fault of
+/// `role`, applied as its row of [`KINDS`] says.
 #[derive(Debug, Clone, PartialEq)]
-pub enum Action {
-    /// SIGKILL this role.
-    Kill(String),
-    /// Start this role again with its original arguments.
-    Restart(String),
-    /// SIGSTOP this role (an injected hang).
-    Stop(String),
-    /// SIGCONT this role.
-    Cont(String),
-    /// The controller's injected delay starts (`true`) or ends (the controller applies
-    /// it; the launcher reports it).
-    Delay(String, f64, bool),
+pub struct Action {
+    /// The role.
+    pub role: String,
+    /// The fault's kind.
+    pub kind: FaultKind,
+    /// Its start (`true`) or its end.
+    pub starts: bool,
+}
+
+impl Action {
+    /// How to apply it.
+    pub fn apply(&self) -> Apply {
+        let (start, end) = self.kind.spec().apply;
+        if self.starts { start } else { end }
+    }
 }
 
 /// The `--fault` schedule.
@@ -183,22 +325,14 @@ impl FaultSchedule {
         let Some(t) = elapsed_s else { return Vec::new() };
         let mut actions = Vec::new();
         for f in &mut self.faults {
-            let r = f.role.clone();
+            let (role, kind) = (&f.role, f.kind);
             if !f.killed && t >= f.kill_s {
                 f.killed = true;
-                actions.push(match f.kind {
-                    FaultKind::Kill => Action::Kill(r.clone()),
-                    FaultKind::Stop => Action::Stop(r.clone()),
-                    FaultKind::Delay(d) => Action::Delay(r.clone(), d, true),
-                });
+                actions.push(Action { role: role.clone(), kind, starts: true });
             }
             if f.killed && !f.restarted && f.restart_s.is_some_and(|at| t >= at) {
                 f.restarted = true;
-                actions.push(match f.kind {
-                    FaultKind::Kill => Action::Restart(r),
-                    FaultKind::Stop => Action::Cont(r),
-                    FaultKind::Delay(d) => Action::Delay(r, d, false),
-                });
+                actions.push(Action { role: role.clone(), kind, starts: false });
             }
         }
         actions
@@ -208,11 +342,7 @@ impl FaultSchedule {
     pub fn not_done(&self) -> Vec<String> {
         let mut out = Vec::new();
         for f in &self.faults {
-            let (start, end) = match f.kind {
-                FaultKind::Kill => ("kill", "restart"),
-                FaultKind::Stop => ("stop", "cont"),
-                FaultKind::Delay(_) => ("delay", "until"),
-            };
+            let KindSpec { start, end, .. } = f.kind.spec();
             if !f.killed {
                 out.push(format!("{}:{start}@{}", f.role, f.kill_s));
             } else if let Some(r) = f.restart_s.filter(|_| !f.restarted) {
@@ -264,11 +394,15 @@ impl FaultEvent {
 mod tests {
     use super::*;
 
+    fn act(role: &str, kind: FaultKind, starts: bool) -> Action {
+        Action { role: role.to_owned(), kind, starts }
+    }
+
     #[test]
     fn nothing_is_due_before_tick_zero_however_late() {
         let mut s = FaultSchedule::new(vec![parse_fault("controller:kill@0").expect("valid")]);
         assert!(s.due(None).is_empty());
-        assert_eq!(s.due(Some(0.0)), [Action::Kill("controller".into())]);
+        assert_eq!(s.due(Some(0.0)), [act("controller", FaultKind::Kill, true)]);
     }
 
     #[test]
@@ -276,17 +410,20 @@ mod tests {
         let mut s =
             FaultSchedule::new(vec![parse_fault("plant:kill@1:restart@1.5").expect("valid")]);
         assert!(s.due(Some(0.9)).is_empty());
-        assert_eq!(s.due(Some(1.0)), [Action::Kill("plant".into())]);
+        assert_eq!(s.due(Some(1.0)), [act("plant", FaultKind::Kill, true)]);
         assert!(s.awaiting_restart());
         assert!(s.due(Some(1.2)).is_empty());
-        assert_eq!(s.due(Some(1.6)), [Action::Restart("plant".into())]);
+        assert_eq!(s.due(Some(1.6)), [act("plant", FaultKind::Kill, false)]);
         assert!(!s.awaiting_restart());
         assert!(s.due(Some(9.0)).is_empty());
         // A late poll that passes both times at once does both, kill first.
         let mut late =
             FaultSchedule::new(vec![parse_fault("monitor:kill@1:restart@2").expect("ok")]);
         let both = late.due(Some(5.0));
-        assert_eq!(both, [Action::Kill("monitor".into()), Action::Restart("monitor".into())]);
+        assert_eq!(
+            both,
+            [act("monitor", FaultKind::Kill, true), act("monitor", FaultKind::Kill, false)]
+        );
     }
 
     #[test]
@@ -333,9 +470,9 @@ mod tests {
     fn a_stop_and_its_cont_are_due_like_a_kill_and_its_restart() {
         let mut s =
             FaultSchedule::new(vec![parse_fault("controller:stop@1:cont@3").expect("valid")]);
-        assert_eq!(s.due(Some(1.0)), [Action::Stop("controller".into())]);
+        assert_eq!(s.due(Some(1.0)), [act("controller", FaultKind::Stop, true)]);
         assert!(!s.awaiting_restart(), "a stopped role is still there");
-        assert_eq!(s.due(Some(3.0)), [Action::Cont("controller".into())]);
+        assert_eq!(s.due(Some(3.0)), [act("controller", FaultKind::Stop, false)]);
         let e = parse_fault("controller:stop@2:cont@1").expect_err("cont first").to_string();
         assert!(e.contains("cont must come after the stop"), "{e}");
         assert!(parse_fault("controller:stop@2:restart@3").is_err());
@@ -345,12 +482,13 @@ mod tests {
     fn an_injected_delay_is_the_controllers_and_is_reported_at_its_start_and_end() {
         let f = parse_fault("controller:delay@1=0.005:until@3").expect("valid");
         assert_eq!((f.kind, f.kill_s, f.restart_s), (FaultKind::Delay(0.005), 1.0, Some(3.0)));
-        assert_eq!(f.inject_delay_arg().as_deref(), Some("1=0.005:3"));
+        assert_eq!(f.role_arg(), Some(("--inject-delay", "1=0.005:3".to_owned())));
         let mut s = FaultSchedule::new(vec![f]);
-        assert_eq!(s.due(Some(1.0)), [Action::Delay("controller".into(), 0.005, true)]);
-        assert_eq!(s.due(Some(3.0)), [Action::Delay("controller".into(), 0.005, false)]);
+        assert_eq!(s.due(Some(1.0)), [act("controller", FaultKind::Delay(0.005), true)]);
+        assert_eq!(s.due(Some(3.0)), [act("controller", FaultKind::Delay(0.005), false)]);
         for (bad, why) in [
             ("plant:delay@1=0.005", "only the controller"),
+            ("plant:zap@1", "not a kind: kill, stop, delay"),
             ("controller:delay@1", "delay@T=SECONDS"),
             ("controller:delay@1=0", "> 0"),
             ("controller:delay@2=0.1:until@1", "until must come after the delay"),

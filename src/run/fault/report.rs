@@ -54,26 +54,6 @@ pub struct FaultReport {
     pub time_to_recover_s: Option<f64>,
 }
 
-struct Timing {
-    publish_ns: u64,
-    applied: i64,
-}
-
-fn read_timing(path: &Path) -> anyhow::Result<BTreeMap<u64, Timing>> {
-    let text =
-        std::fs::read_to_string(path).with_context(|| format!("cannot read {}", path.display()))?;
-    let mut m = BTreeMap::new();
-    for line in text.lines().skip(1) {
-        let f: Vec<&str> = line.split(',').collect();
-        if let (Some(k), Some(p), Some(a)) = (f.first(), f.get(1), f.get(2)) {
-            if let (Ok(k), Ok(p), Ok(a)) = (k.parse(), p.parse(), a.parse()) {
-                m.insert(k, Timing { publish_ns: p, applied: a });
-            }
-        }
-    }
-    Ok(m)
-}
-
 fn read_errors(path: &Path) -> anyhow::Result<BTreeMap<u64, (f64, f64)>> {
     let text =
         std::fs::read_to_string(path).with_context(|| format!("cannot read {}", path.display()))?;
@@ -101,24 +81,28 @@ pub fn report(
     scenario: &Scenario,
     events: &[FaultEvent],
 ) -> anyhow::Result<Vec<FaultReport>> {
-    let timing = read_timing(&out.join("timing.csv"))?;
+    let timing = rotorloop_monitor::timing::read(&out.join("timing.csv"))?;
     let errors = read_errors(&out.join("trace.csv"))?;
-    let Some(t0) = timing.values().map(|t| t.publish_ns).min() else {
+    let Some(t0) = timing.values().map(|t| t.state_publish_ns).min() else {
         return Ok(Vec::new());
     };
     // The no-fault run: the same scenario in process.
     let mut lp = ClosedLoop::new(scenario, scenario.actuation(), None);
     let nofault: Vec<f64> = (0..=scenario.ticks()).map(|_| lp.tick().err_deg).collect();
     let last_tick = timing.keys().next_back().copied().unwrap_or(0);
-    let fresh = |k: u64| timing.get(&k).is_some_and(|t| k > 0 && t.applied == k as i64 - 1);
+    let fresh =
+        |k: u64| timing.get(&k).is_some_and(|t| k > 0 && t.applied_torque_tick == Some(k - 1));
 
     let mut reports = Vec::new();
     for e in events {
-        let kill_tick =
-            timing.iter().filter(|(_, t)| t.publish_ns <= e.kill_ns).map(|(k, _)| *k).next_back();
+        let kill_tick = timing
+            .iter()
+            .filter(|(_, t)| t.state_publish_ns <= e.kill_ns)
+            .map(|(k, _)| *k)
+            .next_back();
         let restart_tick = e
             .restart_ns
-            .and_then(|r| timing.iter().find(|(_, t)| t.publish_ns >= r).map(|(k, _)| *k));
+            .and_then(|r| timing.iter().find(|(_, t)| t.state_publish_ns >= r).map(|(k, _)| *k));
         let from = kill_tick.unwrap_or(0);
         let first_fresh_after_restart =
             restart_tick.and_then(|r| (r..=last_tick).find(|k| fresh(*k)));
@@ -161,7 +145,7 @@ pub fn report(
     if let Ok(text) = std::fs::read_to_string(&summary_path) {
         let mut j: serde_json::Value = serde_json::from_str(&text)?;
         j["faults"] = serde_json::to_value(&reports)?;
-        rotorloop_common::role::write_json(&summary_path, &j)?;
+        rotorloop_common::output::write_json(&summary_path, &j)?;
     }
 
     draw(out, scenario, &errors, &nofault, &reports)?;

@@ -1,0 +1,220 @@
+//! A role's ports: [`Outbox`] (a publisher and the notifier that wakes its subscribers)
+//! and [`Inbox`] (a subscriber and the listener that wakes it).
+
+use std::cell::Cell;
+use std::fmt::Debug;
+use std::time::Duration;
+
+use iceoryx2::port::listener::Listener;
+use iceoryx2::port::notifier::Notifier;
+use iceoryx2::port::publisher::Publisher;
+use iceoryx2::port::subscriber::Subscriber;
+use iceoryx2::port::update_connections::UpdateConnections;
+use iceoryx2::prelude::*;
+use iceoryx2::service::port_factory::publish_subscribe::PortFactory as PubSubFactory;
+
+use super::wait::{WAIT_BOUND_NS, Wait, wait_any_readable};
+use super::{IpcError, iox};
+use crate::clock::now_ns;
+use crate::signals::shutdown_requested;
+use crate::wire::SendCost;
+
+/// A listener and a notifier on one event service.
+pub type EventPorts = (Listener<ipc::Service>, Notifier<ipc::Service>);
+
+/// A role's iceoryx2 node: it must outlive the role's ports.
+pub type RoleNode = Node<ipc::Service>;
+
+/// A publisher and the notifier that wakes its subscribers.
+#[derive(Debug)]
+pub struct Outbox<T: ZeroCopySend + Debug + Copy + 'static> {
+    pub(super) service: PubSubFactory<ipc::Service, T, ()>,
+    pub(super) publisher: Publisher<ipc::Service, T, ()>,
+    pub(super) notifier: Notifier<ipc::Service>,
+}
+
+impl<T: ZeroCopySend + Debug + Copy + 'static> Outbox<T> {
+    /// Waits until at least `n` subscribers are connected (those that must see the first
+    /// sample), polling every millisecond; false on a termination signal.
+    pub fn wait_for_subscribers(&self, n: usize) -> bool {
+        while self.subscribers() < n {
+            if shutdown_requested() {
+                return false;
+            }
+            self.update_connections();
+            std::thread::sleep(std::time::Duration::from_millis(1));
+        }
+        self.update_connections();
+        true
+    }
+
+    /// Publishes `value` (written in place into shared memory) and notifies listeners.
+    /// `stamp` is called just before the send to set the publish timestamp. Returns what
+    /// each step cost (for the stage breakdown; four clock reads).
+    #[inline]
+    pub fn send(&self, value: T, stamp: impl FnOnce(&mut T)) -> Result<SendCost, IpcError> {
+        self.send_then(value, stamp, |_| ())
+    }
+
+    /// [`Outbox::send`], then `after` with the sample as published (its flight record),
+    /// once the listeners are notified: off the hop it starts.
+    #[inline]
+    pub fn send_then(
+        &self,
+        mut value: T,
+        stamp: impl FnOnce(&mut T),
+        after: impl FnOnce(&T),
+    ) -> Result<SendCost, IpcError> {
+        let t0 = now_ns();
+        let sample = self.publisher.loan_uninit().map_err(|e| iox("cannot loan a sample")(&e))?;
+        let t1 = now_ns();
+        stamp(&mut value);
+        sample.write_payload(value).send().map_err(|e| iox("cannot send a sample")(&e))?;
+        let t2 = now_ns();
+        self.notifier.notify().map_err(|e| iox("cannot notify")(&e))?;
+        let cost = SendCost { loan_ns: t1 - t0, send_ns: t2 - t1, notify_ns: now_ns() - t2 };
+        after(&value);
+        Ok(cost)
+    }
+
+    /// Loans a sample and never sends it, until a termination signal: a test hook for
+    /// "killed while holding a loan" (iceoryx2 must reclaim the loan after the kill).
+    pub fn stall_holding_a_loan(&self) -> Result<(), IpcError> {
+        let sample = self.publisher.loan_uninit().map_err(|e| iox("cannot loan a sample")(&e))?;
+        while !shutdown_requested() {
+            std::thread::sleep(Duration::from_millis(5));
+        }
+        drop(sample);
+        Ok(())
+    }
+
+    /// Connects subscribers that appeared since the last send (and gives them history).
+    pub fn update_connections(&self) {
+        let _ = self.publisher.update_connections();
+    }
+
+    /// Subscribers currently connected to this topic.
+    pub fn subscribers(&self) -> usize {
+        self.service.dynamic_config().number_of_subscribers()
+    }
+
+    /// Subscribers of this topic that belong to none of `nodes` (a link gateway's).
+    pub fn subscribers_except(&self, nodes: &[u128]) -> usize {
+        let mut n = 0;
+        self.service.dynamic_config().list_subscribers(|d| {
+            n += usize::from(!nodes.contains(&d.node_id.value()));
+            CallbackProgression::Continue
+        });
+        n
+    }
+}
+
+/// A subscriber and, optionally, the listener that wakes it.
+#[derive(Debug)]
+pub struct Inbox<T: ZeroCopySend + Debug + Copy + 'static> {
+    pub(super) subscriber: Subscriber<ipc::Service, T, ()>,
+    pub(super) listener: Option<Listener<ipc::Service>>,
+    /// See [`Inbox::unnotified`].
+    pub(super) unnotified: Cell<u64>,
+}
+
+impl<T: ZeroCopySend + Debug + Copy + 'static> Inbox<T> {
+    /// Takes every waiting sample, oldest first, handing each to `f`.
+    #[inline]
+    pub fn drain(&self, mut f: impl FnMut(T)) -> Result<(), IpcError> {
+        while let Some(x) = self.take()? {
+            f(x);
+        }
+        Ok(())
+    }
+
+    /// Takes the oldest waiting sample, if any.
+    #[inline]
+    pub fn take(&self) -> Result<Option<T>, IpcError> {
+        match self.subscriber.receive() {
+            Ok(Some(s)) => Ok(Some(*s.payload())),
+            Ok(None) => Ok(None),
+            Err(e) => Err(iox("cannot receive")(&e)),
+        }
+    }
+
+    /// Lost wake-ups: how often [`Inbox::wait_for`] found what it waited for only after a
+    /// whole bounded wait (10 ms) passed with no notification. Every publisher notifies
+    /// after it sends, so on one host this stays 0; a sample that comes in through a link
+    /// gateway without a wake-up after it counts here (and costs its receiver up to 10 ms).
+    /// (A sample that lands in the microsecond between the bound's end and the look after
+    /// it counts too, falsely; that needs a 10 ms silence first.)
+    pub fn unnotified(&self) -> u64 {
+        self.unnotified.get()
+    }
+
+    /// Waits until `ready()` returns something, the monotonic deadline passes, or a
+    /// termination signal arrives. `ready` is polled first, after every wake-up, and in
+    /// spin mode continuously; it should drain the inbox.
+    #[inline]
+    pub fn wait_for<R>(
+        &self,
+        wait: Wait,
+        deadline_ns: u64,
+        mut ready: impl FnMut(&Self) -> Result<Option<R>, IpcError>,
+    ) -> Result<Option<R>, IpcError> {
+        let start = now_ns();
+        let mut slept_through = false;
+        loop {
+            if let Some(r) = ready(self)? {
+                if slept_through {
+                    self.unnotified.set(self.unnotified.get() + 1);
+                }
+                return Ok(Some(r));
+            }
+            let now = now_ns();
+            if now >= deadline_ns || shutdown_requested() {
+                return Ok(None);
+            }
+            let spin = match wait {
+                Wait::Spin => true,
+                Wait::Event => false,
+                Wait::Hybrid { spin_ns } => now - start < spin_ns,
+                Wait::Poll { period_ns } => {
+                    let nap = period_ns.min(deadline_ns - now).min(10_000_000);
+                    std::thread::sleep(Duration::from_nanos(nap));
+                    continue;
+                }
+            };
+            let left = deadline_ns - now;
+            slept_through = match (&self.listener, spin || left < 2_000) {
+                // Bounded so that signals are seen; wake-ups merge, so drain after. A
+                // silent wait counts only when the bound, not the deadline, ended it.
+                (Some(l), false) => {
+                    !wait_readable(l, left.min(WAIT_BOUND_NS))? && left > WAIT_BOUND_NS
+                }
+                _ => {
+                    std::hint::spin_loop();
+                    false
+                }
+            };
+        }
+    }
+}
+
+/// Blocks until `listener` has an event or `timeout_ns` passes, then drains its events.
+///
+/// Not iceoryx2's `Listener::timed_wait`: it sets the timeout as `SO_RCVTIMEO`, which Linux
+/// counts in jiffies (4 ms at `HZ=250`), so a 1 ms timeout blocked 4–8 ms here (found as
+/// real-time ticks late by up to 8 ms whenever a torque did not come; and a timeout under
+/// 1 µs becomes `{0, 0}`: wait forever). `ppoll` on the listener's socket has an hrtimer
+/// timeout with nanosecond resolution; the listener is drained with `try_wait` after.
+/// Returns whether a notification (or a signal) came.
+fn wait_readable(listener: &Listener<ipc::Service>, timeout_ns: u64) -> Result<bool, IpcError> {
+    use iceoryx2_bb_posix::file_descriptor::FileDescriptorBased;
+    // SAFETY: the listener owns the descriptor and outlives this call; it is only polled.
+    let fd = unsafe { listener.file_descriptor().native_handle() };
+    wait_any_readable(&[fd], timeout_ns)?;
+    let mut notified = false;
+    match listener.try_wait(|_| notified = true) {
+        Ok(_) => Ok(notified),
+        // A signal (SIGTERM to stop, say) is a wake-up like any other.
+        Err(iceoryx2::port::listener::ListenerWaitError::InterruptSignal) => Ok(true),
+        Err(e) => Err(iox("cannot drain events")(&e)),
+    }
+}

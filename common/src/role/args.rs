@@ -1,0 +1,185 @@
+//! The arguments every role takes ([`RoleArgs`]), the run mode, and the scenario they
+//! name with the command line's overrides.
+
+use clap::{Args, ValueEnum};
+
+use crate::ipc::wait::Wait;
+use crate::rt::RtSetup;
+use crate::scenario::RunFile;
+use crate::{Actuation, Scenario};
+
+use super::UsageError;
+
+/// Lockstep or real time.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+pub enum Mode {
+    /// The plant does not step tick k until torque k has arrived: deterministic, as fast
+    /// as the processes go, trace identical to `rotorloop sim`.
+    Lockstep,
+    /// The plant ticks on an absolute time grid and holds the last torque when a fresh one
+    /// is late (a miss).
+    Realtime,
+}
+
+/// Arguments every role takes. The launcher passes the same ones to all four.
+#[derive(Debug, Clone, Args)]
+pub struct RoleArgs {
+    /// Run domain: services and shared memory of different domains never meet
+    /// (default: `default` for a role started by hand, `run-<pid>` for `rotorloop run`).
+    #[arg(long)]
+    pub domain: Option<String>,
+    /// The host this process runs on, when a run spans hosts joined by link gateways
+    /// (`rotorloop link`): its own iceoryx2 prefix and root, so that two "hosts" on one
+    /// machine share nothing but the link (default: none, this machine is the only host).
+    #[arg(long)]
+    pub host: Option<String>,
+    /// Built-in scenario name or TOML path (every role reads the same one).
+    #[arg(long)]
+    pub scenario: String,
+    /// Simulated seconds (default: the scenario's).
+    #[arg(long, allow_negative_numbers = true)]
+    pub duration: Option<f64>,
+    /// Tick rate in Hz (default: the scenario's).
+    #[arg(long, allow_negative_numbers = true)]
+    pub rate: Option<f64>,
+    /// `internal` or `external` (default: the scenario's).
+    #[arg(long)]
+    pub actuation: Option<Actuation>,
+    /// `lockstep` or `realtime`.
+    #[arg(long, value_enum, default_value_t = Mode::Lockstep)]
+    pub mode: Mode,
+    /// How to wait for input: `event` (block), `spin` (busy-poll), `hybrid` (spin 50 µs, then block).
+    #[arg(long, default_value = "event")]
+    pub wait: Wait,
+    /// Pin the process to this core.
+    #[arg(long, allow_negative_numbers = true)]
+    pub core: Option<usize>,
+    /// SCHED_FIFO priority 1–99 (a warning and the default policy when not permitted).
+    #[arg(long, allow_negative_numbers = true, value_parser = clap::value_parser!(i32).range(1..=99))]
+    pub rt_priority: Option<i32>,
+    /// Lock the process's memory (mlockall).
+    #[arg(long)]
+    pub mlock: bool,
+    /// The hot path as it was before its overhead was cut (for `rotorloop bench
+    /// --before-after`): the real-time reference woken by every state, and the controller
+    /// reading the reference topic every tick.
+    #[arg(long, hide = true)]
+    pub plain_hot_path: bool,
+    /// Flight-record what this role publishes (the plant: also what it receives) into
+    /// `DIR/*.flight` (`common::flight`); `rotorloop run` records into `OUT/flight`.
+    #[arg(long, value_name = "DIR")]
+    pub record: Option<std::path::PathBuf>,
+    /// Slots of each flight record's ring on tmpfs (rounded up to a power of two; 1224
+    /// bytes a tick for the four streams): the RAM the records take whatever the run's
+    /// duration. A run longer than that has the finished halves moved into `OUT/flight`
+    /// while it goes on.
+    #[arg(long, value_name = "TICKS", default_value_t = crate::flight::DEFAULT_RING_TICKS,
+          value_parser = clap::value_parser!(u64).range(crate::flight::MIN_RING_TICKS..))]
+    pub flight_ring_ticks: u64,
+    /// The tests' hooks (hidden flags).
+    #[command(flatten)]
+    pub hooks: super::inject::TestHooks,
+}
+
+impl RoleArgs {
+    /// The validated scenario with the overrides.
+    pub fn scenario(&self) -> Result<Scenario, UsageError> {
+        scenario_with_overrides(&self.scenario, self.duration, self.rate, self.actuation)
+    }
+
+    /// The recorder of `stream` for this run's ticks (off without `--record`).
+    pub fn flight<T: crate::flight::Record>(
+        &self,
+        stream: crate::flight::Stream,
+        ticks: u64,
+        role: &str,
+    ) -> crate::flight::FlightRecorder<T> {
+        let capacity = crate::flight::ring_capacity(ticks, self.flight_ring_ticks);
+        crate::flight::FlightRecorder::open(self.record.as_deref(), stream, capacity, role)
+    }
+
+    /// The run domain (`default` unless given).
+    pub fn domain(&self) -> &str {
+        self.domain.as_deref().unwrap_or("default")
+    }
+
+    /// The run domain, validated.
+    pub fn open_domain(&self) -> Result<crate::ipc::domain::Domain, UsageError> {
+        crate::ipc::domain::Domain::on_host(self.domain(), self.host.as_deref())
+            .map_err(|e| UsageError(e.to_string()))
+    }
+
+    /// Applies pinning, priority and mlock; prints a warning for each refusal.
+    pub fn setup(&self, role: &str) {
+        let rt = RtSetup { core: self.core, rt_priority: self.rt_priority, mlock: self.mlock };
+        for w in rt.apply(role) {
+            eprintln!("warning: {w}");
+        }
+    }
+
+    /// The arguments as a command line (for the launcher).
+    pub fn to_args(&self) -> Vec<String> {
+        let mut a = vec![
+            "--domain".into(),
+            self.domain().to_owned(),
+            "--scenario".into(),
+            self.scenario.clone(),
+            "--mode".into(),
+            match self.mode {
+                Mode::Lockstep => "lockstep".into(),
+                Mode::Realtime => "realtime".into(),
+            },
+            "--wait".into(),
+            self.wait.to_string(),
+        ];
+        if let Some(h) = &self.host {
+            a.extend(["--host".into(), h.clone()]);
+        }
+        if let Some(d) = self.duration {
+            a.extend(["--duration".into(), d.to_string()]);
+        }
+        if let Some(r) = self.rate {
+            a.extend(["--rate".into(), r.to_string()]);
+        }
+        if let Some(x) = self.actuation {
+            a.extend(["--actuation".into(), x.to_string()]);
+        }
+        if let Some(c) = self.core {
+            a.extend(["--core".into(), c.to_string()]);
+        }
+        if let Some(p) = self.rt_priority {
+            a.extend(["--rt-priority".into(), p.to_string()]);
+        }
+        if self.mlock {
+            a.push("--mlock".into());
+        }
+        if self.plain_hot_path {
+            a.push("--plain-hot-path".into());
+        }
+        if let Some(d) = &self.record {
+            a.extend(["--record".into(), d.display().to_string()]);
+        }
+        if self.flight_ring_ticks != crate::flight::DEFAULT_RING_TICKS {
+            a.extend(["--flight-ring-ticks".into(), self.flight_ring_ticks.to_string()]);
+        }
+        a.extend(self.hooks.to_args());
+        a
+    }
+}
+
+/// Loads a built-in scenario or a TOML file and applies the command line's overrides
+/// (then validates again).
+pub fn scenario_with_overrides(
+    name_or_path: &str,
+    duration_s: Option<f64>,
+    rate_hz: Option<f64>,
+    actuation: Option<Actuation>,
+) -> Result<Scenario, UsageError> {
+    let base = Scenario::load(name_or_path)?;
+    let run = RunFile {
+        duration_s: duration_s.unwrap_or(base.file.run.duration_s),
+        rate_hz: rate_hz.unwrap_or(base.file.run.rate_hz),
+        actuation: actuation.unwrap_or(base.file.run.actuation),
+    };
+    Ok(base.with_run(run)?)
+}
