@@ -58,9 +58,9 @@ enum Command {
     /// Random initial attitudes and rates, including errors within 2° of 180°.
     Montecarlo(McArgs),
     /// The four processes over iceoryx2 shared memory, with the monitor's report.
-    Run(crate::run::launch::RunArgs),
+    Run(crate::run::args::RunArgs),
     /// The latency study: the loop against same-invocation baselines, per cell.
-    Bench(crate::study::bench::BenchArgs),
+    Bench(crate::study::bench::cell::BenchArgs),
     /// The rotorloop domains on this machine: roles with pid, core, policy, state, ticks,
     /// rate, and the services (read-only: no node, no port).
     Ps(crate::observe::PsArgs),

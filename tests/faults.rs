@@ -779,11 +779,18 @@ fn a_stop_by_hand_then_a_kill_inside_the_watchdog_window_are_both_listed() {
     let (launcher, pid) = started_realtime(&mut h, &out, &["--duration", "8"], "controller");
     // SAFETY: plain syscalls on a process this test's launcher started.
     unsafe { libc::kill(pid, libc::SIGSTOP) };
+    let stopped = std::time::Instant::now();
     std::thread::sleep(Duration::from_millis(2000));
     // SAFETY: as above.
     unsafe { libc::kill(pid, libc::SIGKILL) };
+    // In one harness round under load the watchdog (3 s after the stop) found the
+    // controller neither dead nor progressing: when the kill was sent and how the process
+    // ended go into every message below.
+    let sent = stopped.elapsed();
+    let exit = crate::common::harness::exit_of(pid as u32);
     let statuses = h.wait_all(LIMIT);
-    let stderr = h.stderr_of(launcher);
+    let stderr =
+        format!("SIGKILL sent {sent:?} after the SIGSTOP; {exit}\n{}", h.stderr_of(launcher));
     assert!(statuses[launcher].success(), "exit {}: {stderr}", statuses[launcher]);
     let s = json(&out.join("summary.json"));
     let faults = s["faults"].as_array().expect("faults");

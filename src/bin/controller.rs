@@ -2,7 +2,7 @@
 
 fn main() -> std::process::ExitCode {
     rotorloop_common::role::role_main::<rotorloop_controller::process::ControllerArgs>(
-        "controller",
+        rotorloop_controller::ROLE,
         rotorloop_controller::process::run,
     )
 }

@@ -2,7 +2,7 @@
 
 fn main() -> std::process::ExitCode {
     rotorloop_common::role::role_main::<rotorloop_monitor::process::MonitorArgs>(
-        "monitor",
+        rotorloop_monitor::ROLE,
         rotorloop_monitor::process::run,
     )
 }

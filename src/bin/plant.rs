@@ -2,7 +2,7 @@
 
 fn main() -> std::process::ExitCode {
     rotorloop_common::role::role_main::<rotorloop_plant::process::PlantArgs>(
-        "plant",
+        rotorloop_plant::ROLE,
         rotorloop_plant::process::run,
     )
 }

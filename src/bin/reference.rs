@@ -2,7 +2,7 @@
 
 fn main() -> std::process::ExitCode {
     rotorloop_common::role::role_main::<rotorloop_reference::process::ReferenceArgs>(
-        "reference",
+        rotorloop_reference::ROLE,
         rotorloop_reference::process::run,
     )
 }

@@ -11,6 +11,8 @@
 //! the slots a few hundred times a second, so its per-second figures are of a sample of the
 //! ticks (it says how many), not of every tick: the monitor's report is the full record.
 
+pub mod slots;
+
 use std::collections::{BTreeMap, VecDeque};
 use std::fmt::Write as _;
 use std::io::IsTerminal;
@@ -23,13 +25,11 @@ use rotorloop_common::resume::ResumeSlot;
 use rotorloop_common::signals::shutdown_requested;
 use rotorloop_common::so3::rotation_angle;
 use rotorloop_common::wire::{FLAG_LAST, FLAG_SAFE_MODE, StateSample, effect_delay_s};
-use rotorloop_controller::policy::ControllerResume;
-use rotorloop_monitor::policy::MonitorResume;
-use rotorloop_reference::policy::ReferenceResume;
 use serde::Serialize;
 
 use rotorloop_common::graph::Role;
 use rotorloop_common::role::UsageError;
+use slots::Slots;
 
 /// `rotorloop ps` arguments.
 #[derive(Debug, Clone, clap::Args)]
@@ -232,64 +232,10 @@ fn services(domain: &Domain) -> Vec<ServiceView> {
     out
 }
 
-/// The resume slots of a domain, opened read-only (none is created).
-struct Slots {
-    plant: Option<ResumeSlot<StateSample>>,
-    controller: Option<ResumeSlot<ControllerResume>>,
-    reference: Option<ResumeSlot<ReferenceResume>>,
-    monitor: Option<ResumeSlot<MonitorResume>>,
-}
-
-impl Slots {
-    fn open(domain: &Domain) -> Self {
-        Self {
-            plant: ResumeSlot::open_existing(domain, Role::Plant.name()).ok().flatten(),
-            controller: ResumeSlot::open_existing(domain, Role::Controller.name()).ok().flatten(),
-            reference: ResumeSlot::open_existing(domain, Role::Reference.name()).ok().flatten(),
-            monitor: ResumeSlot::open_existing(domain, Role::Monitor.name()).ok().flatten(),
-        }
-    }
-
-    fn reopen_missing(&mut self, domain: &Domain) {
-        if self.plant.is_none()
-            || self.controller.is_none()
-            || self.reference.is_none()
-            || self.monitor.is_none()
-        {
-            let fresh = Self::open(domain);
-            self.plant = self.plant.take().or(fresh.plant);
-            self.controller = self.controller.take().or(fresh.controller);
-            self.reference = self.reference.take().or(fresh.reference);
-            self.monitor = self.monitor.take().or(fresh.monitor);
-        }
-    }
-
-    fn plant(&self) -> Option<StateSample> {
-        self.plant.as_ref().and_then(ResumeSlot::load)
-    }
-
-    fn ticks(&self) -> BTreeMap<String, u64> {
-        let mut t = BTreeMap::new();
-        if let Some(s) = self.plant() {
-            t.insert(Role::Plant.name().into(), s.tick);
-        }
-        if let Some(c) = self.controller.as_ref().and_then(ResumeSlot::load) {
-            t.insert(Role::Controller.name().into(), c.last.tick);
-        }
-        if let Some(r) = self.reference.as_ref().and_then(ResumeSlot::load) {
-            t.insert(Role::Reference.name().into(), r.next());
-        }
-        if let Some(m) = self.monitor.as_ref().and_then(ResumeSlot::load) {
-            t.insert(Role::Monitor.name().into(), m.next_row);
-        }
-        t
-    }
-}
-
 /// A snapshot of `domain`, its plant's rate measured over `sample_ms`.
 pub fn snapshot(name: &str, sample_ms: u64) -> Result<DomainView, UsageError> {
     let domain = Domain::new(name).map_err(|e| UsageError(e.to_string()))?;
-    let slots = Slots::open(&domain);
+    let slots = Slots::observe(&domain);
     let first = slots.plant().map(|s| (s.tick, now_ns()));
     std::thread::sleep(Duration::from_millis(sample_ms));
     let last = slots.plant();
@@ -476,7 +422,7 @@ struct Watcher {
 impl Watcher {
     fn new(name: &str) -> Result<Self, UsageError> {
         let domain = Domain::new(name).map_err(|e| UsageError(e.to_string()))?;
-        let slots = Slots::open(&domain);
+        let slots = Slots::observe(&domain);
         Ok(Self {
             domain,
             slots,

@@ -117,7 +117,7 @@ fn four_process_run(out: &Path, name: &str, duration: f64, rate: f64) -> anyhow:
         flight_ring_ticks: rotorloop_common::flight::DEFAULT_RING_TICKS,
         hooks: Default::default(),
     };
-    crate::run::launch::run(&crate::run::launch::RunArgs::defaults(role, run_dir.clone()))
+    crate::run::launch::run(&crate::run::args::RunArgs::defaults(role, run_dir.clone()))
         .with_context(|| format!("four-process run of {name}"))?;
     let j: serde_json::Value = serde_json::from_str(
         &std::fs::read_to_string(run_dir.join("summary.json"))

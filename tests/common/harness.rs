@@ -325,3 +325,24 @@ pub fn sim_trace(h: &Harness, scenario: &str, duration: &str, extra: &[&str]) ->
     ok(&h.rotorloop(&args, Duration::from_secs(120)));
     std::fs::read(out.join("trace.csv")).expect("sim trace")
 }
+
+/// How a process just sent SIGKILL ended: how long until it was a zombie or gone, and the
+/// states (`/proc/PID/stat`) and kernel waits (`wchan`) it went through on the way.
+pub fn exit_of(pid: u32) -> String {
+    let start = Instant::now();
+    let mut seen: Vec<String> = Vec::new();
+    while start.elapsed() < Duration::from_secs(10) {
+        let stat = std::fs::read_to_string(format!("/proc/{pid}/stat")).unwrap_or_default();
+        let state = stat.rsplit(')').next().and_then(|r| r.split_whitespace().next());
+        let Some(state) = state.filter(|s| *s != "Z" && *s != "X") else {
+            return format!("pid {pid} exited {:?} after SIGKILL via {seen:?}", start.elapsed());
+        };
+        let wchan = std::fs::read_to_string(format!("/proc/{pid}/wchan")).unwrap_or_default();
+        let now = format!("{state} {wchan}");
+        if seen.last() != Some(&now) {
+            seen.push(now);
+        }
+        std::thread::sleep(Duration::from_millis(1));
+    }
+    format!("pid {pid} still not exited 10 s after SIGKILL, via {seen:?}")
+}

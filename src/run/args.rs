@@ -1,0 +1,171 @@
+//! `rotorloop run`'s arguments, its `--preset` and `--pin`.
+
+use std::collections::BTreeMap;
+use std::path::PathBuf;
+
+use clap::Args;
+
+use rotorloop_common::graph::Role;
+
+use rotorloop_common::role::UsageError;
+use rotorloop_common::role::args::RoleArgs;
+use rotorloop_plant::actuator::ActuationDelay;
+
+/// `rotorloop run` arguments.
+#[derive(Debug, Clone, Args)]
+pub struct RunArgs {
+    /// What every role takes, passed on to each.
+    #[command(flatten)]
+    pub role: RoleArgs,
+    /// Cores per role, e.g. `plant=0,controller=1,reference=0,monitor=1`.
+    #[arg(long)]
+    pub pin: Option<String>,
+    /// Output directory of the monitor's report.
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Run without the monitor (no report; for measuring what the monitor costs).
+    #[arg(long)]
+    pub no_monitor: bool,
+    /// No status line and no per-run console summary.
+    #[arg(long)]
+    pub quiet: bool,
+    /// Run without flight recorders (each role's record of what it published, in
+    /// `OUT/flight`): the report is then only the monitor's live view, which a monitor
+    /// kill or a monitor falling behind leaves incomplete. For measuring what the
+    /// recorders cost (`bench --before-after`).
+    #[arg(long)]
+    pub no_record: bool,
+    /// Real time: the plant sleeps until this many µs before each grid time and spins
+    /// the rest (sharper ticks, one core busier).
+    #[arg(long, allow_negative_numbers = true, default_value_t = 0)]
+    pub spin_before_tick_us: u64,
+    /// Real time: ticks the plant holds the last torque before safe mode.
+    #[arg(long, allow_negative_numbers = true, default_value_t = 50)]
+    pub hold_ticks: u64,
+    /// Inject a fault (each kind, its syntax and its help: `run::fault::KINDS`).
+    #[arg(long, help = crate::run::fault::help())]
+    pub fault: Vec<String>,
+    /// Inject a corrupted sample: `ROLE:KIND@TICK` makes ROLE (plant, reference or
+    /// controller) publish tick TICK with a NaN (`nan`), an infinity (`inf`), an absurd
+    /// 1e12 (`huge`) or, for plant and reference, a non-rotation attitude (`skew`).
+    /// The receivers must reject it. Repeatable.
+    #[arg(long)]
+    pub corrupt: Vec<String>,
+    /// When a torque takes effect in the plant: `measured` (when it arrives: the loop's
+    /// real latency, delayed zero-order hold; in lockstep at its own tick's time), `0` (at
+    /// the start of the tick it arrives in: the plain zero-order hold), or SECONDS after
+    /// its tick's time (a fixed delay of any length, never before it arrives).
+    #[arg(long, default_value = "measured")]
+    pub actuation_delay: ActuationDelay,
+    /// Restart policy for a role that exits abnormally, is killed by anyone or hangs:
+    /// `on-failure`, `always` (also after a clean exit before the run's end) or `never`,
+    /// for every role, per role (`monitor=always,plant=never`), or both (`never,monitor=always`).
+    #[arg(long, default_value = "on-failure")]
+    pub restart: String,
+    /// Restart intensity limit `N/SECONDS`: a role restarted more than N times within that
+    /// many seconds stops the run (the monitor is then given up instead; the loop goes on).
+    #[arg(long, default_value = "5/10")]
+    pub restart_limit: String,
+    /// A role with work waiting that makes no progress (its resume slot does not move) for
+    /// this many milliseconds is killed and restarted by its policy (0: no watchdog).
+    #[arg(long, allow_negative_numbers = true, default_value_t = 3000)]
+    pub watchdog_ms: u64,
+    /// `dedicated`: every role on a core of its own (the machine's last four), every role
+    /// busy-waiting (`--wait spin`), and the plant spinning the last 50 µs before each tick
+    /// (sharp ticks on a VM whose timer wake-ups are late). Needs 4 cores. A `--pin`, a
+    /// `--spin-before-tick-us` other than 0 or a `--wait` other than `event` (the
+    /// defaults, which the preset replaces) wins.
+    #[arg(long)]
+    pub preset: Option<String>,
+    /// Run over two "hosts" joined by link gateways (Zenoh on loopback): `ROLES@HOST ...`,
+    /// e.g. `plant,reference,monitor@a controller@b`. Each host has its own iceoryx2
+    /// space; the gateways (`link-a`, `link-b`) are supervised and can take faults
+    /// (`--fault link-b:kill@2:restart@3`). Needs the `rotorloop-link` binary beside this
+    /// one (`cargo build --release --workspace`).
+    #[arg(long)]
+    pub split: Option<String>,
+}
+
+/// The cores of the `dedicated` preset on a machine with `ncores`: plant, controller,
+/// reference, monitor on the last four (core 0 takes most of the housekeeping), or why
+/// there are not enough.
+pub fn dedicated_cores(ncores: usize) -> Result<[usize; 4], String> {
+    if ncores < 4 {
+        return Err(format!("dedicated needs 4 cores (one per role); this machine has {ncores}"));
+    }
+    Ok([ncores - 4, ncores - 3, ncores - 2, ncores - 1])
+}
+
+/// Applies `--preset` (`dedicated`) to what the command line left unsaid.
+pub(crate) fn with_preset(args: &RunArgs, explicit_wait: bool) -> Result<RunArgs, UsageError> {
+    let mut a = args.clone();
+    match args.preset.as_deref() {
+        None => {}
+        Some("dedicated") => {
+            let ncores = std::thread::available_parallelism().map_or(1, |n| n.get());
+            let [p, c, r, m] =
+                dedicated_cores(ncores).map_err(|e| UsageError(format!("--preset {e}")))?;
+            a.pin.get_or_insert_with(|| {
+                format!("plant={p},controller={c},reference={r},monitor={m}")
+            });
+            if !explicit_wait {
+                a.role.wait = rotorloop_common::ipc::wait::Wait::Spin;
+            }
+            if a.spin_before_tick_us == 0 {
+                a.spin_before_tick_us = 50;
+            }
+        }
+        Some(other) => {
+            return Err(UsageError(format!("--preset `{other}` is not allowed: dedicated")));
+        }
+    }
+    Ok(a)
+}
+
+impl RunArgs {
+    /// The defaults of every launcher option, for `role` into `out` (paper, bench).
+    pub fn defaults(role: RoleArgs, out: PathBuf) -> Self {
+        Self {
+            role,
+            pin: None,
+            out,
+            no_monitor: false,
+            quiet: false,
+            no_record: false,
+            spin_before_tick_us: 0,
+            hold_ticks: 50,
+            fault: Vec::new(),
+            corrupt: Vec::new(),
+            restart: "on-failure".into(),
+            restart_limit: "5/10".into(),
+            watchdog_ms: 3000,
+            actuation_delay: ActuationDelay::Measured,
+            preset: None,
+            split: None,
+        }
+    }
+}
+
+/// Parses `--pin`: `role=core` pairs separated by commas.
+pub fn parse_pins(s: &str) -> Result<BTreeMap<String, usize>, UsageError> {
+    let mut pins = BTreeMap::new();
+    let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
+    for part in s.split(',').filter(|p| !p.is_empty()) {
+        let (role, core) = part.split_once('=').ok_or_else(|| {
+            UsageError(format!("--pin `{part}` is not allowed: role=core, e.g. plant=0"))
+        })?;
+        if role.parse::<Role>().is_err() {
+            return Err(UsageError(format!(
+                "--pin role `{role}` is not allowed: plant, reference, controller or monitor"
+            )));
+        }
+        let core: usize = core.parse().ok().filter(|c| *c < cores).ok_or_else(|| {
+            UsageError(format!(
+                "--pin {role}=`{core}` is not allowed: a core from 0 to {}",
+                cores - 1
+            ))
+        })?;
+        pins.insert(role.to_owned(), core);
+    }
+    Ok(pins)
+}

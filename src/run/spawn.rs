@@ -1,0 +1,320 @@
+//! What the launcher starts and how (`Launch`): each role's command line from this very
+//! executable (so the four are always the same build), its pins, corruptions and faults
+//! the role applies itself, the run's domains on each host, the gateways of a split run,
+//! and the flight records' staging.
+
+use std::collections::BTreeMap;
+use std::path::PathBuf;
+use std::process::{Child, Command, Stdio};
+use std::time::Duration;
+
+use anyhow::Context;
+use rotorloop_monitor::hosts::Hosts;
+
+use rotorloop_common::graph::{Role, Topic};
+use rotorloop_common::ipc::domain::Domain;
+
+use crate::run::args::RunArgs;
+use crate::run::fault::Fault;
+use crate::run::resources::RssLog;
+use crate::run::split::{Split, wait_until};
+use crate::run::supervise::{Children, Supervisor};
+use rotorloop_common::role::UsageError;
+use rotorloop_common::role::args::RoleArgs;
+use rotorloop_common::role::inject::Corrupt;
+
+/// A role started by the launcher gets SIGTERM when the launcher dies, however it dies
+/// (`kill -9` of the launcher, a test's time limit): no orphaned role keeps a domain, or
+/// a pipe of whoever started the launcher, open.
+fn stop_with_parent(cmd: &mut Command) {
+    use std::os::unix::process::CommandExt;
+    let parent = libc::pid_t::try_from(std::process::id()).unwrap_or(0);
+    // SAFETY: runs in the child between fork and exec, calling only async-signal-safe
+    // functions (prctl, getppid, raise).
+    unsafe {
+        cmd.pre_exec(move || {
+            libc::prctl(libc::PR_SET_PDEATHSIG, libc::SIGTERM);
+            // The launcher may have died before the prctl: then nobody would signal us.
+            if libc::getppid() != parent {
+                libc::raise(libc::SIGTERM);
+            }
+            Ok(())
+        });
+    }
+}
+
+/// What the launcher starts, and how: the roles' arguments, pins, corruptions, and the
+/// executable they run from (this one, so the four are always the same build).
+pub(crate) struct Launch<'a> {
+    pub(crate) args: &'a RunArgs,
+    /// The run's domain as each host sees it (one, with no host, unless split).
+    pub(crate) domains: Vec<Domain>,
+    pub(crate) split: Option<Split>,
+    /// The first host's gateway listens on this loopback port.
+    pub(crate) link_port: u16,
+    pub(crate) faults: Vec<Fault>,
+    pub(crate) supervisor: Supervisor,
+    pub(crate) role_args: RoleArgs,
+    pub(crate) pins: BTreeMap<String, usize>,
+    pub(crate) corrupt: Vec<(String, Corrupt)>,
+    pub(crate) exe: PathBuf,
+    /// The run's ticks.
+    pub(crate) ticks: u64,
+}
+
+impl Launch<'_> {
+    /// The command line of `role`: `rotorloop role ROLE` with the run's arguments.
+    pub(crate) fn command(&self, role: &str) -> Command {
+        let args = self.args;
+        if let (Some(split), Some(host)) = (&self.split, role.strip_prefix("link-")) {
+            let mut cmd = crate::run::split::gateway_command(
+                split,
+                host,
+                self.role_args.domain(),
+                self.link_port,
+                &args.out,
+            );
+            cmd.stdin(Stdio::null());
+            // Quiet (the bench): what the gateway says goes to OUT/link-HOST.log.
+            let log = args.quiet.then(|| crate::run::split::gateway_log(&args.out, role));
+            if let Some(Ok(f)) = log {
+                cmd.stderr(f);
+            }
+            stop_with_parent(&mut cmd);
+            return cmd;
+        }
+        let mut r = self.role_args.clone();
+        r.core = self.pins.get(role).copied();
+        r.host = self.split.as_ref().and_then(|s| s.host_of(role)).map(str::to_owned);
+        let mut cmd = Command::new(&self.exe);
+        cmd.arg("role").arg(role).args(r.to_args()).stdin(Stdio::null());
+        stop_with_parent(&mut cmd);
+        for (_, c) in self.corrupt.iter().filter(|(r, _)| r == role) {
+            cmd.arg("--corrupt").arg(c.to_string());
+        }
+        if args.quiet {
+            cmd.stdout(Stdio::null());
+        }
+        match role.parse::<Role>() {
+            Ok(Role::Monitor) => {
+                cmd.arg("--out").arg(&args.out);
+                if let Some(hosts) = self.monitor_hosts() {
+                    cmd.arg("--hosts").arg(hosts);
+                }
+                if !args.quiet {
+                    cmd.arg("--status");
+                }
+            }
+            Ok(Role::Plant) => {
+                let n = match &self.split {
+                    Some(s) => s.plant_subscribers(),
+                    None => Topic::State
+                        .subscribers()
+                        .iter()
+                        .filter(|r| **r != Role::Monitor || !args.no_monitor)
+                        .count(),
+                };
+                cmd.arg("--subscribers").arg(n.to_string());
+                cmd.arg("--spin-before-tick-us").arg(args.spin_before_tick_us.to_string());
+                cmd.arg("--hold-ticks").arg(args.hold_ticks.to_string());
+                cmd.arg("--latency-out").arg(&args.out);
+                cmd.arg("--actuation-delay").arg(args.actuation_delay.to_string());
+            }
+            Ok(Role::Controller) => {
+                for (flag, value) in self.faults.iter().filter_map(|f| f.role_arg()) {
+                    cmd.arg(flag).arg(value);
+                }
+            }
+            _ => {}
+        }
+        cmd
+    }
+
+    /// The monitor's `--hosts` of a split run.
+    pub(crate) fn monitor_hosts(&self) -> Option<String> {
+        let s = self.split.as_ref()?;
+        let hosts: Vec<String> =
+            Role::ALL.iter().filter_map(|r| s.host(*r).map(|h| format!("{r}={h}"))).collect();
+        Some(hosts.join(","))
+    }
+
+    /// A monitor that left no report (killed for good, or its restart refused): the
+    /// report from the flight records, without a live view.
+    pub(crate) fn report_without_monitor(
+        &self,
+        scenario: &rotorloop_common::Scenario,
+        dir: Option<&std::path::Path>,
+    ) {
+        let (out, Some(dir)) = (&self.args.out, dir) else { return };
+        if self.args.no_monitor || out.join("summary.json").exists() {
+            return;
+        }
+        let records = match rotorloop_monitor::assemble::FlightRecords::read(dir) {
+            Ok(r) => r,
+            Err(e) => return eprintln!("launcher: no summary.json and no report from {e}"),
+        };
+        let hosts = self.monitor_hosts().and_then(|h| Hosts::parse(&h).ok()).unwrap_or_default();
+        let summary = rotorloop_monitor::assemble::report(
+            out,
+            dir,
+            &records,
+            scenario,
+            &self.role_args,
+            &hosts,
+            None,
+        );
+        let fallback = rotorloop_monitor::recording::fallback_dir(self.role_args.domain());
+        match rotorloop_monitor::report::write_summary(out, &fallback, &summary) {
+            Ok(()) => eprintln!(
+                "launcher: the monitor left no report; assembled it from the flight records"
+            ),
+            Err(e) => eprintln!("launcher: cannot write the report: {e:#}"),
+        }
+    }
+
+    /// Moves the flight records from their staging directory into `OUT/flight` once every
+    /// role has ended, and says so in `summary.json`; returns where they are (`None`: no
+    /// records). Records that cannot be moved stay where they are, and the warning names it.
+    pub(crate) fn keep_flight_records(&self) -> Option<PathBuf> {
+        let staged = self.role_args.record.clone()?;
+        let kept = self.args.out.join("flight");
+        if self.args.role.record.is_some() || staged == kept {
+            return Some(staged); // recorded where the user asked
+        }
+        if let Err(e) = rotorloop_common::flight::move_records(&staged, &kept) {
+            let (s, k) = (staged.display(), kept.display());
+            eprintln!("warning: the flight records stay in {s}: cannot move them into {k}: {e}");
+            return Some(staged);
+        }
+        let _ = rotorloop_common::output::patch_summary(&self.args.out, |j| {
+            if j["flight"].is_object() {
+                j["flight"]["dir"] = kept.display().to_string().into();
+            }
+        });
+        Some(kept)
+    }
+
+    /// The mover of the records' finished halves, when the rings are shorter than the run
+    /// and the records are the launcher's to move (see `common::flight`).
+    pub(crate) fn mover(&self) -> Option<rotorloop_common::flight::Mover> {
+        use rotorloop_common::flight::{Mover, SPARE_SLOTS, ring_capacity};
+        let staged = self.role_args.record.as_ref()?;
+        let ring = ring_capacity(self.ticks, self.role_args.flight_ring_ticks);
+        let wraps = ring < self.ticks + 1 + SPARE_SLOTS;
+        (wraps && self.args.role.record.is_none())
+            .then(|| Mover::new(staged, &self.args.out.join("flight")))
+    }
+
+    /// The domain as `role`'s host sees it.
+    pub(crate) fn domain_of(&self, role: &str) -> &Domain {
+        let host = self.split.as_ref().and_then(|s| s.host_of(role));
+        self.domains.iter().find(|d| d.host() == host).unwrap_or(&self.domains[0])
+    }
+
+    pub(crate) fn spawn(&self, role: &str, rss: &mut RssLog) -> anyhow::Result<Child> {
+        let child = self.command(role).spawn().with_context(|| format!("cannot start {role}"))?;
+        rss.track(role, child.id());
+        Ok(child)
+    }
+}
+
+/// Writes each host's iceoryx2 configuration for `iox2`, and clears what an earlier, killed
+/// run of the domain left (resume slots included, which would otherwise be taken for a
+/// restart); a domain still in use by a live process is refused.
+pub(crate) fn prepare_domains(domains: &[Domain], out: &std::path::Path) -> anyhow::Result<()> {
+    for domain in domains {
+        let dir = match domain.host() {
+            Some(h) => out.join(format!("host-{h}")),
+            None => out.to_path_buf(),
+        };
+        if let Err(e) = domain.write_iox2_config(&dir) {
+            eprintln!("warning: cannot write {}/config/iceoryx2.toml: {e}", dir.display());
+        }
+        let (_, alive) = domain.cleanup()?;
+        if alive > 0 {
+            let name = domain.name();
+            let msg = format!(
+                "domain `{name}` is in use by {alive} running process(es); choose another --domain"
+            );
+            return Err(UsageError(msg).into());
+        }
+    }
+    Ok(())
+}
+
+/// Where the roles record during a run: a directory of the domain on tmpfs
+/// (`/dev/shm/rotorloop-flight-DOMAIN`), moved into `OUT/flight` at the end. A mapped
+/// page of a disk file is write-protected until its first write and again after each
+/// writeback, so one record in eight would take a page fault into the filesystem
+/// (measured on ext4: p99 of a record 2.5 µs instead of 50 ns); tmpfs has no writeback.
+/// Without `/dev/shm`, `OUT/flight` itself.
+pub(crate) fn staging_dir(role: &RoleArgs, out: &std::path::Path) -> PathBuf {
+    rotorloop_common::flight::staging_dir(role.domain()).unwrap_or_else(|| out.join("flight"))
+}
+
+/// Removes the flight records an earlier run left in `dir`, naming each.
+pub(crate) fn clear_flight_records(dir: &std::path::Path) -> anyhow::Result<()> {
+    use rotorloop_common::flight::{Stream, segments};
+    let files =
+        Stream::ALL.into_iter().flat_map(|s| segments(dir, s).into_iter().chain([s.path(dir)]));
+    for path in files {
+        match std::fs::remove_file(&path) {
+            Ok(()) => eprintln!("launcher: removed an earlier run's {}", path.display()),
+            Err(e) if e.kind() != std::io::ErrorKind::NotFound => {
+                return Err(e).with_context(|| format!("cannot remove {}", path.display()));
+            }
+            Err(_) => {}
+        }
+    }
+    Ok(())
+}
+
+/// Starts the roles (and, split, the gateways first: see [`crate::run::split`]).
+pub(crate) fn start(
+    launch: &Launch,
+    children: &mut Children,
+    rss: &mut RssLog,
+) -> anyhow::Result<()> {
+    let args = launch.args;
+    let roles: Vec<&str> = Role::ALL
+        .iter()
+        .filter(|r| **r != Role::Monitor || !args.no_monitor)
+        .map(|r| r.name())
+        .collect();
+    let Some(split) = &launch.split else {
+        for role in roles {
+            children.0.push((role.to_string(), launch.spawn(role, rss)?));
+        }
+        return Ok(());
+    };
+    for g in split.gateways() {
+        children.0.push((g.clone(), launch.spawn(&g, rss)?));
+    }
+    let gone = |c: &mut Children| c.0.iter_mut().any(|(_, c)| !matches!(c.try_wait(), Ok(None)));
+    wait_until(Duration::from_secs(30), || split.gateways_ready(&args.out) || gone(children));
+    if gone(children) || !split.gateways_ready(&args.out) {
+        anyhow::bail!("the link gateways did not connect (their messages are above)");
+    }
+    let plant_host = split.host_of(Role::Plant.name()).unwrap_or_default().to_owned();
+    for role in roles.iter().filter(|r| split.host_of(r) != Some(&plant_host)) {
+        children.0.push((role.to_string(), launch.spawn(role, rss)?));
+    }
+    let at_plant = launch.domain_of(Role::Plant.name());
+    let needed = split.topics_needed_at_plant();
+    if !wait_until(Duration::from_secs(30), || needed.iter().all(|t| at_plant.topic_exists(*t))) {
+        anyhow::bail!(
+            "the services of host `{plant_host}`'s peer did not reach it through the link within 30 s"
+        );
+    }
+    for role in roles.iter().filter(|r| split.host_of(r) == Some(&plant_host)) {
+        children.0.push((role.to_string(), launch.spawn(role, rss)?));
+    }
+    Ok(())
+}
+
+/// Stops the gateways once the roles are done (SIGTERM, SIGKILL after 5 s).
+pub(crate) fn stop_gateways(children: &mut Children) {
+    for (name, c) in children.0.iter_mut().filter(|(n, _)| n.starts_with("link-")) {
+        crate::run::split::stop(name, c);
+    }
+}

@@ -1,0 +1,601 @@
+//! The supervision loop while the roles run (`supervise`): the `--fault` schedule
+//! applied by its table, the restart policy, the watchdog on the resume slots' marks,
+//! every stop and continue of a child, the link rule of a split run, the flight records
+//! moved out as the run goes, and the clean end.
+
+use std::collections::BTreeMap;
+use std::os::unix::process::ExitStatusExt;
+use std::process::Child;
+use std::time::Duration;
+
+use anyhow::Context;
+use rotorloop_common::clock::now_ns;
+use rotorloop_common::ipc::REFERENCE_LEAD;
+use rotorloop_common::role::end::LINGER_S;
+use rotorloop_common::signals::shutdown_requested;
+
+use rotorloop_common::graph::Role;
+
+use crate::observe::slots::Slots;
+use crate::run::fault::{Action, Apply, FaultEvent, FaultKind, FaultSchedule};
+use crate::run::resources::RssLog;
+use crate::run::spawn::Launch;
+use crate::run::supervise::{
+    Children, Ending, LinkWatch, Marks, START_TIMEOUT_S, Supervisor, Verdict, Watchdog, signal,
+};
+use rotorloop_common::role::args::Mode;
+
+/// Where each role stands, from the resume slots (what the watchdog reads).
+struct Progress(Slots);
+
+impl Progress {
+    /// Each role's slot on its own host.
+    fn open(launch: &Launch) -> anyhow::Result<Self> {
+        let slots = Slots::open(|role| launch.domain_of(role.name()), true);
+        Ok(Self(slots.context("the resume slots")?))
+    }
+
+    fn marks(&self) -> Marks {
+        Marks {
+            plant: self.0.plant().map(|s| s.tick),
+            controller: self.0.controller_tick(),
+            reference_next: self.0.reference_next(),
+            monitor_next: self.0.monitor_next(),
+        }
+    }
+}
+
+/// What the supervision loop keeps between polls.
+struct Watch {
+    events: Vec<FaultEvent>,
+    failures: Vec<String>,
+    /// Roles waiting to be started again, and when (s after tick 0).
+    restarts: BTreeMap<String, f64>,
+    /// Pids whose end has been dealt with.
+    handled: std::collections::BTreeSet<u32>,
+    /// Pids killed by the schedule or the watchdog (their SIGKILL is not a new fault).
+    planned: std::collections::BTreeSet<u32>,
+    /// The pid stopped by each `stop` fault.
+    stopped: BTreeMap<String, u32>,
+    /// The stops not yet ended, whoever sent them: pid → index of its event.
+    open_stops: BTreeMap<u32, usize>,
+    /// The restart policy's state.
+    supervisor: Supervisor,
+    /// The hang watchdog's state.
+    watchdog: Watchdog,
+    /// Split: whether the link carries the loop again after a restart.
+    link: LinkWatch,
+    /// Torque samples the plant has received so far.
+    torques_received: u64,
+    /// Copies the finished halves of the flight records' rings into `OUT/flight` (a run
+    /// longer than the rings).
+    mover: Option<rotorloop_common::flight::Mover>,
+    /// The plant has published its last tick.
+    loop_complete: bool,
+}
+
+impl Watch {
+    fn new(launch: &Launch) -> Self {
+        let watchdog_s = launch.args.watchdog_ms as f64 / 1e3;
+        Self {
+            events: Vec::new(),
+            failures: Vec::new(),
+            restarts: BTreeMap::new(),
+            handled: Default::default(),
+            planned: Default::default(),
+            stopped: BTreeMap::new(),
+            open_stops: BTreeMap::new(),
+            supervisor: launch.supervisor.clone(),
+            watchdog: Watchdog::new(watchdog_s),
+            link: LinkWatch::new(START_TIMEOUT_S.max(watchdog_s)),
+            torques_received: 0,
+            mover: launch.mover(),
+            loop_complete: false,
+        }
+    }
+
+    /// After the supervision loop: the last records moved, the stops still open ended.
+    fn finish(&mut self, progress: &Progress) {
+        move_due_records(self, progress); // what became due in the last pass
+        if let Some(m) = self.mover.as_ref().filter(|m| m.lost > 0) {
+            eprintln!(
+                "warning: flight records: {} record(s) lost: the rings came round before the \
+                 launcher moved them (it was not running for that long); a longer \
+                 --flight-ring-ticks keeps them",
+                m.lost
+            );
+        }
+        for pid in self.open_stops.keys().copied().collect::<Vec<_>>() {
+            end_stop(self, pid, "still stopped when the launcher ended");
+        }
+    }
+}
+
+/// Runs the fault schedule, the restart policy and the watchdog, samples memory, and
+/// waits for every child; on a signal or a failure, forwards SIGTERM, then SIGKILL after
+/// 10 s. Returns the faults as they happened, and the failure that stopped the run, if
+/// one did.
+pub(crate) fn supervise(
+    launch: &Launch,
+    children: &mut Children,
+    rss: &mut RssLog,
+    mut schedule: FaultSchedule,
+) -> anyhow::Result<(Vec<FaultEvent>, Option<anyhow::Error>)> {
+    let lockstep = launch.role_args.mode == Mode::Lockstep;
+    // The fault clock starts when the plant has published tick 0 (its resume slot is
+    // written just before each publish).
+    let progress = Progress::open(launch)?;
+    let (mut run_t0, mut term_sent_at): (Option<u64>, Option<u64>) = (None, None);
+    let mut plant_ended_at: Option<u64> = None;
+    let mut w = Watch::new(launch);
+    let launched_ns = now_ns();
+    let mut dead_after_end = 0;
+    loop {
+        if run_t0.is_none() && progress.0.plant().is_some() {
+            run_t0 = Some(now_ns());
+        }
+        // Seconds since tick 0 (before it: negative, since the launch).
+        let now_s = (now_ns() as f64 - run_t0.unwrap_or(launched_ns) as f64) / 1e9;
+        w.loop_complete = progress.0.loop_complete();
+        if w.loop_complete {
+            continue_stopped_after_the_end(children, &mut w, now_s);
+        }
+        let stopping = term_sent_at.is_some();
+        let elapsed = run_t0.map(|_| now_s).filter(|_| !stopping);
+        for action in schedule.due(elapsed) {
+            injected(launch, children, rss, &mut w, action, now_s)?;
+        }
+        if !stopping && run_t0.is_some() && !w.loop_complete {
+            w.torques_received = progress.0.plant().map_or(0, |s| s.torques_received);
+            watch_the_link(&mut w, now_s);
+        }
+        if !stopping && run_t0.is_some() && !w.loop_complete && w.failures.is_empty() {
+            watch_for_hangs(launch, children, &mut w, &progress.marks(), lockstep, now_s);
+        }
+        let due: Vec<String> = w
+            .restarts
+            .iter()
+            .filter(|(_, at)| **at <= now_s && !stopping)
+            .map(|(r, _)| r.clone())
+            .collect();
+        for role in due {
+            w.restarts.remove(&role);
+            restart(launch, children, rss, &mut w, &role, now_s)?;
+        }
+        rss.sample_if_due();
+        move_due_records(&mut w, &progress);
+        watch_for_stops(children, &mut w, now_s);
+        let running = reap(children, &mut w, &progress, stopping, now_s);
+        remove_dead_ports_after_the_end(launch, &w, &mut dead_after_end);
+        if launch.split.is_some() && w.loop_complete && !stopping {
+            term_sent_at = stop_far_roles_after_the_end(children, &mut plant_ended_at);
+        }
+        // Restarts still to come keep the launcher waiting, but only until the last tick:
+        // after it nobody is started again (see `restart`).
+        let awaiting = (schedule.awaiting_restart() || !w.restarts.is_empty()) && !w.loop_complete;
+        if running == 0 && (!awaiting || stopping) {
+            break;
+        }
+        if (shutdown_requested() || !w.failures.is_empty()) && !stopping {
+            term_sent_at = Some(now_ns());
+            children.signal_all(libc::SIGCONT); // a stopped child must see the SIGTERM
+            children.signal_all(libc::SIGTERM);
+        }
+        if term_sent_at.is_some_and(|t| now_ns() - t > 10_000_000_000) {
+            children.signal_all(libc::SIGKILL);
+        }
+        std::thread::sleep(Duration::from_millis(2));
+    }
+    for f in schedule.not_done() {
+        eprintln!("launcher: --fault {f}: not carried out, the run ended first");
+    }
+    w.finish(&progress);
+    let failure = w
+        .failures
+        .first()
+        .map(|f| anyhow::anyhow!("{f}; the run was stopped ({} failed)", w.failures.join(", ")));
+    Ok((w.events, failure))
+}
+
+/// Split: a role on another host than the plant cannot read the plant's resume slot (it
+/// learns the end from the last state). If that state was lost with a gateway, it would
+/// wait for ever: once the plant has ended, the rest get their linger time, then SIGTERM
+/// (a clean end, not a fault). Returns when the SIGTERM was sent, if it was.
+fn stop_far_roles_after_the_end(children: &mut Children, since: &mut Option<u64>) -> Option<u64> {
+    let plant_gone =
+        children.get_mut(Role::Plant.name()).is_none_or(|c| !matches!(c.try_wait(), Ok(None)));
+    let since = *since.get_or_insert_with(now_ns);
+    if !plant_gone || now_ns() - since <= (LINGER_S + 5) * 1_000_000_000 {
+        return None;
+    }
+    eprintln!("launcher: the plant ended {} s ago; stopping the roles still waiting", LINGER_S + 5);
+    children.signal_all(libc::SIGTERM);
+    Some(now_ns())
+}
+
+/// After the last tick the schedule is moot: a role it stopped and has not continued
+/// would never see the end, and the launcher would wait for it for ever (seen: a
+/// controller killed by hand at 4.9 s, restarted, stopped at 5 s before its first
+/// progress, so under the start timeout, and the 8 s loop ended before the watchdog
+/// judged it). It is continued, sees the end and exits as the others do.
+fn continue_stopped_after_the_end(children: &mut Children, w: &mut Watch, now_s: f64) {
+    for (role, pid) in std::mem::take(&mut w.stopped) {
+        let Some(c) = children.get_mut(&role).filter(|c| c.id() == pid) else { continue };
+        if w.planned.contains(&pid) || !matches!(c.try_wait(), Ok(None)) {
+            continue;
+        }
+        continue_stopped(c, stop_event(&mut w.events, &role), "; SIGCONT at the end of the loop");
+        eprintln!("launcher: continued {role} (SIGCONT) at {now_s:.3} s: the loop has ended");
+    }
+}
+
+/// Continues (SIGCONT) a role the schedule stopped, and marks its `stop` fault continued
+/// now, `how` added to its detail.
+fn continue_stopped(c: &mut Child, stop: Option<&mut FaultEvent>, how: &str) {
+    signal(c, libc::SIGCONT);
+    if let Some(e) = stop {
+        e.restart_ns = Some(now_ns());
+        e.detail.push_str(how);
+    }
+}
+
+/// The newest `stop` fault of `role`.
+fn stop_event<'a>(events: &'a mut [FaultEvent], role: &str) -> Option<&'a mut FaultEvent> {
+    events.iter_mut().rev().find(|e| e.role == role && e.kind == "stop")
+}
+
+/// Copies the halves of the flight records' rings that are due into `OUT/flight`.
+fn move_due_records(w: &mut Watch, progress: &Progress) {
+    if let (Some(m), Some(p)) = (&mut w.mover, progress.0.plant()) {
+        for e in m.pass(p.tick) {
+            eprintln!("warning: flight records: {e}; the loop goes on");
+        }
+    }
+}
+
+/// Split: a restart after which the link does not carry the loop again within the start
+/// timeout ends the run (see [`LinkWatch`]), with a fault of its own in the report.
+fn watch_the_link(w: &mut Watch, now_s: f64) {
+    let Some((role, why)) = w.link.check(w.torques_received, now_s) else { return };
+    eprintln!("launcher: {why} ({now_s:.3} s)");
+    w.events.push(FaultEvent::now(role, "link-lost", why.clone()));
+    w.failures.push(why);
+}
+
+/// Every stop and continue of a child, whoever sent the signal (the fault schedule, the
+/// user's `kill -STOP`, a debugger's SIGTSTP): a stop the schedule did not make is a fault
+/// of its own, listed with its signal, and every stop is ended in the report as continued,
+/// killed, judged hung, or with the run. A stop and its continue both between two looks
+/// (2 ms apart) show only as the continue, and are listed as a stop of under 2 ms.
+fn watch_for_stops(children: &mut Children, w: &mut Watch, now_s: f64) {
+    for (role, c) in &children.0 {
+        let pid = c.id();
+        match job_control_event(pid) {
+            None => {}
+            Some(JobControl::Stopped(sig)) => {
+                if let Some(&i) = w.open_stops.get(&pid) {
+                    w.events[i].signal.get_or_insert(signal_name(sig));
+                    continue;
+                }
+                let name = signal_name(sig);
+                eprintln!("launcher: {role} was stopped ({name}) at {now_s:.3} s, not by --fault");
+                let detail = format!("{name} from outside the launcher");
+                w.open_stops.insert(pid, w.events.len());
+                let e = FaultEvent {
+                    signal: Some(name),
+                    ..FaultEvent::now(role.as_str(), "stop", detail)
+                };
+                w.events.push(e);
+            }
+            Some(JobControl::Continued) => {
+                if !w.open_stops.contains_key(&pid) {
+                    let detail = "stopped and continued within 2 ms, not by --fault".to_owned();
+                    w.open_stops.insert(pid, w.events.len());
+                    w.events.push(FaultEvent::now(role.as_str(), "stop", detail));
+                }
+                eprintln!("launcher: {role} continued at {now_s:.3} s");
+                end_stop(w, pid, "continued");
+            }
+        }
+    }
+}
+
+/// Ends the open stop of `pid`, if any, `how` and now (a continue is also its restart).
+fn end_stop(w: &mut Watch, pid: u32, how: &'static str) {
+    let Some(i) = w.open_stops.remove(&pid) else { return };
+    let e = &mut w.events[i];
+    let now = now_ns();
+    e.ended.get_or_insert((how, now));
+    if how == "continued" {
+        e.restart_ns.get_or_insert(now);
+    }
+}
+
+/// A change of a child's job-control state.
+enum JobControl {
+    /// Stopped by this signal.
+    Stopped(libc::c_int),
+    /// Continued (SIGCONT).
+    Continued,
+}
+
+/// The child's newest stop or continue not yet seen, if any. `waitid` without `WEXITED`
+/// consumes only job-control events and leaves an exit for `Child::try_wait`.
+fn job_control_event(pid: u32) -> Option<JobControl> {
+    // SAFETY: an all-zero siginfo_t is valid; waitid fills it for our own child's pid.
+    let mut info: libc::siginfo_t = unsafe { std::mem::zeroed() };
+    let opts = libc::WSTOPPED | libc::WCONTINUED | libc::WNOHANG;
+    // SAFETY: as above; a pid that is not (or no longer) our child gives ECHILD.
+    let rc = unsafe { libc::waitid(libc::P_PID, pid as libc::id_t, &mut info, opts) };
+    // SAFETY: si_pid and si_status are set by a successful waitid.
+    if rc != 0 || unsafe { info.si_pid() } == 0 {
+        return None;
+    }
+    match info.si_code {
+        libc::CLD_STOPPED => Some(JobControl::Stopped(unsafe { info.si_status() })),
+        libc::CLD_CONTINUED => Some(JobControl::Continued),
+        _ => None,
+    }
+}
+
+/// The name of signal `sig` (`SIGSTOP`), or `signal N`.
+fn signal_name(sig: libc::c_int) -> &'static str {
+    match sig {
+        libc::SIGSTOP => "SIGSTOP",
+        libc::SIGTSTP => "SIGTSTP",
+        libc::SIGTTIN => "SIGTTIN",
+        libc::SIGTTOU => "SIGTTOU",
+        libc::SIGKILL => "SIGKILL",
+        libc::SIGTERM => "SIGTERM",
+        libc::SIGINT => "SIGINT",
+        libc::SIGSEGV => "SIGSEGV",
+        libc::SIGABRT => "SIGABRT",
+        libc::SIGBUS => "SIGBUS",
+        libc::SIGHUP => "SIGHUP",
+        libc::SIGPIPE => "SIGPIPE",
+        libc::SIGQUIT => "SIGQUIT",
+        libc::SIGFPE => "SIGFPE",
+        libc::SIGILL => "SIGILL",
+        _ => "another signal",
+    }
+}
+
+/// After the last tick nobody is started again: the ports of a dead role would keep the
+/// finished publishers lingering for subscribers that never leave (up to `LINGER_S`), so
+/// they are removed as soon as a role is seen dead (`dead` counts the ends dealt with).
+/// Not in a split run: there the launcher stops the far host's roles itself after the
+/// plant's end (their gateways hold ports of their own), and this was not tested there.
+fn remove_dead_ports_after_the_end(launch: &Launch, w: &Watch, dead: &mut usize) {
+    if launch.split.is_none() && w.loop_complete && w.handled.len() != *dead {
+        *dead = w.handled.len();
+        for d in &launch.domains {
+            let _ = d.cleanup();
+        }
+    }
+}
+
+/// The watchdog's pass: a role with work waiting and no progress for `--watchdog-ms` is
+/// hung: killed (SIGKILL), recorded as a fault, and handed to the restart policy.
+fn watch_for_hangs(
+    launch: &Launch,
+    children: &mut Children,
+    w: &mut Watch,
+    marks: &Marks,
+    lockstep: bool,
+    now_s: f64,
+) {
+    for r in Role::ALL {
+        let role = r.name();
+        let pid = children.get_mut(role).map(|c| c.id());
+        // A pid already killed (by the schedule or by this watchdog) is not judged again:
+        // a stopped process that got its SIGKILL may take a while to die and be reaped on
+        // a loaded machine, and each pass over it counted as another hang (seen: one
+        // SIGSTOP counted six times 2 ms apart, over the restart limit, the run stopped).
+        let alive = pid.is_some_and(|p| !w.handled.contains(&p) && !w.planned.contains(&p));
+        let pending = alive && marks.work_waiting(r, lockstep, REFERENCE_LEAD);
+        if !w.watchdog.check(role, marks.of(r), pending, now_s) {
+            continue;
+        }
+        let c = children.get_mut(role).expect("alive");
+        if !matches!(c.try_wait(), Ok(None)) {
+            // It has ended already (the launcher itself was descheduled past the limit on a
+            // loaded machine, seen: 1.5 s): not a hang; `reap` gives its end its own name.
+            continue;
+        }
+        let pid = c.id();
+        w.planned.insert(pid);
+        signal(c, libc::SIGKILL);
+        end_stop(w, pid, "hung");
+        let ms = launch.args.watchdog_ms;
+        eprintln!(
+            "launcher: {role} made no progress for {ms} ms with work waiting: hung; killed (SIGKILL) at {now_s:.3} s"
+        );
+        let detail = format!("no progress for {ms} ms; killed by the watchdog");
+        let hang = FaultEvent { signal: Some("SIGKILL"), ..FaultEvent::now(role, "hang", detail) };
+        w.events.push(hang);
+        let verdict = w.supervisor.on_end(role, Ending::Hang, "hung", None, now_s, false);
+        decide(role, verdict, w, now_s);
+    }
+}
+
+/// Reaps the children that ended: an end nobody planned is a fault (unless it is a clean
+/// exit), and goes to the restart policy. Returns how many children still run.
+fn reap(
+    children: &mut Children,
+    w: &mut Watch,
+    progress: &Progress,
+    stopping: bool,
+    now_s: f64,
+) -> usize {
+    let mut running = 0;
+    for (role, c) in &mut children.0 {
+        let pid = c.id();
+        match c.try_wait() {
+            // The gateways run until the roles are done (then they are stopped).
+            Ok(None) => running += usize::from(!role.starts_with("link-")),
+            Ok(Some(st)) if w.open_stops.contains_key(&pid) || !w.handled.contains(&pid) => {
+                let how = Ending::of(st);
+                end_stop(w, pid, how.name());
+                if !w.handled.insert(pid) || w.planned.contains(&pid) || stopping {
+                    continue;
+                }
+                if how != Ending::Exited {
+                    eprintln!("launcher: {role} {} ({st}) at {now_s:.3} s", how.name());
+                    let detail = st.to_string();
+                    let signal = st.signal().map(signal_name);
+                    let e =
+                        FaultEvent { signal, ..FaultEvent::now(role.as_str(), how.name(), detail) };
+                    w.events.push(e);
+                }
+                let what = format!("exited with {st}");
+                let complete = progress.0.loop_complete();
+                let verdict = w.supervisor.on_end(role, how, &what, st.code(), now_s, complete);
+                decide(role, verdict, w, now_s);
+            }
+            _ => {}
+        }
+    }
+    running
+}
+
+/// Carries out the supervisor's verdict on `role`. The monitor is an observer: when it may
+/// not be restarted again, the loop goes on without it.
+fn decide(role: &str, verdict: Verdict, w: &mut Watch, now_s: f64) {
+    match verdict {
+        Verdict::Done => {}
+        Verdict::Restart { at_s } => {
+            if at_s > now_s {
+                eprintln!("launcher: restarting {role} in {:.1} s (backoff)", at_s - now_s);
+            }
+            w.restarts.insert(role.to_owned(), at_s);
+        }
+        Verdict::Fail(msg) if role == Role::Monitor.name() => {
+            eprintln!("launcher: {msg}; the loop goes on without a monitor");
+            if let Some(e) = w.events.last_mut().filter(|e| e.role == role) {
+                e.detail = format!("{}; given up: {msg}", e.detail);
+            }
+        }
+        Verdict::Fail(msg) => w.failures.push(msg),
+    }
+}
+
+/// Starts `role` again (reaping the dead one first), at `at` s: the watchdog's clock starts
+/// again, and the newest fault event of the role gets its restart time.
+fn restart(
+    launch: &Launch,
+    children: &mut Children,
+    rss: &mut RssLog,
+    w: &mut Watch,
+    role: &str,
+    at: f64,
+) -> anyhow::Result<()> {
+    if let Some(c) = children.get_mut(role) {
+        let _ = c.wait();
+    }
+    // After the last tick a role has nothing left to do: started again it would only
+    // wait for states that never come (a plant would even start a new run). A monitor
+    // that is down then has its report assembled by the launcher from the flight records.
+    if w.loop_complete {
+        eprintln!("launcher: {role} not restarted at {at:.3} s: the run has ended");
+        if let Some(e) = w.events.iter_mut().rev().find(|e| e.role == role) {
+            e.detail = format!("{}; not restarted: the run had ended", e.detail);
+        }
+        return Ok(());
+    }
+    let child = launch.spawn(role, rss).with_context(|| format!("cannot restart {role}"))?;
+    if let Some(c) = children.get_mut(role) {
+        *c = child;
+    }
+    w.watchdog.reset(role, at);
+    if let Some(split) = &launch.split {
+        let plant_host = split.host_of(Role::Plant.name());
+        let far = role != Role::Monitor.name() && split.host_of(role) != plant_host;
+        if far || role.starts_with("link-") {
+            w.link.restarted(role, at, w.torques_received);
+        }
+    }
+    if let Some(e) = w.events.iter_mut().rev().find(|e| e.role == role) {
+        e.restart_ns = Some(now_ns());
+    }
+    eprintln!("launcher: restarted {role} at {at:.3} s");
+    Ok(())
+}
+
+/// Carries out one action of the `--fault` schedule, as its row of `fault::KINDS` says.
+fn injected(
+    launch: &Launch,
+    children: &mut Children,
+    rss: &mut RssLog,
+    w: &mut Watch,
+    action: Action,
+    at: f64,
+) -> anyhow::Result<()> {
+    let (kind, role) = (action.kind.spec().start, action.role.as_str());
+    match action.apply() {
+        Apply::Signal(sig, name) if sig == libc::SIGCONT => {
+            let stopped = w.stopped.remove(role);
+            let event = stop_event(&mut w.events, role);
+            match children.get_mut(role) {
+                Some(c) if Some(c.id()) == stopped && !w.planned.contains(&c.id()) => {
+                    continue_stopped(c, event, &format!("; {name} (--fault)"));
+                    eprintln!("launcher: continued {role} ({name}) at {at:.3} s");
+                }
+                _ => {
+                    eprintln!(
+                        "launcher: {role} was restarted by the watchdog before its {name} at {at:.3} s"
+                    );
+                    if let Some(e) = event {
+                        e.detail
+                            .push_str(&format!("; the watchdog restarted it before the {name}"));
+                    }
+                }
+            }
+        }
+        Apply::Signal(sig, name) => {
+            let Some(c) = children.get_mut(role) else { return Ok(()) };
+            let pid = c.id();
+            let e = FaultEvent {
+                signal: Some(name),
+                ..FaultEvent::now(role, kind, format!("{name} (--fault)"))
+            };
+            if sig == libc::SIGKILL {
+                w.planned.insert(pid);
+            }
+            signal(c, sig);
+            if sig == libc::SIGKILL {
+                let _ = c.wait(); // reap: an unreaped zombie can delay dead-node detection
+                w.handled.insert(pid);
+                end_stop(w, pid, "killed");
+            } else if sig == libc::SIGSTOP {
+                w.stopped.insert(role.to_owned(), pid);
+                w.watchdog.stopped(role);
+                w.open_stops.insert(pid, w.events.len());
+            }
+            let verb = match sig {
+                libc::SIGKILL => "killed",
+                libc::SIGSTOP => "stopped",
+                _ => "signalled",
+            };
+            eprintln!("launcher: {verb} {role} ({name}) at {at:.3} s");
+            w.events.push(e);
+        }
+        Apply::Restart => {
+            w.restarts.remove(role); // the schedule's restart replaces a supervisor's
+            restart(launch, children, rss, w, role, at)?;
+        }
+        Apply::ByTheRole(flag) if action.starts => {
+            let FaultKind::Delay(d) = action.kind else { return Ok(()) };
+            let ms = d * 1e3;
+            eprintln!("launcher: {role} answers {ms} ms late from {at:.3} s ({flag})");
+            let detail = format!("each answer sent {ms} ms late (--fault {kind})");
+            w.events.push(FaultEvent::now(role, kind, detail));
+        }
+        Apply::ByTheRole(_) => {
+            eprintln!("launcher: {role}'s {kind} ends at {at:.3} s");
+            if let Some(e) = w.events.iter_mut().rev().find(|e| e.role == role && e.kind == kind) {
+                e.restart_ns = Some(now_ns());
+            }
+        }
+    }
+    Ok(())
+}

@@ -1,0 +1,281 @@
+//! What the bench measures: its arguments, its cells (rate × wait × placement × load), the
+//! cells it cannot measure on this machine and why, and one measured row.
+
+use std::path::PathBuf;
+
+use clap::Args;
+use rotorloop_common::ipc::wait::Wait;
+
+use rotorloop_common::role::UsageError;
+
+/// `rotorloop bench` arguments.
+#[derive(Debug, Clone, Args)]
+pub struct BenchArgs {
+    /// Tick rates (Hz).
+    #[arg(
+        long,
+        allow_negative_numbers = true,
+        value_delimiter = ',',
+        default_value = "1000,2000,5000,10000,20000"
+    )]
+    pub rates: Vec<f64>,
+    /// Wait strategies.
+    #[arg(long, value_delimiter = ',', default_value = "event,spin,hybrid")]
+    pub wait: Vec<Wait>,
+    /// Core placements of plant and controller: same-core, cross-core, unpinned,
+    /// dedicated (every role on its own core, all spinning: `rotorloop run --preset
+    /// dedicated`; needs 4 cores, measured once per rate whatever `--wait` says), or
+    /// cross-host (unpinned, the controller on another "host" joined by two link gateways
+    /// over Zenoh on loopback: `rotorloop run --split`; needs `rotorloop-link`).
+    #[arg(long, value_delimiter = ',', default_value = "same-core,cross-core,unpinned")]
+    pub placement: Vec<String>,
+    /// Seconds per measurement.
+    #[arg(long, allow_negative_numbers = true, default_value_t = 3.0)]
+    pub seconds: f64,
+    /// Load: none, or other-core (a CPU hog on the core the loop is not pinned to).
+    #[arg(long, value_delimiter = ',', default_value = "none")]
+    pub load: Vec<String>,
+    /// Baselines: atomic, iceoryx2, uds.
+    #[arg(long, value_delimiter = ',', default_value = "atomic,iceoryx2,uds")]
+    pub baselines: Vec<String>,
+    /// The plant sleeps until this many µs before each tick and spins the rest.
+    #[arg(long, allow_negative_numbers = true, default_value_t = 0)]
+    pub spin_before_tick_us: u64,
+    /// Also run each loop cell without the monitor and report the change of the
+    /// plant-measured sense-to-actuate p50 (`loop-nomon` rows).
+    #[arg(long)]
+    pub monitor_cost: bool,
+    /// Also run each loop cell as it was before the newest change to the hot path, in the
+    /// same invocation: without the flight recorders (`loop-before` rows; `rotorloop run
+    /// --no-record`). The change before that, the cut overhead, is `run --plain-hot-path`
+    /// by hand (docs/measured/overhead.md).
+    #[arg(long)]
+    pub before_after: bool,
+    /// With `--before-after`: measure before and after this many times each, alternating
+    /// (before, after, before, …), and report the run with the median p50 of each (the
+    /// difference between two runs of one loop here is often larger than the change).
+    #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u64).range(1..=99))]
+    pub pairs: u64,
+    /// Scale: also run 2, 4, … up to N independent loops (domains) at once per cell, each
+    /// with its own four processes (`-xN` cells, a `loop-I` row per loop), and report the
+    /// largest N at which every loop has no more misses than the bare iceoryx2 baseline.
+    #[arg(long, default_value_t = 1)]
+    pub loops: usize,
+    /// Rebuild bench.md and the plots from an existing `--out` directory, measuring nothing.
+    #[arg(long)]
+    pub replot: bool,
+    /// Scenario the loop runs.
+    #[arg(long, default_value = "paper-sinusoid")]
+    pub scenario: String,
+    /// Output directory.
+    #[arg(long)]
+    pub out: PathBuf,
+}
+
+/// One measurement (a loop cell or a baseline), as a row of `bench.csv`.
+#[derive(Debug, Clone, Default)]
+pub struct Row {
+    /// Cell identifier.
+    pub cell: String,
+    /// `loop`, `atomic`, `iceoryx2`, `uds`.
+    pub kind: String,
+    /// Rate (Hz).
+    pub rate: f64,
+    /// Wait strategy.
+    pub wait: String,
+    /// Placement.
+    pub placement: String,
+    /// Load.
+    pub load: String,
+    /// Samples.
+    pub count: u64,
+    /// µs.
+    pub p50: f64,
+    /// µs.
+    pub p99: f64,
+    /// µs.
+    pub p99_9: f64,
+    /// µs.
+    pub max: f64,
+    /// Ticks without a fresh answer in time.
+    pub misses: u64,
+    /// Achieved rate (Hz).
+    pub achieved: f64,
+    /// Tick lateness p99 (µs), loop only.
+    pub lateness_p99: f64,
+    /// Why the measurement was skipped, if it was.
+    pub skipped: String,
+    /// Tracking error at the end of the run (degrees), loop only.
+    pub err_deg_final: f64,
+    /// Root mean square of the tracking error over the run (degrees), loop only.
+    pub err_deg_rms: f64,
+    /// Cell number (for short domain names).
+    pub index: usize,
+}
+
+pub(super) const CSV_HEADER: &str = "cell,kind,rate_hz,wait,placement,load,count,p50_us,p99_us,p99_9_us,max_us,misses,achieved_rate_hz,tick_lateness_p99_us,skipped,err_deg_final,err_deg_rms";
+
+impl Row {
+    pub(super) fn parse(line: &str) -> Option<Self> {
+        let f: Vec<&str> = line.split(',').collect();
+        // Bench files written before `err_deg_final` have 15 columns, before `err_deg_rms` 16.
+        if !(15..=17).contains(&f.len()) {
+            return None;
+        }
+        let num = |i: usize| f.get(i).map_or(f64::NAN, |v| v.parse::<f64>().unwrap_or(f64::NAN));
+        Some(Self {
+            cell: f[0].into(),
+            kind: f[1].into(),
+            rate: num(2),
+            wait: f[3].into(),
+            placement: f[4].into(),
+            load: f[5].into(),
+            count: f[6].parse().unwrap_or(0),
+            p50: num(7),
+            p99: num(8),
+            p99_9: num(9),
+            max: num(10),
+            misses: f[11].parse().unwrap_or(0),
+            achieved: num(12),
+            lateness_p99: num(13),
+            skipped: f[14].into(),
+            err_deg_final: num(15),
+            err_deg_rms: num(16),
+            index: 0,
+        })
+    }
+
+    pub(super) fn csv(&self) -> String {
+        format!(
+            "{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{}",
+            self.cell,
+            self.kind,
+            self.rate,
+            self.wait,
+            self.placement,
+            self.load,
+            self.count,
+            self.p50,
+            self.p99,
+            self.p99_9,
+            self.max,
+            self.misses,
+            self.achieved,
+            self.lateness_p99,
+            self.skipped.replace(',', ";"),
+            self.err_deg_final,
+            self.err_deg_rms
+        )
+    }
+}
+
+/// Cores of plant/controller (and ping/pong) for a placement; `None` = unpinned.
+pub(super) fn cores(placement: &str, ncores: usize) -> Option<(usize, usize)> {
+    match placement {
+        "same-core" => Some((0, 0)),
+        "cross-core" => Some((0, 1)),
+        "dedicated" => crate::run::args::dedicated_cores(ncores).ok().map(|c| (c[0], c[1])),
+        _ => None, // unpinned, cross-host
+    }
+}
+
+/// Why a combination cannot work on this machine, if it cannot.
+pub fn skip_reason(
+    kind: &str,
+    wait: Wait,
+    placement: &str,
+    load: &str,
+    ncores: usize,
+) -> Option<String> {
+    if placement == "dedicated" {
+        return crate::run::args::dedicated_cores(ncores).err();
+    }
+    let spins = matches!(wait, Wait::Spin) || kind == "atomic";
+    if spins && placement == "same-core" {
+        return Some(
+            "busy-wait with both ends on one core: each hand-off waits for a scheduler time slice"
+                .into(),
+        );
+    }
+    if spins && ncores < 2 {
+        return Some(format!("busy-wait needs 2 dedicated cores; this machine has {ncores}"));
+    }
+    if load == "other-core" && placement != "same-core" {
+        return Some("other-core load needs the loop on one core (same-core placement)".into());
+    }
+    if placement == "cross-host" {
+        return cross_host_skip(kind, spins, ncores);
+    }
+    None
+}
+
+/// Why a cross-host cell cannot be measured here, if it cannot.
+pub(super) fn cross_host_skip(kind: &str, spins: bool, ncores: usize) -> Option<String> {
+    if kind == "atomic" || kind == "uds" {
+        return Some("shared-memory atomics and a Unix socket do not cross hosts".into());
+    }
+    if spins && ncores < 6 {
+        return Some(format!(
+            "busy-wait across hosts needs a core for each role and each gateway (6); this \
+             machine has {ncores}"
+        ));
+    }
+    crate::run::split::link_binary().err().map(|e| e.0)
+}
+
+pub(super) fn validate(a: &BenchArgs) -> Result<(), UsageError> {
+    for r in &a.rates {
+        if !(r.is_finite() && (1.0..=100_000.0).contains(r)) {
+            return Err(UsageError(format!("--rates {r} is not allowed: 1 to 100000 Hz")));
+        }
+    }
+    for p in &a.placement {
+        if !["same-core", "cross-core", "unpinned", "dedicated", "cross-host"].contains(&p.as_str())
+        {
+            return Err(UsageError(format!(
+                "--placement `{p}` is not allowed: same-core, cross-core, unpinned, dedicated or \
+                 cross-host"
+            )));
+        }
+    }
+    for l in &a.load {
+        if !["none", "other-core"].contains(&l.as_str()) {
+            return Err(UsageError(format!("--load `{l}` is not allowed: none or other-core")));
+        }
+    }
+    for b in &a.baselines {
+        if !["atomic", "iceoryx2", "uds"].contains(&b.as_str()) {
+            return Err(UsageError(format!(
+                "--baselines `{b}` is not allowed: atomic, iceoryx2, uds"
+            )));
+        }
+    }
+    if !(1..=64).contains(&a.loops) {
+        return Err(UsageError(format!("--loops {} is not allowed: 1 to 64", a.loops)));
+    }
+    if !(a.seconds.is_finite() && a.seconds >= 0.05 && a.seconds <= 3600.0) {
+        return Err(UsageError(format!("--seconds {} is not allowed: 0.05 to 3600", a.seconds)));
+    }
+    Ok(())
+}
+
+/// The cells to measure: rate × wait × placement × load, the dedicated preset once per
+/// rate (it spins, whatever `--wait` lists).
+pub(super) fn cells(a: &BenchArgs) -> Vec<(f64, Wait, String, String)> {
+    let mut cells = Vec::new();
+    for &rate in &a.rates {
+        for &wait in &a.wait {
+            for placement in &a.placement {
+                // The dedicated preset spins: one cell per rate, whatever `--wait` lists.
+                let wait = if placement == "dedicated" { Wait::Spin } else { wait };
+                for load in &a.load {
+                    let cell = (rate, wait, placement.clone(), load.clone());
+                    if !cells.contains(&cell) {
+                        cells.push(cell);
+                    }
+                }
+            }
+        }
+    }
+    cells
+}

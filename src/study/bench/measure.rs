@@ -1,0 +1,310 @@
+//! Measuring a cell: the loop through the four processes (also before and after its
+//! flight recorders, and scaled to several loops), and each baseline with the same
+//! placement, wait and pacing.
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Stdio};
+
+use anyhow::Context;
+use rotorloop_common::ipc::domain::Domain;
+use rotorloop_common::ipc::wait::Wait;
+
+use super::cell::{BenchArgs, Row, cores, skip_reason};
+use super::report::{hgrm_count, hgrm_quantile};
+use crate::baseline::pingpong::Kind;
+use crate::run::args::RunArgs;
+use rotorloop_common::role::args::{Mode, RoleArgs};
+
+/// `--before-after`: the loop without flight recorders and with them, `--pairs` times
+/// each, alternating (`first` is the first "after"); the median run of each.
+pub(super) fn before_after(
+    a: &BenchArgs,
+    base: &Row,
+    ncores: usize,
+    dir: &Path,
+    first: Row,
+) -> anyhow::Result<(Row, Row)> {
+    let (mut before, mut after) = (Vec::new(), vec![first]);
+    for i in 0..a.pairs {
+        let d = if i == 0 { dir.to_owned() } else { dir.join(format!("pair{i}")) };
+        before.push(measure_loop(a, base, ncores, &d, Variant::Before)?);
+        if i > 0 {
+            after.push(measure_loop(a, base, ncores, &d, Variant::Loop)?);
+        }
+    }
+    Ok((median_p50(after), median_p50(before)))
+}
+
+/// The row with the median p50 of `rows` (the upper one of an even count; skipped rows
+/// sort last).
+pub(super) fn median_p50(mut rows: Vec<Row>) -> Row {
+    rows.sort_by(|a, b| a.p50.total_cmp(&b.p50));
+    let n = rows.len();
+    rows.swap_remove(n / 2)
+}
+
+/// Which loop a measurement runs.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(super) enum Variant {
+    /// The loop as it is.
+    Loop,
+    /// Without the monitor (the plant's own histogram).
+    NoMonitor,
+    /// With `--no-record`: the loop before its flight recorders.
+    Before,
+}
+
+impl Variant {
+    pub(super) fn kind(self) -> &'static str {
+        match self {
+            Variant::Loop => "loop",
+            Variant::NoMonitor => "loop-nomon",
+            Variant::Before => "loop-before",
+        }
+    }
+}
+
+/// The loop counts of the scale cells: 2, 4, 8, … and `max` itself.
+pub(super) fn scale_steps(max: usize) -> Vec<usize> {
+    let mut steps: Vec<usize> =
+        std::iter::successors(Some(2), |n| Some(n * 2)).take_while(|n| *n < max).collect();
+    if max > 1 {
+        steps.push(max);
+    }
+    steps
+}
+
+/// The launcher's arguments of one loop of cell `base` in domain `domain`, into `out`.
+pub(super) fn loop_run_args(
+    a: &BenchArgs,
+    base: &Row,
+    ncores: usize,
+    domain: String,
+    out: PathBuf,
+) -> RunArgs {
+    let wait: Wait = base.wait.parse().unwrap_or(Wait::Event);
+    let dedicated = base.placement == "dedicated";
+    let pin = cores(&base.placement, ncores).filter(|_| !dedicated).map(|(p, c)| {
+        let other = |x: usize| (x + 1) % ncores;
+        format!("plant={p},controller={c},reference={},monitor={}", other(p), other(c))
+    });
+    let role = RoleArgs {
+        domain: Some(domain),
+        host: None,
+        scenario: a.scenario.clone(),
+        duration: Some(a.seconds),
+        rate: Some(base.rate),
+        actuation: None,
+        mode: Mode::Realtime,
+        wait,
+        core: None,
+        rt_priority: None,
+        mlock: false,
+        plain_hot_path: false,
+        record: None,
+        flight_ring_ticks: rotorloop_common::flight::DEFAULT_RING_TICKS,
+        hooks: Default::default(),
+    };
+    RunArgs {
+        pin,
+        quiet: true,
+        spin_before_tick_us: a.spin_before_tick_us,
+        preset: dedicated.then(|| "dedicated".to_owned()),
+        split: (base.placement == "cross-host").then(|| crate::run::split::CROSS_HOST.to_owned()),
+        ..RunArgs::defaults(role, out)
+    }
+}
+
+pub(super) fn measure_loop(
+    a: &BenchArgs,
+    base: &Row,
+    ncores: usize,
+    dir: &Path,
+    variant: Variant,
+) -> anyhow::Result<Row> {
+    let kind = variant.kind();
+    let without_monitor = variant == Variant::NoMonitor;
+    let mut row = Row { kind: kind.into(), ..base.clone() };
+    let wait: Wait = base.wait.parse().unwrap_or(Wait::Event);
+    if let Some(why) = skip_reason("loop", wait, &base.placement, &base.load, ncores) {
+        row.skipped = why;
+        return Ok(row);
+    }
+    let out = dir.join(kind);
+    let suffix = match variant {
+        Variant::Loop => "",
+        Variant::NoMonitor => "n",
+        Variant::Before => "b",
+    };
+    let domain = format!("bl{}-{}{suffix}", std::process::id(), base.index);
+    let mut run = loop_run_args(a, base, ncores, domain, out.clone());
+    run.no_monitor = without_monitor;
+    run.no_record = variant == Variant::Before;
+    crate::run::launch::run(&run)?;
+    if without_monitor {
+        // No monitor, no summary: the plant's own histogram of the loop.
+        let hgrm = out.join("plant_sense_to_actuate.hgrm");
+        row.p50 = hgrm_quantile(&hgrm, 0.5);
+        row.p99 = hgrm_quantile(&hgrm, 0.99);
+        row.p99_9 = hgrm_quantile(&hgrm, 0.999);
+        row.max = hgrm_quantile(&hgrm, 1.0);
+        row.count = hgrm_count(&hgrm);
+        row.lateness_p99 = f64::NAN;
+        row.achieved = f64::NAN;
+        (row.err_deg_final, row.err_deg_rms) = (f64::NAN, f64::NAN);
+        std::fs::copy(&hgrm, dir.join("loop-nomon.hgrm"))?;
+        return Ok(row);
+    }
+    read_loop_summary(&mut row, &out)?;
+    std::fs::copy(out.join("sense_to_actuate.hgrm"), dir.join(format!("{kind}.hgrm")))?;
+    Ok(row)
+}
+
+/// Fills `row` from the `summary.json` of a loop's report in `out`.
+pub(super) fn read_loop_summary(row: &mut Row, out: &Path) -> anyhow::Result<()> {
+    let path = out.join("summary.json");
+    let text = std::fs::read_to_string(&path)
+        .with_context(|| format!("cannot read {}", path.display()))?;
+    let j: serde_json::Value = serde_json::from_str(&text)?;
+    let h = &j["hops"]["sense_to_actuate"];
+    let us = |v: &serde_json::Value| v.as_f64().unwrap_or(f64::NAN) / 1e3;
+    row.count = h["count"].as_u64().unwrap_or(0);
+    row.p50 = us(&h["p50"]);
+    row.p99 = us(&h["p99"]);
+    row.p99_9 = us(&h["p99_9"]);
+    row.max = us(&h["max"]);
+    row.misses = j["misses"].as_u64().unwrap_or(0);
+    row.achieved = j["achieved_rate_hz"].as_f64().unwrap_or(0.0);
+    row.lateness_p99 = us(&j["hops"]["tick_lateness"]["p99"]);
+    row.err_deg_final = j["err_deg_final"].as_f64().unwrap_or(f64::NAN);
+    row.err_deg_rms = j["err_deg_rms"].as_f64().unwrap_or(f64::NAN);
+    Ok(())
+}
+
+/// The scale cell of `base` with `n` loops at once: a row per loop (`loop-1` …).
+pub(super) fn measure_loops(
+    a: &BenchArgs,
+    base: &Row,
+    ncores: usize,
+    n: usize,
+) -> anyhow::Result<Vec<Row>> {
+    let cell = format!("{}-x{n}", base.cell);
+    let dir = a.out.join("cells").join(&cell);
+    let row = |i: usize| Row { cell: cell.clone(), kind: format!("loop-{i}"), ..base.clone() };
+    let wait: Wait = base.wait.parse().unwrap_or(Wait::Event);
+    if let Some(why) = skip_reason("loop", wait, &base.placement, &base.load, ncores) {
+        return Ok((1..=n).map(|i| Row { skipped: why.clone(), ..row(i) }).collect());
+    }
+    let results: Vec<anyhow::Result<()>> = std::thread::scope(|scope| {
+        let handles: Vec<_> = (1..=n)
+            .map(|i| {
+                let domain = format!("bs{}-{}-{n}-{i}", std::process::id(), base.index);
+                let run = loop_run_args(a, base, ncores, domain, dir.join(format!("loop-{i}")));
+                scope.spawn(move || crate::run::launch::run(&run))
+            })
+            .collect();
+        handles
+            .into_iter()
+            .map(|h| h.join().unwrap_or_else(|_| Err(anyhow::anyhow!("panicked"))))
+            .collect()
+    });
+    let mut rows = Vec::new();
+    for (i, result) in (1..=n).zip(results) {
+        let mut r = row(i);
+        let out = dir.join(&r.kind);
+        match result.and_then(|()| read_loop_summary(&mut r, &out)) {
+            Ok(()) => {}
+            Err(e) => r.skipped = format!("loop failed: {e:#}"),
+        }
+        rows.push(r);
+    }
+    Ok(rows)
+}
+
+#[allow(clippy::too_many_arguments)]
+pub(super) fn measure_baseline(
+    exe: &Path,
+    a: &BenchArgs,
+    base: &Row,
+    kind: &str,
+    wait: Wait,
+    placement: &str,
+    ncores: usize,
+    dir: &Path,
+) -> anyhow::Result<Row> {
+    let mut row = Row { kind: kind.into(), ..base.clone() };
+    if let Some(why) = skip_reason(kind, wait, placement, &base.load, ncores) {
+        row.skipped = why;
+        return Ok(row);
+    }
+    let k = match kind {
+        "atomic" => Kind::Atomic,
+        "iceoryx2" => Kind::Iceoryx2,
+        _ => Kind::Uds,
+    };
+    let w = if k == Kind::Atomic { Wait::Spin } else { wait };
+    let name = format!("bb{}-{kind}", std::process::id());
+    let (ping_core, pong_core) =
+        cores(placement, ncores).map_or((None, None), |(p, c)| (Some(p), Some(c)));
+    // Across hosts: ping on host a, pong on host b, two gateways between them.
+    let split = (placement == "cross-host")
+        .then(|| crate::run::split::Split::parse(crate::run::split::CROSS_HOST, true))
+        .transpose()?;
+    let gateways =
+        split.as_ref().map(|s| crate::run::split::Gateways::start(s, &name, dir)).transpose()?;
+    let hosts = split.as_ref().map(|s| s.hosts().to_vec()).unwrap_or_default();
+    let side = |side: &str, core: Option<usize>| {
+        let mut cmd = Command::new(exe);
+        cmd.args(["role", "pingpong", "--kind", kind, "--side", side, "--name", &name])
+            .args([
+                "--rate",
+                &base.rate.to_string(),
+                "--seconds",
+                &a.seconds.to_string(),
+                "--wait",
+                &w.to_string(),
+            ])
+            .stdin(Stdio::null());
+        if let Some(c) = core {
+            cmd.args(["--core", &c.to_string()]);
+        }
+        if let Some(h) = hosts.get(usize::from(side == "pong")) {
+            cmd.args(["--host", h]);
+        }
+        cmd
+    };
+    let mut pong = side("pong", pong_core).spawn().context("cannot start the pong side")?;
+    let stem = dir.join(kind);
+    let ping = side("ping", ping_core)
+        .arg("--out")
+        .arg(&stem)
+        .status()
+        .context("cannot run the ping side")?;
+    let _ = pong.wait();
+    drop(gateways);
+    if k == Kind::Iceoryx2 {
+        for h in hosts.iter().map(|h| Some(h.as_str())).chain(split.is_none().then_some(None)) {
+            let _ = Domain::on_host(&name, h).map(|d| d.cleanup());
+        }
+    }
+    if !ping.success() {
+        row.skipped = format!("baseline failed ({ping})");
+        return Ok(row);
+    }
+    let j: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(stem.with_extension("json"))?)?;
+    let us = |v: &serde_json::Value| v.as_f64().unwrap_or(f64::NAN) / 1e3;
+    let r = &j["rtt"];
+    row.count = r["count"].as_u64().unwrap_or(0);
+    row.p50 = us(&r["p50"]);
+    row.p99 = us(&r["p99"]);
+    row.p99_9 = us(&r["p99_9"]);
+    row.max = us(&r["max"]);
+    row.misses = j["misses"].as_u64().unwrap_or(0);
+    row.achieved = j["achieved_rate_hz"].as_f64().unwrap_or(0.0);
+    (row.lateness_p99, row.err_deg_final, row.err_deg_rms) = (f64::NAN, f64::NAN, f64::NAN);
+    if k == Kind::Atomic {
+        row.wait = "spin".into();
+    }
+    Ok(row)
+}

@@ -1,0 +1,130 @@
+//! `rotorloop bench`: the latency study. For every cell (rate × wait strategy × core
+//! placement × load) it runs the real four-process loop in real time and, in the same
+//! invocation with the same placement, wait strategy and pacing (one exchange per tick at
+//! the cell's rate), the baselines it should be judged against: shared-memory atomics
+//! (the hardware floor), bare iceoryx2, and Unix domain sockets.
+//!
+//! Output: `bench.csv` (a row per cell and baseline, appended as cells finish, so an
+//! interrupted bench keeps what it measured), `bench.md` (the table with ratios to the
+//! baselines), one `.hgrm` per measurement, and plots.
+//!
+//! - [`cell`]: the arguments, the cells, what cannot be measured here, a row;
+//! - [`measure`]: measuring a cell and its baselines;
+//! - [`report`]: `bench.md` and the plots.
+
+pub mod cell;
+pub mod measure;
+pub mod report;
+
+use std::io::{IsTerminal, Write};
+use std::process::{Command, Stdio};
+
+use anyhow::Context;
+use rotorloop_common::signals::shutdown_requested;
+
+use cell::{BenchArgs, CSV_HEADER, Row, cells, cores, skip_reason, validate};
+use measure::{Variant, before_after, measure_baseline, measure_loop, measure_loops, scale_steps};
+use report::{plots, write_markdown};
+
+/// Runs the bench.
+pub fn run(a: &BenchArgs) -> anyhow::Result<()> {
+    validate(a)?;
+    if a.replot {
+        let text = std::fs::read_to_string(a.out.join("bench.csv"))
+            .with_context(|| format!("no bench.csv in {}", a.out.display()))?;
+        let rows: Vec<Row> = text.lines().skip(1).filter_map(Row::parse).collect();
+        write_markdown(a, &rows)?;
+        plots(a, &rows)?;
+        println!("bench: {} measurements re-plotted in {}", rows.len(), a.out.display());
+        return Ok(());
+    }
+    rotorloop_common::role::args::scenario_with_overrides(
+        &a.scenario,
+        Some(a.seconds),
+        Some(a.rates[0]),
+        None,
+    )?;
+    std::fs::create_dir_all(&a.out)
+        .with_context(|| format!("cannot create {}", a.out.display()))?;
+    let exe = std::env::current_exe().context("cannot find the rotorloop executable")?;
+    let ncores = std::thread::available_parallelism().map_or(1, |n| n.get());
+    rotorloop_common::signals::install_signal_handlers();
+
+    let csv_path = a.out.join("bench.csv");
+    std::fs::write(&csv_path, format!("{CSV_HEADER}\n"))?;
+    let mut rows: Vec<Row> = Vec::new();
+    let cells = cells(a);
+    let tty = std::io::stderr().is_terminal();
+    for (i, (rate, wait, placement, load)) in cells.iter().enumerate() {
+        if shutdown_requested() {
+            eprintln!("interrupted: {} of {} cells measured", i, cells.len());
+            break;
+        }
+        let cell = format!("r{rate}-{wait}-{placement}-{load}");
+        let bar = "#".repeat(20 * i / cells.len()) + &" ".repeat(20 - 20 * i / cells.len());
+        eprint!(
+            "{}[{bar}] {}/{} {cell}{}",
+            if tty { "\r" } else { "" },
+            i + 1,
+            cells.len(),
+            if tty { "        " } else { "\n" }
+        );
+        let base = Row {
+            index: i,
+            cell: cell.clone(),
+            rate: *rate,
+            wait: wait.to_string(),
+            placement: placement.clone(),
+            load: load.clone(),
+            ..Row::default()
+        };
+        let dir = a.out.join("cells").join(&cell);
+        std::fs::create_dir_all(&dir)?;
+        let hog = if load == "other-core"
+            && skip_reason("loop", *wait, placement, load, ncores).is_none()
+        {
+            let core = cores(placement, ncores).map(|(p, _)| (p + 1) % ncores);
+            let mut cmd = Command::new(&exe);
+            cmd.args(["role", "hog"]).stdin(Stdio::null());
+            if let Some(c) = core {
+                cmd.args(["--core", &c.to_string()]);
+            }
+            Some(cmd.spawn().context("cannot start the CPU hog")?)
+        } else {
+            None
+        };
+        let mut measured = vec![measure_loop(a, &base, ncores, &dir, Variant::Loop)?];
+        if a.monitor_cost {
+            measured.push(measure_loop(a, &base, ncores, &dir, Variant::NoMonitor)?);
+        }
+        if a.before_after {
+            let (after, before) = before_after(a, &base, ncores, &dir, measured.remove(0))?;
+            measured.insert(0, after);
+            measured.push(before);
+        }
+        for b in &a.baselines {
+            measured.push(measure_baseline(&exe, a, &base, b, *wait, placement, ncores, &dir)?);
+        }
+        for n in scale_steps(a.loops) {
+            measured.extend(measure_loops(a, &base, ncores, n)?);
+        }
+        if let Some(mut h) = hog {
+            // SAFETY: signals our own child.
+            unsafe { libc::kill(h.id() as libc::pid_t, libc::SIGTERM) };
+            let _ = h.wait();
+        }
+        let mut f = std::fs::OpenOptions::new().append(true).open(&csv_path)?;
+        for r in &measured {
+            writeln!(f, "{}", r.csv())?;
+        }
+        rows.extend(measured);
+        write_markdown(a, &rows)?;
+    }
+    if tty {
+        eprintln!();
+    }
+    write_markdown(a, &rows)?;
+    plots(a, &rows)?;
+    println!("bench: {} measurements in {}", rows.len(), a.out.display());
+    Ok(())
+}

@@ -1,0 +1,424 @@
+//! The bench's files: `bench.md` (the tables with ratios to the baselines, the stage
+//! breakdown, before and after, scaling) and the plots, from the rows and their `.hgrm`
+//! files.
+
+use std::fmt::Write as _;
+use std::path::Path;
+
+use rotorloop_monitor::plot::{Series, YScale, line_chart};
+
+use super::cell::{BenchArgs, Row};
+
+pub(super) fn write_markdown(a: &BenchArgs, rows: &[Row]) -> anyhow::Result<()> {
+    let mut md = format!(
+        "# rotorloop bench\n\n{} s per measurement; scenario {}. Loop: sense-to-actuate (plant publishes \
+         state k → plant holds torque k), real time. Baselines: paced round trip, one per tick, same \
+         placement and wait strategy (atomic: always spin). Latencies in µs.\n\n\
+         | cell | kind | p50 | p99 | p99.9 | max | misses | achieved Hz | tick lateness p99 | loop/iceoryx2 p50 | loop/iceoryx2 p99.9 | loop/uds p50 | loop/atomic p50 |\n\
+         |---|---|---|---|---|---|---|---|---|---|---|---|---|\n",
+        a.seconds, a.scenario
+    );
+    for r in rows {
+        if !r.skipped.is_empty() {
+            let _ = writeln!(
+                md,
+                "| {} | {} | skipped: {} | | | | | | | | | | |",
+                r.cell, r.kind, r.skipped
+            );
+            continue;
+        }
+        let find =
+            |k: &str| rows.iter().find(|x| x.cell == r.cell && x.kind == k && x.skipped.is_empty());
+        let ratio = |k: &str, f: fn(&Row) -> f64| {
+            if !r.kind.starts_with("loop") {
+                return String::new();
+            }
+            find(k).map_or("—".into(), |b| format!("{:.2}", f(r) / f(b)))
+        };
+        // Without the monitor nobody counts misses or the achieved rate.
+        let (misses, achieved) = if r.kind == "loop-nomon" {
+            ("n/a".to_owned(), "n/a".to_owned())
+        } else {
+            (r.misses.to_string(), format!("{:.3}", r.achieved))
+        };
+        let _ = writeln!(
+            md,
+            "| {} | {} | {:.1} | {:.1} | {:.1} | {:.1} | {} | {} | {} | {} | {} | {} | {} |",
+            r.cell,
+            r.kind,
+            r.p50,
+            r.p99,
+            r.p99_9,
+            r.max,
+            misses,
+            achieved,
+            if r.lateness_p99.is_finite() {
+                format!("{:.1}", r.lateness_p99)
+            } else {
+                String::new()
+            },
+            ratio("iceoryx2", |x| x.p50),
+            ratio("iceoryx2", |x| x.p99_9),
+            ratio("uds", |x| x.p50),
+            ratio("atomic", |x| x.p50),
+        );
+    }
+    if rows.iter().any(|r| r.kind == "loop-nomon") {
+        let _ = writeln!(
+            md,
+            "\n## What the monitor costs\n\nSense-to-actuate p50 measured by the plant itself, \
+             with and without the monitor attached (separate runs, same cell).\n"
+        );
+        for r in rows.iter().filter(|r| r.kind == "loop-nomon" && r.skipped.is_empty()) {
+            let with = hgrm_quantile(
+                &a.out.join("cells").join(&r.cell).join("loop").join("plant_sense_to_actuate.hgrm"),
+                0.5,
+            );
+            let _ = writeln!(
+                md,
+                "- {}: {:.1} µs with the monitor, {:.1} µs without ({:+.1} %)",
+                r.cell,
+                with,
+                r.p50,
+                100.0 * (with / r.p50 - 1.0)
+            );
+        }
+    }
+    md.push_str(&zero_miss_md(a, rows));
+    md.push_str(&breakdown_md(a, rows));
+    md.push_str(&before_after_md(rows, a.pairs));
+    md.push_str(&scale_md(rows));
+    md.push_str(&cross_host_md(rows));
+    std::fs::write(a.out.join("bench.md"), md)?;
+    Ok(())
+}
+
+/// Each cross-host measurement beside the same one on one host (`unpinned` if measured,
+/// else another placement of this invocation): what the link costs.
+pub(super) fn cross_host_md(rows: &[Row]) -> String {
+    let measured = |r: &&Row| r.skipped.is_empty() && (r.kind == "loop" || r.kind == "iceoryx2");
+    let far: Vec<&Row> =
+        rows.iter().filter(measured).filter(|r| r.placement == "cross-host").collect();
+    if far.is_empty() {
+        return String::new();
+    }
+    let mut md = String::from(
+        "\n## What the link costs (cross-host against one host, this invocation)\n\n\
+         `loop`: sense-to-actuate; `iceoryx2`: the bare paced round trip, here through the two \
+         gateways. Latencies in µs; error: tracking error over the run (RMS) and at the end \
+         (degrees).\n\n\
+         | rate | wait | kind | one host (placement) p50 / p99 | cross-host p50 / p99 | p50 ratio \
+         | misses one host / cross-host | error RMS one host / cross-host \
+         | final error one host / cross-host |\n\
+         |---|---|---|---|---|---|---|---|---|\n",
+    );
+    // A baseline has no tracking error.
+    let deg = |v: f64| if v.is_finite() { format!("{v:.1}") } else { "—".to_owned() };
+    for f in far {
+        let near = rows
+            .iter()
+            .filter(measured)
+            .filter(|r| r.rate == f.rate && r.wait == f.wait && r.kind == f.kind)
+            .filter(|r| r.placement != "cross-host" && r.load == f.load)
+            .min_by_key(|r| r.placement != "unpinned");
+        let Some(n) = near else { continue };
+        let _ = writeln!(
+            md,
+            "| {} | {} | {} | {:.1} / {:.1} ({}) | {:.1} / {:.1} | {:.1} | {} / {} | {} / {} | {} / {} |",
+            f.rate,
+            f.wait,
+            f.kind,
+            n.p50,
+            n.p99,
+            n.placement,
+            f.p50,
+            f.p99,
+            f.p50 / n.p50,
+            n.misses,
+            f.misses,
+            deg(n.err_deg_rms),
+            deg(f.err_deg_rms),
+            deg(n.err_deg_final),
+            deg(f.err_deg_final)
+        );
+    }
+    md
+}
+
+/// The highest rate with zero misses, per wait strategy, on one host; across hosts on a
+/// line of its own (the link's misses are not a property of the wait strategy).
+pub(super) fn zero_miss_md(a: &BenchArgs, rows: &[Row]) -> String {
+    let mut md = String::new();
+    let _ = writeln!(md, "\n## Highest rate with zero misses (loop)\n");
+    let best = |w: &str, far: bool| {
+        rows.iter()
+            .filter(|r| r.kind == "loop" && r.skipped.is_empty() && r.wait == w && r.misses == 0)
+            .filter(|r| (r.placement == "cross-host") == far)
+            .map(|r| r.rate)
+            .fold(f64::NAN, f64::max)
+    };
+    let say = |best: f64| match best.is_finite() {
+        true => format!("{best} Hz"),
+        false => "none of the rates measured".to_owned(),
+    };
+    let across = rows.iter().any(|r| r.placement == "cross-host" && r.skipped.is_empty());
+    for w in &a.wait {
+        let w = w.to_string();
+        let _ = writeln!(md, "- {w}: {}", say(best(&w, false)));
+        if across {
+            let _ = writeln!(md, "- {w}, across hosts: {}", say(best(&w, true)));
+        }
+    }
+    md
+}
+
+/// The in-loop stages and the notifies, p50 in µs, in tick order.
+pub(super) const BREAKDOWN: [(&str, &str); 10] = [
+    ("state_send", "state send"),
+    ("state_delivery", "state delivery"),
+    ("controller_validate", "validate"),
+    ("controller_pair", "pair"),
+    ("controller_law", "law"),
+    ("controller_publish_prep", "publish prep"),
+    ("torque_send", "torque send"),
+    ("torque_delivery", "torque delivery"),
+    ("state_notify", "(state notify)"),
+    ("torque_notify", "(torque notify)"),
+];
+
+/// The stage p50s (µs) of a loop measurement, from its `summary.json`.
+pub(super) fn stage_p50s(a: &BenchArgs, r: &Row) -> Option<Vec<f64>> {
+    let path = a.out.join("cells").join(&r.cell).join(&r.kind).join("summary.json");
+    let j: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(path).ok()?).ok()?;
+    let stages = j["stages"].as_array()?;
+    let p50 = |name: &str| {
+        let s = stages.iter().find(|s| s["stage"] == name)?;
+        s["p50"].as_f64().map(|ns| ns / 1e3)
+    };
+    BREAKDOWN.iter().map(|(name, _)| p50(name)).collect()
+}
+
+/// Where the microseconds of sense-to-actuate go (`crate` monitor's `stages`).
+pub(super) fn breakdown_md(a: &BenchArgs, rows: &[Row]) -> String {
+    let mut md = String::from(
+        "\n## Where the microseconds go (p50, µs)\n\nSense-to-actuate split at the stamps the plant \
+         and the controller carry in their samples; the eight stages add up to it tick by tick \
+         (their p50s need not add up to its p50). Notifies run after the send, beside the \
+         delivery; a spinning receiver does not wait for them.\n\n| cell | kind | s2a |",
+    );
+    for (_, label) in BREAKDOWN {
+        let _ = write!(md, " {label} |");
+    }
+    md.push_str("\n|---|---|---|");
+    md.push_str(&"---|".repeat(BREAKDOWN.len()));
+    md.push('\n');
+    for r in rows.iter().filter(|r| r.kind == "loop" || r.kind == "loop-before") {
+        let Some(p50s) = stage_p50s(a, r).filter(|_| r.skipped.is_empty()) else { continue };
+        let _ = write!(md, "| {} | {} | {:.1} |", r.cell, r.kind, r.p50);
+        for v in p50s {
+            let _ = write!(md, " {v:.2} |");
+        }
+        md.push('\n');
+    }
+    md
+}
+
+/// The loop before and after its overhead was cut, with the bare baseline of the cell.
+pub(super) fn before_after_md(rows: &[Row], pairs: u64) -> String {
+    let mut md = String::new();
+    let ok = |cell: &str, kind: &str| {
+        rows.iter().find(|r| r.cell == cell && r.kind == kind && r.skipped.is_empty())
+    };
+    for r in rows.iter().filter(|r| r.kind == "loop" && r.skipped.is_empty()) {
+        let (Some(before), bare) = (ok(&r.cell, "loop-before"), ok(&r.cell, "iceoryx2")) else {
+            continue;
+        };
+        if md.is_empty() {
+            md.push_str(&format!(
+                "\n## Before and after (same invocation)\n\nBefore: the loop without flight recorders \
+                 (`run --no-record`); after: with them (the default). \
+                 Each measured {pairs} time(s), alternating; each row is the run with the \
+                 median p50.\n\n| cell | before p50 | after p50 | \
+                 change | bare iceoryx2 p50 | before/bare | after/bare | misses before/after/bare |\n\
+                 |---|---|---|---|---|---|---|---|\n",
+            ));
+        }
+        let bare_p50 = bare.map_or(f64::NAN, |b| b.p50);
+        let bare_misses = bare.map_or("—".to_owned(), |b| b.misses.to_string());
+        let _ = writeln!(
+            md,
+            "| {} | {:.1} | {:.1} | {:+.0} % | {:.1} | {:.2} | {:.2} | {} / {} / {} |",
+            r.cell,
+            before.p50,
+            r.p50,
+            100.0 * (r.p50 / before.p50 - 1.0),
+            bare_p50,
+            before.p50 / bare_p50,
+            r.p50 / bare_p50,
+            before.misses,
+            r.misses,
+            bare_misses
+        );
+    }
+    md
+}
+
+/// The scale cells: per loop count, the loops' p50s, worst p99 and misses, against the
+/// bare baseline's misses; the largest count at which no loop missed more.
+pub(super) fn scale_md(rows: &[Row]) -> String {
+    let mut md = String::new();
+    for base in rows.iter().filter(|r| r.kind == "loop" && r.skipped.is_empty()) {
+        let scaled: Vec<(usize, Vec<&Row>)> = (2..=64)
+            .map(|n| {
+                let cell = format!("{}-x{n}", base.cell);
+                (n, rows.iter().filter(|r| r.cell == cell).collect::<Vec<_>>())
+            })
+            .filter(|(_, rs)| !rs.is_empty())
+            .collect();
+        if scaled.is_empty() {
+            continue;
+        }
+        let bare = rows.iter().find(|r| r.cell == base.cell && r.kind == "iceoryx2");
+        let limit = bare.filter(|b| b.skipped.is_empty()).map(|b| b.misses);
+        let _ = write!(
+            md,
+            "\n## Scale: {} (loops at once)\n\nBare iceoryx2 misses (one pair): {}.\n\n\
+             | loops | p50 of each loop (µs) | worst p99 | misses of each loop | all ≤ bare |\n\
+             |---|---|---|---|---|\n",
+            base.cell,
+            limit.map_or("not measured".into(), |m| m.to_string())
+        );
+        let (mut largest, mut unbroken) = (None, true);
+        let mut all = vec![(1, vec![base])];
+        all.extend(scaled);
+        for (n, rs) in &all {
+            let measured = rs.iter().all(|r| r.skipped.is_empty());
+            let fits = measured && limit.is_some_and(|l| rs.iter().all(|r| r.misses <= l));
+            let list =
+                |f: &dyn Fn(&Row) -> String| rs.iter().map(|r| f(r)).collect::<Vec<_>>().join(", ");
+            let worst = rs.iter().map(|r| r.p99).fold(f64::NAN, f64::max);
+            let _ = writeln!(
+                md,
+                "| {n} | {} | {worst:.1} | {} | {} |",
+                list(&|r| if r.skipped.is_empty() {
+                    format!("{:.1}", r.p50)
+                } else {
+                    r.skipped.clone()
+                }),
+                list(&|r| r.misses.to_string()),
+                if fits { "yes" } else { "no" }
+            );
+            // The largest count up to which every count measured fits.
+            unbroken &= fits;
+            if unbroken {
+                largest = Some(*n);
+            }
+        }
+        let _ = writeln!(
+            md,
+            "\nLargest number of loops with every loop at or below the bare baseline's misses: {}.",
+            largest.map_or("none measured".into(), |n| n.to_string())
+        );
+    }
+    md
+}
+
+/// `(percentile, value µs)` rows of a `.hgrm` file.
+pub fn read_hgrm_values(path: &Path) -> Vec<(f64, f64)> {
+    let text = std::fs::read_to_string(path).unwrap_or_default();
+    text.lines()
+        .filter_map(|l| {
+            let v: Vec<f64> = l.split_whitespace().filter_map(|x| x.parse().ok()).collect();
+            (v.len() >= 3 && !l.starts_with('#')).then(|| (v[1], v[0]))
+        })
+        .collect()
+}
+
+/// The value (µs) at percentile `q` of a `.hgrm` file (`q = 1` is the maximum).
+pub(super) fn hgrm_quantile(path: &Path, q: f64) -> f64 {
+    read_hgrm_values(path).iter().find(|(p, _)| *p >= q).map_or(f64::NAN, |(_, v)| *v)
+}
+
+/// The total count of a `.hgrm` file.
+pub(super) fn hgrm_count(path: &Path) -> u64 {
+    let text = std::fs::read_to_string(path).unwrap_or_default();
+    text.split("Total count    =")
+        .nth(1)
+        .and_then(|r| r.split(']').next())
+        .and_then(|n| n.trim().parse().ok())
+        .unwrap_or(0)
+}
+
+/// Reads `(log10(1/(1−q)), value µs)` points from a `.hgrm` file.
+pub fn read_hgrm(path: &Path) -> Vec<(f64, f64)> {
+    read_hgrm_values(path)
+        .into_iter()
+        .filter(|(q, _)| *q < 1.0)
+        .map(|(q, v)| ((1.0 / (1.0 - q)).log10(), v))
+        .collect()
+}
+
+pub(super) fn plots(a: &BenchArgs, rows: &[Row]) -> anyhow::Result<()> {
+    // One chart per placement, rate and wait strategy: the loop and its baselines.
+    let mut groups: Vec<(String, f64, String)> = Vec::new();
+    for r in rows.iter().filter(|r| r.skipped.is_empty() && r.load == "none") {
+        let key = (
+            r.placement.clone(),
+            r.rate,
+            if r.kind == "atomic" { String::new() } else { r.wait.clone() },
+        );
+        if !key.2.is_empty() && !groups.contains(&key) {
+            groups.push(key);
+        }
+    }
+    for (placement, rate, wait) in groups {
+        let mut data = Vec::new();
+        for r in rows.iter().filter(|r| {
+            r.placement == placement
+                && r.rate == rate
+                && r.skipped.is_empty()
+                && r.load == "none"
+                && (r.wait == wait || r.kind == "atomic")
+        }) {
+            let pts =
+                read_hgrm(&a.out.join("cells").join(&r.cell).join(format!("{}.hgrm", r.kind)));
+            if !pts.is_empty()
+                && !data.iter().any(|(l, _): &(String, Vec<(f64, f64)>)| l.starts_with(&r.kind))
+            {
+                data.push((format!("{} ({})", r.kind, r.wait), pts));
+            }
+        }
+        let series: Vec<Series<'_>> = data
+            .iter()
+            .map(|(l, p)| Series { label: l, points: p, dashed: !l.starts_with("loop") })
+            .collect();
+        line_chart(
+            &a.out.join(format!("spectrum_{placement}_{rate}hz_{wait}.png")),
+            &format!("{placement}, {rate} Hz, {wait}: loop sense-to-actuate vs paced round trips"),
+            "log10(1 / (1 - percentile))   (1 = p90, 2 = p99, 3 = p99.9)",
+            "µs (log)",
+            &series,
+            YScale::Log { floor: 0.1 },
+        )?;
+    }
+    let mut per_wait = Vec::new();
+    for w in &a.wait {
+        let pts: Vec<(f64, f64)> = rows
+            .iter()
+            .filter(|r| r.kind == "loop" && r.skipped.is_empty() && r.wait == w.to_string())
+            .map(|r| (r.rate, r.misses as f64 + 0.5))
+            .collect();
+        per_wait.push((format!("{w} (misses + 0.5)"), pts));
+    }
+    let series: Vec<Series<'_>> =
+        per_wait.iter().map(|(l, p)| Series { label: l, points: p, dashed: false }).collect();
+    line_chart(
+        &a.out.join("misses_by_rate.png"),
+        "loop misses by rate and wait strategy (0.5 = no miss)",
+        "rate (Hz)",
+        "misses + 0.5 (log)",
+        &series,
+        YScale::Log { floor: 0.5 },
+    )?;
+    Ok(())
+}
