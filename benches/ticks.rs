@@ -7,7 +7,7 @@ use std::hint::black_box;
 use criterion::{Criterion, Throughput, criterion_group, criterion_main};
 use glam::DVec3;
 use rotorloop::sim::closed_loop::ClosedLoop;
-use rotorloop_common::{Actuation, Scenario};
+use rotorloop_common::scenario::{Actuation, Scenario};
 use rotorloop_plant::{Body, BodyInput};
 
 const BATCH: u64 = 10_000;

@@ -8,7 +8,7 @@ use std::process::ExitCode;
 use anyhow::Context;
 use clap::{Parser, Subcommand};
 use glam::DVec3;
-use rotorloop_common::Actuation;
+use rotorloop_common::scenario::Actuation;
 
 use crate::sim::{self, SimOptions, summary_table};
 use crate::study::gains;
@@ -102,10 +102,10 @@ enum Command {
 
 #[derive(Debug, Subcommand)]
 enum RoleCommand {
-    Plant(rotorloop_plant::process::PlantArgs),
-    Reference(rotorloop_reference::process::ReferenceArgs),
-    Controller(rotorloop_controller::process::ControllerArgs),
-    Monitor(rotorloop_monitor::process::MonitorArgs),
+    Plant(rotorloop_plant::process::args::PlantArgs),
+    Reference(rotorloop_reference::process::args::ReferenceArgs),
+    Controller(rotorloop_controller::process::args::ControllerArgs),
+    Monitor(rotorloop_monitor::process::args::MonitorArgs),
     Pingpong(crate::baseline::pingpong::PingPongArgs),
     Hog(crate::baseline::pingpong::HogArgs),
     /// Try to reach a run's services and files from outside; print what was granted.
@@ -262,7 +262,8 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
             crate::study::paper::run(&out, duration, rate, in_process)?
         }
         Command::Gains { scenario, json } => {
-            let s = rotorloop_common::Scenario::load(&scenario).map_err(UsageError::from)?;
+            let s =
+                rotorloop_common::scenario::Scenario::load(&scenario).map_err(UsageError::from)?;
             print_warnings(&s.warnings);
             let r = gains::analyse(&s);
             if json {

@@ -8,8 +8,8 @@ use crate::common::harness::{Harness, assert_same_trace, json, ok};
 use crate::common::{M3, V3, to_na};
 use glam::DVec3;
 use rotorloop::sim::closed_loop::ClosedLoop;
-use rotorloop_common::{Actuation, Scenario};
-use rotorloop_monitor::TraceRow;
+use rotorloop_common::scenario::{Actuation, Scenario};
+use rotorloop_monitor::metrics::TraceRow;
 
 fn scenario(name: &str) -> Scenario {
     Scenario::load(name).expect("builtin")

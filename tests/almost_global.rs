@@ -2,7 +2,7 @@
 //! 2° of a 180° attitude error, all converge.
 
 use rotorloop::study::montecarlo::{self, McOptions};
-use rotorloop_common::Scenario;
+use rotorloop_common::scenario::Scenario;
 
 /// 120 runs of 60 s at 1 kHz, 40 of them starting within 2° of 180°: every one ends
 /// below 0.1°.

@@ -4,7 +4,7 @@
 
 use std::process::Command;
 
-use rotorloop_common::Scenario;
+use rotorloop_common::scenario::Scenario;
 
 const PAPER: &str = include_str!("../scenarios/paper-zero.toml");
 

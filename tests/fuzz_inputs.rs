@@ -12,7 +12,7 @@ use rand::Rng;
 use rand::seq::IndexedRandom;
 use rotorloop::sim::closed_loop::ClosedLoop;
 use rotorloop_common::scenario::BUILTIN;
-use rotorloop_common::{Actuation, Scenario, ScenarioError};
+use rotorloop_common::scenario::{Actuation, Scenario, ScenarioError};
 
 /// Values that replace a number in a scenario file: valid, out of range, wrong type.
 const VALUES: [&str; 24] = [

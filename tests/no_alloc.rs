@@ -9,7 +9,7 @@ use std::cell::Cell;
 use std::sync::atomic::{AtomicU64, Ordering};
 
 use rotorloop::sim::closed_loop::ClosedLoop;
-use rotorloop_common::{Actuation, Scenario};
+use rotorloop_common::scenario::{Actuation, Scenario};
 
 struct Counting;
 

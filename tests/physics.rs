@@ -3,9 +3,10 @@
 
 use crate::common::*;
 use glam::DVec3;
+use rotorloop_common::params::ReferenceState;
+use rotorloop_common::scenario::Scenario;
 use rotorloop_common::so3::orthonormality_error;
-use rotorloop_common::{ReferenceState, Scenario};
-use rotorloop_monitor::Metrics;
+use rotorloop_monitor::metrics::Metrics;
 use rotorloop_plant::{Body, BodyInput};
 
 fn paper() -> Scenario {

@@ -4,8 +4,9 @@
 use crate::common::*;
 use glam::DVec3;
 use rotorloop::sim::closed_loop::ClosedLoop;
+use rotorloop_common::params::{ReferenceState, RotorBodyState};
+use rotorloop_common::scenario::{Actuation, Scenario};
 use rotorloop_common::so3::rotation_angle;
-use rotorloop_common::{Actuation, ReferenceState, RotorBodyState, Scenario};
 use rotorloop_controller::law::Law;
 use rotorloop_controller::law::geometric_pid::GeometricPid;
 

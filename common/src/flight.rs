@@ -728,7 +728,7 @@ mod cost {
     fn measure(dir: &Path) {
         let n = 60_000u64;
         let r = FlightRecorder::<StateSample>::open(Some(dir), Stream::PlantState, n, "cost");
-        let x = crate::RotorBodyState {
+        let x = crate::params::RotorBodyState {
             r: glam::DMat3::IDENTITY,
             omega: glam::DVec3::ZERO,
             omega_r: glam::DVec3::ZERO,

@@ -34,6 +34,3 @@ pub mod scenario;
 pub mod signals;
 pub mod so3;
 pub mod wire;
-
-pub use params::{ActuatorLimits, AntiWindup, BodyParams, Gains, ReferenceState, RotorBodyState};
-pub use scenario::{Actuation, Scenario, ScenarioError, TorqueProfile};

@@ -1,5 +1,5 @@
 //! Parameter and state types of a body with rotors and of the control law, in the glam
-//! types the per-tick math uses. Built once from a validated [`crate::Scenario`].
+//! types the per-tick math uses. Built once from a validated [`crate::scenario::Scenario`].
 
 use glam::{DMat3, DVec3};
 

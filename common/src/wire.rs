@@ -12,8 +12,8 @@
 use glam::{DMat3, DVec3};
 use iceoryx2::prelude::ZeroCopySend;
 
+use crate::params::{ReferenceState, RotorBodyState};
 use crate::so3::{from_rows, to_row_major};
-use crate::{ReferenceState, RotorBodyState};
 
 /// The layout version carried in every type name.
 pub const LAYOUT_VERSION: u32 = 6;

@@ -18,7 +18,7 @@
 //!   and the law's state after it), bumpless; no law state rides on a wire sample.
 
 use iceoryx2::prelude::ZeroCopySend;
-use rotorloop_common::ReferenceState;
+use rotorloop_common::params::ReferenceState;
 use rotorloop_common::role::count::SeqCounter;
 use rotorloop_common::so3::exp;
 use rotorloop_common::wire::{
@@ -231,7 +231,7 @@ impl TorqueAnswers {
 
     /// The law of `scenario` (gains, the controller's body model, actuator limits and
     /// anti-windup), answering from tick 0.
-    pub fn for_scenario(scenario: &rotorloop_common::Scenario) -> Self {
+    pub fn for_scenario(scenario: &rotorloop_common::scenario::Scenario) -> Self {
         Self::new(AnyLaw::for_scenario(scenario, scenario.actuation()))
     }
 
@@ -414,7 +414,7 @@ mod tests {
     use super::*;
     use crate::law::geometric_pid::GeometricPid;
     use glam::DMat3;
-    use rotorloop_common::Scenario;
+    use rotorloop_common::scenario::Scenario;
     use rotorloop_common::so3::to_row_major;
 
     const DT: f64 = 1e-3;

@@ -11,6 +11,3 @@
 
 pub mod config;
 pub mod gateway;
-
-pub use config::{ConfigError, GatewayWait, LinkArgs, zenoh_config};
-pub use gateway::run;

@@ -7,18 +7,18 @@ use clap::Parser;
 #[command(name = "rotorloop-link", version)]
 struct Cli {
     #[command(flatten)]
-    link: rotorloop_link::LinkArgs,
+    link: rotorloop_link::config::LinkArgs,
 }
 
 fn main() {
     let cli = Cli::parse();
     // Output that nobody reads never stops the gateway (see `relay`).
     let relay = rotorloop_common::relay::Stdio::relay();
-    let code = match rotorloop_link::run(&cli.link) {
+    let code = match rotorloop_link::gateway::run(&cli.link) {
         Ok(()) => 0,
         Err(e) => {
             eprintln!("link: error: {e:#}");
-            let usage = e.downcast_ref::<rotorloop_link::ConfigError>().is_some();
+            let usage = e.downcast_ref::<rotorloop_link::config::ConfigError>().is_some();
             if usage { 2 } else { 1 }
         }
     };

@@ -278,7 +278,8 @@ fn every_sample_that_crosses_the_link_wakes_its_receiver() {
     let torque_in = a.inbox::<TorqueSample>(&na, Topic::Torque, 8, true).expect("torque inbox");
     let state_in = b.inbox::<StateSample>(&nb, Topic::State, 8, true).expect("state inbox");
     let torque_out = b.outbox::<TorqueSample>(&nb, Topic::Torque).expect("torque publisher");
-    let init = rotorloop_common::Scenario::load("paper-zero").expect("builtin").plant_init;
+    let init =
+        rotorloop_common::scenario::Scenario::load("paper-zero").expect("builtin").plant_init;
     // One round trip of tick `k`: whether both samples came within `wait_ns` each.
     let trip = |k: u64, wait_ns: u64| {
         state_out.send(StateSample::of(k, 0.0, &init), |_| {}).expect("send");

@@ -13,9 +13,9 @@
 
 use std::path::Path;
 
-use rotorloop_common::Scenario;
 use rotorloop_common::flight::{FlightError, FlightLog, SPARE_SLOTS, Stream};
 use rotorloop_common::role::args::RoleArgs;
+use rotorloop_common::scenario::Scenario;
 use rotorloop_common::wire::{ReferenceSample, StateSample, TorqueSample};
 
 use crate::hosts::Hosts;

@@ -24,10 +24,6 @@ pub mod trace;
 /// This crate's role in the loop, by name (its node, resume slot and flight record).
 pub const ROLE: &str = rotorloop_common::graph::Role::Monitor.name();
 
-pub use figures::Recorder;
-pub use metrics::{Metrics, TraceRow};
-pub use trace::TraceWriter;
-
 /// An empty vector with room for `n` elements whose pages are already resident: the
 /// elements are written once and dropped. `Vec::with_capacity` only reserves address
 /// space, so a long run would otherwise fault its buffers in page by page as they fill

@@ -8,8 +8,8 @@
 //! stay small, not at rounding level).
 
 use glam::DVec3;
+use rotorloop_common::params::{BodyParams, ReferenceState, RotorBodyState};
 use rotorloop_common::so3::{rotation_angle, to_row_major};
-use rotorloop_common::{BodyParams, ReferenceState, RotorBodyState};
 
 /// One row of `trace.csv`: the state, reference and torques at tick `k`, and metrics.
 #[derive(Debug, Clone, Copy, PartialEq, Default)]

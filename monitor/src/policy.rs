@@ -171,7 +171,7 @@ impl RowJoiner {
 
     /// Joins the rows of `scenario`'s run, rejecting torques beyond its actuators' absurd
     /// limit ([`TorqueSample::absurd_limit`]).
-    pub fn for_scenario(scenario: &rotorloop_common::Scenario, now_ns: u64) -> Self {
+    pub fn for_scenario(scenario: &rotorloop_common::scenario::Scenario, now_ns: u64) -> Self {
         let limits = scenario.limits_for(scenario.actuation());
         Self::new(scenario.ticks(), TorqueSample::absurd_limit(limits.rotor_torque), now_ns)
     }
@@ -428,7 +428,7 @@ mod tests {
     use rotorloop_common::so3::to_row_major;
 
     fn state(tick: u64, last: bool) -> StateSample {
-        let x = rotorloop_common::RotorBodyState {
+        let x = rotorloop_common::params::RotorBodyState {
             r: DMat3::IDENTITY,
             omega: glam::DVec3::ZERO,
             omega_r: glam::DVec3::ZERO,

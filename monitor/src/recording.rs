@@ -16,15 +16,17 @@ use std::path::{Path, PathBuf};
 
 use anyhow::Context;
 use glam::DVec3;
+use rotorloop_common::scenario::{Actuation, Scenario};
 use rotorloop_common::wire::{FLAG_REALTIME, StateSample};
-use rotorloop_common::{Actuation, Scenario};
 use serde::Serialize;
 
+use crate::figures::Recorder;
 use crate::figures::tracking_figures;
 use crate::latency::{Hop, Latency};
+use crate::metrics::Metrics;
 use crate::policy::{JoinedRow, MonitorResume, RowJoiner};
 use crate::stages::Stages;
-use crate::{Metrics, Recorder, TraceWriter};
+use crate::trace::TraceWriter;
 
 type Buffered = BufWriter<File>;
 

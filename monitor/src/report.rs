@@ -5,10 +5,10 @@
 use std::collections::BTreeMap;
 use std::path::Path;
 
-use rotorloop_common::Scenario;
 use rotorloop_common::output::write_json;
 use rotorloop_common::role::args::{Mode, RoleArgs};
 use rotorloop_common::role::count::SeqCounter;
+use rotorloop_common::scenario::Scenario;
 use serde::Serialize;
 
 use crate::latency::{Hop, HopStats};

@@ -179,7 +179,7 @@ mod tests {
     use super::*;
 
     fn state(tick: u64, publish_ns: u64, prev: SendCost) -> StateSample {
-        let x = rotorloop_common::RotorBodyState {
+        let x = rotorloop_common::params::RotorBodyState {
             r: glam::DMat3::IDENTITY,
             omega: glam::DVec3::ZERO,
             omega_r: glam::DVec3::ZERO,

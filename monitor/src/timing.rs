@@ -147,7 +147,9 @@ mod tests {
             ..StateSample::of(
                 41,
                 0.041,
-                &rotorloop_common::Scenario::load("paper-zero").expect("built-in").plant_init,
+                &rotorloop_common::scenario::Scenario::load("paper-zero")
+                    .expect("built-in")
+                    .plant_init,
             )
         };
         for i in 0..MAX_EFFECTS {

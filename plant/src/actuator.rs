@@ -17,7 +17,7 @@
 use std::collections::VecDeque;
 
 use glam::DVec3;
-use rotorloop_common::ActuatorLimits;
+use rotorloop_common::params::ActuatorLimits;
 use rotorloop_common::wire::{MAX_EFFECTS, NO_TICK};
 
 use crate::{Body, BodyInput};

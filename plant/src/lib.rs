@@ -40,8 +40,8 @@ pub mod process;
 pub const ROLE: &str = rotorloop_common::graph::Role::Plant.name();
 
 use glam::{DMat3, DVec3};
+use rotorloop_common::params::{BodyParams, RotorBodyState};
 use rotorloop_common::so3::{dexp_inv, exp};
-use rotorloop_common::{BodyParams, RotorBodyState};
 
 /// Inputs held constant over one tick (zero-order hold).
 #[derive(Debug, Clone, Copy, PartialEq, Default)]
@@ -214,7 +214,7 @@ mod tests {
     use rotorloop_common::so3::orthonormality_error;
 
     fn paper_body() -> (BodyParams, RotorBodyState) {
-        let s = rotorloop_common::Scenario::load("paper-zero").expect("builtin");
+        let s = rotorloop_common::scenario::Scenario::load("paper-zero").expect("builtin");
         (s.plant, s.plant_init)
     }
 

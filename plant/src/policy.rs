@@ -24,13 +24,14 @@
 //!   the start of each piece) with the scenario's disturbance.
 
 use glam::DVec3;
+use rotorloop_common::params::ActuatorLimits;
 use rotorloop_common::role::count::SeqCounter;
 use rotorloop_common::role::{UsageError, diverged};
+use rotorloop_common::scenario::{Actuation, Scenario};
 use rotorloop_common::wire::{
     FLAG_LAST, FLAG_REALTIME, FLAG_SAFE_MODE, FLAG_SATURATED, NO_TICK, StateSample, TORQUE_SKIPPED,
     TorqueSample, WireFault,
 };
-use rotorloop_common::{Actuation, ActuatorLimits, Scenario};
 
 use crate::actuator::{ActuationDelay, DelayLine, Effects, integrate_tick};
 use crate::{Body, BodyInput};

@@ -16,7 +16,8 @@ pub mod process;
 pub const ROLE: &str = rotorloop_common::graph::Role::Reference.name();
 
 use glam::{DMat3, DVec3};
-use rotorloop_common::{BodyParams, ReferenceState, RotorBodyState, TorqueProfile};
+use rotorloop_common::params::{BodyParams, ReferenceState, RotorBodyState};
+use rotorloop_common::scenario::TorqueProfile;
 use rotorloop_plant::{Body, BodyInput};
 
 /// The dummy body and its torque profile.
@@ -51,7 +52,7 @@ impl Reference {
 
     /// The reference of a scenario, momentum-matched to the scenario's rotor-actuated
     /// plant (the same reference whatever the plant's actuation).
-    pub fn for_scenario(s: &rotorloop_common::Scenario) -> Self {
+    pub fn for_scenario(s: &rotorloop_common::scenario::Scenario) -> Self {
         let h = s.plant_init.spatial_momentum(&s.plant);
         Self::matched(s.reference, s.reference_attitude, s.reference_omega, s.reference_torque, h)
     }
@@ -107,7 +108,7 @@ impl Reference {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use rotorloop_common::Scenario;
+    use rotorloop_common::scenario::Scenario;
 
     #[test]
     fn momentum_matching_makes_reference_momentum_equal_the_plants() {

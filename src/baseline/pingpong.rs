@@ -328,7 +328,7 @@ impl Link for IoxLink {
         let mut s = StateSample::of(
             seq,
             0.0,
-            &rotorloop_common::RotorBodyState {
+            &rotorloop_common::params::RotorBodyState {
                 r: glam::DMat3::IDENTITY,
                 omega: glam::DVec3::ZERO,
                 omega_r: glam::DVec3::ZERO,

@@ -149,7 +149,7 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
 /// After the run: memory figures into `summary.json` and on the console, the fault report.
 fn report(
     launch: &Launch,
-    scenario: &rotorloop_common::Scenario,
+    scenario: &rotorloop_common::scenario::Scenario,
     rss: &RssLog,
     events: &[FaultEvent],
     flight: Option<&std::path::Path>,

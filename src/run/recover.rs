@@ -19,10 +19,10 @@ use std::path::{Path, PathBuf};
 
 use anyhow::Context;
 use clap::Parser;
-use rotorloop_common::Scenario;
 use rotorloop_common::flight::RUN_DIR_FILE;
 use rotorloop_common::ipc::domain::Domain;
 use rotorloop_common::role::args::RoleArgs;
+use rotorloop_common::scenario::Scenario;
 use rotorloop_common::scenario::ScenarioFile;
 use rotorloop_monitor::hosts::Hosts;
 use serde::{Deserialize, Serialize};

@@ -142,7 +142,7 @@ impl Launch<'_> {
     /// report from the flight records, without a live view.
     pub(crate) fn report_without_monitor(
         &self,
-        scenario: &rotorloop_common::Scenario,
+        scenario: &rotorloop_common::scenario::Scenario,
         dir: Option<&std::path::Path>,
     ) {
         let (out, Some(dir)) = (&self.args.out, dir) else { return };

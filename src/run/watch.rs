@@ -338,6 +338,29 @@ fn job_control_event(pid: u32) -> Option<JobControl> {
     }
 }
 
+/// Whether process `pid` is dying: a SIGKILL is pending for it (`/proc/PID/status`,
+/// `ShdPnd` or `SigPnd`) or it is exiting (`PF_EXITING` in the flags of `/proc/PID/stat`).
+/// A process killed while in an uninterruptible wait shows both until the wait ends.
+pub(crate) fn dying(pid: u32) -> bool {
+    let status = std::fs::read_to_string(format!("/proc/{pid}/status")).unwrap_or_default();
+    let stat = std::fs::read_to_string(format!("/proc/{pid}/stat")).unwrap_or_default();
+    dying_from(&status, &stat)
+}
+
+/// [`dying`] from the texts of `/proc/PID/status` and `/proc/PID/stat`.
+fn dying_from(status: &str, stat: &str) -> bool {
+    const SIGKILL_BIT: u64 = 1 << (libc::SIGKILL - 1);
+    const PF_EXITING: u64 = 0x4;
+    let pending = status.lines().any(|l| {
+        let mask = l.strip_prefix("ShdPnd:").or_else(|| l.strip_prefix("SigPnd:"));
+        mask.and_then(|m| u64::from_str_radix(m.trim(), 16).ok())
+            .is_some_and(|m| m & SIGKILL_BIT != 0)
+    });
+    // The flags are the 7th field after the parenthesised command name.
+    let flags = stat.rsplit(')').next().and_then(|r| r.split_whitespace().nth(6));
+    pending || flags.and_then(|f| f.parse::<u64>().ok()).is_some_and(|f| f & PF_EXITING != 0)
+}
+
 /// The name of signal `sig` (`SIGSTOP`), or `signal N`.
 fn signal_name(sig: libc::c_int) -> &'static str {
     match sig {
@@ -397,9 +420,12 @@ fn watch_for_hangs(
             continue;
         }
         let c = children.get_mut(role).expect("alive");
-        if !matches!(c.try_wait(), Ok(None)) {
+        if !matches!(c.try_wait(), Ok(None)) || dying(c.id()) {
             // It has ended already (the launcher itself was descheduled past the limit on a
-            // loaded machine, seen: 1.5 s): not a hang; `reap` gives its end its own name.
+            // loaded machine, seen: 1.5 s), or it is dying: a SIGKILL from anyone is pending
+            // or it is exiting, which takes seconds when the kill finds it in an
+            // uninterruptible disk wait (seen under the repeat harness: `folio_wait_bit`).
+            // Not a hang; `reap` gives its end its own name.
             continue;
         }
         let pid = c.id();
@@ -489,8 +515,15 @@ fn restart(
     role: &str,
     at: f64,
 ) -> anyhow::Result<()> {
-    if let Some(c) = children.get_mut(role) {
-        let _ = c.wait();
+    // The predecessor must be gone (reaped) before its successor starts: a zombie looks
+    // alive to the successor's clean-up of dead nodes. One that is still dying (a SIGKILL
+    // waits for an uninterruptible disk wait to end) postpones the restart to a later poll
+    // instead of blocking the loop.
+    if let Some(c) = children.get_mut(role)
+        && matches!(c.try_wait(), Ok(None))
+    {
+        w.restarts.insert(role.to_owned(), at);
+        return Ok(());
     }
     // After the last tick a role has nothing left to do: started again it would only
     // wait for states that never come (a plant would even start a new run). A monitor
@@ -562,11 +595,11 @@ fn injected(
                 w.planned.insert(pid);
             }
             signal(c, sig);
-            if sig == libc::SIGKILL {
-                let _ = c.wait(); // reap: an unreaped zombie can delay dead-node detection
-                w.handled.insert(pid);
-                end_stop(w, pid, "killed");
-            } else if sig == libc::SIGSTOP {
+            // A SIGKILLed process is reaped by `reap` once it has exited, not waited for
+            // here: one in an uninterruptible disk wait takes seconds to die under load, and
+            // a blocking wait stalled this whole loop (fault schedule, watchdog, record
+            // mover: records were overwritten before they were moved).
+            if sig == libc::SIGSTOP {
                 w.stopped.insert(role.to_owned(), pid);
                 w.watchdog.stopped(role);
                 w.open_stops.insert(pid, w.events.len());
@@ -598,4 +631,37 @@ fn injected(
         }
     }
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_pending_sigkill_or_an_exit_is_dying_and_a_running_process_is_not() {
+        let stat = |flags: u64| format!("42 (a (b) c) S 1 42 42 0 -1 {flags} 0 0");
+        let status = |shd: &str, sig: &str| format!("Name:\tx\nSigPnd:\t{sig}\nShdPnd:\t{shd}\n");
+        let none = "0000000000000000";
+        assert!(!dying_from(&status(none, none), &stat(0x400000)));
+        assert!(dying_from(&status("0000000000000100", none), &stat(0)), "SIGKILL shared");
+        assert!(dying_from(&status(none, "0000000000000100"), &stat(0)), "SIGKILL own");
+        assert!(!dying_from(&status("0000000000004000", none), &stat(0)), "SIGTERM is not");
+        assert!(dying_from(&status(none, none), &stat(0x400004)), "PF_EXITING");
+        // A real process: running, then killed and not yet reaped (a zombie has exited).
+        let mut child = std::process::Command::new("sleep").arg("100").spawn().expect("sleep");
+        let pid = child.id();
+        assert!(!dying(pid));
+        // SAFETY: signals our own child.
+        unsafe { libc::kill(pid as libc::pid_t, libc::SIGKILL) };
+        let zombie = || {
+            std::fs::read_to_string(format!("/proc/{pid}/stat")).is_ok_and(|s| {
+                s.rsplit(')').next().is_some_and(|r| r.trim_start().starts_with('Z'))
+            })
+        };
+        while !zombie() {
+            std::thread::sleep(std::time::Duration::from_millis(1));
+        }
+        assert!(dying(pid), "a killed process not yet reaped");
+        child.wait().expect("reap");
+    }
 }

@@ -5,9 +5,10 @@
 use glam::DVec3;
 use rand::Rng;
 use rand_chacha::ChaCha8Rng;
-use rotorloop_common::{Actuation, ActuatorLimits, Scenario};
+use rotorloop_common::params::ActuatorLimits;
+use rotorloop_common::scenario::{Actuation, Scenario};
 use rotorloop_controller::law::{AnyLaw, ControlOutput, Law};
-use rotorloop_monitor::{Metrics, TraceRow};
+use rotorloop_monitor::metrics::{Metrics, TraceRow};
 use rotorloop_plant::actuator::{ActuationDelay, DelayLine, integrate_tick};
 use rotorloop_plant::{Body, BodyInput};
 use rotorloop_reference::Reference;

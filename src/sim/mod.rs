@@ -16,11 +16,13 @@ use anyhow::Context;
 use glam::DVec3;
 use rotorloop_common::output::write_json;
 use rotorloop_common::role::diverged;
+use rotorloop_common::scenario::{Actuation, Scenario};
 use rotorloop_common::so3::orthonormality_error;
-use rotorloop_common::{Actuation, Scenario};
 use rotorloop_monitor::figures::tracking_figures;
 
-use rotorloop_monitor::{Recorder, TraceRow, TraceWriter};
+use rotorloop_monitor::figures::Recorder;
+use rotorloop_monitor::metrics::TraceRow;
+use rotorloop_monitor::trace::TraceWriter;
 use serde::Serialize;
 
 use crate::sim::closed_loop::ClosedLoop;

@@ -20,10 +20,11 @@ use std::path::Path;
 
 use anyhow::Context;
 use glam::DVec3;
+use rotorloop_common::scenario::{Actuation, Scenario};
 use rotorloop_common::wire::FLAG_SAFE_MODE;
-use rotorloop_common::{Actuation, Scenario};
+use rotorloop_monitor::metrics::Metrics;
 use rotorloop_monitor::timing::TimingRow;
-use rotorloop_monitor::{Metrics, TraceWriter};
+use rotorloop_monitor::trace::TraceWriter;
 use rotorloop_plant::actuator::{ActuationDelay, DelayLine, integrate_tick};
 use rotorloop_plant::{Body, BodyInput};
 use rotorloop_reference::Reference;

@@ -13,7 +13,7 @@
 //! `λ³ + k_dλ² + k_p mλ + k_I m` (Hurwitz iff `k_d k_p > k_I`).
 
 use nalgebra::{Complex, Matrix3};
-use rotorloop_common::Scenario;
+use rotorloop_common::scenario::Scenario;
 use serde::Serialize;
 
 /// What the paper prints for its `I` (section 5).

@@ -19,7 +19,7 @@ use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 
 use anyhow::Context;
-use rotorloop_common::Scenario;
+use rotorloop_common::scenario::Scenario;
 use rotorloop_monitor::plot::{Series, YScale, line_chart};
 use rotorloop_plant::actuator::ActuationDelay;
 use serde::Serialize;

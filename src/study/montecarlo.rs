@@ -8,8 +8,8 @@ use anyhow::Context;
 use glam::DVec3;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
+use rotorloop_common::scenario::{Actuation, Scenario};
 use rotorloop_common::so3::axis_angle;
-use rotorloop_common::{Actuation, Scenario};
 use rotorloop_monitor::plot::histogram;
 use serde::Serialize;
 

@@ -80,7 +80,7 @@ pub fn run(out: &Path, duration: f64, rate: f64, in_process: bool) -> anyhow::Re
          first 10 s: {diff:.3e}° (identical in continuous time; zero-order hold makes them differ slightly).\n"
     );
     let scenario =
-        rotorloop_common::Scenario::load(PAPER_SCENARIOS[0]).map_err(UsageError::from)?;
+        rotorloop_common::scenario::Scenario::load(PAPER_SCENARIOS[0]).map_err(UsageError::from)?;
     let g = gains::render(&gains::analyse(&scenario));
     let _ = writeln!(md, "## Gains (Appendix A)\n\n```\n{g}```");
     if !scenario.warnings.is_empty() {

@@ -6,7 +6,7 @@ use clap::{Args, ValueEnum};
 use crate::ipc::wait::Wait;
 use crate::rt::RtSetup;
 use crate::scenario::RunFile;
-use crate::{Actuation, Scenario};
+use crate::scenario::{Actuation, Scenario};
 
 use super::UsageError;
 

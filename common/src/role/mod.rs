@@ -13,8 +13,8 @@ pub mod inject;
 #[error("{0}")]
 pub struct UsageError(pub String);
 
-impl From<crate::ScenarioError> for UsageError {
-    fn from(e: crate::ScenarioError) -> Self {
+impl From<crate::scenario::ScenarioError> for UsageError {
+    fn from(e: crate::scenario::ScenarioError) -> Self {
         Self(e.to_string())
     }
 }

@@ -19,7 +19,7 @@ use glam::DVec3;
 use rotorloop_common::so3::vee;
 
 use super::{ControlOutput, Law, LawState};
-use rotorloop_common::{
+use rotorloop_common::params::{
     ActuatorLimits, AntiWindup, BodyParams, Gains, ReferenceState, RotorBodyState,
 };
 

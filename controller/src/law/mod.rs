@@ -12,7 +12,8 @@ pub mod geometric_pid;
 
 use glam::DVec3;
 use rotorloop_common::params::LawName;
-use rotorloop_common::{Actuation, ReferenceState, RotorBodyState, Scenario};
+use rotorloop_common::params::{ReferenceState, RotorBodyState};
+use rotorloop_common::scenario::{Actuation, Scenario};
 
 use geometric_pid::GeometricPid;
 

@@ -4,7 +4,7 @@
 //! lockstep), and stops after the plant's last tick (or, restarted after the end, when
 //! the plant's resume slot says the run is over).
 
-mod args;
+pub mod args;
 mod ports;
 
 use rotorloop_common::clock::now_ns;
@@ -13,14 +13,12 @@ use rotorloop_common::role::end::linger_publisher;
 use rotorloop_common::signals::shutdown_requested;
 use rotorloop_common::wire::FLAG_LAST;
 
-pub use args::ControllerArgs;
-
 use crate::ROLE;
 use crate::policy::{DelayedSends, ReferencePairing, TorqueAnswers};
 use ports::Ports;
 
 /// Runs the controller until the plant's last tick or a termination signal.
-pub fn run(args: &ControllerArgs) -> anyhow::Result<()> {
+pub fn run(args: &args::ControllerArgs) -> anyhow::Result<()> {
     let (role, scenario) = (&args.role, args.role.scenario()?);
     role.setup(ROLE);
     let mut ports = Ports::open(role, scenario.ticks())?;

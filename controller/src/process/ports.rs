@@ -4,12 +4,12 @@
 use std::cell::Cell;
 
 use anyhow::Context;
-use rotorloop_common::ReferenceState;
 use rotorloop_common::clock::now_ns;
 use rotorloop_common::flight::{FlightRecorder, Stream};
 use rotorloop_common::graph::Topic;
 use rotorloop_common::ipc::ports::{Inbox, Outbox, RoleNode};
 use rotorloop_common::ipc::wait::Wait;
+use rotorloop_common::params::ReferenceState;
 use rotorloop_common::resume::ResumeSlot;
 use rotorloop_common::role::args::RoleArgs;
 use rotorloop_common::role::end::PlantWatch;

@@ -4,15 +4,13 @@
 //! every `--poll-us`, and if it falls behind the oldest samples are overwritten: it
 //! counts the ticks lost and says so in the report.
 
-mod args;
+pub mod args;
 mod ports;
 
 use std::io::IsTerminal;
 
 use rotorloop_common::clock::now_ns;
 use rotorloop_common::signals::shutdown_requested;
-
-pub use args::MonitorArgs;
 
 use crate::ROLE;
 use crate::assemble::final_report;
@@ -22,7 +20,7 @@ use crate::report::{console_summary, write_summary};
 use ports::Ports;
 
 /// Runs the monitor until it has the last row, or a termination signal.
-pub fn run(args: &MonitorArgs) -> anyhow::Result<()> {
+pub fn run(args: &args::MonitorArgs) -> anyhow::Result<()> {
     let (role, scenario) = (&args.role, args.role.scenario()?);
     role.setup(ROLE);
     let ports = Ports::open(role, &args.out)?;

@@ -4,7 +4,7 @@
 //! time) publish the state, wait for its torque (until the next grid time, or for ever in
 //! lockstep), hand what arrived to the hold rule, step.
 
-mod args;
+pub mod args;
 mod wait;
 
 use anyhow::Context;
@@ -17,14 +17,12 @@ use rotorloop_common::signals::shutdown_requested;
 use rotorloop_common::wire::SendCost;
 use rotorloop_common::wire::StateSample;
 
-pub use args::PlantArgs;
-
 use crate::ROLE;
 use crate::policy::{Answer, PlantTicker};
 use wait::{Ports, SenseToActuate, TorqueWait};
 
 /// Runs the plant until its last tick or a termination signal.
-pub fn run(args: &PlantArgs) -> anyhow::Result<()> {
+pub fn run(args: &args::PlantArgs) -> anyhow::Result<()> {
     let (role, scenario) = (&args.role, args.role.scenario()?);
     role.setup(ROLE);
     let ports = Ports::open(role, scenario.ticks())?;

@@ -4,7 +4,7 @@
 //! tick and flags of states, so it needs no validation. It never spins, whatever `--wait`
 //! says (it is off the hot path; a spinning loop must not get a third busy process).
 
-mod args;
+pub mod args;
 
 use anyhow::Context;
 use rotorloop_common::flight::Stream;
@@ -14,13 +14,11 @@ use rotorloop_common::role::{end::PlantWatch, end::linger_publisher, inject::cor
 use rotorloop_common::wire::{FLAG_LAST, ReferenceSample, StateSample};
 use rotorloop_common::{clock::now_ns, signals::shutdown_requested};
 
-pub use args::ReferenceArgs;
-
 use crate::ROLE;
 use crate::policy::{LeadWindow, ReferenceResume};
 
 /// Runs the reference generator until the plant's last tick or a termination signal.
-pub fn run(args: &ReferenceArgs) -> anyhow::Result<()> {
+pub fn run(args: &args::ReferenceArgs) -> anyhow::Result<()> {
     let (role, scenario) = (&args.role, args.role.scenario()?);
     role.setup(ROLE);
     let domain = role.open_domain()?;

@@ -7,7 +7,7 @@ use std::collections::BTreeMap;
 use std::path::Path;
 
 use anyhow::Context;
-use rotorloop_common::Scenario;
+use rotorloop_common::scenario::Scenario;
 use rotorloop_monitor::plot::{Series, YScale, line_chart};
 use serde::Serialize;
 
