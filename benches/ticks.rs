@@ -34,7 +34,7 @@ fn ticks(c: &mut Criterion) {
         ("closed_loop_tick_external", Actuation::External),
     ] {
         g.bench_function(name, |b| {
-            let mut lp = ClosedLoop::new(&s, actuation, None);
+            let mut lp = ClosedLoop::new(&s, actuation, None).expect("the default law");
             b.iter(|| {
                 let mut acc = 0.0;
                 for _ in 0..BATCH {

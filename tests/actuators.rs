@@ -17,7 +17,7 @@ fn scenario(name: &str) -> Scenario {
 
 /// Every row of a closed-loop run of `s`.
 fn rows(s: &Scenario) -> (Vec<TraceRow>, ClosedLoop) {
-    let mut lp = ClosedLoop::new(s, Actuation::Internal, None);
+    let mut lp = ClosedLoop::new(s, Actuation::Internal, None).expect("the default law");
     let rows = (0..=s.ticks()).map(|_| lp.tick()).collect();
     (rows, lp)
 }

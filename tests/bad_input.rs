@@ -178,6 +178,10 @@ fn cli_refuses_bad_input_with_exit_code_2() {
     let dir = tempfile::tempdir().expect("tempdir");
     let bad = dir.path().join("bad.toml");
     std::fs::write(&bad, with("kp = 1.0", "kp = -1.0")).expect("write");
+    // The law's name is the controller crate's: refused before any process starts.
+    let no_law = dir.path().join("no-law.toml");
+    std::fs::write(&no_law, with("kp = 1.0", "law = \"bang-bang\"\nkp = 1.0")).expect("write");
+    let no_law = no_law.to_str().expect("utf8");
     let out_dir = dir.path().join("out");
     let out_s = out_dir.to_str().expect("utf8");
     let cases: Vec<(Vec<&str>, &str)> = vec![
@@ -201,6 +205,8 @@ fn cli_refuses_bad_input_with_exit_code_2() {
             "trace-every",
         ),
         (vec!["montecarlo", "--runs", "0", "--out", out_s], "runs"),
+        (vec!["sim", "--scenario", no_law, "--out", out_s], "controller.law: no law is named"),
+        (vec!["run", "--scenario", no_law, "--out", out_s], "allowed: geometric-pid"),
         (vec!["gains", "--scenario", bad.to_str().expect("utf8")], "controller.kp"),
     ];
     for (args, needle) in cases {

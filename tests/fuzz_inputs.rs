@@ -134,7 +134,8 @@ fn mutated_scenario_files_are_valid_runs_or_named_errors_never_panics() {
             Ok(s) => {
                 valid += 1;
                 let ran = std::panic::catch_unwind(|| {
-                    let mut lp = ClosedLoop::new(&s, Actuation::Internal, None);
+                    let mut lp =
+                        ClosedLoop::new(&s, Actuation::Internal, None).expect("the default law");
                     for _ in 0..s.ticks().min(200) {
                         lp.tick();
                     }

@@ -53,9 +53,10 @@ static GLOBAL: Counting = Counting;
 fn a_tick_does_not_allocate() {
     let s = Scenario::load("paper-sinusoid").expect("builtin");
     let mut loops = [
-        ClosedLoop::new(&s, Actuation::Internal, None),
-        ClosedLoop::new(&s, Actuation::External, None),
-        ClosedLoop::new(&s, Actuation::Internal, Some(glam::DVec3::new(0.1, 0.2, 0.3))),
+        ClosedLoop::new(&s, Actuation::Internal, None).expect("the default law"),
+        ClosedLoop::new(&s, Actuation::External, None).expect("the default law"),
+        ClosedLoop::new(&s, Actuation::Internal, Some(glam::DVec3::new(0.1, 0.2, 0.3)))
+            .expect("the default law"),
     ];
     COUNTED.with(|c| c.set(true));
     // The counter works: an allocation on this thread is seen, one on another is not.

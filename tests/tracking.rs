@@ -31,7 +31,7 @@ fn max_diff(a: &[f64], b: &[f64]) -> f64 {
 
 /// Error history (deg) of a run, one entry per tick.
 fn error_history(s: &Scenario, actuation: Actuation) -> Vec<f64> {
-    let mut lp = ClosedLoop::new(s, actuation, None);
+    let mut lp = ClosedLoop::new(s, actuation, None).expect("the default law");
     (0..=s.ticks()).map(|_| lp.tick().err_deg).collect()
 }
 
@@ -139,7 +139,7 @@ fn closed_loop_realises_the_commanded_error_dynamics() {
     let mut file = base.file.clone();
     file.run.rate_hz = 100_000.0;
     let s = Scenario::from_file(file).expect("valid");
-    let mut lp = ClosedLoop::new(&s, Actuation::Internal, None);
+    let mut lp = ClosedLoop::new(&s, Actuation::Internal, None).expect("the default law");
     let g = s.gains;
     let dt = s.dt();
     let mut prev: Option<(DVec3, DVec3)> = None;

@@ -129,22 +129,6 @@ impl ActuatorLimits {
     }
 }
 
-/// The control law a scenario runs (`[controller] law`).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Serialize, serde::Deserialize)]
-#[serde(rename_all = "kebab-case")]
-pub enum LawName {
-    /// The paper's geometric PID almost-global tracking law (the default).
-    #[default]
-    GeometricPid,
-}
-
-impl LawName {
-    /// Whether this is the default law (left out when a scenario file is written).
-    pub fn is_default(&self) -> bool {
-        *self == Self::default()
-    }
-}
-
 /// What the controller does with its integral state while the actuators saturate.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Serialize, serde::Deserialize)]
 #[serde(rename_all = "lowercase")]

@@ -230,9 +230,11 @@ impl TorqueAnswers {
     }
 
     /// The law of `scenario` (gains, the controller's body model, actuator limits and
-    /// anti-windup), answering from tick 0.
-    pub fn for_scenario(scenario: &rotorloop_common::scenario::Scenario) -> Self {
-        Self::new(AnyLaw::for_scenario(scenario, scenario.actuation()))
+    /// anti-windup), answering from tick 0; an error if the scenario names no known law.
+    pub fn for_scenario(
+        scenario: &rotorloop_common::scenario::Scenario,
+    ) -> Result<Self, crate::law::UnknownLaw> {
+        Ok(Self::new(AnyLaw::for_scenario(scenario, scenario.actuation())?))
     }
 
     /// Continues bumplessly from what a killed predecessor kept in its resume slot: its

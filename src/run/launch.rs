@@ -17,6 +17,7 @@ use crate::run::split::Split;
 use crate::run::supervise::{Children, RestartLimit, Supervisor, parse_restart};
 use crate::run::watch::supervise;
 use rotorloop_common::role::UsageError;
+use rotorloop_controller::law::AnyLaw;
 /// How a run ended without completing its control loop (mapped to exit codes by the CLI).
 #[derive(Debug, thiserror::Error)]
 pub enum RunEnd {
@@ -51,6 +52,8 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
     let explicit_wait = args.role.wait != rotorloop_common::ipc::wait::Wait::Event;
     let args = &with_preset(args, explicit_wait)?;
     let scenario = args.role.scenario()?;
+    // The law is the controller's to name: refused here, before any process starts.
+    AnyLaw::for_scenario(&scenario, scenario.actuation()).map_err(UsageError::from)?;
     for w in &scenario.warnings {
         eprintln!("warning: {w}");
     }

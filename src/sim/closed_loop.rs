@@ -7,7 +7,7 @@ use rand::Rng;
 use rand_chacha::ChaCha8Rng;
 use rotorloop_common::params::ActuatorLimits;
 use rotorloop_common::scenario::{Actuation, Scenario};
-use rotorloop_controller::law::{AnyLaw, ControlOutput, Law};
+use rotorloop_controller::law::{AnyLaw, ControlOutput, Law, UnknownLaw};
 use rotorloop_monitor::metrics::{Metrics, TraceRow};
 use rotorloop_plant::actuator::{ActuationDelay, DelayLine, integrate_tick};
 use rotorloop_plant::{Body, BodyInput};
@@ -69,14 +69,19 @@ impl ClosedLoop {
     /// The loop of a validated scenario. The reference is momentum-matched to the
     /// rotor-actuated plant in both actuations, so an internal and an external run track
     /// the same reference. `open_loop` replaces the controller by a constant rotor torque.
-    pub fn new(scenario: &Scenario, actuation: Actuation, open_loop: Option<DVec3>) -> Self {
+    /// An error if the scenario names no known law.
+    pub fn new(
+        scenario: &Scenario,
+        actuation: Actuation,
+        open_loop: Option<DVec3>,
+    ) -> Result<Self, UnknownLaw> {
         let reference = Reference::for_scenario(scenario);
         let body = scenario.plant_params(actuation);
         let plant = Body::new(body, scenario.plant_init);
         let limits = scenario.limits_for(actuation);
-        let law = AnyLaw::for_scenario(scenario, actuation);
+        let law = AnyLaw::for_scenario(scenario, actuation)?;
         let metrics = Metrics::new(body, &plant.state()).with_disturbance(scenario.disturbance);
-        Self {
+        Ok(Self {
             plant,
             reference,
             law,
@@ -92,7 +97,7 @@ impl ClosedLoop {
             saturated_ticks: 0,
             line: DelayLine::new(ActuationDelay::Instant, scenario.dt()),
             drawn: None,
-        }
+        })
     }
 
     /// Each torque takes effect `delay` after its tick's time (delayed zero-order hold;

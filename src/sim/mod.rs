@@ -28,6 +28,7 @@ use serde::Serialize;
 use crate::sim::closed_loop::ClosedLoop;
 use crate::sim::closed_loop::DrawnDelays;
 use rotorloop_common::role::UsageError;
+use rotorloop_controller::law::UnknownLaw;
 use rotorloop_plant::actuator::ActuationDelay;
 
 /// What to simulate.
@@ -68,12 +69,17 @@ impl SimOptions {
     }
 
     /// The closed loop these options run, with `actuation`.
-    pub fn closed_loop(&self, actuation: Actuation, open_loop: Option<DVec3>) -> ClosedLoop {
-        let lp = ClosedLoop::new(&self.scenario, actuation, open_loop).with_delay(self.delay);
-        match &self.drawn {
+    /// An error if the scenario names no known law.
+    pub fn closed_loop(
+        &self,
+        actuation: Actuation,
+        open_loop: Option<DVec3>,
+    ) -> Result<ClosedLoop, UnknownLaw> {
+        let lp = ClosedLoop::new(&self.scenario, actuation, open_loop)?.with_delay(self.delay);
+        Ok(match &self.drawn {
             Some(d) => lp.with_drawn_delays(d.clone()),
             None => lp,
-        }
+        })
     }
 }
 
@@ -285,7 +291,7 @@ pub fn run(opts: &SimOptions) -> anyhow::Result<(SimSummary, Recorder)> {
     let every = opts.trace_every.max(1);
     let mut trace_rows = 0u64;
 
-    let mut lp = opts.closed_loop(actuation, opts.open_loop);
+    let mut lp = opts.closed_loop(actuation, opts.open_loop).map_err(UsageError::from)?;
     let start = Instant::now();
     let stats = drive(&mut lp, ticks, |row, last| {
         if row.tick % every == 0 || last {
@@ -447,7 +453,7 @@ fn effort_comparison(
         Actuation::Internal => Actuation::External,
         Actuation::External => Actuation::Internal,
     };
-    let mut olp = opts.closed_loop(other, None);
+    let mut olp = opts.closed_loop(other, None)?;
     let mut orec = Recorder::new(ticks + 1);
     let mut err_diff = 0.0f64;
     let mut main_err = rec.err_deg.iter();

@@ -157,10 +157,13 @@ impl SweepRun {
 
 /// The closed loop of `s` with every torque `delay_s` late, to the end or until it
 /// diverges.
-pub fn sweep_run(s: &Scenario, delay_s: f64) -> SweepRun {
+pub fn sweep_run(
+    s: &Scenario,
+    delay_s: f64,
+) -> Result<SweepRun, rotorloop_controller::law::UnknownLaw> {
     let delay =
         if delay_s == 0.0 { ActuationDelay::Instant } else { ActuationDelay::Fixed(delay_s) };
-    let mut lp = ClosedLoop::new(s, s.actuation(), None).with_delay(delay);
+    let mut lp = ClosedLoop::new(s, s.actuation(), None)?.with_delay(delay);
     let ticks = s.ticks();
     let every = (ticks / 600).max(1);
     let mut run = SweepRun {
@@ -191,7 +194,7 @@ pub fn sweep_run(s: &Scenario, delay_s: f64) -> SweepRun {
             run.history.push((row.t, row.err_deg));
         }
     }
-    run
+    Ok(run)
 }
 
 /// Runs the study and writes its files; returns the predicted margins and the sweep.
@@ -216,7 +219,7 @@ pub fn run(a: &MarginArgs) -> anyhow::Result<(Vec<ModeMargin>, Vec<SweepRun>)> {
     }
     std::fs::create_dir_all(&a.out)
         .with_context(|| format!("cannot create {}", a.out.display()))?;
-    let runs: Vec<SweepRun> = delays.iter().map(|d| sweep_run(&s, *d)).collect();
+    let runs = delays.iter().map(|d| sweep_run(&s, *d)).collect::<Result<Vec<_>, _>>()?;
     write_csv(&a.out.join("margin.csv"), &runs)?;
     let latency = a.latency_from.as_deref().map(read_latency).transpose()?;
     let md = report(&s, &modes, &runs, latency.as_ref());

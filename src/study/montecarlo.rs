@@ -131,9 +131,9 @@ fn gauss(rng: &mut ChaCha8Rng) -> f64 {
 }
 
 /// Runs one Monte Carlo case.
-pub fn run_one(opts: &McOptions, i: usize) -> McRun {
+pub fn run_one(opts: &McOptions, i: usize) -> Result<McRun, rotorloop_controller::law::UnknownLaw> {
     let (s, near_pi) = draw(&opts.scenario, opts, i);
-    let mut lp = ClosedLoop::new(&s, Actuation::Internal, None);
+    let mut lp = ClosedLoop::new(&s, Actuation::Internal, None)?;
     let ticks = s.ticks();
     let first = lp.tick();
     let mut last = first;
@@ -142,7 +142,7 @@ pub fn run_one(opts: &McOptions, i: usize) -> McRun {
         last = lp.tick();
         max = max.max(last.err_deg);
     }
-    McRun {
+    Ok(McRun {
         run: i,
         near_pi,
         err_deg_initial: first.err_deg,
@@ -151,13 +151,13 @@ pub fn run_one(opts: &McOptions, i: usize) -> McRun {
         err_deg_final: last.err_deg,
         err_deg_max: max,
         converged: last.err_deg < CONVERGED_DEG,
-    }
+    })
 }
 
 /// Runs the study on `opts.threads` threads and writes its files.
 pub fn run(opts: &McOptions) -> anyhow::Result<(McSummary, Vec<McRun>)> {
     let threads = opts.threads.clamp(1, 64);
-    let mut results: Vec<McRun> = std::thread::scope(|scope| {
+    let results: Vec<Result<McRun, _>> = std::thread::scope(|scope| {
         let handles: Vec<_> = (0..threads)
             .map(|w| {
                 scope.spawn(move || {
@@ -168,6 +168,7 @@ pub fn run(opts: &McOptions) -> anyhow::Result<(McSummary, Vec<McRun>)> {
         handles.into_iter().flat_map(|h| h.join().unwrap_or_default()).collect()
     });
     anyhow::ensure!(results.len() == opts.runs, "a Monte Carlo worker thread panicked");
+    let mut results = results.into_iter().collect::<Result<Vec<_>, _>>()?;
     results.sort_by_key(|r| r.run);
     let n = results.len().max(1) as f64;
     let summary = McSummary {

@@ -2,16 +2,17 @@
 //! ([`AnyLaw::for_scenario`]) for the `controller` process and the in-process loop alike,
 //! so the lockstep run and the simulator run the same law with the same state.
 //!
-//! Adding a law: a module here with its struct and its `impl Law`, a variant of
-//! [`AnyLaw`] (and its arm in `for_scenario`), and its name in the scenario file's
-//! `[controller] law` (`rotorloop_common::params::LawName`).
+//! Adding a law touches this folder only: a module here with its struct and its
+//! `impl Law`, a row of [`LAWS`] (the name a scenario file's `[controller] law` gives it),
+//! and a variant of [`AnyLaw`] with its arms. The scenario file carries the name as text;
+//! [`AnyLaw::for_scenario`] resolves it, and the launcher and the simulator call it before
+//! anything starts, so an unknown name is refused naming the allowed ones.
 //!
 //! - [`geometric_pid`]: the paper's geometric PID almost-global tracking law.
 
 pub mod geometric_pid;
 
 use glam::DVec3;
-use rotorloop_common::params::LawName;
 use rotorloop_common::params::{ReferenceState, RotorBodyState};
 use rotorloop_common::scenario::{Actuation, Scenario};
 
@@ -72,6 +73,47 @@ pub trait Law {
     fn restore(&mut self, state: &LawState);
 }
 
+/// Every law a scenario file can name in `[controller] law`, with a line of help. The
+/// first is the default (a file that names no law runs it).
+pub const LAWS: &[(&str, &str)] =
+    &[("geometric-pid", "the paper's geometric PID almost-global tracking law")];
+
+/// A scenario names a law that does not exist, or gives it a parameter it does not take.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum UnknownLaw {
+    /// `[controller] law` names no law of [`LAWS`].
+    Name(String),
+    /// `[controller.law_params]` has a key the law does not take: (law, key, what it takes).
+    Param(&'static str, String, &'static str),
+}
+
+impl std::fmt::Display for UnknownLaw {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Self::Name(name) => {
+                let allowed: Vec<&str> = LAWS.iter().map(|(n, _)| *n).collect();
+                write!(
+                    f,
+                    "controller.law: no law is named {name:?}; allowed: {} (default {})",
+                    allowed.join(", "),
+                    LAWS[0].0
+                )
+            }
+            Self::Param(law, key, takes) => {
+                write!(f, "controller.law_params.{key}: {law} takes {takes}")
+            }
+        }
+    }
+}
+
+impl std::error::Error for UnknownLaw {}
+
+impl From<UnknownLaw> for rotorloop_common::role::UsageError {
+    fn from(e: UnknownLaw) -> Self {
+        Self(e.to_string())
+    }
+}
+
 /// Every law, as one type: what the controller and the in-process loop hold. An enum,
 /// not a `Box<dyn Law>`: no allocation, and the tick's call is a match.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -81,15 +123,28 @@ pub enum AnyLaw {
 }
 
 impl AnyLaw {
-    /// The law `scenario` names, with its gains, the controller's body model for
-    /// `actuation`, and the actuator limits it knows of; internal state zero.
-    pub fn for_scenario(scenario: &Scenario, actuation: Actuation) -> Self {
-        match scenario.law {
-            LawName::GeometricPid => Self::GeometricPid(
-                GeometricPid::new(scenario.gains, scenario.controller_params(actuation))
-                    .with_limits(scenario.limits_for(actuation), scenario.anti_windup),
-            ),
+    /// The law `scenario` names ([`LAWS`]; none named: the first), with its gains, the
+    /// controller's body model for `actuation`, and the actuator limits it knows of;
+    /// internal state zero.
+    pub fn for_scenario(scenario: &Scenario, actuation: Actuation) -> Result<Self, UnknownLaw> {
+        match scenario.law.as_deref().unwrap_or(LAWS[0].0) {
+            "geometric-pid" => {
+                no_params("geometric-pid", &scenario.law_params)?;
+                Ok(Self::GeometricPid(
+                    GeometricPid::new(scenario.gains, scenario.controller_params(actuation))
+                        .with_limits(scenario.limits_for(actuation), scenario.anti_windup),
+                ))
+            }
+            other => Err(UnknownLaw::Name(other.to_string())),
         }
+    }
+}
+
+/// A law that takes only the common gains refuses every key of `[controller.law_params]`.
+fn no_params(law: &'static str, params: &toml::Table) -> Result<(), UnknownLaw> {
+    match params.keys().next() {
+        Some(key) => Err(UnknownLaw::Param(law, key.clone(), "no parameters of its own")),
+        None => Ok(()),
     }
 }
 
@@ -121,9 +176,9 @@ mod tests {
     #[test]
     fn the_scenario_names_the_law_and_a_restored_law_continues_bit_for_bit() {
         let s = Scenario::load("paper-sinusoid").expect("built-in");
-        assert_eq!(s.law, LawName::GeometricPid, "the default law");
+        assert_eq!(s.law, None, "the default law");
         let a = s.actuation();
-        let mut law = AnyLaw::for_scenario(&s, a);
+        let mut law = AnyLaw::for_scenario(&s, a).expect("the default law");
         let AnyLaw::GeometricPid(pid) = law;
         assert_eq!(pid.gains(), &s.gains);
         let (x, dt) = (s.plant_init, s.dt());
@@ -136,9 +191,25 @@ mod tests {
             law.step(&x, &rd, dt);
         }
         assert_ne!(law.state(), LawState::default(), "ξ_I moved");
-        let mut restarted = AnyLaw::for_scenario(&s, a);
+        let mut restarted = AnyLaw::for_scenario(&s, a).expect("the default law");
         restarted.restore(&law.state());
         assert_eq!(restarted.step(&x, &rd, dt), law.step(&x, &rd, dt));
         assert_eq!(restarted.state(), law.state());
+    }
+
+    #[test]
+    fn every_law_of_the_table_is_built_by_its_name_and_an_unknown_name_is_refused_naming_them() {
+        let mut s = Scenario::load("paper-zero").expect("built-in");
+        for (name, _) in LAWS {
+            s.law = Some(name.to_string());
+            assert!(AnyLaw::for_scenario(&s, s.actuation()).is_ok(), "{name}");
+        }
+        s.law_params.insert("gain".into(), toml::Value::Float(1.0));
+        let e = AnyLaw::for_scenario(&s, s.actuation()).expect_err("no such parameter");
+        assert!(e.to_string().starts_with("controller.law_params.gain: "), "{e}");
+        s.law = Some("bang-bang".into());
+        let e = AnyLaw::for_scenario(&s, s.actuation()).expect_err("no such law").to_string();
+        assert!(e.contains("controller.law") && e.contains("bang-bang"), "{e}");
+        assert!(LAWS.iter().all(|(n, _)| e.contains(n)), "{e}");
     }
 }

@@ -8,6 +8,7 @@ pub mod args;
 mod ports;
 
 use rotorloop_common::clock::now_ns;
+use rotorloop_common::role::UsageError;
 use rotorloop_common::role::args::Mode;
 use rotorloop_common::role::end::linger_publisher;
 use rotorloop_common::signals::shutdown_requested;
@@ -24,7 +25,9 @@ pub fn run(args: &args::ControllerArgs) -> anyhow::Result<()> {
     let mut ports = Ports::open(role, scenario.ticks())?;
     let dt = scenario.dt();
     let skip_at = role.hooks.test_skip_state_at;
-    let mut answers = TorqueAnswers::for_scenario(&scenario).leaving_unanswered(skip_at);
+    let mut answers = TorqueAnswers::for_scenario(&scenario)
+        .map_err(UsageError::from)?
+        .leaving_unanswered(skip_at);
     let mut pairing = ReferencePairing::new(args.reference_hold_ticks, dt);
     if let Some(r) = ports.slot.load().filter(|r| r.last.tick < scenario.ticks()) {
         answers.resume(&r);

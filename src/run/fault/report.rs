@@ -87,7 +87,7 @@ pub fn report(
         return Ok(Vec::new());
     };
     // The no-fault run: the same scenario in process.
-    let mut lp = ClosedLoop::new(scenario, scenario.actuation(), None);
+    let mut lp = ClosedLoop::new(scenario, scenario.actuation(), None)?;
     let nofault: Vec<f64> = (0..=scenario.ticks()).map(|_| lp.tick().err_deg).collect();
     let last_tick = timing.keys().next_back().copied().unwrap_or(0);
     let fresh =
