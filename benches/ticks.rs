@@ -7,7 +7,11 @@ use std::hint::black_box;
 use criterion::{Criterion, Throughput, criterion_group, criterion_main};
 use glam::DVec3;
 use rotorloop::sim::closed_loop::ClosedLoop;
+use rotorloop_common::ipc::domain::Domain;
+use rotorloop_common::resume::ResumeSlot;
 use rotorloop_common::scenario::{Actuation, Scenario};
+use rotorloop_common::wire::TorqueSample;
+use rotorloop_controller::policy::{ControllerResume, TorqueAnswers};
 use rotorloop_plant::{Body, BodyInput};
 
 const BATCH: u64 = 10_000;
@@ -47,5 +51,36 @@ fn ticks(c: &mut Criterion) {
     g.finish();
 }
 
-criterion_group!(benches, ticks);
+/// The controller's resume-slot write per tick: its last answer alone (what the slot kept
+/// before the law's state left the wire) against `ControllerResume` (the answer and the
+/// law's state, what it keeps now), both into a real slot in /dev/shm.
+fn resume_slot(c: &mut Criterion) {
+    let s = Scenario::load("paper-sinusoid").expect("builtin scenario");
+    let domain = Domain::new(&format!("bench-slot-{}", std::process::id())).expect("domain");
+    let answers = TorqueAnswers::for_scenario(&s).expect("the default law");
+    let answer = TorqueSample::default();
+    let mut g = c.benchmark_group("resume_slot");
+    g.throughput(Throughput::Elements(BATCH));
+    let before: ResumeSlot<TorqueSample> = ResumeSlot::open(&domain, "bench-answer").expect("slot");
+    g.bench_function("store_answer_only", |b| {
+        b.iter(|| {
+            for _ in 0..BATCH {
+                before.store(black_box(&answer));
+            }
+        });
+    });
+    let after: ResumeSlot<ControllerResume> =
+        ResumeSlot::open(&domain, "bench-resume").expect("slot");
+    g.bench_function("store_answer_and_law_state", |b| {
+        b.iter(|| {
+            for _ in 0..BATCH {
+                after.store(&answers.resume_record(black_box(&answer)));
+            }
+        });
+    });
+    g.finish();
+    rotorloop_common::resume::remove_slots(&domain);
+}
+
+criterion_group!(benches, ticks, resume_slot);
 criterion_main!(benches);
