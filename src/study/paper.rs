@@ -100,23 +100,12 @@ pub fn run(out: &Path, duration: f64, rate: f64, in_process: bool) -> anyhow::Re
 fn four_process_run(out: &Path, name: &str, duration: f64, rate: f64) -> anyhow::Result<String> {
     println!("{name}: four processes, real time");
     let run_dir = out.join(name);
-    let role = rotorloop_common::role::args::RoleArgs {
-        domain: None,
-        host: None,
-        scenario: name.to_owned(),
-        duration: Some(duration),
-        rate: Some(rate),
-        actuation: None,
-        mode: rotorloop_common::role::args::Mode::Realtime,
-        wait: rotorloop_common::ipc::wait::Wait::Event,
-        core: None,
-        rt_priority: None,
-        mlock: false,
-        plain_hot_path: false,
-        record: None,
-        flight_ring_ticks: rotorloop_common::flight::DEFAULT_RING_TICKS,
-        hooks: Default::default(),
-    };
+    let role = rotorloop_common::role::args::RoleArgs::realtime(
+        name,
+        duration,
+        rate,
+        rotorloop_common::ipc::wait::Wait::Event,
+    );
     crate::run::launch::run(&crate::run::args::RunArgs::defaults(role, run_dir.clone()))
         .with_context(|| format!("four-process run of {name}"))?;
     let j: serde_json::Value = serde_json::from_str(

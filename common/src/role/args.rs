@@ -82,6 +82,28 @@ pub struct RoleArgs {
 }
 
 impl RoleArgs {
+    /// A real-time run of `scenario` for `duration_s` at `rate_hz` with `wait`, every other
+    /// option at its command-line default (what `paper` and `bench` start).
+    pub fn realtime(scenario: &str, duration_s: f64, rate_hz: f64, wait: Wait) -> Self {
+        Self {
+            domain: None,
+            host: None,
+            scenario: scenario.to_owned(),
+            duration: Some(duration_s),
+            rate: Some(rate_hz),
+            actuation: None,
+            mode: Mode::Realtime,
+            wait,
+            core: None,
+            rt_priority: None,
+            mlock: false,
+            plain_hot_path: false,
+            record: None,
+            flight_ring_ticks: crate::flight::DEFAULT_RING_TICKS,
+            hooks: Default::default(),
+        }
+    }
+
     /// The validated scenario with the overrides.
     pub fn scenario(&self) -> Result<Scenario, UsageError> {
         scenario_with_overrides(&self.scenario, self.duration, self.rate, self.actuation)

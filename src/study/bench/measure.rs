@@ -13,7 +13,7 @@ use super::cell::{BenchArgs, Row, cores, skip_reason};
 use super::report::{hgrm_count, hgrm_quantile};
 use crate::baseline::pingpong::Kind;
 use crate::run::args::RunArgs;
-use rotorloop_common::role::args::{Mode, RoleArgs};
+use rotorloop_common::role::args::RoleArgs;
 
 /// `--before-after`: the loop without flight recorders and with them, `--pairs` times
 /// each, alternating (`first` is the first "after"); the median run of each.
@@ -90,20 +90,7 @@ pub(super) fn loop_run_args(
     });
     let role = RoleArgs {
         domain: Some(domain),
-        host: None,
-        scenario: a.scenario.clone(),
-        duration: Some(a.seconds),
-        rate: Some(base.rate),
-        actuation: None,
-        mode: Mode::Realtime,
-        wait,
-        core: None,
-        rt_priority: None,
-        mlock: false,
-        plain_hot_path: false,
-        record: None,
-        flight_ring_ticks: rotorloop_common::flight::DEFAULT_RING_TICKS,
-        hooks: Default::default(),
+        ..RoleArgs::realtime(&a.scenario, a.seconds, base.rate, wait)
     };
     RunArgs {
         pin,
