@@ -15,19 +15,18 @@ use rotorloop_common::signals::shutdown_requested;
 use rotorloop_common::wire::FLAG_LAST;
 
 use crate::ROLE;
+use crate::law::AnyLaw;
 use crate::policy::{DelayedSends, ReferencePairing, TorqueAnswers};
 use ports::Ports;
 
 /// Runs the controller until the plant's last tick or a termination signal.
 pub fn run(args: &args::ControllerArgs) -> anyhow::Result<()> {
     let (role, scenario) = (&args.role, args.role.scenario()?);
+    let law = AnyLaw::for_scenario(&scenario, scenario.actuation()).map_err(UsageError::from)?;
     role.setup(ROLE);
     let mut ports = Ports::open(role, scenario.ticks())?;
     let dt = scenario.dt();
-    let skip_at = role.hooks.test_skip_state_at;
-    let mut answers = TorqueAnswers::for_scenario(&scenario)
-        .map_err(UsageError::from)?
-        .leaving_unanswered(skip_at);
+    let mut answers = TorqueAnswers::new(law).leaving_unanswered(role.hooks.test_skip_state_at);
     let mut pairing = ReferencePairing::new(args.reference_hold_ticks, dt);
     if let Some(r) = ports.slot.load().filter(|r| r.last.tick < scenario.ticks()) {
         answers.resume(&r);
