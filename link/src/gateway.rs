@@ -28,7 +28,7 @@ use iceoryx2_link::Link;
 use iceoryx2_link_tunnel::Tunnel;
 use rotorloop_common::clock::now_ns;
 use rotorloop_common::graph::Topic;
-use rotorloop_common::ipc::domain::Domain;
+use rotorloop_common::ipc::domain::{Domain, HeldTopic};
 use rotorloop_common::ipc::wait::wait_any_readable;
 use rotorloop_common::signals::{install_signal_handlers, shutdown_requested};
 use zenoh::Wait;
@@ -66,6 +66,9 @@ pub fn run(args: &LinkArgs) -> anyhow::Result<()> {
     // A killed predecessor's ports would hold the services' gateway slots.
     let _ = domain.cleanup();
     let node = domain.node("link").context("link")?;
+    // The node that holds this host's topics offered while a role here restarts (see
+    // `Gateway::hold`); its own, because the link's node does not count as offering.
+    let hold_node = domain.node("link-hold").context("link")?;
     let session = zenoh::open(zenoh_cfg)
         .wait()
         .map_err(|e| anyhow::anyhow!("cannot open the Zenoh session: {e}"))?;
@@ -89,6 +92,8 @@ pub fn run(args: &LinkArgs) -> anyhow::Result<()> {
         prefix,
         domain,
         events: Default::default(),
+        hold_node,
+        held: Default::default(),
         bridged: BTreeSet::new(),
         peers: 0,
         errors: 0,
@@ -140,6 +145,10 @@ struct Gateway {
     domain: Domain,
     /// The gateway's ports per topic whose event service exists here.
     events: [Option<TopicEvents>; 3],
+    /// The node that holds this host's topics (not the link's).
+    hold_node: Node<ipc::Service>,
+    /// Each topic's services, held once a role here made them ([`Gateway::hold`]).
+    held: [Option<HeldTopic>; 3],
     /// `(service, pattern)` bridged at the last discovery.
     bridged: BTreeSet<(String, &'static str)>,
     peers: usize,
@@ -176,6 +185,7 @@ impl Gateway {
         if let Err(e) = link.discover() {
             self.error("discover", &e);
         }
+        self.hold();
         for (slot, topic) in self.events.iter_mut().zip(Topic::ALL) {
             if slot.is_none() {
                 let ports = self.domain.event_ports_if_exists(link.node(), topic).ok().flatten();
@@ -212,6 +222,23 @@ impl Gateway {
         }
         self.bridged = now;
         Ok(())
+    }
+
+    /// Holds every topic a role on this host publishes or subscribes, once its services
+    /// exist, for as long as the gateway runs. The link offers a service to the other host
+    /// while a node other than its own is attached to it; without the hold, a role killed
+    /// here (the only one on its host, as a far-host controller) took every topic out of
+    /// the offer: both hosts closed their bridges, and reopened them when the restarted
+    /// role came back. Under load that reopening left the loop without states or torques
+    /// for seconds (a restarted far-host controller: control back after 0.4 to 7.5 s, or
+    /// not within 8.5 s, in 5 runs of 10 s with a busy loop per core). Held, the bridges
+    /// stay open through the restart and the new role's ports simply join them.
+    fn hold(&mut self) {
+        for (slot, topic) in self.held.iter_mut().zip(Topic::ALL) {
+            if slot.is_none() && self.domain.used_by_a_role_here(topic) {
+                *slot = self.domain.hold_if_exists(&self.hold_node, topic).ok().flatten();
+            }
+        }
     }
 
     /// Blocks until the carrier or a local event wakes the gateway, or `timeout_ns`.

@@ -12,6 +12,8 @@ use super::qos::{EVENT_QOS, PUBSUB_QOS, history, set_mirror_defaults};
 use super::{IpcError, MAX_BUFFER, iox};
 use crate::clock::clock_s;
 use crate::graph::Topic;
+use crate::wire::{ReferenceSample, StateSample, TorqueSample};
+use iceoryx2::service::static_config::messaging_pattern::MessagingPattern as StaticPattern;
 
 /// A run domain: every service and node name of a run lives under it, and its shared
 /// memory files carry its own prefix, so two runs on one machine never see each other.
@@ -331,6 +333,66 @@ impl Domain {
         Ok(Some((listener, notifier)))
     }
 
+    /// Whether a live node of a role of this host (not a link gateway's) is attached to
+    /// `topic`'s publish-subscribe service: the topic is this host's, not only a mirror of
+    /// the other host's.
+    pub fn used_by_a_role_here(&self, topic: Topic) -> bool {
+        use iceoryx2::node::NodeView;
+        let Ok(name) = self.service_name(topic) else { return false };
+        let gateway = format!("rotorloop/{}/link", self.name);
+        let mut used = false;
+        let _ = ipc::Service::list(&self.config, |details| {
+            let s = &details.static_details;
+            if s.name() == &name
+                && matches!(s.messaging_pattern(), StaticPattern::PublishSubscribe(_))
+            {
+                let nodes =
+                    details.dynamic_details.as_ref().map(|d| d.nodes.as_slice()).unwrap_or(&[]);
+                used |= nodes.iter().any(|n| match n {
+                    NodeState::Alive(v) => v
+                        .details()
+                        .as_ref()
+                        .is_some_and(|d| !d.name().as_str().starts_with(&gateway)),
+                    _ => false,
+                });
+            }
+            CallbackProgression::Continue
+        });
+        used
+    }
+
+    /// Holds `topic`'s publish-subscribe and event services open for `node`, without a
+    /// port, if both exist. A link gateway holds every topic of its host from a node of
+    /// its own (not the link's): a service is offered to the other host while a node other
+    /// than the link's is attached to it, so a role killed and restarted here no longer
+    /// withdraws and re-offers its topics (see `link/src/gateway.rs`). No port: the
+    /// subscriber and publisher counts the roles wait for do not change.
+    pub fn hold_if_exists(
+        &self,
+        node: &Node<ipc::Service>,
+        topic: Topic,
+    ) -> Result<Option<HeldTopic>, IpcError> {
+        let name = self.service_name(topic)?;
+        for pattern in [MessagingPattern::Event, MessagingPattern::PublishSubscribe] {
+            let exists = ipc::Service::does_exist(&name, &self.config, pattern)
+                .map_err(|e| iox(format!("cannot look up {name}"))(&e))?;
+            if !exists {
+                return Ok(None);
+            }
+        }
+        let Ok(event) = node.service_builder(&name).event().open() else { return Ok(None) };
+        let ps = node.service_builder(&name);
+        fn held<T: 'static>(f: T) -> Box<dyn std::any::Any> {
+            Box::new(f)
+        }
+        let pubsub = match topic {
+            Topic::State => ps.publish_subscribe::<StateSample>().open().map(held),
+            Topic::Reference => ps.publish_subscribe::<ReferenceSample>().open().map(held),
+            Topic::Torque => ps.publish_subscribe::<TorqueSample>().open().map(held),
+        };
+        Ok(pubsub.ok().map(|pubsub| HeldTopic { _event: event, _pubsub: pubsub }))
+    }
+
     fn service_name(&self, topic: Topic) -> Result<ServiceName, IpcError> {
         let name = format!("rotorloop/{}/{}", self.name, topic.name());
         ServiceName::new(&name).map_err(|e| iox(format!("service name {name}"))(&e))
@@ -479,6 +541,20 @@ fn process_start_s(pid: libc::pid_t) -> Option<f64> {
     // SAFETY: plain getter.
     let hz = unsafe { libc::sysconf(libc::_SC_CLK_TCK) };
     (hz > 0).then(|| ticks / hz as f64)
+}
+
+/// One topic's services held open without ports ([`Domain::hold_if_exists`]); dropped,
+/// the hold ends.
+pub struct HeldTopic {
+    _event: iceoryx2::service::port_factory::event::PortFactory<ipc::Service>,
+    /// The typed publish-subscribe service's port factory, kept for its `Drop`.
+    _pubsub: Box<dyn std::any::Any>,
+}
+
+impl std::fmt::Debug for HeldTopic {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str("HeldTopic")
+    }
 }
 
 #[cfg(test)]
