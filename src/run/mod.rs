@@ -19,6 +19,7 @@
 pub mod args;
 pub mod fault;
 pub mod launch;
+pub mod mover;
 pub mod recover;
 pub mod resources;
 pub mod spawn;

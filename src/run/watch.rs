@@ -18,6 +18,7 @@ use rotorloop_common::graph::Role;
 
 use crate::observe::slots::Slots;
 use crate::run::fault::{Action, Apply, FaultEvent, FaultKind, FaultSchedule};
+use crate::run::mover::MoverThread;
 use crate::run::resources::RssLog;
 use crate::run::spawn::Launch;
 use crate::run::supervise::{
@@ -69,7 +70,7 @@ struct Watch {
     torques_received: u64,
     /// Copies the finished halves of the flight records' rings into `OUT/flight` (a run
     /// longer than the rings).
-    mover: Option<rotorloop_common::flight::Mover>,
+    mover: Option<MoverThread>,
     /// The plant has published its last tick.
     loop_complete: bool,
 }
@@ -89,15 +90,21 @@ impl Watch {
             watchdog: Watchdog::new(watchdog_s),
             link: LinkWatch::new(START_TIMEOUT_S.max(watchdog_s)),
             torques_received: 0,
-            mover: launch.mover(),
+            mover: launch.mover().and_then(|m| {
+                MoverThread::spawn(m)
+                    .map_err(|e| eprintln!("warning: flight records: no mover thread ({e})"))
+                    .ok()
+            }),
             loop_complete: false,
         }
     }
 
     /// After the supervision loop: the last records moved, the stops still open ended.
     fn finish(&mut self, progress: &Progress) {
-        move_due_records(self, progress); // what became due in the last pass
-        if let Some(m) = self.mover.as_ref().filter(|m| m.lost > 0) {
+        // What became due in the last pass, then the thread's end.
+        let tick = progress.0.plant().map(|p| p.tick);
+        let mover = self.mover.take().and_then(|m| m.finish(tick));
+        if let Some(m) = mover.filter(|m| m.lost > 0) {
             eprintln!(
                 "warning: flight records: {} record(s) lost: the rings came round before the \
                  launcher moved them (it was not running for that long); a longer \
@@ -244,12 +251,11 @@ fn stop_event<'a>(events: &'a mut [FaultEvent], role: &str) -> Option<&'a mut Fa
     events.iter_mut().rev().find(|e| e.role == role && e.kind == "stop")
 }
 
-/// Copies the halves of the flight records' rings that are due into `OUT/flight`.
+/// Tells the mover thread the plant's newest tick: the halves of the flight records'
+/// rings it finished are copied into `OUT/flight` off this loop.
 fn move_due_records(w: &mut Watch, progress: &Progress) {
-    if let (Some(m), Some(p)) = (&mut w.mover, progress.0.plant()) {
-        for e in m.pass(p.tick) {
-            eprintln!("warning: flight records: {e}; the loop goes on");
-        }
+    if let (Some(m), Some(p)) = (&w.mover, progress.0.plant()) {
+        m.saw(p.tick);
     }
 }
 
