@@ -379,7 +379,7 @@ fn a_running_domains_files_are_owner_only() {
         }
     }
     assert!(seen >= 10, "found only {seen} shared-memory files");
-    let root = Path::new("/tmp/iceoryx2").join(&prefix);
+    let root = Path::new(rotorloop_common::ipc::domain::ICEORYX2_ROOT).join(&prefix);
     let mode = std::fs::metadata(&root).expect("root").permissions().mode();
     assert_eq!(mode & 0o007, 0, "{} has mode {mode:o}", root.display());
     let status = h.wait_all(LIMIT);

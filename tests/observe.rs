@@ -74,7 +74,7 @@ fn the_run_directory_holds_the_iceoryx2_config_that_finds_its_services() {
     assert_eq!(t["global"]["prefix"].as_str(), Some(prefix.as_str()));
     assert_eq!(
         t["global"]["root-path"].as_str(),
-        Some(format!("/tmp/iceoryx2/{prefix}/").as_str())
+        Some(format!("{}{prefix}/", rotorloop_common::ipc::domain::ICEORYX2_ROOT).as_str())
     );
     let services = services(&out);
     let want: Vec<String> = ["reference", "state", "torque"]

@@ -232,7 +232,8 @@ impl Gateway {
     /// role came back. Held, no bridge closes through a restart and the new role's ports
     /// join the open bridges: with a busy loop per core, control came back 180-330 ticks
     /// after the restart in 15 of 18 runs, against 400-940 in 8 of 11 before. (The other
-    /// runs, before and after, took 4 s or more: a second cause, not found yet; see
+    /// runs, before and after, took 4 s or more: the restarted controller's own start,
+    /// its iceoryx2 node's fsync'd details file on the disk; see `ICEORYX2_ROOT` and
     /// docs/across-machines.md.)
     fn hold(&mut self) {
         for (slot, topic) in self.held.iter_mut().zip(Topic::ALL) {

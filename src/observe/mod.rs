@@ -93,7 +93,7 @@ pub struct DomainView {
     pub services: Vec<ServiceView>,
 }
 
-/// The domains that have files on this machine (`/tmp/iceoryx2/rl_<domain>_/` or
+/// The domains that have files on this machine (`/dev/shm/iceoryx2/rl_<domain>_/` or
 /// `/dev/shm/rl_<domain>_…`).
 pub fn domains_on_machine() -> Vec<String> {
     let mut found = std::collections::BTreeSet::new();
@@ -105,7 +105,9 @@ pub fn domains_on_machine() -> Vec<String> {
             .map(|e| e.file_name().to_string_lossy().into_owned())
             .collect()
     };
-    for n in names("/tmp/iceoryx2").into_iter().chain(names("/dev/shm")) {
+    for n in
+        names(rotorloop_common::ipc::domain::ICEORYX2_ROOT).into_iter().chain(names("/dev/shm"))
+    {
         // Domain names have no `_`, so the first `_` after `rl_` ends the name.
         if let Some(d) = n.strip_prefix("rl_").and_then(|r| r.split_once('_')).map(|(d, _)| d) {
             if Domain::new(d).is_ok() {

@@ -15,6 +15,15 @@ use crate::graph::Topic;
 use crate::wire::{ReferenceSample, StateSample, TorqueSample};
 use iceoryx2::service::static_config::messaging_pattern::MessagingPattern as StaticPattern;
 
+/// Where every domain keeps iceoryx2's static files (node details, service configurations),
+/// each in `<prefix>/` of its own: a tmpfs, not iceoryx2's default `/tmp/iceoryx2`.
+/// iceoryx2 0.10 `fsync`s each of these files as it writes it (`iceoryx2-cal`
+/// `static_storage/file.rs`); on a disk with other writes pending that waited for the
+/// disk, and a role (re)started beside a busy disk took up to 3.6 s to create its node
+/// (measured: the far-host controller restart that brought control back only after
+/// seconds). On a tmpfs the `fsync` does not wait.
+pub const ICEORYX2_ROOT: &str = "/dev/shm/iceoryx2/";
+
 /// A run domain: every service and node name of a run lives under it, and its shared
 /// memory files carry its own prefix, so two runs on one machine never see each other.
 #[derive(Debug)]
@@ -66,7 +75,7 @@ impl Domain {
         };
         let mut config = Config::global_config().clone();
         // Static files under a root of the domain's own, shared memory with its prefix.
-        let root = format!("{}{prefix}/", config.global.root_path());
+        let root = format!("{ICEORYX2_ROOT}{prefix}/");
         let root_path = Path::new(root.as_bytes()).map_err(|e| IpcError::Iceoryx {
             what: format!("root path `{root}`"),
             detail: format!("{e:?}"),
@@ -619,7 +628,7 @@ mod tests {
         std::fs::remove_dir(&creating).expect("rmdir");
 
         // Token files of a dead node without details, and no process left: all of the
-        // domain goes, in /tmp/iceoryx2 and in /dev/shm.
+        // domain goes, under its root and in /dev/shm.
         let ghost = node_id(1, dead_pid(), 4);
         for suffix in ["node_monitor", "node_monitor_owner_lock", "node_monitor_context"] {
             std::fs::write(nodes.join(format!("{prefix}{ghost}.{suffix}")), b"").expect("write");
@@ -629,6 +638,46 @@ mod tests {
         assert_eq!(alive, 0);
         assert!(!PathBuf::from(domain.root_path()).exists(), "the domain's root stays");
         assert_eq!(shm_files(&domain), Vec::<String>::new());
+    }
+
+    /// The cause of restarts that took seconds: a node's details file, which iceoryx2
+    /// `fsync`s, sat on the disk (`/tmp/iceoryx2`, ext4 here), and with other writes
+    /// pending the `fsync` waited for them. Every file iceoryx2 writes for a domain, the
+    /// node's details and a new service's configuration, must be on a tmpfs. (Fails
+    /// with iceoryx2's default root where `/tmp` is a disk, as on the machine this was
+    /// found on.)
+    #[test]
+    fn iceoryx2s_fsynced_files_of_a_domain_are_on_a_tmpfs() {
+        const TMPFS_MAGIC: i64 = 0x0102_1994;
+        let domain = Domain::new(&format!("ipc-fs{}", std::process::id())).expect("domain");
+        let node = domain.node("plant").expect("node");
+        let _out = domain.outbox::<StateSample>(&node, Topic::State).expect("service");
+        let root = PathBuf::from(domain.root_path());
+        let mut files = Vec::new();
+        let mut dirs = vec![root.clone()];
+        while let Some(d) = dirs.pop() {
+            for e in std::fs::read_dir(&d).expect("readable").flatten() {
+                match e.file_type().expect("type").is_dir() {
+                    true => dirs.push(e.path()),
+                    false => files.push(e.path()),
+                }
+            }
+        }
+        assert!(files.len() >= 2, "the node's and the service's files: {files:?}");
+        for f in &files {
+            let c = std::ffi::CString::new(f.as_os_str().as_encoded_bytes()).expect("path");
+            // SAFETY: statfs writes into the struct it is given; the path is NUL-ended.
+            let mut st: libc::statfs = unsafe { std::mem::zeroed() };
+            assert_eq!(unsafe { libc::statfs(c.as_ptr(), &mut st) }, 0, "{}", f.display());
+            assert_eq!(
+                st.f_type as i64,
+                TMPFS_MAGIC,
+                "{} is not on a tmpfs: iceoryx2's fsync of it waits for the disk",
+                f.display()
+            );
+        }
+        drop((_out, node));
+        domain.cleanup().expect("cleanup");
     }
 
     #[test]
