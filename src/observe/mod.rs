@@ -93,7 +93,7 @@ pub struct DomainView {
     pub services: Vec<ServiceView>,
 }
 
-/// The domains that have files on this machine (`/dev/shm/iceoryx2/rl_<domain>_/` or
+/// The domains that have files on this machine (`/dev/shm/iox2/rl_<domain>_/` or
 /// `/dev/shm/rl_<domain>_…`).
 pub fn domains_on_machine() -> Vec<String> {
     let mut found = std::collections::BTreeSet::new();

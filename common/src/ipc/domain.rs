@@ -21,8 +21,10 @@ use iceoryx2::service::static_config::messaging_pattern::MessagingPattern as Sta
 /// `static_storage/file.rs`); on a disk with other writes pending that waited for the
 /// disk, and a role (re)started beside a busy disk took up to 3.6 s to create its node
 /// (measured: the far-host controller restart that brought control back only after
-/// seconds). On a tmpfs the `fsync` does not wait.
-pub const ICEORYX2_ROOT: &str = "/dev/shm/iceoryx2/";
+/// seconds). On a tmpfs the `fsync` does not wait. It is exactly as long as iceoryx2's
+/// default root: the event services' Unix sockets live under it, a socket path has at
+/// most 108 bytes, and that bounds the domain and host names ([`Domain::on_host`]).
+pub const ICEORYX2_ROOT: &str = "/dev/shm/iox2/";
 
 /// A run domain: every service and node name of a run lives under it, and its shared
 /// memory files carry its own prefix, so two runs on one machine never see each other.
@@ -678,6 +680,24 @@ mod tests {
         }
         drop((_out, node));
         domain.cleanup().expect("cleanup");
+    }
+
+    /// Event listeners are Unix sockets under the domain's root, whose paths have at most
+    /// 108 bytes: the longest domain name, alone and beside the longest host name, can
+    /// listen. (Fails with a root longer than iceoryx2's default `/tmp/iceoryx2/`.)
+    #[test]
+    fn the_longest_domain_and_host_names_can_listen() {
+        let pid = std::process::id().to_string();
+        let longest = format!("{pid}{}", "x".repeat(24 - pid.len()));
+        let host = "h".repeat(12);
+        for (name, host) in [(longest.as_str(), None), (&longest[..11], Some(host.as_str()))] {
+            let domain = Domain::on_host(name, host).expect("domain");
+            let node = domain.node("plant").expect("node");
+            let inbox = domain.inbox::<StateSample>(&node, Topic::State, 1, true);
+            let inbox = inbox.unwrap_or_else(|e| panic!("{name} on {host:?}: {e}"));
+            drop((inbox, node));
+            domain.cleanup().expect("cleanup");
+        }
     }
 
     #[test]
