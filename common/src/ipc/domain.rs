@@ -653,10 +653,9 @@ mod tests {
         const TMPFS_MAGIC: i64 = 0x0102_1994;
         let domain = Domain::new(&format!("ipc-fs{}", std::process::id())).expect("domain");
         let node = domain.node("plant").expect("node");
-        let _out = domain.outbox::<StateSample>(&node, Topic::State).expect("service");
-        let root = PathBuf::from(domain.root_path());
+        let outbox = domain.outbox::<StateSample>(&node, Topic::State).expect("service");
         let mut files = Vec::new();
-        let mut dirs = vec![root.clone()];
+        let mut dirs = vec![PathBuf::from(domain.root_path())];
         while let Some(d) = dirs.pop() {
             for e in std::fs::read_dir(&d).expect("readable").flatten() {
                 match e.file_type().expect("type").is_dir() {
@@ -678,7 +677,7 @@ mod tests {
                 f.display()
             );
         }
-        drop((_out, node));
+        drop((outbox, node));
         domain.cleanup().expect("cleanup");
     }
 
