@@ -115,8 +115,13 @@ fn a_controller_killed_on_the_far_host_is_restarted_and_control_resumes() {
         run_split_output(&h, &out, &["--duration", "6", "--mode", "realtime", "--fault", fault]);
     ok(&o);
     let err = String::from_utf8_lossy(&o.stderr);
-    let unbridged: Vec<&str> = err.lines().filter(|l| l.contains("no longer bridging")).collect();
+    // Up to the launcher's word that it stops the gateways: after it, one gateway may see
+    // the other's offers go before its own SIGTERM lands (seen in 5 of 20 loaded rounds,
+    // every time after `link[a]: stopping`).
+    let run = err.lines().take_while(|l| !l.contains("stopping the link gateways"));
+    let unbridged: Vec<&str> = run.filter(|l| l.contains("no longer bridging")).collect();
     assert!(unbridged.is_empty(), "a restart here closed bridges: {unbridged:?}");
+    assert!(err.contains("launcher: the roles are done; stopping the link gateways"), "{err}");
     let s = json(&out.join("summary.json"));
     assert_eq!(s["completed"], true);
     assert_eq!(s["trace_rows"], 6001);

@@ -160,6 +160,29 @@ fn a_restart_intensity_breach_stops_the_run_naming_the_role() {
     h.assert_no_leftovers();
 }
 
+/// A monitor whose file writes are held up (here 5 s before its first write, the stand-in
+/// for a `write(2)` blocked by disk writeback, which under the repeat harness once held a
+/// monitor long enough for a 2 s watchdog to kill it) goes on taking rows: its files are
+/// written by a thread of their own, and its progress mark is the rows taken. Nobody is
+/// judged hung and the trace is the simulator's. Fails with the writes in the monitor's
+/// loop (`IN_FLIGHT_MAX` 0: every poll waits for its write): the monitor is killed.
+#[test]
+fn a_monitor_whose_writes_are_held_up_is_not_hung() {
+    let h = Harness::new("sup-slowdisk");
+    let out = h.path("run");
+    let args = ["--scenario", "paper-sinusoid", "--duration", "60", "--mode", "lockstep"];
+    let extra = ["--test-files-stall-ms", "5000", "--watchdog-ms", "2000"];
+    let o = wait_output(launcher(&h, &out, &[&args[..], &extra].concat()), LIMIT);
+    assert!(o.status.success(), "exit {}: {}", o.status, stderr(&o));
+    assert!(!stderr(&o).contains("hung"), "{}", stderr(&o));
+    let s = json(&out.join("summary.json"));
+    assert_eq!(fault_kinds(&s), [], "nobody was judged hung");
+    assert_eq!(s["monitor_restarts"], 0);
+    let trace = std::fs::read(out.join("trace.csv")).expect("trace");
+    assert_same_trace("slow disk", &trace, &sim_trace(&h, "60"));
+    h.assert_no_leftovers();
+}
+
 /// A controller that hangs (SIGSTOP, no SIGCONT) in lockstep holds the loop up: the
 /// watchdog kills it after `--watchdog-ms` without progress, the supervisor restarts it,
 /// and the trace is still the simulator's, bit for bit.

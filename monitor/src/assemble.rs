@@ -100,7 +100,7 @@ pub fn report(
 ) -> RunSummary {
     let ticks = scenario.ticks();
     let start = records.states.get(0).map_or(0, |s| s.wake_ns);
-    let (mut rec, _) = Recording::open(out, scenario, None, start);
+    let (mut rec, _) = Recording::open(out, scenario, None, (start, None));
     rec.hosts = hosts.clone();
     let mut joiner = RowJoiner::for_scenario(scenario, start);
     let mut flight = records.summary(dir, ticks);

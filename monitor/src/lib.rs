@@ -9,6 +9,7 @@
 
 pub mod assemble;
 pub mod figures;
+pub mod filer;
 pub mod hosts;
 pub mod latency;
 pub mod metrics;

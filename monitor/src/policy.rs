@@ -46,11 +46,21 @@ pub const END_QUIET_NS: u64 = 5_000_000_000;
 
 /// What a restarted monitor needs to continue the same report.
 #[derive(Debug, Clone, Copy, ZeroCopySend)]
-#[type_name("rotorloop::MonitorResume_v6")]
+#[type_name("rotorloop::MonitorResume_v7")]
 #[repr(C)]
 pub struct MonitorResume {
-    /// The next row to write.
+    /// The next row to write: the rows before it are in the files.
     pub next_row: u64,
+    /// The next row to take: the monitor's progress, which the launcher's watchdog reads.
+    /// Rows from `next_row` up to it are taken and on their way to the files
+    /// (`crate::filer`).
+    pub taken_row: u64,
+    /// `trace.csv`'s length with the rows before `next_row` (bytes): a restarted monitor
+    /// cuts the file back to it, so a row written after the slot's last word is not
+    /// written twice.
+    pub trace_bytes: u64,
+    /// `timing.csv`'s length, the same way.
+    pub timing_bytes: u64,
     /// Rows written.
     pub rows: u64,
     /// Rows lost.
@@ -205,6 +215,9 @@ impl RowJoiner {
         let s = self.seq;
         MonitorResume {
             next_row: self.next,
+            taken_row: self.next,
+            trace_bytes: 0,
+            timing_bytes: 0,
             rows: self.rows,
             rows_lost: self.rows_lost,
             restarts: self.restarts,

@@ -10,8 +10,7 @@
 //! `summary.json` are written where possible: into the output directory (tried twice),
 //! else into a fallback directory it names, else the summary goes to stderr.
 
-use std::fs::File;
-use std::io::{BufWriter, Write};
+use std::io::Write;
 use std::path::{Path, PathBuf};
 
 use anyhow::Context;
@@ -22,13 +21,15 @@ use serde::Serialize;
 
 use crate::figures::Recorder;
 use crate::figures::tracking_figures;
+use crate::filer::{Filer, Written};
 use crate::latency::{Hop, Latency};
 use crate::metrics::Metrics;
 use crate::policy::{JoinedRow, MonitorResume, RowJoiner};
 use crate::stages::Stages;
 use crate::trace::TraceWriter;
 
-type Buffered = BufWriter<File>;
+/// Formatted rows kept before they are handed to the files' thread even between polls.
+const PENDING_MAX: usize = 1 << 20;
 
 /// The trace stopped being written.
 #[derive(Debug, Clone, Serialize, PartialEq)]
@@ -44,8 +45,17 @@ pub struct StorageLoss {
 #[derive(Debug)]
 pub struct Recording {
     out: PathBuf,
-    /// `trace.csv` and `timing.csv`; `None` once they could not be written.
-    files: Option<(TraceWriter<Buffered>, Buffered)>,
+    /// The thread that writes `trace.csv` and `timing.csv`; `None` once they could not
+    /// be written.
+    files: Option<Filer>,
+    /// The rows taken since the last poll, formatted: `trace.csv`'s and `timing.csv`'s.
+    pending: [Vec<u8>; 2],
+    /// The newest resume slot content whose rows are in the files (`None`: none yet).
+    durable: Option<MonitorResume>,
+    /// The next row to take: the progress mark the slot carries.
+    taken_row: u64,
+    /// The files' lengths when opened (bytes).
+    lengths_at_open: [u64; 2],
     metrics: Metrics,
     recorder: Recorder,
     /// Per-hop histograms and interval logs.
@@ -76,30 +86,43 @@ pub struct Recording {
     status_at_ns: Option<u64>,
 }
 
+/// Opens `trace.csv` and `timing.csv` in `out` (new, with their headers; or `resumed`'s,
+/// cut back to the lengths its slot says were written) and starts their writing thread.
 fn open_files(
     out: &Path,
     resumed: Option<&MonitorResume>,
-) -> anyhow::Result<(TraceWriter<Buffered>, Buffered)> {
-    let open = |name: &str| {
+    stall: Option<std::time::Duration>,
+) -> anyhow::Result<(Filer, [u64; 2])> {
+    let open = |name: &str, claimed: Option<u64>, header: &str| {
         let path = out.join(name);
-        let f = std::fs::OpenOptions::new()
+        let mut f = std::fs::OpenOptions::new()
             .create(true)
             .append(resumed.is_some())
             .write(true)
             .truncate(resumed.is_none())
             .open(&path)
             .with_context(|| format!("cannot open {}", path.display()))?;
-        anyhow::Ok(BufWriter::with_capacity(1 << 20, f))
+        let len = f.metadata().with_context(|| format!("cannot read {}", path.display()))?.len();
+        let len = match claimed {
+            // Rows the predecessor wrote after its slot's last word: taken again now.
+            Some(c) if c < len => {
+                f.set_len(c).with_context(|| format!("cannot cut {} back", path.display()))?;
+                c
+            }
+            Some(_) => len,
+            None => {
+                writeln!(f, "{header}").with_context(|| format!("cannot write {name}"))?;
+                header.len() as u64 + 1
+            }
+        };
+        anyhow::Ok((f, len))
     };
-    let trace = match resumed {
-        Some(_) => TraceWriter::append(open("trace.csv")?),
-        None => TraceWriter::new(open("trace.csv")?).context("cannot write trace.csv")?,
-    };
-    let mut timing = open("timing.csv")?;
-    if resumed.is_none() {
-        writeln!(timing, "{}", crate::timing::header()).context("cannot write timing.csv")?;
-    }
-    Ok((trace, timing))
+    let (trace, t) = open("trace.csv", resumed.map(|r| r.trace_bytes), crate::trace::HEADER)?;
+    let (timing, m) =
+        open("timing.csv", resumed.map(|r| r.timing_bytes), &crate::timing::header())?;
+    let filer = Filer::start(trace, timing, [t, m], stall)
+        .context("cannot start the monitor's file thread")?;
+    Ok((filer, [t, m]))
 }
 
 impl Recording {
@@ -107,20 +130,25 @@ impl Recording {
     /// `slot` (the monitor's resume slot) holds an unfinished report whose trace is there,
     /// the predecessor's, appended to (a restart); then it also returns that slot content.
     /// Files that cannot be opened are a [`StorageLoss`] from the first row, not an error.
+    /// `stall`: the tests' hold-up of a first monitor's first write ([`Filer::start`]).
     pub fn open(
         out: &Path,
         scenario: &Scenario,
         slot: Option<MonitorResume>,
-        now_ns: u64,
+        (now_ns, stall): (u64, Option<std::time::Duration>),
     ) -> (Self, Option<MonitorResume>) {
         let _ = std::fs::create_dir_all(out);
         let _ = std::fs::remove_file(out.join("summary.json"));
         let resumed =
             slot.filter(|r| r.next_row <= scenario.ticks() && out.join("trace.csv").exists());
         let first_row = resumed.map_or(0, |r| r.next_row);
-        let (files, loss) = match open_files(out, resumed.as_ref()) {
-            Ok(f) => (Some(f), None),
-            Err(e) => (None, Some(StorageLoss { from_tick: first_row, reason: format!("{e:#}") })),
+        let stall = stall.filter(|_| resumed.is_none());
+        let (files, lengths_at_open, loss) = match open_files(out, resumed.as_ref(), stall) {
+            Ok((f, lengths)) => (Some(f), lengths, None),
+            Err(e) => {
+                let loss = StorageLoss { from_tick: first_row, reason: format!("{e:#}") };
+                (None, [0, 0], Some(loss))
+            }
         };
         let actuation = scenario.actuation();
         let params = scenario.plant_params(actuation);
@@ -136,6 +164,10 @@ impl Recording {
         let mut rec = Self {
             out: out.to_owned(),
             files,
+            pending: [Vec::with_capacity(PENDING_MAX), Vec::with_capacity(PENDING_MAX)],
+            durable: resumed,
+            taken_row: first_row,
+            lengths_at_open,
             metrics,
             recorder: Recorder::new(scenario.ticks() + 1),
             latency,
@@ -193,14 +225,18 @@ impl Recording {
             self.metrics.observe_work(k, s.t_s, &s.body_state(), &rd, u, tau, s.rotor_work_j);
         row.delay_s = j.following.map_or(f64::NAN, |f| f.first_effect_delay_s(self.dt));
         self.first_unflushed.get_or_insert(k);
-        if let Some((trace, timing)) = &mut self.files {
-            let written = trace.write(&row).map_err(|e| format!("trace.csv: {e}")).and_then(|()| {
-                crate::timing::TimingRow::of(s)
-                    .write(timing)
-                    .map_err(|e| format!("timing.csv: {e}"))
-            });
-            if let Err(reason) = written {
-                self.lose(k, reason);
+        if self.files.is_some() {
+            // Formatted here, written by the files' thread (`crate::filer`); a write into
+            // memory does not fail.
+            let [trace, timing] = &mut self.pending;
+            let _ = TraceWriter::append(&mut *trace).write(&row);
+            let _ = crate::timing::TimingRow::of(s).write(&mut *timing);
+            // Many rows between two polls (a report assembled from the flight records
+            // takes them all at once): handed over by the MiB, without a slot content.
+            if trace.len() >= PENDING_MAX {
+                let first = self.first_unflushed.take().unwrap_or(k);
+                let written = self.files.as_mut().map(|f| f.hand_over(trace, timing, first, None));
+                self.take(written.unwrap_or_default());
             }
         }
         self.recorder.record(&row, k == self.ticks);
@@ -241,25 +277,68 @@ impl Recording {
         record(Hop::ReferenceLead, s.publish_ns.saturating_sub(j.reference.publish_ns));
     }
 
-    /// If rows were taken since the last call: makes them durable, then returns what the
-    /// resume slot should now say (durable first, then recorded: a monitor killed now
-    /// loses nothing that its resume slot claims was written).
+    /// A new report's first resume slot content, before any row: a monitor killed before
+    /// its first rows reach the files restarts from row 0 (with the headers only), and
+    /// the slot carries the progress mark from the first poll on, however long the first
+    /// write takes. A restart keeps its predecessor's.
+    pub fn begin(&mut self, joiner: &RowJoiner) {
+        if self.durable.is_none() {
+            let [trace_bytes, timing_bytes] = self.lengths_at_open;
+            let r = joiner.save(self.first_err, self.err_sq, self.drift_max, self.metrics.save());
+            self.durable = Some(MonitorResume { trace_bytes, timing_bytes, ..r });
+        }
+    }
+
+    /// Hands the rows taken since the last call to the files' thread, and returns what
+    /// the resume slot should now say, if that changed: the newest content whose rows are
+    /// in the files (a monitor killed now loses nothing its slot claims was written, and
+    /// writes no row twice), with the progress mark `taken_row` at the rows taken.
     pub fn flush(&mut self, joiner: &RowJoiner) -> Option<MonitorResume> {
-        if joiner.rows() <= self.rows_at_flush {
+        let taken = joiner.rows() > self.rows_at_flush;
+        let mut snapshot = None;
+        if taken {
+            self.rows_at_flush = joiner.rows();
+            let first = self.first_unflushed.take().unwrap_or_default();
+            let now = joiner.save(self.first_err, self.err_sq, self.drift_max, self.metrics.save());
+            snapshot = Some(now);
+            let [trace, timing] = &mut self.pending;
+            let written = match &mut self.files {
+                Some(f) => f.hand_over(trace, timing, first, Some(now)),
+                // Not written any more: the slot goes on with the rows taken (and the
+                // files' lengths at the loss).
+                None => {
+                    let d = self.durable.map(|d| (d.trace_bytes, d.timing_bytes));
+                    let (trace_bytes, timing_bytes) = d.unwrap_or_default();
+                    self.durable = Some(MonitorResume { trace_bytes, timing_bytes, ..now });
+                    Vec::new()
+                }
+            };
+            self.take(written);
+        } else if let Some(f) = &mut self.files {
+            let written = f.finished();
+            if written.is_empty() {
+                return None;
+            }
+            self.take(written);
+        } else {
             return None;
         }
-        if let Some((trace, timing)) = &mut self.files {
-            let flushed = trace.flush().map_err(|e| format!("trace.csv: {e}"));
-            if let Err(reason) =
-                flushed.and_then(|()| timing.flush().map_err(|e| format!("timing.csv: {e}")))
-            {
-                // What was buffered since the last flush is not on disk.
-                self.lose(self.first_unflushed.unwrap_or_default(), reason);
+        if let Some(s) = snapshot {
+            self.taken_row = s.next_row;
+        }
+        let taken_row = self.taken_row;
+        self.durable.map(|d| MonitorResume { taken_row, ..d })
+    }
+
+    /// Takes the thread's answers: the newest slot content written, or the loss.
+    fn take(&mut self, written: Vec<Written>) {
+        for w in written {
+            match w {
+                Written::Ok { resume: Some(r), .. } => self.durable = Some(r),
+                Written::Ok { resume: None, .. } => {}
+                Written::Failed { from_tick, reason } => self.lose(from_tick, reason),
             }
         }
-        self.rows_at_flush = joiner.rows();
-        self.first_unflushed = None;
-        Some(joiner.save(self.first_err, self.err_sq, self.drift_max, self.metrics.save()))
     }
 
     /// Root mean square of the attitude error over the rows taken (deg); NaN before any.
@@ -295,12 +374,14 @@ impl Recording {
             eprint!("\r{:100}\r", ""); // clear the status line
         }
         let mut files = Vec::new();
-        if let Some((trace, timing)) = &mut self.files {
-            match trace.flush().and_then(|()| timing.flush()) {
-                Ok(()) => files.extend(["trace.csv".to_owned(), "timing.csv".to_owned()]),
-                Err(e) => {
-                    self.lose(self.first_unflushed.unwrap_or_default(), format!("trace.csv: {e}"))
-                }
+        if let Some(mut f) = self.files.take() {
+            let [trace, timing] = &mut self.pending;
+            let first = self.first_unflushed.take().unwrap_or_default();
+            let mut written = f.hand_over(trace, timing, first, None);
+            written.extend(f.close());
+            self.take(written);
+            if self.loss.is_none() {
+                files.extend(["trace.csv".to_owned(), "timing.csv".to_owned()]);
             }
         }
         if let Some(e) = self.latency.log_error() {
@@ -365,4 +446,43 @@ pub fn with_fallback<T>(
         .with_context(|| format!("{first:#}; fallback {} not usable either", fallback.display()))?;
     let v = write(fallback).with_context(|| format!("{first:#}; and in {}", fallback.display()))?;
     Ok((v, fallback.to_owned()))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::policy::RowJoiner;
+
+    /// A restarted monitor cuts its files back to the lengths its slot claims: rows its
+    /// predecessor's file thread wrote after the slot's last word (the thread runs ahead
+    /// of the slot) are taken again, not written twice.
+    #[test]
+    fn a_restart_cuts_the_files_back_to_what_its_slot_claims() {
+        let dir = tempfile::tempdir().expect("tmp");
+        let (tp, mp) = (dir.path().join("trace.csv"), dir.path().join("timing.csv"));
+        std::fs::write(&tp, "h\nr0\nr1\nr2,parti").expect("trace");
+        std::fs::write(&mp, "H\nm0\nm1\n").expect("timing");
+        let joiner = RowJoiner::new(10, 1.0, 0);
+        let claimed = joiner.save(0.0, (0.0, 0), 0.0, Default::default());
+        let claimed = MonitorResume { next_row: 1, trace_bytes: 5, timing_bytes: 5, ..claimed };
+        let (mut f, lengths) = open_files(dir.path(), Some(&claimed), None).expect("open");
+        assert_eq!(lengths, [5, 5]);
+        let _ = f.hand_over(&mut b"r1\n".to_vec(), &mut b"m1\n".to_vec(), 1, None);
+        let _ = f.close();
+        assert_eq!(std::fs::read_to_string(&tp).expect("trace"), "h\nr0\nr1\n");
+        assert_eq!(std::fs::read_to_string(&mp).expect("timing"), "H\nm0\nm1\n");
+    }
+
+    /// A new report's files start with their headers, and the lengths say so.
+    #[test]
+    fn new_files_start_with_their_headers() {
+        let dir = tempfile::tempdir().expect("tmp");
+        let (f, lengths) = open_files(dir.path(), None, None).expect("open");
+        drop(f);
+        for (name, len) in ["trace.csv", "timing.csv"].into_iter().zip(lengths) {
+            let text = std::fs::read_to_string(dir.path().join(name)).expect(name);
+            assert_eq!(text.len() as u64, len, "{name}");
+            assert_eq!(text.lines().count(), 1, "{name}: {text}");
+        }
+    }
 }

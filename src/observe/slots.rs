@@ -91,9 +91,10 @@ impl Slots {
         self.reference.as_ref().and_then(ResumeSlot::load).map(|r| r.next())
     }
 
-    /// The monitor's next row.
+    /// The monitor's next row to take (its progress; the rows before it may still be on
+    /// their way to its files).
     pub fn monitor_next(&self) -> Option<u64> {
-        self.monitor.as_ref().and_then(ResumeSlot::load).map(|m| m.next_row)
+        self.monitor.as_ref().and_then(ResumeSlot::load).map(|m| m.taken_row)
     }
 
     /// The plant has published its last tick: the control loop is complete.

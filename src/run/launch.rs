@@ -127,7 +127,7 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
     let started = start(&launch, &mut children, &mut rss);
     let supervised = started
         .and_then(|()| supervise(&launch, &mut children, &mut rss, FaultSchedule::new(faults)));
-    stop_gateways(&mut children);
+    stop_gateways(&mut children, args.quiet);
     drop(children);
     // Everything of this domain is gone now: remove what iceoryx2 keeps after its nodes.
     for domain in &launch.domains {

@@ -312,9 +312,32 @@ pub(crate) fn start(
     Ok(())
 }
 
-/// Stops the gateways once the roles are done (SIGTERM, SIGKILL after 5 s).
-pub(crate) fn stop_gateways(children: &mut Children) {
-    for (name, c) in children.0.iter_mut().filter(|(n, _)| n.starts_with("link-")) {
+/// Stops the gateways once the roles are done: SIGTERM to all at once, then each is
+/// waited for (SIGKILL after 5 s). Unless `quiet`, it first says so on the launcher's own
+/// stderr: whatever a gateway says after that line (one may see the other's offers go
+/// before its own SIGTERM lands, and say `no longer bridging`) is the shutdown, not the
+/// run.
+pub(crate) fn stop_gateways(children: &mut Children, quiet: bool) {
+    let mut gateways: Vec<_> = children
+        .0
+        .iter_mut()
+        .filter(|(n, _)| n.starts_with("link-"))
+        .filter_map(|(n, c)| running(c).then_some((n, c)))
+        .collect();
+    if gateways.is_empty() {
+        return;
+    }
+    if !quiet {
+        eprintln!("launcher: the roles are done; stopping the link gateways");
+    }
+    for (_, c) in gateways.iter_mut() {
+        crate::run::supervise::signal(c, libc::SIGTERM);
+    }
+    for (name, c) in gateways {
         crate::run::split::stop(name, c);
     }
+}
+
+fn running(c: &mut std::process::Child) -> bool {
+    matches!(c.try_wait(), Ok(None))
 }

@@ -25,13 +25,16 @@ pub fn run(args: &args::MonitorArgs) -> anyhow::Result<()> {
     role.setup(ROLE);
     let ports = Ports::open(role, &args.out)?;
     // A restart continues the report in the same directory.
-    let (mut rec, resumed) = Recording::open(&args.out, &scenario, ports.slot.load(), now_ns());
+    let stall = role.hooks.test_files_stall_ms.map(std::time::Duration::from_millis);
+    let (mut rec, resumed) =
+        Recording::open(&args.out, &scenario, ports.slot.load(), (now_ns(), stall));
     rec.hosts = args.hosts.clone().unwrap_or_default();
     let mut joiner = RowJoiner::for_scenario(&scenario, now_ns());
     if let Some(r) = &resumed {
         joiner.resume(r);
         eprintln!("monitor: restarted; continuing the report from tick {}", r.next_row);
     }
+    rec.begin(&joiner);
     let status = args.status && std::io::stderr().is_terminal();
     // Started after the plant's last tick (a restart after the end): what is still in
     // the buffers is all there is; no need to wait for a quiet period.
