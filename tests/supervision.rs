@@ -183,6 +183,29 @@ fn a_monitor_whose_writes_are_held_up_is_not_hung() {
     h.assert_no_leftovers();
 }
 
+/// A controller stopped between writing its resume slot and sending its answer looks, by
+/// its mark, as if it had answered: in lockstep the watchdog then blamed the plant waiting
+/// for that answer, and killed and restarted it every 10 s while the run never ended (once
+/// in 20 rounds of the repeat harness). A stopped role of the loop is now the one to
+/// blame: the controller is judged hung and restarted, it re-sends that very answer, and
+/// the trace is the simulator's. Without the rule this test runs into its limit.
+#[test]
+fn a_controller_stopped_between_its_slot_and_its_send_is_the_one_judged_hung() {
+    let h = Harness::new("sup-slotstop");
+    let out = h.path("run");
+    let args = ["--scenario", "paper-sinusoid", "--duration", "60", "--mode", "lockstep"];
+    let extra = ["--test-stop-before-send-at", "5000", "--watchdog-ms", "2000"];
+    let o = wait_output(launcher(&h, &out, &[&args[..], &extra].concat()), LIMIT);
+    assert!(o.status.success(), "exit {}: {}", o.status, stderr(&o));
+    let s = json(&out.join("summary.json"));
+    let kinds = fault_kinds(&s);
+    let want = [("controller".to_owned(), "stop".to_owned()), ("controller".into(), "hang".into())];
+    assert_eq!(kinds, want, "{}", stderr(&o));
+    let trace = std::fs::read(out.join("trace.csv")).expect("trace");
+    assert_same_trace("stopped before its send", &trace, &sim_trace(&h, "60"));
+    h.assert_no_leftovers();
+}
+
 /// A controller that hangs (SIGSTOP, no SIGCONT) in lockstep holds the loop up: the
 /// watchdog kills it after `--watchdog-ms` without progress, the supervisor restarts it,
 /// and the trace is still the simulator's, bit for bit.

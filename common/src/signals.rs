@@ -33,3 +33,9 @@ pub fn shutdown_requested() -> bool {
 pub fn request_shutdown() {
     SHUTDOWN.store(true, Ordering::SeqCst);
 }
+
+/// Stops this process (SIGSTOP) until someone continues or kills it (the tests' hooks).
+pub fn stop_self() {
+    // SAFETY: raises a signal in this process.
+    unsafe { libc::raise(libc::SIGSTOP) };
+}

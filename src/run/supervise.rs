@@ -348,7 +348,7 @@ pub struct Marks {
     pub controller: Option<u64>,
     /// The next tick the reference will publish.
     pub reference_next: Option<u64>,
-    /// The next row the monitor will write.
+    /// The next row the monitor will take.
     pub monitor_next: Option<u64>,
 }
 
@@ -386,6 +386,31 @@ impl Marks {
                     .min(self.reference_next.unwrap_or(0).saturating_sub(1));
                 self.monitor_next.unwrap_or(0) + 2 <= out
             }
+        }
+    }
+
+    /// [`Marks::work_waiting`], given the roles stopped now (SIGSTOP or any stop, whoever
+    /// sent it). A stopped role of the loop holds it up whatever its mark says, and the
+    /// other roles wait for it. The marks alone cannot say so: a controller writes its
+    /// resume slot just before it sends (its restart must resume with the law state of
+    /// its last answer), so one stopped between the two looks as if it had answered; in
+    /// lockstep the plant, waiting for that answer, was blamed instead, killed and
+    /// restarted every 10 s while the run never ended (once in 20 rounds of the repeat
+    /// harness under load). A stopped monitor holds up nothing but itself.
+    pub fn work_waiting_with_stops(
+        &self,
+        role: Role,
+        lockstep: bool,
+        lead: u64,
+        stopped: &[Role],
+    ) -> bool {
+        let holds_up_the_loop = |r: &Role| *r != Role::Monitor;
+        if stopped.contains(&role) {
+            holds_up_the_loop(&role) || self.work_waiting(role, lockstep, lead)
+        } else if stopped.iter().any(holds_up_the_loop) {
+            false
+        } else {
+            self.work_waiting(role, lockstep, lead)
         }
     }
 }
@@ -585,6 +610,32 @@ mod tests {
             false,
             16
         ));
+    }
+
+    #[test]
+    fn a_stopped_role_of_the_loop_is_to_blame_whatever_its_mark_says() {
+        // Lockstep: the controller's slot says it answered 10 (it stopped between its slot
+        // and its send), the plant waits for torque 10.
+        let m = Marks {
+            plant: Some(10),
+            controller: Some(10),
+            reference_next: Some(27),
+            monitor_next: Some(8),
+        };
+        assert!(m.work_waiting(Role::Plant, true, 16), "by the marks alone: the plant");
+        let stopped = [Role::Controller];
+        assert!(m.work_waiting_with_stops(Role::Controller, true, 16, &stopped));
+        for r in [Role::Plant, Role::Reference, Role::Monitor] {
+            assert!(!m.work_waiting_with_stops(r, true, 16, &stopped), "{r:?} waits for it");
+        }
+        // Nothing stopped: the marks decide.
+        assert!(m.work_waiting_with_stops(Role::Plant, true, 16, &[]));
+        // A stopped monitor holds up only itself, and only with rows waiting.
+        let behind = Marks { monitor_next: Some(2), ..m };
+        assert!(behind.work_waiting_with_stops(Role::Plant, true, 16, &[Role::Monitor]));
+        assert!(behind.work_waiting_with_stops(Role::Monitor, true, 16, &[Role::Monitor]));
+        let caught_up = Marks { monitor_next: Some(9), ..m };
+        assert!(!caught_up.work_waiting_with_stops(Role::Monitor, true, 16, &[Role::Monitor]));
     }
 
     #[test]

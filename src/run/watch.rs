@@ -413,6 +413,10 @@ fn watch_for_hangs(
     lockstep: bool,
     now_s: f64,
 ) {
+    let stopped: Vec<Role> = Role::ALL
+        .into_iter()
+        .filter(|r| children.get_mut(r.name()).is_some_and(|c| w.open_stops.contains_key(&c.id())))
+        .collect();
     for r in Role::ALL {
         let role = r.name();
         let pid = children.get_mut(role).map(|c| c.id());
@@ -421,7 +425,7 @@ fn watch_for_hangs(
         // a loaded machine, and each pass over it counted as another hang (seen: one
         // SIGSTOP counted six times 2 ms apart, over the restart limit, the run stopped).
         let alive = pid.is_some_and(|p| !w.handled.contains(&p) && !w.planned.contains(&p));
-        let pending = alive && marks.work_waiting(r, lockstep, REFERENCE_LEAD);
+        let pending = alive && marks.work_waiting_with_stops(r, lockstep, REFERENCE_LEAD, &stopped);
         if !w.watchdog.check(role, marks.of(r), pending, now_s) {
             continue;
         }

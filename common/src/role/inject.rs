@@ -19,6 +19,10 @@ pub struct TestHooks {
     /// controller before any reference.
     #[arg(long, hide = true, value_name = "MS")]
     pub test_reference_late_ms: Option<u64>,
+    /// A first controller (not a restart) stops itself (SIGSTOP) at this tick between
+    /// writing its resume slot and sending its answer: the slot then says it answered.
+    #[arg(long, hide = true, value_name = "TICK")]
+    pub test_stop_before_send_at: Option<u64>,
     /// A first monitor's (not a restart's) file thread waits this many ms before it writes
     /// its first rows: a stand-in for a `write(2)` held up by disk writeback.
     #[arg(long, hide = true, value_name = "MS")]
@@ -33,6 +37,7 @@ impl TestHooks {
             ("--test-stall-with-loan-at", self.test_stall_with_loan_at),
             ("--test-reference-late-ms", self.test_reference_late_ms),
             ("--test-files-stall-ms", self.test_files_stall_ms),
+            ("--test-stop-before-send-at", self.test_stop_before_send_at),
         ]
         .into_iter()
         .filter_map(|(flag, v)| v.map(|v| [flag.to_owned(), v.to_string()]))

@@ -35,6 +35,8 @@ pub fn run(args: &args::ControllerArgs) -> anyhow::Result<()> {
     }
     // Test hook: a first incarnation stalls holding a loan at this tick, to be killed so.
     let stall_at = role.hooks.test_stall_with_loan_at.filter(|_| answers.last().is_none());
+    // Test hook: a first incarnation stops itself between its slot and its send.
+    let stop_at = role.hooks.test_stop_before_send_at.filter(|_| answers.last().is_none());
     let mut sends = DelayedSends::new(args.inject_delay.clone());
     loop {
         ports.send_due(&mut sends, &args.corrupt, false)?;
@@ -64,6 +66,9 @@ pub fn run(args: &args::ControllerArgs) -> anyhow::Result<()> {
         // Slot first: killed between the two, the restart re-sends this very answer when
         // the plant asks again; the other order would resume with a stale law state.
         ports.slot.store(&answers.resume_record(&sample));
+        if stop_at == Some(k) {
+            rotorloop_common::signals::stop_self();
+        }
         if let Some(t) = sends.hold(sample, state.t_s, now_ns()) {
             ports.publish(t, &args.corrupt)?;
         }
