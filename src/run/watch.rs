@@ -597,14 +597,18 @@ fn injected(
         Apply::Signal(sig, name) => {
             let Some(c) = children.get_mut(role) else { return Ok(()) };
             let pid = c.id();
-            let e = FaultEvent {
-                signal: Some(name),
-                ..FaultEvent::now(role, kind, format!("{name} (--fault)"))
-            };
             if sig == libc::SIGKILL {
                 w.planned.insert(pid);
             }
             signal(c, sig);
+            // Its moment is when the signal is sent, not when the launcher decided to send
+            // it: preempted in between (a busy loop per core), the launcher once stamped a
+            // kill several ticks before the controller died, whose last answers then showed
+            // as answers from after the kill (faults::realtime_controller_loss…, 1 of 20).
+            let e = FaultEvent {
+                signal: Some(name),
+                ..FaultEvent::now(role, kind, format!("{name} (--fault)"))
+            };
             // A SIGKILLed process is reaped by `reap` once it has exited, not waited for
             // here: one in an uninterruptible disk wait takes seconds to die under load, and
             // a blocking wait stalled this whole loop (fault schedule, watchdog, record
