@@ -228,6 +228,15 @@ fn a_hung_controller_is_killed_by_the_watchdog_and_restarted_bit_for_bit() {
     assert_eq!(kinds.len(), 2, "nobody else was blamed: {kinds:?}");
     assert!(stderr(&o).contains("hung; killed"), "{}", stderr(&o));
     let trace = std::fs::read(out.join("trace.csv")).expect("trace");
+    // Shown with a failure (captured otherwise): once, under load, the trace began at tick
+    // 22732 (not explained yet); whether the records or the writing lost the rows.
+    eprintln!(
+        "trace_rows {} rows_lost {} flight {}\nstderr:\n{}",
+        s["trace_rows"],
+        s["rows_lost"],
+        s["flight"],
+        stderr(&o)
+    );
     assert_same_trace("hang", &trace, &sim_trace(&h, "120"));
     h.assert_no_leftovers();
 }

@@ -30,6 +30,23 @@ pub struct TestHooks {
 }
 
 impl TestHooks {
+    /// The hooks that act in this incarnation of the controller: the stall and the stop
+    /// only in a `first` one, not in a restart.
+    pub fn first_run(mut self, first: bool) -> Self {
+        if !first {
+            (self.test_stall_with_loan_at, self.test_stop_before_send_at) = (None, None);
+        }
+        self
+    }
+
+    /// With `--test-stop-before-send-at K`: stops this process (SIGSTOP) at tick `k == K`.
+    #[inline]
+    pub fn stop_before_send(&self, k: u64) {
+        if self.test_stop_before_send_at == Some(k) {
+            crate::signals::stop_self();
+        }
+    }
+
     /// The hooks as a command line.
     pub fn to_args(&self) -> Vec<String> {
         [

@@ -33,10 +33,7 @@ pub fn run(args: &args::ControllerArgs) -> anyhow::Result<()> {
         pairing.resume(&r.last);
         eprintln!("controller: resuming after tick {} with its law's last state", r.last.tick);
     }
-    // Test hook: a first incarnation stalls holding a loan at this tick, to be killed so.
-    let stall_at = role.hooks.test_stall_with_loan_at.filter(|_| answers.last().is_none());
-    // Test hook: a first incarnation stops itself between its slot and its send.
-    let stop_at = role.hooks.test_stop_before_send_at.filter(|_| answers.last().is_none());
+    let hooks = role.hooks.first_run(answers.last().is_none()); // the tests' hooks act once
     let mut sends = DelayedSends::new(args.inject_delay.clone());
     loop {
         ports.send_due(&mut sends, &args.corrupt, false)?;
@@ -49,7 +46,7 @@ pub fn run(args: &args::ControllerArgs) -> anyhow::Result<()> {
         };
         let k = state.tick;
         ports.plant.saw_state(k);
-        if stall_at == Some(k) {
+        if hooks.test_stall_with_loan_at == Some(k) {
             ports.out.stall_holding_a_loan()?;
             break;
         }
@@ -66,9 +63,7 @@ pub fn run(args: &args::ControllerArgs) -> anyhow::Result<()> {
         // Slot first: killed between the two, the restart re-sends this very answer when
         // the plant asks again; the other order would resume with a stale law state.
         ports.slot.store(&answers.resume_record(&sample));
-        if stop_at == Some(k) {
-            rotorloop_common::signals::stop_self();
-        }
+        hooks.stop_before_send(k);
         if let Some(t) = sends.hold(sample, state.t_s, now_ns()) {
             ports.publish(t, &args.corrupt)?;
         }
