@@ -228,8 +228,9 @@ fn a_hung_controller_is_killed_by_the_watchdog_and_restarted_bit_for_bit() {
     assert_eq!(kinds.len(), 2, "nobody else was blamed: {kinds:?}");
     assert!(stderr(&o).contains("hung; killed"), "{}", stderr(&o));
     let trace = std::fs::read(out.join("trace.csv")).expect("trace");
-    // Shown with a failure (captured otherwise): once, under load, the trace began at tick
-    // 22732 (not explained yet); whether the records or the writing lost the rows.
+    // Shown with a failure (captured otherwise): under load the trace once began at tick
+    // 22732. The flight part said why: the rings had come round before a mover slowed by
+    // writeback copied them (now lockstep waits for it: faults::lockstep_waits_for_a_slow…).
     eprintln!(
         "trace_rows {} rows_lost {} flight {}\nstderr:\n{}",
         s["trace_rows"],

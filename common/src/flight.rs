@@ -47,8 +47,10 @@ pub const SPARE_SLOTS: u64 = 64;
 /// The ring's slots per stream unless `--flight-ring-ticks` says otherwise: 65.5 s at
 /// 1 kHz, 1224 bytes a tick for the four streams (80 MB).
 pub const DEFAULT_RING_TICKS: u64 = 65_536;
-/// The smallest ring: a half must hold more than the reference's lead and the spare slots.
-pub const MIN_RING_TICKS: u64 = 256;
+/// The smallest ring: a half must hold more than the reference's lead and the spare slots,
+/// and in lockstep the plant's wait for the mover ([`free_through`]) must come after the
+/// mover's due point (`1.5 H` published) by more than the spare slots: `H/2 > 64 + 1`.
+pub const MIN_RING_TICKS: u64 = 512;
 
 /// The slots of a recorder for a run of `ticks` ticks with a ring of `ring` slots: the whole
 /// run where that is shorter (nothing to move), else the ring, rounded up to a power of two
@@ -57,6 +59,20 @@ pub fn ring_capacity(ticks: u64, ring: u64) -> u64 {
     let whole = ticks + 1 + SPARE_SLOTS;
     let ring = ring.max(MIN_RING_TICKS).next_power_of_two();
     whole.min(ring)
+}
+
+/// Whether a recorder of `capacity` slots for a run of `ticks` ticks is a ring that comes
+/// round (its halves must be moved out while the run goes on).
+pub fn ring_wraps(ticks: u64, capacity: u64) -> bool {
+    capacity < ticks + 1 + SPARE_SLOTS
+}
+
+/// The last tick the plant may publish while the mover has copied `copied` halves of `half`
+/// ticks of every stream: publishing the next could let a writer (the reference, up to
+/// [`SPARE_SLOTS`] ahead) come round to half `copied` before it is copied. Lockstep waits
+/// here; real time never waits (module docs).
+pub fn free_through(copied: u64, half: u64) -> u64 {
+    (copied + 2) * half - SPARE_SLOTS - 1
 }
 
 /// Where `rotorloop run` stages the records of domain `domain` while the run goes on
@@ -167,6 +183,8 @@ mod word {
     pub const OPENS: usize = 4;
     /// Samples whose tick lay beyond the capacity (not recorded).
     pub const BEYOND: usize = 5;
+    /// In a plant state ring: the halves of every stream the launcher's mover has copied.
+    pub const MOVED: usize = 6;
 }
 
 /// One role's recorder of one stream (module docs).
@@ -281,6 +299,36 @@ impl<T: Record> FlightRecorder<T> {
     /// Whether this recorder records.
     pub fn is_on(&self) -> bool {
         !self.map.is_null()
+    }
+
+    /// The ring's slots (0 when off).
+    pub fn capacity(&self) -> u64 {
+        self.capacity
+    }
+
+    /// Lockstep's wait for the launcher's mover before the plant publishes tick `k` (the
+    /// recorder is the plant state ring, a ring that comes round): waits, 1 ms at a time,
+    /// until the mover has copied what publishing `k` could overwrite ([`free_through`]),
+    /// but at most `limit`. Returns whether it had to give up (the records of that half
+    /// may then be lost, and the mover counts them). A load and a compare when nothing
+    /// is due.
+    pub fn wait_for_mover(&self, k: u64, limit: std::time::Duration) -> bool {
+        if self.map.is_null() {
+            return false;
+        }
+        let half = self.capacity / 2;
+        let moved = || self.word(word::MOVED).load(Ordering::Acquire);
+        if k <= free_through(moved(), half) {
+            return false;
+        }
+        let until = std::time::Instant::now() + limit;
+        while k > free_through(moved(), half) {
+            if std::time::Instant::now() >= until {
+                return true;
+            }
+            std::thread::sleep(std::time::Duration::from_millis(1));
+        }
+        false
     }
 
     /// Samples not recorded because the recorder is off.
@@ -404,35 +452,74 @@ pub struct Mover {
     kept: PathBuf,
     /// The next half to copy, per stream.
     next: [u64; 4],
+    /// The streams whose ring was seen (one that never comes holds nobody up).
+    rings: [bool; 4],
     /// Records lost because the ring came round before they were copied.
     pub lost: u64,
     /// Segment files written.
     pub segments: u64,
     /// The plant tick before which nothing is due (known once a ring's size is).
     due_at: u64,
+    /// The plant state ring's [`word::MOVED`], where the plant reads it (mapped once
+    /// that ring exists).
+    moved: Option<MovedWord>,
+    /// The ticks in a half of the rings, once read.
+    pub half: Option<u64>,
 }
 
 impl Mover {
     /// The mover of the rings in `staged` into `kept`.
     pub fn new(staged: &Path, kept: &Path) -> Self {
         let (staged, kept) = (staged.to_owned(), kept.to_owned());
-        Self { staged, kept, next: [0; 4], lost: 0, segments: 0, due_at: 0 }
+        Self {
+            staged,
+            kept,
+            next: [0; 4],
+            rings: [false; 4],
+            lost: 0,
+            segments: 0,
+            due_at: 0,
+            moved: None,
+            half: None,
+        }
+    }
+
+    /// The mover of rings whose halves hold `half` ticks, known before their files exist
+    /// (the plant's wait for it can be told apart from a hang from the start).
+    pub fn with_half(self, half: u64) -> Self {
+        Self { half: Some(half), ..self }
+    }
+
+    /// The halves of every stream with a ring copied so far.
+    pub fn copied(&self) -> u64 {
+        let seen = self.next.iter().zip(self.rings).filter(|(_, r)| *r);
+        seen.map(|(n, _)| *n).min().unwrap_or(0)
     }
 
     /// Copies every half that is due now that the plant has published `plant_tick`;
     /// returns what went wrong (a file that cannot be read or written), in words.
+    ///
+    /// Every due half is read out of its ring (tmpfs: a memcpy) before any is written to
+    /// disk, which can wait seconds on writeback: a slow write of one stream's segment
+    /// then never leaves another stream's half in its ring until it comes round (seen
+    /// under the repeat harness: the reference's, last in order, lost 784 ticks of a
+    /// lockstep run). Then it tells the plant how far it got ([`word::MOVED`]).
     pub fn pass(&mut self, plant_tick: u64) -> Vec<String> {
         let mut errors = Vec::new();
         if plant_tick < self.due_at {
             return errors;
         }
-        let mut half_seen = None;
+        let mut read = Vec::new();
         for (n, stream) in Stream::ALL.into_iter().enumerate() {
             loop {
-                match self.copy_half(stream, self.next[n], plant_tick) {
-                    Ok(Half::Copied) => self.next[n] += 1,
+                match self.read_half(stream, self.next[n], plant_tick) {
+                    Ok(Half::Read(bytes)) => {
+                        self.rings[n] = true;
+                        read.push((stream, self.next[n], bytes));
+                        self.next[n] += 1;
+                    }
                     Ok(Half::NotDue(h)) => {
-                        half_seen = Some(h);
+                        (self.rings[n], self.half) = (true, Some(h));
                         break;
                     }
                     Ok(Half::NoRing) => break,
@@ -444,16 +531,30 @@ impl Mover {
                 }
             }
         }
+        for (stream, j, bytes) in read {
+            match self.write_segment(stream, j, &bytes) {
+                Ok(()) => self.segments += 1,
+                Err(e) => {
+                    errors.push(format!("{}: {e}", segment_path(&self.kept, stream, j).display()))
+                }
+            }
+        }
         // Nothing is due before the lowest next half is (a ring's size is known once read).
-        if let Some(h) = half_seen {
+        if let Some(h) = self.half {
             let lowest = self.next.iter().min().copied().unwrap_or(0);
             self.due_at = (lowest + 1) * h + h / 2;
+        }
+        if self.moved.is_none() {
+            self.moved = MovedWord::map(&Stream::PlantState.path(&self.staged));
+        }
+        if let Some(m) = &self.moved {
+            m.store(self.copied());
         }
         errors
     }
 
-    /// Copies half `j` of `stream`'s ring if it is due.
-    fn copy_half(&mut self, stream: Stream, j: u64, plant_tick: u64) -> std::io::Result<Half> {
+    /// Reads half `j` of `stream`'s ring, as its segment file's bytes, if it is due.
+    fn read_half(&mut self, stream: Stream, j: u64, plant_tick: u64) -> std::io::Result<Half> {
         use std::os::unix::fs::FileExt;
         let ring = stream.path(&self.staged);
         let Ok(f) = std::fs::File::open(&ring) else { return Ok(Half::NoRing) };
@@ -472,9 +573,10 @@ impl Mover {
             return Ok(Half::NotDue(half));
         }
         let slot = 8 + size.next_multiple_of(8);
-        let mut body = vec![0u8; half as usize * slot];
+        let mut bytes = vec![0u8; HEADER + half as usize * slot];
+        let (seg_header, body) = bytes.split_at_mut(HEADER);
         let first_slot = (j % 2) * half;
-        f.read_exact_at(&mut body, (HEADER + first_slot as usize * slot) as u64)?;
+        f.read_exact_at(body, (HEADER + first_slot as usize * slot) as u64)?;
         for (i, s) in body.chunks_exact_mut(slot).enumerate() {
             let tag = u64::from_ne_bytes(s[..8].try_into().unwrap_or_default());
             let want = j * half + i as u64 + 1;
@@ -484,27 +586,74 @@ impl Mover {
                 s.fill(0);
             }
         }
-        let mut seg_header = header;
+        seg_header.copy_from_slice(&header);
         seg_header[8 * word::CAPACITY..8 * word::CAPACITY + 8].copy_from_slice(&half.to_ne_bytes());
-        seg_header[8 * word::OPENS..8 * word::OPENS + 16].fill(0);
+        seg_header[8 * word::OPENS..8 * word::MOVED + 8].fill(0);
+        Ok(Half::Read(bytes))
+    }
+
+    /// Writes half `j` of `stream` into its segment file (whole or not at all).
+    fn write_segment(&self, stream: Stream, j: u64, bytes: &[u8]) -> std::io::Result<()> {
         std::fs::create_dir_all(&self.kept)?;
         let path = segment_path(&self.kept, stream, j);
         let part = path.with_extension("part");
-        std::fs::write(&part, [&seg_header[..], &body].concat())?;
-        std::fs::rename(&part, &path)?;
-        self.segments += 1;
-        Ok(Half::Copied)
+        std::fs::write(&part, bytes)?;
+        std::fs::rename(&part, &path)
     }
 }
 
-/// What [`Mover::copy_half`] found.
+/// What [`Mover::read_half`] found.
 enum Half {
     /// No ring of this stream (yet), or not one that wraps.
     NoRing,
     /// The half is not due yet; the ring's halves hold this many ticks.
     NotDue(u64),
-    /// Copied.
-    Copied,
+    /// Read: the segment file's bytes.
+    Read(Vec<u8>),
+}
+
+/// The plant state ring's header, mapped by the mover to store [`word::MOVED`] where the
+/// plant's atomic load sees it whole (a `pwrite` may be torn).
+#[derive(Debug)]
+struct MovedWord {
+    map: *mut u8,
+}
+
+// SAFETY: the mapping is only written through an atomic store, and unmapped on drop.
+unsafe impl Send for MovedWord {}
+
+impl MovedWord {
+    fn map(ring: &Path) -> Option<Self> {
+        let f = std::fs::OpenOptions::new().read(true).write(true).open(ring).ok()?;
+        if f.metadata().ok()?.len() < HEADER as u64 {
+            return None;
+        }
+        // SAFETY: maps the first page of a file at least HEADER bytes long; checked.
+        let map = unsafe {
+            libc::mmap(
+                std::ptr::null_mut(),
+                HEADER,
+                libc::PROT_READ | libc::PROT_WRITE,
+                libc::MAP_SHARED,
+                f.as_raw_fd(),
+                0,
+            )
+        };
+        (map != libc::MAP_FAILED).then(|| Self { map: map.cast() })
+    }
+
+    fn store(&self, copied: u64) {
+        // SAFETY: the word lies in the mapped header, 8-byte aligned (page-aligned base).
+        let w = unsafe { &*(self.map.add(8 * word::MOVED) as *const AtomicU64) };
+        w.store(copied, Ordering::Release);
+    }
+}
+
+impl Drop for MovedWord {
+    fn drop(&mut self) {
+        // SAFETY: unmaps what map() mapped.
+        unsafe { libc::munmap(self.map.cast(), HEADER) };
+    }
 }
 
 /// What a recorder's file holds, read after the run.
@@ -672,19 +821,19 @@ mod tests {
         let _ = std::fs::remove_file(&dir);
     }
 
-    /// A ring of 256 slots over 1000 ticks, its halves moved as the writer goes: every
-    /// tick is read back from the segments and the ring, and the ring's file stays 256
+    /// A ring of 512 slots over 2000 ticks, its halves moved as the writer goes: every
+    /// tick is read back from the segments and the ring, and the ring's file stays 512
     /// slots long. A mover that comes too late finds its half overwritten and counts it.
     #[test]
     fn a_ring_moved_in_halves_keeps_every_tick_and_a_late_mover_counts_what_it_lost() {
         let staged = tempfile_dir("ring-staged");
         let kept = staged.with_file_name("kept");
         let _ = std::fs::remove_dir_all(&kept);
-        let cap = ring_capacity(1000, 256);
-        assert_eq!(cap, 256);
+        let cap = ring_capacity(2000, 512);
+        assert_eq!(cap, 512);
         let r = FlightRecorder::<TorqueSample>::open(Some(&staged), Stream::PlantTorque, cap, "t");
         let mut mover = Mover::new(&staged, &kept);
-        for k in 0..1000 {
+        for k in 0..2000 {
             r.record(&torque(k));
             assert!(mover.pass(k).is_empty());
         }
@@ -692,22 +841,47 @@ mod tests {
         std::fs::copy(Stream::PlantTorque.path(&staged), Stream::PlantTorque.path(&kept))
             .expect("the ring beside its segments");
         let log = FlightLog::<TorqueSample>::read(&kept, Stream::PlantTorque).expect("read");
-        assert_eq!(log.missing(999), Vec::<[u64; 2]>::new());
-        assert_eq!(log.get(500), Some(&torque(500)));
+        assert_eq!(log.missing(1999), Vec::<[u64; 2]>::new());
+        assert_eq!(log.get(1000), Some(&torque(1000)));
         let len = std::fs::metadata(Stream::PlantTorque.path(&staged)).expect("ring").len();
-        assert_eq!(len, (HEADER + 256 * slot_len::<TorqueSample>()) as u64);
+        assert_eq!(len, (HEADER + 512 * slot_len::<TorqueSample>()) as u64);
         // A mover asleep while the writer went round twice: halves lost, and counted.
         let staged2 = tempfile_dir("ring-late");
         let kept2 = staged2.with_file_name("kept");
         let r = FlightRecorder::<TorqueSample>::open(Some(&staged2), Stream::PlantTorque, cap, "t");
-        (0..600).for_each(|k| r.record(&torque(k)));
+        (0..1200).for_each(|k| r.record(&torque(k)));
         let mut late = Mover::new(&staged2, &kept2);
-        late.pass(599);
-        // Halves 0–3 (ticks 0–511) were due; the ring holds 344–599 by then.
-        assert_eq!(late.lost, 344, "ticks 0–343 were overwritten by 256–599");
+        late.pass(1199);
+        // Halves 0–3 (ticks 0–1023) were due; the ring holds 688–1199 by then.
+        assert_eq!(late.lost, 688, "ticks 0–687 were overwritten by 512–1199");
         for d in [&staged, &kept, &staged2, &kept2] {
             let _ = std::fs::remove_dir_all(d);
         }
+    }
+
+    /// The plant's lockstep wait: free while the ring has room, held at the tick that
+    /// could let the reference come round to an unmoved half until the mover says it
+    /// copied it, and given up after its limit when no mover ever does.
+    #[test]
+    fn the_plant_waits_for_the_mover_only_where_a_ring_would_come_round_unmoved() {
+        let staged = tempfile_dir("gate");
+        let cap = 512;
+        let r = FlightRecorder::<StateSample>::open(Some(&staged), Stream::PlantState, cap, "p");
+        let (half, none) = (cap / 2, std::time::Duration::ZERO);
+        // 2H − 64 − 1: the reference, 64 ahead at most, stays in half 1.
+        assert_eq!(free_through(0, half), 447);
+        assert!(!r.wait_for_mover(447, none), "room in the ring: no wait");
+        assert!(r.wait_for_mover(448, none), "half 0 unmoved: it would wait");
+        let moved = MovedWord::map(&Stream::PlantState.path(&staged)).expect("map");
+        moved.store(1);
+        assert!(!r.wait_for_mover(448, none), "half 0 moved");
+        assert!(!r.wait_for_mover(free_through(1, half), none));
+        assert!(r.wait_for_mover(free_through(1, half) + 1, none), "half 1 unmoved");
+        let limit = std::time::Duration::from_millis(20);
+        let t0 = std::time::Instant::now();
+        assert!(r.wait_for_mover(10_000, limit), "no mover: gives up");
+        assert!(t0.elapsed() >= limit, "after its limit");
+        let _ = std::fs::remove_dir_all(&staged);
     }
 
     fn tempfile_dir(name: &str) -> PathBuf {

@@ -98,7 +98,7 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
     install_signal_handlers();
     prepare_domains(&domains, &args.out)?;
     let link_port = if split.is_some() { crate::run::split::free_port()? } else { 0 };
-    let launch = Launch {
+    let mut launch = Launch {
         args,
         domains,
         split,
@@ -111,6 +111,8 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
         exe,
         ticks: scenario.ticks(),
     };
+    // In lockstep the plant waits for this launcher's mover rather than lose records.
+    launch.role_args.flight_moved = launch.mover().is_some();
     // What `rotorloop recover` needs should this launcher not end normally.
     let record = crate::run::recover::LaunchRecord {
         domain: launch.role_args.domain().to_owned(),

@@ -9,7 +9,7 @@ use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::thread::JoinHandle;
 use std::time::Duration;
 
-use rotorloop_common::flight::Mover;
+use rotorloop_common::flight::{Mover, free_through};
 
 /// How often the thread looks for a newer plant tick.
 const POLL: Duration = Duration::from_millis(20);
@@ -19,16 +19,22 @@ const POLL: Duration = Duration::from_millis(20);
 pub(crate) struct MoverThread {
     /// The plant's newest tick plus one (0: none yet).
     tick: Arc<AtomicU64>,
+    /// The last tick the plant may publish before the mover has copied more
+    /// (`flight::free_through`; `u64::MAX` until a ring's size is known).
+    free: Arc<AtomicU64>,
     stop: Arc<AtomicBool>,
     handle: JoinHandle<Mover>,
 }
 
 impl MoverThread {
-    /// Starts `mover` on a thread named `flight-mover`.
-    pub(crate) fn spawn(mut mover: Mover) -> std::io::Result<Self> {
+    /// Starts `mover` on a thread named `flight-mover`; with `stall`, its first pass
+    /// waits that long (the tests' stand-in for a copy held up by writeback).
+    pub(crate) fn spawn(mut mover: Mover, stall: Option<Duration>) -> std::io::Result<Self> {
         let tick = Arc::new(AtomicU64::new(0));
         let stop = Arc::new(AtomicBool::new(false));
-        let (t, s) = (tick.clone(), stop.clone());
+        let free = mover.half.map_or(u64::MAX, |h| free_through(mover.copied(), h));
+        let free = Arc::new(AtomicU64::new(free));
+        let (t, s, f) = (tick.clone(), stop.clone(), free.clone());
         let handle = std::thread::Builder::new().name("flight-mover".into()).spawn(move || {
             let mut moved_at = 0;
             loop {
@@ -36,8 +42,14 @@ impl MoverThread {
                 let stopping = s.load(Ordering::Acquire);
                 let newest = t.load(Ordering::Acquire);
                 if newest > moved_at {
+                    if let Some(d) = stall.filter(|_| moved_at == 0) {
+                        std::thread::sleep(d);
+                    }
                     for e in mover.pass(newest - 1) {
                         eprintln!("warning: flight records: {e}; the loop goes on");
+                    }
+                    if let Some(h) = mover.half {
+                        f.store(free_through(mover.copied(), h), Ordering::Release);
                     }
                     moved_at = newest;
                 }
@@ -47,7 +59,13 @@ impl MoverThread {
                 std::thread::sleep(POLL);
             }
         })?;
-        Ok(Self { tick, stop, handle })
+        Ok(Self { tick, free, stop, handle })
+    }
+
+    /// Whether a lockstep plant whose newest published tick is `plant_tick` waits for
+    /// this mover before it publishes the next one.
+    pub(crate) fn holds(&self, plant_tick: u64) -> bool {
+        plant_tick + 1 > self.free.load(Ordering::Acquire)
     }
 
     /// The plant has published `plant_tick`: what became due is moved soon.
@@ -69,42 +87,53 @@ impl MoverThread {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use rotorloop_common::flight::{
-        FlightRecorder, MIN_RING_TICKS, Stream, segment_path, segments,
-    };
-    use rotorloop_common::wire::TorqueSample;
+    use rotorloop_common::flight::{FlightRecorder, MIN_RING_TICKS, Stream, segments};
+    use rotorloop_common::params::RotorBodyState;
+    use rotorloop_common::wire::{ReferenceSample, StateSample, TorqueSample};
 
     /// The thread moves the halves the loop has finished, and on `finish` the ones the
-    /// last tick finished, as the supervision loop's own passes did. The writer waits for a
-    /// half's segment before it overwrites that half, as a loop at its rate does not need
-    /// to: recorded flat out, the ring comes round before the thread's next look (that
-    /// loss is counted, and this test then fails).
+    /// last tick finished. The writers (the plant's state, the reference 16 ticks ahead,
+    /// the controller's answers) go flat out, far faster than the thread's 20 ms polls,
+    /// and the plant waits for the mover as a lockstep plant does: nothing is lost (without
+    /// that wait the rings come round between two polls, and this test fails). Until a half
+    /// is copied the thread says it holds the plant (the watchdog's exemption).
     #[test]
-    fn the_thread_moves_each_finished_half_and_the_last_ones_on_finish() {
+    fn the_thread_moves_each_finished_half_while_the_plant_waits_for_it() {
         let dir = tempfile::tempdir().expect("tempdir");
         let (staged, kept) = (dir.path().join("staged"), dir.path().join("kept"));
         std::fs::create_dir_all(&staged).expect("staged");
-        let (stream, capacity) = (Stream::ControllerTorque, MIN_RING_TICKS);
+        let (capacity, lead) = (MIN_RING_TICKS, 16);
         let half = capacity / 2;
-        let rec: FlightRecorder<TorqueSample> =
-            FlightRecorder::open(Some(&staged), stream, capacity, "controller");
-        let mover = MoverThread::spawn(Mover::new(&staged, &kept)).expect("thread");
+        let states: FlightRecorder<StateSample> =
+            FlightRecorder::open(Some(&staged), Stream::PlantState, capacity, "t");
+        let references: FlightRecorder<ReferenceSample> =
+            FlightRecorder::open(Some(&staged), Stream::Reference, capacity, "t");
+        let torques: FlightRecorder<TorqueSample> =
+            FlightRecorder::open(Some(&staged), Stream::ControllerTorque, capacity, "t");
+        let x = RotorBodyState {
+            r: glam::DMat3::IDENTITY,
+            omega: glam::DVec3::ZERO,
+            omega_r: glam::DVec3::ZERO,
+            theta: glam::DVec3::ZERO,
+        };
+        let mover = Mover::new(&staged, &kept).with_half(half);
+        let mover = MoverThread::spawn(mover, None).expect("thread");
+        assert!(mover.holds(free_through(0, half)), "the first tick past the room waits");
+        assert!(!mover.holds(free_through(0, half) - 1));
         let ticks = 4 * capacity;
         for k in 0..ticks {
-            if k >= capacity && k % half == 0 {
-                let copied = segment_path(&kept, stream, k / half - 2);
-                let give_up = std::time::Instant::now() + Duration::from_secs(30);
-                while !copied.exists() && std::time::Instant::now() < give_up {
-                    std::thread::sleep(Duration::from_millis(2));
-                }
-            }
-            rec.record(&TorqueSample { tick: k, ..Default::default() });
+            assert!(!states.wait_for_mover(k, Duration::from_secs(30)), "the mover came");
+            states.record(&StateSample::of(k, 0.0, &x));
             mover.saw(k);
+            references.record(&ReferenceSample::zeroed(k + lead));
+            torques.record(&TorqueSample { tick: k, ..Default::default() });
         }
         let m = mover.finish(Some(ticks - 1)).expect("no panic");
         assert_eq!(m.lost, 0, "records overwritten before they were moved");
         // Halves 0..=6 are due by the last tick (half j once tick (j + 1.5)·half is out).
-        assert_eq!(m.segments, 7);
-        assert_eq!(segments(&kept, stream).len(), 7);
+        assert_eq!(m.segments, 3 * 7);
+        for s in [Stream::PlantState, Stream::Reference, Stream::ControllerTorque] {
+            assert_eq!(segments(&kept, s).len(), 7, "{s:?}");
+        }
     }
 }

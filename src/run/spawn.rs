@@ -202,7 +202,7 @@ impl Launch<'_> {
         let ring = ring_capacity(self.ticks, self.role_args.flight_ring_ticks);
         let wraps = ring < self.ticks + 1 + SPARE_SLOTS;
         (wraps && self.args.role.record.is_none())
-            .then(|| Mover::new(staged, &self.args.out.join("flight")))
+            .then(|| Mover::new(staged, &self.args.out.join("flight")).with_half(ring / 2))
     }
 
     /// The domain as `role`'s host sees it.

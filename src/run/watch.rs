@@ -91,7 +91,8 @@ impl Watch {
             link: LinkWatch::new(START_TIMEOUT_S.max(watchdog_s)),
             torques_received: 0,
             mover: launch.mover().and_then(|m| {
-                MoverThread::spawn(m)
+                let stall = launch.role_args.hooks.test_mover_stall_ms;
+                MoverThread::spawn(m, stall.map(std::time::Duration::from_millis))
                     .map_err(|e| eprintln!("warning: flight records: no mover thread ({e})"))
                     .ok()
             }),
@@ -425,7 +426,13 @@ fn watch_for_hangs(
         // a loaded machine, and each pass over it counted as another hang (seen: one
         // SIGSTOP counted six times 2 ms apart, over the restart limit, the run stopped).
         let alive = pid.is_some_and(|p| !w.handled.contains(&p) && !w.planned.contains(&p));
-        let pending = alive && marks.work_waiting_with_stops(r, lockstep, REFERENCE_LEAD, &stopped);
+        // In lockstep the plant waits for this launcher's record mover before a ring comes
+        // round (`common::flight::free_through`): the launcher's own work, not a hang.
+        let held = r == Role::Plant
+            && lockstep
+            && w.mover.as_ref().zip(marks.plant).is_some_and(|(m, k)| m.holds(k));
+        let pending =
+            alive && !held && marks.work_waiting_with_stops(r, lockstep, REFERENCE_LEAD, &stopped);
         if !w.watchdog.check(role, marks.of(r), pending, now_s) {
             continue;
         }

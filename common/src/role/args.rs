@@ -76,6 +76,10 @@ pub struct RoleArgs {
     #[arg(long, value_name = "TICKS", default_value_t = crate::flight::DEFAULT_RING_TICKS,
           value_parser = clap::value_parser!(u64).range(crate::flight::MIN_RING_TICKS..))]
     pub flight_ring_ticks: u64,
+    /// The launcher moves the rings' finished halves (`common::flight::Mover`): in
+    /// lockstep the plant waits for it rather than let a ring come round unmoved.
+    #[arg(long, hide = true)]
+    pub flight_moved: bool,
     /// The tests' hooks (hidden flags).
     #[command(flatten)]
     pub hooks: super::inject::TestHooks,
@@ -100,6 +104,7 @@ impl RoleArgs {
             plain_hot_path: false,
             record: None,
             flight_ring_ticks: crate::flight::DEFAULT_RING_TICKS,
+            flight_moved: false,
             hooks: Default::default(),
         }
     }
@@ -183,6 +188,9 @@ impl RoleArgs {
         }
         if self.flight_ring_ticks != crate::flight::DEFAULT_RING_TICKS {
             a.extend(["--flight-ring-ticks".into(), self.flight_ring_ticks.to_string()]);
+        }
+        if self.flight_moved {
+            a.push("--flight-moved".into());
         }
         a.extend(self.hooks.to_args());
         a

@@ -27,6 +27,10 @@ pub struct TestHooks {
     /// its first rows: a stand-in for a `write(2)` held up by disk writeback.
     #[arg(long, hide = true, value_name = "MS")]
     pub test_files_stall_ms: Option<u64>,
+    /// The launcher's flight record mover waits this many ms before its first pass: a
+    /// stand-in for a copy held up by disk writeback.
+    #[arg(long, hide = true, value_name = "MS")]
+    pub test_mover_stall_ms: Option<u64>,
 }
 
 impl TestHooks {
@@ -55,6 +59,7 @@ impl TestHooks {
             ("--test-reference-late-ms", self.test_reference_late_ms),
             ("--test-files-stall-ms", self.test_files_stall_ms),
             ("--test-stop-before-send-at", self.test_stop_before_send_at),
+            ("--test-mover-stall-ms", self.test_mover_stall_ms),
         ]
         .into_iter()
         .filter_map(|(flag, v)| v.map(|v| [flag.to_owned(), v.to_string()]))

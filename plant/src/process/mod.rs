@@ -44,6 +44,8 @@ pub fn run(args: &args::PlantArgs) -> anyhow::Result<()> {
         let deadline = if realtime { grid.at(k) } else { 0 };
         if realtime {
             sleep_until_ns(deadline, spin_ns);
+        } else {
+            ports.hold_for_mover(k);
         }
         let sample = plant.state_sample(k, deadline, now_ns());
         // Slot first: killed between the two, the restart publishes this very state,

@@ -5,12 +5,12 @@
 use anyhow::Context;
 use hdrhistogram::Histogram;
 use rotorloop_common::clock::now_ns;
-use rotorloop_common::flight::{FlightRecorder, Stream};
+use rotorloop_common::flight::{FlightRecorder, Stream, ring_wraps};
 use rotorloop_common::graph::Topic;
 use rotorloop_common::hgrm::write_hgrm_file;
 use rotorloop_common::ipc::ports::{Inbox, Outbox, RoleNode};
 use rotorloop_common::resume::ResumeSlot;
-use rotorloop_common::role::args::RoleArgs;
+use rotorloop_common::role::args::{Mode, RoleArgs};
 use rotorloop_common::wire::{StateSample, TorqueSample};
 
 use crate::ROLE;
@@ -24,8 +24,14 @@ pub(super) struct Ports {
     pub slot: ResumeSlot<StateSample>,
     pub states_flight: FlightRecorder<StateSample>,
     torques_flight: FlightRecorder<TorqueSample>,
+    /// Lockstep with rings the launcher moves: wait for it before coming round (off once
+    /// it gave up).
+    mover_gate: std::cell::Cell<bool>,
     _node: RoleNode,
 }
+
+/// The longest lockstep waits for the launcher's mover before it goes on without it.
+const MOVER_WAIT: std::time::Duration = std::time::Duration::from_secs(60);
 
 impl Ports {
     pub fn open(role: &RoleArgs, ticks: u64) -> anyhow::Result<Self> {
@@ -37,7 +43,24 @@ impl Ports {
         let torques = domain.inbox::<TorqueSample>(&node, Topic::Torque, 16, role.wait.listens());
         let slot = ResumeSlot::<StateSample>::open(&domain, ROLE).context(ROLE)?;
         let torques = torques.context(ROLE)?;
-        Ok(Self { states, torques, slot, states_flight, torques_flight, _node: node })
+        let wraps = ring_wraps(ticks, states_flight.capacity());
+        let mover_gate = (role.flight_moved && role.mode == Mode::Lockstep && wraps).into();
+        Ok(Self { states, torques, slot, states_flight, torques_flight, mover_gate, _node: node })
+    }
+
+    /// Lockstep, before publishing tick `k`: waits until the launcher has moved the
+    /// flight records' half that `k` would let a writer come round to (`common::flight`).
+    /// Lockstep is not about time, and a mover slowed by writeback (seen under the repeat
+    /// harness) must not lose records; real time never waits.
+    pub fn hold_for_mover(&self, k: u64) {
+        if self.mover_gate.get() && self.states_flight.wait_for_mover(k, MOVER_WAIT) {
+            self.mover_gate.set(false);
+            eprintln!(
+                "plant: the launcher moved no flight records for {} s before tick {k}; going \
+                 on without waiting (records it did not move in time are lost, and counted)",
+                MOVER_WAIT.as_secs()
+            );
+        }
     }
 }
 
