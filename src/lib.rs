@@ -17,11 +17,14 @@
 //!   margin, Monte Carlo of almost-global convergence, the paper's scenarios, and the
 //!   latency bench;
 //! - [`observe`]: `rotorloop ps` and `watch`, which see a live loop without touching it;
+//! - [`export`]: a finished run as an MCAP file for Foxglove (`rotorloop export`, and
+//!   at the end of every `run`);
 //! - [`baseline`]: what the bench compares the loop with (ping-pong over atomics, bare
 //!   iceoryx2 and Unix sockets) and the access probe of the security tests.
 
 pub mod baseline;
 pub mod cli;
+pub mod export;
 pub mod observe;
 pub mod run;
 pub mod sim;

@@ -16,6 +16,7 @@ mod bad_input;
 mod bench_smoke;
 mod cli_outputs;
 mod delay;
+mod export;
 mod faults;
 mod fuzz_inputs;
 mod hostile;

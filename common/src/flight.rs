@@ -503,7 +503,7 @@ impl Mover {
     /// disk, which can wait seconds on writeback: a slow write of one stream's segment
     /// then never leaves another stream's half in its ring until it comes round (seen
     /// under the repeat harness: the reference's, last in order, lost 784 ticks of a
-    /// lockstep run). Then it tells the plant how far it got ([`word::MOVED`]).
+    /// lockstep run). Then it tells the plant how far it got (header word 6 of its state ring).
     pub fn pass(&mut self, plant_tick: u64) -> Vec<String> {
         let mut errors = Vec::new();
         if plant_tick < self.due_at {

@@ -42,7 +42,7 @@ pub const FLAG_SATURATED: u64 = 1 << 3;
 pub const TORQUE_SKIPPED: u64 = 1;
 
 /// The plant's state at tick `tick`, published once per tick.
-#[derive(Debug, Clone, Copy, PartialEq, ZeroCopySend)]
+#[derive(Debug, Clone, Copy, PartialEq, ZeroCopySend, serde::Serialize)]
 #[type_name("rotorloop::StateSample_v6")]
 #[repr(C)]
 pub struct StateSample {
@@ -105,7 +105,7 @@ pub struct StateSample {
 const _: () = assert!(size_of::<StateSample>() == 520);
 
 /// The desired attitude for tick `tick`, published ahead of the plant.
-#[derive(Debug, Clone, Copy, PartialEq, ZeroCopySend)]
+#[derive(Debug, Clone, Copy, PartialEq, ZeroCopySend, serde::Serialize)]
 #[type_name("rotorloop::ReferenceSample_v6")]
 #[repr(C)]
 pub struct ReferenceSample {
@@ -133,7 +133,7 @@ pub struct ReferenceSample {
 const _: () = assert!(size_of::<ReferenceSample>() == 240);
 
 /// The controller's answer to state sample `tick`.
-#[derive(Debug, Clone, Copy, PartialEq, Default, ZeroCopySend)]
+#[derive(Debug, Clone, Copy, PartialEq, Default, ZeroCopySend, serde::Serialize)]
 #[type_name("rotorloop::TorqueSample_v6")]
 #[repr(C)]
 pub struct TorqueSample {
@@ -180,7 +180,7 @@ const _: () = assert!(size_of::<TorqueSample>() == 192);
 /// What one publish cost (ns): loaning the sample, from the publish timestamp until
 /// `send` returned, and notifying the listeners after it. Carried in the publisher's
 /// next sample (a sample cannot carry the cost of its own send).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, ZeroCopySend)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, ZeroCopySend, serde::Serialize)]
 #[repr(C)]
 pub struct SendCost {
     /// `loan_uninit` (before the publish timestamp: not part of the hop it starts).

@@ -35,6 +35,10 @@ pub struct RunArgs {
     /// recorders cost (`bench --before-after`).
     #[arg(long)]
     pub no_record: bool,
+    /// Do not write `OUT/run.mcap` at the end (`rotorloop export OUT --mcap` writes it
+    /// later from the records).
+    #[arg(long)]
+    pub no_mcap: bool,
     /// Real time: the plant sleeps until this many µs before each grid time and spins
     /// the rest (sharper ticks, one core busier).
     #[arg(long, allow_negative_numbers = true, default_value_t = 0)]
@@ -132,6 +136,7 @@ impl RunArgs {
             no_monitor: false,
             quiet: false,
             no_record: false,
+            no_mcap: false,
             spin_before_tick_us: 0,
             hold_ticks: 50,
             fault: Vec::new(),

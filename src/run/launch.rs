@@ -185,6 +185,9 @@ fn report(
             }
         }
     }
+    if flight.is_some() && !args.no_mcap && args.out.join("summary.json").exists() {
+        crate::export::mcap_after_run(&args.out, args.quiet);
+    }
     if shutdown_requested() {
         eprintln!("stopped by signal; partial report in {}", args.out.display());
         return Err(RunEnd::StoppedBySignal.into());

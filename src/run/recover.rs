@@ -167,6 +167,7 @@ pub fn run(dir: &Path) -> anyhow::Result<()> {
             "why": "the launcher did not end normally: no fault report, no memory figures",
         });
     })?;
+    crate::export::mcap_after_run(dir, false);
     println!("{}", rotorloop_monitor::report::console_summary(&summary));
     println!(
         "recovered: {} rows from the flight records into {}{}",

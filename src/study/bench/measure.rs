@@ -95,6 +95,7 @@ pub(super) fn loop_run_args(
     RunArgs {
         pin,
         quiet: true,
+        no_mcap: true,
         spin_before_tick_us: a.spin_before_tick_us,
         preset: dedicated.then(|| "dedicated".to_owned()),
         split: (base.placement == "cross-host").then(|| crate::run::split::CROSS_HOST.to_owned()),

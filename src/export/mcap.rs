@@ -1,0 +1,446 @@
+//! `run.mcap`: a run as an MCAP file for Foxglove (or Lichtblick, or any MCAP reader),
+//! assembled after the run from its flight records, its `trace.csv` and its
+//! `summary.json`, like the report: complete whatever was killed, and nothing of it is
+//! written on the hot path.
+//!
+//! Topics (docs/foxglove.md has the layout that shows them):
+//!
+//! | topic | schema | one message per |
+//! |---|---|---|
+//! | `/rotorloop/state` | JSON, every field of the state sample | tick |
+//! | `/rotorloop/torque` | JSON, every field of the torque sample that answered it | answered tick |
+//! | `/rotorloop/reference` | JSON, every field of the reference sample | tick |
+//! | `/rotorloop/tracking` | JSON: attitude and rate error, momentum drift, energy residual, delay in force | tick (from `trace.csv`) |
+//! | `/rotorloop/latency` | JSON: the hops, stages, lateness, misses, safe mode, the torque in force | tick |
+//! | `/rotorloop/log` | `foxglove.Log`: faults, safe mode entered and left, the report's warnings | event |
+//! | `/tf` | `foxglove.FrameTransform`: `world → body` and `world → reference` | tick, each |
+//!
+//! Log times are the loop's own `CLOCK_MONOTONIC` stamps (the state's publish time, the
+//! torque's and the reference's), not wall time; a run in process (no stamps) uses its
+//! simulated time. The file's metadata record `rotorloop` says how to map them to wall
+//! time: `clock`, and the wall time of the first state's publish where the run recorded it.
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+
+use anyhow::Context as _;
+use foxglove::messages::{FrameTransform, Log, Quaternion, Timestamp, Vector3};
+use foxglove::{Channel, ChannelBuilder, Context, McapAttachment, McapWriter, RawChannel, Schema};
+use glam::{DMat3, DQuat};
+use rotorloop_common::flight::{FlightLog, Stream};
+use rotorloop_common::wire::{
+    FLAG_REALTIME, FLAG_SAFE_MODE, ReferenceSample, StateSample, TorqueSample,
+};
+use serde::Serialize;
+use serde_json::Value;
+
+/// What [`write()`] put into the file.
+#[derive(Debug, Clone, Default, Serialize, PartialEq)]
+pub struct McapCounts {
+    /// The file.
+    pub path: String,
+    /// Messages per topic.
+    pub messages: BTreeMap<String, u64>,
+}
+
+/// The records and files of one run directory.
+struct Run {
+    states: FlightLog<StateSample>,
+    torques: FlightLog<TorqueSample>,
+    /// The plant's record of what it received: the answer where the controller's record
+    /// lacks it (a controller killed between its publish and its record).
+    received: FlightLog<TorqueSample>,
+    references: FlightLog<ReferenceSample>,
+    /// `trace.csv` rows by tick: column name → value.
+    trace: BTreeMap<u64, Vec<f64>>,
+    trace_columns: Vec<String>,
+    summary: Option<Value>,
+}
+
+/// Where a run directory's flight records are: `DIR/flight`, or where its summary says
+/// they stayed (a run whose records could not be moved).
+fn records_dir(dir: &Path, summary: Option<&Value>) -> PathBuf {
+    let kept = dir.join("flight");
+    if Stream::PlantState.path(&kept).exists() {
+        return kept;
+    }
+    summary
+        .and_then(|s| s["flight"]["dir"].as_str())
+        .map(PathBuf::from)
+        .filter(|d| Stream::PlantState.path(d).exists())
+        .unwrap_or(kept)
+}
+
+impl Run {
+    fn read(dir: &Path) -> anyhow::Result<Self> {
+        let summary = std::fs::read_to_string(dir.join("summary.json"))
+            .ok()
+            .and_then(|t| serde_json::from_str::<Value>(&t).ok());
+        let flight = records_dir(dir, summary.as_ref());
+        let missing = || {
+            format!(
+                "{} has no flight records to export (rotorloop run records them)",
+                dir.display()
+            )
+        };
+        let states = FlightLog::read(&flight, Stream::PlantState).with_context(missing)?;
+        let received = FlightLog::read(&flight, Stream::PlantTorque).with_context(missing)?;
+        let torques =
+            FlightLog::read(&flight, Stream::ControllerTorque).unwrap_or_else(|_| received.clone());
+        let references = FlightLog::read(&flight, Stream::Reference).with_context(missing)?;
+        let (trace_columns, trace) = read_trace(&dir.join("trace.csv"))?;
+        Ok(Self { states, torques, received, references, trace, trace_columns, summary })
+    }
+
+    fn torque(&self, k: u64) -> Option<&TorqueSample> {
+        self.torques.get(k).or_else(|| self.received.get(k))
+    }
+}
+
+/// `trace.csv`'s columns, and its rows by tick.
+type Trace = (Vec<String>, BTreeMap<u64, Vec<f64>>);
+
+/// Reads `trace.csv` (every value as a float; NaN where it is not a number).
+fn read_trace(path: &Path) -> anyhow::Result<Trace> {
+    let text = std::fs::read_to_string(path)
+        .with_context(|| format!("cannot read {} (the run's report)", path.display()))?;
+    let mut lines = text.lines();
+    let columns: Vec<String> = lines.next().unwrap_or("").split(',').map(str::to_owned).collect();
+    let tick = columns
+        .iter()
+        .position(|c| c == "tick")
+        .with_context(|| format!("{} has no tick column", path.display()))?;
+    let mut rows = BTreeMap::new();
+    for line in lines {
+        let row: Vec<f64> = line.split(',').map(|v| v.parse().unwrap_or(f64::NAN)).collect();
+        if let Some(k) = row.get(tick).filter(|k| k.is_finite()) {
+            rows.insert(*k as u64, row);
+        }
+    }
+    Ok((columns, rows))
+}
+
+/// A JSON channel with a JSON schema derived from its first message.
+struct JsonChannel {
+    ctx: Arc<Context>,
+    topic: String,
+    schema_name: &'static str,
+    channel: Option<Arc<RawChannel>>,
+    count: u64,
+}
+
+impl JsonChannel {
+    fn new(ctx: &Arc<Context>, topic: &str, schema_name: &'static str) -> Self {
+        let (ctx, topic) = (ctx.clone(), topic.to_owned());
+        Self { ctx, topic, schema_name, channel: None, count: 0 }
+    }
+
+    fn log(&mut self, value: &Value, log_time: u64) -> anyhow::Result<()> {
+        if self.channel.is_none() {
+            let schema = serde_json::to_vec(&json_schema(value))?;
+            let c = ChannelBuilder::new(self.topic.as_str())
+                .context(&self.ctx)
+                .message_encoding("json")
+                .schema(Schema::new(self.schema_name, "jsonschema", schema))
+                .build_raw()
+                .with_context(|| format!("cannot make the MCAP channel {}", self.topic))?;
+            self.channel = Some(c);
+        }
+        let bytes = serde_json::to_vec(value)?;
+        if let Some(c) = &self.channel {
+            c.log_with_meta(&bytes, foxglove::PartialMetadata { log_time: Some(log_time) });
+        }
+        self.count += 1;
+        Ok(())
+    }
+}
+
+/// A JSON schema of `v`'s shape (what Foxglove's plot panels offer as message paths).
+fn json_schema(v: &Value) -> Value {
+    match v {
+        Value::Object(m) => serde_json::json!({
+            "type": "object",
+            "properties": m.iter().map(|(k, v)| (k.clone(), json_schema(v))).collect::<serde_json::Map<_, _>>(),
+        }),
+        Value::Array(a) => serde_json::json!({
+            "type": "array",
+            "items": a.first().map_or(serde_json::json!({}), json_schema),
+        }),
+        Value::Number(n) if n.is_u64() || n.is_i64() => serde_json::json!({"type": "integer"}),
+        // NaN is written as null: a number or null.
+        Value::Number(_) | Value::Null => serde_json::json!({"type": ["number", "null"]}),
+        Value::String(_) => serde_json::json!({"type": "string"}),
+        Value::Bool(_) => serde_json::json!({"type": "boolean"}),
+    }
+}
+
+/// The attitude `r_row_major` as a unit quaternion (x, y, z, w).
+pub fn quaternion(r_row_major: &[f64; 9]) -> DQuat {
+    let m = DMat3::from_cols_array(r_row_major).transpose();
+    DQuat::from_mat3(&m).normalize()
+}
+
+fn transform(parent: &str, child: &str, r: &[f64; 9], ns: u64) -> FrameTransform {
+    let q = quaternion(r);
+    FrameTransform {
+        timestamp: Some(timestamp(ns)),
+        parent_frame_id: parent.to_owned(),
+        child_frame_id: child.to_owned(),
+        translation: Some(Vector3 { x: 0.0, y: 0.0, z: 0.0 }),
+        rotation: Some(Quaternion { x: q.x, y: q.y, z: q.z, w: q.w }),
+    }
+}
+
+fn timestamp(ns: u64) -> Timestamp {
+    Timestamp::new((ns / 1_000_000_000) as u32, (ns % 1_000_000_000) as u32)
+}
+
+fn log_message(ns: u64, level: foxglove::messages::log::Level, name: &str, message: String) -> Log {
+    Log {
+        timestamp: Some(timestamp(ns)),
+        level: level as i32,
+        message,
+        name: name.to_owned(),
+        ..Default::default()
+    }
+}
+
+/// The per-tick latency of state `s` answered by `t` (ns; `None` where a stamp is
+/// missing), the stages of the controller, and the state of the loop.
+fn latency(s: &StateSample, t: Option<&TorqueSample>, r: Option<&ReferenceSample>) -> Value {
+    let d = |a: u64, b: u64| (a != 0 && b != 0 && a >= b).then(|| a - b);
+    let answered = t.filter(|t| t.tick == s.tick);
+    serde_json::json!({
+        "tick": s.tick,
+        "t_s": s.t_s,
+        "state_transport_ns": answered.and_then(|t| d(t.state_recv_ns, s.publish_ns)),
+        "controller_compute_ns": answered.and_then(|t| d(t.publish_ns, t.state_recv_ns)),
+        "validate_ns": answered.and_then(|t| d(t.validated_ns, t.state_recv_ns)),
+        "pair_ns": answered.and_then(|t| d(t.paired_ns, t.validated_ns)),
+        "law_ns": answered.and_then(|t| d(t.computed_ns, t.paired_ns)),
+        "publish_prep_ns": answered.and_then(|t| d(t.publish_ns, t.computed_ns)),
+        "tick_lateness_ns": (s.flags & FLAG_REALTIME != 0).then(|| d(s.wake_ns, s.deadline_ns)).flatten(),
+        "reference_lead_ns": r.and_then(|r| d(s.publish_ns, r.publish_ns)),
+        "state_send_ns": s.prev_publish.send_ns,
+        "misses": s.misses,
+        "safe_mode": s.flags & FLAG_SAFE_MODE != 0,
+        "torque_in_force_tick": s.applied_torque_tick as i64,
+        "torque_in_force_recv_ns": s.applied_torque_recv_ns,
+    })
+}
+
+/// Writes `DIR/run.mcap` from the run in `dir` (records, `trace.csv`, `summary.json`):
+/// through a `.part` file renamed when complete, so a reader never sees half a file.
+pub fn write(dir: &Path) -> anyhow::Result<McapCounts> {
+    let run = Run::read(dir)?;
+    let path = dir.join("run.mcap");
+    let part = dir.join("run.mcap.part");
+    let ctx = Context::new();
+    let file =
+        std::fs::File::create(&part).with_context(|| format!("cannot write {}", part.display()))?;
+    let mcap = McapWriter::new()
+        .context(&ctx)
+        .create(std::io::BufWriter::new(file))
+        .with_context(|| format!("cannot write {}", part.display()))?;
+    let counts = write_messages(&ctx, &run, &mcap);
+    let closed = mcap.close().map_err(anyhow::Error::from).and_then(|mut w| {
+        use std::io::Write;
+        w.flush()?;
+        Ok(())
+    });
+    let counts = match (counts, closed) {
+        (Ok(c), Ok(())) => c,
+        (Err(e), _) | (_, Err(e)) => {
+            let _ = std::fs::remove_file(&part);
+            return Err(e.context(format!("cannot write {}", path.display())));
+        }
+    };
+    std::fs::rename(&part, &path).with_context(|| format!("cannot write {}", path.display()))?;
+    Ok(McapCounts { path: path.display().to_string(), messages: counts })
+}
+
+type Handle = foxglove::McapWriterHandle<std::io::BufWriter<std::fs::File>>;
+
+fn write_messages(
+    ctx: &Arc<Context>,
+    run: &Run,
+    mcap: &Handle,
+) -> anyhow::Result<BTreeMap<String, u64>> {
+    use foxglove::messages::log::Level;
+    let mut state = JsonChannel::new(ctx, "/rotorloop/state", "rotorloop.StateSample");
+    let mut torque = JsonChannel::new(ctx, "/rotorloop/torque", "rotorloop.TorqueSample");
+    let mut reference = JsonChannel::new(ctx, "/rotorloop/reference", "rotorloop.ReferenceSample");
+    let mut tracking = JsonChannel::new(ctx, "/rotorloop/tracking", "rotorloop.Tracking");
+    let mut lat = JsonChannel::new(ctx, "/rotorloop/latency", "rotorloop.Latency");
+    let tf: Channel<FrameTransform> = ChannelBuilder::new("/tf").context(ctx).build();
+    let log: Channel<Log> = ChannelBuilder::new("/rotorloop/log").context(ctx).build();
+    let (mut tfs, mut logs) = (0u64, 0u64);
+    let first = run.states.records.iter().flatten().next();
+    let realtime = first.is_some_and(|s| s.publish_ns != 0);
+    // Without stamps (a run in process) the log time is the simulated time.
+    let time = |stamp: u64, t_s: f64| if realtime { stamp } else { (t_s * 1e9) as u64 };
+    let t0 = first.map_or(0, |s| time(s.publish_ns, s.t_s));
+    mcap.write_metadata("rotorloop", metadata(run, first))?;
+    if let Some(s) = &run.summary {
+        mcap.attach(&McapAttachment {
+            log_time: t0,
+            create_time: t0,
+            name: "summary.json".into(),
+            media_type: "application/json".into(),
+            data: serde_json::to_vec_pretty(s)?.into(),
+        })?;
+    }
+    let columns = &run.trace_columns;
+    let mut safe = false;
+    for s in run.states.records.iter().flatten() {
+        let k = s.tick;
+        let ns = time(s.publish_ns, s.t_s);
+        state.log(&serde_json::to_value(s)?, ns)?;
+        let t = run.torque(k);
+        if let Some(t) = t {
+            torque.log(&serde_json::to_value(t)?, time(t.publish_ns, s.t_s))?;
+        }
+        let r = run.references.get(k);
+        if let Some(r) = r {
+            reference.log(&serde_json::to_value(r)?, time(r.publish_ns, r.t_s))?;
+            tf.log_with_time(&transform("world", "reference", &r.r_d_row_major, ns), ns);
+            tfs += 1;
+        }
+        tf.log_with_time(&transform("world", "body", &s.r_row_major, ns), ns);
+        tfs += 1;
+        lat.log(&latency(s, t, r), ns)?;
+        if let Some(row) = run.trace.get(&k) {
+            let m: serde_json::Map<String, Value> = columns
+                .iter()
+                .zip(row)
+                .filter(|(c, _)| TRACKING.contains(&c.as_str()))
+                .map(|(c, v)| (c.clone(), serde_json::json!(v)))
+                .collect();
+            tracking.log(&Value::Object(m), ns)?;
+        }
+        let now_safe = s.flags & FLAG_SAFE_MODE != 0;
+        if now_safe != safe {
+            let what = if now_safe { "entered safe mode" } else { "left safe mode" };
+            log.log_with_time(
+                &log_message(ns, Level::Warning, "plant", format!("tick {k}: {what}")),
+                ns,
+            );
+            logs += 1;
+            safe = now_safe;
+        }
+    }
+    for (ns, level, name, message) in events(run, t0) {
+        log.log_with_time(&log_message(ns, level, &name, message), ns);
+        logs += 1;
+    }
+    let mut counts = BTreeMap::new();
+    for c in [&state, &torque, &reference, &tracking, &lat] {
+        counts.insert(c.topic.clone(), c.count);
+    }
+    counts.insert("/tf".into(), tfs);
+    counts.insert("/rotorloop/log".into(), logs);
+    Ok(counts)
+}
+
+/// `trace.csv`'s columns on `/rotorloop/tracking`.
+const TRACKING: &[&str] = &[
+    "t",
+    "tick",
+    "err_deg",
+    "werr",
+    "h_drift_rel",
+    "energy_residual",
+    "delay_s",
+    "u1",
+    "u2",
+    "u3",
+];
+
+/// The run's faults and warnings from `summary.json`, at their times: a fault's `kill_s`
+/// is seconds after the first state's publish (`t0`).
+fn events(run: &Run, t0: u64) -> Vec<(u64, foxglove::messages::log::Level, String, String)> {
+    use foxglove::messages::log::Level;
+    let Some(s) = &run.summary else { return Vec::new() };
+    let at = |secs: f64| t0 + (secs.max(0.0) * 1e9) as u64;
+    let mut out = Vec::new();
+    for f in s["faults"].as_array().into_iter().flatten() {
+        let role = f["role"].as_str().unwrap_or("?").to_owned();
+        let (kind, detail) =
+            (f["kind"].as_str().unwrap_or("?"), f["detail"].as_str().unwrap_or(""));
+        let tick = f["kill_tick"].as_u64().map_or(String::new(), |k| format!(" (after tick {k})"));
+        let at_s = f["kill_s"].as_f64().unwrap_or(0.0);
+        out.push((at(at_s), Level::Error, role.clone(), format!("fault: {kind}{tick}: {detail}")));
+        if let Some(r) = f["restart_s"].as_f64() {
+            out.push((at(r), Level::Info, role.clone(), format!("{kind}: restarted or continued")));
+        }
+        if let (Some(how), Some(e)) = (f["ended"].as_str(), f["ended_s"].as_f64()) {
+            out.push((at(e), Level::Info, role, format!("stop ended: {how}")));
+        }
+    }
+    let last = run.states.records.iter().flatten().last();
+    let end =
+        last.map_or(t0, |l| if l.publish_ns != 0 { l.publish_ns } else { (l.t_s * 1e9) as u64 });
+    for w in s["storage_errors"].as_array().into_iter().flatten().filter_map(Value::as_str) {
+        out.push((end, Level::Warning, "monitor".into(), w.to_owned()));
+    }
+    out.sort_by_key(|e| e.0);
+    out
+}
+
+/// The metadata record: the run, its clock, and where to find its wall time.
+fn metadata(run: &Run, first: Option<&StateSample>) -> BTreeMap<String, String> {
+    let mut m = BTreeMap::new();
+    let realtime = first.is_some_and(|s| s.publish_ns != 0);
+    m.insert(
+        "clock".into(),
+        if realtime { "CLOCK_MONOTONIC ns (the loop's own stamps)" } else { "simulated time (ns)" }
+            .into(),
+    );
+    if let Some(s) = &run.summary {
+        for key in ["scenario", "mode", "rate_hz", "ticks", "completed", "wall_clock_start_unix_ns"]
+        {
+            if !s[key].is_null() {
+                m.insert(key.into(), s[key].to_string().trim_matches('"').to_owned());
+            }
+        }
+    }
+    if let Some(s) = first {
+        m.insert("first_state_publish_ns".into(), s.publish_ns.to_string());
+    }
+    m.insert("rotorloop_version".into(), env!("CARGO_PKG_VERSION").into());
+    m
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The quaternion of an attitude gives back the attitude (to rounding), for rotations
+    /// near 0 and near π, where a careless conversion loses the axis.
+    #[test]
+    fn a_quaternion_gives_back_its_attitude() {
+        for (axis, angle) in [
+            (glam::DVec3::X, 0.0),
+            (glam::DVec3::new(1.0, 2.0, 3.0).normalize(), 1.0),
+            (glam::DVec3::new(-1.0, 0.5, 0.2).normalize(), std::f64::consts::PI - 1e-9),
+        ] {
+            let m = DMat3::from_axis_angle(axis, angle);
+            let r = m.transpose().to_cols_array(); // row major
+            let q = quaternion(&r);
+            let back = DMat3::from_quat(q);
+            let diff = (back - m).to_cols_array().iter().fold(0.0f64, |a, v| a.max(v.abs()));
+            assert!(diff < 1e-12, "{axis:?} {angle}: {diff}");
+        }
+    }
+
+    /// A schema follows its message's shape: integers, numbers or null, arrays, objects.
+    #[test]
+    fn the_schema_follows_the_message() {
+        let v = serde_json::json!({"tick": 3, "x": 0.5, "r": [1.0, 2.0], "nan": null});
+        let s = json_schema(&v);
+        assert_eq!(s["properties"]["tick"]["type"], "integer");
+        assert_eq!(s["properties"]["r"]["items"]["type"], serde_json::json!(["number", "null"]));
+        assert_eq!(s["properties"]["nan"]["type"], serde_json::json!(["number", "null"]));
+    }
+}

@@ -1,0 +1,173 @@
+//! `run.mcap`: a run as an MCAP file, read back with the `mcap` crate and `prost` (not
+//! with the writer's own code), as Foxglove would read it.
+
+use std::collections::BTreeMap;
+use std::time::Duration;
+
+use crate::common::harness::{Harness, json, ok};
+
+const LIMIT: Duration = Duration::from_secs(180);
+
+/// The attitude of a unit quaternion (x, y, z, w), row major: the textbook formula, not
+/// the writer's conversion.
+fn rotation(x: f64, y: f64, z: f64, w: f64) -> [f64; 9] {
+    [
+        1.0 - 2.0 * (y * y + z * z),
+        2.0 * (x * y - z * w),
+        2.0 * (x * z + y * w),
+        2.0 * (x * y + z * w),
+        1.0 - 2.0 * (x * x + z * z),
+        2.0 * (y * z - x * w),
+        2.0 * (x * z - y * w),
+        2.0 * (y * z + x * w),
+        1.0 - 2.0 * (x * x + y * y),
+    ]
+}
+
+/// `trace.csv`'s attitude `R` by tick.
+fn trace_attitudes(out: &std::path::Path) -> BTreeMap<u64, [f64; 9]> {
+    let text = std::fs::read_to_string(out.join("trace.csv")).expect("trace");
+    let mut lines = text.lines();
+    let header: Vec<&str> = lines.next().expect("header").split(',').collect();
+    let col = |n: &str| header.iter().position(|h| *h == n).expect(n);
+    let (r11, tick) = (col("R11"), col("tick"));
+    lines
+        .map(|l| {
+            let f: Vec<f64> = l.split(',').map(|v| v.parse().expect("number")).collect();
+            let mut r = [0.0; 9];
+            r.copy_from_slice(&f[r11..r11 + 9]);
+            (f[tick] as u64, r)
+        })
+        .collect()
+}
+
+/// A real-time run whose controller and monitor were killed (SIGKILL) and restarted is one
+/// MCAP file: one state message per tick, the body's and the reference's attitudes as
+/// `foxglove.FrameTransform`s whose quaternions give back `trace.csv`'s `R` within 1e-12,
+/// every fault of the report as a log message, and `rotorloop export` writes the same
+/// file again from the run directory.
+#[test]
+fn a_run_with_kills_is_one_mcap_file_with_every_tick_its_attitudes_and_its_faults() {
+    let h = Harness::new("mcap");
+    let out = h.path("rt");
+    let dir = out.to_str().expect("utf8");
+    let args = ["run", "--scenario", "paper-zero", "--duration", "4", "--mode", "realtime"];
+    let faults =
+        ["--fault", "controller:kill@1:restart@1.2", "--fault", "monitor:kill@2:restart@2.3"];
+    let o = h.rotorloop(
+        &args
+            .into_iter()
+            .chain(faults)
+            .chain(["--domain", &h.domain, "--out", dir])
+            .collect::<Vec<_>>(),
+        LIMIT,
+    );
+    let said = ok(&o);
+    let s = json(&out.join("summary.json"));
+    let kinds: Vec<&str> =
+        s["faults"].as_array().expect("faults").iter().filter_map(|f| f["role"].as_str()).collect();
+    assert!(kinds.contains(&"controller") && kinds.contains(&"monitor"), "{s}");
+    let bytes = std::fs::read(out.join("run.mcap")).unwrap_or_else(|e| panic!("{e}: {said}"));
+
+    let mut states: BTreeMap<u64, u64> = BTreeMap::new(); // publish ns → tick
+    let mut ticks_seen = Vec::new();
+    let mut bodies = Vec::new();
+    let mut references = 0;
+    let mut logs = Vec::new();
+    let mut schemas: BTreeMap<String, Vec<u8>> = BTreeMap::new();
+    for m in mcap::MessageStream::new(&bytes).expect("an MCAP file") {
+        let m = m.expect("a message");
+        if let Some(schema) = &m.channel.schema {
+            schemas.entry(m.channel.topic.clone()).or_insert_with(|| schema.data.to_vec());
+        }
+        match m.channel.topic.as_str() {
+            "/rotorloop/state" => {
+                assert_eq!(m.channel.message_encoding, "json");
+                let v: serde_json::Value = serde_json::from_slice(&m.data).expect("json");
+                let k = v["tick"].as_u64().expect("tick");
+                assert_eq!(v["publish_ns"].as_u64(), Some(m.log_time), "log time: the publish");
+                states.insert(m.log_time, k);
+                ticks_seen.push(k);
+            }
+            "/tf" => {
+                let schema = m.channel.schema.as_ref().expect("schema");
+                assert_eq!(schema.name, "foxglove.FrameTransform");
+                let t = <foxglove::messages::FrameTransform as prost::Message>::decode(&m.data[..])
+                    .expect("a FrameTransform");
+                assert_eq!(t.parent_frame_id, "world");
+                match t.child_frame_id.as_str() {
+                    "body" => bodies.push((m.log_time, t.rotation.expect("rotation"))),
+                    "reference" => references += 1,
+                    other => panic!("frame {other}"),
+                }
+            }
+            "/rotorloop/log" => {
+                let l = <foxglove::messages::Log as prost::Message>::decode(&m.data[..])
+                    .expect("a Log");
+                logs.push((l.name, l.message));
+            }
+            _ => {}
+        }
+    }
+    let ticks = 4000;
+    ticks_seen.sort_unstable();
+    assert_eq!(ticks_seen, (0..=ticks).collect::<Vec<u64>>(), "one state message per tick");
+    assert_eq!(bodies.len() as u64, ticks + 1);
+    assert_eq!(references, ticks + 1, "one reference frame per tick");
+    let trace = trace_attitudes(&out);
+    assert_eq!(trace.len() as u64, ticks + 1);
+    let mut worst = 0.0f64;
+    for (ns, q) in &bodies {
+        let k = states[ns];
+        let r = rotation(q.x, q.y, q.z, q.w);
+        let d = r.iter().zip(&trace[&k]).fold(0.0f64, |a, (x, y)| a.max((x - y).abs()));
+        worst = worst.max(d);
+    }
+    assert!(worst < 1e-12, "quaternions against trace.csv: {worst:e}");
+    for f in s["faults"].as_array().expect("faults") {
+        let (role, kind) = (f["role"].as_str().expect("role"), f["kind"].as_str().expect("kind"));
+        let said = format!("fault: {kind}");
+        let logged = logs.iter().any(|(name, l)| name == role && l.starts_with(&said));
+        assert!(logged, "{role} {kind} not in the log: {logs:?}");
+    }
+    check_layout(&schemas);
+    // Rebuilt from the run directory: the same file.
+    std::fs::remove_file(out.join("run.mcap")).expect("rm");
+    ok(&h.rotorloop(&["export", dir, "--mcap"], LIMIT));
+    assert!(
+        std::fs::read(out.join("run.mcap")).expect("again") == bytes,
+        "export wrote another file"
+    );
+    h.assert_no_leftovers();
+}
+
+/// Every message path of `docs/foxglove-layout.json` is a topic of the file with that
+/// field in its JSON schema, its log panel's topic is there, and the frames its 3D panel
+/// shows are the transforms' (what can be checked of a layout without a display).
+fn check_layout(schemas: &BTreeMap<String, Vec<u8>>) {
+    let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("docs/foxglove-layout.json");
+    let layout: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(path).expect("layout")).expect("json");
+    let panels = layout["configById"].as_object().expect("panels");
+    let mut checked = 0;
+    for (id, config) in panels {
+        for p in config["paths"].as_array().into_iter().flatten() {
+            let value = p["value"].as_str().expect("a message path");
+            let (topic, field) = value.rsplit_once('.').expect("topic.field");
+            let schema = schemas.get(topic).unwrap_or_else(|| panic!("{id}: no topic {topic}"));
+            let schema: serde_json::Value = serde_json::from_slice(schema).expect("a JSON schema");
+            assert!(schema["properties"][field].is_object(), "{id}: {topic} has no field {field}");
+            checked += 1;
+        }
+        if let Some(topic) = config["topicToRender"].as_str() {
+            assert!(schemas.contains_key(topic), "{id}: no topic {topic}");
+            checked += 1;
+        }
+        for frame in config["transforms"].as_object().into_iter().flat_map(|t| t.keys()) {
+            let frame = frame.strip_prefix("frame:").expect("frame:NAME");
+            assert!(["world", "body", "reference"].contains(&frame), "{id}: frame {frame}");
+            checked += 1;
+        }
+    }
+    assert!(checked >= 10, "the layout names what it shows: {checked}");
+}
