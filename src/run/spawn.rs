@@ -197,11 +197,10 @@ impl Launch<'_> {
     /// The mover of the records' finished halves, when the rings are shorter than the run
     /// and the records are the launcher's to move (see `common::flight`).
     pub(crate) fn mover(&self) -> Option<rotorloop_common::flight::Mover> {
-        use rotorloop_common::flight::{Mover, SPARE_SLOTS, ring_capacity};
+        use rotorloop_common::flight::{Mover, ring_capacity, ring_wraps};
         let staged = self.role_args.record.as_ref()?;
         let ring = ring_capacity(self.ticks, self.role_args.flight_ring_ticks);
-        let wraps = ring < self.ticks + 1 + SPARE_SLOTS;
-        (wraps && self.args.role.record.is_none())
+        (ring_wraps(self.ticks, ring) && self.args.role.record.is_none())
             .then(|| Mover::new(staged, &self.args.out.join("flight")).with_half(ring / 2))
     }
 
