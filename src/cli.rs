@@ -111,6 +111,8 @@ enum RoleCommand {
     Monitor(rotorloop_monitor::process::args::MonitorArgs),
     Pingpong(crate::baseline::pingpong::PingPongArgs),
     Hog(crate::baseline::pingpong::HogArgs),
+    /// Sleep to the plant's grid and record the wake-up lateness (the bench's timer baseline).
+    Timer(crate::baseline::timer::TimerArgs),
     /// Try to reach a run's services and files from outside; print what was granted.
     Probe(crate::baseline::probe::ProbeArgs),
 }
@@ -233,6 +235,7 @@ fn dispatch(cli: Cli) -> ExitCode {
             RoleCommand::Monitor(a) => run_role(Role::Monitor.name(), a, monitor::run),
             RoleCommand::Pingpong(a) => run_role("pingpong", a, crate::baseline::pingpong::run),
             RoleCommand::Hog(a) => run_role("hog", a, crate::baseline::pingpong::hog),
+            RoleCommand::Timer(a) => run_role("timer", a, crate::baseline::timer::run),
             RoleCommand::Probe(a) => run_role("probe", a, crate::baseline::probe::run),
         };
     }
@@ -318,6 +321,7 @@ fn sim_command(a: &SimArgs) -> anyhow::Result<()> {
     if let Some(dir) = &a.replay {
         let r = crate::sim::replay::run(dir, &a.out)?;
         println!("{}", r.describe());
+        crate::export::mcap_after_run(&a.out, false);
         return Ok(());
     }
     let name = a.scenario.as_deref().unwrap_or_default();
@@ -345,6 +349,7 @@ fn sim_command(a: &SimArgs) -> anyhow::Result<()> {
     };
     let (summary, _) = sim::run(&opts).with_context(|| format!("sim of {name}"))?;
     print!("{}", summary_table(&summary));
+    crate::export::mcap_after_run(&a.out, false);
     println!("  {:<28} {}", "output", a.out.display());
     Ok(())
 }

@@ -215,3 +215,43 @@ fn cross_host_cells_are_measured_through_the_link_beside_one_host() {
         .collect();
     assert!(left.is_empty(), "left in /dev/shm: {left:?}");
 }
+
+/// `--baselines timer`: a bare thread sleeping to the plant's grid on the plant's core is
+/// measured in the same invocation (one wake-up per tick of the cell), and `bench.md`
+/// puts the plant's tick lateness beside it with the ratios.
+#[test]
+fn the_timer_baseline_is_measured_beside_the_plants_tick() {
+    let h = Harness::new("benchtimer");
+    let out = bench(
+        &h,
+        "--rates 500 --wait event --placement cross-core --baselines timer --seconds 0.5",
+        180,
+    );
+    let csv = std::fs::read_to_string(out.join("bench.csv")).expect("bench.csv");
+    let mut lines = csv.lines();
+    let header: Vec<&str> = lines.next().expect("header").split(',').collect();
+    let col = |n: &str| header.iter().position(|h| *h == n).expect(n);
+    let rows: Vec<Vec<&str>> = lines.map(|l| l.split(',').collect()).collect();
+    let kinds: Vec<&str> = rows.iter().map(|r| r[1]).collect();
+    assert_eq!(kinds, ["loop", "timer"]);
+    let num = |r: &[&str], n: &str| r[col(n)].parse::<f64>().expect(n);
+    let (plant, timer) = (&rows[0], &rows[1]);
+    // Ticks 0 to 250 of a 0.5 s grid at 500 Hz: one wake-up each.
+    assert_eq!(timer[col("count")], "251", "{timer:?}");
+    for n in ["p50_us", "p99_us", "p99_9_us"] {
+        assert!(num(timer, n) > 0.0, "{n}: {timer:?}");
+    }
+    for n in ["tick_lateness_p50_us", "tick_lateness_p99_us", "tick_lateness_p99_9_us"] {
+        assert!(num(plant, n) > 0.0, "{n}: {plant:?}");
+    }
+    let md = std::fs::read_to_string(out.join("bench.md")).expect("bench.md");
+    let section = md.split("against the timer baseline").nth(1).expect("the timer section");
+    let row = section
+        .lines()
+        .find(|l| l.starts_with("| r500-event-cross-core-none | loop |"))
+        .expect("the loop beside its timer");
+    let ratio: f64 = row.split('|').nth(5).expect("ratio p50").trim().parse().expect("a ratio");
+    assert!(ratio > 0.0 && ratio.is_finite(), "{row}");
+    let hgrm = std::fs::read_to_string(out.join("cells/r500-event-cross-core-none/timer.hgrm"));
+    assert!(hgrm.expect("timer.hgrm").contains("Total count"));
+}

@@ -171,3 +171,56 @@ fn check_layout(schemas: &BTreeMap<String, Vec<u8>>) {
     }
     assert!(checked >= 10, "the layout names what it shows: {checked}");
 }
+
+/// A run in process (`sim`) has no flight records: its `run.mcap` holds the trace's
+/// attitudes as transforms (giving back `R` and `R_d` within 1e-12) and its tracking rows,
+/// one each per row, at the simulated time.
+#[test]
+fn a_sim_run_is_an_mcap_file_of_its_trace() {
+    let h = Harness::new("mcapsim");
+    let out = h.path("sim");
+    let dir = out.to_str().expect("utf8");
+    let args = ["sim", "--scenario", "paper-sinusoid", "--duration", "2", "--no-figures"];
+    ok(&h.rotorloop(&args.into_iter().chain(["--out", dir]).collect::<Vec<_>>(), LIMIT));
+    let bytes = std::fs::read(out.join("run.mcap")).expect("run.mcap");
+    let trace = trace_attitudes(&out);
+    let text = std::fs::read_to_string(out.join("trace.csv")).expect("trace");
+    let header: Vec<&str> = text.lines().next().expect("header").split(',').collect();
+    let rd11 = header.iter().position(|h| *h == "Rd11").expect("Rd11");
+    let desired: Vec<[f64; 9]> = text
+        .lines()
+        .skip(1)
+        .map(|l| {
+            let f: Vec<f64> = l.split(',').map(|v| v.parse().expect("number")).collect();
+            let mut r = [0.0; 9];
+            r.copy_from_slice(&f[rd11..rd11 + 9]);
+            r
+        })
+        .collect();
+    let (mut body, mut reference, mut tracking) = (Vec::new(), Vec::new(), 0);
+    for m in mcap::MessageStream::new(&bytes).expect("an MCAP file") {
+        let m = m.expect("a message");
+        match m.channel.topic.as_str() {
+            "/tf" => {
+                let t = <foxglove::messages::FrameTransform as prost::Message>::decode(&m.data[..])
+                    .expect("a FrameTransform");
+                let q = t.rotation.expect("rotation");
+                let r = rotation(q.x, q.y, q.z, q.w);
+                match t.child_frame_id.as_str() {
+                    "body" => body.push(r),
+                    _ => reference.push(r),
+                }
+            }
+            "/rotorloop/tracking" => tracking += 1,
+            _ => {}
+        }
+    }
+    assert_eq!((body.len(), reference.len(), tracking), (2001, 2001, 2001));
+    let worst = |a: &[[f64; 9]], b: &mut dyn Iterator<Item = [f64; 9]>| {
+        a.iter()
+            .zip(b)
+            .fold(0.0f64, |w, (x, y)| x.iter().zip(&y).fold(w, |w, (p, q)| w.max((p - q).abs())))
+    };
+    assert!(worst(&body, &mut trace.values().copied()) < 1e-12, "body");
+    assert!(worst(&reference, &mut desired.into_iter()) < 1e-12, "reference");
+}

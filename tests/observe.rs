@@ -180,3 +180,35 @@ fn watch_shows_a_running_loop_and_a_restart_as_it_happens() {
     }
     h.assert_no_leftovers();
 }
+
+/// `watch` in a terminal draws its charts: in a tmux window of 160×50, its screen captured
+/// (`tmux capture-pane`) 5 s after it started shows the three charts (attitude error,
+/// actuation delay p50/p99, misses per second) with points drawn in them (braille cells).
+/// Skipped with a message where tmux is not installed.
+#[test]
+fn watch_in_a_terminal_draws_its_charts() {
+    if Command::new("tmux").arg("-V").output().is_err() {
+        eprintln!("skipped: tmux is not installed");
+        return;
+    }
+    let h = Harness::new("wtmux");
+    let (child, _out) = start(&h, "9");
+    let socket = h.path("tmux");
+    let tmux = |args: &[&str]| {
+        Command::new("tmux").arg("-S").arg(&socket).args(args).stdin(Stdio::null()).output()
+    };
+    let watch = format!("{} watch --domain {}", crate::common::harness::ROTORLOOP, h.domain);
+    let started = tmux(&["new-session", "-d", "-s", "w", "-x", "160", "-y", "50", &watch]);
+    assert!(started.as_ref().is_ok_and(|o| o.status.success()), "{started:?}");
+    std::thread::sleep(Duration::from_secs(5));
+    let shown = tmux(&["capture-pane", "-p", "-t", "w"]).expect("capture-pane");
+    let _ = tmux(&["kill-server"]);
+    let screen = String::from_utf8_lossy(&shown.stdout).into_owned();
+    for title in ["attitude error", "actuation delay", "misses per second", "controlling"] {
+        assert!(screen.contains(title), "no {title}:\n{screen}");
+    }
+    let drawn = screen.chars().filter(|c| ('\u{2801}'..='\u{28ff}').contains(c)).count();
+    assert!(drawn > 10, "{drawn} braille cells drawn:\n{screen}");
+    ok(&wait_output(child, LIMIT));
+    h.assert_no_leftovers();
+}

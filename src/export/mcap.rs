@@ -233,7 +233,11 @@ fn latency(s: &StateSample, t: Option<&TorqueSample>, r: Option<&ReferenceSample
 /// Writes `DIR/run.mcap` from the run in `dir` (records, `trace.csv`, `summary.json`):
 /// through a `.part` file renamed when complete, so a reader never sees half a file.
 pub fn write(dir: &Path) -> anyhow::Result<McapCounts> {
-    let run = Run::read(dir)?;
+    // A run in process (`sim`, `sim --replay`, `paper`'s in-process runs) has no flight
+    // records: its trace alone (attitudes, tracking) in simulated time.
+    let records = Stream::PlantState.path(&records_dir(dir, None)).exists()
+        || !dir.join("trace.csv").exists();
+    let run = if records { Some(Run::read(dir)?) } else { None };
     let path = dir.join("run.mcap");
     let part = dir.join("run.mcap.part");
     let ctx = Context::new();
@@ -243,7 +247,10 @@ pub fn write(dir: &Path) -> anyhow::Result<McapCounts> {
         .context(&ctx)
         .create(std::io::BufWriter::new(file))
         .with_context(|| format!("cannot write {}", part.display()))?;
-    let counts = write_messages(&ctx, &run, &mcap);
+    let counts = match &run {
+        Some(run) => write_messages(&ctx, run, &mcap),
+        None => write_trace_messages(&ctx, dir, &mcap),
+    };
     let closed = mcap.close().map_err(anyhow::Error::from).and_then(|mut w| {
         use std::io::Write;
         w.flush()?;
@@ -311,13 +318,7 @@ fn write_messages(
         tfs += 1;
         lat.log(&latency(s, t, r), ns)?;
         if let Some(row) = run.trace.get(&k) {
-            let m: serde_json::Map<String, Value> = columns
-                .iter()
-                .zip(row)
-                .filter(|(c, _)| TRACKING.contains(&c.as_str()))
-                .map(|(c, v)| (c.clone(), serde_json::json!(v)))
-                .collect();
-            tracking.log(&Value::Object(m), ns)?;
+            tracking.log(&tracking_row(columns, row), ns)?;
         }
         let now_safe = s.flags & FLAG_SAFE_MODE != 0;
         if now_safe != safe {
@@ -341,6 +342,64 @@ fn write_messages(
     counts.insert("/tf".into(), tfs);
     counts.insert("/rotorloop/log".into(), logs);
     Ok(counts)
+}
+
+/// A run without flight records, from its `trace.csv` (and `summary.json`, attached):
+/// `/tf` and `/rotorloop/tracking` at the simulated time of each row.
+fn write_trace_messages(
+    ctx: &Arc<Context>,
+    dir: &Path,
+    mcap: &Handle,
+) -> anyhow::Result<BTreeMap<String, u64>> {
+    let (columns, rows) = read_trace(&dir.join("trace.csv"))?;
+    let col = |n: &str| {
+        columns.iter().position(|c| c == n).with_context(|| format!("trace.csv has no {n} column"))
+    };
+    let (t, r11, rd11) = (col("t")?, col("R11")?, col("Rd11")?);
+    let nine = |row: &[f64], at: usize| -> [f64; 9] {
+        let mut m = [0.0; 9];
+        m.copy_from_slice(&row[at..at + 9]);
+        m
+    };
+    let mut meta = BTreeMap::from([("clock".to_owned(), "simulated time (ns)".to_owned())]);
+    meta.insert("rotorloop_version".into(), env!("CARGO_PKG_VERSION").into());
+    let summary = std::fs::read(dir.join("summary.json")).ok();
+    if let Some(v) = summary.as_deref().and_then(|b| serde_json::from_slice::<Value>(b).ok()) {
+        for key in ["name", "ticks", "dt", "actuation"] {
+            if !v[key].is_null() {
+                meta.insert(key.into(), v[key].to_string().trim_matches('"').to_owned());
+            }
+        }
+    }
+    mcap.write_metadata("rotorloop", meta)?;
+    if let Some(data) = summary {
+        let name = "summary.json".into();
+        let media_type = "application/json".into();
+        let a = McapAttachment { log_time: 0, create_time: 0, name, media_type, data: data.into() };
+        mcap.attach(&a)?;
+    }
+    let mut tracking = JsonChannel::new(ctx, "/rotorloop/tracking", "rotorloop.Tracking");
+    let tf: Channel<FrameTransform> = ChannelBuilder::new("/tf").context(ctx).build();
+    let mut tfs = 0u64;
+    for row in rows.values().filter(|r| r.len() == columns.len()) {
+        let ns = (row[t] * 1e9).round() as u64;
+        tf.log_with_time(&transform("world", "body", &nine(&row[..], r11), ns), ns);
+        tf.log_with_time(&transform("world", "reference", &nine(&row[..], rd11), ns), ns);
+        tfs += 2;
+        tracking.log(&tracking_row(&columns, row), ns)?;
+    }
+    Ok(BTreeMap::from([("/tf".to_owned(), tfs), (tracking.topic.clone(), tracking.count)]))
+}
+
+/// A `trace.csv` row's [`TRACKING`] columns as a JSON object.
+fn tracking_row(columns: &[String], row: &[f64]) -> Value {
+    let m: serde_json::Map<String, Value> = columns
+        .iter()
+        .zip(row)
+        .filter(|(c, _)| TRACKING.contains(&c.as_str()))
+        .map(|(c, v)| (c.clone(), serde_json::json!(v)))
+        .collect();
+    Value::Object(m)
 }
 
 /// `trace.csv`'s columns on `/rotorloop/tracking`.

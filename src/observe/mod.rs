@@ -11,6 +11,7 @@
 //! the slots a few hundred times a second, so its per-second figures are of a sample of the
 //! ticks (it says how many), not of every tick: the monitor's report is the full record.
 
+pub mod charts;
 pub mod slots;
 
 use std::collections::{BTreeMap, VecDeque};
@@ -368,7 +369,7 @@ struct Seen {
 }
 
 /// What `watch` shows.
-#[derive(Debug, Clone, Serialize)]
+#[derive(Debug, Clone, Default, Serialize)]
 pub struct WatchView {
     /// The domain.
     pub domain: String,
@@ -403,6 +404,8 @@ pub struct WatchView {
     pub roles: Vec<RoleView>,
     /// What happened while watching (a role died or restarted, safe mode, control back).
     pub events: Vec<String>,
+    /// The charts' points: one a second of watching, the last minute.
+    pub history: Vec<charts::Point>,
 }
 
 /// The watcher's state between refreshes.
@@ -419,6 +422,7 @@ struct Watcher {
     events: Vec<String>,
     started_ns: u64,
     dt: f64,
+    history: charts::History,
 }
 
 impl Watcher {
@@ -438,6 +442,7 @@ impl Watcher {
             events: Vec::new(),
             started_ns: now_ns(),
             dt: 1e-3,
+            history: Default::default(),
         })
     }
 
@@ -548,7 +553,7 @@ impl Watcher {
             }
             _ => 0.0,
         };
-        WatchView {
+        let v = WatchView {
             domain: self.domain.name().to_owned(),
             t_s: s.map_or(0.0, |s| s.t_s),
             tick: s.map_or(0, |s| s.tick),
@@ -568,7 +573,10 @@ impl Watcher {
             err_deg_1s_ago: ago.filter(|e| e.is_finite()),
             roles,
             events: self.events.iter().rev().take(12).rev().cloned().collect(),
-        }
+            history: Vec::new(),
+        };
+        self.history.push_if_due(now, &v);
+        WatchView { history: self.history.points(), ..v }
     }
 }
 
@@ -655,14 +663,20 @@ pub fn watch(a: &WatchArgs) -> anyhow::Result<()> {
             sample_for(&mut w, 0.25, a.sample_hz);
             let lines = render(&w.view());
             terminal.draw(|f| {
+                use ratatui::layout::{Constraint, Layout};
                 use ratatui::widgets::{Block, Borders, Paragraph};
                 let text: Vec<ratatui::text::Line> =
                     lines.iter().map(|l| ratatui::text::Line::from(l.as_str())).collect();
                 let title = " rotorloop watch (q or Ctrl-C quits) ";
+                let rows = u16::try_from(lines.len() + 2).unwrap_or(u16::MAX);
+                let [top, bottom] =
+                    Layout::vertical([Constraint::Length(rows), Constraint::Min(8)])
+                        .areas(f.area());
                 f.render_widget(
                     Paragraph::new(text).block(Block::default().title(title).borders(Borders::ALL)),
-                    f.area(),
+                    top,
                 );
+                charts::draw(f, bottom, &w.history);
             })?;
             if ratatui::crossterm::event::poll(Duration::ZERO)? {
                 if let ratatui::crossterm::event::Event::Key(k) = ratatui::crossterm::event::read()?

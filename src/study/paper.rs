@@ -34,6 +34,7 @@ pub fn run(out: &Path, duration: f64, rate: f64, in_process: bool) -> anyhow::Re
             sim::run(&SimOptions { progress: true, ..SimOptions::new(scenario, dir.clone()) })
                 .with_context(|| format!("sim of {name}"))?;
         print!("{}", summary_table(&s));
+        crate::export::mcap_after_run(&dir, false);
         let e = s.effort.as_ref().context("closed-loop runs have an effort comparison")?;
         let _ = writeln!(
             rows,

@@ -35,9 +35,14 @@ pub struct BenchArgs {
     /// Load: none, or other-core (a CPU hog on the core the loop is not pinned to).
     #[arg(long, value_delimiter = ',', default_value = "none")]
     pub load: Vec<String>,
-    /// Baselines: atomic, iceoryx2, uds.
+    /// Baselines: atomic, iceoryx2, uds, timer (a bare thread sleeping to the plant's grid
+    /// on its core, with its priority: what the kernel allows the plant's tick).
     #[arg(long, value_delimiter = ',', default_value = "atomic,iceoryx2,uds")]
     pub baselines: Vec<String>,
+    /// SCHED_FIFO priority of every role of the loop and of the timer baseline (default:
+    /// the normal policy).
+    #[arg(long, value_parser = clap::value_parser!(i32).range(1..=99))]
+    pub rt_priority: Option<i32>,
     /// The plant sleeps until this many µs before each tick and spins the rest.
     #[arg(long, allow_negative_numbers = true, default_value_t = 0)]
     pub spin_before_tick_us: u64,
@@ -77,7 +82,7 @@ pub struct BenchArgs {
 pub struct Row {
     /// Cell identifier.
     pub cell: String,
-    /// `loop`, `atomic`, `iceoryx2`, `uds`.
+    /// `loop`, `atomic`, `iceoryx2`, `uds`, `timer` (its figures: the wake-up lateness).
     pub kind: String,
     /// Rate (Hz).
     pub rate: f64,
@@ -103,6 +108,10 @@ pub struct Row {
     pub achieved: f64,
     /// Tick lateness p99 (µs), loop only.
     pub lateness_p99: f64,
+    /// Tick lateness p50 (µs), loop only.
+    pub lateness_p50: f64,
+    /// Tick lateness p99.9 (µs), loop only.
+    pub lateness_p99_9: f64,
     /// Why the measurement was skipped, if it was.
     pub skipped: String,
     /// Tracking error at the end of the run (degrees), loop only.
@@ -113,13 +122,14 @@ pub struct Row {
     pub index: usize,
 }
 
-pub(super) const CSV_HEADER: &str = "cell,kind,rate_hz,wait,placement,load,count,p50_us,p99_us,p99_9_us,max_us,misses,achieved_rate_hz,tick_lateness_p99_us,skipped,err_deg_final,err_deg_rms";
+pub(super) const CSV_HEADER: &str = "cell,kind,rate_hz,wait,placement,load,count,p50_us,p99_us,p99_9_us,max_us,misses,achieved_rate_hz,tick_lateness_p99_us,skipped,err_deg_final,err_deg_rms,tick_lateness_p50_us,tick_lateness_p99_9_us";
 
 impl Row {
     pub(super) fn parse(line: &str) -> Option<Self> {
         let f: Vec<&str> = line.split(',').collect();
-        // Bench files written before `err_deg_final` have 15 columns, before `err_deg_rms` 16.
-        if !(15..=17).contains(&f.len()) {
+        // Bench files written before `err_deg_final` have 15 columns, before `err_deg_rms`
+        // 16, before the lateness p50 and p99.9 17.
+        if !(15..=19).contains(&f.len()) {
             return None;
         }
         let num = |i: usize| f.get(i).map_or(f64::NAN, |v| v.parse::<f64>().unwrap_or(f64::NAN));
@@ -141,13 +151,15 @@ impl Row {
             skipped: f[14].into(),
             err_deg_final: num(15),
             err_deg_rms: num(16),
+            lateness_p50: num(17),
+            lateness_p99_9: num(18),
             index: 0,
         })
     }
 
     pub(super) fn csv(&self) -> String {
         format!(
-            "{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{}",
+            "{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{}",
             self.cell,
             self.kind,
             self.rate,
@@ -164,7 +176,9 @@ impl Row {
             self.lateness_p99,
             self.skipped.replace(',', ";"),
             self.err_deg_final,
-            self.err_deg_rms
+            self.err_deg_rms,
+            self.lateness_p50,
+            self.lateness_p99_9
         )
     }
 }
@@ -244,9 +258,9 @@ pub(super) fn validate(a: &BenchArgs) -> Result<(), UsageError> {
         }
     }
     for b in &a.baselines {
-        if !["atomic", "iceoryx2", "uds"].contains(&b.as_str()) {
+        if !["atomic", "iceoryx2", "uds", "timer"].contains(&b.as_str()) {
             return Err(UsageError(format!(
-                "--baselines `{b}` is not allowed: atomic, iceoryx2, uds"
+                "--baselines `{b}` is not allowed: atomic, iceoryx2, uds, timer"
             )));
         }
     }

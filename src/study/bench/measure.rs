@@ -90,6 +90,7 @@ pub(super) fn loop_run_args(
     });
     let role = RoleArgs {
         domain: Some(domain),
+        rt_priority: a.rt_priority,
         ..RoleArgs::realtime(&a.scenario, a.seconds, base.rate, wait)
     };
     RunArgs {
@@ -137,7 +138,7 @@ pub(super) fn measure_loop(
         row.p99_9 = hgrm_quantile(&hgrm, 0.999);
         row.max = hgrm_quantile(&hgrm, 1.0);
         row.count = hgrm_count(&hgrm);
-        row.lateness_p99 = f64::NAN;
+        (row.lateness_p50, row.lateness_p99, row.lateness_p99_9) = (f64::NAN, f64::NAN, f64::NAN);
         row.achieved = f64::NAN;
         (row.err_deg_final, row.err_deg_rms) = (f64::NAN, f64::NAN);
         std::fs::copy(&hgrm, dir.join("loop-nomon.hgrm"))?;
@@ -164,6 +165,8 @@ pub(super) fn read_loop_summary(row: &mut Row, out: &Path) -> anyhow::Result<()>
     row.misses = j["misses"].as_u64().unwrap_or(0);
     row.achieved = j["achieved_rate_hz"].as_f64().unwrap_or(0.0);
     row.lateness_p99 = us(&j["hops"]["tick_lateness"]["p99"]);
+    row.lateness_p50 = us(&j["hops"]["tick_lateness"]["p50"]);
+    row.lateness_p99_9 = us(&j["hops"]["tick_lateness"]["p99_9"]);
     row.err_deg_final = j["err_deg_final"].as_f64().unwrap_or(f64::NAN);
     row.err_deg_rms = j["err_deg_rms"].as_f64().unwrap_or(f64::NAN);
     Ok(())
@@ -220,6 +223,9 @@ pub(super) fn measure_baseline(
     ncores: usize,
     dir: &Path,
 ) -> anyhow::Result<Row> {
+    if kind == "timer" {
+        return measure_timer(exe, a, base, placement, ncores, dir);
+    }
     let mut row = Row { kind: kind.into(), ..base.clone() };
     if let Some(why) = skip_reason(kind, wait, placement, &base.load, ncores) {
         row.skipped = why;
@@ -291,8 +297,62 @@ pub(super) fn measure_baseline(
     row.misses = j["misses"].as_u64().unwrap_or(0);
     row.achieved = j["achieved_rate_hz"].as_f64().unwrap_or(0.0);
     (row.lateness_p99, row.err_deg_final, row.err_deg_rms) = (f64::NAN, f64::NAN, f64::NAN);
+    (row.lateness_p50, row.lateness_p99_9) = (f64::NAN, f64::NAN);
     if k == Kind::Atomic {
         row.wait = "spin".into();
     }
+    Ok(row)
+}
+
+/// The `timer` baseline of cell `base`: a bare thread sleeping to the plant's grid on the
+/// plant's core (none when unpinned), with its priority and its spin before each tick
+/// (`crate::baseline::timer`). Its row's latencies are the wake-up lateness (µs).
+fn measure_timer(
+    exe: &Path,
+    a: &BenchArgs,
+    base: &Row,
+    placement: &str,
+    ncores: usize,
+    dir: &Path,
+) -> anyhow::Result<Row> {
+    let mut row = Row { kind: "timer".into(), ..base.clone() };
+    if placement == "dedicated" {
+        if let Err(why) = crate::run::args::dedicated_cores(ncores) {
+            row.skipped = why;
+            return Ok(row);
+        }
+    }
+    // The plant's spin before each tick: the cell's, or the dedicated preset's 50 µs.
+    let spin = match (placement, a.spin_before_tick_us) {
+        ("dedicated", 0) => 50,
+        (_, s) => s,
+    };
+    let stem = dir.join("timer");
+    let mut cmd = Command::new(exe);
+    cmd.args(["role", "timer", "--rate", &base.rate.to_string()])
+        .args(["--seconds", &a.seconds.to_string(), "--spin-before-tick-us", &spin.to_string()])
+        .arg("--out")
+        .arg(&stem)
+        .stdin(Stdio::null());
+    if let Some((plant, _)) = cores(placement, ncores) {
+        cmd.args(["--core", &plant.to_string()]);
+    }
+    if let Some(p) = a.rt_priority {
+        cmd.args(["--rt-priority", &p.to_string()]);
+    }
+    let status = cmd.status().context("cannot run the timer baseline")?;
+    if !status.success() {
+        row.skipped = format!("timer baseline failed ({status})");
+        return Ok(row);
+    }
+    let j: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(stem.with_extension("json"))?)?;
+    let us = |v: &serde_json::Value| v.as_f64().unwrap_or(f64::NAN) / 1e3;
+    let l = &j["lateness"];
+    row.count = l["count"].as_u64().unwrap_or(0);
+    (row.p50, row.p99, row.p99_9, row.max) =
+        (us(&l["p50"]), us(&l["p99"]), us(&l["p99_9"]), us(&l["max"]));
+    (row.lateness_p50, row.lateness_p99, row.lateness_p99_9) = (row.p50, row.p99, row.p99_9);
+    (row.achieved, row.err_deg_final, row.err_deg_rms) = (base.rate, f64::NAN, f64::NAN);
     Ok(row)
 }

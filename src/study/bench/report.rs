@@ -84,6 +84,7 @@ pub(super) fn write_markdown(a: &BenchArgs, rows: &[Row]) -> anyhow::Result<()> 
             );
         }
     }
+    md.push_str(&timer_md(rows));
     md.push_str(&zero_miss_md(a, rows));
     md.push_str(&breakdown_md(a, rows));
     md.push_str(&before_after_md(rows, a.pairs));
@@ -421,4 +422,44 @@ pub(super) fn plots(a: &BenchArgs, rows: &[Row]) -> anyhow::Result<()> {
         YScale::Log { floor: 0.5 },
     )?;
     Ok(())
+}
+
+/// The plant's tick lateness beside the `timer` baseline of the same cell (a bare thread
+/// sleeping to the same grid on the same core with the same priority): how close the
+/// plant's tick is to what the kernel allows.
+pub(super) fn timer_md(rows: &[Row]) -> String {
+    let measured = |r: &&Row| r.skipped.is_empty();
+    let timers: Vec<&Row> = rows.iter().filter(measured).filter(|r| r.kind == "timer").collect();
+    if timers.is_empty() {
+        return String::new();
+    }
+    let mut md = String::from(
+        "\n## The plant's tick against the timer baseline\n\n\
+         Tick lateness: wake-up − grid time (µs). `timer`: a bare thread sleeping to the same \
+         absolute grid with the same clock, timer slack, policy, priority, core and spin, in \
+         the same invocation (what cyclictest measures). Ratios: plant / timer.\n\n\
+         | cell | kind | plant p50 / p99 / p99.9 | timer p50 / p99 / p99.9 | ratio p50 | ratio p99 | ratio p99.9 |\n\
+         |---|---|---|---|---|---|---|\n",
+    );
+    for t in timers {
+        let loops = rows.iter().filter(measured).filter(|r| r.cell == t.cell);
+        for l in loops.filter(|r| r.kind.starts_with("loop") && r.lateness_p50.is_finite()) {
+            let _ = writeln!(
+                md,
+                "| {} | {} | {:.1} / {:.1} / {:.1} | {:.1} / {:.1} / {:.1} | {:.2} | {:.2} | {:.2} |",
+                t.cell,
+                l.kind,
+                l.lateness_p50,
+                l.lateness_p99,
+                l.lateness_p99_9,
+                t.p50,
+                t.p99,
+                t.p99_9,
+                l.lateness_p50 / t.p50,
+                l.lateness_p99 / t.p99,
+                l.lateness_p99_9 / t.p99_9
+            );
+        }
+    }
+    md
 }

@@ -1,0 +1,90 @@
+//! The `timer` baseline: what the kernel allows a thread that sleeps to the plant's grid.
+//! A bare thread sleeps to the same absolute grid as the plant, with the same clock
+//! (`CLOCK_MONOTONIC`, `TIMER_ABSTIME`), the same timer slack (1 ns), scheduling class,
+//! priority, core and spin before each tick, through the same function
+//! ([`sleep_until_ns`]), and records how late it woke: cyclictest's measurement, in the
+//! bench's own invocation. The plant's tick lateness is judged against it.
+
+use std::path::PathBuf;
+
+use anyhow::Context;
+use hdrhistogram::Histogram;
+use rotorloop_common::clock::{TickGrid, now_ns, sleep_until_ns};
+use rotorloop_common::rt::RtSetup;
+use rotorloop_common::signals::shutdown_requested;
+
+/// `rotorloop role timer` arguments.
+#[derive(Debug, Clone, clap::Args)]
+pub struct TimerArgs {
+    /// Ticks per second.
+    #[arg(long)]
+    pub rate: f64,
+    /// Seconds to sleep to the grid.
+    #[arg(long)]
+    pub seconds: f64,
+    /// Pin to this core (the plant's).
+    #[arg(long)]
+    pub core: Option<usize>,
+    /// SCHED_FIFO priority (the plant's).
+    #[arg(long)]
+    pub rt_priority: Option<i32>,
+    /// Sleep until this many µs before each tick and spin the rest (the plant's).
+    #[arg(long, default_value_t = 0)]
+    pub spin_before_tick_us: u64,
+    /// Writes `OUT.json` (count, p50, p99, p99.9, max of the lateness, ns) and `OUT.hgrm`.
+    #[arg(long)]
+    pub out: PathBuf,
+}
+
+/// The lateness of every wake-up to the grid (ns, at least 1: a histogram cell).
+pub fn lateness(a: &TimerArgs) -> anyhow::Result<Histogram<u64>> {
+    let rt = RtSetup { core: a.core, rt_priority: a.rt_priority, mlock: false };
+    for w in rt.apply("timer") {
+        eprintln!("warning: {w}");
+    }
+    let mut h = Histogram::<u64>::new_with_bounds(1, 3_600_000_000_000, 3)?;
+    let ticks = (a.seconds * a.rate).round() as u64;
+    // As the plant: the grid starts 20 ms from now.
+    let grid = TickGrid::new(now_ns() + 20_000_000, 0, a.rate);
+    let spin_ns = a.spin_before_tick_us * 1000;
+    for k in 0..=ticks {
+        if shutdown_requested() {
+            break;
+        }
+        let deadline = grid.at(k);
+        sleep_until_ns(deadline, spin_ns);
+        h.saturating_record(now_ns().saturating_sub(deadline).max(1));
+    }
+    Ok(h)
+}
+
+/// `rotorloop role timer`: measures and writes `OUT.json` and `OUT.hgrm`.
+pub fn run(a: &TimerArgs) -> anyhow::Result<()> {
+    if !(a.rate.is_finite() && a.rate > 0.0 && a.seconds.is_finite() && a.seconds > 0.0) {
+        return Err(rotorloop_common::role::UsageError(format!(
+            "timer: --rate {} and --seconds {} must be positive",
+            a.rate, a.seconds
+        ))
+        .into());
+    }
+    let h = lateness(a)?;
+    let q = |p: f64| h.value_at_quantile(p);
+    let j = serde_json::json!({
+        "lateness": {
+            "count": h.len(),
+            "min": h.min(),
+            "p50": q(0.5),
+            "p99": q(0.99),
+            "p99_9": q(0.999),
+            "max": h.max(),
+        },
+        "rate_hz": a.rate,
+        "core": a.core,
+        "rt_priority": a.rt_priority,
+    });
+    let json = a.out.with_extension("json");
+    std::fs::write(&json, serde_json::to_string_pretty(&j)? + "\n")
+        .with_context(|| format!("cannot write {}", json.display()))?;
+    rotorloop_common::hgrm::write_hgrm_file(&a.out.with_extension("hgrm"), &h)?;
+    Ok(())
+}
