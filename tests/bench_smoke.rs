@@ -218,13 +218,15 @@ fn cross_host_cells_are_measured_through_the_link_beside_one_host() {
 
 /// `--baselines timer`: a bare thread sleeping to the plant's grid on the plant's core is
 /// measured in the same invocation (one wake-up per tick of the cell), and `bench.md`
-/// puts the plant's tick lateness beside it with the ratios.
+/// puts the plant's tick lateness beside it with the ratios. `--cpu-dma-latency 0` is
+/// held for the invocation where the machine lets it (root) and `bench.md` says which.
 #[test]
 fn the_timer_baseline_is_measured_beside_the_plants_tick() {
     let h = Harness::new("benchtimer");
     let out = bench(
         &h,
-        "--rates 500 --wait event --placement cross-core --baselines timer --seconds 0.5",
+        "--rates 500 --wait event --placement cross-core --baselines timer --seconds 0.5 \
+         --cpu-dma-latency 0",
         180,
     );
     let csv = std::fs::read_to_string(out.join("bench.csv")).expect("bench.csv");
@@ -245,6 +247,10 @@ fn the_timer_baseline_is_measured_beside_the_plants_tick() {
         assert!(num(plant, n) > 0.0, "{n}: {plant:?}");
     }
     let md = std::fs::read_to_string(out.join("bench.md")).expect("bench.md");
+    // The idle-state request, held for the invocation where the device lets us (root).
+    let writable = std::fs::OpenOptions::new().write(true).open("/dev/cpu_dma_latency").is_ok();
+    let held = "`/dev/cpu_dma_latency` held at 0 µs for the invocation";
+    assert_eq!(md.contains(held), writable, "{}", md.lines().nth(2).unwrap_or_default());
     let section = md.split("against the timer baseline").nth(1).expect("the timer section");
     let row = section
         .lines()

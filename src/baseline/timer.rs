@@ -31,17 +31,26 @@ pub struct TimerArgs {
     /// Sleep until this many µs before each tick and spin the rest (the plant's).
     #[arg(long, default_value_t = 0)]
     pub spin_before_tick_us: u64,
+    /// Hold `/dev/cpu_dma_latency` at this many µs while measuring (cyclictest's default
+    /// is 0; the bench holds it itself for the whole invocation instead).
+    #[arg(long)]
+    pub cpu_dma_latency: Option<u32>,
     /// Writes `OUT.json` (count, p50, p99, p99.9, max of the lateness, ns) and `OUT.hgrm`.
     #[arg(long)]
     pub out: PathBuf,
 }
 
-/// The lateness of every wake-up to the grid (ns, at least 1: a histogram cell).
-pub fn lateness(a: &TimerArgs) -> anyhow::Result<Histogram<u64>> {
+/// The lateness of every wake-up to the grid (ns, at least 1: a histogram cell), and the
+/// `/dev/cpu_dma_latency` limit in force while it was measured (µs; `None`: not readable).
+pub fn lateness(a: &TimerArgs) -> anyhow::Result<(Histogram<u64>, Option<u32>)> {
     let rt = RtSetup { core: a.core, rt_priority: a.rt_priority, mlock: false };
     for w in rt.apply("timer") {
         eprintln!("warning: {w}");
     }
+    let _idle = a.cpu_dma_latency.and_then(|us| {
+        rotorloop_common::rt::CpuDmaLatency::hold(us).map_err(|w| eprintln!("warning: {w}")).ok()
+    });
+    let idle = rotorloop_common::rt::cpu_dma_latency_now();
     let mut h = Histogram::<u64>::new_with_bounds(1, 3_600_000_000_000, 3)?;
     let ticks = (a.seconds * a.rate).round() as u64;
     // As the plant: the grid starts 20 ms from now.
@@ -55,7 +64,7 @@ pub fn lateness(a: &TimerArgs) -> anyhow::Result<Histogram<u64>> {
         sleep_until_ns(deadline, spin_ns);
         h.saturating_record(now_ns().saturating_sub(deadline).max(1));
     }
-    Ok(h)
+    Ok((h, idle))
 }
 
 /// `rotorloop role timer`: measures and writes `OUT.json` and `OUT.hgrm`.
@@ -67,7 +76,7 @@ pub fn run(a: &TimerArgs) -> anyhow::Result<()> {
         ))
         .into());
     }
-    let h = lateness(a)?;
+    let (h, idle) = lateness(a)?;
     let q = |p: f64| h.value_at_quantile(p);
     let j = serde_json::json!({
         "lateness": {
@@ -81,6 +90,7 @@ pub fn run(a: &TimerArgs) -> anyhow::Result<()> {
         "rate_hz": a.rate,
         "core": a.core,
         "rt_priority": a.rt_priority,
+        "cpu_dma_latency_us": idle,
     });
     let json = a.out.with_extension("json");
     std::fs::write(&json, serde_json::to_string_pretty(&j)? + "\n")

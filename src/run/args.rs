@@ -43,6 +43,12 @@ pub struct RunArgs {
     /// the rest (sharper ticks, one core busier).
     #[arg(long, allow_negative_numbers = true, default_value_t = 0)]
     pub spin_before_tick_us: u64,
+    /// Hold `/dev/cpu_dma_latency` at this many µs while it runs: no CPU enters an idle
+    /// state that takes longer to leave (0: idle CPUs poll instead of halting, as
+    /// cyclictest asks by default; sharper timer wake-ups on a VM, idle cores kept busy).
+    /// Needs root; without it a warning, and the idle states stay as they are.
+    #[arg(long)]
+    pub cpu_dma_latency: Option<u32>,
     /// Real time: ticks the plant holds the last torque before safe mode.
     #[arg(long, allow_negative_numbers = true, default_value_t = 50)]
     pub hold_ticks: u64,
@@ -75,8 +81,8 @@ pub struct RunArgs {
     #[arg(long, allow_negative_numbers = true, default_value_t = 3000)]
     pub watchdog_ms: u64,
     /// `dedicated`: every role on a core of its own (the machine's last four), every role
-    /// busy-waiting (`--wait spin`), and the plant spinning the last 50 µs before each tick
-    /// (sharp ticks on a VM whose timer wake-ups are late). Needs 4 cores. A `--pin`, a
+    /// busy-waiting (`--wait spin`), the plant spinning the last 50 µs before each tick
+    /// (sharp ticks on a VM whose timer wake-ups are late), and `--cpu-dma-latency 0`. Needs 4 cores. A `--pin`, a
     /// `--spin-before-tick-us` other than 0 or a `--wait` other than `event` (the
     /// defaults, which the preset replaces) wins.
     #[arg(long)]
@@ -118,6 +124,7 @@ pub(crate) fn with_preset(args: &RunArgs, explicit_wait: bool) -> Result<RunArgs
             if a.spin_before_tick_us == 0 {
                 a.spin_before_tick_us = 50;
             }
+            a.cpu_dma_latency.get_or_insert(0);
         }
         Some(other) => {
             return Err(UsageError(format!("--preset `{other}` is not allowed: dedicated")));
@@ -138,6 +145,7 @@ impl RunArgs {
             no_record: false,
             no_mcap: false,
             spin_before_tick_us: 0,
+            cpu_dma_latency: None,
             hold_ticks: 50,
             fault: Vec::new(),
             corrupt: Vec::new(),

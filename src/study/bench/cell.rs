@@ -46,6 +46,12 @@ pub struct BenchArgs {
     /// The plant sleeps until this many µs before each tick and spins the rest.
     #[arg(long, allow_negative_numbers = true, default_value_t = 0)]
     pub spin_before_tick_us: u64,
+    /// Hold `/dev/cpu_dma_latency` at this many µs for the whole invocation (the loop and every baseline): no CPU enters an idle
+    /// state that takes longer to leave (0: idle CPUs poll instead of halting, as
+    /// cyclictest asks by default; sharper timer wake-ups on a VM, idle cores kept busy).
+    /// Needs root; without it a warning, and the idle states stay as they are.
+    #[arg(long)]
+    pub cpu_dma_latency: Option<u32>,
     /// Also run each loop cell without the monitor and report the change of the
     /// plant-measured sense-to-actuate p50 (`loop-nomon` rows).
     #[arg(long)]

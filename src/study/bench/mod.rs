@@ -33,7 +33,7 @@ pub fn run(a: &BenchArgs) -> anyhow::Result<()> {
         let text = std::fs::read_to_string(a.out.join("bench.csv"))
             .with_context(|| format!("no bench.csv in {}", a.out.display()))?;
         let rows: Vec<Row> = text.lines().skip(1).filter_map(Row::parse).collect();
-        write_markdown(a, &rows)?;
+        write_markdown(a, &rows, "")?;
         plots(a, &rows)?;
         println!("bench: {} measurements re-plotted in {}", rows.len(), a.out.display());
         return Ok(());
@@ -49,6 +49,20 @@ pub fn run(a: &BenchArgs) -> anyhow::Result<()> {
     let exe = std::env::current_exe().context("cannot find the rotorloop executable")?;
     let ncores = std::thread::available_parallelism().map_or(1, |n| n.get());
     rotorloop_common::signals::install_signal_handlers();
+    // Held to the end of the invocation, so the loop and every baseline run under it.
+    let idle = a.cpu_dma_latency.and_then(|us| {
+        rotorloop_common::rt::CpuDmaLatency::hold(us).map_err(|w| eprintln!("warning: {w}")).ok()
+    });
+    let idle_note = match (&idle, rotorloop_common::rt::cpu_dma_latency_now()) {
+        (Some(h), _) => format!(
+            "CPU idle states: `/dev/cpu_dma_latency` held at {} µs for the invocation.",
+            h.us()
+        ),
+        (None, Some(v)) => {
+            format!("CPU idle states: as the machine has them (`/dev/cpu_dma_latency` {v} µs).")
+        }
+        (None, None) => "CPU idle states: as the machine has them.".to_owned(),
+    };
 
     let csv_path = a.out.join("bench.csv");
     std::fs::write(&csv_path, format!("{CSV_HEADER}\n"))?;
@@ -118,12 +132,12 @@ pub fn run(a: &BenchArgs) -> anyhow::Result<()> {
             writeln!(f, "{}", r.csv())?;
         }
         rows.extend(measured);
-        write_markdown(a, &rows)?;
+        write_markdown(a, &rows, &idle_note)?;
     }
     if tty {
         eprintln!();
     }
-    write_markdown(a, &rows)?;
+    write_markdown(a, &rows, &idle_note)?;
     plots(a, &rows)?;
     println!("bench: {} measurements in {}", rows.len(), a.out.display());
     Ok(())

@@ -9,14 +9,14 @@ use rotorloop_monitor::plot::{Series, YScale, line_chart};
 
 use super::cell::{BenchArgs, Row};
 
-pub(super) fn write_markdown(a: &BenchArgs, rows: &[Row]) -> anyhow::Result<()> {
+pub(super) fn write_markdown(a: &BenchArgs, rows: &[Row], idle_note: &str) -> anyhow::Result<()> {
     let mut md = format!(
         "# rotorloop bench\n\n{} s per measurement; scenario {}. Loop: sense-to-actuate (plant publishes \
          state k → plant holds torque k), real time. Baselines: paced round trip, one per tick, same \
-         placement and wait strategy (atomic: always spin). Latencies in µs.\n\n\
+         placement and wait strategy (atomic: always spin). Latencies in µs. {}\n\n\
          | cell | kind | p50 | p99 | p99.9 | max | misses | achieved Hz | tick lateness p99 | loop/iceoryx2 p50 | loop/iceoryx2 p99.9 | loop/uds p50 | loop/atomic p50 |\n\
          |---|---|---|---|---|---|---|---|---|---|---|---|---|\n",
-        a.seconds, a.scenario
+        a.seconds, a.scenario, idle_note
     );
     for r in rows {
         if !r.skipped.is_empty() {
