@@ -79,6 +79,12 @@ impl CpuDmaLatency {
         Ok(Self { _file: file, us })
     }
 
+    /// [`hold`](Self::hold)s `us` where it is given; where the kernel refuses, prints a
+    /// warning and goes on without it.
+    pub fn hold_or_warn(us: Option<u32>) -> Option<Self> {
+        us.and_then(|us| Self::hold(us).map_err(|w| eprintln!("warning: {w}")).ok())
+    }
+
     /// The latency asked for (µs).
     pub fn us(&self) -> u32 {
         self.us

@@ -47,9 +47,7 @@ pub fn lateness(a: &TimerArgs) -> anyhow::Result<(Histogram<u64>, Option<u32>)> 
     for w in rt.apply("timer") {
         eprintln!("warning: {w}");
     }
-    let _idle = a.cpu_dma_latency.and_then(|us| {
-        rotorloop_common::rt::CpuDmaLatency::hold(us).map_err(|w| eprintln!("warning: {w}")).ok()
-    });
+    let _idle = rotorloop_common::rt::CpuDmaLatency::hold_or_warn(a.cpu_dma_latency);
     let idle = rotorloop_common::rt::cpu_dma_latency_now();
     let mut h = Histogram::<u64>::new_with_bounds(1, 3_600_000_000_000, 3)?;
     let ticks = (a.seconds * a.rate).round() as u64;

@@ -52,9 +52,7 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
     let explicit_wait = args.role.wait != rotorloop_common::ipc::wait::Wait::Event;
     let args = &with_preset(args, explicit_wait)?;
     // Held to the end of the run (and by the kernel to this launcher's death).
-    let _idle = args.cpu_dma_latency.and_then(|us| {
-        rotorloop_common::rt::CpuDmaLatency::hold(us).map_err(|w| eprintln!("warning: {w}")).ok()
-    });
+    let _idle = rotorloop_common::rt::CpuDmaLatency::hold_or_warn(args.cpu_dma_latency);
     let scenario = args.role.scenario()?;
     // The law is the controller's to name: refused here, before any process starts.
     AnyLaw::for_scenario(&scenario, scenario.actuation()).map_err(UsageError::from)?;

@@ -25,6 +25,7 @@ use rotorloop_common::signals::shutdown_requested;
 use cell::{BenchArgs, CSV_HEADER, Row, cells, cores, skip_reason, validate};
 use measure::{Variant, before_after, measure_baseline, measure_loop, measure_loops, scale_steps};
 use report::{plots, write_markdown};
+use rotorloop_common::rt::CpuDmaLatency;
 
 /// Runs the bench.
 pub fn run(a: &BenchArgs) -> anyhow::Result<()> {
@@ -50,19 +51,7 @@ pub fn run(a: &BenchArgs) -> anyhow::Result<()> {
     let ncores = std::thread::available_parallelism().map_or(1, |n| n.get());
     rotorloop_common::signals::install_signal_handlers();
     // Held to the end of the invocation, so the loop and every baseline run under it.
-    let idle = a.cpu_dma_latency.and_then(|us| {
-        rotorloop_common::rt::CpuDmaLatency::hold(us).map_err(|w| eprintln!("warning: {w}")).ok()
-    });
-    let idle_note = match (&idle, rotorloop_common::rt::cpu_dma_latency_now()) {
-        (Some(h), _) => format!(
-            "CPU idle states: `/dev/cpu_dma_latency` held at {} µs for the invocation.",
-            h.us()
-        ),
-        (None, Some(v)) => {
-            format!("CPU idle states: as the machine has them (`/dev/cpu_dma_latency` {v} µs).")
-        }
-        (None, None) => "CPU idle states: as the machine has them.".to_owned(),
-    };
+    let (_idle, idle_note) = hold_idle_states(a.cpu_dma_latency);
 
     let csv_path = a.out.join("bench.csv");
     std::fs::write(&csv_path, format!("{CSV_HEADER}\n"))?;
@@ -141,4 +130,23 @@ pub fn run(a: &BenchArgs) -> anyhow::Result<()> {
     plots(a, &rows)?;
     println!("bench: {} measurements in {}", rows.len(), a.out.display());
     Ok(())
+}
+
+/// Holds `--cpu-dma-latency` where it is given, and says in a line of `bench.md` which idle
+/// states the invocation ran under.
+fn hold_idle_states(us: Option<u32>) -> (Option<CpuDmaLatency>, String) {
+    let held = CpuDmaLatency::hold_or_warn(us);
+    let note = match (&held, rotorloop_common::rt::cpu_dma_latency_now()) {
+        (Some(h), _) => {
+            format!(
+                "CPU idle states: `/dev/cpu_dma_latency` held at {} µs for the invocation.",
+                h.us()
+            )
+        }
+        (None, Some(v)) => {
+            format!("CPU idle states: as the machine has them (`/dev/cpu_dma_latency` {v} µs).")
+        }
+        (None, None) => "CPU idle states: as the machine has them.".to_owned(),
+    };
+    (held, note)
 }
