@@ -66,6 +66,10 @@ enum Command {
     Ps(crate::observe::PsArgs),
     /// A live view of a running loop (passive: reads the roles' resume slots).
     Watch(crate::observe::WatchArgs),
+    /// Serve a running loop to Foxglove or Lichtblick (Foxglove WebSocket, default
+    /// 127.0.0.1:8765): the state, torque, reference, latency, tracking and the attitudes
+    /// in 3D, live (docs/foxglove.md).
+    Foxglove(crate::observe::foxglove::FoxgloveArgs),
     /// How much actuation delay the loop tolerates: the linearised prediction per mode and
     /// a sweep of the nonlinear loop in process.
     Margin(crate::study::margin::MarginArgs),
@@ -283,6 +287,7 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Bench(a) => crate::study::bench::run(&a)?,
         Command::Ps(a) => crate::observe::ps(&a)?,
         Command::Watch(a) => crate::observe::watch(&a)?,
+        Command::Foxglove(a) => crate::observe::foxglove::run(&a)?,
         Command::Margin(a) => {
             crate::study::margin::run(&a)?;
             println!("output: {}", a.out.display());

@@ -261,3 +261,31 @@ fn the_timer_baseline_is_measured_beside_the_plants_tick() {
     let hgrm = std::fs::read_to_string(out.join("cells/r500-event-cross-core-none/timer.hgrm"));
     assert!(hgrm.expect("timer.hgrm").contains("Total count"));
 }
+
+/// `--before-after foxglove`: the loop alone and with the live Foxglove server and a viewer
+/// subscribed to every topic, alternating; the viewer received the loop's messages, and
+/// `bench.md` compares the two.
+#[test]
+fn before_after_foxglove_measures_the_loop_with_a_viewer_attached() {
+    let h = Harness::new("benchfx");
+    let out = bench(
+        &h,
+        "--rates 500 --wait event --placement cross-core --baselines iceoryx2 --seconds 1 \
+         --before-after foxglove --pairs 2",
+        180,
+    );
+    let csv = std::fs::read_to_string(out.join("bench.csv")).expect("bench.csv");
+    let kinds: Vec<&str> = csv.lines().skip(1).map(|l| l.split(',').nth(1).unwrap_or("")).collect();
+    assert_eq!(kinds, ["loop", "loop-foxglove", "iceoryx2"]);
+    let cell = out.join("cells/r500-event-cross-core-none");
+    for pair in [cell.join("loop-foxglove"), cell.join("pair1/loop-foxglove")] {
+        let v = crate::common::harness::json(&pair.join("viewer.json"));
+        // 1 s at 500 Hz: states, torques, references, transforms, latency, tracking.
+        assert!(v["messages"].as_u64().is_some_and(|n| n > 500), "{}: {v}", pair.display());
+        assert!(pair.join("foxglove.addr").exists());
+    }
+    assert!(cell.join("pair1/loop/summary.json").exists(), "the plain loop measured twice");
+    let md = std::fs::read_to_string(out.join("bench.md")).expect("bench.md");
+    assert!(md.contains("with the live Foxglove server"), "{md}");
+    assert!(md.contains("| r500-event-cross-core-none |"), "{md}");
+}

@@ -21,6 +21,7 @@ mod faults;
 mod fuzz_inputs;
 mod hostile;
 mod layout;
+mod live;
 mod multiprocess;
 mod observe;
 mod physics;

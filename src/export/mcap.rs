@@ -122,7 +122,7 @@ fn read_trace(path: &Path) -> anyhow::Result<Trace> {
 }
 
 /// A JSON channel with a JSON schema derived from its first message.
-struct JsonChannel {
+pub(crate) struct JsonChannel {
     ctx: Arc<Context>,
     topic: String,
     schema_name: &'static str,
@@ -131,12 +131,12 @@ struct JsonChannel {
 }
 
 impl JsonChannel {
-    fn new(ctx: &Arc<Context>, topic: &str, schema_name: &'static str) -> Self {
+    pub(crate) fn new(ctx: &Arc<Context>, topic: &str, schema_name: &'static str) -> Self {
         let (ctx, topic) = (ctx.clone(), topic.to_owned());
         Self { ctx, topic, schema_name, channel: None, count: 0 }
     }
 
-    fn log(&mut self, value: &Value, log_time: u64) -> anyhow::Result<()> {
+    pub(crate) fn log(&mut self, value: &Value, log_time: u64) -> anyhow::Result<()> {
         if self.channel.is_none() {
             let schema = serde_json::to_vec(&json_schema(value))?;
             let c = ChannelBuilder::new(self.topic.as_str())
@@ -147,8 +147,8 @@ impl JsonChannel {
                 .with_context(|| format!("cannot make the MCAP channel {}", self.topic))?;
             self.channel = Some(c);
         }
-        let bytes = serde_json::to_vec(value)?;
-        if let Some(c) = &self.channel {
+        if let Some(c) = self.channel.as_ref().filter(|c| c.has_sinks()) {
+            let bytes = serde_json::to_vec(value)?;
             c.log_with_meta(&bytes, foxglove::PartialMetadata { log_time: Some(log_time) });
         }
         self.count += 1;
@@ -181,7 +181,7 @@ pub fn quaternion(r_row_major: &[f64; 9]) -> DQuat {
     DQuat::from_mat3(&m).normalize()
 }
 
-fn transform(parent: &str, child: &str, r: &[f64; 9], ns: u64) -> FrameTransform {
+pub(crate) fn transform(parent: &str, child: &str, r: &[f64; 9], ns: u64) -> FrameTransform {
     let q = quaternion(r);
     FrameTransform {
         timestamp: Some(timestamp(ns)),
@@ -196,7 +196,12 @@ fn timestamp(ns: u64) -> Timestamp {
     Timestamp::new((ns / 1_000_000_000) as u32, (ns % 1_000_000_000) as u32)
 }
 
-fn log_message(ns: u64, level: foxglove::messages::log::Level, name: &str, message: String) -> Log {
+pub(crate) fn log_message(
+    ns: u64,
+    level: foxglove::messages::log::Level,
+    name: &str,
+    message: String,
+) -> Log {
     Log {
         timestamp: Some(timestamp(ns)),
         level: level as i32,
@@ -208,7 +213,11 @@ fn log_message(ns: u64, level: foxglove::messages::log::Level, name: &str, messa
 
 /// The per-tick latency of state `s` answered by `t` (ns; `None` where a stamp is
 /// missing), the stages of the controller, and the state of the loop.
-fn latency(s: &StateSample, t: Option<&TorqueSample>, r: Option<&ReferenceSample>) -> Value {
+pub(crate) fn latency(
+    s: &StateSample,
+    t: Option<&TorqueSample>,
+    r: Option<&ReferenceSample>,
+) -> Value {
     let d = |a: u64, b: u64| (a != 0 && b != 0 && a >= b).then(|| a - b);
     let answered = t.filter(|t| t.tick == s.tick);
     serde_json::json!({

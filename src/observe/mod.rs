@@ -12,7 +12,9 @@
 //! ticks (it says how many), not of every tick: the monitor's report is the full record.
 
 pub mod charts;
+pub mod foxglove;
 pub mod slots;
+pub mod viewer;
 
 use std::collections::{BTreeMap, VecDeque};
 use std::fmt::Write as _;

@@ -49,6 +49,13 @@ pub struct RunArgs {
     /// Needs root; without it a warning, and the idle states stay as they are.
     #[arg(long)]
     pub cpu_dma_latency: Option<u32>,
+    /// Serve the running loop to Foxglove or Lichtblick on `ADDR` (default
+    /// 127.0.0.1:8765; loopback unless you name another address): `rotorloop foxglove`
+    /// started beside the loop, stopped at its end (docs/foxglove.md). It reads like the
+    /// monitor and never holds the loop up; a viewer gone or the server killed is no
+    /// matter to the loop.
+    #[arg(long, num_args = 0..=1, default_missing_value = crate::observe::foxglove::DEFAULT_ADDR, value_name = "ADDR")]
+    pub foxglove: Option<String>,
     /// Real time: ticks the plant holds the last torque before safe mode.
     #[arg(long, allow_negative_numbers = true, default_value_t = 50)]
     pub hold_ticks: u64,
@@ -146,6 +153,7 @@ impl RunArgs {
             no_mcap: false,
             spin_before_tick_us: 0,
             cpu_dma_latency: None,
+            foxglove: None,
             hold_ticks: 50,
             fault: Vec::new(),
             corrupt: Vec::new(),

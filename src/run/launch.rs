@@ -7,6 +7,7 @@ use rotorloop_common::signals::{install_signal_handlers, shutdown_requested};
 
 use rotorloop_common::ipc::domain::Domain;
 
+use crate::observe::foxglove::Beside;
 use crate::run::args::{RunArgs, parse_pins, with_preset};
 use crate::run::fault::{Fault, FaultEvent, FaultSchedule, parse_fault};
 use crate::run::resources::{RssLog, add_resources};
@@ -54,6 +55,7 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
     // Held to the end of the run (and by the kernel to this launcher's death).
     let _idle = rotorloop_common::rt::CpuDmaLatency::hold_or_warn(args.cpu_dma_latency);
     let scenario = args.role.scenario()?;
+    Beside::check(args.foxglove.as_deref(), args.split.is_some())?;
     // The law is the controller's to name: refused here, before any process starts.
     AnyLaw::for_scenario(&scenario, scenario.actuation()).map_err(UsageError::from)?;
     for w in &scenario.warnings {
@@ -128,20 +130,18 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
     record.write(&args.out)?;
     let mut rss = RssLog::create(&args.out);
     let mut children = Children::default();
+    let domain = launch.role_args.domain();
+    let live = args.foxglove.as_deref().map(|a| Beside::start(&launch.exe, domain, a, &args.out));
+    let live = live.transpose()?;
     let started = start(&launch, &mut children, &mut rss);
     let supervised = started
         .and_then(|()| supervise(&launch, &mut children, &mut rss, FaultSchedule::new(faults)));
     stop_gateways(&mut children, args.quiet);
     drop(children);
-    // Everything of this domain is gone now: remove what iceoryx2 keeps after its nodes.
-    for domain in &launch.domains {
-        if let Err(e) = domain.cleanup() {
-            eprintln!("warning: cleaning up domain {}: {e}", domain.name());
-        }
+    if let Some(live) = live {
+        live.stop();
     }
-    for h in launch.split.iter().flat_map(|s| s.hosts()) {
-        let _ = std::fs::remove_file(crate::run::split::ready_file(&args.out, h));
-    }
+    launch.clean_up();
     let flight = launch.keep_flight_records();
     // A failure stops the run, but its report (the faults that led to it among them) is
     // written as for any other end.
@@ -150,6 +150,21 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
     match failure {
         Some(f) => Err(f),
         None => reported,
+    }
+}
+
+impl Launch<'_> {
+    /// After the roles: everything of the run's domains is gone, so remove what iceoryx2
+    /// keeps after its nodes, and the split run's ready files.
+    fn clean_up(&self) {
+        for domain in &self.domains {
+            if let Err(e) = domain.cleanup() {
+                eprintln!("warning: cleaning up domain {}: {e}", domain.name());
+            }
+        }
+        for h in self.split.iter().flat_map(|s| s.hosts()) {
+            let _ = std::fs::remove_file(crate::run::split::ready_file(&self.args.out, h));
+        }
     }
 }
 

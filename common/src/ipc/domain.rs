@@ -293,14 +293,27 @@ impl Domain {
 
     /// The node ids of the domain's live link gateways (node `rotorloop/<name>/link`).
     pub fn link_node_ids(&self) -> Vec<u128> {
+        self.node_ids("link", false)
+    }
+
+    /// The node name (`rotorloop/<domain>/foxglove`) of a live view's server
+    /// (`rotorloop foxglove`): a reader the roles do not wait for when they end.
+    pub const VIEWER_NODE: &'static str = "foxglove";
+
+    /// The node ids of the domain's live nodes of `role` (node `rotorloop/<name>/<role>`),
+    /// and with `dead` also of its dead ones not cleaned up yet.
+    pub fn node_ids(&self, role: &str, dead: bool) -> Vec<u128> {
         use iceoryx2::node::NodeView;
-        let name = format!("rotorloop/{}/link", self.name);
+        let name = format!("rotorloop/{}/{role}", self.name);
         let mut ids = Vec::new();
         let _ = Node::<ipc::Service>::list(&self.config, |state| {
-            if let NodeState::Alive(v) = &state {
-                if v.details().as_ref().is_some_and(|d| d.name().as_str() == name) {
-                    ids.push(v.id().value());
-                }
+            let (id, details) = match &state {
+                NodeState::Alive(v) => (v.id().value(), v.details()),
+                NodeState::Dead(v) if dead => (v.id().value(), v.details()),
+                _ => return CallbackProgression::Continue,
+            };
+            if details.as_ref().is_some_and(|d| d.name().as_str() == name) {
+                ids.push(id);
             }
             CallbackProgression::Continue
         });

@@ -94,16 +94,27 @@ pub fn linger(mut done: impl FnMut() -> bool) {
 /// it lives as long as the gateway) to take its last samples.
 pub const LINK_GRACE_NS: u64 = 300_000_000;
 
-/// [`linger`] for a publisher: until every subscriber but a link gateway's has left, and,
+/// [`linger`] for a publisher: until every subscriber but a link gateway's and a live
+/// viewer server's has left, and,
 /// when a gateway carries the topic to another host, at least [`LINK_GRACE_NS`].
 pub fn linger_publisher<T>(out: &crate::ipc::ports::Outbox<T>, role: &RoleArgs)
 where
     T: iceoryx2::prelude::ZeroCopySend + std::fmt::Debug + Copy + 'static,
 {
-    let links = role.open_domain().map(|d| d.link_node_ids()).unwrap_or_default();
+    let domain = role.open_domain();
+    let links = domain.as_ref().map(|d| d.link_node_ids()).unwrap_or_default();
+    // A live viewer's server (`rotorloop foxglove`) reads on as long as the loop runs, and
+    // one killed leaves its subscriber until cleaned: neither is waited for.
+    let mut others = links.clone();
+    others.extend(
+        domain
+            .as_ref()
+            .map(|d| d.node_ids(crate::ipc::domain::Domain::VIEWER_NODE, true))
+            .unwrap_or_default(),
+    );
     let start = now_ns();
     linger(|| {
-        out.subscribers_except(&links) == 0
+        out.subscribers_except(&others) == 0
             && (links.is_empty() || now_ns() - start > LINK_GRACE_NS)
     });
 }

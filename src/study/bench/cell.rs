@@ -8,6 +8,15 @@ use rotorloop_common::ipc::wait::Wait;
 
 use rotorloop_common::role::UsageError;
 
+/// What `bench --before-after` compares.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum BeforeAfter {
+    /// Without and with the flight recorders.
+    Record,
+    /// Without and with `run --foxglove` and a viewer subscribed to every topic.
+    Foxglove,
+}
+
 /// `rotorloop bench` arguments.
 #[derive(Debug, Clone, Args)]
 pub struct BenchArgs {
@@ -56,12 +65,14 @@ pub struct BenchArgs {
     /// plant-measured sense-to-actuate p50 (`loop-nomon` rows).
     #[arg(long)]
     pub monitor_cost: bool,
-    /// Also run each loop cell as it was before the newest change to the hot path, in the
-    /// same invocation: without the flight recorders (`loop-before` rows; `rotorloop run
-    /// --no-record`). The change before that, the cut overhead, is `run --plain-hot-path`
-    /// by hand (docs/measured/overhead.md).
-    #[arg(long)]
-    pub before_after: bool,
+    /// Also run each loop cell before and after a change, in the same invocation:
+    /// `record` (the default) without the flight recorders and with them (`loop-before`
+    /// rows; `rotorloop run --no-record`); `foxglove` without and with the live Foxglove
+    /// server (`run --foxglove`) and a viewer subscribed to every topic
+    /// (`loop-foxglove` rows). The cut overhead before that is `run --plain-hot-path` by
+    /// hand (docs/measured/overhead.md).
+    #[arg(long, num_args = 0..=1, default_missing_value = "record", value_name = "CHANGE")]
+    pub before_after: Option<BeforeAfter>,
     /// With `--before-after`: measure before and after this many times each, alternating
     /// (before, after, before, …), and report the run with the median p50 of each (the
     /// difference between two runs of one loop here is often larger than the change).

@@ -9,30 +9,46 @@ use anyhow::Context;
 use rotorloop_common::ipc::domain::Domain;
 use rotorloop_common::ipc::wait::Wait;
 
-use super::cell::{BenchArgs, Row, cores, skip_reason};
+use super::cell::{BeforeAfter, BenchArgs, Row, cores, skip_reason};
 use super::report::{hgrm_count, hgrm_quantile};
 use crate::baseline::pingpong::Kind;
 use crate::run::args::RunArgs;
 use rotorloop_common::role::args::RoleArgs;
 
-/// `--before-after`: the loop without flight recorders and with them, `--pairs` times
-/// each, alternating (`first` is the first "after"); the median run of each.
+/// `--before-after`: the loop before and after `change`, `--pairs` times each,
+/// alternating (`first`, the plain loop already measured, is the first of its side); the
+/// median run of each side: the plain loop's (`loop`) first, then the other.
 pub(super) fn before_after(
     a: &BenchArgs,
+    change: BeforeAfter,
     base: &Row,
     ncores: usize,
     dir: &Path,
     first: Row,
 ) -> anyhow::Result<(Row, Row)> {
-    let (mut before, mut after) = (Vec::new(), vec![first]);
-    for i in 0..a.pairs {
+    let (b, f) = match change {
+        BeforeAfter::Record => (Variant::Before, Variant::Loop),
+        BeforeAfter::Foxglove => (Variant::Loop, Variant::Foxglove),
+    };
+    let (mut before, mut after) = (Vec::new(), Vec::new());
+    match change {
+        BeforeAfter::Record => after.push(first),
+        BeforeAfter::Foxglove => before.push(first),
+    }
+    for i in 0..a.pairs as usize {
         let d = if i == 0 { dir.to_owned() } else { dir.join(format!("pair{i}")) };
-        before.push(measure_loop(a, base, ncores, &d, Variant::Before)?);
-        if i > 0 {
-            after.push(measure_loop(a, base, ncores, &d, Variant::Loop)?);
+        if before.len() <= i {
+            before.push(measure_loop(a, base, ncores, &d, b)?);
+        }
+        if after.len() <= i {
+            after.push(measure_loop(a, base, ncores, &d, f)?);
         }
     }
-    Ok((median_p50(after), median_p50(before)))
+    let (after, before) = (median_p50(after), median_p50(before));
+    Ok(match change {
+        BeforeAfter::Record => (after, before),
+        BeforeAfter::Foxglove => (before, after),
+    })
 }
 
 /// The row with the median p50 of `rows` (the upper one of an even count; skipped rows
@@ -52,6 +68,8 @@ pub(super) enum Variant {
     NoMonitor,
     /// With `--no-record`: the loop before its flight recorders.
     Before,
+    /// With `--foxglove` and a viewer subscribed to every topic.
+    Foxglove,
 }
 
 impl Variant {
@@ -60,6 +78,7 @@ impl Variant {
             Variant::Loop => "loop",
             Variant::NoMonitor => "loop-nomon",
             Variant::Before => "loop-before",
+            Variant::Foxglove => "loop-foxglove",
         }
     }
 }
@@ -124,12 +143,22 @@ pub(super) fn measure_loop(
         Variant::Loop => "",
         Variant::NoMonitor => "n",
         Variant::Before => "b",
+        Variant::Foxglove => "f",
     };
     let domain = format!("bl{}-{}{suffix}", std::process::id(), base.index);
     let mut run = loop_run_args(a, base, ncores, domain, out.clone());
     run.no_monitor = without_monitor;
     run.no_record = variant == Variant::Before;
-    crate::run::launch::run(&run)?;
+    if variant == Variant::Foxglove {
+        run.foxglove = Some("127.0.0.1:0".into());
+        let viewer = Watching::start(out.join("foxglove.addr"));
+        let ran = crate::run::launch::run(&run);
+        let watched = viewer.stop(&out.join("viewer.json"));
+        ran?;
+        watched?;
+    } else {
+        crate::run::launch::run(&run)?;
+    }
     if without_monitor {
         // No monitor, no summary: the plant's own histogram of the loop.
         let hgrm = out.join("plant_sense_to_actuate.hgrm");
@@ -355,4 +384,58 @@ fn measure_timer(
     (row.lateness_p50, row.lateness_p99, row.lateness_p99_9) = (row.p50, row.p99, row.p99_9);
     (row.achieved, row.err_deg_final, row.err_deg_rms) = (base.rate, f64::NAN, f64::NAN);
     Ok(row)
+}
+
+/// A viewer subscribed to every topic of a `--foxglove` run's server, on a thread of the
+/// bench (not of the loop), reading as fast as the server sends.
+struct Watching {
+    stop: std::sync::Arc<std::sync::atomic::AtomicBool>,
+    thread: std::thread::JoinHandle<anyhow::Result<u64>>,
+}
+
+impl Watching {
+    /// Connects once the server has written its address to `addr_file`.
+    fn start(addr_file: PathBuf) -> Self {
+        use std::sync::atomic::{AtomicBool, Ordering};
+        let stop = std::sync::Arc::new(AtomicBool::new(false));
+        let done = stop.clone();
+        let thread = std::thread::spawn(move || {
+            let addr = loop {
+                if let Ok(a) = std::fs::read_to_string(&addr_file).map(|a| a.trim().to_owned()) {
+                    if !a.is_empty() {
+                        break a;
+                    }
+                }
+                if done.load(Ordering::Relaxed) {
+                    anyhow::bail!("the Foxglove server never said its address");
+                }
+                std::thread::sleep(std::time::Duration::from_millis(10));
+            };
+            let poll = std::time::Duration::from_millis(50);
+            let mut v = crate::observe::viewer::Viewer::connect(&addr, poll)?;
+            v.subscribe(&["*"])?;
+            let mut n = 0u64;
+            while !done.load(Ordering::Relaxed) {
+                match v.receive() {
+                    Ok(Some(_)) => n += 1,
+                    Ok(None) => {}
+                    // The server ends with the run.
+                    Err(_) => break,
+                }
+            }
+            Ok(n)
+        });
+        Self { stop, thread }
+    }
+
+    /// Stops the viewer and writes how many messages it received to `path`.
+    fn stop(self, path: &Path) -> anyhow::Result<()> {
+        self.stop.store(true, std::sync::atomic::Ordering::Relaxed);
+        let n = match self.thread.join() {
+            Ok(r) => r?,
+            Err(_) => anyhow::bail!("the bench's viewer panicked"),
+        };
+        std::fs::write(path, serde_json::json!({ "messages": n }).to_string() + "\n")?;
+        Ok(())
+    }
 }

@@ -100,10 +100,11 @@ pub fn run(a: &BenchArgs) -> anyhow::Result<()> {
         if a.monitor_cost {
             measured.push(measure_loop(a, &base, ncores, &dir, Variant::NoMonitor)?);
         }
-        if a.before_after {
-            let (after, before) = before_after(a, &base, ncores, &dir, measured.remove(0))?;
-            measured.insert(0, after);
-            measured.push(before);
+        if let Some(change) = a.before_after {
+            // The plain loop's row first, as without --before-after.
+            let (plain, other) = before_after(a, change, &base, ncores, &dir, measured.remove(0))?;
+            measured.insert(0, plain);
+            measured.push(other);
         }
         for b in &a.baselines {
             measured.push(measure_baseline(&exe, a, &base, b, *wait, placement, ncores, &dir)?);

@@ -87,7 +87,7 @@ pub(super) fn write_markdown(a: &BenchArgs, rows: &[Row], idle_note: &str) -> an
     md.push_str(&timer_md(rows));
     md.push_str(&zero_miss_md(a, rows));
     md.push_str(&breakdown_md(a, rows));
-    md.push_str(&before_after_md(rows, a.pairs));
+    md.push_str(&before_after_md(rows, a));
     md.push_str(&scale_md(rows));
     md.push_str(&cross_host_md(rows));
     std::fs::write(a.out.join("bench.md"), md)?;
@@ -225,30 +225,46 @@ pub(super) fn breakdown_md(a: &BenchArgs, rows: &[Row]) -> String {
 }
 
 /// The loop before and after its overhead was cut, with the bare baseline of the cell.
-pub(super) fn before_after_md(rows: &[Row], pairs: u64) -> String {
+pub(super) fn before_after_md(rows: &[Row], a: &BenchArgs) -> String {
+    use super::cell::BeforeAfter;
+    let Some(change) = a.before_after else { return String::new() };
+    let (before_kind, after_kind, what) = match change {
+        BeforeAfter::Record => (
+            "loop-before",
+            "loop",
+            "Before: the loop without flight recorders (`run --no-record`); after: with them \
+             (the default).",
+        ),
+        BeforeAfter::Foxglove => (
+            "loop",
+            "loop-foxglove",
+            "Before: the loop alone; after: with the live Foxglove server (`run --foxglove`) \
+             and a viewer subscribed to every topic (on a thread of the bench).",
+        ),
+    };
     let mut md = String::new();
     let ok = |cell: &str, kind: &str| {
         rows.iter().find(|r| r.cell == cell && r.kind == kind && r.skipped.is_empty())
     };
-    for r in rows.iter().filter(|r| r.kind == "loop" && r.skipped.is_empty()) {
-        let (Some(before), bare) = (ok(&r.cell, "loop-before"), ok(&r.cell, "iceoryx2")) else {
+    for r in rows.iter().filter(|r| r.kind == after_kind && r.skipped.is_empty()) {
+        let (Some(before), bare) = (ok(&r.cell, before_kind), ok(&r.cell, "iceoryx2")) else {
             continue;
         };
         if md.is_empty() {
             md.push_str(&format!(
-                "\n## Before and after (same invocation)\n\nBefore: the loop without flight recorders \
-                 (`run --no-record`); after: with them (the default). \
-                 Each measured {pairs} time(s), alternating; each row is the run with the \
-                 median p50.\n\n| cell | before p50 | after p50 | \
-                 change | bare iceoryx2 p50 | before/bare | after/bare | misses before/after/bare |\n\
-                 |---|---|---|---|---|---|---|---|\n",
+                "\n## Before and after (same invocation)\n\n{what} Each measured {} time(s), \
+                 alternating; each row is the run with the median p50.\n\n| cell | before p50 | \
+                 after p50 | change | bare iceoryx2 p50 | before/bare | after/bare | misses \
+                 before/after/bare | after p99 | before p99 |\n\
+                 |---|---|---|---|---|---|---|---|---|---|\n",
+                a.pairs
             ));
         }
         let bare_p50 = bare.map_or(f64::NAN, |b| b.p50);
         let bare_misses = bare.map_or("—".to_owned(), |b| b.misses.to_string());
         let _ = writeln!(
             md,
-            "| {} | {:.1} | {:.1} | {:+.0} % | {:.1} | {:.2} | {:.2} | {} / {} / {} |",
+            "| {} | {:.1} | {:.1} | {:+.0} % | {:.1} | {:.2} | {:.2} | {} / {} / {} | {:.1} | {:.1} |",
             r.cell,
             before.p50,
             r.p50,
@@ -258,8 +274,22 @@ pub(super) fn before_after_md(rows: &[Row], pairs: u64) -> String {
             r.p50 / bare_p50,
             before.misses,
             r.misses,
-            bare_misses
+            bare_misses,
+            r.p99,
+            before.p99
         );
+    }
+    if change == BeforeAfter::Foxglove {
+        for r in rows.iter().filter(|r| r.kind == after_kind && r.skipped.is_empty()) {
+            let seen = a.out.join("cells").join(&r.cell).join(after_kind).join("viewer.json");
+            let n = std::fs::read_to_string(seen)
+                .ok()
+                .and_then(|t| serde_json::from_str::<serde_json::Value>(&t).ok())
+                .and_then(|v| v["messages"].as_u64());
+            let said =
+                n.map_or("its count was not written".to_owned(), |n| format!("{n} messages"));
+            let _ = writeln!(md, "\n{}: the viewer of the first pair received {said}.", r.cell);
+        }
     }
     md
 }

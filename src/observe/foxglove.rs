@@ -1,0 +1,367 @@
+//! `rotorloop foxglove --domain D [ADDR]` (and `rotorloop run --foxglove [ADDR]`, which
+//! starts it beside the loop): a live view of a running loop in Foxglove or Lichtblick,
+//! over the Foxglove WebSocket protocol, served by the Foxglove SDK (subprotocol
+//! `foxglove.sdk.v1`, and `foxglove.sdk.v1.1` where the viewer offers it).
+//!
+//! It subscribes to the loop's three services like the monitor, but never listens to
+//! their events: it polls its subscribers every millisecond, so a publish wakes nobody more
+//! than before, and its queues overflow (oldest dropped) rather than hold anything up. The
+//! SDK's server drops the oldest messages for a viewer that does not keep up. A viewer that
+//! connects late sees the loop from then on; a viewer gone is nothing to the loop, and
+//! neither is this process killed (`kill -9`): its node is cleaned like any dead one.
+//!
+//! Topics: those of `run.mcap` ([`crate::export::mcap`]) that a live loop has, at the same
+//! log times (the loop's `CLOCK_MONOTONIC` stamps): `/rotorloop/state`, `/rotorloop/torque`,
+//! `/rotorloop/reference`, `/rotorloop/latency` (per tick, once its answer came or two
+//! ticks later without it), `/rotorloop/tracking` (`err_deg`: the angle of `R_d Rᵀ`, and
+//! the torque in force), `/rotorloop/log` (safe mode entered and left) and `/tf`
+//! (`world → body`, `world → reference`).
+
+use std::collections::BTreeMap;
+use std::net::{SocketAddr, ToSocketAddrs};
+use std::path::PathBuf;
+use std::sync::Arc;
+use std::time::Duration;
+
+use anyhow::Context as _;
+use foxglove::messages::{FrameTransform, Log};
+use foxglove::{Channel, ChannelBuilder, Context, WebSocketServer};
+use rotorloop_common::clock::now_ns;
+use rotorloop_common::graph::Topic;
+use rotorloop_common::ipc::MAX_BUFFER;
+use rotorloop_common::ipc::domain::Domain;
+use rotorloop_common::ipc::ports::Inbox;
+use rotorloop_common::role::UsageError;
+use rotorloop_common::signals::{install_signal_handlers, shutdown_requested};
+use rotorloop_common::wire::{FLAG_SAFE_MODE, ReferenceSample, StateSample, TorqueSample};
+
+use crate::export::mcap::{JsonChannel, latency, log_message, transform};
+
+/// Where the server listens unless told otherwise: loopback only.
+pub const DEFAULT_ADDR: &str = "127.0.0.1:8765";
+
+/// The node name of the live server in its domain (`rotorloop/<domain>/foxglove`).
+pub const NODE: &str = Domain::VIEWER_NODE;
+
+/// `rotorloop foxglove` arguments.
+#[derive(Debug, Clone, clap::Args)]
+pub struct FoxgloveArgs {
+    /// The loop's domain (`rotorloop ps` lists them).
+    #[arg(long)]
+    pub domain: String,
+    /// The address to serve on (`HOST:PORT`; port 0: any free port). Loopback unless you
+    /// name another address.
+    #[arg(default_value = DEFAULT_ADDR)]
+    pub addr: String,
+    /// Write the address actually bound (`HOST:PORT`) to this file once serving.
+    #[arg(long)]
+    pub addr_file: Option<PathBuf>,
+    /// Seconds to wait for the loop to appear before giving up.
+    #[arg(long, default_value_t = 30.0)]
+    pub wait_s: f64,
+}
+
+/// Parses `HOST:PORT`, or says what is allowed.
+pub fn parse_addr(addr: &str) -> Result<SocketAddr, UsageError> {
+    addr.to_socket_addrs().ok().and_then(|mut a| a.next()).ok_or_else(|| {
+        UsageError(format!(
+            "--foxglove address `{addr}` is not allowed: HOST:PORT, e.g. {DEFAULT_ADDR}"
+        ))
+    })
+}
+
+/// The live channels and what they need to remember between ticks.
+struct Live {
+    state: JsonChannel,
+    torque: JsonChannel,
+    reference: JsonChannel,
+    latency: JsonChannel,
+    tracking: JsonChannel,
+    tf: Channel<FrameTransform>,
+    log: Channel<Log>,
+    /// Recent states by tick, waiting for their answer (at most a few ticks).
+    pending: BTreeMap<u64, StateSample>,
+    /// Recent references by tick (the reference leads the state).
+    references: BTreeMap<u64, ReferenceSample>,
+    safe: bool,
+}
+
+impl Live {
+    fn new(ctx: &Arc<Context>) -> Self {
+        Self {
+            state: JsonChannel::new(ctx, "/rotorloop/state", "rotorloop.StateSample"),
+            torque: JsonChannel::new(ctx, "/rotorloop/torque", "rotorloop.TorqueSample"),
+            reference: JsonChannel::new(ctx, "/rotorloop/reference", "rotorloop.ReferenceSample"),
+            latency: JsonChannel::new(ctx, "/rotorloop/latency", "rotorloop.Latency"),
+            tracking: JsonChannel::new(ctx, "/rotorloop/tracking", "rotorloop.Tracking"),
+            tf: ChannelBuilder::new("/tf").context(ctx).build(),
+            log: ChannelBuilder::new("/rotorloop/log").context(ctx).build(),
+            pending: BTreeMap::new(),
+            references: BTreeMap::new(),
+            safe: false,
+        }
+    }
+
+    fn on_reference(&mut self, r: ReferenceSample) -> anyhow::Result<()> {
+        self.reference.log(&serde_json::to_value(r)?, r.publish_ns)?;
+        self.references.insert(r.tick, r);
+        while self.references.len() > 256 {
+            self.references.pop_first();
+        }
+        Ok(())
+    }
+
+    fn on_state(&mut self, s: StateSample) -> anyhow::Result<()> {
+        let ns = s.publish_ns;
+        self.state.log(&serde_json::to_value(s)?, ns)?;
+        self.tf.log_with_time(&transform("world", "body", &s.r_row_major, ns), ns);
+        let r = self.references.get(&s.tick).copied();
+        if let Some(r) = r {
+            self.tf.log_with_time(&transform("world", "reference", &r.r_d_row_major, ns), ns);
+        }
+        let err_deg = r.map(|r| attitude_error_deg(&s.r_row_major, &r.r_d_row_major));
+        let u = s.applied_rotor_torque_nm;
+        let row = serde_json::json!({
+            "t": s.t_s, "err_deg": err_deg, "u1": u[0], "u2": u[1], "u3": u[2],
+        });
+        self.tracking.log(&row, ns)?;
+        let safe = s.flags & FLAG_SAFE_MODE != 0;
+        if safe != self.safe {
+            use foxglove::messages::log::Level;
+            let (level, what) = match safe {
+                true => (Level::Warning, format!("safe mode entered at tick {}", s.tick)),
+                false => (Level::Info, format!("control resumed at tick {}", s.tick)),
+            };
+            self.log.log_with_time(&log_message(ns, level, "plant", what), ns);
+            self.safe = safe;
+        }
+        // A state two ticks old has had its chance to be answered.
+        while let Some((&k, _)) = self.pending.first_key_value() {
+            if k + 2 > s.tick {
+                break;
+            }
+            if let Some(old) = self.pending.remove(&k) {
+                self.latency_of(&old, None)?;
+            }
+        }
+        self.pending.insert(s.tick, s);
+        Ok(())
+    }
+
+    fn on_torque(&mut self, t: TorqueSample) -> anyhow::Result<()> {
+        self.torque.log(&serde_json::to_value(t)?, t.publish_ns)?;
+        if let Some(s) = self.pending.remove(&t.tick) {
+            self.latency_of(&s, Some(&t))?;
+        }
+        Ok(())
+    }
+
+    fn latency_of(&mut self, s: &StateSample, t: Option<&TorqueSample>) -> anyhow::Result<()> {
+        let r = self.references.get(&s.tick);
+        self.latency.log(&latency(s, t, r), s.publish_ns)
+    }
+}
+
+/// The angle of `R_d Rᵀ` (deg).
+fn attitude_error_deg(r: &[f64; 9], rd: &[f64; 9]) -> f64 {
+    // trace(R_d Rᵀ) = Σ_ij R_d[ij] R[ij].
+    let tr: f64 = r.iter().zip(rd).map(|(a, b)| a * b).sum();
+    ((tr - 1.0) / 2.0).clamp(-1.0, 1.0).acos().to_degrees()
+}
+
+/// Whether any node of the loop's roles is alive in `domain`.
+fn loop_alive(domain: &Domain) -> bool {
+    use iceoryx2::node::NodeView;
+    use iceoryx2::prelude::*;
+    let prefix = format!("rotorloop/{}/", domain.name());
+    let mut alive = false;
+    let _ = Node::<ipc::Service>::list(domain.config(), |state| {
+        if let NodeState::Alive(v) = &state {
+            let name = v.details().as_ref().map(|d| d.name().as_str().to_owned());
+            let role = name.as_deref().and_then(|n| n.strip_prefix(&prefix));
+            if role.is_some_and(|r| r != NODE && r != "link") {
+                alive = true;
+                return CallbackProgression::Stop;
+            }
+        }
+        CallbackProgression::Continue
+    });
+    alive
+}
+
+/// The inbox of `topic` once its service exists (never creating it).
+fn open_when_there<T>(
+    domain: &Domain,
+    node: &iceoryx2::node::Node<iceoryx2::prelude::ipc::Service>,
+    topic: Topic,
+    inbox: &mut Option<Inbox<T>>,
+) -> anyhow::Result<()>
+where
+    T: iceoryx2::prelude::ZeroCopySend + std::fmt::Debug + Copy + 'static,
+{
+    if inbox.is_none() && domain.topic_exists(topic) {
+        *inbox = Some(domain.inbox::<T>(node, topic, MAX_BUFFER, false)?);
+    }
+    Ok(())
+}
+
+/// Runs `rotorloop foxglove`: serves until the loop has ended (no role alive for a
+/// second), or SIGINT/SIGTERM.
+pub fn run(a: &FoxgloveArgs) -> anyhow::Result<()> {
+    let addr = parse_addr(&a.addr)?;
+    let domain = Domain::new(&a.domain).map_err(|e| UsageError(e.to_string()))?;
+    install_signal_handlers();
+    let ctx = Context::new();
+    let server = WebSocketServer::new()
+        .name(format!("rotorloop {}", a.domain))
+        .bind(addr.ip().to_string(), addr.port())
+        .context(&ctx)
+        .start_blocking()
+        .with_context(|| format!("cannot serve the Foxglove WebSocket on {addr}"))?;
+    let bound = SocketAddr::new(addr.ip(), server.port());
+    if let Some(f) = &a.addr_file {
+        std::fs::write(f, format!("{bound}\n"))
+            .with_context(|| format!("cannot write {}", f.display()))?;
+    }
+    eprintln!("foxglove: domain {} on ws://{bound} (subprotocol foxglove.sdk.v1)", a.domain);
+    let result = serve(a, &domain, &ctx);
+    let _ = server.stop();
+    result
+}
+
+fn serve(a: &FoxgloveArgs, domain: &Domain, ctx: &Arc<Context>) -> anyhow::Result<()> {
+    let give_up = now_ns() + (a.wait_s * 1e9) as u64;
+    while !domain.topic_exists(Topic::State) {
+        if shutdown_requested() {
+            return Ok(());
+        }
+        if now_ns() > give_up {
+            anyhow::bail!("no loop appeared in domain `{}` within {} s", a.domain, a.wait_s);
+        }
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    let node = domain.node(NODE)?;
+    let (mut states, mut torques, mut references) = (None, None, None);
+    let mut live = Live::new(ctx);
+    let mut last_alive = now_ns();
+    let mut next_check = 0;
+    while !shutdown_requested() {
+        open_when_there::<StateSample>(domain, &node, Topic::State, &mut states)?;
+        open_when_there::<ReferenceSample>(domain, &node, Topic::Reference, &mut references)?;
+        open_when_there::<TorqueSample>(domain, &node, Topic::Torque, &mut torques)?;
+        // References first: the reference leads the state it belongs to.
+        if let Some(i) = &references {
+            let mut got = Vec::new();
+            i.drain(|r| got.push(r))?;
+            got.into_iter().try_for_each(|r| live.on_reference(r))?;
+        }
+        if let Some(i) = &states {
+            let mut got = Vec::new();
+            i.drain(|s| got.push(s))?;
+            got.into_iter().try_for_each(|s| live.on_state(s))?;
+        }
+        if let Some(i) = &torques {
+            let mut got = Vec::new();
+            i.drain(|t| got.push(t))?;
+            got.into_iter().try_for_each(|t| live.on_torque(t))?;
+        }
+        let now = now_ns();
+        if now >= next_check {
+            next_check = now + 200_000_000;
+            if loop_alive(domain) {
+                last_alive = now;
+            } else if now - last_alive > 1_000_000_000 {
+                break;
+            }
+        }
+        std::thread::sleep(Duration::from_millis(1));
+    }
+    Ok(())
+}
+
+/// `rotorloop run --foxglove`: the server beside the loop, stopped when the loop has ended.
+#[derive(Debug)]
+pub struct Beside {
+    child: std::process::Child,
+}
+
+impl Beside {
+    /// `--foxglove ADDR` checked before anything starts: the address, and not with
+    /// `--split` (each host has its own space).
+    pub fn check(addr: Option<&str>, split: bool) -> Result<(), UsageError> {
+        let Some(addr) = addr else { return Ok(()) };
+        parse_addr(addr)?;
+        if split {
+            return Err(UsageError(
+                "--foxglove is not allowed with --split (each host has its own space): \
+                 run `rotorloop foxglove --domain D` beside a run without --split"
+                    .into(),
+            ));
+        }
+        Ok(())
+    }
+
+    /// Starts `rotorloop foxglove --domain DOMAIN ADDR`; it writes the address it bound to
+    /// `OUT/foxglove.addr`.
+    pub fn start(
+        exe: &std::path::Path,
+        domain: &str,
+        addr: &str,
+        out: &std::path::Path,
+    ) -> anyhow::Result<Self> {
+        parse_addr(addr)?;
+        let child = std::process::Command::new(exe)
+            .args(["foxglove", "--domain", domain, addr, "--addr-file"])
+            .arg(out.join("foxglove.addr"))
+            .stdin(std::process::Stdio::null())
+            .spawn()
+            .context("cannot start the Foxglove server (rotorloop foxglove)")?;
+        Ok(Self { child })
+    }
+
+    /// Stops the server (SIGTERM; SIGKILL after 3 s). One that ended during the run (killed
+    /// by hand, or its address taken) is said, and was no matter to the loop.
+    pub fn stop(mut self) {
+        if let Ok(Some(status)) = self.child.try_wait() {
+            eprintln!(
+                "warning: the Foxglove server ended during the run ({status}); the loop went on"
+            );
+            return;
+        }
+        let pid = self.child.id() as libc::pid_t;
+        // SAFETY: signals our own child, which has not been reaped (try_wait said so).
+        unsafe { libc::kill(pid, libc::SIGTERM) };
+        let until = now_ns() + 3_000_000_000;
+        while now_ns() < until {
+            if let Ok(Some(_)) = self.child.try_wait() {
+                return;
+            }
+            std::thread::sleep(Duration::from_millis(20));
+        }
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The error angle of a rotation about z by 30° against the identity is 30°.
+    #[test]
+    fn the_error_is_the_angle_between_the_attitudes() {
+        let (c, s) = (30f64.to_radians().cos(), 30f64.to_radians().sin());
+        let r = [c, -s, 0.0, s, c, 0.0, 0.0, 0.0, 1.0];
+        let i = [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0];
+        assert!((attitude_error_deg(&r, &i) - 30.0).abs() < 1e-12);
+        assert_eq!(attitude_error_deg(&i, &i), 0.0);
+    }
+
+    /// An address that is not `HOST:PORT` is refused with the field and an example.
+    #[test]
+    fn a_bad_address_is_refused_with_what_is_allowed() {
+        let e = parse_addr("localhost").expect_err("no port");
+        assert!(e.0.contains("HOST:PORT") && e.0.contains("localhost"), "{e}");
+        assert_eq!(parse_addr("127.0.0.1:0").ok().map(|a| a.port()), Some(0));
+    }
+}
