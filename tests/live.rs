@@ -52,13 +52,14 @@ struct Seen {
     ticks: Vec<u64>,
     stamps_match: bool,
     quaternions: Vec<[f64; 4]>,
+    logs: Vec<String>,
 }
 
 /// Connects to `addr`, subscribes to the states and transforms, and reads for `secs`.
 fn view(addr: &str, secs: f64) -> (Viewer, Seen) {
     let mut v = Viewer::connect(addr, Duration::from_millis(100)).expect("connect");
     assert_eq!(v.subprotocol, SUBPROTOCOL);
-    v.subscribe(&["/rotorloop/state", "/tf"]).expect("subscribe");
+    v.subscribe(&["/rotorloop/state", "/tf", "/rotorloop/log"]).expect("subscribe");
     let mut seen = Seen { stamps_match: true, ..Seen::default() };
     let until = Instant::now() + Duration::from_secs_f64(secs);
     while Instant::now() < until {
@@ -76,18 +77,23 @@ fn view(addr: &str, secs: f64) -> (Viewer, Seen) {
                 let q = t.rotation.expect("rotation");
                 seen.quaternions.push([q.x, q.y, q.z, q.w]);
             }
+            "/rotorloop/log" => {
+                let l = <foxglove::messages::Log as prost::Message>::decode(&m.payload[..])
+                    .expect("a Log");
+                seen.logs.push(l.message);
+            }
             _ => {}
         }
     }
     (v, seen)
 }
 
-/// The run ended as one nobody watched: completed, no fault, every tick in its trace and
-/// records.
-fn assert_untouched(out: &Path) {
+/// The run ended as one nobody watched: completed, `faults` faults (those it was given),
+/// every tick in its trace and records.
+fn assert_untouched(out: &Path, faults: usize) {
     let s = json(&out.join("summary.json"));
     assert_eq!(s["completed"], true, "{s}");
-    assert_eq!(s["faults"].as_array().map(Vec::len), Some(0), "faults: {}", s["faults"]);
+    assert_eq!(s["faults"].as_array().map(Vec::len), Some(faults), "faults: {}", s["faults"]);
     assert_eq!(s["rows_lost"], 0);
     let ticks = s["ticks"].as_u64().expect("ticks");
     assert_eq!(s["trace_rows"].as_u64(), Some(ticks + 1), "{s}");
@@ -131,16 +137,18 @@ fn a_viewer_connects_late_and_vanishes_and_the_loop_never_notices() {
     drop(second);
     let output = wait_output(child, LIMIT);
     ok(&output);
-    assert_untouched(&out);
+    assert_untouched(&out, 0);
     h.assert_no_leftovers();
 }
 
-/// `rotorloop foxglove --domain D` attached to a run started without it serves its states;
-/// `kill -9` of it in the middle of the run is nothing to the loop.
+/// `rotorloop foxglove --domain D` attached to a loop as it starts serves its states and
+/// logs the controller's restart (killed by the fault schedule at 2 s) on
+/// `/rotorloop/log`; `kill -9` of the server in the middle of the run is nothing to the
+/// loop.
 #[test]
 fn a_server_attached_to_a_running_loop_and_killed_is_no_matter_to_it() {
     let h = Harness::new("fxattach");
-    let (child, out) = start(&h, "6", &[]);
+    let (child, out) = start(&h, "6", &["--fault", "controller:kill@2:restart@2.3"]);
     let file = h.path("fx.addr");
     let mut server = Command::new(crate::common::harness::ROTORLOOP)
         .args(["foxglove", "--domain", &h.domain, "127.0.0.1:0", "--addr-file"])
@@ -150,13 +158,26 @@ fn a_server_attached_to_a_running_loop_and_killed_is_no_matter_to_it() {
         .spawn()
         .expect("spawn rotorloop foxglove");
     let addr = address(&file);
-    let (v, seen) = view(&addr, 1.5);
+    let (v, seen) = view(&addr, 3.5);
     assert!(seen.ticks.len() > 300, "{} states", seen.ticks.len());
+    // Gone and back (seen five times a second: "restarted" when both fell between two
+    // looks), and safe mode entered and left in between.
+    let logs = &seen.logs;
+    let at = |p: &dyn Fn(&str) -> bool| logs.iter().position(|l| p(l));
+    let gone = at(&|l| l.starts_with("controller (pid") && l.ends_with("gone"));
+    let back = gone.and_then(|g| {
+        logs[g..].iter().position(|l| l.starts_with("controller (pid") && l.ends_with("up"))
+    });
+    let restarted = at(&|l| l.starts_with("controller restarted (pid"));
+    let cycle = restarted.is_some() || back.is_some();
+    assert!(cycle, "{logs:?}");
+    assert!(at(&|l| l.starts_with("safe mode entered")).is_some(), "{logs:?}");
+    assert!(at(&|l| l.starts_with("control resumed")).is_some(), "{logs:?}");
     server.kill().expect("kill -9");
     let _ = server.wait();
     drop(v);
     ok(&wait_output(child, LIMIT));
-    assert_untouched(&out);
+    assert_untouched(&out, 1);
     h.assert_no_leftovers();
 }
 

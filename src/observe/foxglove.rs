@@ -14,7 +14,8 @@
 //! log times (the loop's `CLOCK_MONOTONIC` stamps): `/rotorloop/state`, `/rotorloop/torque`,
 //! `/rotorloop/reference`, `/rotorloop/latency` (per tick, once its answer came or two
 //! ticks later without it), `/rotorloop/tracking` (`err_deg`: the angle of `R_d Rᵀ`, and
-//! the torque in force), `/rotorloop/log` (safe mode entered and left) and `/tf`
+//! the torque in force), `/rotorloop/log` (safe mode entered and left; a role gone, up or
+//! restarted, seen five times a second) and `/tf`
 //! (`world → body`, `world → reference`).
 
 use std::collections::BTreeMap;
@@ -156,6 +157,15 @@ impl Live {
         Ok(())
     }
 
+    /// A role came, went or restarted (seen at `ns`, this process's clock, the same
+    /// `CLOCK_MONOTONIC` as the loop's stamps on one machine).
+    fn log_event(&self, ns: u64, what: &str) {
+        use foxglove::messages::log::Level;
+        let level = if what.contains("gone") { Level::Error } else { Level::Info };
+        let role = what.split_whitespace().next().unwrap_or_default();
+        self.log.log_with_time(&log_message(ns, level, role, what.to_owned()), ns);
+    }
+
     fn latency_of(&mut self, s: &StateSample, t: Option<&TorqueSample>) -> anyhow::Result<()> {
         let r = self.references.get(&s.tick);
         self.latency.log(&latency(s, t, r), s.publish_ns)
@@ -169,24 +179,41 @@ fn attitude_error_deg(r: &[f64; 9], rd: &[f64; 9]) -> f64 {
     ((tr - 1.0) / 2.0).clamp(-1.0, 1.0).acos().to_degrees()
 }
 
-/// Whether any node of the loop's roles is alive in `domain`.
-fn loop_alive(domain: &Domain) -> bool {
+/// The live roles of the loop in `domain` (link gateways and viewers' servers aside):
+/// role → pid.
+fn live_roles(domain: &Domain) -> BTreeMap<String, u32> {
     use iceoryx2::node::NodeView;
     use iceoryx2::prelude::*;
     let prefix = format!("rotorloop/{}/", domain.name());
-    let mut alive = false;
+    let mut roles = BTreeMap::new();
     let _ = Node::<ipc::Service>::list(domain.config(), |state| {
         if let NodeState::Alive(v) = &state {
             let name = v.details().as_ref().map(|d| d.name().as_str().to_owned());
             let role = name.as_deref().and_then(|n| n.strip_prefix(&prefix));
-            if role.is_some_and(|r| r != NODE && r != "link") {
-                alive = true;
-                return CallbackProgression::Stop;
+            if let Some(role) = role.filter(|r| *r != NODE && *r != "link") {
+                roles.insert(role.to_owned(), (v.id().value() >> 64) as u32);
             }
         }
         CallbackProgression::Continue
     });
-    alive
+    roles
+}
+
+/// What changed between two looks at the roles, as log lines: a role gone, back, or
+/// restarted (another pid).
+fn role_events(before: &BTreeMap<String, u32>, now: &BTreeMap<String, u32>) -> Vec<String> {
+    let mut said = Vec::new();
+    for (role, pid) in before {
+        match now.get(role) {
+            None => said.push(format!("{role} (pid {pid}) gone")),
+            Some(p) if p != pid => said.push(format!("{role} restarted (pid {pid} -> {p})")),
+            Some(_) => {}
+        }
+    }
+    for (role, pid) in now.iter().filter(|(r, _)| !before.contains_key(*r)) {
+        said.push(format!("{role} (pid {pid}) up"));
+    }
+    said
 }
 
 /// The inbox of `topic` once its service exists (never creating it).
@@ -244,6 +271,7 @@ fn serve(a: &FoxgloveArgs, domain: &Domain, ctx: &Arc<Context>) -> anyhow::Resul
     let (mut states, mut torques, mut references) = (None, None, None);
     let mut live = Live::new(ctx);
     let mut last_alive = now_ns();
+    let mut seen_roles = BTreeMap::new();
     let mut next_check = 0;
     while !shutdown_requested() {
         open_when_there::<StateSample>(domain, &node, Topic::State, &mut states)?;
@@ -268,11 +296,16 @@ fn serve(a: &FoxgloveArgs, domain: &Domain, ctx: &Arc<Context>) -> anyhow::Resul
         let now = now_ns();
         if now >= next_check {
             next_check = now + 200_000_000;
-            if loop_alive(domain) {
+            let roles = live_roles(domain);
+            for what in role_events(&seen_roles, &roles) {
+                live.log_event(now, &what);
+            }
+            if !roles.is_empty() {
                 last_alive = now;
             } else if now - last_alive > 1_000_000_000 {
                 break;
             }
+            seen_roles = roles;
         }
         std::thread::sleep(Duration::from_millis(1));
     }
@@ -355,6 +388,23 @@ mod tests {
         let i = [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0];
         assert!((attitude_error_deg(&r, &i) - 30.0).abs() < 1e-12);
         assert_eq!(attitude_error_deg(&i, &i), 0.0);
+    }
+
+    /// A role killed and restarted under another pid, one gone, one new: each said once.
+    #[test]
+    fn role_changes_are_said() {
+        let m = |v: &[(&str, u32)]| v.iter().map(|(r, p)| ((*r).to_owned(), *p)).collect();
+        let before = m(&[("controller", 10), ("monitor", 11), ("plant", 12)]);
+        let now = m(&[("controller", 20), ("plant", 12), ("reference", 13)]);
+        assert_eq!(
+            role_events(&before, &now),
+            [
+                "controller restarted (pid 10 -> 20)",
+                "monitor (pid 11) gone",
+                "reference (pid 13) up"
+            ]
+        );
+        assert!(role_events(&now, &now).is_empty());
     }
 
     /// An address that is not `HOST:PORT` is refused with the field and an example.
