@@ -86,6 +86,9 @@ enum Command {
     /// A finished run in the formats other tools read: `--mcap` writes `DIR/run.mcap`
     /// (Foxglove, Lichtblick), also for runs made before `run` wrote it.
     Export(crate::export::ExportArgs),
+    /// The wire contract of the samples (docs/wire.md): its tables, JSON, the Python
+    /// module (ctypes) or the C header, from the Rust types themselves.
+    Wire(crate::export::wire::WireArgs),
     /// The report of a run whose launcher did not end normally (`kill -9` of `rotorloop
     /// run`): moves its flight records into the run directory and assembles the report from
     /// them, as the launcher would have.
@@ -316,6 +319,7 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         }
         Command::Recover { dir } => crate::run::recover::run(&dir)?,
         Command::Export(a) => crate::export::run(&a)?,
+        Command::Wire(a) => crate::export::wire::run(&a)?,
         Command::Montecarlo(a) => montecarlo_command(&a)?,
     }
     Ok(())

@@ -28,3 +28,4 @@ mod physics;
 mod split;
 mod supervision;
 mod tracking;
+mod wire_contract;

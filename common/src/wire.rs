@@ -15,6 +15,66 @@ use iceoryx2::prelude::ZeroCopySend;
 use crate::params::{ReferenceState, RotorBodyState};
 use crate::so3::{from_rows, to_row_major};
 
+/// One field of a wire sample, as the `wire_struct!` macro of this module lists it: what `rotorloop wire`
+/// publishes (docs/wire.md, the Python module, the C header) and what the layout test
+/// compares with Python's ctypes and a C compiler.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct WireField {
+    /// The field's name.
+    pub name: &'static str,
+    /// Its offset from the start of the sample (bytes).
+    pub offset: usize,
+    /// Its size (bytes).
+    pub size: usize,
+    /// Its Rust type, as written (`u64`, `f64`, `[f64; 9]`, `[u64; MAX_EFFECTS]`, `SendCost`).
+    pub ty: &'static str,
+    /// Its doc comment.
+    pub doc: &'static str,
+}
+
+/// Defines a wire sample and its field table (`FIELDS`) from one field list, so the
+/// table cannot leave a field out or get an offset wrong.
+macro_rules! wire_struct {
+    (
+        $(#[doc = $sdoc:literal])*
+        #[derive($($derive:path),*)]
+        $(#[$outer:meta])*
+        pub struct $name:ident {
+            $(
+                $(#[doc = $doc:literal])*
+                pub $field:ident : $ty:ty,
+            )*
+        }
+    ) => {
+        $(#[doc = $sdoc])*
+        #[derive($($derive),*)]
+        $(#[$outer])*
+        pub struct $name {
+            $(
+                $(#[doc = $doc])*
+                pub $field: $ty,
+            )*
+        }
+
+        impl $name {
+            /// What the type's doc comment says.
+            pub const DOC: &'static str = concat!($($sdoc, "\n"),*);
+            /// Every field in order, with its offset, size, type and doc comment.
+            pub const FIELDS: &'static [WireField] = &[
+                $(
+                    WireField {
+                        name: stringify!($field),
+                        offset: ::core::mem::offset_of!($name, $field),
+                        size: ::core::mem::size_of::<$ty>(),
+                        ty: stringify!($ty),
+                        doc: concat!($($doc, "\n"),*),
+                    },
+                )*
+            ];
+        }
+    };
+}
+
 /// The layout version carried in every type name.
 pub const LAYOUT_VERSION: u32 = 6;
 
@@ -41,6 +101,7 @@ pub const FLAG_SATURATED: u64 = 1 << 3;
 /// missing torque (hold, then safe mode).
 pub const TORQUE_SKIPPED: u64 = 1;
 
+wire_struct! {
 /// The plant's state at tick `tick`, published once per tick.
 #[derive(Debug, Clone, Copy, PartialEq, ZeroCopySend, serde::Serialize)]
 #[type_name("rotorloop::StateSample_v6")]
@@ -102,8 +163,10 @@ pub struct StateSample {
     /// What publishing the previous state cost (the stage breakdown of `rotorloop bench`).
     pub prev_publish: SendCost,
 }
+}
 const _: () = assert!(size_of::<StateSample>() == 520);
 
+wire_struct! {
 /// The desired attitude for tick `tick`, published ahead of the plant.
 #[derive(Debug, Clone, Copy, PartialEq, ZeroCopySend, serde::Serialize)]
 #[type_name("rotorloop::ReferenceSample_v6")]
@@ -130,8 +193,10 @@ pub struct ReferenceSample {
     /// The dummy body's integrator rotor momenta `p`.
     pub internal_p: [f64; 3],
 }
+}
 const _: () = assert!(size_of::<ReferenceSample>() == 240);
 
+wire_struct! {
 /// The controller's answer to state sample `tick`.
 #[derive(Debug, Clone, Copy, PartialEq, Default, ZeroCopySend, serde::Serialize)]
 #[type_name("rotorloop::TorqueSample_v6")]
@@ -175,8 +240,10 @@ pub struct TorqueSample {
     /// What publishing it cost.
     pub prev_publish: SendCost,
 }
+}
 const _: () = assert!(size_of::<TorqueSample>() == 192);
 
+wire_struct! {
 /// What one publish cost (ns): loaning the sample, from the publish timestamp until
 /// `send` returned, and notifying the listeners after it. Carried in the publisher's
 /// next sample (a sample cannot carry the cost of its own send).
@@ -189,6 +256,7 @@ pub struct SendCost {
     pub send_ns: u64,
     /// The notifier's `notify` (wakes the listeners; after the delivery).
     pub notify_ns: u64,
+}
 }
 const _: () = assert!(size_of::<SendCost>() == 24);
 
