@@ -49,6 +49,12 @@ pub struct RunArgs {
     /// Needs root; without it a warning, and the idle states stay as they are.
     #[arg(long)]
     pub cpu_dma_latency: Option<u32>,
+    /// Start this command in the built-in controller's place (a controller of your own,
+    /// in any language: docs/wire.md): split into words, no shell; the built-in
+    /// controller's arguments are appended and the run is in its environment
+    /// (`run::external`). Supervised, pinned and faulted like the built-in one.
+    #[arg(long, value_name = "COMMAND")]
+    pub controller_cmd: Option<String>,
     /// Serve the running loop to Foxglove or Lichtblick on `ADDR` (default
     /// 127.0.0.1:8765; loopback unless you name another address): `rotorloop foxglove`
     /// started beside the loop, stopped at its end (docs/foxglove.md). It reads like the
@@ -154,6 +160,7 @@ impl RunArgs {
             spin_before_tick_us: 0,
             cpu_dma_latency: None,
             foxglove: None,
+            controller_cmd: None,
             hold_ticks: 50,
             fault: Vec::new(),
             corrupt: Vec::new(),

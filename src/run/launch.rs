@@ -79,6 +79,7 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
     };
     let split = args.split.as_deref().map(|s| Split::parse(s, !args.no_monitor)).transpose()?;
     let faults = checked_faults(args, split.as_ref())?;
+    let external = crate::run::external::check(args, &faults)?.map(|e| (e, scenario.clone()));
     if split.is_some() {
         crate::run::split::link_binary()?;
     }
@@ -98,6 +99,9 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
         clear_flight_records(dir)?;
         clear_flight_records(&args.out.join("flight"))?;
     }
+    if args.controller_cmd.is_some() {
+        crate::run::external::write_run_files(&args.out, &scenario)?;
+    }
     let exe = std::env::current_exe().context("cannot find the rotorloop executable")?;
     install_signal_handlers();
     prepare_domains(&domains, &args.out)?;
@@ -114,6 +118,7 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
         corrupt,
         exe,
         ticks: scenario.ticks(),
+        external,
     };
     // In lockstep the plant waits for this launcher's mover rather than lose records.
     launch.role_args.flight_moved = launch.mover().is_some();

@@ -60,6 +60,9 @@ pub(crate) struct Launch<'a> {
     pub(crate) exe: PathBuf,
     /// The run's ticks.
     pub(crate) ticks: u64,
+    /// `--controller-cmd`: the user's controller, and the scenario as run it is told of.
+    pub(crate) external:
+        Option<(crate::run::external::ExternalController, rotorloop_common::scenario::Scenario)>,
 }
 
 impl Launch<'_> {
@@ -86,6 +89,15 @@ impl Launch<'_> {
         let mut r = self.role_args.clone();
         r.core = self.pins.get(role).copied();
         r.host = self.split.as_ref().and_then(|s| s.host_of(role)).map(str::to_owned);
+        if let (Some((ext, scenario)), "controller") = (&self.external, role) {
+            let mut cmd = ext.command(&r, &args.out, scenario);
+            cmd.stdin(Stdio::null());
+            stop_with_parent(&mut cmd);
+            if args.quiet {
+                cmd.stdout(Stdio::null());
+            }
+            return cmd;
+        }
         let mut cmd = Command::new(&self.exe);
         cmd.arg("role").arg(role).args(r.to_args()).stdin(Stdio::null());
         stop_with_parent(&mut cmd);

@@ -25,21 +25,25 @@ use crate::run::supervise::{
     Children, Ending, LinkWatch, Marks, START_TIMEOUT_S, Supervisor, Verdict, Watchdog, signal,
 };
 use rotorloop_common::role::args::Mode;
+use rotorloop_common::wire::NO_TICK;
 
-/// Where each role stands, from the resume slots (what the watchdog reads).
-struct Progress(Slots);
+/// Where each role stands, from the resume slots (what the watchdog reads), and whether
+/// the controller is the user's (`--controller-cmd`: it keeps no slot of rotorloop's).
+struct Progress(Slots, bool);
 
 impl Progress {
     /// Each role's slot on its own host.
     fn open(launch: &Launch) -> anyhow::Result<Self> {
         let slots = Slots::open(|role| launch.domain_of(role.name()), true);
-        Ok(Self(slots.context("the resume slots")?))
+        Ok(Self(slots.context("the resume slots")?, launch.external.is_some()))
     }
 
     fn marks(&self) -> Marks {
+        // A user's controller: its newest torque the plant has taken.
+        let external = || self.0.plant().map(|s| s.applied_torque_tick).filter(|k| *k != NO_TICK);
         Marks {
             plant: self.0.plant().map(|s| s.tick),
-            controller: self.0.controller_tick(),
+            controller: if self.1 { external() } else { self.0.controller_tick() },
             reference_next: self.0.reference_next(),
             monitor_next: self.0.monitor_next(),
         }
