@@ -15,6 +15,7 @@ mod almost_global;
 mod bad_input;
 mod bench_smoke;
 mod cli_outputs;
+mod controller_cmd;
 mod delay;
 mod export;
 mod faults;
