@@ -71,7 +71,9 @@ fn command_lines(readme: &str) -> Vec<(String, bool)> {
 
 /// The `rotorloop` subcommand path of a command line and the arguments after it.
 fn split_command(line: &str) -> (Vec<String>, Vec<String>) {
-    let words: Vec<String> = line.split_whitespace().map(str::to_owned).collect();
+    // As a shell splits it: quotes group words (`--controller-cmd "python3 c.py"`).
+    let words = rotorloop::run::external::split_words(line)
+        .unwrap_or_else(|_| line.split_whitespace().map(str::to_owned).collect());
     let args: Vec<String> = if words[0] == "cargo" {
         let dd = words.iter().position(|w| w == "--").expect("`cargo run … -- ARGS`");
         words[dd + 1..].to_vec()
