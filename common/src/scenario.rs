@@ -20,7 +20,7 @@ use crate::so3;
 /// Scenarios that ship with rotorloop, by name: the paper's three reference torques, and
 /// the extensions' demonstrations (a constant disturbance with PID and with PD;
 /// saturated rotors with and without anti-windup).
-pub const BUILTIN: [(&str, &str); 7] = [
+pub const BUILTIN: [(&str, &str); 8] = [
     ("paper-zero", include_str!("../../scenarios/paper-zero.toml")),
     ("paper-constant", include_str!("../../scenarios/paper-constant.toml")),
     ("paper-sinusoid", include_str!("../../scenarios/paper-sinusoid.toml")),
@@ -28,6 +28,7 @@ pub const BUILTIN: [(&str, &str); 7] = [
     ("disturbance-pd", include_str!("../../scenarios/disturbance-pd.toml")),
     ("saturation-antiwindup", include_str!("../../scenarios/saturation-antiwindup.toml")),
     ("saturation-windup", include_str!("../../scenarios/saturation-windup.toml")),
+    ("mrp-regulation", include_str!("../../scenarios/mrp-regulation.toml")),
 ];
 
 /// Allowed tick rates (Hz).

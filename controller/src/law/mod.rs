@@ -9,14 +9,17 @@
 //! anything starts, so an unknown name is refused naming the allowed ones.
 //!
 //! - [`geometric_pid`]: the paper's geometric PID almost-global tracking law.
+//! - [`mrp_pid`]: Basilisk's MRP feedback law (`mrpFeedback`), mapped to the rotors.
 
 pub mod geometric_pid;
+pub mod mrp_pid;
 
 use glam::DVec3;
 use rotorloop_common::params::{ReferenceState, RotorBodyState};
 use rotorloop_common::scenario::{Actuation, Scenario};
 
 use geometric_pid::GeometricPid;
+use mrp_pid::MrpPid;
 
 /// Everything the law computes in one tick.
 #[derive(Debug, Clone, Copy, PartialEq, Default)]
@@ -75,8 +78,10 @@ pub trait Law {
 
 /// Every law a scenario file can name in `[controller] law`, with a line of help. The
 /// first is the default (a file that names no law runs it).
-pub const LAWS: &[(&str, &str)] =
-    &[("geometric-pid", "the paper's geometric PID almost-global tracking law")];
+pub const LAWS: &[(&str, &str)] = &[
+    ("geometric-pid", "the paper's geometric PID almost-global tracking law"),
+    ("mrp-pid", "Basilisk's MRP feedback law (mrpFeedback), through the same rotor relation"),
+];
 
 /// A scenario names a law that does not exist, or gives it a parameter it does not take.
 #[derive(Debug, Clone, PartialEq, Eq)]
@@ -120,6 +125,8 @@ impl From<UnknownLaw> for rotorloop_common::role::UsageError {
 pub enum AnyLaw {
     /// The paper's law.
     GeometricPid(GeometricPid),
+    /// Basilisk's MRP feedback law.
+    MrpPid(MrpPid),
 }
 
 impl AnyLaw {
@@ -135,6 +142,10 @@ impl AnyLaw {
                         .with_limits(scenario.limits_for(actuation), scenario.anti_windup),
                 ))
             }
+            "mrp-pid" => Ok(Self::MrpPid(MrpPid::from_params(
+                &scenario.law_params,
+                scenario.controller_params(actuation),
+            )?)),
             other => Err(UnknownLaw::Name(other.to_string())),
         }
     }
@@ -153,18 +164,21 @@ impl Law for AnyLaw {
     fn step(&mut self, x: &RotorBodyState, reference: &ReferenceState, dt: f64) -> ControlOutput {
         match self {
             Self::GeometricPid(l) => l.step(x, reference, dt),
+            Self::MrpPid(l) => l.step(x, reference, dt),
         }
     }
 
     fn state(&self) -> LawState {
         match self {
             Self::GeometricPid(l) => l.state(),
+            Self::MrpPid(l) => l.state(),
         }
     }
 
     fn restore(&mut self, state: &LawState) {
         match self {
             Self::GeometricPid(l) => l.restore(state),
+            Self::MrpPid(l) => l.restore(state),
         }
     }
 }
@@ -179,7 +193,7 @@ mod tests {
         assert_eq!(s.law, None, "the default law");
         let a = s.actuation();
         let mut law = AnyLaw::for_scenario(&s, a).expect("the default law");
-        let AnyLaw::GeometricPid(pid) = law;
+        let AnyLaw::GeometricPid(pid) = law else { panic!("the default law is the geometric PID") };
         assert_eq!(pid.gains(), &s.gains);
         let (x, dt) = (s.plant_init, s.dt());
         let rd = ReferenceState {
@@ -202,8 +216,16 @@ mod tests {
         let mut s = Scenario::load("paper-zero").expect("built-in");
         for (name, _) in LAWS {
             s.law = Some(name.to_string());
+            s.law_params.clear();
+            if *name == "mrp-pid" {
+                for key in ["k", "p", "ki"] {
+                    s.law_params.insert(key.into(), toml::Value::Float(1.0));
+                }
+            }
             assert!(AnyLaw::for_scenario(&s, s.actuation()).is_ok(), "{name}");
         }
+        s.law = None;
+        s.law_params.clear();
         s.law_params.insert("gain".into(), toml::Value::Float(1.0));
         let e = AnyLaw::for_scenario(&s, s.actuation()).expect_err("no such parameter");
         assert!(e.to_string().starts_with("controller.law_params.gain: "), "{e}");
