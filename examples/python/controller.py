@@ -6,7 +6,7 @@ Run it in the built-in controller's place:
         --controller-cmd "python3 examples/python/controller.py" --out out/py
 
 It speaks only the published wire contract (docs/wire.md) through iceoryx2's Python
-binding and `python/rotorloop_wire.py`, and learns the run from the environment the
+binding, `python/rotorloop_wire.py` and `python/rotorloop_iox.py`, and learns the run from the environment the
 launcher gives it (`ROTORLOOP_*`: src/run/external.rs). Arguments the launcher appends
 (the built-in controller's) are ignored.
 
@@ -37,6 +37,7 @@ import iceoryx2 as iox2
 
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "..", "python"))
 import rotorloop_wire as w  # noqa: E402
+import rotorloop_iox as rl  # noqa: E402
 
 CLOCK = time.CLOCK_MONOTONIC
 HOLD_TICKS = 50  # how long a missing reference is propagated (real time), as the built-in
@@ -133,47 +134,16 @@ def main() -> int:
     dt = cfg["dt_s"]
     lockstep = mode == "lockstep"
     iox2.set_log_level_from_env_or(iox2.LogLevel.Error)
-    config = iox2.config.from_file(iox2.FilePath.new(env["ROTORLOOP_IOX2_CONFIG"]))
-    node = (
-        iox2.NodeBuilder.new()
-        .name(iox2.NodeName.new(f"rotorloop/{domain}/controller"))
-        .config(config)
-        .create(iox2.ServiceType.Ipc)
-    )
+    node = rl.open_domain(env["ROTORLOOP_IOX2_CONFIG"], domain, "controller")
 
-    def pubsub(topic, t):
-        return (
-            node.service_builder(iox2.ServiceName.new(w.service_name(domain, topic)))
-            .publish_subscribe(t)
-            .max_publishers(2)
-            .max_subscribers(8)
-            .max_nodes(16)
-            .history_size(32 if topic == "reference" else 1)
-            .subscriber_max_buffer_size(4096)
-            .subscriber_max_borrowed_samples(2)
-            .enable_safe_overflow(True)
-            .open_or_create()
-        )
-
-    def event(topic):
-        return (
-            node.service_builder(iox2.ServiceName.new(w.service_name(domain, topic)))
-            .event()
-            .max_notifiers(4)
-            .max_listeners(8)
-            .max_nodes(16)
-            .event_id_max_value(8)
-            .open_or_create()
-        )
-
-    states = pubsub("state", w.StateSample).subscriber_builder().buffer_size(16).create()
-    refs = pubsub("reference", w.ReferenceSample).subscriber_builder().buffer_size(64).create()
-    torque_service = pubsub("torque", w.TorqueSample)
+    states = rl.pubsub(node, domain, "state").subscriber_builder().buffer_size(16).create()
+    refs = rl.pubsub(node, domain, "reference").subscriber_builder().buffer_size(64).create()
+    torque_service = rl.pubsub(node, domain, "torque")
     out = torque_service.publisher_builder().create()
-    notifier = event("torque").notifier_builder().create()
+    notifier = rl.event(node, domain, "torque").notifier_builder().create()
     listen = wait != "spin"
-    state_listener = event("state").listener_builder().create() if listen else None
-    ref_listener = event("reference").listener_builder().create() if listen else None
+    state_listener = rl.event(node, domain, "state").listener_builder().create() if listen else None
+    ref_listener = rl.event(node, domain, "reference").listener_builder().create() if listen else None
 
     law = Law(cfg)
     slot = ResumeState(os.path.join(env["ROTORLOOP_STATE_DIR"], "pid.state"))
