@@ -289,3 +289,37 @@ fn before_after_foxglove_measures_the_loop_with_a_viewer_attached() {
     assert!(md.contains("with the live Foxglove server"), "{md}");
     assert!(md.contains("| r500-event-cross-core-none |"), "{md}");
 }
+
+/// `--controllers mrp-pid,python`: the same cell with the second law and with the Python
+/// example, beside the built-in law and the bare baseline; bench.md shows each one's
+/// compute and law stage. Without `python3` the Python row is skipped with its reason.
+#[test]
+fn the_controller_axis_measures_each_law_in_the_same_invocation() {
+    let h = Harness::new("benchctl");
+    let py = crate::controller_cmd::python();
+    let python = py.as_ref().map_or("python3".to_owned(), |p| p.display().to_string());
+    let args = format!(
+        "--rates 500 --wait event --placement cross-core --baselines iceoryx2 --seconds 1 \
+         --controllers mrp-pid,python --python {python}"
+    );
+    let out = bench(&h, &args, 240);
+    let csv = std::fs::read_to_string(out.join("bench.csv")).expect("bench.csv");
+    let rows: Vec<Vec<&str>> = csv.lines().skip(1).map(|l| l.split(',').collect()).collect();
+    let kinds: Vec<&str> = rows.iter().map(|r| r[1]).collect();
+    assert_eq!(kinds, ["loop", "loop-mrp-pid", "loop-python", "iceoryx2"]);
+    let cell = out.join("cells/r500-event-cross-core-none");
+    let law = |kind: &str| crate::common::harness::json(&cell.join(kind).join("summary.json"));
+    assert_eq!(law("loop-mrp-pid")["completed"], true);
+    let scenario = std::fs::read_to_string(cell.join("loop-mrp-pid.scenario.toml")).expect("toml");
+    assert!(scenario.contains("law = \"mrp-pid\""), "{scenario}");
+    let md = std::fs::read_to_string(out.join("bench.md")).expect("bench.md");
+    let section = md.split("What each controller costs the loop").nth(1).expect("the section");
+    assert!(section.contains("| loop-mrp-pid | "), "{section}");
+    match py {
+        Some(_) => {
+            assert_eq!(law("loop-python")["completed"], true);
+            assert!(rows[2][14].is_empty(), "python skipped: {}", rows[2][14]);
+        }
+        None => assert!(rows[2][14].contains("cannot import"), "{:?}", rows[2]),
+    }
+}

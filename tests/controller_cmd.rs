@@ -17,7 +17,7 @@ const ROOT: &str = env!("CARGO_MANIFEST_DIR");
 
 /// The Python of `target/pyvenv` with `python/requirements.txt` installed (made once, by
 /// the first test that needs it), or `None` (and a message) where `python3` is missing.
-fn python() -> Option<PathBuf> {
+pub(crate) fn python() -> Option<PathBuf> {
     static VENV: Mutex<Option<PathBuf>> = Mutex::new(None);
     let mut made = VENV.lock().unwrap_or_else(|p| p.into_inner());
     if let Some(p) = made.as_ref() {

@@ -83,6 +83,17 @@ pub struct BenchArgs {
     /// largest N at which every loop has no more misses than the bare iceoryx2 baseline.
     #[arg(long, default_value_t = 1)]
     pub loops: usize,
+    /// Also run each loop cell with another controller (`loop-<name>` rows), against
+    /// the same baselines: `mrp-pid` (the second law, Basilisk's MRP feedback, with
+    /// `mrp-regulation`'s gains, on the bench's scenario) and `python` (the Python
+    /// example, `examples/python/controller.py`, through `run --controller-cmd`). The
+    /// plain `loop` row is the built-in geometric PID.
+    #[arg(long, value_delimiter = ',')]
+    pub controllers: Vec<String>,
+    /// The Python that runs the `python` controller (with `python/requirements.txt`
+    /// installed).
+    #[arg(long, default_value = "python3")]
+    pub python: String,
     /// Rebuild bench.md and the plots from an existing `--out` directory, measuring nothing.
     #[arg(long)]
     pub replot: bool,
@@ -279,6 +290,11 @@ pub(super) fn validate(a: &BenchArgs) -> Result<(), UsageError> {
             return Err(UsageError(format!(
                 "--baselines `{b}` is not allowed: atomic, iceoryx2, uds, timer"
             )));
+        }
+    }
+    for c in &a.controllers {
+        if !["mrp-pid", "python"].contains(&c.as_str()) {
+            return Err(UsageError(format!("--controllers `{c}` is not allowed: mrp-pid, python")));
         }
     }
     if !(1..=64).contains(&a.loops) {

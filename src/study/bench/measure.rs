@@ -15,6 +15,29 @@ use crate::baseline::pingpong::Kind;
 use crate::run::args::RunArgs;
 use rotorloop_common::role::args::RoleArgs;
 
+/// The loop rows of a cell: the loop, and what `--monitor-cost`, `--controllers` and
+/// `--before-after` add (the plain loop's row first).
+pub(super) fn measure_loop_variants(
+    a: &BenchArgs,
+    base: &Row,
+    ncores: usize,
+    dir: &Path,
+) -> anyhow::Result<Vec<Row>> {
+    let mut measured = vec![measure_loop(a, base, ncores, dir, Variant::Loop)?];
+    if a.monitor_cost {
+        measured.push(measure_loop(a, base, ncores, dir, Variant::NoMonitor)?);
+    }
+    for c in &a.controllers {
+        measured.push(measure_loop(a, base, ncores, dir, Variant::of_controller(c))?);
+    }
+    if let Some(change) = a.before_after {
+        let (plain, other) = before_after(a, change, base, ncores, dir, measured.remove(0))?;
+        measured.insert(0, plain);
+        measured.push(other);
+    }
+    Ok(measured)
+}
+
 /// `--before-after`: the loop before and after `change`, `--pairs` times each,
 /// alternating (`first`, the plain loop already measured, is the first of its side); the
 /// median run of each side: the plain loop's (`loop`) first, then the other.
@@ -70,6 +93,10 @@ pub(super) enum Variant {
     Before,
     /// With `--foxglove` and a viewer subscribed to every topic.
     Foxglove,
+    /// With the second law (`--controllers mrp-pid`).
+    MrpPid,
+    /// With the Python example controller (`--controllers python`).
+    Python,
 }
 
 impl Variant {
@@ -79,6 +106,16 @@ impl Variant {
             Variant::NoMonitor => "loop-nomon",
             Variant::Before => "loop-before",
             Variant::Foxglove => "loop-foxglove",
+            Variant::MrpPid => "loop-mrp-pid",
+            Variant::Python => "loop-python",
+        }
+    }
+
+    /// The variant of `--controllers NAME`.
+    pub(super) fn of_controller(name: &str) -> Self {
+        match name {
+            "python" => Variant::Python,
+            _ => Variant::MrpPid,
         }
     }
 }
@@ -144,11 +181,24 @@ pub(super) fn measure_loop(
         Variant::NoMonitor => "n",
         Variant::Before => "b",
         Variant::Foxglove => "f",
+        Variant::MrpPid => "m",
+        Variant::Python => "p",
     };
     let domain = format!("bl{}-{}{suffix}", std::process::id(), base.index);
     let mut run = loop_run_args(a, base, ncores, domain, out.clone());
     run.no_monitor = without_monitor;
     run.no_record = variant == Variant::Before;
+    match variant {
+        Variant::MrpPid => run.role.scenario = mrp_scenario(a, &out)?,
+        Variant::Python => match python_controller(a) {
+            Ok(cmd) => run.controller_cmd = Some(cmd),
+            Err(why) => {
+                row.skipped = why;
+                return Ok(row);
+            }
+        },
+        _ => {}
+    }
     if variant == Variant::Foxglove {
         run.foxglove = Some("127.0.0.1:0".into());
         let viewer = Watching::start(out.join("foxglove.addr"));
@@ -438,4 +488,39 @@ impl Watching {
         std::fs::write(path, serde_json::json!({ "messages": n }).to_string() + "\n")?;
         Ok(())
     }
+}
+
+/// The bench's scenario with the second law (`mrp-pid`) and `mrp-regulation`'s gains,
+/// written beside the measurement; its path.
+fn mrp_scenario(a: &BenchArgs, out: &Path) -> anyhow::Result<String> {
+    use rotorloop_common::scenario::Scenario;
+    let mut file = Scenario::load(&a.scenario)?.file;
+    let gains = Scenario::load("mrp-regulation")?.file.controller;
+    file.controller.law = gains.law;
+    file.controller.law_params = gains.law_params;
+    file.name = format!("{}-mrp-pid", file.name);
+    std::fs::create_dir_all(out)?;
+    let path = out.with_extension("scenario.toml");
+    std::fs::write(&path, file.to_toml())?;
+    Ok(path.display().to_string())
+}
+
+/// The `--controller-cmd` of the Python example, or why it cannot run here.
+fn python_controller(a: &BenchArgs) -> Result<String, String> {
+    let script = Path::new("examples/python/controller.py");
+    if !script.exists() {
+        return Err(format!("no {} here (run the bench from the repository)", script.display()));
+    }
+    let ready = Command::new(&a.python)
+        .args(["-c", "import numpy, iceoryx2"])
+        .stdout(Stdio::null())
+        .stderr(Stdio::null())
+        .status();
+    if !ready.is_ok_and(|s| s.success()) {
+        return Err(format!(
+            "{} cannot import numpy and iceoryx2 (pip install -r python/requirements.txt, or --python)",
+            a.python
+        ));
+    }
+    Ok(format!("{} {}", a.python, script.display()))
 }

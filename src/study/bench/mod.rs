@@ -23,7 +23,7 @@ use anyhow::Context;
 use rotorloop_common::signals::shutdown_requested;
 
 use cell::{BenchArgs, CSV_HEADER, Row, cells, cores, skip_reason, validate};
-use measure::{Variant, before_after, measure_baseline, measure_loop, measure_loops, scale_steps};
+use measure::{measure_baseline, measure_loop_variants, measure_loops, scale_steps};
 use report::{plots, write_markdown};
 use rotorloop_common::rt::CpuDmaLatency;
 
@@ -96,16 +96,7 @@ pub fn run(a: &BenchArgs) -> anyhow::Result<()> {
         } else {
             None
         };
-        let mut measured = vec![measure_loop(a, &base, ncores, &dir, Variant::Loop)?];
-        if a.monitor_cost {
-            measured.push(measure_loop(a, &base, ncores, &dir, Variant::NoMonitor)?);
-        }
-        if let Some(change) = a.before_after {
-            // The plain loop's row first, as without --before-after.
-            let (plain, other) = before_after(a, change, &base, ncores, &dir, measured.remove(0))?;
-            measured.insert(0, plain);
-            measured.push(other);
-        }
+        let mut measured = measure_loop_variants(a, &base, ncores, &dir)?;
         for b in &a.baselines {
             measured.push(measure_baseline(&exe, a, &base, b, *wait, placement, ncores, &dir)?);
         }

@@ -85,6 +85,7 @@ pub(super) fn write_markdown(a: &BenchArgs, rows: &[Row], idle_note: &str) -> an
         }
     }
     md.push_str(&timer_md(rows));
+    md.push_str(&controllers_md(rows, a));
     md.push_str(&zero_miss_md(a, rows));
     md.push_str(&breakdown_md(a, rows));
     md.push_str(&before_after_md(rows, a));
@@ -490,6 +491,59 @@ pub(super) fn timer_md(rows: &[Row]) -> String {
                 l.lateness_p99_9 / t.p99_9
             );
         }
+    }
+    md
+}
+
+/// `--controllers`: per cell, the loop with each controller against the bare iceoryx2
+/// round trip, with the controller's compute and the law's stage from each run's summary.
+pub(super) fn controllers_md(rows: &[Row], a: &BenchArgs) -> String {
+    if a.controllers.is_empty() {
+        return String::new();
+    }
+    let mut md = String::from(
+        "\n## What each controller costs the loop\n\nThe same cell with the built-in geometric \
+         PID (`loop`), the second law (`loop-mrp-pid`: Basilisk's MRP feedback) and the Python \
+         example through `run --controller-cmd` (`loop-python`), in the same invocation. \
+         Sense-to-actuate and the controller's compute (state received to torque published) \
+         and its law stage, µs.\n\n\
+         | cell | controller | sense-to-actuate p50 / p99 | / bare iceoryx2 p50 | compute p50 / p99 | law p50 | misses |\n\
+         |---|---|---|---|---|---|---|\n",
+    );
+    let us = |v: &serde_json::Value| v.as_f64().map_or(f64::NAN, |ns| ns / 1e3);
+    for r in rows
+        .iter()
+        .filter(|r| r.kind == "loop" || r.kind == "loop-mrp-pid" || r.kind == "loop-python")
+    {
+        if !r.skipped.is_empty() {
+            let _ = writeln!(md, "| {} | {} | skipped: {} | | | | |", r.cell, r.kind, r.skipped);
+            continue;
+        }
+        let bare =
+            rows.iter().find(|b| b.cell == r.cell && b.kind == "iceoryx2" && b.skipped.is_empty());
+        let ratio = bare.map_or("—".to_owned(), |b| format!("{:.2}", r.p50 / b.p50));
+        let summary = a.out.join("cells").join(&r.cell).join(&r.kind).join("summary.json");
+        let s: serde_json::Value = std::fs::read_to_string(summary)
+            .ok()
+            .and_then(|t| serde_json::from_str(&t).ok())
+            .unwrap_or_default();
+        let compute = &s["hops"]["controller_compute"];
+        let law = s["stages"]
+            .as_array()
+            .and_then(|st| st.iter().find(|x| x["stage"] == "controller_law"))
+            .map_or(f64::NAN, |l| us(&l["p50"]));
+        let _ = writeln!(
+            md,
+            "| {} | {} | {:.1} / {:.1} | {ratio} | {:.1} / {:.1} | {:.2} | {} |",
+            r.cell,
+            r.kind,
+            r.p50,
+            r.p99,
+            us(&compute["p50"]),
+            us(&compute["p99"]),
+            law,
+            r.misses
+        );
     }
     md
 }
