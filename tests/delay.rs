@@ -212,3 +212,45 @@ fn the_predicted_margin_agrees_with_an_independent_computation_and_divergence_is
     assert!(two[4].parse::<f64>().is_ok(), "delay 2 s: diverged at some time: {}", rows[1]);
     assert!(md.contains("diverged at"), "{md}");
 }
+
+/// `margin --laws geometric-pid,mrp-pid`: both laws swept over the same delays on the same
+/// scenario, one table (`laws.md`), one CSV row per law and delay, one figure; an
+/// unknown law is a usage error.
+#[test]
+fn margin_compares_the_two_laws_on_the_same_scenario() {
+    use crate::common::harness::{Harness, ok};
+    let h = Harness::new("marginlaws");
+    let out = h.path("m");
+    let dir = out.to_str().expect("utf8");
+    let args = [
+        "margin",
+        "--scenario",
+        "paper-zero",
+        "--duration",
+        "12",
+        "--delays",
+        "0,0.01,0.6",
+        "--laws",
+        "geometric-pid,mrp-pid",
+        "--out",
+        dir,
+    ];
+    ok(&h.rotorloop(&args, std::time::Duration::from_secs(120)));
+    let md = std::fs::read_to_string(out.join("laws.md")).expect("laws.md");
+    for law in ["geometric-pid", "mrp-pid"] {
+        let row = md.lines().find(|l| l.starts_with(&format!("| {law} |"))).expect(law);
+        // Both are stable without delay: a stability margin of at least 0 s.
+        let stable = row.split('|').nth(2).expect("stable up to").trim();
+        assert!(stable.ends_with(" s"), "{row}");
+    }
+    let csv = std::fs::read_to_string(out.join("laws.csv")).expect("laws.csv");
+    let rows: Vec<&str> = csv.lines().skip(1).collect();
+    assert_eq!(rows.len(), 6, "{csv}");
+    assert!(rows.iter().any(|r| r.starts_with("mrp-pid,0,")), "{csv}");
+    assert!(out.join("laws.png").exists());
+    let bad = h.rotorloop(
+        &["margin", "--scenario", "paper-zero", "--laws", "bang-bang", "--out", dir],
+        std::time::Duration::from_secs(60),
+    );
+    assert_eq!(bad.status.code(), Some(2), "{bad:?}");
+}

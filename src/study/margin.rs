@@ -46,6 +46,11 @@ pub struct MarginArgs {
     /// scale as the margins.
     #[arg(long)]
     pub latency_from: Option<PathBuf>,
+    /// Also compare these laws' measured margins on the same scenario (`geometric-pid`,
+    /// `mrp-pid`: each with its own gains, `mrp-pid` with `mrp-regulation`'s unless the
+    /// scenario names it): `laws.md`, `laws.csv`, `laws.png`.
+    #[arg(long, value_delimiter = ',')]
+    pub laws: Vec<String>,
     /// Output directory (`margin.md`, `margin.csv`, `margin.png`, `margin_final.png`).
     #[arg(long)]
     pub out: PathBuf,
@@ -227,6 +232,10 @@ pub fn run(a: &MarginArgs) -> anyhow::Result<(Vec<ModeMargin>, Vec<SweepRun>)> {
         .with_context(|| format!("cannot write {}", a.out.display()))?;
     plots(&a.out, &s.file.name, &runs, tau_star)?;
     print!("{md}");
+    if !a.laws.is_empty() {
+        let laws = crate::study::margin_laws::compare(&s, &a.laws, &delays, &a.out)?;
+        print!("{laws}");
+    }
     Ok((modes, runs))
 }
 

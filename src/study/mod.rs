@@ -9,5 +9,6 @@
 pub mod bench;
 pub mod gains;
 pub mod margin;
+pub mod margin_laws;
 pub mod montecarlo;
 pub mod paper;
