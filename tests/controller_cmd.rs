@@ -177,9 +177,10 @@ fn the_python_controller_completes_a_real_time_run() {
     h.assert_no_leftovers();
 }
 
-/// `kill -9` of the Python controller in the middle of a lockstep run: the launcher
-/// restarts it, it resumes from its state file, and the trace is the uninterrupted one
-/// byte for byte (bumpless: no step in the law's integral).
+/// `kill -9` of the Python controller in the middle of a lockstep run, by the fault
+/// schedule and by hand: the launcher restarts it, it resumes from its state file, and
+/// the trace is the uninterrupted one byte for byte (bumpless: no step in the law's
+/// integral).
 #[test]
 fn a_killed_python_controller_resumes_bumplessly() {
     let Some(py) = python() else { return };
@@ -192,5 +193,45 @@ fn a_killed_python_controller_resumes_bumplessly() {
     assert_eq!(s["faults"].as_array().map(Vec::len), Some(1), "{}", s["faults"]);
     let read = |d: &Path| std::fs::read(d.join("trace.csv")).expect("trace");
     assert!(read(&calm) == read(&killed), "the trace after the restart differs");
+    // By hand: `kill -9` of the Python process itself while the loop runs.
+    let out = h.path("hand");
+    let domain = format!("{}hand", h.domain);
+    let child = crate::common::harness::group(&mut Command::new(ROTORLOOP))
+        .args(["run", "--scenario", "paper-sinusoid", "--mode", "lockstep", "--duration", "20"])
+        .args(["--quiet", "--no-mcap", "--domain", &domain, "--controller-cmd", &cmd, "--out"])
+        .arg(&out)
+        .stdin(std::process::Stdio::null())
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .expect("spawn");
+    let pid = python_pid(&domain);
+    std::thread::sleep(Duration::from_millis(800));
+    // SAFETY: signals a process this test found by its command line.
+    unsafe { libc::kill(pid as libc::pid_t, libc::SIGKILL) };
+    ok(&crate::common::harness::wait_output(child, LIMIT));
+    let s = json(&out.join("summary.json"));
+    assert_eq!(s["faults"].as_array().map(Vec::len), Some(1), "{}", s["faults"]);
+    assert!(read(&calm) == read(&out), "the trace after a by-hand kill differs");
     h.assert_no_leftovers();
+}
+
+/// The pid of the Python controller of `domain`, once it runs.
+fn python_pid(domain: &str) -> u32 {
+    let until = std::time::Instant::now() + LIMIT;
+    loop {
+        for e in std::fs::read_dir("/proc").expect("/proc").flatten() {
+            let Ok(pid) = e.file_name().to_string_lossy().parse::<u32>() else { continue };
+            let Ok(cmdline) = std::fs::read(e.path().join("cmdline")) else { continue };
+            let args: Vec<&[u8]> = cmdline.split(|b| *b == 0).collect();
+            let ours = args.windows(2).any(|w| w[0] == b"--domain" && w[1] == domain.as_bytes());
+            // The launcher's own command line names the script too, inside one argument.
+            let script = args.get(1).is_some_and(|a| a.ends_with(b"controller.py"));
+            if ours && script {
+                return pid;
+            }
+        }
+        assert!(std::time::Instant::now() < until, "no Python controller in {domain}");
+        std::thread::sleep(Duration::from_millis(20));
+    }
 }
