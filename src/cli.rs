@@ -96,6 +96,16 @@ enum Command {
         /// The run directory (the `--out` of `rotorloop run`).
         dir: PathBuf,
     },
+    /// Why the ticks of a finished run were late and what it cost: its incidents again
+    /// (`incidents.csv`, `incidents.md`, `incidents.png` in the run directory, the worst in
+    /// `summary.json`), from its flight records, faults and `sched.csv`.
+    Explain {
+        /// The run directory (the `--out` of `rotorloop run`).
+        dir: PathBuf,
+        /// A plant wake or an answer this many ticks later than usual is abnormal.
+        #[arg(long, default_value_t = 0.25)]
+        threshold_ticks: f64,
+    },
     /// The link gateway of one host: carries a run domain's services to and from another
     /// host over Zenoh (the `rotorloop-link` binary; `rotorloop link --help` for its options).
     #[command(disable_help_flag = true)]
@@ -318,10 +328,26 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
             }
         }
         Command::Recover { dir } => crate::run::recover::run(&dir)?,
+        Command::Explain { dir, threshold_ticks } => explain_command(&dir, threshold_ticks)?,
         Command::Export(a) => crate::export::run(&a)?,
         Command::Wire(a) => crate::export::wire::run(&a)?,
         Command::Montecarlo(a) => montecarlo_command(&a)?,
     }
+    Ok(())
+}
+
+/// `rotorloop explain DIR`.
+fn explain_command(dir: &std::path::Path, threshold_ticks: f64) -> anyhow::Result<()> {
+    if !(threshold_ticks > 0.0 && threshold_ticks <= 100.0) {
+        return Err(UsageError(format!(
+            "--threshold-ticks {threshold_ticks}: allowed: more than 0, at most 100 ticks"
+        ))
+        .into());
+    }
+    let options = crate::study::incidents::Options { threshold_ticks };
+    let found = crate::study::incidents::explain(dir, options)?;
+    println!("{}: {}", dir.display(), found.describe_worst());
+    println!("incidents: {}", dir.join("incidents.md").display());
     Ok(())
 }
 

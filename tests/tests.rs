@@ -21,6 +21,7 @@ mod export;
 mod faults;
 mod fuzz_inputs;
 mod hostile;
+mod incidents;
 mod layout;
 mod live;
 mod multiprocess;

@@ -66,6 +66,14 @@ pub struct ReferencePairing {
     rejected: u64,
 }
 
+/// Reference `r` propagated to tick `k` (its `Ω_d` held over the gap): what the controller
+/// tracks when tick `k`'s own reference is missing.
+pub fn propagate(r: &ReferenceSample, k: u64, dt: f64) -> ReferenceState {
+    let x = r.reference_state();
+    let gap = (k - r.tick) as f64 * dt;
+    ReferenceState { r_d: x.r_d * exp(gap * x.omega_d), ..x }
+}
+
 impl ReferencePairing {
     /// Holds a missing reference for at most `hold_ticks` ticks of `dt` seconds.
     pub fn new(hold_ticks: u64, dt: f64) -> Self {
@@ -136,9 +144,7 @@ impl ReferencePairing {
             if let Some(r) = self.last.filter(|r| rd.is_none() && r.tick < k) {
                 self.held += 1;
                 if self.held <= self.hold_ticks {
-                    let x = r.reference_state();
-                    let gap = (k - r.tick) as f64 * self.dt;
-                    rd = Some(ReferenceState { r_d: x.r_d * exp(gap * x.omega_d), ..x });
+                    rd = Some(propagate(&r, k, self.dt));
                 }
             }
         }

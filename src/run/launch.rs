@@ -147,6 +147,8 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
         live.stop();
     }
     launch.clean_up();
+    // sched.csv complete before the incidents read it.
+    rss.sched = None;
     let flight = launch.keep_flight_records();
     // A failure stops the run, but its report (the faults that led to it among them) is
     // written as for any other end.
@@ -183,6 +185,12 @@ fn report(
 ) -> anyhow::Result<()> {
     let args = launch.args;
     launch.report_without_monitor(scenario, flight);
+    let schedule: Vec<serde_json::Value> = launch.faults.iter().map(|f| f.scheduled()).collect();
+    if let Err(e) = rotorloop_common::output::patch_summary(&args.out, |j| {
+        j["fault_schedule"] = serde_json::json!(schedule)
+    }) {
+        eprintln!("warning: the fault schedule is not in summary.json: {e:#}");
+    }
     if !args.no_monitor {
         if let Err(e) = add_resources(&args.out, &rss.tracks) {
             eprintln!("warning: resource report not added to summary.json: {e:#}");
@@ -205,6 +213,14 @@ fn report(
             for e in events {
                 eprintln!("  {} {}: {}", e.kind, e.role, e.detail);
             }
+        }
+    }
+    if flight.is_some() && !args.no_monitor && args.out.join("summary.json").exists() {
+        let options = crate::study::incidents::Options::default();
+        match crate::study::incidents::explain(&args.out, options) {
+            Ok(found) if !args.quiet => println!("incidents: {}", found.describe_worst()),
+            Ok(_) => {}
+            Err(e) => eprintln!("warning: no incidents report: {e:#}"),
         }
     }
     if flight.is_some() && !args.no_mcap && args.out.join("summary.json").exists() {

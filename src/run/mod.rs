@@ -23,6 +23,7 @@ pub mod launch;
 pub mod mover;
 pub mod recover;
 pub mod resources;
+pub mod sched;
 pub mod spawn;
 pub mod split;
 pub mod supervise;

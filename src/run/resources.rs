@@ -81,6 +81,8 @@ pub(crate) struct RssLog {
     pub(crate) csv: Option<std::io::BufWriter<std::fs::File>>,
     t0: u64,
     pub(crate) next_ns: u64,
+    /// Each role's scheduling, sampled by a thread of its own (`sched.csv`).
+    pub(crate) sched: Option<crate::run::sched::SchedSampler>,
 }
 
 impl RssLog {
@@ -92,12 +94,16 @@ impl RssLog {
             Ok(f)
         });
         let csv = csv.map_err(|e| eprintln!("warning: cannot write {}: {e}", path.display())).ok();
-        Self { tracks: BTreeMap::new(), csv, t0: now_ns(), next_ns: now_ns() }
+        let sched = crate::run::sched::SchedSampler::start(out);
+        Self { tracks: BTreeMap::new(), csv, t0: now_ns(), next_ns: now_ns(), sched }
     }
 
     /// A new life of `role` (its figures are of its last life).
     pub(crate) fn track(&mut self, role: &str, pid: u32) {
         self.tracks.insert(role.to_owned(), RssTrack::new(pid));
+        if let Some(s) = &self.sched {
+            s.track(role, pid);
+        }
     }
 
     pub(crate) fn sample_if_due(&mut self) {

@@ -22,12 +22,14 @@ pub fn run(out: &Path, duration: f64, rate: f64, in_process: bool) -> anyhow::Re
     let mut md = String::from("# The paper's scenario, three reference torques\n\n");
     let mut errs = Vec::new();
     let mut rows = String::new();
-    let mut loop_rows = String::new();
+    let (mut loop_rows, mut incident_lines) = (String::new(), String::new());
     for name in PAPER_SCENARIOS {
         let scenario = scenario_with_overrides(name, Some(duration), Some(rate), None)?;
         let dir = if in_process { out.join(name) } else { out.join(name).join("sim") };
         if !in_process {
-            loop_rows.push_str(&four_process_run(out, name, duration, rate)?);
+            let (row, incident) = four_process_run(out, name, duration, rate)?;
+            loop_rows.push_str(&row);
+            incident_lines.push_str(&incident);
         }
         println!("{name}: in process");
         let (s, rec) =
@@ -65,6 +67,14 @@ pub fn run(out: &Path, duration: f64, rate: f64, in_process: bool) -> anyhow::Re
              | run | ticks | misses | achieved Hz | sense-to-actuate p50 (µs) | p99 | max | tick lateness p99 (µs) | final error (deg) |\n\
              |---|---|---|---|---|---|---|---|---|\n{loop_rows}"
         );
+        let _ = writeln!(
+            md,
+            "### The worst incident of each run\n\n\
+             An incident is a window of abnormal ticks (a late plant wake, misses, a late \
+             torque, faults); its cost is the peak attitude deviation from the same loop without \
+             it, re-run in process from its first tick (docs/incidents.md). Every incident in \
+             `<run>/incidents.md`.\n\n{incident_lines}"
+        );
     }
     // In continuous time the error history is the same for all three profiles (spec).
     let mut diff = 0.0f64;
@@ -97,8 +107,13 @@ pub fn run(out: &Path, duration: f64, rate: f64, in_process: bool) -> anyhow::Re
 }
 
 /// Runs `name` as the real-time four-process loop into `out/<name>/`; returns its row of
-/// the report's loop table.
-fn four_process_run(out: &Path, name: &str, duration: f64, rate: f64) -> anyhow::Result<String> {
+/// the report's loop table and its worst incident, in words.
+fn four_process_run(
+    out: &Path,
+    name: &str,
+    duration: f64,
+    rate: f64,
+) -> anyhow::Result<(String, String)> {
     println!("{name}: four processes, real time");
     let run_dir = out.join(name);
     let role = rotorloop_common::role::args::RoleArgs::realtime(
@@ -114,7 +129,8 @@ fn four_process_run(out: &Path, name: &str, duration: f64, rate: f64) -> anyhow:
             .with_context(|| format!("no summary of the {name} run"))?,
     )?;
     let us = |hop: &str, q: &str| j["hops"][hop][q].as_f64().unwrap_or(f64::NAN) / 1e3;
-    Ok(format!(
+    let incident = worst_incident(name, &j["incidents"]);
+    let row = format!(
         "| {name} | {} | {} | {:.3} | {:.1} | {:.1} | {:.1} | {:.1} | {:.3e} |\n",
         j["ticks"],
         j["misses"],
@@ -124,5 +140,36 @@ fn four_process_run(out: &Path, name: &str, duration: f64, rate: f64) -> anyhow:
         us("sense_to_actuate", "max"),
         us("tick_lateness", "p99"),
         j["err_deg_final"].as_f64().unwrap_or(f64::NAN),
-    ))
+    );
+    Ok((row, incident))
+}
+
+/// A run's worst incident (`summary.json`'s `incidents`), as a line of the report.
+fn worst_incident(name: &str, inc: &serde_json::Value) -> String {
+    let w = &inc["worst"];
+    if inc.is_null() {
+        return format!("- **{name}**: no incidents computed (see the run's messages).\n");
+    }
+    if w.is_null() {
+        return format!("- **{name}**: no incident.\n");
+    }
+    let f = |k: &str| w[k].as_f64().unwrap_or(f64::NAN);
+    let cost = match (w["peak_deviation_deg"].as_f64(), w["recovery_s"].as_f64()) {
+        (Some(p), Some(r)) => format!("peak deviation {p:.3}°, below a tenth of it after {r:.2} s"),
+        (Some(p), None) => {
+            format!("peak deviation {p:.3}°, not back below a tenth of it within the run")
+        }
+        (None, _) => "cost not computed".to_owned(),
+    };
+    format!(
+        "- **{name}** ({} incidents): {} at {:.3} s for {:.1} ms, caused by {} ({}): {}. {}.\n",
+        inc["count"],
+        w["kind"].as_str().unwrap_or("?"),
+        f("start_s"),
+        f("duration_s") * 1e3,
+        w["cause_role"].as_str().unwrap_or("?"),
+        w["cause_stage"].as_str().unwrap_or("?"),
+        w["evidence"].as_str().unwrap_or(""),
+        cost
+    )
 }

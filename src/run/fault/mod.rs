@@ -147,6 +147,21 @@ pub struct Fault {
 }
 
 impl Fault {
+    /// The fault as `summary.json`'s `fault_schedule` lists it (the incidents read it).
+    pub fn scheduled(&self) -> serde_json::Value {
+        let value = match self.kind {
+            FaultKind::Delay(d) => Some(d),
+            _ => None,
+        };
+        serde_json::json!({
+            "role": self.role,
+            "kind": self.kind.spec().start,
+            "at_s": self.kill_s,
+            "until_s": self.restart_s,
+            "value_s": value,
+        })
+    }
+
     /// The argument a role that applies this fault itself is started with (the
     /// controller's `--inject-delay FROM=SECONDS[:UNTIL]` of a delay).
     pub fn role_arg(&self) -> Option<(&'static str, String)> {

@@ -14,9 +14,6 @@ use serde::Serialize;
 use crate::run::fault::FaultEvent;
 use crate::sim::closed_loop::ClosedLoop;
 
-/// How far from the no-fault error a run counts as recovered (deg).
-pub const RECOVERED_DEG: f64 = 0.1;
-
 /// One fault's cost.
 #[derive(Debug, Clone, Serialize)]
 pub struct FaultReport {
@@ -48,10 +45,16 @@ pub struct FaultReport {
     pub ticks_without_fresh_torque: u64,
     /// Ticks from the restart to the first fresh torque applied.
     pub ticks_to_first_fresh_torque: Option<u64>,
-    /// Worst attitude error from the kill to the end of the run (deg).
-    pub worst_err_deg_after: f64,
-    /// Time from the kill until the error stays within 0.1° of the no-fault run's (s).
-    pub time_to_recover_s: Option<f64>,
+    /// What the fault cost the control: the peak attitude deviation of the run from the
+    /// loop that had no incident, over the incident that holds the fault (deg; 0 where the
+    /// loop did not feel it, a monitor's kill say). Filled in by the run's incidents
+    /// (`crate::study::incidents`); `None` where they could not be computed.
+    pub peak_deviation_deg: Option<f64>,
+    /// From the incident's start until that deviation is below 10 % of its peak (s);
+    /// `None`: not within the run.
+    pub recovery_s: Option<f64>,
+    /// The incident that holds the fault (its row in `incidents.csv`, from 1).
+    pub incident: Option<usize>,
 }
 
 fn read_errors(path: &Path) -> anyhow::Result<BTreeMap<u64, (f64, f64)>> {
@@ -109,18 +112,6 @@ pub fn report(
         let until = first_fresh_after_restart.unwrap_or(last_tick);
         let without =
             ((from + 1)..=until).filter(|k| timing.contains_key(k) && !fresh(*k)).count() as u64;
-        let worst = errors.range(from..).map(|(_, (_, e))| *e).fold(0.0f64, f64::max);
-        // Recovered: from some tick on, every row is within 0.1° of the no-fault error.
-        let mut recovered_at: Option<f64> = None;
-        for (k, (t, err)) in errors.range(from..) {
-            let within = nofault.get(*k as usize).is_some_and(|n| (err - n).abs() < RECOVERED_DEG);
-            if !within {
-                recovered_at = None;
-            } else if recovered_at.is_none() {
-                recovered_at = Some(*t);
-            }
-        }
-        let kill_t = errors.get(&from).map_or(0.0, |(t, _)| *t);
         reports.push(FaultReport {
             role: e.role.clone(),
             kind: e.kind,
@@ -136,8 +127,9 @@ pub fn report(
                 (Some(r), Some(f)) => Some(f.saturating_sub(r)),
                 _ => None,
             },
-            worst_err_deg_after: worst,
-            time_to_recover_s: recovered_at.map(|t| (t - kill_t).max(0.0)),
+            peak_deviation_deg: None,
+            recovery_s: None,
+            incident: None,
         });
     }
 

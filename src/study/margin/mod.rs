@@ -15,6 +15,8 @@
 //! with the paper's large momentum (`‖h‖` ≈ 26 N m s) those terms dominate, so the
 //! nonlinear loop degrades long before the linear `τ*`.
 
+pub mod laws;
+
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 
@@ -233,7 +235,7 @@ pub fn run(a: &MarginArgs) -> anyhow::Result<(Vec<ModeMargin>, Vec<SweepRun>)> {
     plots(&a.out, &s.file.name, &runs, tau_star)?;
     print!("{md}");
     if !a.laws.is_empty() {
-        let laws = crate::study::margin_laws::compare(&s, &a.laws, &delays, &a.out)?;
+        let laws = laws::compare(&s, &a.laws, &delays, &a.out)?;
         print!("{laws}");
     }
     Ok((modes, runs))

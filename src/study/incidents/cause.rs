@@ -1,0 +1,299 @@
+//! Why an incident happened: from the launcher's faults and the fault schedule, from the
+//! loop's own stamps (which stage of the tick held it up, beyond its median, and whose
+//! process that stage is), and from the kernel's view of that process (`sched.csv`: time
+//! runnable but not running, stopped, on a CPU; the machine's steal time).
+
+use super::load::{FaultRow, RunRecord, SchedRow};
+use super::ticks::{self, DELAY, LATE, MISS, NOT_FRESH, REFERENCE_LATE, REJECTED, SAFE, TickFlags};
+
+/// What an incident's cause is.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Cause {
+    /// `simulator stall`, `fault`, `injected delay`, `miss`, `late torque`, `safe mode`,
+    /// `rejected samples`, `late reference`.
+    pub kind: &'static str,
+    /// The process.
+    pub role: String,
+    /// The stage of the tick that held it up, or what was done to the process.
+    pub stage: String,
+    /// The stamps and kernel figures behind it, in words.
+    pub evidence: String,
+}
+
+/// The stages of one tick that belong to one process (ns): the plant's work from its
+/// wake to the state's publish; the state's delivery up to the controller having it (its
+/// wake-up); the controller from then to its torque's publish; the torque's delivery up
+/// to the plant having it (its wake-up).
+const STAGES: [(&str, &str); 4] = [
+    ("plant publish", "plant"),
+    ("state delivery (the controller's wake-up)", "controller"),
+    ("controller compute", "controller"),
+    ("torque delivery (the plant's wake-up)", "plant"),
+];
+
+/// When the answer to state `k` took effect: (tick, offset), if it did within 10 000
+/// ticks.
+fn took_effect(run: &RunRecord, k: u64) -> Option<(u64, f64)> {
+    (k..(k + 10_000).min(run.last)).find_map(|j| {
+        let n = run.state(j + 1)?;
+        let m = (n.effects as usize).min(n.effect_ticks.len());
+        (0..m).find(|i| n.effect_ticks[*i] == k).map(|i| (j, n.effect_offsets_s[i]))
+    })
+}
+
+/// The four stages of tick `k` (ns), each where its stamps allow (the torque's delivery
+/// only where the plant took that answer as the one in force).
+fn stages(run: &RunRecord, k: u64) -> [Option<u64>; 4] {
+    let (s, t) = (run.state(k), run.torque(k));
+    let n = took_effect(run, k)
+        .and_then(|(j, _)| run.state(j + 1))
+        .filter(|n| n.applied_torque_tick == k);
+    [
+        s.and_then(|s| s.publish_ns.checked_sub(s.wake_ns)),
+        s.zip(t).and_then(|(s, t)| t.state_recv_ns.checked_sub(s.publish_ns)),
+        t.and_then(|t| t.publish_ns.checked_sub(t.state_recv_ns)),
+        n.zip(t).and_then(|(n, t)| n.applied_torque_recv_ns.checked_sub(t.publish_ns)),
+    ]
+}
+
+/// Each stage's median over the run's fresh ticks (ns).
+pub fn stage_medians(run: &RunRecord, flags: &TickFlags) -> [f64; 4] {
+    let mut v: [Vec<f64>; 4] = Default::default();
+    for k in (0..run.last).filter(|k| flags.flags[*k as usize] == 0) {
+        for (i, x) in stages(run, k).iter().enumerate() {
+            if let Some(x) = x {
+                v[i].push(*x as f64);
+            }
+        }
+    }
+    v.map(|mut x| ticks::median(&mut x))
+}
+
+fn ms(ns: f64) -> String {
+    format!("{:.3} ms", ns / 1e6)
+}
+
+/// Whether the fault schedule asked for `f` (same role and kind, within 50 ms).
+fn scheduled(run: &RunRecord, f: &FaultRow) -> bool {
+    run.schedule
+        .iter()
+        .any(|s| s.role == f.role && s.kind == f.kind && (s.at_s - f.kill_s).abs() < 0.05)
+}
+
+/// The cause of a fault the launcher saw.
+pub fn fault_cause(run: &RunRecord, f: &FaultRow) -> Cause {
+    if f.kind == "delay" {
+        return Cause {
+            kind: "injected delay",
+            role: f.role.clone(),
+            stage: "injected delay".into(),
+            evidence: format!(
+                "{} from {:.3} s{} ({})",
+                f.detail,
+                f.kill_s,
+                f.restart_s.map(|u| format!(" until {u:.3} s")).unwrap_or_default(),
+                if scheduled(run, f) { "the fault schedule" } else { "not in the schedule" }
+            ),
+        };
+    }
+    let by = if scheduled(run, f) { "by the fault schedule" } else { "from outside the launcher" };
+    let what = match f.kind.as_str() {
+        "stop" => "stopped",
+        "kill" | "killed" => "killed",
+        "hang" => "hung (the watchdog found no progress)",
+        "crash" => "crashed",
+        "exited" => "exited",
+        _ => "lost its link",
+    };
+    let end = match (f.kind.as_str(), f.ended_s.or(f.restart_s)) {
+        ("stop", Some(e)) => {
+            format!(", continued at {e:.3} s ({:.1} ms stopped)", (e - f.kill_s) * 1e3)
+        }
+        (_, Some(e)) => format!(", started again at {e:.3} s"),
+        (_, None) => ", not started again".to_owned(),
+    };
+    let signal = f.signal.as_deref().map(|s| format!(" ({s})")).unwrap_or_default();
+    Cause {
+        kind: if f.role == "plant" { "simulator stall" } else { "fault" },
+        role: f.role.clone(),
+        stage: format!("{what}{signal}"),
+        evidence: format!("{} {what}{signal} {by} at {:.3} s{end}", f.role, f.kill_s),
+    }
+}
+
+/// The cause of the incident `[start, end]` whose ticks' flags together are `all`.
+pub fn cause(
+    run: &RunRecord,
+    flags: &TickFlags,
+    medians: &[f64; 4],
+    [start, end]: [u64; 2],
+) -> Cause {
+    let all = flags.flags[start as usize..=end as usize].iter().fold(0, |a, f| a | f);
+    let overlapping = run.faults.iter().filter(|f| ticks::in_loop(&f.role)).find(|f| {
+        let [from, to] = ticks::fault_ticks(run, f);
+        from <= end && to >= start
+    });
+    let c = if let Some(f) = overlapping {
+        fault_cause(run, f)
+    } else if let Some(d) =
+        run.schedule.iter().find(|d| d.kind == "delay").filter(|_| all & DELAY != 0)
+    {
+        let v = d.value_s.unwrap_or(0.0);
+        Cause {
+            kind: "injected delay",
+            role: "controller".into(),
+            stage: "injected delay".into(),
+            evidence: format!(
+                "--fault controller:delay@{}={v}: each answer sent {:.1} ms late from {:.3} s{}",
+                d.at_s,
+                v * 1e3,
+                d.at_s,
+                d.until_s.map(|u| format!(" until {u:.3} s")).unwrap_or_default()
+            ),
+        }
+    } else if all & LATE != 0 {
+        late_wake(run, flags, [start, end])
+    } else {
+        from_stamps(run, medians, [start, end], all)
+    };
+    with_kernel(run, c, [start, end])
+}
+
+/// `c` with the kernel's view of its process over `[start, end]` added.
+pub fn with_kernel(run: &RunRecord, mut c: Cause, [start, end]: [u64; 2]) -> Cause {
+    if let Some(k) = kernel(run, &c.role, [start, end]) {
+        c.evidence = format!("{}; kernel: {k}", c.evidence);
+    }
+    c
+}
+
+/// A plant that woke late: the worst tick's lateness, and the states it then published at
+/// once to catch up.
+fn late_wake(run: &RunRecord, flags: &TickFlags, [start, end]: [u64; 2]) -> Cause {
+    let late = |k: u64| run.state(k).map_or(0, |s| s.wake_ns.saturating_sub(s.deadline_ns));
+    let worst = (start..=end).max_by_key(|k| late(*k)).unwrap_or(start);
+    let burst = (worst..=end.min(run.last))
+        .take_while(|k| flags.flags.get(*k as usize).is_some_and(|f| f & LATE != 0))
+        .count();
+    Cause {
+        kind: "simulator stall",
+        role: "plant".into(),
+        stage: "plant wake".into(),
+        evidence: format!(
+            "state {worst} published {} after its grid time (the plant did not run); {burst} \
+             late state(s) from it",
+            ms(late(worst) as f64)
+        ),
+    }
+}
+
+/// The tick of the incident whose answer took effect latest, and the stage of it that
+/// exceeded its median most.
+fn from_stamps(run: &RunRecord, medians: &[f64; 4], [start, end]: [u64; 2], all: u16) -> Cause {
+    let lateness =
+        |k: u64| took_effect(run, k).map_or(f64::INFINITY, |(j, o)| (j - k) as f64 * run.dt + o);
+    let worst = (start..=end).max_by(|a, b| lateness(*a).total_cmp(&lateness(*b))).unwrap_or(start);
+    let kind = match all {
+        a if a & SAFE != 0 => "safe mode",
+        a if a & REJECTED != 0 => "rejected samples",
+        a if a & REFERENCE_LATE != 0 => "late reference",
+        a if a & (MISS | NOT_FRESH) != 0 => "miss",
+        _ => "late torque",
+    };
+    let effect = match took_effect(run, worst) {
+        Some((j, o)) => format!(
+            "took effect {} after its grid time",
+            ms(((j - worst) as f64 * run.dt + o) * 1e9)
+        ),
+        None => "never took effect".into(),
+    };
+    let (role, stage, detail) = match (run.torque(worst), stages(run, worst)) {
+        (None, _) if skipped(run, worst) => (
+            "controller",
+            "controller late to wake".to_owned(),
+            "the controller took it with a newer state already waiting, and answered that one"
+                .to_owned(),
+        ),
+        (None, _) => (
+            "controller",
+            "controller absent".to_owned(),
+            "no answer to it was published".to_owned(),
+        ),
+        (Some(t), _) if !t.computed() => (
+            "controller",
+            "controller had nothing to track".to_owned(),
+            "its answer was not computed (the state or its reference rejected or missing)"
+                .to_owned(),
+        ),
+        (Some(_), st) => {
+            let known = (0..4).filter_map(|i| st[i].map(|v| (i, v as f64 - medians[i])));
+            let (i, excess) = known.max_by(|a, b| a.1.total_cmp(&b.1)).unwrap_or((2, f64::NAN));
+            let parts: Vec<String> = STAGES
+                .iter()
+                .zip(st)
+                .filter_map(|((n, _), v)| v.map(|v| format!("{n} {}", ms(v as f64))))
+                .collect();
+            (
+                STAGES[i].1,
+                STAGES[i].0.to_owned(),
+                format!("{} over its median; {}", ms(excess), parts.join(", ")),
+            )
+        }
+    };
+    let role = if kind == "late reference" { "reference" } else { role };
+    Cause {
+        kind,
+        role: role.into(),
+        stage,
+        evidence: format!("the answer to state {worst} {effect}: {detail}"),
+    }
+}
+
+/// Whether the controller took state `k` but answered a newer one (its next answer counts
+/// a skipped state more than its previous one).
+fn skipped(run: &RunRecord, k: u64) -> bool {
+    let before = (k.saturating_sub(64)..k).rev().find_map(|j| run.torque(j));
+    let after = (k + 1..(k + 64).min(run.last + 1)).find_map(|j| run.torque(j));
+    matches!((before, after), (Some(b), Some(a)) if a.states_skipped > b.states_skipped)
+}
+
+/// The kernel's view of `role` over the incident, from `sched.csv`.
+fn kernel(run: &RunRecord, role: &str, [start, end]: [u64; 2]) -> Option<String> {
+    let from = run.grid_ns(start).saturating_sub((run.dt * 1e9) as u64);
+    let to = run.grid_ns(end + 1) + (run.dt * 1e9) as u64;
+    let rows: Vec<&SchedRow> = run.sched.iter().filter(|r| r.role == role).collect();
+    let first = rows.iter().rposition(|r| r.t_ns <= from).unwrap_or(0);
+    let last = rows.iter().position(|r| r.t_ns >= to).unwrap_or(rows.len().checked_sub(1)?);
+    let seen = &rows[first..=last.max(first)];
+    let (a, b) = (seen.first()?, seen.last()?);
+    if b.t_ns <= a.t_ns {
+        return None;
+    }
+    let stopped: Vec<&&SchedRow> =
+        seen.iter().filter(|r| r.state == 'T' || r.state == 't').collect();
+    let mut words = Vec::new();
+    if let (Some(s0), Some(s1)) = (stopped.first(), stopped.last()) {
+        let period = crate::run::sched::PERIOD_NS as f64;
+        words.push(format!("stopped (T) for about {}", ms((s1.t_ns - s0.t_ns) as f64 + period)));
+    }
+    let pids: Vec<u32> = seen.iter().map(|r| r.pid).collect();
+    if a.pid == b.pid {
+        let wait = b.wait_ns.saturating_sub(a.wait_ns) as f64;
+        let on = b.on_cpu_ns.saturating_sub(a.on_cpu_ns) as f64;
+        words.push(format!("runnable, not running for {}", ms(wait)));
+        words.push(format!("on a CPU for {}", ms(on)));
+    } else if pids.windows(2).any(|w| w[0] != w[1]) {
+        words.push(format!("a new process (pid {} → {})", a.pid, b.pid));
+    }
+    let steal = b.steal_ns.saturating_sub(a.steal_ns);
+    if steal > 0 {
+        words.push(format!("the host took the vCPUs for {} (steal)", ms(steal as f64)));
+    }
+    Some(format!(
+        "{role} (pid {}, CPU {}) over {}: {}",
+        b.pid,
+        b.cpu,
+        ms((b.t_ns - a.t_ns) as f64),
+        words.join(", ")
+    ))
+}

@@ -1,0 +1,184 @@
+//! The incidents' files: `incidents.csv` (one row each, in time order), `incidents.md`
+//! (the worst first, in words), `incidents.png` (the deviation of the worst from the loop
+//! that had no incident), and their figures in `summary.json`.
+
+use std::fmt::Write as _;
+use std::path::Path;
+
+use anyhow::Context;
+use rotorloop_monitor::plot::{Series, YScale, line_chart};
+
+use super::{Explained, Incident};
+
+/// `incidents.csv`'s header.
+pub const HEADER: &str = "start_tick,end_tick,start_s,duration_s,kind,cause_role,cause_stage,\
+                          evidence,flags,misses,peak_deviation_deg,recovery_s";
+
+fn quoted(s: &str) -> String {
+    format!("\"{}\"", s.replace('"', "\"\""))
+}
+
+fn opt(v: Option<f64>) -> String {
+    v.map(|v| format!("{v}")).unwrap_or_default()
+}
+
+fn csv(found: &Explained) -> String {
+    let mut out = format!("{HEADER}\n");
+    for i in &found.incidents {
+        let _ = writeln!(
+            out,
+            "{},{},{:.6},{:.6},{},{},{},{},{},{},{},{}",
+            i.start_tick,
+            i.end_tick,
+            i.start_s,
+            i.duration_s,
+            i.kind,
+            i.cause_role,
+            quoted(&i.cause_stage),
+            quoted(&i.evidence),
+            quoted(&i.flags),
+            i.misses,
+            opt(i.peak_deviation_deg),
+            opt(i.recovery_s),
+        );
+    }
+    out
+}
+
+/// The incidents, the worst (largest peak deviation) first.
+fn ranked(found: &Explained) -> Vec<(usize, &Incident)> {
+    let mut v: Vec<(usize, &Incident)> = found.incidents.iter().enumerate().collect();
+    v.sort_by(|a, b| {
+        let p = |i: &Incident| i.peak_deviation_deg.unwrap_or(-1.0);
+        p(b.1).total_cmp(&p(a.1)).then(b.1.duration_s.total_cmp(&a.1.duration_s))
+    });
+    v
+}
+
+fn markdown(dir: &Path, found: &Explained) -> String {
+    let mut md = format!("# Incidents of {}\n\n", dir.display());
+    let _ = writeln!(
+        md,
+        "{} incident(s): windows of abnormal ticks (a plant wake or an answer later than {:.3} \
+         ms beyond the usual, misses, safe mode, rejected samples, faults, injected delays). \
+         The cost of each is its peak attitude deviation from the loop that had no incident \
+         (the same plant, law state and references from its first tick, its abnormal ticks \
+         undisturbed at the run's median actuation delay of {:.3} ms), and the time until \
+         that deviation is below 10 % of its peak.\n",
+        found.incidents.len(),
+        found.threshold_s * 1e3,
+        found.median_delay_s * 1e3,
+    );
+    let [same, computed] = found.law_reproduced;
+    let _ = writeln!(
+        md,
+        "The law in process reproduced {same} of the controller's {computed} answers bit for bit{}.\n",
+        if same == computed {
+            ""
+        } else {
+            " (the others: the counterfactual starts from an approximate law state)"
+        }
+    );
+    if !found.kernel_view {
+        md += "No `sched.csv`: the kernel's view of the processes is missing.\n\n";
+    }
+    for (n, (i, inc)) in ranked(found).into_iter().enumerate().take(20) {
+        let _ = writeln!(
+            md,
+            "## {}. {} at {:.3} s ({:.1} ms, ticks {}–{}, row {} of incidents.csv)\n",
+            n + 1,
+            inc.kind,
+            inc.start_s,
+            inc.duration_s * 1e3,
+            inc.start_tick,
+            inc.end_tick,
+            i + 1
+        );
+        let _ = writeln!(md, "- **Cause:** {}: {}.", inc.cause_role, inc.cause_stage);
+        let _ = writeln!(md, "- **Evidence:** {}.", inc.evidence);
+        let _ = writeln!(md, "- **Ticks:** {} ({} miss(es)).", inc.flags, inc.misses);
+        let cost = match (inc.peak_deviation_deg, inc.recovery_s) {
+            (None, _) => "not computed (only the longest incidents are)".to_owned(),
+            (Some(p), Some(r)) => {
+                format!("peak deviation {p:.4}°, below 10 % of it after {r:.3} s")
+            }
+            (Some(p), None) => {
+                format!("peak deviation {p:.4}°, not back below 10 % of it within the run")
+            }
+        };
+        let _ = writeln!(md, "- **Cost:** {cost}.\n");
+    }
+    if found.incidents.len() > 20 {
+        let _ = writeln!(md, "… and {} more in incidents.csv.", found.incidents.len() - 20);
+    }
+    md
+}
+
+fn figure(dir: &Path, found: &Explained) -> anyhow::Result<()> {
+    let worst: Vec<(usize, &Incident)> =
+        ranked(found).into_iter().filter(|(_, i)| !i.curve.is_empty()).take(5).collect();
+    let dt = found
+        .incidents
+        .first()
+        .map_or(1e-3, |i| i.duration_s / (i.end_tick + 1 - i.start_tick) as f64);
+    let points: Vec<Vec<(f64, f64)>> = worst
+        .iter()
+        .map(|(_, i)| i.curve.iter().enumerate().map(|(j, d)| (j as f64 * dt, *d)).collect())
+        .collect();
+    let labels: Vec<String> = worst
+        .iter()
+        .map(|(_, i)| format!("{} at {:.3} s ({})", i.kind, i.start_s, i.cause_role))
+        .collect();
+    let series: Vec<Series> = labels
+        .iter()
+        .zip(&points)
+        .map(|(label, points)| Series { label, points, dashed: false })
+        .collect();
+    line_chart(
+        &dir.join("incidents.png"),
+        "deviation from the loop that had no incident (the worst incidents)",
+        "s after the incident's start",
+        "deviation (deg, log)",
+        &series,
+        YScale::Log { floor: 1e-9 },
+    )?;
+    Ok(())
+}
+
+/// Writes the files and patches `summary.json`.
+pub fn write(dir: &Path, found: &Explained) -> anyhow::Result<()> {
+    let path = dir.join("incidents.csv");
+    std::fs::write(&path, csv(found))
+        .with_context(|| format!("cannot write {}", path.display()))?;
+    let path = dir.join("incidents.md");
+    std::fs::write(&path, markdown(dir, found))
+        .with_context(|| format!("cannot write {}", path.display()))?;
+    figure(dir, found)?;
+    let worst = found.worst().cloned();
+    let incidents = &found.incidents;
+    rotorloop_common::output::patch_summary(dir, |j| {
+        j["incidents"] = serde_json::json!({
+            "count": incidents.len(),
+            "worst": worst,
+            "threshold_s": found.threshold_s,
+            "median_delay_s": found.median_delay_s,
+            "law_reproduced": found.law_reproduced,
+            "kernel_view": found.kernel_view,
+            "files": ["incidents.csv", "incidents.md", "incidents.png"],
+        });
+        let Some(faults) = j.get_mut("faults").and_then(|f| f.as_array_mut()) else { return };
+        for f in faults {
+            let (kill, role) = (f["kill_tick"].as_u64(), f["role"].as_str().unwrap_or_default());
+            let holds = |i: &Incident, k: u64| i.start_tick <= k + 1 && k <= i.end_tick + 1;
+            // The incident the fault caused, else any that holds its start.
+            let held = kill.and_then(|k| {
+                let mine = incidents.iter().position(|i| holds(i, k) && i.cause_role == role);
+                mine.or_else(|| incidents.iter().position(|i| holds(i, k)))
+            });
+            let i = held.map(|n| &incidents[n]);
+            f["incident"] = serde_json::json!(held.map(|n| n + 1));
+            f["peak_deviation_deg"] = serde_json::json!(i.and_then(|i| i.peak_deviation_deg));
+            f["recovery_s"] = serde_json::json!(i.and_then(|i| i.recovery_s));
+        }
+    })
+}

@@ -1,0 +1,201 @@
+//! Incidents of real-time runs (`rotorloop run` → `incidents.csv`, `rotorloop explain`):
+//! a plant stopped is a simulator stall that cost a deviation and recovered, an injected
+//! delay is named as such, a monitor kill costs exactly 0°, a busy real-time process on
+//! the controller's core is seen by the kernel's figures, and `explain` gives the run's
+//! files again.
+
+use std::path::{Path, PathBuf};
+use std::time::Duration;
+
+use crate::common::harness::{Harness, json, ok};
+
+const LIMIT: Duration = Duration::from_secs(120);
+
+/// One row of `incidents.csv`, by column name.
+struct Row(std::collections::BTreeMap<String, String>);
+
+impl Row {
+    fn get(&self, col: &str) -> &str {
+        self.0.get(col).map_or("", String::as_str)
+    }
+
+    fn f64(&self, col: &str) -> Option<f64> {
+        self.get(col).parse().ok()
+    }
+}
+
+/// A CSV line's fields (double quotes group, `""` is a quote).
+fn fields(line: &str) -> Vec<String> {
+    let (mut out, mut cur, mut quoted) = (Vec::new(), String::new(), false);
+    let mut chars = line.chars().peekable();
+    while let Some(c) = chars.next() {
+        match (c, quoted) {
+            ('"', true) if chars.peek() == Some(&'"') => {
+                cur.push('"');
+                chars.next();
+            }
+            ('"', _) => quoted = !quoted,
+            (',', false) => out.push(std::mem::take(&mut cur)),
+            _ => cur.push(c),
+        }
+    }
+    out.push(cur);
+    out
+}
+
+fn incidents(out: &Path) -> Vec<Row> {
+    let text = std::fs::read_to_string(out.join("incidents.csv")).expect("incidents.csv");
+    let mut lines = text.lines();
+    let header = fields(lines.next().expect("header"));
+    lines.map(|l| Row(header.iter().cloned().zip(fields(l)).collect())).collect()
+}
+
+fn describe(rows: &[Row]) -> String {
+    rows.iter().map(|r| format!("{:?}\n", r.0)).collect()
+}
+
+/// A real-time run of paper-zero with `extra` arguments.
+fn realtime(h: &Harness, name: &str, duration: &str, extra: &[&str]) -> PathBuf {
+    let out = h.path(name);
+    let mut args = vec!["run", "--scenario", "paper-zero", "--duration", duration];
+    args.extend(["--mode", "realtime", "--domain", &h.domain, "--quiet"]);
+    args.extend(["--out", out.to_str().expect("utf8")]);
+    args.extend(extra);
+    ok(&h.rotorloop(&args, LIMIT));
+    out
+}
+
+/// The incident that holds `at_s` (± `slack_s`) and whose cause is `role`.
+fn incident_at<'a>(rows: &'a [Row], at_s: f64, slack_s: f64, role: &str) -> &'a Row {
+    rows.iter()
+        .find(|r| {
+            let (s, d) = (r.f64("start_s").expect("start_s"), r.f64("duration_s").expect("d"));
+            r.get("cause_role") == role && s <= at_s + slack_s && s + d >= at_s - slack_s
+        })
+        .unwrap_or_else(|| panic!("no incident of {role} at {at_s} s:\n{}", describe(rows)))
+}
+
+#[test]
+fn a_stopped_plant_is_a_simulator_stall_that_cost_a_deviation_and_recovered() {
+    let h = Harness::new("inc-stall");
+    // Twelve seconds: the deviation of a stall at 4 s takes some seconds to fall below a
+    // tenth of its peak (the loop converges on its reference).
+    let out = realtime(&h, "stall", "12", &["--fault", "plant:stop@4:cont@4.03"]);
+    let rows = incidents(&out);
+    let r = incident_at(&rows, 4.0, 0.01, "plant");
+    assert_eq!(r.get("kind"), "simulator stall", "{:?}", r.0);
+    assert!(r.get("evidence").contains("by the fault schedule"), "{:?}", r.0);
+    let start = r.f64("start_s").expect("start");
+    assert!((start - 4.0).abs() < 0.01, "starts at {start} s: {:?}", r.0);
+    let peak = r.f64("peak_deviation_deg").expect("a computed cost");
+    assert!(peak > 0.0, "{:?}", r.0);
+    let recovery = r.f64("recovery_s").unwrap_or_else(|| panic!("no recovery: {:?}", r.0));
+    assert!(recovery > 0.0, "{:?}", r.0);
+    // The fault report carries the same cost.
+    let s = json(&out.join("summary.json"));
+    let f = &s["faults"][0];
+    assert_eq!(f["peak_deviation_deg"].as_f64(), Some(peak), "{f}");
+    assert!(s["incidents"]["count"].as_u64().expect("count") >= 1, "{s}");
+    // Every answer was the law's, bit for bit: the counterfactual starts exactly.
+    let [same, computed] = [0, 1].map(|i| s["incidents"]["law_reproduced"][i].as_u64());
+    assert_eq!(same, computed, "{}", s["incidents"]);
+    h.assert_no_leftovers();
+}
+
+#[test]
+fn an_injected_controller_delay_is_named_and_a_monitor_kill_costs_nothing() {
+    let h = Harness::new("inc-delay");
+    let out = realtime(
+        &h,
+        "delay",
+        "6",
+        &["--fault", "controller:delay@4=0.02:until@4.5", "--fault", "monitor:kill@2:restart@2.5"],
+    );
+    let rows = incidents(&out);
+    let d = incident_at(&rows, 4.0, 0.01, "controller");
+    assert_eq!(d.get("kind"), "injected delay", "{:?}", d.0);
+    assert!(d.f64("peak_deviation_deg").expect("cost") > 0.0, "{:?}", d.0);
+    let m = incident_at(&rows, 2.0, 0.01, "monitor");
+    assert_eq!(m.get("kind"), "fault", "{:?}", m.0);
+    assert_eq!(m.f64("peak_deviation_deg"), Some(0.0), "a monitor kill cost: {:?}", m.0);
+    let s = json(&out.join("summary.json"));
+    let monitor = s["faults"].as_array().expect("faults").iter().find(|f| f["role"] == "monitor");
+    let monitor = monitor.unwrap_or_else(|| panic!("{}", s["faults"]));
+    assert_eq!(monitor["peak_deviation_deg"].as_f64(), Some(0.0), "{monitor}");
+    // `explain` gives the same files again.
+    let csv = std::fs::read(out.join("incidents.csv")).expect("csv");
+    let md = std::fs::read(out.join("incidents.md")).expect("md");
+    std::fs::remove_file(out.join("incidents.csv")).expect("rm");
+    ok(&h.rotorloop(&["explain", out.to_str().expect("utf8")], LIMIT));
+    assert!(std::fs::read(out.join("incidents.csv")).expect("again") == csv, "csv differs");
+    assert!(std::fs::read(out.join("incidents.md")).expect("again") == md, "md differs");
+    h.assert_no_leftovers();
+}
+
+/// Whether `program` is on the PATH.
+fn have(program: &str) -> bool {
+    std::process::Command::new("sh")
+        .args(["-c", &format!("command -v {program}")])
+        .output()
+        .is_ok_and(|o| o.status.success())
+}
+
+#[test]
+fn a_busy_realtime_process_on_the_controllers_core_is_seen_by_the_kernels_figures() {
+    // SAFETY: geteuid reads this process's effective user id.
+    let root = unsafe { libc::geteuid() } == 0;
+    let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
+    if !root || cores < 2 || !have("chrt") || !have("taskset") {
+        eprintln!("skipped: needs root (SCHED_FIFO), 2 cores, chrt and taskset");
+        return;
+    }
+    let h = Harness::new("inc-busy");
+    let out = h.path("busy");
+    let pins = "plant=0,reference=0,monitor=0,controller=1";
+    let args = [
+        "run",
+        "--scenario",
+        "paper-zero",
+        "--duration",
+        "4",
+        "--mode",
+        "realtime",
+        "--pin",
+        pins,
+        "--domain",
+        &h.domain,
+        "--quiet",
+        "--out",
+    ];
+    let mut cmd = std::process::Command::new(env!("CARGO_BIN_EXE_rotorloop"));
+    cmd.args(args).arg(&out);
+    cmd.stdout(std::process::Stdio::piped()).stderr(std::process::Stdio::piped());
+    let run = crate::common::harness::group(&mut cmd).spawn().expect("rotorloop run");
+    // At about 2 s: 50 ms of a SCHED_FIFO busy loop on the controller's core (`timeout`
+    // itself on the other core, to end it).
+    std::thread::sleep(Duration::from_secs(2));
+    let busy = std::process::Command::new("taskset")
+        .args(["-c", "0", "timeout", "0.05", "chrt", "-f", "50", "taskset", "-c", "1", "yes"])
+        .stdout(std::process::Stdio::null())
+        .status()
+        .expect("busy loop");
+    assert!(busy.code() == Some(124), "the busy loop ended by its timeout: {busy:?}");
+    ok(&crate::common::harness::wait_output(run, LIMIT));
+    let rows = incidents(&out);
+    let r = rows
+        .iter()
+        .filter(|r| r.get("cause_role") == "controller")
+        .max_by(|a, b| {
+            a.f64("duration_s").unwrap_or(0.0).total_cmp(&b.f64("duration_s").unwrap_or(0.0))
+        })
+        .unwrap_or_else(|| panic!("no incident of the controller:\n{}", describe(&rows)));
+    let ev = r.get("evidence");
+    let waited: f64 = ev
+        .split("runnable, not running for ")
+        .nth(1)
+        .and_then(|x| x.split(' ').next())
+        .and_then(|x| x.parse().ok())
+        .unwrap_or_else(|| panic!("no run-queue wait in {:?}", r.0));
+    assert!(waited >= 20.0, "the controller waited {waited} ms for its core: {:?}", r.0);
+    h.assert_no_leftovers();
+}
