@@ -39,6 +39,17 @@ pub struct RunArgs {
     /// later from the records).
     #[arg(long)]
     pub no_mcap: bool,
+    /// Do not sample each role's scheduling (`/proc/PID/schedstat`, its state, the steal
+    /// time) into `OUT/sched.csv`: the incidents then lack the kernel's view. For
+    /// measuring what the sampling costs (`bench --before-after sched`).
+    #[arg(long)]
+    pub no_sched_sample: bool,
+    /// Record the kernel's scheduler (`sched_switch`, `sched_wakeup`) and IRQ events during
+    /// the run into `OUT/sched-trace.txt`, from a tracefs instance of its own (mounted
+    /// when needed, torn down at the end), so that an incident names what ran instead of
+    /// the late process. Needs root.
+    #[arg(long)]
+    pub trace_sched: bool,
     /// Real time: the plant sleeps until this many µs before each grid time and spins
     /// the rest (sharper ticks, one core busier).
     #[arg(long, allow_negative_numbers = true, default_value_t = 0)]
@@ -157,6 +168,8 @@ impl RunArgs {
             quiet: false,
             no_record: false,
             no_mcap: false,
+            no_sched_sample: false,
+            trace_sched: false,
             spin_before_tick_us: 0,
             cpu_dma_latency: None,
             foxglove: None,

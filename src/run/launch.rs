@@ -133,7 +133,13 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
         launcher_pid: std::process::id(),
     };
     record.write(&args.out)?;
-    let mut rss = RssLog::create(&args.out);
+    let mut rss = RssLog::create(&args.out, !args.no_sched_sample);
+    let traced = match args.trace_sched {
+        true => {
+            Some(crate::run::tracesched::TraceSched::start(&args.out, launch.role_args.domain())?)
+        }
+        false => None,
+    };
     let mut children = Children::default();
     let domain = launch.role_args.domain();
     let live = args.foxglove.as_deref().map(|a| Beside::start(&launch.exe, domain, a, &args.out));
@@ -147,8 +153,9 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
         live.stop();
     }
     launch.clean_up();
-    // sched.csv complete before the incidents read it.
+    // sched.csv and the trace complete before the incidents read them.
     rss.sched = None;
+    drop(traced);
     let flight = launch.keep_flight_records();
     // A failure stops the run, but its report (the faults that led to it among them) is
     // written as for any other end.

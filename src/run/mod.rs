@@ -27,4 +27,5 @@ pub mod sched;
 pub mod spawn;
 pub mod split;
 pub mod supervise;
+pub mod tracesched;
 pub mod watch;

@@ -20,11 +20,12 @@ pub struct Cause {
     pub evidence: String,
 }
 
-/// The stages of one tick that belong to one process (ns): the plant's work from its
-/// wake to the state's publish; the state's delivery up to the controller having it (its
-/// wake-up); the controller from then to its torque's publish; the torque's delivery up
-/// to the plant having it (its wake-up).
-const STAGES: [(&str, &str); 4] = [
+/// The stages of one tick that belong to one process (ns): the plant's wake after its
+/// grid time; its work from its wake to the state's publish; the state's delivery up to
+/// the controller having it (its wake-up); the controller from then to its torque's
+/// publish; the torque's delivery up to the plant having it (its wake-up).
+const STAGES: [(&str, &str); 5] = [
+    ("plant wake", "plant"),
     ("plant publish", "plant"),
     ("state delivery (the controller's wake-up)", "controller"),
     ("controller compute", "controller"),
@@ -41,24 +42,28 @@ fn took_effect(run: &RunRecord, k: u64) -> Option<(u64, f64)> {
     })
 }
 
-/// The four stages of tick `k` (ns), each where its stamps allow (the torque's delivery
-/// only where the plant took that answer as the one in force).
-fn stages(run: &RunRecord, k: u64) -> [Option<u64>; 4] {
+/// The five stages of tick `k` (ns), each where its stamps allow (the wake in real time
+/// only; the torque's delivery only where the plant took that answer as the one in
+/// force).
+fn stages(run: &RunRecord, k: u64) -> [Option<u64>; 5] {
     let (s, t) = (run.state(k), run.torque(k));
     let n = took_effect(run, k)
         .and_then(|(j, _)| run.state(j + 1))
         .filter(|n| n.applied_torque_tick == k);
     [
+        s.filter(|s| s.deadline_ns > 0).and_then(|s| s.wake_ns.checked_sub(s.deadline_ns)),
         s.and_then(|s| s.publish_ns.checked_sub(s.wake_ns)),
-        s.zip(t).and_then(|(s, t)| t.state_recv_ns.checked_sub(s.publish_ns)),
+        // A state never answered waited for the controller at least until it took the next.
+        s.zip(t.or_else(|| next_answer(run, k)))
+            .and_then(|(s, t)| t.state_recv_ns.checked_sub(s.publish_ns)),
         t.and_then(|t| t.publish_ns.checked_sub(t.state_recv_ns)),
         n.zip(t).and_then(|(n, t)| n.applied_torque_recv_ns.checked_sub(t.publish_ns)),
     ]
 }
 
 /// Each stage's median over the run's fresh ticks (ns).
-pub fn stage_medians(run: &RunRecord, flags: &TickFlags) -> [f64; 4] {
-    let mut v: [Vec<f64>; 4] = Default::default();
+pub fn stage_medians(run: &RunRecord, flags: &TickFlags) -> [f64; 5] {
+    let mut v: [Vec<f64>; 5] = Default::default();
     for k in (0..run.last).filter(|k| flags.flags[*k as usize] == 0) {
         for (i, x) in stages(run, k).iter().enumerate() {
             if let Some(x) = x {
@@ -125,7 +130,7 @@ pub fn fault_cause(run: &RunRecord, f: &FaultRow) -> Cause {
 pub fn cause(
     run: &RunRecord,
     flags: &TickFlags,
-    medians: &[f64; 4],
+    medians: &[f64; 5],
     [start, end]: [u64; 2],
 ) -> Cause {
     let all = flags.flags[start as usize..=end as usize].iter().fold(0, |a, f| a | f);
@@ -151,10 +156,8 @@ pub fn cause(
                 d.until_s.map(|u| format!(" until {u:.3} s")).unwrap_or_default()
             ),
         }
-    } else if all & LATE != 0 {
-        late_wake(run, flags, [start, end])
     } else {
-        from_stamps(run, medians, [start, end], all)
+        from_stamps(run, flags, medians, [start, end], all)
     };
     with_kernel(run, c, [start, end])
 }
@@ -187,12 +190,15 @@ fn late_wake(run: &RunRecord, flags: &TickFlags, [start, end]: [u64; 2]) -> Caus
     }
 }
 
-/// The tick of the incident whose answer took effect latest, and the stage of it that
-/// exceeded its median most.
-fn from_stamps(run: &RunRecord, medians: &[f64; 4], [start, end]: [u64; 2], all: u16) -> Cause {
-    let lateness =
-        |k: u64| took_effect(run, k).map_or(f64::INFINITY, |(j, o)| (j - k) as f64 * run.dt + o);
-    let worst = (start..=end).max_by(|a, b| lateness(*a).total_cmp(&lateness(*b))).unwrap_or(start);
+/// The stage that exceeded its median most on any tick of the incident, and its process;
+/// where no tick has the stamps to say (answers missing), what the missing answers say.
+fn from_stamps(
+    run: &RunRecord,
+    flags: &TickFlags,
+    medians: &[f64; 5],
+    [start, end]: [u64; 2],
+    all: u16,
+) -> Cause {
     let kind = match all {
         a if a & SAFE != 0 => "safe mode",
         a if a & REJECTED != 0 => "rejected samples",
@@ -200,53 +206,63 @@ fn from_stamps(run: &RunRecord, medians: &[f64; 4], [start, end]: [u64; 2], all:
         a if a & (MISS | NOT_FRESH) != 0 => "miss",
         _ => "late torque",
     };
-    let effect = match took_effect(run, worst) {
-        Some((j, o)) => format!(
-            "took effect {} after its grid time",
-            ms(((j - worst) as f64 * run.dt + o) * 1e9)
-        ),
+    let worst = (start..=end)
+        .flat_map(|k| {
+            let st = stages(run, k);
+            (0..5).filter_map(move |i| st[i].map(|v| (k, i, v as f64 - medians[i])))
+        })
+        .max_by(|a, b| a.2.total_cmp(&b.2));
+    let Some((k, i, excess)) = worst else { return unanswered(run, [start, end], kind) };
+    if i == 0 {
+        return late_wake(run, flags, [start, end]);
+    }
+    let parts: Vec<String> = STAGES
+        .iter()
+        .zip(stages(run, k))
+        .filter_map(|((n, _), v)| v.map(|v| format!("{n} {}", ms(v as f64))))
+        .collect();
+    let effect = match took_effect(run, k) {
+        Some((j, o)) => {
+            format!("took effect {} after its grid time", ms(((j - k) as f64 * run.dt + o) * 1e9))
+        }
         None => "never took effect".into(),
     };
-    let (role, stage, detail) = match (run.torque(worst), stages(run, worst)) {
-        (None, _) if skipped(run, worst) => (
-            "controller",
-            "controller late to wake".to_owned(),
-            "the controller took it with a newer state already waiting, and answered that one"
-                .to_owned(),
-        ),
-        (None, _) => (
-            "controller",
-            "controller absent".to_owned(),
-            "no answer to it was published".to_owned(),
-        ),
-        (Some(t), _) if !t.computed() => (
-            "controller",
-            "controller had nothing to track".to_owned(),
-            "its answer was not computed (the state or its reference rejected or missing)"
-                .to_owned(),
-        ),
-        (Some(_), st) => {
-            let known = (0..4).filter_map(|i| st[i].map(|v| (i, v as f64 - medians[i])));
-            let (i, excess) = known.max_by(|a, b| a.1.total_cmp(&b.1)).unwrap_or((2, f64::NAN));
-            let parts: Vec<String> = STAGES
-                .iter()
-                .zip(st)
-                .filter_map(|((n, _), v)| v.map(|v| format!("{n} {}", ms(v as f64))))
-                .collect();
-            (
-                STAGES[i].1,
-                STAGES[i].0.to_owned(),
-                format!("{} over its median; {}", ms(excess), parts.join(", ")),
-            )
-        }
-    };
-    let role = if kind == "late reference" { "reference" } else { role };
+    let role = if kind == "late reference" { "reference" } else { STAGES[i].1 };
+    let kind = if i == 1 { "simulator stall" } else { kind };
     Cause {
         kind,
         role: role.into(),
-        stage,
-        evidence: format!("the answer to state {worst} {effect}: {detail}"),
+        stage: STAGES[i].0.to_owned(),
+        evidence: format!(
+            "tick {k}: {} {} over its median; its answer {effect}; {}",
+            STAGES[i].0,
+            ms(excess),
+            parts.join(", ")
+        ),
     }
+}
+
+/// An incident whose ticks have no stamps to weigh: what the missing answers say.
+fn unanswered(run: &RunRecord, [start, end]: [u64; 2], kind: &'static str) -> Cause {
+    let k = (start..=end).find(|k| run.torque(*k).is_none_or(|t| !t.computed())).unwrap_or(start);
+    let (stage, detail) = match run.torque(k) {
+        None if skipped(run, k) => (
+            "controller late to wake",
+            "the controller took it with a newer state already waiting, and answered that one",
+        ),
+        None => ("controller absent", "no answer to it was published"),
+        Some(_) => (
+            "controller had nothing to track",
+            "its answer was not computed (the state or its reference rejected or missing)",
+        ),
+    };
+    let role = if kind == "late reference" { "reference" } else { "controller" };
+    Cause { kind, role: role.into(), stage: stage.into(), evidence: format!("state {k}: {detail}") }
+}
+
+/// The controller's next answer after state `k` (within 10 000 ticks).
+fn next_answer(run: &RunRecord, k: u64) -> Option<&rotorloop_common::wire::TorqueSample> {
+    (k + 1..(k + 10_000).min(run.last + 1)).find_map(|j| run.torque(j))
 }
 
 /// Whether the controller took state `k` but answered a newer one (its next answer counts
@@ -289,6 +305,12 @@ fn kernel(run: &RunRecord, role: &str, [start, end]: [u64; 2]) -> Option<String>
     if steal > 0 {
         words.push(format!("the host took the vCPUs for {} (steal)", ms(steal as f64)));
     }
+    let mut cpus: Vec<u32> = seen.iter().map(|r| r.cpu).collect();
+    cpus.sort_unstable();
+    cpus.dedup();
+    for cpu in cpus.iter().filter(|_| !run.trace.is_empty()) {
+        words.push(ran_instead(run, *cpu, &pids, [from, to]));
+    }
     Some(format!(
         "{role} (pid {}, CPU {}) over {}: {}",
         b.pid,
@@ -296,4 +318,22 @@ fn kernel(run: &RunRecord, role: &str, [start, end]: [u64; 2]) -> Option<String>
         ms((b.t_ns - a.t_ns) as f64),
         words.join(", ")
     ))
+}
+
+/// What the scheduler trace says ran on `cpu` over `[from, to]`, but the role's own `pids`.
+fn ran_instead(run: &RunRecord, cpu: u32, pids: &[u32], window: [u64; 2]) -> String {
+    let (ran, irq_ns) = super::trace::occupancy(&run.trace, cpu, window);
+    let others: Vec<String> = ran
+        .iter()
+        .filter(|((_, pid), _)| *pid != 0 && !pids.contains(pid))
+        .take(3)
+        .map(|((comm, pid), ns)| format!("{comm} (pid {pid}) {}", ms(*ns as f64)))
+        .collect();
+    let idle: u64 = ran.iter().filter(|((_, pid), _)| *pid == 0).map(|(_, ns)| ns).sum();
+    let others = if others.is_empty() { "no other task".to_owned() } else { others.join(", ") };
+    format!(
+        "ran instead on CPU {cpu} (sched trace): {others}; IRQ handlers {}; idle {}",
+        ms(irq_ns as f64),
+        ms(idle as f64)
+    )
 }

@@ -91,6 +91,8 @@ pub struct RunRecord {
     pub schedule: Vec<Scheduled>,
     /// The scheduler samples (empty without `sched.csv`).
     pub sched: Vec<SchedRow>,
+    /// The kernel's scheduler trace (empty without `--trace-sched`).
+    pub trace: Vec<super::trace::Traced>,
     /// The first state's publish (ns): the origin of the faults' times.
     pub t0_ns: u64,
     /// Each tick's grid time (its publish in lockstep; a tick without a state: the one
@@ -153,6 +155,7 @@ impl RunRecord {
             faults,
             schedule,
             sched,
+            trace: super::trace::read(&dir.join("sched-trace.txt")),
             t0_ns,
         })
     }

@@ -19,6 +19,7 @@ pub mod cost;
 pub mod load;
 mod report;
 pub mod ticks;
+pub mod trace;
 
 use std::path::Path;
 
@@ -93,6 +94,8 @@ pub struct Explained {
     pub realtime: bool,
     /// Whether `sched.csv` was there.
     pub kernel_view: bool,
+    /// Whether the kernel's scheduler trace (`--trace-sched`) was there.
+    pub traced: bool,
 }
 
 impl Explained {
@@ -187,6 +190,7 @@ pub fn find(dir: &Path, options: Options) -> anyhow::Result<Explained> {
         law_reproduced: [pass.same, pass.computed],
         realtime: run.realtime(),
         kernel_view: !run.sched.is_empty(),
+        traced: !run.trace.is_empty(),
     })
 }
 
