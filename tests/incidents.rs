@@ -77,6 +77,21 @@ fn incident_at<'a>(rows: &'a [Row], at_s: f64, slack_s: f64, role: &str) -> &'a 
         .unwrap_or_else(|| panic!("no incident of {role} at {at_s} s:\n{}", describe(rows)))
 }
 
+/// The incident of `role` that the fault schedule's fault caused, which must start within
+/// 100 ms of `at_s` (the launcher's fault clock starts when it sees tick 0, a few ms
+/// after it, and later on a loaded machine).
+fn scheduled_fault<'a>(rows: &'a [Row], at_s: f64, role: &str) -> &'a Row {
+    let r = rows
+        .iter()
+        .find(|r| {
+            r.get("cause_role") == role && r.get("evidence").contains("by the fault schedule")
+        })
+        .unwrap_or_else(|| panic!("no incident of {role}'s fault:\n{}", describe(rows)));
+    let start = r.f64("start_s").expect("start_s");
+    assert!((start - at_s).abs() < 0.1, "starts at {start} s, not {at_s} s: {:?}", r.0);
+    r
+}
+
 #[test]
 fn a_stopped_plant_is_a_simulator_stall_that_cost_a_deviation_and_recovered() {
     let h = Harness::new("inc-stall");
@@ -84,11 +99,8 @@ fn a_stopped_plant_is_a_simulator_stall_that_cost_a_deviation_and_recovered() {
     // tenth of its peak (the loop converges on its reference: about 9 s here).
     let out = realtime(&h, "stall", "16", &["--fault", "plant:stop@4:cont@4.03"]);
     let rows = incidents(&out);
-    let r = incident_at(&rows, 4.0, 0.01, "plant");
+    let r = scheduled_fault(&rows, 4.0, "plant");
     assert_eq!(r.get("kind"), "simulator stall", "{:?}", r.0);
-    assert!(r.get("evidence").contains("by the fault schedule"), "{:?}", r.0);
-    let start = r.f64("start_s").expect("start");
-    assert!((start - 4.0).abs() < 0.01, "starts at {start} s: {:?}", r.0);
     let peak = r.f64("peak_deviation_deg").expect("a computed cost");
     assert!(peak > 0.0, "{:?}", r.0);
     let recovery = r.f64("recovery_s").unwrap_or_else(|| panic!("no recovery: {:?}", r.0));
@@ -114,10 +126,10 @@ fn an_injected_controller_delay_is_named_and_a_monitor_kill_costs_nothing() {
         &["--fault", "controller:delay@4=0.02:until@4.5", "--fault", "monitor:kill@2:restart@2.5"],
     );
     let rows = incidents(&out);
-    let d = incident_at(&rows, 4.0, 0.01, "controller");
+    let d = incident_at(&rows, 4.0, 0.1, "controller");
     assert_eq!(d.get("kind"), "injected delay", "{:?}", d.0);
     assert!(d.f64("peak_deviation_deg").expect("cost") > 0.0, "{:?}", d.0);
-    let m = incident_at(&rows, 2.0, 0.01, "monitor");
+    let m = scheduled_fault(&rows, 2.0, "monitor");
     assert_eq!(m.get("kind"), "fault", "{:?}", m.0);
     assert_eq!(m.f64("peak_deviation_deg"), Some(0.0), "a monitor kill cost: {:?}", m.0);
     let s = json(&out.join("summary.json"));
@@ -226,5 +238,28 @@ fn a_busy_realtime_process_on_the_controllers_core_is_named_by_the_kernels_figur
         })
         .unwrap_or(0);
     assert_eq!(instances, 0, "the run's tracefs instance is removed");
+    h.assert_no_leftovers();
+}
+
+#[test]
+fn a_paused_world_clock_is_replayed_byte_for_byte_and_its_stall_named() {
+    let h = Harness::new("inc-pause");
+    let args = ["--plant-stall", "pause", "--fault", "plant:stop@1:cont@1.05"];
+    let out = realtime(&h, "pause", "3", &args);
+    let s = json(&out.join("summary.json"));
+    assert_eq!(s["plant_stall"], "pause", "{s}");
+    assert_eq!(s["trace_rows"], 3001, "{s}");
+    let rows = incidents(&out);
+    let r = scheduled_fault(&rows, 1.0, "plant");
+    assert_eq!(r.get("kind"), "simulator stall", "{:?}", r.0);
+    assert!(r.get("evidence").contains("stopped (T) for about"), "{:?}", r.0);
+    // The grid moved on from the plant's wake: what took effect in each tick, and when,
+    // is what `timing.csv` recorded, so a replay gives the run's trace byte for byte.
+    let again = h.path("replay");
+    let replayed = ok(&h.rotorloop(
+        &["sim", "--replay", out.to_str().expect("utf8"), "--out", again.to_str().expect("utf8")],
+        LIMIT,
+    ));
+    assert!(replayed.contains("identical byte for byte"), "{replayed}");
     h.assert_no_leftovers();
 }

@@ -69,4 +69,15 @@ impl TickGrid {
     pub fn at(&self, k: u64) -> u64 {
         self.start_ns + ((k - self.first) as f64 * self.period_ns).round() as u64
     }
+
+    /// `--plant-stall pause`: tick `k` woken at `woke_ns`, more than a quarter tick after
+    /// its time, is due now, and every later tick as much later (the world's clock stood
+    /// still while the simulator did not run). Whether it moved the grid.
+    pub fn pause_if_late(&mut self, k: u64, woke_ns: u64) -> bool {
+        let late = woke_ns > self.at(k) + (self.period_ns / 4.0) as u64;
+        if late {
+            *self = Self { start_ns: woke_ns, first: k, period_ns: self.period_ns };
+        }
+        late
+    }
 }

@@ -91,6 +91,13 @@ pub struct RunArgs {
     /// its tick's time (a fixed delay of any length, never before it arrives).
     #[arg(long, default_value = "measured")]
     pub actuation_delay: ActuationDelay,
+    /// Real time, when the plant process wakes more than a quarter tick late (a simulator
+    /// stall, not the loop's latency): `hold` (the world's clock goes on and the torque in
+    /// force acts all that time, the default) or `pause` (the world's clock stands still
+    /// while the simulator is late: only the loop after the plant's publish shapes the
+    /// physics). docs/incidents.md.
+    #[arg(long, default_value = "hold")]
+    pub plant_stall: rotorloop_plant::process::args::PlantStall,
     /// Restart policy for a role that exits abnormally, is killed by anyone or hangs:
     /// `on-failure`, `always` (also after a clean exit before the run's end) or `never`,
     /// for every role, per role (`monitor=always,plant=never`), or both (`never,monitor=always`).
@@ -181,6 +188,7 @@ impl RunArgs {
             restart_limit: "5/10".into(),
             watchdog_ms: 3000,
             actuation_delay: ActuationDelay::Measured,
+            plant_stall: rotorloop_plant::process::args::PlantStall::Hold,
             preset: None,
             split: None,
         }

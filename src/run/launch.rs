@@ -133,13 +133,7 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
         launcher_pid: std::process::id(),
     };
     record.write(&args.out)?;
-    let mut rss = RssLog::create(&args.out, !args.no_sched_sample);
-    let traced = match args.trace_sched {
-        true => {
-            Some(crate::run::tracesched::TraceSched::start(&args.out, launch.role_args.domain())?)
-        }
-        false => None,
-    };
+    let (mut rss, traced) = observers(args, launch.role_args.domain())?;
     let mut children = Children::default();
     let domain = launch.role_args.domain();
     let live = args.foxglove.as_deref().map(|a| Beside::start(&launch.exe, domain, a, &args.out));
@@ -149,13 +143,10 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
         .and_then(|()| supervise(&launch, &mut children, &mut rss, FaultSchedule::new(faults)));
     stop_gateways(&mut children, args.quiet);
     drop(children);
-    if let Some(live) = live {
-        live.stop();
-    }
+    live.into_iter().for_each(Beside::stop);
     launch.clean_up();
     // sched.csv and the trace complete before the incidents read them.
-    rss.sched = None;
-    drop(traced);
+    (rss.sched, _) = (None, traced);
     let flight = launch.keep_flight_records();
     // A failure stops the run, but its report (the faults that led to it among them) is
     // written as for any other end.
@@ -165,6 +156,20 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
         Some(f) => Err(f),
         None => reported,
     }
+}
+
+/// What watches the roles from the launcher: memory (`rss.csv`), scheduling
+/// (`sched.csv`) and, with `--trace-sched`, the kernel's scheduler trace.
+fn observers(
+    args: &RunArgs,
+    domain: &str,
+) -> anyhow::Result<(RssLog, Option<crate::run::tracesched::TraceSched>)> {
+    let rss = RssLog::create(&args.out, !args.no_sched_sample);
+    let traced = match args.trace_sched {
+        true => Some(crate::run::tracesched::TraceSched::start(&args.out, domain)?),
+        false => None,
+    };
+    Ok((rss, traced))
 }
 
 impl Launch<'_> {
@@ -194,7 +199,8 @@ fn report(
     launch.report_without_monitor(scenario, flight);
     let schedule: Vec<serde_json::Value> = launch.faults.iter().map(|f| f.scheduled()).collect();
     if let Err(e) = rotorloop_common::output::patch_summary(&args.out, |j| {
-        j["fault_schedule"] = serde_json::json!(schedule)
+        j["fault_schedule"] = serde_json::json!(schedule);
+        j["plant_stall"] = serde_json::json!(args.plant_stall.to_string());
     }) {
         eprintln!("warning: the fault schedule is not in summary.json: {e:#}");
     }

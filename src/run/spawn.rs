@@ -131,6 +131,7 @@ impl Launch<'_> {
                 cmd.arg("--hold-ticks").arg(args.hold_ticks.to_string());
                 cmd.arg("--latency-out").arg(&args.out);
                 cmd.arg("--actuation-delay").arg(args.actuation_delay.to_string());
+                cmd.arg("--plant-stall").arg(args.plant_stall.to_string());
             }
             Ok(Role::Controller) => {
                 for (flag, value) in self.faults.iter().filter_map(|f| f.role_arg()) {

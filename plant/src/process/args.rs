@@ -6,6 +6,26 @@ use rotorloop_common::role::inject::Corrupt;
 
 use crate::actuator::ActuationDelay;
 
+/// What the world's clock does while the simulator is late (`--plant-stall`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, clap::ValueEnum)]
+pub enum PlantStall {
+    /// It goes on: a stall of the plant process enters the physics as a tick without
+    /// control.
+    #[default]
+    Hold,
+    /// It stands still: only the loop after the plant's publish shapes the physics.
+    Pause,
+}
+
+impl std::fmt::Display for PlantStall {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            Self::Hold => "hold",
+            Self::Pause => "pause",
+        })
+    }
+}
+
 /// `plant` arguments.
 #[derive(Debug, Clone, Args)]
 pub struct PlantArgs {
@@ -32,6 +52,11 @@ pub struct PlantArgs {
     /// before it arrives).
     #[arg(long, default_value = "measured")]
     pub actuation_delay: ActuationDelay,
+    /// Real time, when the simulator wakes more than a quarter tick late: `hold` (the
+    /// world's clock went on: the torque in force acted on the body all that time) or
+    /// `pause` (the world's clock stood still: the grid moves on from the wake).
+    #[arg(long, default_value = "hold")]
+    pub plant_stall: PlantStall,
     /// Also record sense-to-actuate in the plant itself and write
     /// `DIR/plant_sense_to_actuate.hgrm` at the end (works without a monitor).
     #[arg(long)]

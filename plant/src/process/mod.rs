@@ -37,17 +37,22 @@ pub fn run(args: &args::PlantArgs) -> anyhow::Result<()> {
         eprintln!("plant: resuming at tick {} from its last published state", plant.first());
     }
     let spin_ns = args.spin_before_tick_us * 1000;
-    let grid = TickGrid::new(now_ns() + 20_000_000, plant.first(), scenario.file.run.rate_hz);
+    let mut grid = TickGrid::new(now_ns() + 20_000_000, plant.first(), scenario.file.run.rate_hz);
+    let pause = realtime && args.plant_stall == args::PlantStall::Pause;
     let (mut s2a, mut wait) = (SenseToActuate::new()?, TorqueWait::new(realtime));
     let mut cost = SendCost::default(); // what publishing the previous state cost
     for k in plant.first()..=plant.last() {
-        let deadline = if realtime { grid.at(k) } else { 0 };
+        let mut deadline = if realtime { grid.at(k) } else { 0 };
         if realtime {
             sleep_until_ns(deadline, spin_ns);
         } else {
             ports.hold_for_mover(k);
         }
-        let sample = plant.state_sample(k, deadline, now_ns());
+        let woke = now_ns();
+        if pause && grid.pause_if_late(k, woke) {
+            deadline = woke;
+        }
+        let sample = plant.state_sample(k, deadline, woke);
         // Slot first: killed between the two, the restart publishes this very state,
         // which the controller answers (or answers again). The other order would let a
         // restart re-publish tick k−1 after the controller has moved past it: deadlock.

@@ -15,6 +15,11 @@ pub enum BeforeAfter {
     Record,
     /// Without and with `run --foxglove` and a viewer subscribed to every topic.
     Foxglove,
+    /// Without and with the launcher's sampling of each role's scheduling (`sched.csv`,
+    /// the default; `run --no-sched-sample` without).
+    Sched,
+    /// Without and with `run --trace-sched` (root).
+    TraceSched,
 }
 
 /// `rotorloop bench` arguments.

@@ -52,11 +52,15 @@ pub(super) fn before_after(
     let (b, f) = match change {
         BeforeAfter::Record => (Variant::Before, Variant::Loop),
         BeforeAfter::Foxglove => (Variant::Loop, Variant::Foxglove),
+        BeforeAfter::Sched => (Variant::NoSched, Variant::Loop),
+        BeforeAfter::TraceSched => (Variant::Loop, Variant::TraceSched),
     };
+    // The plain loop already measured is the first run of its side.
+    let plain_after = matches!(change, BeforeAfter::Record | BeforeAfter::Sched);
     let (mut before, mut after) = (Vec::new(), Vec::new());
-    match change {
-        BeforeAfter::Record => after.push(first),
-        BeforeAfter::Foxglove => before.push(first),
+    match plain_after {
+        true => after.push(first),
+        false => before.push(first),
     }
     for i in 0..a.pairs as usize {
         let d = if i == 0 { dir.to_owned() } else { dir.join(format!("pair{i}")) };
@@ -68,9 +72,9 @@ pub(super) fn before_after(
         }
     }
     let (after, before) = (median_p50(after), median_p50(before));
-    Ok(match change {
-        BeforeAfter::Record => (after, before),
-        BeforeAfter::Foxglove => (before, after),
+    Ok(match plain_after {
+        true => (after, before),
+        false => (before, after),
     })
 }
 
@@ -93,6 +97,10 @@ pub(super) enum Variant {
     Before,
     /// With `--foxglove` and a viewer subscribed to every topic.
     Foxglove,
+    /// With `--no-sched-sample`: the loop before the scheduling samples.
+    NoSched,
+    /// With `--trace-sched`.
+    TraceSched,
     /// With the second law (`--controllers mrp-pid`).
     MrpPid,
     /// With the Python example controller (`--controllers python`).
@@ -106,6 +114,8 @@ impl Variant {
             Variant::NoMonitor => "loop-nomon",
             Variant::Before => "loop-before",
             Variant::Foxglove => "loop-foxglove",
+            Variant::NoSched => "loop-nosched",
+            Variant::TraceSched => "loop-tracesched",
             Variant::MrpPid => "loop-mrp-pid",
             Variant::Python => "loop-python",
         }
@@ -175,12 +185,19 @@ pub(super) fn measure_loop(
         row.skipped = why;
         return Ok(row);
     }
+    // SAFETY: geteuid reads this process's effective user id.
+    if variant == Variant::TraceSched && unsafe { libc::geteuid() } != 0 {
+        row.skipped = "--trace-sched needs root".into();
+        return Ok(row);
+    }
     let out = dir.join(kind);
     let suffix = match variant {
         Variant::Loop => "",
         Variant::NoMonitor => "n",
         Variant::Before => "b",
         Variant::Foxglove => "f",
+        Variant::NoSched => "s",
+        Variant::TraceSched => "t",
         Variant::MrpPid => "m",
         Variant::Python => "p",
     };
@@ -188,6 +205,8 @@ pub(super) fn measure_loop(
     let mut run = loop_run_args(a, base, ncores, domain, out.clone());
     run.no_monitor = without_monitor;
     run.no_record = variant == Variant::Before;
+    run.no_sched_sample = variant == Variant::NoSched;
+    run.trace_sched = variant == Variant::TraceSched;
     match variant {
         Variant::MrpPid => run.role.scenario = mrp_scenario(a, &out)?,
         Variant::Python => match python_controller(a) {

@@ -242,6 +242,19 @@ pub(super) fn before_after_md(rows: &[Row], a: &BenchArgs) -> String {
             "Before: the loop alone; after: with the live Foxglove server (`run --foxglove`) \
              and a viewer subscribed to every topic (on a thread of the bench).",
         ),
+        BeforeAfter::Sched => (
+            "loop-nosched",
+            "loop",
+            "Before: the loop without the launcher's scheduling samples (`run \
+             --no-sched-sample`); after: with them (the default: each role's schedstat every \
+             1 ms into `sched.csv`).",
+        ),
+        BeforeAfter::TraceSched => (
+            "loop",
+            "loop-tracesched",
+            "Before: the loop as it is; after: with the kernel's scheduler and IRQ events \
+             recorded (`run --trace-sched`, root).",
+        ),
     };
     let mut md = String::new();
     let ok = |cell: &str, kind: &str| {

@@ -51,7 +51,9 @@ fn stages(run: &RunRecord, k: u64) -> [Option<u64>; 5] {
         .and_then(|(j, _)| run.state(j + 1))
         .filter(|n| n.applied_torque_tick == k);
     [
-        s.filter(|s| s.deadline_ns > 0).and_then(|s| s.wake_ns.checked_sub(s.deadline_ns)),
+        s.filter(|s| s.deadline_ns > 0)
+            .and_then(|s| s.wake_ns.checked_sub(s.deadline_ns))
+            .map(|w| w + ticks::paused_ns(run, k)),
         s.and_then(|s| s.publish_ns.checked_sub(s.wake_ns)),
         // A state never answered waited for the controller at least until it took the next.
         s.zip(t.or_else(|| next_answer(run, k)))
@@ -173,8 +175,22 @@ pub fn with_kernel(run: &RunRecord, mut c: Cause, [start, end]: [u64; 2]) -> Cau
 /// A plant that woke late: the worst tick's lateness, and the states it then published at
 /// once to catch up.
 fn late_wake(run: &RunRecord, flags: &TickFlags, [start, end]: [u64; 2]) -> Cause {
-    let late = |k: u64| run.state(k).map_or(0, |s| s.wake_ns.saturating_sub(s.deadline_ns));
+    let woke = |k: u64| run.state(k).map_or(0, |s| s.wake_ns.saturating_sub(s.deadline_ns));
+    let late = |k: u64| woke(k) + ticks::paused_ns(run, k);
     let worst = (start..=end).max_by_key(|k| late(*k)).unwrap_or(start);
+    if ticks::paused_ns(run, worst) > 0 && woke(worst) < ticks::paused_ns(run, worst) {
+        return Cause {
+            kind: "simulator stall",
+            role: "plant".into(),
+            stage: "plant wake (the world's clock paused)".into(),
+            evidence: format!(
+                "state {worst} published {} after its tick's time on the grid before it; the \
+                 grid moved on from its wake (--plant-stall pause, or a restarted plant's new \
+                 grid): the physics did not feel the stall",
+                ms(late(worst) as f64)
+            ),
+        };
+    }
     let burst = (worst..=end.min(run.last))
         .take_while(|k| flags.flags.get(*k as usize).is_some_and(|f| f & LATE != 0))
         .count();

@@ -65,6 +65,19 @@ fn previous_answer(run: &RunRecord, k: u64) -> Option<&TorqueSample> {
     (k.saturating_sub(64)..k).rev().find_map(|j| run.torque(j))
 }
 
+/// How much later than one period after tick `k − 1`'s grid time tick `k`'s is (ns): the
+/// world's clock standing still while the plant was late (`--plant-stall pause`), or a
+/// restarted plant's new grid.
+pub fn paused_ns(run: &RunRecord, k: u64) -> u64 {
+    let (Some(s), Some(p)) = (run.state(k), k.checked_sub(1).and_then(|j| run.state(j))) else {
+        return 0;
+    };
+    if s.deadline_ns == 0 || p.deadline_ns == 0 {
+        return 0;
+    }
+    s.deadline_ns.saturating_sub(p.deadline_ns + (run.dt * 1e9).round() as u64)
+}
+
 /// The median of `v` (NaN for none).
 pub fn median(v: &mut [f64]) -> f64 {
     if v.is_empty() {
@@ -86,6 +99,9 @@ pub fn flag(run: &RunRecord, threshold_ticks: f64) -> TickFlags {
         let k = k as u64;
         let (Some(s), Some(n)) = (run.state(k), run.state(k + 1)) else { continue };
         if s.deadline_ns > 0 && s.wake_ns > s.deadline_ns + threshold_ns {
+            *f |= LATE;
+        }
+        if paused_ns(run, k) > threshold_ns {
             *f |= LATE;
         }
         match fresh_offset(n, k) {

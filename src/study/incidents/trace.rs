@@ -5,6 +5,9 @@
 use std::collections::BTreeMap;
 use std::path::Path;
 
+/// A task: its command name and pid.
+pub type Task = (String, u32);
+
 /// One event of the trace.
 #[derive(Debug, Clone, PartialEq)]
 pub enum Event {
@@ -90,13 +93,9 @@ pub fn read(path: &Path) -> Vec<Traced> {
 
 /// What ran on `cpu` over `[from, to]` (ns): each task's time on it, and the IRQ
 /// handlers' time.
-pub fn occupancy(
-    events: &[Traced],
-    cpu: u32,
-    [from, to]: [u64; 2],
-) -> (Vec<((String, u32), u64)>, u64) {
-    let mut ran: BTreeMap<(String, u32), u64> = BTreeMap::new();
-    let mut current: Option<((String, u32), u64)> = None;
+pub fn occupancy(events: &[Traced], cpu: u32, [from, to]: [u64; 2]) -> (Vec<(Task, u64)>, u64) {
+    let mut ran: BTreeMap<Task, u64> = BTreeMap::new();
+    let mut current: Option<(Task, u64)> = None;
     let (mut irq_ns, mut irq_since) = (0u64, None::<u64>);
     let clip = |a: u64, b: u64| b.min(to).saturating_sub(a.max(from));
     for e in events.iter().filter(|e| e.cpu == cpu).take_while(|e| e.t_ns <= to) {
@@ -118,7 +117,7 @@ pub fn occupancy(
     if let Some((task, since)) = current {
         *ran.entry(task).or_default() += clip(since, to);
     }
-    let mut v: Vec<((String, u32), u64)> = ran.into_iter().filter(|(_, ns)| *ns > 0).collect();
+    let mut v: Vec<(Task, u64)> = ran.into_iter().filter(|(_, ns)| *ns > 0).collect();
     v.sort_by_key(|(_, ns)| std::cmp::Reverse(*ns));
     (v, irq_ns)
 }
