@@ -52,7 +52,7 @@ pub struct Cost {
     /// `None`: not within the run.
     pub recovery_s: Option<f64>,
     /// The deviation, tick by tick from the incident's start (deg; the first
-    /// [`CURVE_TICKS`]), for the figure.
+    /// 10 000), for the figure.
     pub curve: Vec<f64>,
 }
 

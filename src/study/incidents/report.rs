@@ -140,7 +140,7 @@ fn figure(dir: &Path, found: &Explained) -> anyhow::Result<()> {
         "s after the incident's start",
         "deviation (deg, log)",
         &series,
-        YScale::Log { floor: 1e-9 },
+        YScale::Log { floor: 1e-4 },
     )?;
     Ok(())
 }
