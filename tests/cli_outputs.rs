@@ -193,4 +193,9 @@ fn paper_runs_the_three_scenarios_and_writes_a_report() {
         png_size(&out.join(name).join("sim").join("control_effort.png"));
     }
     assert!(report.contains("verdict") && report.contains("sense-to-actuate"));
+    // Each run's worst incident, or that it had none, is named.
+    assert!(report.contains("### The worst incident of each run"), "{report}");
+    for name in ["paper-zero", "paper-constant", "paper-sinusoid"] {
+        assert!(report.contains(&format!("- **{name}**")), "{name}: {report}");
+    }
 }

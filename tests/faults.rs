@@ -844,6 +844,15 @@ fn a_stop_and_continue_by_hand_are_listed_and_the_schedules_stop_once_with_its_s
     let r = stop_of("reference");
     assert_eq!(r["signal"], "SIGSTOP", "{r}");
     assert!(r["detail"].as_str().is_some_and(|d| d.contains("outside")), "{r}");
+    // Its incident says the stop came from outside, and the kernel saw it stopped.
+    let rows = crate::incidents::incidents(&out);
+    let by_hand = rows
+        .iter()
+        .find(|i| i.get("cause_role") == "reference" && i.get("evidence").contains("outside"))
+        .unwrap_or_else(|| panic!("no incident of the stop by hand in incidents.csv"));
+    let evidence = by_hand.get("evidence");
+    assert!(evidence.contains("from outside the launcher"), "{evidence}");
+    assert!(evidence.contains("stopped (T) for about"), "{evidence}");
     assert_eq!(r["ended"], "continued", "{r}");
     assert_eq!(r["ended_s"], r["restart_s"], "{r}");
     let m = stop_of("monitor");

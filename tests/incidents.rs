@@ -12,10 +12,10 @@ use crate::common::harness::{Harness, json, ok};
 const LIMIT: Duration = Duration::from_secs(120);
 
 /// One row of `incidents.csv`, by column name.
-struct Row(std::collections::BTreeMap<String, String>);
+pub(crate) struct Row(std::collections::BTreeMap<String, String>);
 
 impl Row {
-    fn get(&self, col: &str) -> &str {
+    pub(crate) fn get(&self, col: &str) -> &str {
         self.0.get(col).map_or("", String::as_str)
     }
 
@@ -43,7 +43,8 @@ fn fields(line: &str) -> Vec<String> {
     out
 }
 
-fn incidents(out: &Path) -> Vec<Row> {
+/// The rows of `out/incidents.csv`.
+pub(crate) fn incidents(out: &Path) -> Vec<Row> {
     let text = std::fs::read_to_string(out.join("incidents.csv")).expect("incidents.csv");
     let mut lines = text.lines();
     let header = fields(lines.next().expect("header"));
