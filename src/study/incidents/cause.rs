@@ -289,6 +289,26 @@ fn skipped(run: &RunRecord, k: u64) -> bool {
     matches!((before, after), (Some(b), Some(a)) if a.states_skipped > b.states_skipped)
 }
 
+/// How long the rows `seen` (one role's, in time order; a row is written at each change
+/// of state) say it was stopped (`T`, or `t` traced): from each stopped row to the next
+/// row that is not, give or take one sampling period.
+fn stopped_ns(seen: &[&SchedRow]) -> u64 {
+    let is_stopped = |r: &SchedRow| r.state == 'T' || r.state == 't';
+    let (mut total, mut since) = (0, None::<u64>);
+    for r in seen {
+        match (is_stopped(r), since) {
+            (true, None) => since = Some(r.t_ns),
+            (false, Some(s)) => {
+                total += r.t_ns - s;
+                since = None;
+            }
+            _ => {}
+        }
+    }
+    let last = seen.last().map_or(0, |r| r.t_ns);
+    total + since.map_or(0, |s| last.saturating_sub(s) + crate::run::sched::PERIOD_NS)
+}
+
 /// The kernel's view of `role` over the incident, from `sched.csv`.
 fn kernel(run: &RunRecord, role: &str, [start, end]: [u64; 2]) -> Option<String> {
     let from = run.grid_ns(start).saturating_sub((run.dt * 1e9) as u64);
@@ -301,12 +321,10 @@ fn kernel(run: &RunRecord, role: &str, [start, end]: [u64; 2]) -> Option<String>
     if b.t_ns <= a.t_ns {
         return None;
     }
-    let stopped: Vec<&&SchedRow> =
-        seen.iter().filter(|r| r.state == 'T' || r.state == 't').collect();
     let mut words = Vec::new();
-    if let (Some(s0), Some(s1)) = (stopped.first(), stopped.last()) {
-        let period = crate::run::sched::PERIOD_NS as f64;
-        words.push(format!("stopped (T) for about {}", ms((s1.t_ns - s0.t_ns) as f64 + period)));
+    let stopped = stopped_ns(seen);
+    if stopped > 0 {
+        words.push(format!("stopped (T) for about {}", ms(stopped as f64)));
     }
     let pids: Vec<u32> = seen.iter().map(|r| r.pid).collect();
     if a.pid == b.pid {

@@ -35,6 +35,10 @@ use super::ticks::{LOOP, TickFlags};
 
 /// How long a recovered deviation is watched before the counterfactual stops (s).
 const WATCH_AFTER_S: f64 = 1.0;
+/// The longest a counterfactual goes on after its incident (s): a deviation not back
+/// below a tenth of its peak by then is "not within the run" (an hour's soak would
+/// otherwise re-run the rest of the hour for each incident).
+const HORIZON_S: f64 = 60.0;
 /// How many earlier paired ticks' references are tried for an answer that tracked a
 /// propagated one.
 const PROPAGATED_TRIES: u64 = 16;
@@ -217,7 +221,8 @@ pub fn cost(
             below_since = None;
         }
         let watched = below_since.is_some_and(|b| (k - b) as f64 * dt > WATCH_AFTER_S);
-        if k == run.last || (k > end && (watched || (peak == 0.0 && k - end > 1000))) {
+        let beyond = k.saturating_sub(end) as f64 * dt > HORIZON_S;
+        if k == run.last || (k > end && (watched || beyond || (peak == 0.0 && k - end > 1000))) {
             break;
         }
         let next = run.state(k + 1)?;
