@@ -87,6 +87,15 @@ fn scheduled(run: &RunRecord, f: &FaultRow) -> bool {
         .any(|s| s.role == f.role && s.kind == f.kind && (s.at_s - f.kill_s).abs() < 0.05)
 }
 
+/// The first fault of a loop role whose ticks overlap `[start, end]` (its index in
+/// `run.faults`).
+pub fn fault_of(run: &RunRecord, [start, end]: [u64; 2]) -> Option<usize> {
+    run.faults.iter().position(|f| {
+        let [from, to] = ticks::fault_ticks(run, f);
+        ticks::in_loop(&f.role) && from <= end && to >= start
+    })
+}
+
 /// The cause of a fault the launcher saw.
 pub fn fault_cause(run: &RunRecord, f: &FaultRow) -> Cause {
     if f.kind == "delay" {
@@ -136,11 +145,7 @@ pub fn cause(
     [start, end]: [u64; 2],
 ) -> Cause {
     let all = flags.flags[start as usize..=end as usize].iter().fold(0, |a, f| a | f);
-    let overlapping = run.faults.iter().filter(|f| ticks::in_loop(&f.role)).find(|f| {
-        let [from, to] = ticks::fault_ticks(run, f);
-        from <= end && to >= start
-    });
-    let c = if let Some(f) = overlapping {
+    let c = if let Some(f) = fault_of(run, [start, end]).map(|i| &run.faults[i]) {
         fault_cause(run, f)
     } else if let Some(d) =
         run.schedule.iter().find(|d| d.kind == "delay").filter(|_| all & DELAY != 0)

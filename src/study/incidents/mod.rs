@@ -77,6 +77,9 @@ pub struct Incident {
     /// The deviation's curve, for the figure.
     #[serde(skip)]
     pub curve: Vec<f64>,
+    /// The launcher's fault that caused it (its index in `summary.json`'s `faults`).
+    #[serde(skip)]
+    pub fault: Option<usize>,
 }
 
 /// A run's incidents and what was checked on the way.
@@ -150,6 +153,7 @@ pub fn find(dir: &Path, options: Options) -> anyhow::Result<Explained> {
     let pass = cost::law_pass(&run, &starts)?;
     let mut incidents = Vec::with_capacity(windows.len());
     for (i, (w, outside)) in windows.iter().enumerate() {
+        let fault = outside.or_else(|| cause::fault_of(&run, *w));
         let (c, all, misses) = match outside {
             Some(f) => {
                 let c = cause::with_kernel(&run, cause::fault_cause(&run, &run.faults[*f]), *w);
@@ -181,6 +185,7 @@ pub fn find(dir: &Path, options: Options) -> anyhow::Result<Explained> {
             peak_deviation_deg: cost.as_ref().map(|c| c.peak_deg),
             recovery_s: cost.as_ref().and_then(|c| c.recovery_s),
             curve: cost.map(|c| c.curve).unwrap_or_default(),
+            fault,
         });
     }
     Ok(Explained {

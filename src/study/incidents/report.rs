@@ -167,14 +167,14 @@ pub fn write(dir: &Path, found: &Explained) -> anyhow::Result<()> {
             "files": ["incidents.csv", "incidents.md", "incidents.png"],
         });
         let Some(faults) = j.get_mut("faults").and_then(|f| f.as_array_mut()) else { return };
-        for f in faults {
-            let (kill, role) = (f["kill_tick"].as_u64(), f["role"].as_str().unwrap_or_default());
+        for (j, f) in faults.iter_mut().enumerate() {
+            let kill = f["kill_tick"].as_u64();
             let holds = |i: &Incident, k: u64| i.start_tick <= k + 1 && k <= i.end_tick + 1;
             // The incident the fault caused, else any that holds its start.
-            let held = kill.and_then(|k| {
-                let mine = incidents.iter().position(|i| holds(i, k) && i.cause_role == role);
-                mine.or_else(|| incidents.iter().position(|i| holds(i, k)))
-            });
+            let held = incidents
+                .iter()
+                .position(|i| i.fault == Some(j))
+                .or_else(|| kill.and_then(|k| incidents.iter().position(|i| holds(i, k))));
             let i = held.map(|n| &incidents[n]);
             f["incident"] = serde_json::json!(held.map(|n| n + 1));
             f["peak_deviation_deg"] = serde_json::json!(i.and_then(|i| i.peak_deviation_deg));
