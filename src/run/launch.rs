@@ -230,7 +230,7 @@ fn report(
     }
     if flight.is_some() && !args.no_monitor && args.out.join("summary.json").exists() {
         let options = crate::study::incidents::Options::default();
-        match crate::study::incidents::explain(&args.out, options) {
+        match crate::study::incidents::explain_yielding(&args.out, options) {
             Ok(found) if !args.quiet => println!("incidents: {}", found.describe_worst()),
             Ok(_) => {}
             Err(e) => eprintln!("warning: no incidents report: {e:#}"),

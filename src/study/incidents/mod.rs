@@ -199,6 +199,25 @@ pub fn find(dir: &Path, options: Options) -> anyhow::Result<Explained> {
     })
 }
 
+/// [`explain`] on a thread of its own at nice 10, as `rotorloop run` calls it after a run:
+/// its seconds of arithmetic yield to any loop still running on the machine (a busy
+/// machine's other runs, the tests beside it).
+pub fn explain_yielding(dir: &Path, options: Options) -> anyhow::Result<Explained> {
+    let dir = dir.to_owned();
+    std::thread::Builder::new()
+        .name("incidents".into())
+        .spawn(move || {
+            // SAFETY: gettid and setpriority on this very thread.
+            unsafe {
+                let tid = libc::syscall(libc::SYS_gettid) as libc::id_t;
+                libc::setpriority(libc::PRIO_PROCESS, tid, 10);
+            }
+            explain(&dir, options)
+        })?
+        .join()
+        .map_err(|_| anyhow::anyhow!("the incidents' thread panicked"))?
+}
+
 /// Finds the incidents of the run in `dir` and writes `incidents.csv`, `incidents.md`,
 /// `incidents.png` there, the worst one into `summary.json` (`incidents`) and each fault's
 /// cost into its row of `faults`.
