@@ -289,7 +289,7 @@ fn next_answer(run: &RunRecord, k: u64) -> Option<&rotorloop_common::wire::Torqu
 /// Whether the controller took state `k` but answered a newer one (its next answer counts
 /// a skipped state more than its previous one).
 fn skipped(run: &RunRecord, k: u64) -> bool {
-    let before = (k.saturating_sub(64)..k).rev().find_map(|j| run.torque(j));
+    let before = ticks::previous_answer(run, k);
     let after = (k + 1..(k + 64).min(run.last + 1)).find_map(|j| run.torque(j));
     matches!((before, after), (Some(b), Some(a)) if a.states_skipped > b.states_skipped)
 }

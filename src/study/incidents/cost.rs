@@ -23,7 +23,6 @@ use std::collections::BTreeMap;
 use glam::DVec3;
 use rotorloop_common::params::ReferenceState;
 use rotorloop_common::scenario::Actuation;
-use rotorloop_common::so3::from_rows;
 use rotorloop_common::wire::{FLAG_SAFE_MODE, StateSample};
 use rotorloop_controller::law::{AnyLaw, ControlOutput, Law};
 use rotorloop_controller::policy::propagate;
@@ -145,12 +144,7 @@ pub fn law_pass(run: &RunRecord, starts: &[u64]) -> anyhow::Result<LawPass> {
 
 /// The angle between two attitudes (deg), exactly zero for equal ones.
 pub fn deviation_deg(a: &StateSample, b: &Body) -> f64 {
-    let ra = from_rows([
-        [a.r_row_major[0], a.r_row_major[1], a.r_row_major[2]],
-        [a.r_row_major[3], a.r_row_major[4], a.r_row_major[5]],
-        [a.r_row_major[6], a.r_row_major[7], a.r_row_major[8]],
-    ]);
-    let d = ra - b.state().r;
+    let d = a.body_state().r - b.state().r;
     let f =
         (d.x_axis.length_squared() + d.y_axis.length_squared() + d.z_axis.length_squared()).sqrt();
     (2.0 * (f / (2.0 * std::f64::consts::SQRT_2)).min(1.0).asin()).to_degrees()

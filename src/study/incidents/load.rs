@@ -120,13 +120,10 @@ impl RunRecord {
         let schedule: Vec<Scheduled> = serde_json::from_value(list("fault_schedule"))
             .map_err(|e| bad(dir, format!("summary.json fault_schedule: {e}")))?;
         let flight = dir.join("flight");
-        let read = |s: Stream| -> anyhow::Result<()> {
-            if !s.path(&flight).exists() {
-                return Err(bad(dir, format!("no flight record {}", s.path(&flight).display())))?;
-            }
-            Ok(())
-        };
-        read(Stream::PlantState)?;
+        let plant_state = Stream::PlantState.path(&flight);
+        if !plant_state.exists() {
+            return Err(bad(dir, format!("no flight record {}", plant_state.display())).into());
+        }
         let states = FlightLog::<StateSample>::read(&flight, Stream::PlantState)?;
         let torques = FlightLog::<TorqueSample>::read(&flight, Stream::ControllerTorque)
             .unwrap_or(FlightLog { records: Vec::new(), opens: 0, beyond: 0 });

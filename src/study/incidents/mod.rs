@@ -82,6 +82,15 @@ pub struct Incident {
     pub fault: Option<usize>,
 }
 
+impl Incident {
+    /// Orders incidents by cost: peak deviation (an uncosted one below every costed one),
+    /// then length.
+    pub fn by_cost(a: &Self, b: &Self) -> std::cmp::Ordering {
+        let p = |i: &Self| i.peak_deviation_deg.unwrap_or(-1.0);
+        p(a).total_cmp(&p(b)).then(a.duration_s.total_cmp(&b.duration_s))
+    }
+}
+
 /// A run's incidents and what was checked on the way.
 #[derive(Debug, Clone, Serialize)]
 pub struct Explained {
@@ -104,10 +113,7 @@ pub struct Explained {
 impl Explained {
     /// The incident of the largest peak deviation (then the longest).
     pub fn worst(&self) -> Option<&Incident> {
-        self.incidents.iter().max_by(|a, b| {
-            let p = |i: &Incident| i.peak_deviation_deg.unwrap_or(-1.0);
-            p(a).total_cmp(&p(b)).then(a.duration_s.total_cmp(&b.duration_s))
-        })
+        self.incidents.iter().max_by(|a, b| Incident::by_cost(a, b))
     }
 
     /// One line for the console and the paper's report.

@@ -48,10 +48,7 @@ fn csv(found: &Explained) -> String {
 /// The incidents, the worst (largest peak deviation) first.
 fn ranked(found: &Explained) -> Vec<(usize, &Incident)> {
     let mut v: Vec<(usize, &Incident)> = found.incidents.iter().enumerate().collect();
-    v.sort_by(|a, b| {
-        let p = |i: &Incident| i.peak_deviation_deg.unwrap_or(-1.0);
-        p(b.1).total_cmp(&p(a.1)).then(b.1.duration_s.total_cmp(&a.1.duration_s))
-    });
+    v.sort_by(|a, b| Incident::by_cost(b.1, a.1));
     v
 }
 

@@ -61,7 +61,7 @@ pub fn fresh_offset(next: &StateSample, k: u64) -> Option<f64> {
 
 /// The previous answer the controller computed before tick `k` (its counters are
 /// cumulative).
-fn previous_answer(run: &RunRecord, k: u64) -> Option<&TorqueSample> {
+pub fn previous_answer(run: &RunRecord, k: u64) -> Option<&TorqueSample> {
     (k.saturating_sub(64)..k).rev().find_map(|j| run.torque(j))
 }
 
