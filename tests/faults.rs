@@ -5,7 +5,7 @@
 use std::time::Duration;
 
 use crate::common::harness::{
-    Harness, TimingRow, assert_same_trace, json, live_timing_rows, ok, timing_rows,
+    Harness, TimingRow, assert_same_trace, json, live_timing_rows, ok, pid_of_role, timing_rows,
 };
 use rotorloop_common::wire::FLAG_SAFE_MODE;
 
@@ -620,22 +620,6 @@ fn overlapping_faults_are_refused_and_faults_after_the_end_are_not_waited_for() 
 /// Where the roles of a run under `rotorloop run` record while it runs.
 fn staged_records(h: &Harness) -> std::path::PathBuf {
     rotorloop_common::flight::staging_dir(&h.domain).expect("/dev/shm")
-}
-
-/// The pid of the newest `rotorloop role ROLE` process of `domain`.
-fn pid_of_role(domain: &str, role: &str) -> Option<u32> {
-    let mut newest = None;
-    for e in std::fs::read_dir("/proc").expect("/proc").flatten() {
-        let Ok(pid) = e.file_name().to_string_lossy().parse::<u32>() else { continue };
-        let Ok(cmdline) = std::fs::read(e.path().join("cmdline")) else { continue };
-        let args: Vec<&[u8]> = cmdline.split(|b| *b == 0).collect();
-        let ours = args.windows(2).any(|w| w[0] == b"--domain" && w[1] == domain.as_bytes());
-        let is_role = args.windows(2).any(|w| w[0] == b"role" && w[1] == role.as_bytes());
-        if ours && is_role && newest.is_none_or(|n| pid > n) {
-            newest = Some(pid);
-        }
-    }
-    newest
 }
 
 /// The record survives every fault: a real-time run whose `roles` are killed by hand

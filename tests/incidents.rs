@@ -7,7 +7,7 @@
 use std::path::{Path, PathBuf};
 use std::time::Duration;
 
-use crate::common::harness::{Harness, json, ok};
+use crate::common::harness::{Harness, json, ok, pid_of_role};
 
 const LIMIT: Duration = Duration::from_secs(120);
 
@@ -179,7 +179,7 @@ fn a_busy_realtime_process_on_the_controllers_core_is_named_by_the_kernels_figur
         "--scenario",
         "paper-zero",
         "--duration",
-        "4",
+        "6",
         "--mode",
         "realtime",
         "--pin",
@@ -194,9 +194,21 @@ fn a_busy_realtime_process_on_the_controllers_core_is_named_by_the_kernels_figur
     cmd.args(args).arg(&out);
     cmd.stdout(std::process::Stdio::piped()).stderr(std::process::Stdio::piped());
     let run = crate::common::harness::group(&mut cmd).spawn().expect("rotorloop run");
-    // At about 2 s: 50 ms of a SCHED_FIFO busy loop on the controller's core (`timeout`
-    // itself on the other core, to end it).
-    std::thread::sleep(Duration::from_secs(2));
+    // Once the scheduler trace has seen the controller run (so both the loop and the
+    // trace are on, however slow the start), and a second later: 50 ms of a SCHED_FIFO
+    // busy loop on the controller's core (`timeout` itself on the other core, to end it).
+    let until = std::time::Instant::now() + LIMIT;
+    loop {
+        let trace = std::fs::read_to_string(out.join("sched-trace.txt")).unwrap_or_default();
+        let seen = pid_of_role(&h.domain, "controller")
+            .is_some_and(|pid| trace.contains(&format!("next_pid={pid} ")));
+        if seen {
+            break;
+        }
+        assert!(std::time::Instant::now() < until, "the run's trace never saw the controller");
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    std::thread::sleep(Duration::from_secs(1));
     let busy = std::process::Command::new("taskset")
         .args(["-c", "0", "timeout", "0.05", "chrt", "-f", "50", "taskset", "-c", "1", "yes"])
         .stdout(std::process::Stdio::null())

@@ -346,3 +346,19 @@ pub fn exit_of(pid: u32) -> String {
     }
     format!("pid {pid} still not exited 10 s after SIGKILL, via {seen:?}")
 }
+
+/// The pid of the newest `rotorloop role ROLE` process of `domain`.
+pub fn pid_of_role(domain: &str, role: &str) -> Option<u32> {
+    let mut newest = None;
+    for e in std::fs::read_dir("/proc").expect("/proc").flatten() {
+        let Ok(pid) = e.file_name().to_string_lossy().parse::<u32>() else { continue };
+        let Ok(cmdline) = std::fs::read(e.path().join("cmdline")) else { continue };
+        let args: Vec<&[u8]> = cmdline.split(|b| *b == 0).collect();
+        let ours = args.windows(2).any(|w| w[0] == b"--domain" && w[1] == domain.as_bytes());
+        let is_role = args.windows(2).any(|w| w[0] == b"role" && w[1] == role.as_bytes());
+        if ours && is_role && newest.is_none_or(|n| pid > n) {
+            newest = Some(pid);
+        }
+    }
+    newest
+}
