@@ -5,12 +5,15 @@
 //!
 //! In order, the in-loop stages add up to sense-to-actuate exactly, tick by tick:
 //! state send (publish stamp → `send` returned), state delivery (→ the controller has
-//! it: its wake-up, and the notify it waited for), validation (the answer rule and the
+//! it: its wake-up, the notify it waited for, and the receive that found no newer
+//! state), validation (the answer rule and the
 //! state's checks), pairing (with the reference), the law, publish preparation (resume
 //! slot, delay queue, loan), torque send, torque delivery (→ the plant has it). The
 //! notifies and loans are shown beside them: a notify runs after the send, in parallel
 //! with the delivery (a spinning receiver does not wait for it); a loan is taken before
-//! the publish stamp.
+//! the publish stamp, ahead of time by default (the plant's before it sleeps to the tick,
+//! the controller's after its previous publish). The plant's state preparation (its
+//! wake-up → the state's publish stamp) comes before sense-to-actuate starts.
 //!
 //! A sample cannot carry the cost of its own send, so each publisher carries the cost of
 //! its previous publish in the next sample: a state's send cost comes with the next
@@ -48,13 +51,17 @@ pub enum Stage {
     TorqueNotify,
     /// Plant: loaning the state sample (before the publish stamp).
     StateLoan,
-    /// Controller: loaning the torque sample (inside publish preparation).
+    /// Controller: loaning the torque sample (inside publish preparation, or after the
+    /// previous publish when loaned ahead).
     TorqueLoan,
+    /// Plant: its wake-up → the state's publish stamp (the state made and its sample
+    /// loaned, unless both were done before the sleep).
+    StatePrep,
 }
 
 impl Stage {
     /// Every stage, the in-loop ones first, in the order a tick goes through them.
-    pub const ALL: [Stage; 12] = [
+    pub const ALL: [Stage; 13] = [
         Stage::StateSend,
         Stage::StateDelivery,
         Stage::Validate,
@@ -67,6 +74,7 @@ impl Stage {
         Stage::TorqueNotify,
         Stage::StateLoan,
         Stage::TorqueLoan,
+        Stage::StatePrep,
     ];
 
     /// JSON name.
@@ -84,6 +92,7 @@ impl Stage {
             Stage::TorqueNotify => "torque_notify",
             Stage::StateLoan => "state_loan",
             Stage::TorqueLoan => "torque_loan",
+            Stage::StatePrep => "state_prep",
         }
     }
 
@@ -127,6 +136,9 @@ impl Stages {
     pub fn record_row(&mut self, j: &JoinedRow, apart: bool) {
         let Some(t) = j.torque.filter(|t| t.computed()) else { return };
         let s = &j.state;
+        if s.wake_ns > 0 && s.publish_ns >= s.wake_ns {
+            self.record(Stage::StatePrep, s.publish_ns - s.wake_ns);
+        }
         // A restarted plant's first state carries no cost (zero).
         if let Some(c) = j.following.map(|f| f.prev_publish).filter(|c| c.send_ns > 0) {
             self.record(Stage::StateLoan, c.loan_ns);
@@ -208,7 +220,8 @@ mod tests {
         (following.applied_torque_tick, following.applied_torque_recv_ns) = (7, 4000);
         let row = JoinedRow {
             tick: 7,
-            state: state(7, 1000, SendCost::default()),
+            // Woken at 950: 50 ns from the wake-up to the publish stamp.
+            state: StateSample { wake_ns: 950, ..state(7, 1000, SendCost::default()) },
             reference: ReferenceSample::zeroed(7),
             torque: Some(torque),
             following: Some(following),
@@ -225,10 +238,11 @@ mod tests {
         assert_eq!(p50("controller_pair"), Some(200));
         assert_eq!(p50("torque_delivery"), Some(4000 - 3400));
         assert_eq!(p50("state_notify"), Some(900));
+        assert_eq!(p50("state_prep"), Some(50));
         // Without the next torque the torque's send cost is unknown: not counted.
         let mut partial = Stages::default();
         partial.record_row(&JoinedRow { next_torque: None, ..row }, false);
         let counts: Vec<u64> = partial.stats().iter().map(|s| s.stats.count).collect();
-        assert_eq!(counts, [1, 1, 1, 1, 1, 1, 0, 0, 1, 0, 1, 0]);
+        assert_eq!(counts, [1, 1, 1, 1, 1, 1, 0, 0, 1, 0, 1, 0, 1]);
     }
 }

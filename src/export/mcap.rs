@@ -230,6 +230,7 @@ pub(crate) fn latency(
         "law_ns": answered.and_then(|t| d(t.computed_ns, t.paired_ns)),
         "publish_prep_ns": answered.and_then(|t| d(t.publish_ns, t.computed_ns)),
         "tick_lateness_ns": (s.flags & FLAG_REALTIME != 0).then(|| d(s.wake_ns, s.deadline_ns)).flatten(),
+        "state_prep_ns": (s.flags & FLAG_REALTIME != 0).then(|| d(s.publish_ns, s.wake_ns)).flatten(),
         "reference_lead_ns": r.and_then(|r| d(s.publish_ns, r.publish_ns)),
         "state_send_ns": s.prev_publish.send_ns,
         "misses": s.misses,

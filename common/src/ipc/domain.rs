@@ -501,7 +501,12 @@ impl Domain {
             .notifier_builder()
             .create()
             .map_err(|e| iox(format!("cannot notify `{}`", topic.name()))(&e))?;
-        Ok(Outbox { service, publisher, notifier })
+        Ok(Outbox {
+            service,
+            publisher,
+            notifier,
+            preloaned: super::ports::Preloaned(Cell::new(None)),
+        })
     }
 
     /// The receiving end of `topic` with a buffer of `buffer` samples (newest overwrite
@@ -691,6 +696,44 @@ mod tests {
             );
         }
         drop((outbox, node));
+        domain.cleanup().expect("cleanup");
+    }
+
+    /// A sample loaned ahead ([`Outbox::preloan`]) is the one the next send writes and
+    /// sends, once: a second preloan keeps it, the send carries what its loan cost, and a
+    /// send with none held loans its own. A sample written ahead ([`Outbox::prewrite`])
+    /// is sent with its patch.
+    #[test]
+    fn a_preloaned_sample_is_the_next_one_sent() {
+        let domain = Domain::new(&format!("ipc-pl{}", std::process::id())).expect("domain");
+        let node = domain.node("plant").expect("node");
+        let outbox = domain.outbox::<u64>(&node, Topic::State).expect("outbox");
+        let inbox = domain.inbox::<u64>(&node, Topic::State, 4, false).expect("inbox");
+        outbox.update_connections();
+        let held = |o: &Outbox<u64>| format!("{o:?}").contains("Preloaned(a sample)");
+        assert!(!held(&outbox));
+        outbox.preloan().expect("loan");
+        outbox.preloan().expect("keeps the one held");
+        assert!(held(&outbox));
+        let cost = outbox.send(7, |_| ()).expect("send");
+        assert!(!held(&outbox), "the held sample was sent");
+        assert!(cost.loan_ns > 0, "{cost:?}");
+        outbox.send(8, |_| ()).expect("a send loans its own");
+        // Written ahead: only the patch is applied at the send, to the sample and to what
+        // `after` sees, with the same publish stamp.
+        outbox.prewrite(100).expect("write ahead");
+        assert!(format!("{outbox:?}").contains("Preloaned(a written sample)"));
+        let mut seen = 0;
+        let patch = |v: &mut u64, stamp: u64| *v += u64::from(stamp > 0);
+        outbox.send_prewritten(100, patch, |v| seen = *v).expect("send");
+        assert_eq!(seen, 101);
+        // Nothing written ahead: the value patched, sent the plain way.
+        outbox.send_prewritten(200, patch, |v| seen = *v).expect("send");
+        assert_eq!(seen, 201);
+        let mut got = Vec::new();
+        inbox.drain(|v| got.push(v)).expect("receive");
+        assert_eq!(got, [7, 8, 101, 201]);
+        drop((inbox, outbox, node));
         domain.cleanup().expect("cleanup");
     }
 

@@ -3,6 +3,7 @@
 
 use std::cell::Cell;
 use std::fmt::Debug;
+use std::mem::MaybeUninit;
 use std::time::Duration;
 
 use iceoryx2::port::listener::Listener;
@@ -11,6 +12,8 @@ use iceoryx2::port::publisher::Publisher;
 use iceoryx2::port::subscriber::Subscriber;
 use iceoryx2::port::update_connections::UpdateConnections;
 use iceoryx2::prelude::*;
+use iceoryx2::sample_mut::SampleMut;
+use iceoryx2::sample_mut_uninit::SampleMutUninit;
 use iceoryx2::service::port_factory::publish_subscribe::PortFactory as PubSubFactory;
 
 use super::wait::{WAIT_BOUND_NS, Wait, wait_any_readable};
@@ -31,9 +34,103 @@ pub struct Outbox<T: ZeroCopySend + Debug + Copy + 'static> {
     pub(super) service: PubSubFactory<ipc::Service, T, ()>,
     pub(super) publisher: Publisher<ipc::Service, T, ()>,
     pub(super) notifier: Notifier<ipc::Service>,
+    /// A sample loaned (and maybe written) ahead of its send ([`Outbox::preloan`],
+    /// [`Outbox::prewrite`]) and what the loan cost.
+    pub(super) preloaned: Preloaned<T>,
+}
+
+/// A sample an [`Outbox`] loaned ahead of its send.
+pub(super) enum Held<T: ZeroCopySend + Debug + Copy + 'static> {
+    /// Loaned, not written.
+    Loaned(SampleMutUninit<ipc::Service, MaybeUninit<T>, ()>),
+    /// Loaned and written.
+    Written(SampleMut<ipc::Service, T, ()>),
+}
+
+/// The sample an [`Outbox`] holds for its next send, if any, and what its loan cost (ns).
+pub(super) struct Preloaned<T: ZeroCopySend + Debug + Copy + 'static>(
+    pub(super) Cell<Option<(Held<T>, u64)>>,
+);
+
+impl<T: ZeroCopySend + Debug + Copy + 'static> Debug for Preloaned<T> {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let held = self.0.take();
+        let what = match &held {
+            None => "none",
+            Some((Held::Loaned(_), _)) => "a sample",
+            Some((Held::Written(_), _)) => "a written sample",
+        };
+        self.0.set(held);
+        write!(f, "Preloaned({what})")
+    }
 }
 
 impl<T: ZeroCopySend + Debug + Copy + 'static> Outbox<T> {
+    /// Loans the sample the next send writes, now, off the path that send is on (the
+    /// controller after it published): the send then costs no loan, and its
+    /// [`SendCost::loan_ns`] is what this loan cost. Keeps a sample already held.
+    pub fn preloan(&self) -> Result<(), IpcError> {
+        if let Some(held) = self.preloaned.0.take() {
+            self.preloaned.0.set(Some(held));
+            return Ok(());
+        }
+        let t0 = now_ns();
+        let sample = self.publisher.loan_uninit().map_err(|e| iox("cannot loan a sample")(&e))?;
+        self.preloaned.0.set(Some((Held::Loaned(sample), now_ns() - t0)));
+        Ok(())
+    }
+
+    /// Loans a sample and writes `value` into it now, ahead of its send (the plant before
+    /// it sleeps to its tick): [`Outbox::send_prewritten`] then writes only what its patch
+    /// changes (the stamps) into shared memory, whose other cache lines the copy made
+    /// warm here and not between the wake-up and the send.
+    pub fn prewrite(&self, value: T) -> Result<(), IpcError> {
+        let (sample, loan_ns) = match self.preloaned.0.take() {
+            Some((Held::Loaned(s), ns)) => (s.write_payload(value), ns),
+            Some((Held::Written(mut s), ns)) => {
+                *s.payload_mut() = value;
+                (s, ns)
+            }
+            None => {
+                let t0 = now_ns();
+                let s =
+                    self.publisher.loan_uninit().map_err(|e| iox("cannot loan a sample")(&e))?;
+                (s.write_payload(value), now_ns() - t0)
+            }
+        };
+        self.preloaned.0.set(Some((Held::Written(sample), loan_ns)));
+        Ok(())
+    }
+
+    /// Sends the sample [`Outbox::prewrite`] wrote, `patch`ed with the publish stamp it is
+    /// given, and notifies; `after` gets `value` (what was prewritten) patched the same way,
+    /// as published. With no sample written ahead, a plain [`Outbox::send_then`] of
+    /// `value` patched.
+    #[inline]
+    pub fn send_prewritten(
+        &self,
+        mut value: T,
+        patch: impl Fn(&mut T, u64),
+        after: impl FnOnce(&T),
+    ) -> Result<SendCost, IpcError> {
+        let (mut sample, loan_ns) = match self.preloaned.0.take() {
+            Some((Held::Written(s), ns)) => (s, ns),
+            other => {
+                self.preloaned.0.set(other);
+                return self.send_then(value, |v| patch(v, now_ns()), after);
+            }
+        };
+        let t1 = now_ns();
+        patch(sample.payload_mut(), t1);
+        sample.send().map_err(|e| iox("cannot send a sample")(&e))?;
+        let t2 = now_ns();
+        self.notifier.notify().map_err(|e| iox("cannot notify")(&e))?;
+        let cost = SendCost { loan_ns, send_ns: t2 - t1, notify_ns: now_ns() - t2 };
+        patch(&mut value, t1);
+        after(&value);
+        Ok(cost)
+    }
+
     /// Waits until at least `n` subscribers are connected (those that must see the first
     /// sample), polling every millisecond; false on a termination signal.
     pub fn wait_for_subscribers(&self, n: usize) -> bool {
@@ -65,14 +162,26 @@ impl<T: ZeroCopySend + Debug + Copy + 'static> Outbox<T> {
         stamp: impl FnOnce(&mut T),
         after: impl FnOnce(&T),
     ) -> Result<SendCost, IpcError> {
-        let t0 = now_ns();
-        let sample = self.publisher.loan_uninit().map_err(|e| iox("cannot loan a sample")(&e))?;
+        let (sample, loan_ns) = match self.preloaned.0.take() {
+            Some((Held::Loaned(s), ns)) => (s, ns),
+            Some((Held::Written(s), _)) => {
+                drop(s); // a send of another value: the written sample goes back
+                let t0 = now_ns();
+                let loaned = self.publisher.loan_uninit();
+                (loaned.map_err(|e| iox("cannot loan a sample")(&e))?, now_ns() - t0)
+            }
+            None => {
+                let t0 = now_ns();
+                let loaned = self.publisher.loan_uninit();
+                (loaned.map_err(|e| iox("cannot loan a sample")(&e))?, now_ns() - t0)
+            }
+        };
         let t1 = now_ns();
         stamp(&mut value);
         sample.write_payload(value).send().map_err(|e| iox("cannot send a sample")(&e))?;
         let t2 = now_ns();
         self.notifier.notify().map_err(|e| iox("cannot notify")(&e))?;
-        let cost = SendCost { loan_ns: t1 - t0, send_ns: t2 - t1, notify_ns: now_ns() - t2 };
+        let cost = SendCost { loan_ns, send_ns: t2 - t1, notify_ns: now_ns() - t2 };
         after(&value);
         Ok(cost)
     }

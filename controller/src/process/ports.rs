@@ -33,6 +33,8 @@ pub(super) struct Ports {
     flight: FlightRecorder<TorqueSample>,
     /// Drain the reference topic only when the reference of the tick is not in hand.
     lazy_refs: bool,
+    /// Loan each torque's sample after the previous publish (not `--plain-hot-path`).
+    preloan: bool,
     /// The tick and cost of the last torque published (carried in the next one).
     last_publish: Cell<(u64, SendCost)>,
     _node: RoleNode,
@@ -52,12 +54,25 @@ impl Ports {
         let slot = ResumeSlot::<ControllerResume>::open(&domain, ROLE).context(ROLE)?;
         let plant = PlantWatch::open(&domain, ROLE).context(ROLE)?;
         let last_publish = Cell::new((NO_TICK, SendCost::default()));
-        let lazy_refs = !role.plain_hot_path;
-        Ok(Self { out, refs, states, slot, plant, flight, lazy_refs, last_publish, _node: node })
+        let (lazy_refs, preloan) = (!role.plain_hot_path, !role.plain_hot_path);
+        Ok(Self {
+            out,
+            refs,
+            states,
+            slot,
+            plant,
+            flight,
+            lazy_refs,
+            preloan,
+            last_publish,
+            _node: node,
+        })
     }
 
     /// Waits until `until` for states; every one goes through `answers` (older ones are
-    /// skipped, and counted), the newest comes back with its receive time.
+    /// skipped, and counted), the newest comes back with its receive time: when the
+    /// controller has it and knows it is the newest (the receive that finds no more
+    /// samples is iceoryx2's delivery, not the controller's validation).
     pub fn newest_state(
         &self,
         answers: &mut TorqueAnswers,
@@ -65,12 +80,12 @@ impl Ports {
         until: u64,
     ) -> anyhow::Result<Option<(StateSample, u64)>> {
         let newest = self.states.wait_for(wait, until, |inbox| {
-            let mut newest: Option<(StateSample, u64)> = None;
+            let mut newest: Option<StateSample> = None;
             inbox.drain(|s| {
                 answers.take(&s, newest.is_some());
-                newest = Some((s, now_ns()));
+                newest = Some(s);
             })?;
-            Ok(newest)
+            Ok(newest.map(|s| (s, now_ns())))
         })?;
         Ok(newest)
     }
@@ -122,6 +137,11 @@ impl Ports {
         let stamp = |s: &mut TorqueSample| s.publish_ns = now_ns();
         let sent = self.out.send_then(corrupted(corrupt, t), stamp, |s| self.flight.record(s));
         self.last_publish.set((t.tick, sent.context("controller: publishing torque")?));
+        if self.preloan {
+            // The next answer's sample, loaned now (after this one is on its way) rather
+            // than between its state's arrival and its publish.
+            self.out.preloan().context("controller: loaning the next torque's sample")?;
+        }
         Ok(())
     }
 

@@ -7,19 +7,16 @@
 pub mod args;
 mod wait;
 
-use anyhow::Context;
 use rotorloop_common::clock::TickGrid;
 use rotorloop_common::clock::{now_ns, sleep_until_ns};
 use rotorloop_common::role::args::Mode;
 use rotorloop_common::role::end::linger_publisher;
-use rotorloop_common::role::inject::corrupted;
 use rotorloop_common::signals::shutdown_requested;
 use rotorloop_common::wire::SendCost;
-use rotorloop_common::wire::StateSample;
 
 use crate::ROLE;
 use crate::policy::{Answer, PlantTicker};
-use wait::{Ports, SenseToActuate, TorqueWait};
+use wait::{Ports, SenseToActuate, TorqueWait, made, publish};
 
 /// Runs the plant until its last tick or a termination signal.
 pub fn run(args: &args::PlantArgs) -> anyhow::Result<()> {
@@ -36,13 +33,14 @@ pub fn run(args: &args::PlantArgs) -> anyhow::Result<()> {
     if plant.first() > 0 {
         eprintln!("plant: resuming at tick {} from its last published state", plant.first());
     }
-    let spin_ns = args.spin_before_tick_us * 1000;
+    let (spin_ns, early) = (args.spin_before_tick_us * 1000, !role.plain_hot_path);
     let mut grid = TickGrid::new(now_ns() + 20_000_000, plant.first(), scenario.file.run.rate_hz);
     let pause = realtime && args.plant_stall == args::PlantStall::Pause;
     let (mut s2a, mut wait) = (SenseToActuate::new()?, TorqueWait::new(realtime));
     let mut cost = SendCost::default(); // what publishing the previous state cost
     for k in plant.first()..=plant.last() {
         let mut deadline = if realtime { grid.at(k) } else { 0 };
+        let ahead = early.then(|| made(&ports, &plant, k, deadline, &args.corrupt)).transpose()?;
         if realtime {
             sleep_until_ns(deadline, spin_ns);
         } else {
@@ -52,15 +50,9 @@ pub fn run(args: &args::PlantArgs) -> anyhow::Result<()> {
         if pause && grid.pause_if_late(k, woke) {
             deadline = woke;
         }
-        let sample = plant.state_sample(k, deadline, woke);
-        // Slot first: killed between the two, the restart publishes this very state,
-        // which the controller answers (or answers again). The other order would let a
-        // restart re-publish tick k−1 after the controller has moved past it: deadlock.
-        ports.slot.store(&sample);
-        let stamp = |s: &mut StateSample| (s.publish_ns, s2a.publish_ns) = [now_ns(); 2].into();
-        let sample = StateSample { prev_publish: cost, ..corrupted(&args.corrupt, sample) };
-        let record = |s: &StateSample| ports.states_flight.record(s);
-        cost = ports.states.send_then(sample, stamp, record).context("plant: publishing state")?;
+        // Made before the sleep (`wait::made`), or now with `--plain-hot-path`.
+        let sample = ahead.map_or_else(|| made(&ports, &plant, k, deadline, &args.corrupt), Ok)?;
+        cost = publish(&ports, sample, (deadline, woke, cost), &mut s2a)?;
         let until = if realtime { grid.at(k + 1).saturating_sub(spin_ns) } else { u64::MAX };
         let answer = wait.answer(&ports, &mut plant, role, (k, deadline, until))?;
         if !matches!(answer, Some(Answer::Fresh(..))) && shutdown_requested() {

@@ -11,7 +11,8 @@ use rotorloop_common::hgrm::write_hgrm_file;
 use rotorloop_common::ipc::ports::{Inbox, Outbox, RoleNode};
 use rotorloop_common::resume::ResumeSlot;
 use rotorloop_common::role::args::{Mode, RoleArgs};
-use rotorloop_common::wire::{StateSample, TorqueSample};
+use rotorloop_common::role::inject::{Corrupt, corrupted};
+use rotorloop_common::wire::{SendCost, StateSample, TorqueSample};
 
 use crate::ROLE;
 use crate::policy::{Answer, PlantTicker, Settled};
@@ -62,6 +63,48 @@ impl Ports {
             );
         }
     }
+}
+
+/// The state of tick `k` (due at `deadline`; 0 in lockstep) as it will be published,
+/// corrupted where `--corrupt` says so, without its wake and publish stamps; stored in
+/// the resume slot first, and written into a loaned sample. Made before the plant sleeps
+/// to the tick (the default), so that only the stamps and the send are left between the
+/// wake and the publish (`--plain-hot-path`: made after the wake, as before).
+pub(super) fn made(
+    ports: &Ports,
+    plant: &PlantTicker,
+    k: u64,
+    deadline: u64,
+    corrupt: &[Corrupt],
+) -> anyhow::Result<StateSample> {
+    let sample = plant.state_sample(k, deadline, 0);
+    // Slot first: killed between the two, the restart publishes this very state, which
+    // the controller answers (or answers again). The other order would let a restart
+    // re-publish tick k−1 after the controller has moved past it: deadlock.
+    ports.slot.store(&sample);
+    let sample = corrupted(corrupt, sample);
+    ports.states.prewrite(sample).context("plant: loaning the state's sample")?;
+    Ok(sample)
+}
+
+/// Publishes the state [`made`] for a tick with its stamps (due at `deadline`, woken at
+/// `woke`, and what the previous publish cost), records it, and notes its publish time
+/// for the plant's own sense-to-actuate. Returns what this publish cost.
+pub(super) fn publish(
+    ports: &Ports,
+    sample: StateSample,
+    (deadline, woke, prev): (u64, u64, SendCost),
+    s2a: &mut SenseToActuate,
+) -> anyhow::Result<SendCost> {
+    let stamps = |s: &mut StateSample, publish_ns| {
+        (s.deadline_ns, s.wake_ns, s.publish_ns, s.prev_publish) =
+            (deadline, woke, publish_ns, prev);
+    };
+    let record = |s: &StateSample| {
+        s2a.publish_ns = s.publish_ns;
+        ports.states_flight.record(s);
+    };
+    ports.states.send_prewritten(sample, stamps, record).context("plant: publishing state")
 }
 
 /// The wait for each tick's torque, and what the shell says about it.

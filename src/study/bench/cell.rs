@@ -20,6 +20,10 @@ pub enum BeforeAfter {
     Sched,
     /// Without and with `run --trace-sched` (root).
     TraceSched,
+    /// The hot path before and after its overhead was cut (`run --plain-hot-path`
+    /// before: the reference woken by every state, the reference topic read every tick,
+    /// the samples loaned and the plant's state made after the wake).
+    HotPath,
 }
 
 /// `rotorloop bench` arguments.
@@ -74,8 +78,8 @@ pub struct BenchArgs {
     /// `record` (the default) without the flight recorders and with them (`loop-before`
     /// rows; `rotorloop run --no-record`); `foxglove` without and with the live Foxglove
     /// server (`run --foxglove`) and a viewer subscribed to every topic
-    /// (`loop-foxglove` rows). The cut overhead before that is `run --plain-hot-path` by
-    /// hand (docs/measured/overhead.md).
+    /// (`loop-foxglove` rows); `sched`, `trace-sched`; `hot-path` the hot path before
+    /// its overhead was cut (`run --plain-hot-path`, `loop-plain` rows) and after.
     #[arg(long, num_args = 0..=1, default_missing_value = "record", value_name = "CHANGE")]
     pub before_after: Option<BeforeAfter>,
     /// With `--before-after`: measure before and after this many times each, alternating

@@ -54,9 +54,11 @@ pub(super) fn before_after(
         BeforeAfter::Foxglove => (Variant::Loop, Variant::Foxglove),
         BeforeAfter::Sched => (Variant::NoSched, Variant::Loop),
         BeforeAfter::TraceSched => (Variant::Loop, Variant::TraceSched),
+        BeforeAfter::HotPath => (Variant::PlainHotPath, Variant::Loop),
     };
     // The plain loop already measured is the first run of its side.
-    let plain_after = matches!(change, BeforeAfter::Record | BeforeAfter::Sched);
+    let plain_after =
+        matches!(change, BeforeAfter::Record | BeforeAfter::Sched | BeforeAfter::HotPath);
     let (mut before, mut after) = (Vec::new(), Vec::new());
     match plain_after {
         true => after.push(first),
@@ -101,6 +103,8 @@ pub(super) enum Variant {
     NoSched,
     /// With `--trace-sched`.
     TraceSched,
+    /// With `--plain-hot-path`: the hot path before its overhead was cut.
+    PlainHotPath,
     /// With the second law (`--controllers mrp-pid`).
     MrpPid,
     /// With the Python example controller (`--controllers python`).
@@ -116,6 +120,7 @@ impl Variant {
             Variant::Foxglove => "loop-foxglove",
             Variant::NoSched => "loop-nosched",
             Variant::TraceSched => "loop-tracesched",
+            Variant::PlainHotPath => "loop-plain",
             Variant::MrpPid => "loop-mrp-pid",
             Variant::Python => "loop-python",
         }
@@ -198,6 +203,7 @@ pub(super) fn measure_loop(
         Variant::Foxglove => "f",
         Variant::NoSched => "s",
         Variant::TraceSched => "t",
+        Variant::PlainHotPath => "h",
         Variant::MrpPid => "m",
         Variant::Python => "p",
     };
@@ -207,6 +213,7 @@ pub(super) fn measure_loop(
     run.no_record = variant == Variant::Before;
     run.no_sched_sample = variant == Variant::NoSched;
     run.trace_sched = variant == Variant::TraceSched;
+    run.role.plain_hot_path = variant == Variant::PlainHotPath;
     match variant {
         Variant::MrpPid => run.role.scenario = mrp_scenario(a, &out)?,
         Variant::Python => match python_controller(a) {

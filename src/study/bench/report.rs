@@ -175,7 +175,7 @@ pub(super) fn zero_miss_md(a: &BenchArgs, rows: &[Row]) -> String {
 }
 
 /// The in-loop stages and the notifies, p50 in µs, in tick order.
-pub(super) const BREAKDOWN: [(&str, &str); 10] = [
+pub(super) const BREAKDOWN: [(&str, &str); 13] = [
     ("state_send", "state send"),
     ("state_delivery", "state delivery"),
     ("controller_validate", "validate"),
@@ -186,12 +186,29 @@ pub(super) const BREAKDOWN: [(&str, &str); 10] = [
     ("torque_delivery", "torque delivery"),
     ("state_notify", "(state notify)"),
     ("torque_notify", "(torque notify)"),
+    ("state_loan", "(state loan)"),
+    ("torque_loan", "(torque loan)"),
+    ("state_prep", "(plant wake → publish)"),
 ];
+
+/// The `summary.json` of the run a row is: with `--pairs`, the pair whose sense-to-actuate
+/// p50 is the row's (its median run), else the first.
+fn summary_of(a: &BenchArgs, r: &Row) -> Option<serde_json::Value> {
+    let cell = a.out.join("cells").join(&r.cell);
+    let pairs = (1..a.pairs.max(1)).map(|i| cell.join(format!("pair{i}")));
+    let runs: Vec<serde_json::Value> = std::iter::once(cell.clone())
+        .chain(pairs)
+        .filter_map(|d| std::fs::read_to_string(d.join(&r.kind).join("summary.json")).ok())
+        .filter_map(|t| serde_json::from_str(&t).ok())
+        .collect();
+    let p50 = |j: &serde_json::Value| j["hops"]["sense_to_actuate"]["p50"].as_f64();
+    let median = runs.iter().position(|j| p50(j).is_some_and(|ns| ns / 1e3 == r.p50));
+    runs.into_iter().nth(median.unwrap_or(0))
+}
 
 /// The stage p50s (µs) of a loop measurement, from its `summary.json`.
 pub(super) fn stage_p50s(a: &BenchArgs, r: &Row) -> Option<Vec<f64>> {
-    let path = a.out.join("cells").join(&r.cell).join(&r.kind).join("summary.json");
-    let j: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(path).ok()?).ok()?;
+    let j = summary_of(a, r)?;
     let stages = j["stages"].as_array()?;
     let p50 = |name: &str| {
         let s = stages.iter().find(|s| s["stage"] == name)?;
@@ -206,17 +223,25 @@ pub(super) fn breakdown_md(a: &BenchArgs, rows: &[Row]) -> String {
         "\n## Where the microseconds go (p50, µs)\n\nSense-to-actuate split at the stamps the plant \
          and the controller carry in their samples; the eight stages add up to it tick by tick \
          (their p50s need not add up to its p50). Notifies run after the send, beside the \
-         delivery; a spinning receiver does not wait for them.\n\n| cell | kind | s2a |",
+         delivery; a spinning receiver does not wait for them. Loans are taken before the \
+         publish stamp (ahead of time, except with `--plain-hot-path`: `loop-plain` rows); the \
+         plant's wake → publish comes before sense-to-actuate starts. Compute: the \
+         controller's, state received → torque published.\n\n| cell | kind | s2a | compute |",
     );
     for (_, label) in BREAKDOWN {
         let _ = write!(md, " {label} |");
     }
-    md.push_str("\n|---|---|---|");
+    md.push_str("\n|---|---|---|---|");
     md.push_str(&"---|".repeat(BREAKDOWN.len()));
     md.push('\n');
-    for r in rows.iter().filter(|r| r.kind == "loop" || r.kind == "loop-before") {
+    for r in
+        rows.iter().filter(|r| ["loop", "loop-before", "loop-plain"].contains(&r.kind.as_str()))
+    {
         let Some(p50s) = stage_p50s(a, r).filter(|_| r.skipped.is_empty()) else { continue };
-        let _ = write!(md, "| {} | {} | {:.1} |", r.cell, r.kind, r.p50);
+        let compute = summary_of(a, r)
+            .and_then(|j| j["hops"]["controller_compute"]["p50"].as_f64())
+            .map_or(f64::NAN, |ns| ns / 1e3);
+        let _ = write!(md, "| {} | {} | {:.1} | {compute:.2} |", r.cell, r.kind, r.p50);
         for v in p50s {
             let _ = write!(md, " {v:.2} |");
         }
@@ -254,6 +279,14 @@ pub(super) fn before_after_md(rows: &[Row], a: &BenchArgs) -> String {
             "loop-tracesched",
             "Before: the loop as it is; after: with the kernel's scheduler and IRQ events \
              recorded (`run --trace-sched`, root).",
+        ),
+        BeforeAfter::HotPath => (
+            "loop-plain",
+            "loop",
+            "Before: the hot path as it was before its overhead was cut (`run \
+             --plain-hot-path`: the reference woken by every state, the reference topic read \
+             every tick, each sample loaned and the plant's state made between its wake-up and \
+             its publish); after: as it is.",
         ),
     };
     let mut md = String::new();
