@@ -290,6 +290,36 @@ fn before_after_foxglove_measures_the_loop_with_a_viewer_attached() {
     assert!(md.contains("| r500-event-cross-core-none |"), "{md}");
 }
 
+/// `--before-after hot-path`: the loop with its hot path as it was before its overhead was
+/// cut (`loop-plain`) and as it is, in the same invocation; both stamp the plant's wake-up
+/// → publish (`state_prep`) on every answered tick, and bench.md's breakdown shows both.
+#[test]
+fn before_after_hot_path_measures_the_plain_and_the_cut_hot_path() {
+    let h = Harness::new("benchhp");
+    let out = bench(
+        &h,
+        "--rates 500 --wait event --placement cross-core --baselines iceoryx2 --seconds 1 \
+         --before-after hot-path",
+        180,
+    );
+    let csv = std::fs::read_to_string(out.join("bench.csv")).expect("bench.csv");
+    let kinds: Vec<&str> = csv.lines().skip(1).map(|l| l.split(',').nth(1).unwrap_or("")).collect();
+    assert_eq!(kinds, ["loop", "loop-plain", "iceoryx2"]);
+    let cell = out.join("cells/r500-event-cross-core-none");
+    for kind in ["loop", "loop-plain"] {
+        let s = crate::common::harness::json(&cell.join(kind).join("summary.json"));
+        let prep =
+            s["stages"].as_array().and_then(|st| st.iter().find(|x| x["stage"] == "state_prep"));
+        let prep = prep.unwrap_or_else(|| panic!("{kind}: no state_prep stage: {s}"));
+        assert!(prep["count"].as_u64().is_some_and(|n| n > 250), "{kind}: {prep}");
+    }
+    let md = std::fs::read_to_string(out.join("bench.md")).expect("bench.md");
+    assert!(md.contains("as it was before its overhead was cut"), "{md}");
+    let breakdown = md.split("Where the microseconds go").nth(1).expect("the breakdown");
+    assert!(breakdown.contains("| r500-event-cross-core-none | loop-plain |"), "{breakdown}");
+    assert!(breakdown.contains("(plant wake → publish)"), "{breakdown}");
+}
+
 /// `--controllers mrp-pid,python`: the same cell with the second law and with the Python
 /// example, beside the built-in law and the bare baseline; bench.md shows each one's
 /// compute and law stage. Without `python3` the Python row is skipped with its reason.

@@ -65,11 +65,11 @@ impl Ports {
     }
 }
 
-/// The state of tick `k` (due at `deadline`; 0 in lockstep) as it will be published,
-/// corrupted where `--corrupt` says so, without its wake and publish stamps; stored in
-/// the resume slot first, and written into a loaned sample. Made before the plant sleeps
-/// to the tick (the default), so that only the stamps and the send are left between the
-/// wake and the publish (`--plain-hot-path`: made after the wake, as before).
+/// The state of tick `k` (due at `deadline`; 0 in lockstep) without its wake and publish
+/// stamps, written (corrupted where `--corrupt` says so) into a loaned sample. Made
+/// before the plant sleeps to the tick (the default), so that only the resume slot, the
+/// stamps and the send are left between the wake and the publish (`--plain-hot-path`:
+/// made after the wake, as before).
 pub(super) fn made(
     ports: &Ports,
     plant: &PlantTicker,
@@ -78,24 +78,31 @@ pub(super) fn made(
     corrupt: &[Corrupt],
 ) -> anyhow::Result<StateSample> {
     let sample = plant.state_sample(k, deadline, 0);
-    // Slot first: killed between the two, the restart publishes this very state, which
-    // the controller answers (or answers again). The other order would let a restart
-    // re-publish tick k−1 after the controller has moved past it: deadlock.
-    ports.slot.store(&sample);
-    let sample = corrupted(corrupt, sample);
-    ports.states.prewrite(sample).context("plant: loaning the state's sample")?;
+    ports
+        .states
+        .prewrite(corrupted(corrupt, sample))
+        .context("plant: loaning the state's sample")?;
     Ok(sample)
 }
 
 /// Publishes the state [`made`] for a tick with its stamps (due at `deadline`, woken at
-/// `woke`, and what the previous publish cost), records it, and notes its publish time
-/// for the plant's own sense-to-actuate. Returns what this publish cost.
+/// `woke`, and what the previous publish cost), corrupted where `--corrupt` says so,
+/// records it, and notes its publish time for the plant's own sense-to-actuate. Returns
+/// what this publish cost.
 pub(super) fn publish(
     ports: &Ports,
     sample: StateSample,
     (deadline, woke, prev): (u64, u64, SendCost),
     s2a: &mut SenseToActuate,
+    corrupt: &[Corrupt],
 ) -> anyhow::Result<SendCost> {
+    // Slot first: killed between the two, the restart publishes this very state, which
+    // the controller answers (or answers again). The other order would let a restart
+    // re-publish tick k−1 after the controller has moved past it: deadlock. Stored after
+    // the wake, not when the state is made: the watchdog reads the slot as the plant's
+    // progress (a state stored before a lockstep wait for the record mover made the
+    // controller look hung).
+    ports.slot.store(&StateSample { deadline_ns: deadline, wake_ns: woke, ..sample });
     let stamps = |s: &mut StateSample, publish_ns| {
         (s.deadline_ns, s.wake_ns, s.publish_ns, s.prev_publish) =
             (deadline, woke, publish_ns, prev);
@@ -104,7 +111,8 @@ pub(super) fn publish(
         s2a.publish_ns = s.publish_ns;
         ports.states_flight.record(s);
     };
-    ports.states.send_prewritten(sample, stamps, record).context("plant: publishing state")
+    let sent = ports.states.send_prewritten(corrupted(corrupt, sample), stamps, record);
+    sent.context("plant: publishing state")
 }
 
 /// The wait for each tick's torque, and what the shell says about it.
