@@ -39,10 +39,13 @@ pub struct Outbox<T: ZeroCopySend + Debug + Copy + 'static> {
     pub(super) preloaned: Preloaned<T>,
 }
 
+/// A loaned sample not written yet.
+type Uninit<T> = SampleMutUninit<ipc::Service, MaybeUninit<T>, ()>;
+
 /// A sample an [`Outbox`] loaned ahead of its send.
 pub(super) enum Held<T: ZeroCopySend + Debug + Copy + 'static> {
     /// Loaned, not written.
-    Loaned(SampleMutUninit<ipc::Service, MaybeUninit<T>, ()>),
+    Loaned(Uninit<T>),
     /// Loaned and written.
     Written(SampleMut<ipc::Service, T, ()>),
 }
@@ -74,16 +77,22 @@ impl<T: ZeroCopySend + Debug + Copy + 'static> Outbox<T> {
             self.preloaned.0.set(Some(held));
             return Ok(());
         }
+        let (sample, loan_ns) = self.loan()?;
+        self.preloaned.0.set(Some((Held::Loaned(sample), loan_ns)));
+        Ok(())
+    }
+
+    /// Loans a sample now, and what that cost (ns).
+    #[inline]
+    fn loan(&self) -> Result<(Uninit<T>, u64), IpcError> {
         let t0 = now_ns();
         let sample = self.publisher.loan_uninit().map_err(|e| iox("cannot loan a sample")(&e))?;
-        self.preloaned.0.set(Some((Held::Loaned(sample), now_ns() - t0)));
-        Ok(())
+        Ok((sample, now_ns() - t0))
     }
 
     /// Loans a sample and writes `value` into it now, ahead of its send (the plant before
     /// it sleeps to its tick): [`Outbox::send_prewritten`] then writes only what its patch
-    /// changes (the stamps) into shared memory, whose other cache lines the copy made
-    /// warm here and not between the wake-up and the send.
+    /// changes (the stamps), and the copy is not between the wake-up and the send.
     pub fn prewrite(&self, value: T) -> Result<(), IpcError> {
         let (sample, loan_ns) = match self.preloaned.0.take() {
             Some((Held::Loaned(s), ns)) => (s.write_payload(value), ns),
@@ -92,10 +101,8 @@ impl<T: ZeroCopySend + Debug + Copy + 'static> Outbox<T> {
                 (s, ns)
             }
             None => {
-                let t0 = now_ns();
-                let s =
-                    self.publisher.loan_uninit().map_err(|e| iox("cannot loan a sample")(&e))?;
-                (s.write_payload(value), now_ns() - t0)
+                let (s, ns) = self.loan()?;
+                (s.write_payload(value), ns)
             }
         };
         self.preloaned.0.set(Some((Held::Written(sample), loan_ns)));
@@ -164,17 +171,8 @@ impl<T: ZeroCopySend + Debug + Copy + 'static> Outbox<T> {
     ) -> Result<SendCost, IpcError> {
         let (sample, loan_ns) = match self.preloaned.0.take() {
             Some((Held::Loaned(s), ns)) => (s, ns),
-            Some((Held::Written(s), _)) => {
-                drop(s); // a send of another value: the written sample goes back
-                let t0 = now_ns();
-                let loaned = self.publisher.loan_uninit();
-                (loaned.map_err(|e| iox("cannot loan a sample")(&e))?, now_ns() - t0)
-            }
-            None => {
-                let t0 = now_ns();
-                let loaned = self.publisher.loan_uninit();
-                (loaned.map_err(|e| iox("cannot loan a sample")(&e))?, now_ns() - t0)
-            }
+            // A send of another value: a sample written ahead goes back.
+            Some((Held::Written(_), _)) | None => self.loan()?,
         };
         let t1 = now_ns();
         stamp(&mut value);
