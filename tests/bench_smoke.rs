@@ -262,6 +262,12 @@ fn the_timer_baseline_is_measured_beside_the_plants_tick() {
     assert!(hgrm.expect("timer.hgrm").contains("Total count"));
 }
 
+/// The kind of each row of `out/bench.csv`, in order.
+fn kinds(out: &std::path::Path) -> Vec<String> {
+    let csv = std::fs::read_to_string(out.join("bench.csv")).expect("bench.csv");
+    csv.lines().skip(1).map(|l| l.split(',').nth(1).unwrap_or("").to_owned()).collect()
+}
+
 /// `--before-after foxglove`: the loop alone and with the live Foxglove server and a viewer
 /// subscribed to every topic, alternating; the viewer received the loop's messages, and
 /// `bench.md` compares the two.
@@ -274,8 +280,7 @@ fn before_after_foxglove_measures_the_loop_with_a_viewer_attached() {
          --before-after foxglove --pairs 2",
         180,
     );
-    let csv = std::fs::read_to_string(out.join("bench.csv")).expect("bench.csv");
-    let kinds: Vec<&str> = csv.lines().skip(1).map(|l| l.split(',').nth(1).unwrap_or("")).collect();
+    let kinds = kinds(&out);
     assert_eq!(kinds, ["loop", "loop-foxglove", "iceoryx2"]);
     let cell = out.join("cells/r500-event-cross-core-none");
     for pair in [cell.join("loop-foxglove"), cell.join("pair1/loop-foxglove")] {
@@ -302,8 +307,7 @@ fn before_after_hot_path_measures_the_plain_and_the_cut_hot_path() {
          --before-after hot-path",
         180,
     );
-    let csv = std::fs::read_to_string(out.join("bench.csv")).expect("bench.csv");
-    let kinds: Vec<&str> = csv.lines().skip(1).map(|l| l.split(',').nth(1).unwrap_or("")).collect();
+    let kinds = kinds(&out);
     assert_eq!(kinds, ["loop", "loop-plain", "iceoryx2"]);
     let cell = out.join("cells/r500-event-cross-core-none");
     for kind in ["loop", "loop-plain"] {

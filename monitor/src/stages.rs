@@ -6,9 +6,9 @@
 //! In order, the in-loop stages add up to sense-to-actuate exactly, tick by tick:
 //! state send (publish stamp → `send` returned), state delivery (→ the controller has
 //! it: its wake-up, the notify it waited for, and the receive that found no newer
-//! state), validation (the answer rule and the
-//! state's checks), pairing (with the reference), the law, publish preparation (resume
-//! slot, delay queue, loan), torque send, torque delivery (→ the plant has it). The
+//! state), validation (the answer rule and the state's checks), pairing (with the
+//! reference), the law, publish preparation (resume slot, delay queue, loan), torque
+//! send, torque delivery (→ the plant has it). The
 //! notifies and loans are shown beside them: a notify runs after the send, in parallel
 //! with the delivery (a spinning receiver does not wait for it); a loan is taken before
 //! the publish stamp, ahead of time by default (the plant's before it sleeps to the tick,

@@ -129,10 +129,7 @@ impl<T: ZeroCopySend + Debug + Copy + 'static> Outbox<T> {
         };
         let t1 = now_ns();
         patch(sample.payload_mut(), t1);
-        sample.send().map_err(|e| iox("cannot send a sample")(&e))?;
-        let t2 = now_ns();
-        self.notifier.notify().map_err(|e| iox("cannot notify")(&e))?;
-        let cost = SendCost { loan_ns, send_ns: t2 - t1, notify_ns: now_ns() - t2 };
+        let cost = self.send_and_notify(sample, loan_ns, t1)?;
         patch(&mut value, t1);
         after(&value);
         Ok(cost)
@@ -176,12 +173,24 @@ impl<T: ZeroCopySend + Debug + Copy + 'static> Outbox<T> {
         };
         let t1 = now_ns();
         stamp(&mut value);
-        sample.write_payload(value).send().map_err(|e| iox("cannot send a sample")(&e))?;
-        let t2 = now_ns();
-        self.notifier.notify().map_err(|e| iox("cannot notify")(&e))?;
-        let cost = SendCost { loan_ns, send_ns: t2 - t1, notify_ns: now_ns() - t2 };
+        let cost = self.send_and_notify(sample.write_payload(value), loan_ns, t1)?;
         after(&value);
         Ok(cost)
+    }
+
+    /// Sends a written sample and notifies the listeners: what the loan cost (`loan_ns`),
+    /// the send from `t1` (the publish stamp) and the notify.
+    #[inline]
+    fn send_and_notify(
+        &self,
+        sample: SampleMut<ipc::Service, T, ()>,
+        loan_ns: u64,
+        t1: u64,
+    ) -> Result<SendCost, IpcError> {
+        sample.send().map_err(|e| iox("cannot send a sample")(&e))?;
+        let t2 = now_ns();
+        self.notifier.notify().map_err(|e| iox("cannot notify")(&e))?;
+        Ok(SendCost { loan_ns, send_ns: t2 - t1, notify_ns: now_ns() - t2 })
     }
 
     /// Loans a sample and never sends it, until a termination signal: a test hook for

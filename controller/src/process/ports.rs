@@ -31,10 +31,10 @@ pub(super) struct Ports {
     pub plant: PlantWatch,
     /// Every torque published, in the run's flight record.
     flight: FlightRecorder<TorqueSample>,
-    /// Drain the reference topic only when the reference of the tick is not in hand.
-    lazy_refs: bool,
-    /// Loan each torque's sample after the previous publish (not `--plain-hot-path`).
-    preloan: bool,
+    /// The hot path with its overhead cut (not `--plain-hot-path`): the reference topic
+    /// drained only when the reference of the tick is not in hand, and each torque's
+    /// sample loaned after the previous publish.
+    cut: bool,
     /// The tick and cost of the last torque published (carried in the next one).
     last_publish: Cell<(u64, SendCost)>,
     _node: RoleNode,
@@ -54,19 +54,8 @@ impl Ports {
         let slot = ResumeSlot::<ControllerResume>::open(&domain, ROLE).context(ROLE)?;
         let plant = PlantWatch::open(&domain, ROLE).context(ROLE)?;
         let last_publish = Cell::new((NO_TICK, SendCost::default()));
-        let (lazy_refs, preloan) = (!role.plain_hot_path, !role.plain_hot_path);
-        Ok(Self {
-            out,
-            refs,
-            states,
-            slot,
-            plant,
-            flight,
-            lazy_refs,
-            preloan,
-            last_publish,
-            _node: node,
-        })
+        let cut = !role.plain_hot_path;
+        Ok(Self { out, refs, states, slot, plant, flight, cut, last_publish, _node: node })
     }
 
     /// Waits until `until` for states; every one goes through `answers` (older ones are
@@ -120,7 +109,7 @@ impl Ports {
         state_ok: bool,
         lockstep: bool,
     ) -> anyhow::Result<Option<ReferenceState>> {
-        if !self.lazy_refs || pairing.lookup(k).is_none() {
+        if !self.cut || pairing.lookup(k).is_none() {
             self.refs.drain(|r| pairing.take(r))?;
         }
         pairing.pair(k, state_ok, lockstep, |p| {
@@ -137,7 +126,7 @@ impl Ports {
         let stamp = |s: &mut TorqueSample| s.publish_ns = now_ns();
         let sent = self.out.send_then(corrupted(corrupt, t), stamp, |s| self.flight.record(s));
         self.last_publish.set((t.tick, sent.context("controller: publishing torque")?));
-        if self.preloan {
+        if self.cut {
             // The next answer's sample, loaned now (after this one is on its way) rather
             // than between its state's arrival and its publish.
             self.out.preloan().context("controller: loaning the next torque's sample")?;

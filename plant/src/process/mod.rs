@@ -52,7 +52,7 @@ pub fn run(args: &args::PlantArgs) -> anyhow::Result<()> {
         }
         // Made before the sleep (`wait::made`), or now with `--plain-hot-path`.
         let sample = ahead.map_or_else(|| made(&ports, &plant, k, deadline, &args.corrupt), Ok)?;
-        cost = publish(&ports, sample, (deadline, woke, cost), &mut s2a, &args.corrupt)?;
+        cost = publish(&ports, sample, (deadline, woke, cost), &mut s2a)?;
         let until = if realtime { grid.at(k + 1).saturating_sub(spin_ns) } else { u64::MAX };
         let answer = wait.answer(&ports, &mut plant, role, (k, deadline, until))?;
         if !matches!(answer, Some(Answer::Fresh(..))) && shutdown_requested() {

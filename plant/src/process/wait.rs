@@ -65,36 +65,38 @@ impl Ports {
     }
 }
 
-/// The state of tick `k` (due at `deadline`; 0 in lockstep) without its wake and publish
-/// stamps, written (corrupted where `--corrupt` says so) into a loaned sample. Made
-/// before the plant sleeps to the tick (the default), so that only the resume slot, the
-/// stamps and the send are left between the wake and the publish (`--plain-hot-path`:
-/// made after the wake, as before).
+/// The state of tick `k` (due at `deadline`; 0 in lockstep), without its wake and
+/// publish stamps: as the plant has it (for the resume slot) and as it is published
+/// (corrupted where `--corrupt` says so), the latter written into a loaned sample.
+pub(super) struct Made {
+    state: StateSample,
+    published: StateSample,
+}
+
+/// Makes the state of tick `k`: before the plant sleeps to the tick (the default), so
+/// that only the resume slot, the stamps and the send are left between the wake and the
+/// publish (`--plain-hot-path`: made after the wake, as before).
 pub(super) fn made(
     ports: &Ports,
     plant: &PlantTicker,
     k: u64,
     deadline: u64,
     corrupt: &[Corrupt],
-) -> anyhow::Result<StateSample> {
-    let sample = plant.state_sample(k, deadline, 0);
-    ports
-        .states
-        .prewrite(corrupted(corrupt, sample))
-        .context("plant: loaning the state's sample")?;
-    Ok(sample)
+) -> anyhow::Result<Made> {
+    let state = plant.state_sample(k, deadline, 0);
+    let published = corrupted(corrupt, state);
+    ports.states.prewrite(published).context("plant: loaning the state's sample")?;
+    Ok(Made { state, published })
 }
 
 /// Publishes the state [`made`] for a tick with its stamps (due at `deadline`, woken at
-/// `woke`, and what the previous publish cost), corrupted where `--corrupt` says so,
-/// records it, and notes its publish time for the plant's own sense-to-actuate. Returns
-/// what this publish cost.
+/// `woke`, and what the previous publish cost), records it, and notes its publish time
+/// for the plant's own sense-to-actuate. Returns what this publish cost.
 pub(super) fn publish(
     ports: &Ports,
-    sample: StateSample,
+    made: Made,
     (deadline, woke, prev): (u64, u64, SendCost),
     s2a: &mut SenseToActuate,
-    corrupt: &[Corrupt],
 ) -> anyhow::Result<SendCost> {
     // Slot first: killed between the two, the restart publishes this very state, which
     // the controller answers (or answers again). The other order would let a restart
@@ -102,7 +104,7 @@ pub(super) fn publish(
     // the wake, not when the state is made: the watchdog reads the slot as the plant's
     // progress (a state stored before a lockstep wait for the record mover made the
     // controller look hung).
-    ports.slot.store(&StateSample { deadline_ns: deadline, wake_ns: woke, ..sample });
+    ports.slot.store(&StateSample { deadline_ns: deadline, wake_ns: woke, ..made.state });
     let stamps = |s: &mut StateSample, publish_ns| {
         (s.deadline_ns, s.wake_ns, s.publish_ns, s.prev_publish) =
             (deadline, woke, publish_ns, prev);
@@ -111,7 +113,7 @@ pub(super) fn publish(
         s2a.publish_ns = s.publish_ns;
         ports.states_flight.record(s);
     };
-    let sent = ports.states.send_prewritten(corrupted(corrupt, sample), stamps, record);
+    let sent = ports.states.send_prewritten(made.published, stamps, record);
     sent.context("plant: publishing state")
 }
 

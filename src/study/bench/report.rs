@@ -206,9 +206,8 @@ fn summary_of(a: &BenchArgs, r: &Row) -> Option<serde_json::Value> {
     runs.into_iter().nth(median.unwrap_or(0))
 }
 
-/// The stage p50s (µs) of a loop measurement, from its `summary.json`.
-pub(super) fn stage_p50s(a: &BenchArgs, r: &Row) -> Option<Vec<f64>> {
-    let j = summary_of(a, r)?;
+/// The stage p50s (µs) of a loop measurement, from its `summary.json` (`j`).
+fn stage_p50s(j: &serde_json::Value) -> Option<Vec<f64>> {
     let stages = j["stages"].as_array()?;
     let p50 = |name: &str| {
         let s = stages.iter().find(|s| s["stage"] == name)?;
@@ -237,10 +236,10 @@ pub(super) fn breakdown_md(a: &BenchArgs, rows: &[Row]) -> String {
     for r in
         rows.iter().filter(|r| ["loop", "loop-before", "loop-plain"].contains(&r.kind.as_str()))
     {
-        let Some(p50s) = stage_p50s(a, r).filter(|_| r.skipped.is_empty()) else { continue };
-        let compute = summary_of(a, r)
-            .and_then(|j| j["hops"]["controller_compute"]["p50"].as_f64())
-            .map_or(f64::NAN, |ns| ns / 1e3);
+        let Some(j) = summary_of(a, r).filter(|_| r.skipped.is_empty()) else { continue };
+        let Some(p50s) = stage_p50s(&j) else { continue };
+        let compute =
+            j["hops"]["controller_compute"]["p50"].as_f64().map_or(f64::NAN, |ns| ns / 1e3);
         let _ = write!(md, "| {} | {} | {:.1} | {compute:.2} |", r.cell, r.kind, r.p50);
         for v in p50s {
             let _ = write!(md, " {v:.2} |");
