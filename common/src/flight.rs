@@ -232,11 +232,16 @@ impl<T: Record> FlightRecorder<T> {
         std::fs::create_dir_all(dir)?;
         let path = stream.path(dir);
         let len = HEADER + capacity as usize * slot_len::<T>();
+        // Owner-only whatever the umask (live data: the staging directory is 0700 too),
+        // and never through a link.
+        use std::os::unix::fs::OpenOptionsExt;
         let file = std::fs::OpenOptions::new()
             .read(true)
             .write(true)
             .create(true)
             .truncate(false)
+            .mode(0o600)
+            .custom_flags(libc::O_NOFOLLOW)
             .open(&path)?;
         let fresh = file.metadata()?.len() != len as u64;
         if fresh {

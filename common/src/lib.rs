@@ -26,6 +26,7 @@ pub mod hgrm;
 pub mod ipc;
 pub mod output;
 pub mod params;
+pub mod private;
 pub mod relay;
 pub mod resume;
 pub mod role;

@@ -52,31 +52,26 @@ impl<T: Copy + ZeroCopySend> ResumeSlot<T> {
 
     fn map(domain: &Domain, role: &str, create: bool) -> Result<Option<Self>, IpcError> {
         let path = Self::path(domain, role);
-        if !create && !path.exists() {
-            return Ok(None);
-        }
         let err = |what: &str, e: std::io::Error| IpcError::Iceoryx {
             what: format!("resume slot {}: {what}", path.display()),
             detail: e.to_string(),
         };
         let len = HEADER + 2 * size_of::<T>().next_multiple_of(64);
-        let file = std::fs::OpenOptions::new()
-            .read(true)
-            .write(true)
-            .create(create)
-            .truncate(false)
-            .open(&path)
-            .map_err(|e| err("open", e))?;
+        // Made by this role, exclusively and owner-only, or this user's own: a slot
+        // another user planted (or a link) is refused, never loaded (`crate::private`).
+        let file = match create {
+            true => crate::private::open_or_create_file(&path)?.0,
+            false => match crate::private::open_file(&path) {
+                Ok(Some(f)) => f,
+                // An observer reads only what it may: nothing, or another user's, is none.
+                Ok(None) | Err(_) => return Ok(None),
+            },
+        };
         if file.metadata().map_err(|e| err("stat", e))?.len() != len as u64 {
             if !create {
                 return Ok(None); // another layout's slot
             }
             file.set_len(len as u64).map_err(|e| err("size", e))?;
-        }
-        if create {
-            // Owner only, like iceoryx2's own files.
-            use std::os::unix::fs::PermissionsExt;
-            let _ = file.set_permissions(std::fs::Permissions::from_mode(0o600));
         }
         // SAFETY: maps `len` bytes of a file of exactly that size; checked for failure.
         let map = unsafe {

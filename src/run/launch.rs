@@ -12,7 +12,8 @@ use crate::run::args::{RunArgs, parse_pins, with_preset};
 use crate::run::fault::{Fault, FaultEvent, FaultSchedule, parse_fault};
 use crate::run::resources::{RssLog, add_resources};
 use crate::run::spawn::{
-    Launch, clear_flight_records, prepare_domains, staging_dir, start, stop_gateways,
+    Launch, clear_flight_records, make_staging, prepare_domains, staging_dir, start,
+    stop_gateways,
 };
 use crate::run::split::Split;
 use crate::run::supervise::{Children, RestartLimit, Supervisor, parse_restart};
@@ -47,6 +48,27 @@ fn checked_faults(args: &RunArgs, split: Option<&Split>) -> anyhow::Result<Vec<F
     Ok(faults)
 }
 
+/// The domain of a run without `--domain`: `run-` and 7 random characters (36 bits from
+/// the kernel), so another user cannot make its files ahead of it (an earlier
+/// `run-<pid>` could be: the next 500 pids' names were planted and a plain run fell into
+/// one). A name of which anything already exists in `/dev/shm` is drawn again.
+fn default_domain() -> String {
+    loop {
+        let name = format!("run-{}", rotorloop_common::private::random_name(7));
+        let prefix = Domain::prefix_of(&name);
+        let staged = rotorloop_common::flight::staging_dir(&name);
+        let taken = staged.is_some_and(|d| std::fs::symlink_metadata(d).is_ok())
+            || std::fs::read_dir("/dev/shm")
+                .into_iter()
+                .flatten()
+                .flatten()
+                .any(|e| e.file_name().to_string_lossy().starts_with(&prefix));
+        if !taken {
+            return name;
+        }
+    }
+}
+
 /// Runs the four processes to the end of the scenario.
 pub fn run(args: &RunArgs) -> anyhow::Result<()> {
     // `--wait` has a default, so "explicit" means: not the default (event).
@@ -70,7 +92,7 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
         args.restart_limit.parse().map_err(|e| UsageError(format!("--restart-limit {e}")))?;
     let supervisor = Supervisor::new(parse_restart(&args.restart)?, limit);
     let mut role_args = args.role.clone();
-    role_args.domain.get_or_insert_with(|| format!("run-{}", std::process::id()));
+    role_args.domain.get_or_insert_with(default_domain);
     role_args.record = match args.no_record {
         true => None,
         false => {
@@ -94,7 +116,14 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
     let pins = args.pin.as_deref().map(parse_pins).transpose()?.unwrap_or_default();
     std::fs::create_dir_all(&args.out)
         .with_context(|| format!("cannot create {}", args.out.display()))?;
+    // First whether the domain is in use: a launch refused touches nothing of a live run.
+    prepare_domains(&domains, &args.out)?;
     if let Some(dir) = &role_args.record {
+        if args.role.record.is_none() {
+            // The launcher's own staging directory in /dev/shm: made privately, or this
+            // user's own from an earlier run (`rotorloop_common::private`).
+            make_staging(dir)?;
+        }
         // An earlier run's records in the same directory are not this run's to continue.
         clear_flight_records(dir)?;
         clear_flight_records(&args.out.join("flight"))?;
@@ -104,7 +133,6 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
     }
     let exe = std::env::current_exe().context("cannot find the rotorloop executable")?;
     install_signal_handlers();
-    prepare_domains(&domains, &args.out)?;
     let link_port = if split.is_some() { crate::run::split::free_port()? } else { 0 };
     let mut launch = Launch {
         args,

@@ -58,11 +58,17 @@ impl LaunchRecord {
         rotorloop_common::output::write_json(&out.join(LAUNCH_FILE), self)?;
         if let Some(staging) = &self.staging {
             let out = std::fs::canonicalize(out).unwrap_or_else(|_| out.to_path_buf());
-            std::fs::create_dir_all(staging)
-                .and_then(|()| {
-                    std::fs::write(staging.join(RUN_DIR_FILE), out.as_os_str().as_encoded_bytes())
-                })
-                .with_context(|| format!("cannot write into {}", staging.display()))?;
+            crate::run::spawn::make_staging(staging)?;
+            // An earlier run's name is replaced (removing a link removes the link only);
+            // the new one is made exclusively, never written through a link.
+            let file = staging.join(RUN_DIR_FILE);
+            match std::fs::remove_file(&file) {
+                Err(e) if e.kind() != std::io::ErrorKind::NotFound => {
+                    return Err(e).with_context(|| format!("cannot replace {}", file.display()));
+                }
+                _ => {}
+            }
+            rotorloop_common::private::write_new(&file, out.as_os_str().as_encoded_bytes())?;
         }
         Ok(())
     }

@@ -250,8 +250,21 @@ pub(crate) fn prepare_domains(domains: &[Domain], out: &std::path::Path) -> anyh
             );
             return Err(UsageError(msg).into());
         }
+        // Before any role: the domain's directory and global segment, made privately.
+        domain.make_private()?;
     }
     Ok(())
+}
+
+/// Makes the launcher's staging directory in `/dev/shm` (mode 0700), or takes this
+/// user's own private one an earlier run of the domain left; anything else there
+/// (another user's directory, a link) is refused, exit 2, naming it and its owner.
+pub(crate) fn make_staging(dir: &std::path::Path) -> anyhow::Result<()> {
+    match dir.parent().is_some_and(|p| p == std::path::Path::new("/dev/shm")) {
+        true => rotorloop_common::private::dir(dir).map_err(anyhow::Error::from),
+        false => std::fs::create_dir_all(dir)
+            .with_context(|| format!("cannot create {}", dir.display())),
+    }
 }
 
 /// Where the roles record during a run: a directory of the domain on tmpfs

@@ -15,16 +15,39 @@ use crate::graph::Topic;
 use crate::wire::{ReferenceSample, StateSample, TorqueSample};
 use iceoryx2::service::static_config::messaging_pattern::MessagingPattern as StaticPattern;
 
-/// Where every domain keeps iceoryx2's static files (node details, service configurations),
-/// each in `<prefix>/` of its own: a tmpfs, not iceoryx2's default `/tmp/iceoryx2`.
-/// iceoryx2 0.10 `fsync`s each of these files as it writes it (`iceoryx2-cal`
-/// `static_storage/file.rs`); on a disk with other writes pending that waited for the
-/// disk, and a role (re)started beside a busy disk took up to 3.6 s to create its node
-/// (measured: the far-host controller restart that brought control back only after
-/// seconds). On a tmpfs the `fsync` does not wait. It is exactly as long as iceoryx2's
-/// default root: the event services' Unix sockets live under it, a socket path has at
-/// most 108 bytes, and that bounds the domain and host names ([`Domain::on_host`]).
-pub const ICEORYX2_ROOT: &str = "/dev/shm/iox2/";
+/// Where every domain keeps iceoryx2's static files (node details, service configurations):
+/// a directory of its own directly in `/dev/shm`, `/dev/shm/<prefix>/` (a tmpfs, not
+/// iceoryx2's default `/tmp/iceoryx2`). iceoryx2 0.10 `fsync`s each of these files as it
+/// writes it (`iceoryx2-cal` `static_storage/file.rs`); on a disk with other writes
+/// pending that waited for the disk, and a role (re)started beside a busy disk took up to
+/// 3.6 s to create its node (measured: the far-host controller restart that brought
+/// control back only after seconds). On a tmpfs the `fsync` does not wait.
+///
+/// Each domain's directory is its user's alone (made 0700 by [`Domain::make_private`]),
+/// in the sticky `/dev/shm`: no directory shared by every user's domains, which would
+/// belong to whoever made it first (an earlier `/dev/shm/iox2/` did: root owning it
+/// locked every other user out, and another user owning it could rename a live domain's
+/// directory). The event services' Unix sockets live under it, a socket path has at most
+/// 108 bytes, and that bounds the domain and host names ([`Domain::on_host`]).
+pub const ICEORYX2_ROOT: &str = "/dev/shm/";
+
+/// The file iceoryx2 0.10 makes for a domain's global management segment (a node
+/// counter), `/dev/shm/<prefix><type hash>_node.<version>.global_mgmt`
+/// (`iceoryx2` `node/global_management_segment.rs`, `iceoryx2-cal`
+/// `dynamic_storage_configuration.rs`: the SHA-1 of the stored type's name, the name
+/// `node`, the package version, the suffix `.global_mgmt`). The unit test
+/// `the_global_segment_is_made_private_before_iceoryx2_can_make_it_open` fails if a new
+/// iceoryx2 names it otherwise.
+fn global_segment_path(prefix: &str) -> std::path::PathBuf {
+    use iceoryx2_bb_container::semantic_string::SemanticString;
+    use iceoryx2_cal::hash::Hash;
+    const STATE_TYPE: &str = "iceoryx2::node::global_management_segment::State";
+    let hash = iceoryx2_cal::hash::sha1::Sha1::new(STATE_TYPE.as_bytes()).value();
+    let hash = String::from_utf8_lossy(hash.as_base64url().as_bytes()).into_owned();
+    let v = iceoryx2_bb_elementary::package_version::PackageVersion::get();
+    let name = format!("{prefix}{hash}_node.{}_{}_{}.global_mgmt", v.major(), v.minor(), v.patch());
+    std::path::Path::new("/dev/shm").join(name)
+}
 
 /// A run domain: every service and node name of a run lives under it, and its shared
 /// memory files carry its own prefix, so two runs on one machine never see each other.
@@ -138,6 +161,7 @@ impl Domain {
         use iceoryx2::node::NodeView;
         let name = format!("rotorloop/{}/{role}", self.name);
         let node_name = NodeName::new(&name).map_err(|e| iox(format!("node name {name}"))(&e))?;
+        self.make_private()?;
         let node = NodeBuilder::new()
             .name(&node_name)
             .config(&self.config)
@@ -163,7 +187,6 @@ impl Domain {
             CallbackProgression::Continue
         })
         .map_err(|e| iox("cannot list nodes")(&e))?;
-        self.restrict_global_segment();
         match other {
             Some(pid) => Err(IpcError::DuplicateRole {
                 role: role.to_owned(),
@@ -174,30 +197,57 @@ impl Domain {
         }
     }
 
-    /// iceoryx2 creates its global management segment (a node counter) world-readable and
-    /// -writable (mode 0666, `enable_global_access`). A domain belongs to one user: make
-    /// it owner-only like every other file of the run. A file of another owner is left
-    /// alone (chmod would fail anyway).
-    fn restrict_global_segment(&self) {
-        use std::os::unix::fs::{MetadataExt, PermissionsExt};
-        let prefix = self.prefix.as_str();
-        let Ok(dir) = std::fs::read_dir("/dev/shm") else { return };
-        // SAFETY: plain getter.
-        let me = unsafe { libc::geteuid() };
-        for e in dir.flatten() {
-            let name = e.file_name();
-            let name = name.to_string_lossy();
-            if name.starts_with(prefix) && name.ends_with(".global_mgmt") {
-                if let Ok(meta) = e.metadata() {
-                    if meta.uid() == me && meta.mode() & 0o077 != 0 {
-                        let _ = std::fs::set_permissions(
-                            e.path(),
-                            std::fs::Permissions::from_mode(0o600),
-                        );
-                    }
+    /// Makes what iceoryx2 would otherwise make open to every user, before any node
+    /// exists, privately, or checks that it is this user's own (`crate::private`):
+    /// - the domain's directory under [`ICEORYX2_ROOT`] (mode 0700);
+    /// - the global management segment (a node counter), which iceoryx2 creates
+    ///   world-readable and -writable on purpose (0666, `enable_global_access`): another
+    ///   user who opened it in the moment before a `chmod` kept a writable descriptor
+    ///   (and, filled with 0xff, every node creation failed). Made here exclusively,
+    ///   0600, as iceoryx2 would initialise it (its package version, a node counter of
+    ///   0), so iceoryx2 only ever opens it.
+    ///
+    /// Anything else already there (another user's, a link, a file others may open) is
+    /// refused with [`IpcError::Private`], naming the path and its owner.
+    pub fn make_private(&self) -> Result<(), IpcError> {
+        // Without the trailing `/`, which would make the system follow a link in its place.
+        let root = self.root_path();
+        crate::private::dir(std::path::Path::new(root.trim_end_matches('/')))?;
+        let path = global_segment_path(&self.prefix);
+        let (file, created) = crate::private::open_or_create_file(&path)?;
+        if created {
+            use std::os::unix::fs::FileExt;
+            // iceoryx2-cal's `Data<State>`: the package version (u64), then the counter
+            // (u32), padded to 16 bytes. The version is written last: a node that opens
+            // the segment while it is 0 waits for it, as for iceoryx2's own creation.
+            let version = iceoryx2_bb_elementary::package_version::PackageVersion::get();
+            let io = |e: std::io::Error| crate::private::PrivateError::Io { path: path.clone(), source: e };
+            file.set_len(16).map_err(io)?;
+            file.write_all_at(&version.to_u64().to_ne_bytes(), 0).map_err(io)?;
+        }
+        Ok(())
+    }
+
+    /// The files and directories in `/dev/shm` with this domain's prefix that are not
+    /// this user's own: never used, never removed.
+    pub fn foreign_files(&self) -> Vec<crate::private::Foreign> {
+        let mut out = Vec::new();
+        for e in std::fs::read_dir("/dev/shm").into_iter().flatten().flatten() {
+            if !e.file_name().to_string_lossy().starts_with(&self.prefix) {
+                continue;
+            }
+            let Ok(meta) = std::fs::symlink_metadata(e.path()) else { continue };
+            let dir = meta.is_dir();
+            if let Err(f) = crate::private::check(&e.path(), &meta, dir) {
+                // Ours with a looser mode (iceoryx2's static files are 0400, its own
+                // directories 0750) is ours: only another owner or a link is foreign.
+                use std::os::unix::fs::MetadataExt;
+                if meta.uid() != crate::private::euid() || meta.file_type().is_symlink() {
+                    out.push(f);
                 }
             }
         }
+        out
     }
 
     /// Removes what dead nodes of this domain left behind and, when no process of the
@@ -210,8 +260,15 @@ impl Domain {
     /// (a restart killed early) is never listed, and a node killed while it was being
     /// torn down can leave token files that no cleanup removes. Those are found here by
     /// the process id inside the node id: an entry whose process is gone is stale.
+    ///
+    /// Another user's file with the domain's prefix (or a link in the domain directory's
+    /// place) is never read, followed or removed: the clean-up refuses with
+    /// [`IpcError::Private`] naming the first.
     pub fn cleanup(&self) -> Result<(usize, usize), IpcError> {
         use iceoryx2::node::NodeView;
+        if let Some(f) = self.foreign_files().into_iter().next() {
+            return Err(crate::private::PrivateError::from(f).into());
+        }
         // The domain has a root directory of its own, so every node listed here is of this
         // domain; one without readable details was killed while it was being created.
         let ours = format!("rotorloop/{}/", self.name);
@@ -255,7 +312,9 @@ impl Domain {
             }
             let prefix = self.prefix.as_str();
             for e in std::fs::read_dir("/dev/shm").into_iter().flatten().flatten() {
-                if e.file_name().to_string_lossy().starts_with(prefix) {
+                // The domain's directory is gone above; nothing else of it is a directory.
+                let file = e.file_type().is_ok_and(|t| !t.is_dir());
+                if file && e.file_name().to_string_lossy().starts_with(prefix) {
                     std::fs::remove_file(e.path()).map_err(|err| IpcError::Iceoryx {
                         what: format!("cannot remove {}", e.path().display()),
                         detail: err.to_string(),
@@ -611,6 +670,46 @@ mod tests {
             .map(|e| e.file_name().to_string_lossy().into_owned())
             .filter(|n| n.starts_with(&prefix))
             .collect()
+    }
+
+    #[test]
+    fn the_global_segment_is_made_private_before_iceoryx2_can_make_it_open() {
+        use std::os::unix::fs::{MetadataExt, PermissionsExt};
+        let domain = Domain::new(&format!("ipc-gm{}", std::process::id())).expect("domain");
+        domain.cleanup().expect("clean");
+        let node = domain.node("plant").expect("node");
+        let second = domain.node("controller").expect("a second node counts on from it");
+        assert_ne!(node.id().value(), second.id().value());
+        let segments: Vec<String> =
+            shm_files(&domain).into_iter().filter(|n| n.ends_with(".global_mgmt")).collect();
+        // Exactly the one made here: iceoryx2 opened it instead of making its own (0666).
+        let ours = global_segment_path(domain.prefix());
+        let ours = ours.file_name().expect("name").to_string_lossy().into_owned();
+        assert_eq!(segments, vec![ours.clone()], "iceoryx2 made a segment of its own");
+        let meta = std::fs::metadata(std::path::Path::new("/dev/shm").join(&ours)).expect("meta");
+        assert_eq!(meta.permissions().mode() & 0o777, 0o600);
+        let root = std::fs::metadata(domain.root_path()).expect("root");
+        assert_eq!(root.mode() & 0o777, 0o700);
+        drop((node, second));
+        domain.cleanup().expect("clean");
+        assert!(shm_files(&domain).is_empty(), "{:?}", shm_files(&domain));
+    }
+
+    #[test]
+    fn another_users_file_in_the_domains_place_is_refused_and_kept() {
+        let domain = Domain::new(&format!("ipc-fo{}", std::process::id())).expect("domain");
+        domain.cleanup().expect("clean");
+        // A link where the domain's directory goes: "another user's" for the check.
+        let root = std::path::PathBuf::from(domain.root_path());
+        let root = root.to_string_lossy().trim_end_matches('/').to_owned();
+        std::os::unix::fs::symlink("/tmp", &root).expect("link");
+        let e = domain.node("plant").err().expect("refused");
+        assert!(e.is_foreign(), "{e}");
+        assert!(e.to_string().contains(&root) && e.to_string().contains("symbolic link"), "{e}");
+        let e = domain.cleanup().err().expect("clean-up refuses too");
+        assert!(e.is_foreign(), "{e}");
+        assert!(std::fs::symlink_metadata(&root).is_ok(), "the link was removed");
+        std::fs::remove_file(&root).expect("unlink");
     }
 
     #[test]

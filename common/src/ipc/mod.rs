@@ -39,6 +39,10 @@ pub enum IpcError {
         /// iceoryx2's error.
         detail: String,
     },
+    /// A file or directory of the domain that is not this user's own and private
+    /// ([`crate::private`]).
+    #[error(transparent)]
+    Private(#[from] crate::private::PrivateError),
     /// The role already runs in the domain.
     #[error(
         "role `{role}` is already running in domain `{domain}` (pid {pid}); refusing to start a second one \
@@ -70,6 +74,14 @@ pub enum IpcError {
         /// This build's type name.
         ours: String,
     },
+}
+
+impl IpcError {
+    /// Whether this is a refusal of something another user (or a link) put where the
+    /// run makes its own files: a usage error (exit 2), not a failure to retry.
+    pub fn is_foreign(&self) -> bool {
+        matches!(self, Self::Private(crate::private::PrivateError::Foreign(_)))
+    }
 }
 
 /// The layout version at the end of a type name (`…_v3` → `3`), or `?`.

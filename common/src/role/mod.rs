@@ -19,6 +19,16 @@ impl From<crate::scenario::ScenarioError> for UsageError {
     }
 }
 
+/// Whether `e` is the user's to mend (exit code 2): a [`UsageError`], or a refusal of
+/// something another user put where the run makes its own files ([`crate::private`]).
+pub fn is_usage_error(e: &anyhow::Error) -> bool {
+    use crate::private::{Foreign, PrivateError};
+    e.downcast_ref::<UsageError>().is_some()
+        || e.downcast_ref::<Foreign>().is_some()
+        || matches!(e.downcast_ref::<PrivateError>(), Some(PrivateError::Foreign(_)))
+        || e.downcast_ref::<crate::ipc::IpcError>().is_some_and(|i| i.is_foreign())
+}
+
 /// The error of a run whose state stopped being finite: a configuration the integrator
 /// or the loop cannot handle (exit code 2, like any other bad scenario value).
 pub fn diverged(tick: u64, t: f64) -> UsageError {
@@ -60,7 +70,7 @@ pub fn run_role<A>(
         Ok(()) => std::process::ExitCode::SUCCESS,
         Err(e) => {
             eprintln!("{name}: error: {e:#}");
-            if e.downcast_ref::<UsageError>().is_some() {
+            if is_usage_error(&e) {
                 std::process::ExitCode::from(2)
             } else {
                 std::process::ExitCode::FAILURE
