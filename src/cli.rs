@@ -260,7 +260,7 @@ fn dispatch(cli: Cli) -> ExitCode {
         Ok(()) => ExitCode::SUCCESS,
         Err(e) => {
             eprintln!("error: {e:#}");
-            if e.downcast_ref::<UsageError>().is_some() {
+            if rotorloop_common::role::is_usage_error(&e) {
                 ExitCode::from(2)
             } else if e.downcast_ref::<crate::run::launch::RunEnd>().is_some() {
                 ExitCode::from(3)
@@ -295,7 +295,14 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
                 print!("{}", gains::render(&r));
             }
         }
-        Command::Run(a) => crate::run::launch::run(&a)?,
+        Command::Run(a) => {
+            // Who may watch (loopback unless the user means it): a rule of the command line.
+            if let Some(addr) = &a.foxglove {
+                let allowed = a.foxglove_allow_network;
+                crate::observe::foxglove::check_reach(addr, allowed, "--foxglove-allow-network")?;
+            }
+            crate::run::launch::run(&a)?
+        }
         Command::Link { args } => crate::run::split::exec_link(&args)?,
         Command::Bench(a) => crate::study::bench::run(&a)?,
         Command::Ps(a) => crate::observe::ps(&a)?,
@@ -315,7 +322,20 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
             // A launcher that did not end normally left its run's flight records on
             // tmpfs: they are the record of that run, so they are kept, and named.
             let staged = rotorloop_common::flight::staging_dir(&domain);
-            if let Some(staged) = staged.filter(|d| d.is_dir() && alive == 0) {
+            // Only this user's own private directory is a run's record: another user's
+            // (or a link) is named, never trusted for where to recover.
+            let mine = |d: &std::path::Path| {
+                let meta = std::fs::symlink_metadata(d);
+                match meta.map(|m| rotorloop_common::private::check(d, &m, true)) {
+                    Ok(Err(f)) => {
+                        eprintln!("warning: not this user's records, left alone: {f}");
+                        false
+                    }
+                    Ok(Ok(())) => true,
+                    Err(_) => false,
+                }
+            };
+            if let Some(staged) = staged.filter(|d| alive == 0 && mine(d)) {
                 let how = match crate::run::recover::run_dir_of(&staged) {
                     Some(out) => format!("`rotorloop recover {}` makes its report", out.display()),
                     None => "move them into OUT/flight by hand".to_owned(),

@@ -15,6 +15,10 @@ use rotorloop_common::ipc::IpcError;
 use rotorloop_common::ipc::domain::Domain;
 use rotorloop_common::wire::{LAYOUT_VERSION, StateSample};
 
+mod link;
+mod ticks;
+mod viewer;
+
 const LIMIT: Duration = Duration::from_secs(120);
 
 fn lockstep(h: &Harness, name: &str, extra: &[&str]) -> PathBuf {
@@ -113,7 +117,12 @@ fn every_kind_of_corrupted_sample_is_rejected_counted_and_never_reaches_the_stat
         let row = applied.iter().find(|r| r.tick == k + 1).expect("row");
         assert_eq!(row.applied, k - 1, "tick {k}: the plant should hold torque {}", k - 1);
     }
-    // No NaN anywhere in the state columns of the trace.
+    assert_state_columns_finite(&out);
+    h.assert_no_leftovers();
+}
+
+/// No NaN or infinity anywhere in the state columns (`R…`, `W…`, `h…`) of a run's trace.
+fn assert_state_columns_finite(out: &Path) {
     let trace = std::fs::read_to_string(out.join("trace.csv")).expect("trace");
     let header: Vec<&str> = trace.lines().next().expect("present").split(',').collect();
     for line in trace.lines().skip(1) {
@@ -124,7 +133,6 @@ fn every_kind_of_corrupted_sample_is_rejected_counted_and_never_reaches_the_stat
             }
         }
     }
-    h.assert_no_leftovers();
 }
 
 /// Torques rejected for longer than `--hold-ticks` put the plant in safe mode (zero
@@ -273,18 +281,22 @@ fn a_process_of_another_layout_version_is_refused_naming_both_versions() {
 }
 
 /// Creates a system user for the test and deletes it on drop.
-struct TempUser {
-    name: String,
-    uid: u32,
+pub(crate) struct TempUser {
+    pub(crate) name: String,
+    pub(crate) uid: u32,
 }
 
 impl TempUser {
-    fn create() -> Result<Self, String> {
+    pub(crate) fn create() -> Result<Self, String> {
         // SAFETY: plain getter.
         if unsafe { libc::geteuid() } != 0 {
             return Err("not root: cannot create a second OS user".into());
         }
-        let name = format!("rlprobe{}", std::process::id() % 100_000);
+        // One user per test: tests of one binary run in parallel, and a name shared by
+        // two would be deleted under the other's feet.
+        static NEXT: std::sync::atomic::AtomicU32 = std::sync::atomic::AtomicU32::new(0);
+        let n = NEXT.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+        let name = format!("rlprobe{}x{n}", std::process::id() % 100_000);
         let st = Command::new("useradd")
             .args(["--system", "--no-create-home", "--shell", "/usr/sbin/nologin", &name])
             .stderr(Stdio::piped())
@@ -379,10 +391,341 @@ fn a_running_domains_files_are_owner_only() {
         }
     }
     assert!(seen >= 10, "found only {seen} shared-memory files");
-    let root = Path::new(rotorloop_common::ipc::domain::ICEORYX2_ROOT).join(&prefix);
+    let root = PathBuf::from(format!("{}{prefix}", rotorloop_common::ipc::domain::ICEORYX2_ROOT));
     let mode = std::fs::metadata(&root).expect("root").permissions().mode();
-    assert_eq!(mode & 0o007, 0, "{} has mode {mode:o}", root.display());
+    assert_eq!(mode & 0o777, 0o700, "{} has mode {mode:o}", root.display());
+    let domain = Domain::new(&h.domain).expect("domain");
+    let mode = std::fs::metadata(domain.global_segment()).expect("segment").permissions().mode();
+    assert_eq!(mode & 0o777, 0o600, "iceoryx2's global segment has mode {mode:o}");
+    // The live records: the staging directory 0700, every file in it 0600.
+    let staging = rotorloop_common::flight::staging_dir(&h.domain).expect("/dev/shm");
+    let mode = std::fs::symlink_metadata(&staging).expect("staging").permissions().mode();
+    assert_eq!(mode & 0o777, 0o700, "{} has mode {mode:o}", staging.display());
+    let mut records = 0;
+    for e in std::fs::read_dir(&staging).expect("staging").flatten() {
+        let mode = e.metadata().expect("meta").permissions().mode();
+        assert_eq!(mode & 0o777, 0o600, "{:?} has mode {mode:o}", e.file_name());
+        records += 1;
+    }
+    assert!(records >= 5, "only {records} files in {}", staging.display());
     let status = h.wait_all(LIMIT);
     assert!(status[run].success());
     h.assert_no_leftovers();
+}
+
+/// `sh -c script` as `user`, to completion.
+fn as_user(user: &TempUser, script: &str) -> Output {
+    let mut cmd = Command::new("sh");
+    crate::common::harness::group(&mut cmd);
+    cmd.args(["-c", script])
+        .uid(user.uid)
+        .gid(user.uid)
+        .stdin(Stdio::null())
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped());
+    wait_output(cmd.spawn().expect("sh"), LIMIT)
+}
+
+/// A root-only file a planted link points at, and whether it still holds what it did.
+struct Secret(PathBuf);
+
+impl Secret {
+    fn new(h: &Harness) -> Self {
+        let path = h.path("secret");
+        std::fs::write(&path, b"root only").expect("secret");
+        std::fs::set_permissions(&path, std::fs::Permissions::from_mode(0o600)).expect("chmod");
+        Self(path)
+    }
+
+    fn untouched(&self) -> bool {
+        std::fs::read(&self.0).is_ok_and(|b| b == b"root only")
+    }
+}
+
+/// What another OS user makes ahead of a run in `/dev/shm` (the staging directory with a
+/// `run-dir` link to a root-only file, a resume slot, the domain's iceoryx2 directory,
+/// iceoryx2's global segment filled with 0xff) is refused: exit 2, naming the path and
+/// its owner; nothing is written through it, nothing of it is used or removed. Skipped
+/// where a second user cannot be created.
+#[test]
+fn what_another_user_plants_in_a_runs_place_is_refused_naming_it_and_never_used() {
+    let user = match TempUser::create() {
+        Ok(u) => u,
+        Err(why) => {
+            eprintln!("SKIPPED what_another_user_plants_…: {why}");
+            return;
+        }
+    };
+    let h = Harness::new("plant");
+    let secret = Secret::new(&h);
+    let domain = Domain::new(&h.domain).expect("domain");
+    let staging = rotorloop_common::flight::staging_dir(&h.domain).expect("/dev/shm");
+    let root = domain.root_dir().display().to_string();
+    let slot = format!("/dev/shm/{}resume_plant", domain.prefix());
+    let segment = domain.global_segment();
+    let plants: [(&str, String, String); 4] = [
+        (
+            "staging",
+            staging.display().to_string(),
+            format!(
+                "mkdir -m 0777 {0} && ln -s {1} {0}/run-dir",
+                staging.display(),
+                secret.0.display()
+            ),
+        ),
+        ("slot", slot.clone(), format!("umask 0; : > {slot}")),
+        ("root", root.clone(), format!("mkdir -m 0777 {root}")),
+        (
+            "segment",
+            segment.display().to_string(),
+            format!("umask 0; head -c 16 /dev/zero | tr '\\0' '\\377' > {}", segment.display()),
+        ),
+    ];
+    for (what, path, script) in plants {
+        let made = as_user(&user, &script);
+        assert!(made.status.success(), "{what}: {}", String::from_utf8_lossy(&made.stderr));
+        let o = lockstep_run(&h, &h.path(what));
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert_eq!(o.status.code(), Some(2), "{what}: a planted {path} was not refused:\n{err}");
+        assert!(err.contains(&path) && err.contains(&user.name), "{what}: {err}");
+        assert!(secret.untouched(), "{what}: the root-only file was written through a link");
+        assert!(std::fs::symlink_metadata(&path).is_ok(), "{what}: {path} was removed");
+        let _ = std::fs::remove_dir_all(&path).or_else(|_| std::fs::remove_file(&path));
+        domain.cleanup().expect("what the refused launch made of its own is cleaned");
+    }
+    h.assert_no_leftovers();
+}
+
+/// A plain `rotorloop run` (no `--domain`) never falls into names another user made
+/// ahead of it: the second user plants the staging directories of the next 300 pids'
+/// `run-<pid>` domains, each with a `run-dir` link to a root-only file; the run's domain
+/// is random, it completes, and the file is untouched.
+#[test]
+fn a_run_without_a_domain_cannot_be_planted_ahead_of_it() {
+    let user = match TempUser::create() {
+        Ok(u) => u,
+        Err(why) => {
+            eprintln!("SKIPPED a_run_without_a_domain_…: {why}");
+            return;
+        }
+    };
+    let h = Harness::new("nodomain");
+    let secret = Secret::new(&h);
+    let last: u32 = std::fs::read_to_string("/proc/sys/kernel/ns_last_pid")
+        .ok()
+        .and_then(|s| s.trim().parse().ok())
+        .unwrap_or(1000);
+    let dirs: Vec<String> =
+        (last + 1..last + 300).map(|p| format!("/dev/shm/rotorloop-flight-run-{p}")).collect();
+    let script = dirs
+        .iter()
+        .map(|d| format!("mkdir -m 0777 {d} && ln -s {} {d}/run-dir", secret.0.display()))
+        .collect::<Vec<_>>()
+        .join(" && ");
+    let made = as_user(&user, &script);
+    assert!(made.status.success(), "{}", String::from_utf8_lossy(&made.stderr));
+    let out = h.path("run");
+    let o = h.rotorloop(
+        &[
+            "run",
+            "--scenario",
+            "paper-zero",
+            "--duration",
+            "0.5",
+            "--mode",
+            "lockstep",
+            "--quiet",
+            "--out",
+            out.to_str().expect("utf8"),
+        ],
+        LIMIT,
+    );
+    for d in &dirs {
+        let _ = std::fs::remove_dir_all(d);
+    }
+    ok(&o);
+    assert!(secret.untouched(), "the root-only file was written through a planted link");
+    let launch = json(&out.join("launch.json"));
+    let domain = launch["domain"].as_str().expect("domain");
+    let tail = domain.strip_prefix("run-").expect("run-");
+    assert!(
+        tail.len() == 7 && tail.parse::<u64>().is_err(),
+        "the default domain `{domain}` should be random, not a pid"
+    );
+    assert_eq!(json(&out.join("summary.json"))["completed"], true);
+}
+
+/// A resume slot its role would refuse (here the controller's law state made NaN while
+/// the controller was stopped, then killed) is a listed fault (`resume-refused`, naming
+/// the field), the role starts as a fresh one would, and the run completes with no NaN
+/// in its state.
+#[test]
+fn a_damaged_resume_slot_is_a_listed_fault_and_the_role_starts_fresh() {
+    use rotorloop_common::resume::ResumeSlot;
+    use rotorloop_controller::policy::ControllerResume;
+    let mut h = Harness::new("badslot");
+    let out = h.path("run");
+    let run = start_realtime_run(&mut h, &out, "4");
+    let pid: i32 = pid_of(&out, "controller").expect("pid").parse().expect("pid");
+    // SAFETY: signals to our own child's child.
+    unsafe { libc::kill(pid, libc::SIGSTOP) };
+    let domain = Domain::new(&h.domain).expect("domain");
+    let slot = ResumeSlot::<ControllerResume>::open(&domain, "controller").expect("slot");
+    let mut r = slot.load().expect("the controller stored its state");
+    r.law[1] = f64::NAN;
+    slot.store(&r);
+    drop(slot);
+    unsafe { libc::kill(pid, libc::SIGKILL) };
+    let status = h.wait_all(LIMIT);
+    let err = h.stderr_of(run);
+    assert!(status[run].success(), "{err}");
+    let s = json(&out.join("summary.json"));
+    assert_eq!(s["completed"], true);
+    let faults = s["faults"].as_array().expect("faults");
+    let refused = faults
+        .iter()
+        .find(|f| f["kind"] == "resume-refused")
+        .unwrap_or_else(|| panic!("no resume-refused fault in {faults:?}\n{err}"));
+    assert_eq!(refused["role"], "controller");
+    let detail = refused["detail"].as_str().expect("detail");
+    assert!(detail.contains("law"), "{detail}");
+    assert_state_columns_finite(&out);
+    h.assert_no_leftovers();
+}
+
+/// A second `rotorloop run` on a domain in use is refused before it touches anything of
+/// it: the live run keeps every flight record and completes with all its rows.
+#[test]
+fn a_second_launch_on_a_live_domain_touches_nothing_of_it() {
+    let mut h = Harness::new("second");
+    let out = h.path("run");
+    let run = start_realtime_run(&mut h, &out, "3");
+    let other = h.path("second");
+    let o = h.rotorloop(
+        &[
+            "run",
+            "--scenario",
+            "paper-zero",
+            "--duration",
+            "1",
+            "--mode",
+            "lockstep",
+            "--quiet",
+            "--domain",
+            &h.domain,
+            "--out",
+            other.to_str().expect("utf8"),
+        ],
+        LIMIT,
+    );
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(2), "{err}");
+    assert!(err.contains("is in use"), "{err}");
+    assert!(!err.contains("removed"), "the refused launch removed something: {err}");
+    let status = h.wait_all(LIMIT);
+    assert!(status[run].success(), "{}", h.stderr_of(run));
+    let s = json(&out.join("summary.json"));
+    assert_eq!(s["completed"], true);
+    assert_eq!(s["trace_rows"], 3001);
+    assert_eq!(s["rows_lost"], 0);
+    for f in ["plant-state", "plant-torque", "controller-torque", "reference"] {
+        let path = out.join("flight").join(format!("{f}.flight"));
+        assert!(path.exists(), "{} gone", path.display());
+    }
+    h.assert_no_leftovers();
+}
+
+/// The race for iceoryx2's global segment: a second OS user tries without pause to make
+/// or open it for writing (`: >`, umask 0). Started before a run, that user makes it
+/// first and the run is refused, naming the segment and its owner (it was: every role
+/// failed to make its node, exit 1, no summary). Started once the run's launcher made
+/// the segment, the user never opens it: it is made 0600 before any node exists (iceoryx2
+/// made it 0666 and rotorloop closed it with a chmod a moment later). Skipped where a
+/// second user cannot be created.
+#[test]
+fn another_user_racing_for_the_global_segment_never_holds_it_open() {
+    use std::os::unix::fs::MetadataExt;
+    let user = match TempUser::create() {
+        Ok(u) => u,
+        Err(why) => {
+            eprintln!("SKIPPED another_user_racing_…: {why}");
+            return;
+        }
+    };
+    let mut h = Harness::new("race");
+    let segment = Domain::new(&h.domain).expect("domain").global_segment();
+    std::fs::set_permissions(h.dir.path(), std::fs::Permissions::from_mode(0o755)).expect("dir");
+    // The racer: until `stop` exists, prints a line for each time it had the file open.
+    let racer = |stop: &Path| {
+        let script = format!(
+            "while [ ! -e {stop} ]; do (umask 0; : > {seg}) 2>/dev/null && echo opened; done",
+            stop = stop.display(),
+            seg = segment.display()
+        );
+        let mut racer = Command::new("sh");
+        crate::common::harness::group(&mut racer);
+        racer
+            .args(["-c", &script])
+            .uid(user.uid)
+            .gid(user.uid)
+            .stdin(Stdio::null())
+            .stdout(Stdio::piped())
+            .stderr(Stdio::null());
+        racer.spawn().expect("racer")
+    };
+    let opened = |racer, stop: &Path| {
+        std::fs::write(stop, b"").expect("stop");
+        String::from_utf8_lossy(&wait_output(racer, LIMIT).stdout).lines().count()
+    };
+
+    // The other user first.
+    let stop = h.path("stop-first");
+    let first = racer(&stop);
+    let until = Instant::now() + Duration::from_secs(30);
+    while std::fs::symlink_metadata(&segment).is_err() {
+        assert!(Instant::now() < until, "the racer never made {}", segment.display());
+        std::thread::sleep(Duration::from_millis(10));
+    }
+    let out = h.path("refused");
+    let run = lockstep_run(&h, &out);
+    opened(first, &stop);
+    let err = String::from_utf8_lossy(&run.stderr);
+    assert_eq!(run.status.code(), Some(2), "{err}");
+    let named = segment.display().to_string();
+    assert!(err.contains(&named) && err.contains(&user.name), "{err}");
+    let theirs = std::fs::symlink_metadata(&segment).is_ok_and(|m| m.uid() == user.uid);
+    assert!(theirs, "the refused run removed or replaced the other user's file");
+    std::fs::remove_file(&segment).expect("remove the planted segment");
+
+    // The run first: once its launcher made the segment, the other user races the roles.
+    let out = h.path("run");
+    let run = start_realtime_run(&mut h, &out, "3");
+    let stop = h.path("stop-second");
+    let second = racer(&stop);
+    std::thread::sleep(Duration::from_millis(1500));
+    assert_eq!(opened(second, &stop), 0, "the other user opened the run's global segment");
+    let status = h.wait_all(LIMIT);
+    assert!(status[run].success(), "{}", h.stderr_of(run));
+    assert_eq!(json(&out.join("summary.json"))["completed"], true);
+    h.assert_no_leftovers();
+}
+
+fn lockstep_run(h: &Harness, out: &Path) -> Output {
+    h.rotorloop(
+        &[
+            "run",
+            "--scenario",
+            "paper-zero",
+            "--duration",
+            "0.2",
+            "--mode",
+            "lockstep",
+            "--quiet",
+            "--domain",
+            &h.domain,
+            "--out",
+            out.to_str().expect("utf8"),
+        ],
+        LIMIT,
+    )
 }

@@ -61,9 +61,8 @@ pub fn user_name(uid: u32) -> String {
     // SAFETY: getpwuid_r writes into `pw` and `buf` (its length given), both live here.
     let mut pw: libc::passwd = unsafe { std::mem::zeroed() };
     let mut found: *mut libc::passwd = std::ptr::null_mut();
-    let rc = unsafe {
-        libc::getpwuid_r(uid, &mut pw, buf.as_mut_ptr().cast(), buf.len(), &mut found)
-    };
+    let rc =
+        unsafe { libc::getpwuid_r(uid, &mut pw, buf.as_mut_ptr().cast(), buf.len(), &mut found) };
     if rc != 0 || found.is_null() || pw.pw_name.is_null() {
         return format!("uid {uid}");
     }
@@ -107,10 +106,13 @@ pub fn check(path: &Path, meta: &Metadata, dir: bool) -> Result<(), Foreign> {
 /// Makes directory `path` (mode 0700), or uses it if it is already this user's own
 /// private directory. A directory of this user's with group or other bits (made by an
 /// older build) is made private: only its own user could have put anything in it.
-/// The parent must exist; `path` must not end in `/` (the system would follow a link in
-/// its place).
+/// The parent must exist. A trailing `/` is dropped (with it the system would follow a
+/// link in the directory's place).
 pub fn dir(path: &Path) -> Result<(), PrivateError> {
-    debug_assert!(!path.as_os_str().as_encoded_bytes().ends_with(b"/"), "{}", path.display());
+    use std::os::unix::ffi::OsStrExt;
+    let bytes = path.as_os_str().as_bytes();
+    let end = bytes.iter().rposition(|&b| b != b'/').map_or(bytes.len().min(1), |i| i + 1);
+    let path = Path::new(std::ffi::OsStr::from_bytes(&bytes[..end]));
     match std::fs::DirBuilder::new().mode(0o700).create(path) {
         Ok(()) => {}
         Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => {}
@@ -165,10 +167,9 @@ pub fn open_file(path: &Path) -> Result<Option<File>, PrivateError> {
         // O_NOFOLLOW on a link: ELOOP. Anything we may not open: say whose it is.
         Err(e) => {
             return match std::fs::symlink_metadata(path) {
-                Ok(meta) => Err(check(path, &meta, false).err().map_or_else(
-                    || PrivateError::io(path, e),
-                    PrivateError::Foreign,
-                )),
+                Ok(meta) => Err(check(path, &meta, false)
+                    .err()
+                    .map_or_else(|| PrivateError::io(path, e), PrivateError::Foreign)),
                 Err(_) => Err(PrivateError::io(path, e)),
             };
         }
@@ -199,9 +200,8 @@ pub fn write_new(path: &Path, bytes: &[u8]) -> Result<(), PrivateError> {
     use std::io::Write;
     let Some(mut f) = create_file(path)? else {
         let meta = std::fs::symlink_metadata(path).map_err(|e| PrivateError::io(path, e))?;
-        let why = check(path, &meta, false)
-            .err()
-            .map_or_else(|| "already exists".to_owned(), |f| f.why);
+        let why =
+            check(path, &meta, false).err().map_or_else(|| "already exists".to_owned(), |f| f.why);
         return Err(Foreign { path: path.to_path_buf(), why }.into());
     };
     f.write_all(bytes).map_err(|e| PrivateError::io(path, e))
@@ -215,9 +215,7 @@ pub fn random_name(len: usize) -> String {
     let mut filled = 0;
     while filled < len {
         // SAFETY: writes at most len - filled bytes into the buffer's tail.
-        let n = unsafe {
-            libc::getrandom(bytes[filled..].as_mut_ptr().cast(), len - filled, 0)
-        };
+        let n = unsafe { libc::getrandom(bytes[filled..].as_mut_ptr().cast(), len - filled, 0) };
         if n > 0 {
             filled += n as usize;
         } else if std::io::Error::last_os_error().kind() != std::io::ErrorKind::Interrupted {
@@ -246,6 +244,7 @@ mod tests {
         let d = std::env::temp_dir().join(format!("rl-private-{}-{name}", std::process::id()));
         let _ = std::fs::remove_dir_all(&d);
         std::fs::create_dir(&d).expect("scratch");
+        std::fs::set_permissions(&d, std::fs::Permissions::from_mode(0o755)).expect("chmod");
         d
     }
 
@@ -292,10 +291,14 @@ mod tests {
         assert_eq!(mode, 0o700);
         dir(&d.join("private")).expect("ours again");
         std::os::unix::fs::symlink(&d, d.join("link")).expect("link");
-        match dir(&d.join("link")) {
-            Err(PrivateError::Foreign(f)) => assert!(f.why.contains("symbolic link"), "{f}"),
-            other => panic!("a link was taken for a directory: {other:?}"),
+        for link in [d.join("link"), d.join("link/")] {
+            match dir(&link) {
+                Err(PrivateError::Foreign(f)) => assert!(f.why.contains("symbolic link"), "{f}"),
+                other => panic!("a link was taken for a directory: {other:?}"),
+            }
         }
+        let mode = std::fs::metadata(&d).expect("meta").permissions().mode() & 0o777;
+        assert_eq!(mode, 0o755, "the link's target was changed");
         std::fs::remove_dir_all(&d).expect("clean");
     }
 

@@ -17,7 +17,7 @@ use iceoryx2::prelude::ZeroCopySend;
 
 use crate::ipc::IpcError;
 use crate::ipc::domain::Domain;
-use crate::wire::LAYOUT_VERSION;
+use crate::wire::{LAYOUT_VERSION, StateSample};
 
 const MAGIC: u64 = 0x726c_7265_7375_6d65; // "rlresume"
 const HEADER: usize = 64;
@@ -145,6 +145,69 @@ impl<T: Copy + ZeroCopySend> ResumeSlot<T> {
     }
 }
 
+impl<T: Copy + ZeroCopySend + Resumable> ResumeSlot<T> {
+    /// The last sample stored, if a run of `ticks` ticks can continue from it
+    /// ([`Resumable`]). One it cannot is forgotten (the role starts as a fresh one would)
+    /// and `Err` says why, for the role to say and the launcher to list.
+    pub fn load_checked(&self, ticks: u64) -> Result<Option<T>, String> {
+        let Some(v) = self.load() else { return Ok(None) };
+        match v.resume_fault(ticks) {
+            None => Ok(Some(v)),
+            Some(why) => {
+                self.clear();
+                Err(why)
+            }
+        }
+    }
+}
+
+/// What a role checks in its slot before it continues from it: like a received sample
+/// (finite, plausible magnitudes, an attitude on SO(3)), and a tick within the run. A
+/// slot is written only by its role's own user (owner-only, `crate::private`); this
+/// guards the loop against a slot damaged all the same (a same-user process, a bug).
+pub trait Resumable {
+    /// Why a run of `ticks` ticks cannot continue from this stored value (`None`: it can).
+    fn resume_fault(&self, ticks: u64) -> Option<String>;
+}
+
+/// The first of `fields` that is not finite or beyond ±`limit`, named.
+pub fn unusable_field(fields: &[(&str, &[f64])], limit: f64) -> Option<String> {
+    fields.iter().find_map(|(name, v)| {
+        v.iter()
+            .find(|x| !x.is_finite() || x.abs() > limit)
+            .map(|x| format!("{name} has {x:e} (allowed: finite, within ±{limit:e})"))
+    })
+}
+
+impl Resumable for StateSample {
+    fn resume_fault(&self, ticks: u64) -> Option<String> {
+        if self.tick > ticks {
+            return Some(format!("tick {} is beyond the run's last tick {ticks}", self.tick));
+        }
+        if let Err(f) = self.validate() {
+            return Some(f.to_string());
+        }
+        let applied_ok = self.applied_torque_tick == crate::wire::NO_TICK
+            || self.applied_torque_tick <= self.tick;
+        if !applied_ok {
+            let (a, k) = (self.applied_torque_tick, self.tick);
+            return Some(format!("applied_torque_tick {a} is after the state's tick {k}"));
+        }
+        unusable_field(
+            &[
+                ("t_s", &[self.t_s]),
+                ("internal_h", &self.internal_h),
+                ("internal_p", &self.internal_p),
+                ("theta_rotor_rad", &self.theta_rotor_rad),
+                ("applied_rotor_torque_nm", &self.applied_rotor_torque_nm),
+                ("applied_body_torque_nm", &self.applied_body_torque_nm),
+                ("rotor_work_j", &[self.rotor_work_j]),
+            ],
+            1e12,
+        )
+    }
+}
+
 impl<T: Copy + ZeroCopySend> Drop for ResumeSlot<T> {
     fn drop(&mut self) {
         // SAFETY: unmaps what open() mapped.
@@ -168,6 +231,33 @@ pub fn remove_slots(domain: &Domain) {
 mod tests {
     use super::*;
     use crate::wire::TorqueSample;
+
+    #[test]
+    fn a_damaged_state_is_refused_and_forgotten_and_a_good_one_kept() {
+        use crate::wire::StateSample;
+        let domain = Domain::new(&format!("slotchk{}", std::process::id())).expect("domain");
+        let slot = ResumeSlot::<StateSample>::open(&domain, "plant").expect("open");
+        // SAFETY: plain old data of f64 and u64 fields, valid all zero.
+        let mut good: StateSample = unsafe { std::mem::zeroed() };
+        good.tick = 10;
+        good.r_row_major = [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0];
+        good.applied_torque_tick = 9;
+        slot.store(&good);
+        assert_eq!(slot.load_checked(100).map(|s| s.map(|s| s.tick)), Ok(Some(10)));
+        let mut damaged = [good; 4];
+        damaged[0].r_row_major[0] = 2.0; // off SO(3)
+        damaged[1].internal_h[1] = f64::NAN;
+        damaged[2].tick = 101; // beyond the run
+        damaged[3].applied_torque_tick = 11; // a torque from the future
+        for (d, want) in damaged.iter().zip(["rotation", "internal_h", "beyond", "after"]) {
+            slot.store(d);
+            let why = slot.load_checked(100).expect_err("refused");
+            assert!(why.contains(want), "{why}");
+            assert!(slot.load().is_none(), "a refused state is forgotten");
+        }
+        drop(slot);
+        remove_slots(&domain);
+    }
 
     #[test]
     fn a_slot_returns_the_last_stored_sample_across_reopen() {

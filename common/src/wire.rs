@@ -12,6 +12,7 @@
 use glam::{DMat3, DVec3};
 use iceoryx2::prelude::ZeroCopySend;
 
+use crate::ipc::REFERENCE_LEAD;
 use crate::params::{ReferenceState, RotorBodyState};
 use crate::so3::{from_rows, to_row_major};
 
@@ -402,15 +403,25 @@ pub enum WireFault {
         /// `max(max |RᵀR − I|, |det R − 1|)`.
         deviation: f64,
     },
+    /// A tick the loop has not reached ([`TickBound`]).
+    FutureTick {
+        /// The field.
+        field: &'static str,
+        /// The sample's tick.
+        tick: u64,
+        /// The newest tick accepted.
+        allowed: u64,
+    },
 }
 
 impl WireFault {
-    /// Short name of the kind: `non-finite`, `absurd` or `non-orthonormal`.
+    /// Short name of the kind: `non-finite`, `absurd`, `non-orthonormal` or `future-tick`.
     pub fn kind(&self) -> &'static str {
         match self {
             Self::NonFinite { .. } => "non-finite",
             Self::Absurd { .. } => "absurd",
             Self::NotOrthonormal { .. } => "non-orthonormal",
+            Self::FutureTick { .. } => "future-tick",
         }
     }
 
@@ -419,7 +430,8 @@ impl WireFault {
         match self {
             Self::NonFinite { field }
             | Self::Absurd { field, .. }
-            | Self::NotOrthonormal { field, .. } => field,
+            | Self::NotOrthonormal { field, .. }
+            | Self::FutureTick { field, .. } => field,
         }
     }
 }
@@ -434,6 +446,10 @@ impl std::fmt::Display for WireFault {
             Self::NotOrthonormal { field, deviation } => write!(
                 f,
                 "{field} is not a rotation (deviation {deviation:e}, allowed {WIRE_ORTHONORMAL_TOL:e})"
+            ),
+            Self::FutureTick { field, tick, allowed } => write!(
+                f,
+                "{field} is {tick}, a tick the loop has not reached (accepted up to {allowed})"
             ),
         }
     }
@@ -501,6 +517,13 @@ impl ReferenceSample {
         check_entries("reference.internal_h", &self.internal_h, MAX_WIRE_ACCUMULATED)?;
         check_entries("reference.internal_p", &self.internal_p, MAX_WIRE_ACCUMULATED)
     }
+
+    /// Checks the tick against the newest state the plant has published: the reference
+    /// runs at most [`REFERENCE_LEAD`] ticks ahead of it ([`TickBound`]).
+    #[inline]
+    pub fn check_tick(&self, newest_state: u64) -> Result<(), WireFault> {
+        check_tick("reference.tick", self.tick, newest_state.saturating_add(REFERENCE_LEAD))
+    }
 }
 
 impl TorqueSample {
@@ -522,6 +545,104 @@ impl TorqueSample {
     #[inline]
     pub fn computed(&self) -> bool {
         self.flags & TORQUE_SKIPPED == 0
+    }
+
+    /// Checks the tick against the newest state the plant has published: a torque answers
+    /// a state, so its tick is at most that state's ([`TickBound`]).
+    #[inline]
+    pub fn check_tick(&self, newest_state: u64) -> Result<(), WireFault> {
+        check_tick("torque.tick", self.tick, newest_state)
+    }
+}
+
+#[inline]
+fn check_tick(field: &'static str, tick: u64, allowed: u64) -> Result<(), WireFault> {
+    match tick <= allowed {
+        true => Ok(()),
+        false => Err(WireFault::FutureTick { field, tick, allowed }),
+    }
+}
+
+/// The tick rule: a receiver refuses a torque or a reference for a tick the loop has not
+/// reached. A torque answers a state the plant has published, so its tick is at most the
+/// newest state's; the reference publishes at most [`REFERENCE_LEAD`] ticks ahead of the
+/// newest state. Accepted, a sample beyond would be "the newest" for ever after and every
+/// true one after it "older" (one valid zero torque for tick 10¹² silenced control for the
+/// rest of a run). It is rejected ([`WireFault::FutureTick`]), counted, and not counted as
+/// received (its tick would make every tick before it a loss). An older tick is no fault:
+/// each receiver has its rule for those (the plant ignores a torque older than the one in
+/// force).
+///
+/// The plant knows its newest state exactly ([`TorqueSample::check_tick`] with the tick it
+/// waits for). Another receiver knows the newest state it has taken, which may be behind
+/// the plant's (a torque taken before its state; the reference saw a newer state than the
+/// controller has): a sample beyond that is checked again against the newest state the
+/// plant has **published** (`published`: its resume slot, stored just before each state
+/// is published, so no true sample is beyond it), read only then, off the common path.
+/// Where this host has none (`None`: the other host of a split run, or before the plant's
+/// first state) the run's last tick stands in, and only ticks the run never reaches are
+/// refused.
+#[derive(Debug, Clone, Copy)]
+pub struct TickBound {
+    newest: u64,
+    last: u64,
+}
+
+impl TickBound {
+    /// No state seen yet (tick 0 stands in), in a run whose last tick is `last`.
+    pub fn new(last: u64) -> Self {
+        Self { newest: 0, last }
+    }
+
+    /// A state of tick `tick` was taken (or resumed from).
+    #[inline]
+    pub fn saw_state(&mut self, tick: u64) {
+        self.newest = self.newest.max(tick);
+    }
+
+    /// The newest state tick known.
+    pub fn newest(&self) -> u64 {
+        self.newest
+    }
+
+    /// Checks torque `t`'s tick; `published` is asked only when it is beyond the newest
+    /// state known.
+    #[inline]
+    pub fn torque(
+        &mut self,
+        t: &TorqueSample,
+        published: impl FnOnce() -> Option<u64>,
+    ) -> Result<(), WireFault> {
+        self.check(|n| t.check_tick(n), published)
+    }
+
+    /// Checks reference `r`'s tick; `published` is asked only when it is beyond the newest
+    /// state known and its lead.
+    #[inline]
+    pub fn reference(
+        &mut self,
+        r: &ReferenceSample,
+        published: impl FnOnce() -> Option<u64>,
+    ) -> Result<(), WireFault> {
+        self.check(|n| r.check_tick(n), published)
+    }
+
+    #[inline]
+    fn check(
+        &mut self,
+        rule: impl Fn(u64) -> Result<(), WireFault>,
+        published: impl FnOnce() -> Option<u64>,
+    ) -> Result<(), WireFault> {
+        if rule(self.newest).is_ok() {
+            return Ok(());
+        }
+        match published() {
+            Some(p) => {
+                self.saw_state(p);
+                rule(self.newest)
+            }
+            None => rule(self.newest.max(self.last)),
+        }
     }
 }
 
@@ -590,6 +711,52 @@ mod tests {
         assert_eq!(t3.validate(1e6), Err(WireFault::NonFinite { field: "torque.body_torque" }));
         assert!(t.computed());
         assert!(!TorqueSample { flags: TORQUE_SKIPPED, ..t }.computed());
+    }
+
+    #[test]
+    fn a_tick_the_loop_has_not_reached_is_refused_naming_the_field_and_what_is_accepted() {
+        let t = |tick| TorqueSample { tick, ..Default::default() };
+        assert_eq!(t(10).check_tick(10), Ok(()), "the answer to the newest state");
+        assert_eq!(t(3).check_tick(10), Ok(()), "an older one is the receiver's business");
+        let e = t(1_000_000_000_000).check_tick(10).expect_err("future");
+        assert_eq!((e.kind(), e.field()), ("future-tick", "torque.tick"));
+        assert_eq!(
+            e.to_string(),
+            "torque.tick is 1000000000000, a tick the loop has not reached (accepted up to 10)"
+        );
+        let r = ReferenceSample::zeroed;
+        assert_eq!(r(10 + REFERENCE_LEAD).check_tick(10), Ok(()), "the reference's lead");
+        let e = r(11 + REFERENCE_LEAD).check_tick(10).expect_err("beyond the lead");
+        assert_eq!(e, WireFault::FutureTick { field: "reference.tick", tick: 27, allowed: 26 });
+        assert_eq!(r(u64::MAX).check_tick(u64::MAX), Ok(()), "no overflow");
+    }
+
+    #[test]
+    fn the_tick_bound_asks_what_the_plant_published_only_beyond_the_newest_state_known() {
+        let t = |tick| TorqueSample { tick, ..Default::default() };
+        let never = || -> Option<u64> { panic!("asked on the common path") };
+        let mut b = TickBound::new(1000);
+        assert_eq!(b.torque(&t(0), never), Ok(()), "start-up: tick 0");
+        assert_eq!(b.reference(&ReferenceSample::zeroed(REFERENCE_LEAD), never), Ok(()));
+        b.saw_state(5);
+        assert_eq!(b.torque(&t(5), never), Ok(()));
+        // Taken before its state: the plant's slot says state 7 is out.
+        assert_eq!(b.torque(&t(7), || Some(7)), Ok(()));
+        assert_eq!(b.newest(), 7);
+        assert_eq!(b.torque(&t(7), never), Ok(()), "remembered");
+        let far = b.torque(&t(1_000_000_000_000), || Some(8)).expect_err("future");
+        assert_eq!(far.kind(), "future-tick");
+        assert_eq!(b.newest(), 8);
+        // No plant on this host: only ticks beyond the run's last are refused, and the
+        // stand-in is not remembered.
+        assert_eq!(b.torque(&t(1000), || None), Ok(()));
+        assert_eq!(b.newest(), 8);
+        assert_eq!(
+            b.torque(&t(1001), || None),
+            Err(WireFault::FutureTick { field: "torque.tick", tick: 1001, allowed: 1000 })
+        );
+        b.saw_state(3);
+        assert_eq!(b.newest(), 8, "an older state does not move it back");
     }
 
     #[test]

@@ -3,11 +3,14 @@
 //!
 //! - [`ReferencePairing`] pairs each state with the reference sample of the same tick,
 //!   kept in a ring (the reference is published ahead). A rejected reference is counted
-//!   and marks its tick. When tick `k`'s reference is missing (counted as a reference
-//!   miss): in lockstep the shell waits for it (unless it was rejected); then, or at once
-//!   in real time, the last good reference is held and propagated
-//!   (`R_d ← R_d exp(Δt Ω_d)`, `Ω_d` and `Ω̇_d` held) for at most `hold_ticks` ticks;
-//!   beyond that, or with no reference yet, there is nothing to track.
+//!   and marks its tick; one for a tick beyond the newest state and the reference's lead
+//!   (the tick rule, [`TickBound`]) is counted and leaves the ring alone: its entry is a
+//!   true reference's, which it would displace (in lockstep the controller then waited
+//!   for a reference that had come already). When tick `k`'s reference is missing
+//!   (counted as a reference miss): in lockstep the shell waits for it (unless it was
+//!   rejected); then, or at once in real time, the last good reference is held and
+//!   propagated (`R_d ← R_d exp(Δt Ω_d)`, `Ω_d` and `Ω̇_d` held) for at most `hold_ticks`
+//!   ticks; beyond that, or with no reference yet, there is nothing to track.
 //! - [`TorqueAnswers`] decides what each state gets: the newest state taken is answered
 //!   and older ones in the same batch are counted skipped; a state already answered (a
 //!   restarted plant re-publishes its last one) gets the same answer again, never a second
@@ -22,7 +25,8 @@ use rotorloop_common::params::ReferenceState;
 use rotorloop_common::role::count::SeqCounter;
 use rotorloop_common::so3::exp;
 use rotorloop_common::wire::{
-    FLAG_LAST, NO_TICK, ReferenceSample, StateSample, TORQUE_SKIPPED, TorqueSample, WireFault,
+    FLAG_LAST, NO_TICK, ReferenceSample, StateSample, TORQUE_SKIPPED, TickBound, TorqueSample,
+    WireFault,
 };
 
 use crate::law::{AnyLaw, Law, LawState};
@@ -58,6 +62,7 @@ enum RefEntry {
 #[derive(Debug, Clone)]
 pub struct ReferencePairing {
     ring: Vec<RefEntry>,
+    ticks: TickBound,
     last: Option<ReferenceSample>,
     held: u64,
     hold_ticks: u64,
@@ -75,10 +80,12 @@ pub fn propagate(r: &ReferenceSample, k: u64, dt: f64) -> ReferenceState {
 }
 
 impl ReferencePairing {
-    /// Holds a missing reference for at most `hold_ticks` ticks of `dt` seconds.
-    pub fn new(hold_ticks: u64, dt: f64) -> Self {
+    /// Holds a missing reference for at most `hold_ticks` ticks of `dt` seconds, in a run
+    /// whose last tick is `last`.
+    pub fn new(hold_ticks: u64, dt: f64, last: u64) -> Self {
         Self {
             ring: vec![RefEntry::Empty; RING],
+            ticks: TickBound::new(last),
             last: None,
             held: 0,
             hold_ticks,
@@ -91,10 +98,22 @@ impl ReferencePairing {
     /// Continues the counts of a killed predecessor, from its last answer `t`.
     pub fn resume(&mut self, t: &TorqueSample) {
         (self.misses, self.rejected) = (t.reference_misses, t.references_rejected);
+        self.ticks.saw_state(t.tick);
     }
 
-    /// A reference sample arrived: validated, stored by tick (or marked rejected).
-    pub fn take(&mut self, r: ReferenceSample) {
+    /// The state of tick `k` was taken: the tick rule's newest state known.
+    pub fn saw_state(&mut self, k: u64) {
+        self.ticks.saw_state(k);
+    }
+
+    /// A reference sample arrived: its tick checked (the tick rule; `published` says the
+    /// newest state the plant has published, asked only for a tick beyond the newest state
+    /// taken and the lead), validated, stored by tick (or marked rejected).
+    pub fn take(&mut self, r: ReferenceSample, published: impl FnOnce() -> Option<u64>) {
+        if self.ticks.reference(&r, published).is_err() {
+            self.rejected += 1;
+            return;
+        }
         self.ring[r.tick as usize % RING] = match r.validate() {
             Ok(()) => RefEntry::Valid(r),
             Err(_) => {
@@ -121,6 +140,7 @@ impl ReferencePairing {
     /// Missing for a valid state, it is counted as a reference miss; the caller may then
     /// wait for it (lockstep) before [`Self::finish`].
     pub fn begin(&mut self, k: u64, state_ok: bool) -> Option<ReferenceSample> {
+        self.saw_state(k);
         let r = self.lookup(k);
         if r.is_none() && state_ok {
             self.misses += 1;
@@ -417,15 +437,42 @@ impl DelayedSends {
     }
 }
 
+impl rotorloop_common::resume::Resumable for ControllerResume {
+    /// The last answer is of a tick within the run, and it and the law's state are finite
+    /// and plausible (±1e6, the wire's bound on torques and rates).
+    fn resume_fault(&self, ticks: u64) -> Option<String> {
+        if self.last.tick >= ticks {
+            let k = self.last.tick;
+            return Some(format!("last.tick {k} is not before the run's last tick {ticks}"));
+        }
+        rotorloop_common::resume::unusable_field(
+            &[
+                ("last.rotor_torque_nm", &self.last.rotor_torque_nm),
+                ("last.body_torque_nm", &self.last.body_torque_nm),
+                ("law", &self.law),
+            ],
+            1e6,
+        )
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
     use crate::law::geometric_pid::GeometricPid;
     use glam::DMat3;
+    use rotorloop_common::ipc::REFERENCE_LEAD;
     use rotorloop_common::scenario::Scenario;
     use rotorloop_common::so3::to_row_major;
 
     const DT: f64 = 1e-3;
+    /// The run's last tick.
+    const LAST: u64 = 1000;
+
+    /// What a host without the plant knows of the states it has published.
+    fn no_plant() -> Option<u64> {
+        None
+    }
 
     fn reference(tick: u64, omega: f64) -> ReferenceSample {
         ReferenceSample {
@@ -445,17 +492,17 @@ mod tests {
 
     #[test]
     fn a_state_pairs_with_the_reference_of_its_own_tick() {
-        let mut p = ReferencePairing::new(10, DT);
-        p.take(reference(3, 0.5));
-        p.take(reference(4, 0.7));
+        let mut p = ReferencePairing::new(10, DT, LAST);
+        p.take(reference(3, 0.5), no_plant);
+        p.take(reference(4, 0.7), no_plant);
         assert_eq!(pair(&mut p, 4).expect("paired").omega_d.z, 0.7);
         assert_eq!(p.misses(), 0);
     }
 
     #[test]
     fn a_missing_reference_is_held_and_propagated_for_at_most_hold_ticks() {
-        let mut p = ReferencePairing::new(2, DT);
-        p.take(reference(0, 2.0));
+        let mut p = ReferencePairing::new(2, DT, LAST);
+        p.take(reference(0, 2.0), no_plant);
         pair(&mut p, 0).expect("tick 0");
         let rd = pair(&mut p, 3).expect("propagated");
         let expected = exp(3.0 * DT * glam::DVec3::new(0.0, 0.0, 2.0));
@@ -465,34 +512,64 @@ mod tests {
         assert!(pair(&mut p, 5).is_none(), "beyond the hold: nothing to track");
         assert_eq!(p.misses(), 3);
         // A fresh reference ends the hold and resets it.
-        p.take(reference(6, 1.0));
+        p.take(reference(6, 1.0), no_plant);
         assert_eq!(pair(&mut p, 6).expect("fresh").omega_d.z, 1.0);
         assert!(pair(&mut p, 7).is_some(), "the hold counts afresh");
     }
 
     #[test]
     fn with_no_reference_yet_there_is_nothing_to_track() {
-        let mut p = ReferencePairing::new(1000, DT);
+        let mut p = ReferencePairing::new(1000, DT, LAST);
         assert!(pair(&mut p, 0).is_none());
         assert_eq!(p.misses(), 1);
     }
 
     #[test]
     fn a_rejected_reference_is_counted_and_marks_its_tick() {
-        let mut p = ReferencePairing::new(1000, DT);
-        p.take(reference(0, 1.0));
+        let mut p = ReferencePairing::new(1000, DT, LAST);
+        p.take(reference(0, 1.0), no_plant);
         pair(&mut p, 0);
         let mut bad = reference(1, 1.0);
         bad.omega_d_rad_s[0] = f64::NAN;
-        p.take(bad);
+        p.take(bad, no_plant);
         assert!(p.rejected_at(1) && !p.rejected_at(2));
         assert_eq!(p.rejected(), 1);
         assert!(pair(&mut p, 1).is_some(), "the last good reference is propagated instead");
     }
 
+    /// Issue 42: a reference for a far tick took the ring entry of a true one already
+    /// there (`tick mod RING`), and a lockstep controller waited for it for ever.
+    #[test]
+    fn a_reference_beyond_the_lead_is_rejected_counted_and_displaces_none() {
+        let mut p = ReferencePairing::new(1000, DT, LAST);
+        let plant_at = |k: u64| move || Some(k);
+        for k in 0..=REFERENCE_LEAD {
+            p.take(reference(k, 1.0), plant_at(0));
+        }
+        let far = reference(REFERENCE_LEAD + 256 * 3_906_250_000, 9.0);
+        assert_eq!(far.tick as usize % RING, REFERENCE_LEAD as usize % RING, "the same entry");
+        p.take(far, plant_at(0));
+        p.take(reference(REFERENCE_LEAD + 1, 1.0), plant_at(0));
+        assert_eq!(p.rejected(), 2, "beyond the newest state (0) and the lead");
+        assert!(!p.rejected_at(REFERENCE_LEAD), "a true tick is not marked");
+        assert_eq!(p.lookup(REFERENCE_LEAD).map(|r| r.omega_d_rad_s[2]), Some(1.0), "kept");
+        // The reference saw a state the controller has not taken yet: the plant's slot
+        // says it is out, and the reference is taken.
+        p.take(reference(REFERENCE_LEAD + 1, 1.0), plant_at(1));
+        assert!(p.lookup(REFERENCE_LEAD + 1).is_some());
+        assert_eq!(p.rejected(), 2);
+        // Pairing a tick moves the bound with it.
+        assert!(pair(&mut p, 5).is_some());
+        p.take(reference(5 + REFERENCE_LEAD, 1.0), || panic!("not asked within the lead"));
+        // No plant on this host: only what the run never reaches is refused.
+        p.take(reference(LAST, 1.0), no_plant);
+        p.take(reference(LAST + REFERENCE_LEAD + 1, 1.0), no_plant);
+        assert_eq!(p.rejected(), 3);
+    }
+
     #[test]
     fn a_rejected_state_does_not_count_a_reference_miss() {
-        let mut p = ReferencePairing::new(1000, DT);
+        let mut p = ReferencePairing::new(1000, DT, LAST);
         assert!(p.begin(0, false).is_none());
         assert_eq!(p.misses(), 0);
     }
@@ -510,7 +587,7 @@ mod tests {
     #[test]
     fn a_state_already_answered_gets_the_same_answer_again() {
         let (mut a, s0) = answers();
-        let p = ReferencePairing::new(10, DT);
+        let p = ReferencePairing::new(10, DT, LAST);
         let rd = reference(0, 0.1).reference_state();
         assert_eq!(a.decide(&s0), Decision::Answer { fault: None, first_rejection: false });
         let first = a.answer(&s0, 5, Some(&rd), &p, DT);
@@ -525,7 +602,7 @@ mod tests {
     #[test]
     fn a_rejected_state_gets_a_skipped_answer_with_the_integral_untouched() {
         let (mut a, s0) = answers();
-        let p = ReferencePairing::new(10, DT);
+        let p = ReferencePairing::new(10, DT, LAST);
         let rd = reference(0, 0.1).reference_state();
         let t0 = a.answer(&s0, 0, Some(&rd), &p, DT);
         let law_before = a.resume_record(&t0).law;
@@ -548,8 +625,13 @@ mod tests {
         for (i, k) in [3u64, 4, 6].iter().enumerate() {
             a.take(&StateSample { tick: *k, ..s0 }, i > 0);
         }
-        let t =
-            a.answer(&StateSample { tick: 6, ..s0 }, 0, None, &ReferencePairing::new(1, DT), DT);
+        let t = a.answer(
+            &StateSample { tick: 6, ..s0 },
+            0,
+            None,
+            &ReferencePairing::new(1, DT, LAST),
+            DT,
+        );
         assert_eq!(
             (t.states_received, t.states_lost, t.states_skipped),
             (3, 4, 2),
@@ -564,7 +646,7 @@ mod tests {
         assert_eq!(a.decide(&StateSample { tick: 2, ..s0 }), Decision::Ignore);
         let last = StateSample { tick: 2, flags: FLAG_LAST, ..s0 };
         assert!(matches!(a.decide(&last), Decision::Answer { .. }));
-        let t = a.answer(&last, 0, None, &ReferencePairing::new(1, DT), DT);
+        let t = a.answer(&last, 0, None, &ReferencePairing::new(1, DT, LAST), DT);
         assert_eq!(t.states_skipped, 1);
     }
 
@@ -593,7 +675,7 @@ mod tests {
     #[test]
     fn a_restart_resumes_the_integral_state_bumplessly() {
         let (mut a, s0) = answers();
-        let p = ReferencePairing::new(10, DT);
+        let p = ReferencePairing::new(10, DT, LAST);
         let rd = reference(0, 0.1).reference_state();
         let mut last = a.answer(&s0, 0, Some(&rd), &p, DT);
         for k in 1..5 {

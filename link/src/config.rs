@@ -12,7 +12,10 @@
 //! - **Direction.** `--read-only` (a remote monitor or ground station): the session may
 //!   put nothing (Zenoh access control, egress `put` and `delete` denied on every key),
 //!   so no sample or event of this host ever enters the loop; it still receives
-//!   everything the loop exports.
+//!   everything the loop exports. The rule is this gateway's own: it keeps this host out
+//!   of the loop, not another gateway that holds the same password.
+//! - **Secrets.** A users or password file that others than its owner may read or write is
+//!   used, with a warning naming the file and its mode ([`loose_secret_files`]).
 
 use std::path::PathBuf;
 
@@ -127,7 +130,7 @@ fn json_list(items: &[String]) -> String {
 
 /// The endpoints at `key` (`listen/endpoints`, `connect/endpoints`) of a configuration:
 /// a list, or a map of lists by mode.
-fn endpoints(config: &zenoh::Config, key: &str) -> Vec<String> {
+pub fn endpoints(config: &zenoh::Config, key: &str) -> Vec<String> {
     let Ok(text) = config.get_json(key) else { return Vec::new() };
     let value: serde_json::Value = serde_json::from_str(&text).unwrap_or_default();
     let mut out = Vec::new();
@@ -153,6 +156,55 @@ fn authenticates(config: &zenoh::Config) -> bool {
     set("transport/auth/usrpwd/dictionary_file")
         || (set("transport/auth/usrpwd/user") && set("transport/auth/usrpwd/password"))
         || mtls
+}
+
+/// The files that hold a secret of the session: the users dictionary (`--users` or a
+/// `--zenoh` file's `dictionary_file`), `--password-file`, and a `--zenoh` file that
+/// holds a password itself.
+fn secret_files(args: &LinkArgs, config: &zenoh::Config) -> Vec<(&'static str, PathBuf)> {
+    let mut out = Vec::new();
+    let dictionary = config.get_json("transport/auth/usrpwd/dictionary_file").ok();
+    let dictionary = dictionary.and_then(|v| serde_json::from_str::<String>(&v).ok());
+    match (&args.users, dictionary) {
+        (Some(users), _) => out.push(("--users", users.clone())),
+        (None, Some(d)) if !d.is_empty() => out.push(("the users file", PathBuf::from(d))),
+        _ => {}
+    }
+    if let Some(file) = &args.password_file {
+        out.push(("--password-file", file.clone()));
+    } else if let Some(file) = &args.zenoh {
+        let password = config.get_json("transport/auth/usrpwd/password");
+        if password.is_ok_and(|v| v != "null" && v != "\"\"") {
+            out.push(("--zenoh (it holds a password)", file.clone()));
+        }
+    }
+    out
+}
+
+/// A warning for each file holding a secret of the session (the users dictionary, the
+/// password) that others than its owner may read or write, naming the file and its mode:
+/// whoever reads it can join the loop as a full peer. The gateway still starts (a file
+/// may be shared on purpose, e.g. through a group).
+pub fn loose_secret_files(args: &LinkArgs, config: &zenoh::Config) -> Vec<String> {
+    use std::os::unix::fs::PermissionsExt;
+    let mut out = Vec::new();
+    for (what, file) in secret_files(args, config) {
+        let Ok(meta) = std::fs::metadata(&file) else { continue };
+        let mode = meta.permissions().mode() & 0o7777;
+        let how = match (mode & 0o044 != 0, mode & 0o022 != 0) {
+            (true, true) => "readable and writable by others than its owner",
+            (true, false) => "readable by others than its owner",
+            (false, true) => "writable by others than its owner",
+            (false, false) => continue,
+        };
+        out.push(format!(
+            "{what} {} (mode {mode:04o}) is {how}: whoever can read it can join the loop; \
+             make it 0600 (chmod 600 {})",
+            file.display(),
+            file.display()
+        ));
+    }
+    out
 }
 
 /// The access control of a read-only gateway: nothing leaves this session as data.
@@ -316,6 +368,43 @@ mod tests {
         };
         let c = zenoh_config(&a).expect("allowed");
         assert_eq!(c.get_json("transport/auth/usrpwd/password").expect("set"), "\"secret\"");
+    }
+
+    /// Issue 42: a users or password file that others may read is named, with its mode;
+    /// the same files at 0600 give no warning.
+    #[test]
+    fn a_secret_file_others_can_read_is_warned_about_naming_it_and_its_mode() {
+        use std::os::unix::fs::PermissionsExt;
+        let dir = tempfile::tempdir().expect("tempdir");
+        let (users, pw) = (dir.path().join("users"), dir.path().join("pw"));
+        std::fs::write(&users, "ground:secret\n").expect("write");
+        std::fs::write(&pw, "secret\n").expect("write");
+        let chmod = |p: &std::path::Path, m| {
+            std::fs::set_permissions(p, std::fs::Permissions::from_mode(m)).expect("chmod")
+        };
+        let listening = LinkArgs {
+            listen: vec!["tcp/127.0.0.1:7447".into()],
+            users: Some(users.clone()),
+            ..args()
+        };
+        let connecting = LinkArgs {
+            connect: vec!["tcp/127.0.0.1:7447".into()],
+            user: Some("ground".into()),
+            password_file: Some(pw.clone()),
+            ..args()
+        };
+        let warnings = |a: &LinkArgs| loose_secret_files(a, &zenoh_config(a).expect("valid"));
+        for (file, a, mode) in [(&users, &listening, 0o644), (&pw, &connecting, 0o604)] {
+            chmod(file, mode);
+            let w = warnings(a);
+            assert_eq!(w.len(), 1, "{w:?}");
+            let name = file.display().to_string();
+            assert!(w[0].contains(&name) && w[0].contains(&format!("{mode:04o}")), "{}", w[0]);
+            chmod(file, 0o600);
+            assert!(warnings(a).is_empty(), "{:?}", warnings(a));
+        }
+        chmod(&users, 0o620);
+        assert!(warnings(&listening)[0].contains("writable"), "{:?}", warnings(&listening));
     }
 
     #[test]

@@ -43,6 +43,34 @@ fn gateway(domain: &str, host: &str, ready: &Path, extra: &[&str]) -> Gateway {
     Gateway(child)
 }
 
+/// A gateway whose messages (stderr) are collected as they come.
+fn gateway_heard(
+    domain: &str,
+    host: &str,
+    ready: &Path,
+    extra: &[&str],
+) -> (Gateway, std::sync::Arc<std::sync::Mutex<String>>) {
+    use std::io::BufRead;
+    let mut child = Command::new(LINK)
+        .args(["--domain", domain, "--host", host, "--ready-file"])
+        .arg(ready)
+        .args(extra)
+        .stdin(Stdio::null())
+        .stderr(Stdio::piped())
+        .spawn()
+        .expect("start rotorloop-link");
+    let heard = std::sync::Arc::new(std::sync::Mutex::new(String::new()));
+    let (pipe, sink) = (child.stderr.take().expect("piped"), heard.clone());
+    std::thread::spawn(move || {
+        for line in std::io::BufReader::new(pipe).lines().map_while(Result::ok) {
+            let mut s = sink.lock().unwrap_or_else(|e| e.into_inner());
+            s.push_str(&line);
+            s.push('\n');
+        }
+    });
+    (Gateway(child), heard)
+}
+
 fn free_port() -> u16 {
     let l = std::net::TcpListener::bind("127.0.0.1:0").expect("bind");
     l.local_addr().expect("addr").port()
@@ -167,6 +195,53 @@ fn a_peer_without_the_credentials_cannot_connect_or_inject() {
     assert!(in_a > 0 && in_b > 0, "with the credentials samples must cross: {in_a} / {in_b}");
     drop((_a, _b));
     cleanup(&domain);
+}
+
+/// Issue 42: nothing fails silently. A users file that others can read is named with its
+/// mode by the gateway that reads it, and a gateway whose password the other refuses says
+/// that no peer accepted its credentials (Zenoh itself says nothing outside its debug
+/// log); the same pair with the right password says neither (the control).
+#[test]
+fn a_refused_password_and_a_readable_users_file_are_reported() {
+    use std::os::unix::fs::PermissionsExt;
+    let dir = tempfile::tempdir().expect("tempdir");
+    let users = dir.path().join("users");
+    std::fs::write(&users, "loop:s3cret\n").expect("users");
+    std::fs::set_permissions(&users, std::fs::Permissions::from_mode(0o644)).expect("chmod");
+    for (password, refused) in [("guess", true), ("s3cret", false)] {
+        let pw = dir.path().join(password);
+        std::fs::write(&pw, format!("{password}\n")).expect("pw");
+        std::fs::set_permissions(&pw, std::fs::Permissions::from_mode(0o600)).expect("chmod");
+        let domain = format!("lk-said-{refused}-{}", std::process::id());
+        let listen = format!("tcp/127.0.0.1:{}", free_port());
+        let (ra, rb) =
+            (dir.path().join(format!("{refused}a")), dir.path().join(format!("{refused}b")));
+        let users_arg = users.to_str().expect("utf8");
+        let (a, heard_a) =
+            gateway_heard(&domain, "a", &ra, &["--listen", &listen, "--users", users_arg]);
+        let pw_arg = pw.to_str().expect("utf8");
+        let extra = ["--connect", &listen, "--user", "loop", "--password-file", pw_arg];
+        let (b, heard_b) = gateway_heard(&domain, "b", &rb, &extra);
+        let said =
+            |h: &std::sync::Mutex<String>| h.lock().unwrap_or_else(|e| e.into_inner()).clone();
+        let refusal = "no peer accepted our credentials";
+        if refused {
+            let told = wait_for(Duration::from_secs(30), || said(&heard_b).contains(refusal));
+            assert!(told, "a refused password went unsaid:\n{}", said(&heard_b));
+            assert!(!rb.exists(), "a wrong password connected");
+        } else {
+            assert!(wait_for(Duration::from_secs(10), || rb.exists()), "not connected");
+            // Longer than the gateway waits before it speaks of a refusal.
+            std::thread::sleep(Duration::from_secs(6));
+            assert!(!said(&heard_b).contains(refusal), "{}", said(&heard_b));
+        }
+        drop((a, b));
+        let told = said(&heard_a);
+        assert!(told.contains(&format!("--users {users_arg} (mode 0644)")), "{told}");
+        let private = format!("--password-file {pw_arg} (mode");
+        assert!(!said(&heard_b).contains(&private), "0600 is private: {}", said(&heard_b));
+        cleanup(&domain);
+    }
 }
 
 /// A read-only gateway (a remote monitor's host) receives the loop's samples but puts

@@ -9,7 +9,8 @@
 //! its publish and its record) is taken from the plant's record of what it received.
 //!
 //! The live view keeps what only it knows: what the monitor itself received and lost,
-//! its gaps and restarts (the live [`RowJoiner`] handed to [`report`]).
+//! its gaps and restarts, and the rejected samples of no role's record (another
+//! publisher's on a topic) (the live [`RowJoiner`] handed to [`report`]).
 
 use std::path::Path;
 
@@ -104,16 +105,19 @@ pub fn report(
     rec.hosts = hosts.clone();
     let mut joiner = RowJoiner::for_scenario(scenario, start);
     let mut flight = records.summary(dir, ticks);
+    // The records hold each tick's sample in that tick's slot, so none is beyond the run;
+    // no later state says more than the run's last tick (the tick rule's stand-in).
+    let published = || None;
     for k in 0..=ticks + SPARE_SLOTS {
         if let Some(r) = records.references.get(k) {
-            joiner.take_reference(*r);
+            joiner.take_reference(*r, published);
         }
         let torque = records.torques.as_ref().and_then(|t| t.get(k));
         match (torque, records.received.get(k)) {
-            (Some(t), _) => joiner.take_torque(*t),
+            (Some(t), _) => joiner.take_torque(*t, published),
             (None, Some(t)) => {
                 flight.torques_from_plant += 1;
-                joiner.take_torque(*t);
+                joiner.take_torque(*t, published);
             }
             (None, None) => {}
         }
@@ -142,6 +146,7 @@ pub fn report(
         s.monitor_gaps = live.gaps().to_vec();
         s.monitor_restarts = live.restarts();
         s.live_rows_lost = live.rows_lost();
+        crate::report::add_live_rejections(&mut s, live);
     } else {
         s.monitor_kept_up = false;
         s.subscribers.retain(|k, _| !k.starts_with("monitor."));

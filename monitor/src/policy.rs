@@ -7,7 +7,11 @@
 //! The rules:
 //! - Every sample is validated first; a rejected one is counted per topic and recorded
 //!   as a fault event (topic, tick, kind, reason; the first [`MAX_FAULT_EVENTS`]), and a
-//!   row whose state or reference was rejected is never written.
+//!   row whose state or reference was rejected is never written. A torque or reference
+//!   for a tick the loop has not reached (the tick rule, [`TickBound`]: beyond the newest
+//!   state, or beyond it and the reference's lead) is rejected so (`future-tick`), before
+//!   it is counted as received or takes a place in a row: its tick would make every tick
+//!   before it a loss and settle every row as if its torque had come.
 //! - A row needs tick `k`'s state and reference. Its torque is settled when it came, was
 //!   rejected, or will not come: a torque of a later tick (the controller answers the
 //!   newest state and skips older ones under load), [`TORQUE_PATIENCE`] ticks of states
@@ -23,7 +27,9 @@
 
 use iceoryx2::prelude::ZeroCopySend;
 use rotorloop_common::role::count::SeqCounter;
-use rotorloop_common::wire::{FLAG_LAST, ReferenceSample, StateSample, TorqueSample, WireFault};
+use rotorloop_common::wire::{
+    FLAG_LAST, ReferenceSample, StateSample, TickBound, TorqueSample, WireFault,
+};
 use serde::Serialize;
 
 use crate::metrics::METRICS_STATE_LEN;
@@ -94,7 +100,7 @@ pub struct WireFaultEvent {
     pub topic: &'static str,
     /// The sample's tick.
     pub tick: u64,
-    /// `non-finite`, `absurd` or `non-orthonormal`.
+    /// `non-finite`, `absurd`, `non-orthonormal` or `future-tick`.
     pub kind: &'static str,
     /// The reason, naming the field.
     pub detail: String,
@@ -134,6 +140,8 @@ pub struct JoinedRow {
 pub struct RowJoiner {
     ticks: u64,
     absurd_limit: f64,
+    /// The tick rule's newest state known (valid states taken).
+    bound: TickBound,
     slots: Vec<Slot>,
     /// Received and lost per topic: state, reference, torque.
     pub seq: [SeqCounter; 3],
@@ -161,6 +169,7 @@ impl RowJoiner {
         Self {
             ticks,
             absurd_limit,
+            bound: TickBound::new(ticks),
             slots: vec![Slot::default(); RING],
             seq: [SeqCounter::default(); 3],
             rejected: [0; 3],
@@ -256,12 +265,17 @@ impl RowJoiner {
         if let Err(f) = s.validate() {
             return self.fault(0, s.tick, f);
         }
+        self.bound.saw_state(s.tick);
         self.first_wake.get_or_insert(s.wake_ns);
         self.slots[s.tick as usize % RING].state = Some(s);
     }
 
-    /// A reference sample arrived.
-    pub fn take_reference(&mut self, r: ReferenceSample) {
+    /// A reference sample arrived; `published` says the newest state the plant has
+    /// published, asked only for a tick beyond the newest state taken and the lead.
+    pub fn take_reference(&mut self, r: ReferenceSample, published: impl FnOnce() -> Option<u64>) {
+        if let Err(f) = self.bound.reference(&r, published) {
+            return self.fault(1, r.tick, f);
+        }
         self.seq[1].see(r.tick);
         if let Err(f) = r.validate() {
             return self.fault(1, r.tick, f);
@@ -269,8 +283,12 @@ impl RowJoiner {
         self.slots[r.tick as usize % RING].reference = Some(r);
     }
 
-    /// A torque sample arrived.
-    pub fn take_torque(&mut self, t: TorqueSample) {
+    /// A torque sample arrived; `published` says the newest state the plant has
+    /// published, asked only for a tick beyond the newest state taken.
+    pub fn take_torque(&mut self, t: TorqueSample, published: impl FnOnce() -> Option<u64>) {
+        if let Err(f) = self.bound.torque(&t, published) {
+            return self.fault(2, t.tick, f);
+        }
         self.seq[2].see(t.tick);
         if let Err(f) = t.validate(self.absurd_limit) {
             self.slots[t.tick as usize % RING].torque_rejected = Some(t.tick);
@@ -434,6 +452,22 @@ impl RowJoiner {
     }
 }
 
+impl rotorloop_common::resume::Resumable for MonitorResume {
+    /// Its rows lie within the run and in order (written ≤ taken ≤ ticks + 1). (Its
+    /// running figures may be NaN by design: `first_err` before the first row.)
+    fn resume_fault(&self, ticks: u64) -> Option<String> {
+        let (next, taken) = (self.next_row, self.taken_row);
+        (next > taken || taken > ticks + 1 || self.rows > ticks + 1).then(|| {
+            format!(
+                "rows out of order or beyond the run: next_row {next}, taken_row {taken}, rows {} \
+                 (allowed: next_row ≤ taken_row ≤ {})",
+                self.rows,
+                ticks + 1
+            )
+        })
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -463,6 +497,11 @@ mod tests {
         TorqueSample { tick, ..Default::default() }
     }
 
+    /// What a host without the plant knows of the states it has published.
+    fn no_plant() -> Option<u64> {
+        None
+    }
+
     fn rows(j: &mut RowJoiner, stopping: bool) -> Vec<(u64, bool)> {
         std::iter::from_fn(|| j.next_row(stopping)).map(|r| (r.tick, r.torque.is_some())).collect()
     }
@@ -470,9 +509,9 @@ mod tests {
     /// Feeds the three samples of each tick in `ticks`.
     fn feed(j: &mut RowJoiner, ticks: std::ops::Range<u64>, last: u64) {
         for k in ticks {
-            j.take_reference(reference(k));
+            j.take_reference(reference(k), no_plant);
             j.take_state(state(k, k == last));
-            j.take_torque(torque(k));
+            j.take_torque(torque(k), no_plant);
         }
     }
 
@@ -491,10 +530,10 @@ mod tests {
     fn a_torque_the_controller_skipped_settles_from_a_later_torque() {
         let mut j = RowJoiner::new(10, 1e6, 0);
         for k in 0..3 {
-            j.take_reference(reference(k));
+            j.take_reference(reference(k), no_plant);
             j.take_state(state(k, false));
         }
-        j.take_torque(torque(1)); // no torque for tick 0: the controller answered 1
+        j.take_torque(torque(1), no_plant); // no torque for tick 0: the controller answered 1
         assert_eq!(rows(&mut j, false), [(0, false), (1, true)]);
     }
 
@@ -502,11 +541,12 @@ mod tests {
     fn a_late_torque_still_lands_in_its_row() {
         let mut j = RowJoiner::new(10, 1e6, 0);
         for k in 0..5 {
-            j.take_reference(reference(k));
+            j.take_reference(reference(k), no_plant);
             j.take_state(state(k, false));
         }
         assert!(rows(&mut j, false).is_empty(), "row 0 waits for its torque");
-        j.take_torque(torque(0)); // four ticks late: the plant applies it, the trace shows it
+        // Four ticks late: the plant applies it, the trace shows it.
+        j.take_torque(torque(0), no_plant);
         assert_eq!(rows(&mut j, false), [(0, true)]);
     }
 
@@ -515,21 +555,54 @@ mod tests {
         let mut j = RowJoiner::new(2, 1e6, 0);
         let mut bad = state(1, false);
         bad.omega_body_rad_s[2] = f64::NAN;
-        j.take_reference(reference(0));
+        j.take_reference(reference(0), no_plant);
         j.take_state(state(0, false));
-        j.take_torque(torque(0));
-        j.take_reference(reference(1));
+        j.take_torque(torque(0), no_plant);
+        j.take_reference(reference(1), no_plant);
         j.take_state(bad);
         let mut huge = torque(1);
         huge.rotor_torque_nm[0] = 1e9;
-        j.take_torque(huge);
-        j.take_reference(reference(2));
+        j.take_torque(huge, no_plant);
+        j.take_reference(reference(2), no_plant);
         j.take_state(state(2, true));
-        j.take_torque(torque(2));
+        j.take_torque(torque(2), no_plant);
         assert_eq!(rows(&mut j, false), [(0, true), (2, true)]);
         assert_eq!((j.rejected, j.rows_lost()), ([1, 0, 1], 1));
         let kinds: Vec<_> = j.wire_faults.iter().map(|f| (f.topic, f.tick, f.kind)).collect();
         assert_eq!(kinds, [("state", 1, "non-finite"), ("torque", 1, "absurd")]);
+    }
+
+    /// Issue 42: a valid zero torque for tick 10¹² from a foreign publisher was not
+    /// counted, and its tick made every row's torque look settled.
+    #[test]
+    fn a_sample_for_a_tick_not_reached_is_a_fault_event_and_takes_no_place_in_a_row() {
+        let mut j = RowJoiner::new(3, 1e6, 0);
+        let plant_at = |k: u64| move || Some(k);
+        j.take_reference(reference(0), plant_at(0));
+        j.take_state(state(0, false));
+        j.take_torque(torque(1_000_000_000_000), plant_at(0));
+        j.take_torque(torque(1), plant_at(0)); // the plant has not published state 1
+        j.take_reference(reference(1_000_000_000_000), plant_at(0));
+        // A torque taken before its state, which the plant has published: no fault.
+        j.take_torque(torque(0), plant_at(0));
+        j.take_reference(reference(1), plant_at(1));
+        j.take_torque(torque(1), plant_at(1));
+        assert_eq!(j.rejected, [0, 1, 2]);
+        let seen: Vec<_> = j.wire_faults.iter().map(|f| (f.topic, f.tick, f.kind)).collect();
+        assert_eq!(
+            seen,
+            [
+                ("torque", 1_000_000_000_000, "future-tick"),
+                ("torque", 1, "future-tick"),
+                ("reference", 1_000_000_000_000, "future-tick"),
+            ]
+        );
+        assert!(j.wire_faults[0].detail.contains("torque.tick"), "{}", j.wire_faults[0].detail);
+        assert_eq!((j.seq[2].received, j.seq[2].lost), (2, 0), "torques 0 and 1 only");
+        assert_eq!(j.last_torque().map(|t| t.tick), Some(1));
+        j.take_state(state(1, false));
+        feed(&mut j, 2..4, 3);
+        assert_eq!(rows(&mut j, false), [(0, true), (1, true), (2, true), (3, true)]);
     }
 
     #[test]
@@ -546,7 +619,7 @@ mod tests {
     fn the_end_quiet_period_settles_a_last_row_whose_torque_never_comes() {
         let mut j = RowJoiner::new(1, 1e6, 0);
         feed(&mut j, 0..1, 1);
-        j.take_reference(reference(1));
+        j.take_reference(reference(1), no_plant);
         j.take_state(state(1, true));
         assert_eq!(rows(&mut j, false), [(0, true)], "the last row waits for its torque");
         assert_eq!(j.quiet_ns(1_000), 0);

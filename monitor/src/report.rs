@@ -12,7 +12,7 @@ use rotorloop_common::scenario::Scenario;
 use serde::Serialize;
 
 use crate::latency::{Hop, HopStats};
-use crate::policy::{RowJoiner, WireFaultEvent};
+use crate::policy::{MAX_FAULT_EVENTS, RowJoiner, WireFaultEvent};
 use crate::recording::{Recording, with_fallback};
 use crate::stages::StageStats;
 
@@ -121,6 +121,29 @@ pub struct RunSummary {
     pub report_dir: Option<String>,
 }
 
+/// The monitor's receivers in `wire_rejected`, in the order of [`RowJoiner::rejected`].
+const MONITOR_RECEIVERS: [&str; 3] = ["monitor.state", "monitor.reference", "monitor.torque"];
+
+/// Adds to `s` (a report from the flight records) the rejected samples only the live
+/// monitor `live` saw: those of no role's record, such as another publisher's on the
+/// topic (a torque for a tick the loop had not reached, say). Per topic the larger count
+/// of the two (the records' when the live monitor missed some), and the live fault
+/// events the records do not have, first (the records' then, at most
+/// [`MAX_FAULT_EVENTS`] in all).
+pub(crate) fn add_live_rejections(s: &mut RunSummary, live: &RowJoiner) {
+    for (name, n) in MONITOR_RECEIVERS.iter().zip(live.rejected) {
+        let count = s.wire_rejected.entry((*name).to_owned()).or_default();
+        *count = (*count).max(n);
+    }
+    let key = |e: &WireFaultEvent| (e.topic, e.tick, e.kind);
+    let recorded = std::mem::take(&mut s.wire_faults);
+    let unrecorded = live.wire_faults.iter().filter(|e| !recorded.iter().any(|f| key(f) == key(e)));
+    let mut events: Vec<WireFaultEvent> = unrecorded.cloned().collect();
+    events.extend(recorded);
+    events.truncate(MAX_FAULT_EVENTS);
+    s.wire_faults = events;
+}
+
 /// The summary of a run of `role`'s mode and wait strategy, `files` written.
 pub fn summary(
     scenario: &Scenario,
@@ -148,9 +171,8 @@ pub fn summary(
     if let Some(t) = last_torque {
         subscribers.insert("controller.state".to_owned(), counts(t.states_received, t.states_lost));
     }
-    let names = ["monitor.state", "monitor.reference", "monitor.torque"];
     let mut wire_rejected: BTreeMap<String, u64> =
-        names.iter().zip(j.rejected).map(|(n, c)| ((*n).to_owned(), c)).collect();
+        MONITOR_RECEIVERS.iter().zip(j.rejected).map(|(n, c)| ((*n).to_owned(), c)).collect();
     wire_rejected.insert("plant.torque".to_owned(), last.map_or(0, |s| s.torques_rejected));
     wire_rejected
         .insert("controller.state".to_owned(), last_torque.map_or(0, |t| t.states_rejected));

@@ -7,7 +7,12 @@
 //!
 //! - [`TorqueHold`] is the acceptance and hold rule: a torque sample is **accepted** when
 //!   it passes validation, is not a controller's skipped answer, and is newer than every
-//!   torque accepted before (an older one would undo a newer command). A tick whose own
+//!   torque accepted before (an older one would undo a newer command). Newer, but not
+//!   beyond the tick the plant waits for (the newest state it has published): a torque
+//!   for a tick the loop has not reached answers no state, and taken as the newest it
+//!   would make every true torque after it "older" for the rest of the run. It is
+//!   rejected (`future-tick`, [`rotorloop_common::wire::TickBound`]) and counted, never
+//!   counted as received, and it changes nothing in force. A tick whose own
 //!   torque did not arrive in time is a **miss** (a deadline miss of the loop), whatever
 //!   else arrived. After `hold_ticks` consecutive ticks in which no torque was accepted,
 //!   the plant enters **safe mode** (zero torque: the rotors coast, momentum is conserved)
@@ -49,12 +54,15 @@ pub enum Answer {
     Skipped(TorqueSample),
     /// The sample answering tick `k` failed validation.
     Rejected(TorqueSample, WireFault),
+    /// A sample for a tick beyond `k`, which the loop has not reached: rejected, and it
+    /// does not answer tick `k` (nor has it a place in the flight record, which is by tick).
+    Future(TorqueSample, WireFault),
 }
 
 impl Answer {
     /// Whether this answers tick `k` (ends the wait for it).
     pub fn answers_the_tick(&self) -> bool {
-        !matches!(self, Answer::Late(..))
+        !matches!(self, Answer::Late(..) | Answer::Future(..))
     }
 }
 
@@ -65,12 +73,16 @@ pub enum Settled {
     Fresh {
         /// The plant was in safe mode until this torque.
         after_safe_mode: bool,
+        /// A sample taken during the tick's wait was rejected (not the tick's answer: one
+        /// for a tick not reached, say), for the first time in this plant's life.
+        first_rejection: Option<(u64, WireFault)>,
     },
     /// The tick's own torque did not arrive in time.
     Miss {
         /// This miss started safe mode.
         entered_safe_mode: bool,
-        /// The tick's answer was rejected, for the first time in this plant's life.
+        /// A sample taken during the tick's wait (its answer, or another) was rejected,
+        /// for the first time in this plant's life.
         first_rejection: Option<(u64, WireFault)>,
     },
 }
@@ -79,8 +91,11 @@ impl Settled {
     /// What changed at tick `k`, for the log (state changes only; `None` on a plain tick).
     pub fn event(&self, k: u64, hold_ticks: u64) -> Option<String> {
         match *self {
-            Settled::Fresh { after_safe_mode: true } => {
+            Settled::Fresh { after_safe_mode: true, .. } => {
                 Some(format!("fresh torque at tick {k}; control resumed"))
+            }
+            Settled::Fresh { first_rejection: Some((tick, fault)), .. } => {
+                Some(format!("rejected a torque for tick {tick}: {fault} (ignored; counted)"))
             }
             Settled::Miss { first_rejection: Some((tick, fault)), .. } => {
                 Some(format!("rejected the torque of tick {tick}: {fault} (holding; counted)"))
@@ -100,7 +115,7 @@ pub struct TorqueHold {
     hold_ticks: u64,
     actuation: Actuation,
     absurd_limit: f64,
-    /// The newest torque tick accepted (never goes back).
+    /// The newest torque tick accepted (never goes back, never beyond the plant's tick).
     newest: u64,
     /// A torque was accepted during the current tick's wait.
     accepted: bool,
@@ -108,6 +123,8 @@ pub struct TorqueHold {
     stale: u64,
     safe: bool,
     rejection_seen: bool,
+    /// This plant's first rejection, taken during the current tick's wait (for the log).
+    first_rejection: Option<(u64, WireFault)>,
     misses: u64,
     safe_ticks: u64,
     rejected: u64,
@@ -127,6 +144,7 @@ impl TorqueHold {
             stale: 0,
             safe: false,
             rejection_seen: false,
+            first_rejection: None,
             misses: 0,
             safe_ticks: 0,
             rejected: 0,
@@ -135,28 +153,42 @@ impl TorqueHold {
     }
 
     /// Continues from the last state sample a killed predecessor published: its
-    /// counters, its safe mode, and the newest torque it had accepted.
+    /// counters, its safe mode, and the newest torque it had accepted. That is never beyond
+    /// the state's own tick (the tick rule); a slot that says otherwise (not written by
+    /// this rule) is taken as naming none, so it cannot silence the restart.
     pub fn resume(&mut self, s: &StateSample) {
         self.misses = s.misses;
         self.safe_ticks = s.safe_mode_ticks;
         self.rejected = s.torques_rejected;
         self.safe = s.flags & FLAG_SAFE_MODE != 0;
-        self.newest = s.applied_torque_tick;
-        self.seq = match s.applied_torque_tick {
-            NO_TICK => SeqCounter::resume_unanchored(s.torques_received, s.torques_lost),
-            t => SeqCounter::resume(s.torques_received, s.torques_lost, t),
+        // `NO_TICK` (none held: safe mode) is beyond every tick too.
+        let held = Some(s.applied_torque_tick).filter(|t| *t <= s.tick);
+        self.newest = held.unwrap_or(NO_TICK);
+        self.seq = match held {
+            None => SeqCounter::resume_unanchored(s.torques_received, s.torques_lost),
+            Some(t) => SeqCounter::resume(s.torques_received, s.torques_lost, t),
         };
     }
 
     /// One torque sample taken while waiting for tick `k`, received at `recv_ns`: counted
     /// (and, if invalid, counted rejected). Returns what it means: the answer to tick `k`
     /// (fresh, skipped or rejected: each ends the wait, since the controller will not send
-    /// another for this tick), a late torque that is accepted all the same, or nothing
-    /// (older than what is in force, or a skipped or rejected answer to an older tick).
+    /// another for this tick), a late torque that is accepted all the same, a rejected one
+    /// for a tick beyond `k` (which ends nothing), or nothing (older than what is in
+    /// force, or a skipped or rejected answer to an older tick).
     pub fn take(&mut self, t: &TorqueSample, k: u64, recv_ns: u64) -> Option<Answer> {
+        // Tick `k`'s state is the newest the plant has published (the tick rule).
+        if let Err(f) = t.check_tick(k) {
+            // Not seen by the sequence counter: its tick would make every tick before it
+            // a loss, and every true torque after it a repeat.
+            self.reject(t.tick, f);
+            return Some(Answer::Future(*t, f));
+        }
         self.seq.see(t.tick);
         let fault = t.validate(self.absurd_limit).err();
-        self.rejected += u64::from(fault.is_some());
+        if let Some(f) = fault {
+            self.reject(t.tick, f);
+        }
         let newer = self.newest == NO_TICK || t.tick > self.newest;
         let usable = fault.is_none() && t.flags & TORQUE_SKIPPED == 0 && newer;
         if usable {
@@ -172,6 +204,15 @@ impl TorqueHold {
         }
     }
 
+    /// Counts a rejected sample of tick `tick`, and keeps the first of this plant's life
+    /// for the log.
+    fn reject(&mut self, tick: u64, f: WireFault) {
+        self.rejected += 1;
+        if !std::mem::replace(&mut self.rejection_seen, true) {
+            self.first_rejection = Some((tick, f));
+        }
+    }
+
     /// The wait for tick `k` ended with `answer` (`None`: nothing for `k` in time).
     pub fn settle(&mut self, answer: Option<Answer>) -> Settled {
         let accepted = std::mem::take(&mut self.accepted);
@@ -180,16 +221,10 @@ impl TorqueHold {
             self.safe = false;
             self.stale = 0;
         }
+        let first_rejection = self.first_rejection.take();
         if let Some(Answer::Fresh(..)) = answer {
-            return Settled::Fresh { after_safe_mode };
+            return Settled::Fresh { after_safe_mode, first_rejection };
         }
-        let first_rejection = match answer {
-            Some(Answer::Rejected(t, f)) if !self.rejection_seen => {
-                self.rejection_seen = true;
-                Some((t.tick, f))
-            }
-            _ => None,
-        };
         self.misses += 1;
         self.stale += u64::from(!accepted);
         let entered_safe_mode = self.stale > self.hold_ticks && !self.safe;
@@ -446,7 +481,8 @@ mod tests {
     #[test]
     fn a_torque_for_this_tick_answers_it() {
         let mut h = hold(50);
-        assert_eq!(tick(&mut h, 0, &[torque(0, 2.0)]), Settled::Fresh { after_safe_mode: false });
+        let fresh = Settled::Fresh { after_safe_mode: false, first_rejection: None };
+        assert_eq!(tick(&mut h, 0, &[torque(0, 2.0)]), fresh);
         assert_eq!(h.misses(), 0);
         assert!(matches!(tick(&mut h, 1, &[]), Settled::Miss { entered_safe_mode: false, .. }));
         assert_eq!(h.misses(), 1);
@@ -503,7 +539,8 @@ mod tests {
         assert_eq!(p.state_sample(5, 0, 0).flags & FLAG_SAFE_MODE, FLAG_SAFE_MODE);
         feed(&mut p, 5, None);
         assert_eq!(p.hold.safe_mode_ticks(), 2);
-        assert_eq!(feed(&mut p, 6, Some(torque(6, 4.0))), Settled::Fresh { after_safe_mode: true });
+        let back = Settled::Fresh { after_safe_mode: true, first_rejection: None };
+        assert_eq!(feed(&mut p, 6, Some(torque(6, 4.0))), back);
         assert!(!p.hold.safe_mode());
         assert_eq!(p.line.in_force().0.rotor_torque.x, 4.0);
     }
@@ -523,6 +560,73 @@ mod tests {
         let huge = torque(2, 10.0 * LIMIT);
         assert!(matches!(tick(&mut h, 2, &[huge]), Settled::Miss { first_rejection: None, .. }));
         assert_eq!((h.rejected(), h.misses()), (2, 2));
+    }
+
+    /// Issue 42: one valid zero torque for tick 10¹² was taken as the newest, and every
+    /// true torque after it was "older": safe mode for the rest of the run, uncounted.
+    #[test]
+    fn a_torque_for_a_tick_not_reached_is_rejected_counted_and_never_silences_control() {
+        let mut h = hold(3);
+        tick(&mut h, 0, &[torque(0, 2.0)]);
+        let far = torque(1_000_000_000_000, 0.0);
+        assert!(
+            matches!(h.take(&far, 1, 0), Some(a @ Answer::Future(..)) if !a.answers_the_tick())
+        );
+        match h.settle(None) {
+            Settled::Miss { first_rejection: Some((1_000_000_000_000, f)), .. } => {
+                assert_eq!(f.kind(), "future-tick");
+            }
+            other => panic!("{other:?}"),
+        }
+        // Before or after the tick's own torque, and one tick ahead as much as 10¹².
+        let ahead = |k: u64| torque(k + 1, 5.0);
+        for k in 2..100 {
+            let samples =
+                if k % 2 == 0 { [far, torque(k, 1.0)] } else { [torque(k, 1.0), ahead(k)] };
+            let settled = tick(&mut h, k, &samples);
+            assert!(matches!(settled, Settled::Fresh { after_safe_mode: false, .. }), "{k}");
+        }
+        assert!(!h.safe_mode());
+        assert_eq!((h.rejected(), h.misses(), h.safe_mode_ticks()), (99, 1, 0));
+        let seq = h.seq();
+        assert_eq!((seq.received, seq.lost), (99, 1), "ticks 0 and 2..=99; tick 1 lost");
+        let t = torque(7, 0.0);
+        let f = t.check_tick(6).expect_err("future");
+        let event = Settled::Fresh { after_safe_mode: false, first_rejection: Some((7, f)) };
+        let line = event.event(6, 3).expect("logged");
+        assert!(line.contains("torque.tick is 7") && line.contains("ignored"), "{line}");
+    }
+
+    #[test]
+    fn a_torque_for_a_tick_not_reached_never_displaces_the_torque_in_force() {
+        let scenario = paper();
+        let mut p = PlantTicker::new(&scenario, 3, true, ActuationDelay::Instant);
+        let mut feed = |k: u64, samples: &[TorqueSample]| {
+            let mut answer = None;
+            for t in samples {
+                let a = p.take(t, k, 0, 0);
+                answer = a.filter(Answer::answers_the_tick).or(answer);
+            }
+            p.settle(answer);
+            p.step(k).expect("finite");
+            let (input, tick, _) = p.line.in_force();
+            (input.rotor_torque.x, tick)
+        };
+        assert_eq!(feed(0, &[torque(0, 2.0)]), (2.0, 0));
+        assert_eq!(feed(1, &[torque(5, 9.0), torque(1, 3.0)]), (3.0, 1), "taken after it");
+        assert_eq!(feed(2, &[torque(1_000_000_000_000, 0.0)]), (3.0, 1), "held, not replaced");
+        assert_eq!(feed(3, &[torque(3, 4.0)]), (4.0, 3), "control goes on");
+    }
+
+    #[test]
+    fn a_restart_never_resumes_a_newest_torque_beyond_its_own_tick() {
+        let scenario = paper();
+        let p = PlantTicker::new(&scenario, 3, true, ActuationDelay::Instant);
+        let mut slot = p.state_sample(10, 0, 0);
+        slot.applied_torque_tick = 1_000_000_000_000;
+        let mut h = hold(3);
+        h.resume(&slot);
+        assert!(matches!(tick(&mut h, 10, &[torque(10, 1.0)]), Settled::Fresh { .. }));
     }
 
     #[test]

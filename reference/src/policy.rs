@@ -134,6 +134,27 @@ impl LeadWindow {
     }
 }
 
+impl rotorloop_common::resume::Resumable for ReferenceResume {
+    /// The next tick lies within the run, and every sample still in the window is a
+    /// valid reference (as on the wire) of the tick its place says.
+    fn resume_fault(&self, ticks: u64) -> Option<String> {
+        if self.next > ticks + 1 {
+            return Some(format!("next {} is beyond the run's last tick {ticks}", self.next));
+        }
+        let first = self.next.saturating_sub(RESUME_RING as u64);
+        (first..self.next).find_map(|k| {
+            let s = self.samples[k as usize % RESUME_RING];
+            match s.validate() {
+                _ if s.tick != k => {
+                    Some(format!("the sample kept for tick {k} is of tick {}", s.tick))
+                }
+                Err(f) => Some(format!("tick {k}: {f}")),
+                Ok(()) => None,
+            }
+        })
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -17,6 +17,13 @@
 //! the torque in force), `/rotorloop/log` (safe mode entered and left; a role gone, up or
 //! restarted, seen five times a second) and `/tf`
 //! (`world → body`, `world → reference`).
+//!
+//! Who may watch: the server has no authentication, so it listens on loopback only, where
+//! every user of the machine may connect; another address is refused (exit 2) unless the
+//! user says they mean it (`--allow-network`, `run --foxglove-allow-network`), as `rotorloop
+//! link` refuses an unauthenticated endpoint beyond loopback. A port asked for by name that
+//! another process holds is refused (exit 2), so that no viewer there takes that process
+//! for this loop; the default port taken, `run` goes on without a live view and says so.
 
 use std::collections::BTreeMap;
 use std::net::{SocketAddr, ToSocketAddrs};
@@ -50,10 +57,15 @@ pub struct FoxgloveArgs {
     /// The loop's domain (`rotorloop ps` lists them).
     #[arg(long)]
     pub domain: String,
-    /// The address to serve on (`HOST:PORT`; port 0: any free port). Loopback unless you
-    /// name another address.
+    /// The address to serve on (`HOST:PORT`; port 0: any free port). Loopback only (where
+    /// any local user may watch); another address needs `--allow-network`. A port that is
+    /// taken is an error (exit 2).
     #[arg(default_value = DEFAULT_ADDR)]
     pub addr: String,
+    /// Serve on an address that is not loopback: anyone who can reach it watches the loop,
+    /// with no authentication. Refused without this flag (exit 2).
+    #[arg(long)]
+    pub allow_network: bool,
     /// Write the address actually bound (`HOST:PORT`) to this file once serving.
     #[arg(long)]
     pub addr_file: Option<PathBuf>,
@@ -69,6 +81,41 @@ pub fn parse_addr(addr: &str) -> Result<SocketAddr, UsageError> {
             "--foxglove address `{addr}` is not allowed: HOST:PORT, e.g. {DEFAULT_ADDR}"
         ))
     })
+}
+
+/// Parses `addr` and applies the rule of who may watch: the server has no authentication,
+/// so it serves on loopback only (where every local user may watch) unless `allowed`, the
+/// user's `flag` saying they mean it (as `rotorloop link` refuses a non-loopback endpoint
+/// without authentication).
+pub fn check_reach(addr: &str, allowed: bool, flag: &str) -> Result<SocketAddr, UsageError> {
+    let at = parse_addr(addr)?;
+    if at.ip().is_loopback() || allowed {
+        return Ok(at);
+    }
+    Err(UsageError(format!(
+        "the Foxglove address `{addr}` is not on loopback: anyone who can reach {at} would watch \
+         the loop, with no authentication; give {flag} if you mean it, or use \
+         127.0.0.1:PORT (loopback: every user of this machine may watch there)"
+    )))
+}
+
+/// What a taken `addr` means to the user: viewers there reach whatever holds it.
+fn taken(addr: SocketAddr) -> String {
+    format!(
+        "the Foxglove address {addr} is taken by another process: viewers at ws://{addr} \
+         would reach it, not this loop; name a free port (or port 0: any free one)"
+    )
+}
+
+/// Whether `addr` can be listened on now (a listener opened and closed at once; port 0
+/// always can): a taken port, or an address not of this machine, is a usage error naming
+/// it, before anything starts.
+fn can_listen(addr: SocketAddr) -> Result<(), UsageError> {
+    match std::net::TcpListener::bind(addr) {
+        Ok(_) => Ok(()),
+        Err(e) if e.kind() == std::io::ErrorKind::AddrInUse => Err(UsageError(taken(addr))),
+        Err(e) => Err(UsageError(format!("cannot serve the Foxglove WebSocket on {addr}: {e}"))),
+    }
 }
 
 /// The live channels and what they need to remember between ticks.
@@ -235,8 +282,9 @@ where
 /// Runs `rotorloop foxglove`: serves until the loop has ended (no role alive for a
 /// second), or SIGINT/SIGTERM.
 pub fn run(a: &FoxgloveArgs) -> anyhow::Result<()> {
-    let addr = parse_addr(&a.addr)?;
+    let addr = check_reach(&a.addr, a.allow_network, "--allow-network")?;
     let domain = Domain::new(&a.domain).map_err(|e| UsageError(e.to_string()))?;
+    super::refuse_unreachable(&domain)?;
     install_signal_handlers();
     let ctx = Context::new();
     let server = WebSocketServer::new()
@@ -244,10 +292,23 @@ pub fn run(a: &FoxgloveArgs) -> anyhow::Result<()> {
         .bind(addr.ip().to_string(), addr.port())
         .context(&ctx)
         .start_blocking()
-        .with_context(|| format!("cannot serve the Foxglove WebSocket on {addr}"))?;
+        .map_err(|e| match e {
+            foxglove::FoxgloveError::Bind(e) if e.kind() == std::io::ErrorKind::AddrInUse => {
+                anyhow::Error::from(UsageError(taken(addr)))
+            }
+            foxglove::FoxgloveError::Bind(e) => {
+                UsageError(format!("cannot serve the Foxglove WebSocket on {addr}: {e}")).into()
+            }
+            e => anyhow::Error::from(e)
+                .context(format!("cannot serve the Foxglove WebSocket on {addr}")),
+        })?;
     let bound = SocketAddr::new(addr.ip(), server.port());
     if let Some(f) = &a.addr_file {
-        std::fs::write(f, format!("{bound}\n"))
+        // Renamed into place: whoever waits for the file never reads half of it.
+        let mut part = f.clone().into_os_string();
+        part.push(".part");
+        std::fs::write(&part, format!("{bound}\n"))
+            .and_then(|()| std::fs::rename(&part, f))
             .with_context(|| format!("cannot write {}", f.display()))?;
     }
     eprintln!("foxglove: domain {} on ws://{bound} (subprotocol foxglove.sdk.v1)", a.domain);
@@ -315,15 +376,19 @@ fn serve(a: &FoxgloveArgs, domain: &Domain, ctx: &Arc<Context>) -> anyhow::Resul
 /// `rotorloop run --foxglove`: the server beside the loop, stopped when the loop has ended.
 #[derive(Debug)]
 pub struct Beside {
-    child: std::process::Child,
+    /// The server, or none: it could not listen on the default address (said at the start).
+    child: Option<std::process::Child>,
+    addr: String,
 }
 
 impl Beside {
-    /// `--foxglove ADDR` checked before anything starts: the address, and not with
-    /// `--split` (each host has its own space).
+    /// `--foxglove ADDR` checked before anything starts: the address, not with `--split`
+    /// (each host has its own space), and a port asked for by name that is taken (a
+    /// listener opened and closed at once; the default address is left to [`Beside::start`]).
+    /// The rule of who may watch is [`check_reach`]'s, applied by the command line.
     pub fn check(addr: Option<&str>, split: bool) -> Result<(), UsageError> {
         let Some(addr) = addr else { return Ok(()) };
-        parse_addr(addr)?;
+        let at = parse_addr(addr)?;
         if split {
             return Err(UsageError(
                 "--foxglove is not allowed with --split (each host has its own space): \
@@ -331,49 +396,102 @@ impl Beside {
                     .into(),
             ));
         }
+        if addr != DEFAULT_ADDR && at.port() != 0 {
+            can_listen(at)?;
+        }
         Ok(())
     }
 
-    /// Starts `rotorloop foxglove --domain DOMAIN ADDR`; it writes the address it bound to
-    /// `OUT/foxglove.addr`.
+    /// Starts `rotorloop foxglove --domain DOMAIN ADDR`, which writes the address it bound
+    /// to `OUT/foxglove.addr`, and waits until it listens or has ended. One that could not
+    /// listen on an address asked for by name stops the launch (exit 2, before any role
+    /// starts); on the default address the loop goes on without it, saying that viewers
+    /// there do not reach this run. An address beyond loopback was allowed by the command
+    /// line (`--foxglove-allow-network`, [`check_reach`]), and the server is told so.
     pub fn start(
         exe: &std::path::Path,
         domain: &str,
         addr: &str,
         out: &std::path::Path,
     ) -> anyhow::Result<Self> {
-        parse_addr(addr)?;
-        let child = std::process::Command::new(exe)
-            .args(["foxglove", "--domain", domain, addr, "--addr-file"])
-            .arg(out.join("foxglove.addr"))
+        let at = parse_addr(addr)?;
+        let file = out.join("foxglove.addr");
+        // An earlier run's address in the same directory is not this server's.
+        let _ = std::fs::remove_file(&file);
+        let mut command = std::process::Command::new(exe);
+        command.args(["foxglove", "--domain", domain, addr, "--addr-file"]).arg(&file);
+        if !at.ip().is_loopback() {
+            command.arg("--allow-network");
+        }
+        let mut child = command
             .stdin(std::process::Stdio::null())
             .spawn()
             .context("cannot start the Foxglove server (rotorloop foxglove)")?;
-        Ok(Self { child })
+        let until = now_ns() + 10_000_000_000;
+        loop {
+            if file.exists() {
+                break;
+            }
+            if let Ok(Some(status)) = child.try_wait() {
+                if addr != DEFAULT_ADDR {
+                    let why = format!(
+                        "--foxglove {addr}: the Foxglove server could not listen there \
+                         ({status}; its message is above); no role was started"
+                    );
+                    return Err(match status.code() {
+                        Some(2) => UsageError(why).into(),
+                        _ => anyhow::anyhow!(why),
+                    });
+                }
+                eprintln!("warning: {}; the loop goes on without a live view", not_served(addr));
+                return Ok(Self { child: None, addr: addr.to_owned() });
+            }
+            if now_ns() > until {
+                eprintln!(
+                    "warning: the Foxglove server is not listening on {addr} after 10 s; \
+                     the loop starts without waiting for it"
+                );
+                break;
+            }
+            std::thread::sleep(Duration::from_millis(10));
+        }
+        Ok(Self { child: Some(child), addr: addr.to_owned() })
     }
 
     /// Stops the server (SIGTERM; SIGKILL after 3 s). One that ended during the run (killed
-    /// by hand, or its address taken) is said, and was no matter to the loop.
-    pub fn stop(mut self) {
-        if let Ok(Some(status)) = self.child.try_wait() {
+    /// by hand) or never listened is said, and was no matter to the loop.
+    pub fn stop(self) {
+        let Some(mut child) = self.child else {
+            eprintln!("warning: {}", not_served(&self.addr));
+            return;
+        };
+        if let Ok(Some(status)) = child.try_wait() {
             eprintln!(
                 "warning: the Foxglove server ended during the run ({status}); the loop went on"
             );
             return;
         }
-        let pid = self.child.id() as libc::pid_t;
+        let pid = child.id() as libc::pid_t;
         // SAFETY: signals our own child, which has not been reaped (try_wait said so).
         unsafe { libc::kill(pid, libc::SIGTERM) };
         let until = now_ns() + 3_000_000_000;
         while now_ns() < until {
-            if let Ok(Some(_)) = self.child.try_wait() {
+            if let Ok(Some(_)) = child.try_wait() {
                 return;
             }
             std::thread::sleep(Duration::from_millis(20));
         }
-        let _ = self.child.kill();
-        let _ = self.child.wait();
+        let _ = child.kill();
+        let _ = child.wait();
     }
+}
+
+/// Why viewers of the default address did not see this run.
+fn not_served(addr: &str) -> String {
+    format!(
+        "the Foxglove server could not listen on {addr} (taken by another process? its message \
+         is above): viewers at ws://{addr} do not reach this run, whatever answers there"
+    )
 }
 
 #[cfg(test)]
@@ -405,6 +523,27 @@ mod tests {
             ]
         );
         assert!(role_events(&now, &now).is_empty());
+    }
+
+    /// Loopback is served as it is; any other address only with the user's word, and the
+    /// refusal names the address and the flag that gives it.
+    #[test]
+    fn an_address_beyond_loopback_needs_the_users_word() {
+        for a in ["127.0.0.1:0", "[::1]:8765", "127.3.2.1:1"] {
+            assert!(check_reach(a, false, "--flag").is_ok(), "{a}");
+        }
+        let e = check_reach("0.0.0.0:8765", false, "--flag").expect_err("every interface");
+        assert!(e.0.contains("`0.0.0.0:8765`") && e.0.contains("--flag"), "{e}");
+        assert!(check_reach("0.0.0.0:8765", true, "--flag").is_ok());
+    }
+
+    /// A port another listener holds is refused, naming the address.
+    #[test]
+    fn a_taken_port_is_refused_naming_it() {
+        let held = std::net::TcpListener::bind("127.0.0.1:0").expect("a free port");
+        let at = held.local_addr().expect("bound");
+        let e = can_listen(at).expect_err("taken");
+        assert!(e.0.contains(&at.to_string()) && e.0.contains("taken"), "{e}");
     }
 
     /// An address that is not `HOST:PORT` is refused with the field and an example.

@@ -10,6 +10,11 @@
 //! answer; the reference: its window of samples; the monitor: its rows). `watch` samples
 //! the slots a few hundred times a second, so its per-second figures are of a sample of the
 //! ticks (it says how many), not of every tick: the monitor's report is the full record.
+//!
+//! A run is its user's alone (owner-only files, docs/security.md). Another user's `watch`,
+//! `ps --domain D` or `foxglove` of it is refused (exit 2) naming the domain, the file
+//! refused and its owner's uid ([`unreachable`]), rather than showing a loop of zeros; a
+//! listing of every domain (`ps`) says which it cannot read.
 
 pub mod charts;
 pub mod foxglove;
@@ -94,10 +99,15 @@ pub struct DomainView {
     pub completed: bool,
     /// Its services.
     pub services: Vec<ServiceView>,
+    /// Why the calling user cannot read this domain (another user's run), if it cannot:
+    /// then nothing else of it is known. Only in a listing of every domain: `--domain D`
+    /// of such a domain is an error.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub unreachable: Option<String>,
 }
 
-/// The domains that have files on this machine (`/dev/shm/iox2/rl_<domain>_/` or
-/// `/dev/shm/rl_<domain>_…`).
+/// The domains that have files on this machine (their iceoryx2 directory
+/// `/dev/shm/.rl_<domain>_/` or `/dev/shm/rl_<domain>_…`).
 pub fn domains_on_machine() -> Vec<String> {
     let mut found = std::collections::BTreeSet::new();
     let names = |dir: &str| -> Vec<String> {
@@ -108,17 +118,61 @@ pub fn domains_on_machine() -> Vec<String> {
             .map(|e| e.file_name().to_string_lossy().into_owned())
             .collect()
     };
-    for n in
-        names(rotorloop_common::ipc::domain::ICEORYX2_ROOT).into_iter().chain(names("/dev/shm"))
-    {
+    for n in names("/dev/shm") {
         // Domain names have no `_`, so the first `_` after `rl_` ends the name.
-        if let Some(d) = n.strip_prefix("rl_").and_then(|r| r.split_once('_')).map(|(d, _)| d) {
+        if let Some(d) = n
+            .strip_prefix('.')
+            .unwrap_or(&n)
+            .strip_prefix("rl_")
+            .and_then(|r| r.split_once('_'))
+            .map(|(d, _)| d)
+        {
             if Domain::new(d).is_ok() {
                 found.insert(d.to_owned());
             }
         }
     }
     found.into_iter().collect()
+}
+
+/// Why the calling user cannot read `domain`, if it cannot: its files are another user's,
+/// owner-only. Looked at directly (the domain's directory, then its shared-memory files,
+/// each listed or opened read-only and closed), because iceoryx2 and the resume slots take
+/// a refused file for one that is not there, and an observer would show a loop of zeros.
+/// `None` also where the domain has no files yet.
+pub fn unreachable(domain: &Domain) -> Option<String> {
+    use std::os::unix::fs::MetadataExt;
+    let shm = std::fs::read_dir("/dev/shm").into_iter().flatten().flatten().map(|e| e.path());
+    let prefix = domain.prefix();
+    let files =
+        shm.filter(|p| p.file_name().is_some_and(|n| n.to_string_lossy().starts_with(prefix)));
+    for path in std::iter::once(domain.root_dir()).chain(files) {
+        let tried = match path.is_dir() {
+            true => std::fs::read_dir(&path).map(drop),
+            false => std::fs::File::open(&path).map(drop),
+        };
+        let Err(e) = tried else { continue };
+        if e.kind() != std::io::ErrorKind::PermissionDenied {
+            continue; // gone since it was listed, or not there at all
+        }
+        let owner =
+            std::fs::metadata(&path).map_or("another user".into(), |m| format!("uid {}", m.uid()));
+        // SAFETY: plain getter.
+        let me = unsafe { libc::geteuid() };
+        return Some(format!(
+            "domain `{}` is not readable by uid {me}: {} is owned by {owner}, open to its \
+             owner only (permission denied); a run belongs to the user who started it \
+             (docs/security.md): watch it as that user",
+            domain.name(),
+            path.display()
+        ));
+    }
+    None
+}
+
+/// [`unreachable`] as a usage error (exit 2): an observer never shows a loop it cannot read.
+pub fn refuse_unreachable(domain: &Domain) -> Result<(), UsageError> {
+    unreachable(domain).map_or(Ok(()), |why| Err(UsageError(why)))
 }
 
 /// `/proc/<pid>/stat`: the core it last ran on, its real-time priority and policy.
@@ -237,9 +291,11 @@ fn services(domain: &Domain) -> Vec<ServiceView> {
     out
 }
 
-/// A snapshot of `domain`, its plant's rate measured over `sample_ms`.
+/// A snapshot of `domain`, its plant's rate measured over `sample_ms`; a domain the caller
+/// cannot read is refused, saying why.
 pub fn snapshot(name: &str, sample_ms: u64) -> Result<DomainView, UsageError> {
     let domain = Domain::new(name).map_err(|e| UsageError(e.to_string()))?;
+    refuse_unreachable(&domain)?;
     let slots = Slots::observe(&domain);
     let first = slots.plant().map(|s| (s.tick, now_ns()));
     std::thread::sleep(Duration::from_millis(sample_ms));
@@ -257,6 +313,22 @@ pub fn snapshot(name: &str, sample_ms: u64) -> Result<DomainView, UsageError> {
         rate_hz,
         completed: last.is_some_and(|s| s.flags & FLAG_LAST != 0),
         services: services(&domain),
+        unreachable: None,
+    })
+}
+
+/// One domain of a listing: its snapshot, or, where the caller cannot read it, only why.
+fn listed(name: &str, sample_ms: u64) -> Result<DomainView, UsageError> {
+    let domain = Domain::new(name).map_err(|e| UsageError(e.to_string()))?;
+    let Some(why) = unreachable(&domain) else { return snapshot(name, sample_ms) };
+    Ok(DomainView {
+        domain: name.to_owned(),
+        roles: Vec::new(),
+        ticks: BTreeMap::new(),
+        rate_hz: None,
+        completed: false,
+        services: Vec::new(),
+        unreachable: Some(why),
     })
 }
 
@@ -271,11 +343,14 @@ fn out(text: &str) -> anyhow::Result<()> {
 
 /// `rotorloop ps`.
 pub fn ps(a: &PsArgs) -> anyhow::Result<()> {
-    let names = match &a.domain {
-        Some(d) => vec![d.clone()],
-        None => domains_on_machine(),
+    // One domain asked for by name must be readable; a listing of all says which are not.
+    let views = match &a.domain {
+        Some(d) => vec![snapshot(d, a.sample_ms)?],
+        None => domains_on_machine()
+            .iter()
+            .map(|d| listed(d, a.sample_ms))
+            .collect::<Result<Vec<_>, _>>()?,
     };
-    let views = names.iter().map(|d| snapshot(d, a.sample_ms)).collect::<Result<Vec<_>, _>>()?;
     if a.json {
         return out(&(serde_json::to_string_pretty(&views)? + "\n"));
     }
@@ -284,6 +359,10 @@ pub fn ps(a: &PsArgs) -> anyhow::Result<()> {
         t.push_str("no rotorloop domain on this machine\n");
     }
     for v in &views {
+        if let Some(why) = &v.unreachable {
+            let _ = writeln!(t, "domain {}: not shown: {why}", v.domain);
+            continue;
+        }
         let rate = v.rate_hz.map_or("not ticking".to_owned(), |r| format!("{r:.1} Hz"));
         let done = if v.completed { ", completed" } else { "" };
         let tick = v.ticks.get(Role::Plant.name()).map_or("-".into(), |t| t.to_string());
@@ -430,6 +509,7 @@ struct Watcher {
 impl Watcher {
     fn new(name: &str) -> Result<Self, UsageError> {
         let domain = Domain::new(name).map_err(|e| UsageError(e.to_string()))?;
+        refuse_unreachable(&domain)?;
         let slots = Slots::observe(&domain);
         Ok(Self {
             domain,
@@ -649,6 +729,8 @@ pub fn watch(a: &WatchArgs) -> anyhow::Result<()> {
     w.roles();
     if a.once {
         sample_for(&mut w, a.seconds, a.sample_hz);
+        // A loop that appeared while watching may be another user's.
+        refuse_unreachable(&w.domain)?;
         return out(&(serde_json::to_string_pretty(&w.view())? + "\n"));
     }
     if !std::io::stdout().is_terminal() {

@@ -67,12 +67,18 @@ pub struct RunArgs {
     #[arg(long, value_name = "COMMAND")]
     pub controller_cmd: Option<String>,
     /// Serve the running loop to Foxglove or Lichtblick on `ADDR` (default
-    /// 127.0.0.1:8765; loopback unless you name another address): `rotorloop foxglove`
-    /// started beside the loop, stopped at its end (docs/foxglove.md). It reads like the
-    /// monitor and never holds the loop up; a viewer gone or the server killed is no
+    /// 127.0.0.1:8765): `rotorloop foxglove` started beside the loop, stopped at its end
+    /// (docs/foxglove.md). Loopback only, where any user of this machine may watch; another
+    /// address needs `--foxglove-allow-network`. A port you name that is taken is an error
+    /// (exit 2); the default port taken, the loop goes on without a live view. It reads like
+    /// the monitor and never holds the loop up; a viewer gone or the server killed is no
     /// matter to the loop.
     #[arg(long, num_args = 0..=1, default_missing_value = crate::observe::foxglove::DEFAULT_ADDR, value_name = "ADDR")]
     pub foxglove: Option<String>,
+    /// Let `--foxglove` serve on an address that is not loopback: anyone who can reach it
+    /// watches the loop, with no authentication. Refused without this flag (exit 2).
+    #[arg(long, requires = "foxglove")]
+    pub foxglove_allow_network: bool,
     /// Real time: ticks the plant holds the last torque before safe mode.
     #[arg(long, allow_negative_numbers = true, default_value_t = 50)]
     pub hold_ticks: u64,
@@ -180,6 +186,7 @@ impl RunArgs {
             spin_before_tick_us: 0,
             cpu_dma_latency: None,
             foxglove: None,
+            foxglove_allow_network: false,
             controller_cmd: None,
             hold_ticks: 50,
             fault: Vec::new(),

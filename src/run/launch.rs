@@ -12,8 +12,7 @@ use crate::run::args::{RunArgs, parse_pins, with_preset};
 use crate::run::fault::{Fault, FaultEvent, FaultSchedule, parse_fault};
 use crate::run::resources::{RssLog, add_resources};
 use crate::run::spawn::{
-    Launch, clear_flight_records, make_staging, prepare_domains, staging_dir, start,
-    stop_gateways,
+    Launch, clear_flight_records, make_staging, prepare_domains, staging_dir, start, stop_gateways,
 };
 use crate::run::split::Split;
 use crate::run::supervise::{Children, RestartLimit, Supervisor, parse_restart};
@@ -69,6 +68,31 @@ fn default_domain() -> String {
     }
 }
 
+/// What the run makes its own before any role starts. First whether the domain is in use:
+/// a launch refused touches nothing of a live run. Then the launcher's staging directory
+/// in `/dev/shm` (made privately, or this user's own from an earlier run:
+/// `rotorloop_common::private`), cleared of an earlier run's records, and each domain's
+/// directory and iceoryx2 global segment, made privately.
+fn claim(
+    args: &RunArgs,
+    record: Option<&std::path::Path>,
+    domains: &[Domain],
+) -> anyhow::Result<()> {
+    prepare_domains(domains, &args.out)?;
+    if let Some(dir) = record {
+        if args.role.record.is_none() {
+            make_staging(dir)?;
+        }
+        // An earlier run's records in the same directory are not this run's to continue.
+        clear_flight_records(dir)?;
+        clear_flight_records(&args.out.join("flight"))?;
+    }
+    for domain in domains {
+        domain.make_private()?;
+    }
+    Ok(())
+}
+
 /// Runs the four processes to the end of the scenario.
 pub fn run(args: &RunArgs) -> anyhow::Result<()> {
     // `--wait` has a default, so "explicit" means: not the default (event).
@@ -116,17 +140,11 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
     let pins = args.pin.as_deref().map(parse_pins).transpose()?.unwrap_or_default();
     std::fs::create_dir_all(&args.out)
         .with_context(|| format!("cannot create {}", args.out.display()))?;
-    // First whether the domain is in use: a launch refused touches nothing of a live run.
-    prepare_domains(&domains, &args.out)?;
-    if let Some(dir) = &role_args.record {
-        if args.role.record.is_none() {
-            // The launcher's own staging directory in /dev/shm: made privately, or this
-            // user's own from an earlier run (`rotorloop_common::private`).
-            make_staging(dir)?;
-        }
-        // An earlier run's records in the same directory are not this run's to continue.
-        clear_flight_records(dir)?;
-        clear_flight_records(&args.out.join("flight"))?;
+    claim(args, role_args.record.as_deref(), &domains)?;
+    if let Some(s) = &split {
+        // The link's one-time credentials, before any gateway: a run that cannot make
+        // them privately stops here, naming why.
+        s.credentials(&args.out).map_err(anyhow::Error::msg)?;
     }
     if args.controller_cmd.is_some() {
         crate::run::external::write_run_files(&args.out, &scenario)?;

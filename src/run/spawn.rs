@@ -250,8 +250,6 @@ pub(crate) fn prepare_domains(domains: &[Domain], out: &std::path::Path) -> anyh
             );
             return Err(UsageError(msg).into());
         }
-        // Before any role: the domain's directory and global segment, made privately.
-        domain.make_private()?;
     }
     Ok(())
 }
@@ -262,8 +260,9 @@ pub(crate) fn prepare_domains(domains: &[Domain], out: &std::path::Path) -> anyh
 pub(crate) fn make_staging(dir: &std::path::Path) -> anyhow::Result<()> {
     match dir.parent().is_some_and(|p| p == std::path::Path::new("/dev/shm")) {
         true => rotorloop_common::private::dir(dir).map_err(anyhow::Error::from),
-        false => std::fs::create_dir_all(dir)
-            .with_context(|| format!("cannot create {}", dir.display())),
+        false => {
+            std::fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))
+        }
     }
 }
 

@@ -8,10 +8,19 @@
 //! gateways, until they are connected; the roles of the host without the plant; until
 //! the plant's host has the services those roles use (mirrored there by its gateway,
 //! which means the other side's Zenoh subscriptions exist); then the plant's host.
+//!
+//! **Who may join (issue 42).** Loopback is not private: any user of the machine can
+//! connect to a port on `127.0.0.1`, and a second user's gateway once received every
+//! state of a run and had its torques applied. So a split run's gateways authenticate
+//! like gateways across a network: the launcher makes one-time credentials for the run
+//! ([`LinkCredentials`]: a password from the kernel's randomness, in files only the run's
+//! user can read), the listening gateway gets `--users`, the connecting one `--user` and
+//! `--password-file`, and Zenoh refuses a peer without them before anything crosses.
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::process::Command;
+use std::sync::{Arc, OnceLock};
 use std::time::{Duration, Instant};
 
 use rotorloop_common::graph::{Role, Topic};
@@ -21,10 +30,14 @@ use rotorloop_common::signals::shutdown_requested;
 use rotorloop_common::role::UsageError;
 
 /// Where each role runs: two hosts, in the order given (the first one's gateway listens).
-#[derive(Debug, Clone, PartialEq)]
+#[derive(Debug, Clone)]
 pub struct Split {
     hosts: Vec<String>,
     role_host: BTreeMap<Role, String>,
+    /// The run's link credentials, made by the first [`gateway_command`] (in its `out`)
+    /// and shared by every gateway started after it, restarts included; removed when the
+    /// last clone of the split drops, after the gateways have stopped.
+    credentials: Arc<OnceLock<Result<LinkCredentials, String>>>,
 }
 
 impl Split {
@@ -65,7 +78,7 @@ impl Split {
         if hosts.len() != 2 {
             return Err(bad(format!("{} host(s); a split has two", hosts.len())));
         }
-        Ok(Self { hosts, role_host })
+        Ok(Self { hosts, role_host, credentials: Arc::default() })
     }
 
     /// The two hosts, the listening one first.
@@ -126,6 +139,20 @@ impl Split {
     /// Whether every host's gateway has written its ready file in `dir` (is connected).
     pub fn gateways_ready(&self, dir: &Path) -> bool {
         self.hosts.iter().all(|h| ready_file(dir, h).exists())
+    }
+
+    /// The run's link credentials, made in `out` the first time they are asked for (the
+    /// same ones for every later call, whatever its `out`: one split is one run).
+    pub fn credentials(&self, out: &Path) -> Result<&LinkCredentials, String> {
+        let made = self.credentials.get_or_init(|| {
+            LinkCredentials::create(out).map_err(|e| {
+                format!(
+                    "cannot write the link's credentials in {}: {e}",
+                    credentials_dir(out).display()
+                )
+            })
+        });
+        made.as_ref().map_err(Clone::clone)
     }
 
     /// A fault's target that is not a role must be one of this split's gateways.
@@ -228,19 +255,164 @@ pub fn free_port() -> anyhow::Result<u16> {
 }
 
 /// The command line of `host`'s gateway: the first host listens on `port`, the second
-/// connects to it; a host with only the monitor is read-only. (The launcher checked with
+/// connects to it, both with the run's credentials ([`LinkCredentials`], made in `out` by
+/// the first call); a host with only the monitor is read-only. (The launcher checked with
 /// [`link_binary`] that the binary is there.)
+///
+/// Credentials that cannot be written fail closed: the launcher says why, and the gateway
+/// is pointed at a path that cannot exist (under `/dev/null`), so it stops (exit 2,
+/// naming it) rather than listen without them, or with files someone else left in `out`.
 pub fn gateway_command(split: &Split, host: &str, domain: &str, port: u16, out: &Path) -> Command {
     let bin = link_binary().unwrap_or_else(|_| PathBuf::from("rotorloop-link"));
     let mut cmd = Command::new(bin);
     let endpoint = format!("tcp/127.0.0.1:{port}");
-    let side = if split.hosts[0] == host { "--listen" } else { "--connect" };
+    let listens = split.hosts[0] == host;
+    let side = if listens { "--listen" } else { "--connect" };
     cmd.args(["--domain", domain, "--host", host, side, &endpoint]);
+    let dir = match split.credentials(out) {
+        Ok(c) => c.dir().to_owned(),
+        Err(e) => {
+            eprintln!("launcher: error: {e}; the link-{host} gateway will not start without them");
+            PathBuf::from(NO_CREDENTIALS)
+        }
+    };
+    match listens {
+        true => cmd.arg("--users").arg(dir.join(USERS_FILE)),
+        false => cmd.args(["--user", LINK_USER, "--password-file"]).arg(dir.join(PASSWORD_FILE)),
+    };
     cmd.arg("--ready-file").arg(ready_file(out, host));
     if split.read_only(host) {
         cmd.arg("--read-only");
     }
     cmd
+}
+
+/// The user name of a split run's gateways (the password is what is secret).
+pub const LINK_USER: &str = "rotorloop";
+/// The credentials' directory in a run's `--out` (0700).
+pub const CREDENTIALS_DIR: &str = "link-credentials";
+const USERS_FILE: &str = "users";
+const PASSWORD_FILE: &str = "password";
+/// Where a gateway whose credentials could not be written looks for them: under a file,
+/// so nothing can ever be there.
+const NO_CREDENTIALS: &str = "/dev/null/link-credentials-not-written";
+
+/// Where a run whose `--out` is `out` keeps its link credentials.
+pub fn credentials_dir(out: &Path) -> PathBuf {
+    out.join(CREDENTIALS_DIR)
+}
+
+/// One split run's link credentials (module docs): the user [`LINK_USER`] and a password
+/// of 32 bytes from the kernel's randomness (`getrandom`), hex, never on a command line.
+/// They live in `OUT/link-credentials/` (a directory made for this run, mode 0700, owned
+/// by the run's user: a second user can neither list nor enter it) as `users`
+/// (`user:password`, the listening gateway's `--users`) and `password` (the connecting
+/// gateway's `--password-file`), each mode 0600, created with `O_EXCL|O_NOFOLLOW` (a file
+/// or link planted there beforehand makes the creation fail, it is never written
+/// through). Dropping them removes both files and the directory; a launcher killed with
+/// SIGKILL leaves them, and the next run in the same `--out` replaces them (the password
+/// of a run that ended opens nothing).
+#[derive(Debug)]
+pub struct LinkCredentials {
+    dir: PathBuf,
+    /// The directory's device and inode: a drop removes it only while it is still the one
+    /// made here (a later run in the same `--out` may have replaced it).
+    made: (u64, u64),
+}
+
+impl LinkCredentials {
+    /// Makes fresh credentials in `OUT/link-credentials/`, replacing what an earlier run
+    /// left there.
+    pub fn create(out: &Path) -> std::io::Result<Self> {
+        use std::os::unix::fs::{DirBuilderExt, MetadataExt};
+        let dir = credentials_dir(out);
+        match std::fs::symlink_metadata(&dir) {
+            // A killed run's leftovers (a link is removed, never followed).
+            Ok(m) if m.is_dir() => std::fs::remove_dir_all(&dir)?,
+            Ok(_) => std::fs::remove_file(&dir)?,
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => {}
+            Err(e) => return Err(e),
+        }
+        // Fails if the name was taken again meanwhile: the directory is always this run's.
+        std::fs::DirBuilder::new().mode(0o700).create(&dir)?;
+        let meta = std::fs::symlink_metadata(&dir)?;
+        let made = Self { dir, made: (meta.dev(), meta.ino()) };
+        // SAFETY: plain getter.
+        let me = unsafe { libc::geteuid() };
+        if !meta.is_dir() || meta.uid() != me || meta.mode() & 0o077 != 0 {
+            return Err(std::io::Error::other(format!(
+                "{} is not a private directory of this user (mode {:o}, owner {}): its \
+                 file system may not keep Unix permissions",
+                made.dir.display(),
+                meta.mode() & 0o7777,
+                meta.uid()
+            )));
+        }
+        let password = hex(&kernel_random::<32>()?);
+        write_private(&made.dir.join(USERS_FILE), &format!("{LINK_USER}:{password}\n"))?;
+        write_private(&made.dir.join(PASSWORD_FILE), &format!("{password}\n"))?;
+        Ok(made)
+    }
+
+    /// The directory that holds them.
+    pub fn dir(&self) -> &Path {
+        &self.dir
+    }
+}
+
+impl Drop for LinkCredentials {
+    fn drop(&mut self) {
+        use std::os::unix::fs::MetadataExt;
+        let same =
+            std::fs::symlink_metadata(&self.dir).is_ok_and(|m| (m.dev(), m.ino()) == self.made);
+        if !same {
+            return;
+        }
+        for f in [USERS_FILE, PASSWORD_FILE] {
+            let _ = std::fs::remove_file(self.dir.join(f));
+        }
+        let _ = std::fs::remove_dir(&self.dir);
+    }
+}
+
+/// Writes `text` into a new file `path` that only its owner can read (0600), refusing a
+/// file or link already there (`O_EXCL`, `O_NOFOLLOW`).
+fn write_private(path: &Path, text: &str) -> std::io::Result<()> {
+    use std::io::Write;
+    use std::os::unix::fs::OpenOptionsExt;
+    let mut f = std::fs::OpenOptions::new()
+        .write(true)
+        .create_new(true)
+        .mode(0o600)
+        .custom_flags(libc::O_NOFOLLOW)
+        .open(path)?;
+    f.write_all(text.as_bytes())
+}
+
+/// `N` bytes from the kernel's randomness (`getrandom(2)`, which blocks only until the
+/// kernel's pool was first seeded at boot).
+fn kernel_random<const N: usize>() -> std::io::Result<[u8; N]> {
+    let mut buf = [0u8; N];
+    let mut filled = 0;
+    while filled < N {
+        let rest = &mut buf[filled..];
+        // SAFETY: the kernel writes at most `rest.len()` bytes into memory we own.
+        let n = unsafe { libc::getrandom(rest.as_mut_ptr().cast(), rest.len(), 0) };
+        match usize::try_from(n) {
+            Ok(n) => filled += n,
+            Err(_) => {
+                let e = std::io::Error::last_os_error();
+                if e.kind() != std::io::ErrorKind::Interrupted {
+                    return Err(e);
+                }
+            }
+        }
+    }
+    Ok(buf)
+}
+
+fn hex(bytes: &[u8]) -> String {
+    bytes.iter().map(|b| format!("{b:02x}")).collect()
 }
 
 /// Where `host`'s gateway says it is connected.
@@ -288,5 +460,58 @@ mod tests {
             assert!(e.contains(why), "{spec}: {e}");
         }
         assert!(s.check_fault_target("link-c").is_err() && s.check_fault_target("link-b").is_ok());
+    }
+
+    /// A split run's credentials are readable by its user only (directory 0700, files
+    /// 0600), fresh for every run (an earlier run's are replaced), agree between the two
+    /// gateways' files, reach both command lines and never as the password itself, and
+    /// are gone once the split that made them is.
+    #[test]
+    fn a_runs_link_credentials_are_private_fresh_and_removed_with_it() {
+        use std::os::unix::fs::PermissionsExt;
+        let out = tempfile::tempdir().expect("tempdir");
+        let mode = |p: &Path| std::fs::metadata(p).expect("exists").permissions().mode() & 0o777;
+        let read = |p: PathBuf| std::fs::read_to_string(p).expect("read");
+        let dir = credentials_dir(out.path());
+        let mut passwords = Vec::new();
+        for _ in 0..2 {
+            let s = Split::parse("plant,reference,monitor@a controller@b", true).expect("valid");
+            let argv = |host| {
+                let cmd = gateway_command(&s, host, "d", 7447, out.path());
+                cmd.get_args().map(|a| a.to_string_lossy().into_owned()).collect::<Vec<_>>()
+            };
+            let (a, b) = (argv("a"), argv("b"));
+            let users = dir.join(USERS_FILE).display().to_string();
+            let pw_file = dir.join(PASSWORD_FILE).display().to_string();
+            assert!(a.windows(2).any(|w| w == ["--users", users.as_str()]), "{a:?}");
+            assert!(b.windows(2).any(|w| w == ["--user", LINK_USER]), "{b:?}");
+            assert!(b.windows(2).any(|w| w == ["--password-file", pw_file.as_str()]), "{b:?}");
+            assert_eq!(mode(&dir), 0o700);
+            assert_eq!(mode(&dir.join(USERS_FILE)), 0o600);
+            assert_eq!(mode(&dir.join(PASSWORD_FILE)), 0o600);
+            let password = read(dir.join(PASSWORD_FILE)).trim_end().to_owned();
+            assert_eq!(password.len(), 64, "32 random bytes in hex");
+            assert_eq!(read(dir.join(USERS_FILE)), format!("{LINK_USER}:{password}\n"));
+            assert!(!a.iter().chain(&b).any(|x| x.contains(&password)), "on a command line");
+            passwords.push(password);
+            // The first run's launcher is killed (its credentials are never dropped): the
+            // second run in the same --out replaces them.
+            std::mem::forget(s);
+        }
+        assert_ne!(passwords[0], passwords[1], "each run has its own");
+        let s = Split::parse("plant,reference,monitor@a controller@b", true).expect("valid");
+        s.credentials(out.path()).expect("made");
+        let clone = s.clone();
+        drop(s);
+        assert!(dir.exists(), "a clone of the split (the bench's gateways) still uses them");
+        drop(clone);
+        assert!(!dir.exists(), "{} left after the run", dir.display());
+        // Where they cannot be written, the gateway is sent where nothing can be: it stops.
+        let file = out.path().join("a-file");
+        std::fs::write(&file, "").expect("write");
+        let s = Split::parse("plant,reference,monitor@a controller@b", true).expect("valid");
+        let cmd = gateway_command(&s, "a", "d", 7447, &file);
+        let users = cmd.get_args().skip_while(|a| *a != "--users").nth(1).expect("--users");
+        assert_eq!(users, Path::new(NO_CREDENTIALS).join(USERS_FILE).as_os_str());
     }
 }

@@ -64,13 +64,16 @@ fn mount(at: &str) -> anyhow::Result<()> {
     Ok(())
 }
 
-/// Removes instances `rotorloop-run-PID` whose launcher `PID` is gone (one killed by
+/// Removes instances `rotorloop-PID-DOMAIN` whose launcher `PID` is gone (one killed by
 /// `SIGKILL` could not remove its own).
 fn remove_stale(root: &Path) {
     let Ok(dir) = std::fs::read_dir(root.join("instances")) else { return };
     for e in dir.flatten() {
         let name = e.file_name().to_string_lossy().into_owned();
-        let pid = name.strip_prefix("rotorloop-run-").and_then(|p| p.parse::<u32>().ok());
+        let pid = name
+            .strip_prefix("rotorloop-")
+            .and_then(|r| r.split_once('-'))
+            .and_then(|(p, _)| p.parse::<u32>().ok());
         if pid.is_some_and(|p| !Path::new(&format!("/proc/{p}")).exists()) {
             let _ = std::fs::remove_dir(e.path());
         }
@@ -97,7 +100,8 @@ impl TraceSched {
             }
         };
         remove_stale(&root);
-        let instance = root.join("instances").join(format!("rotorloop-{domain}"));
+        let name = format!("rotorloop-{}-{domain}", std::process::id());
+        let instance = root.join("instances").join(name);
         let _ = std::fs::remove_dir(&instance);
         let mut me = Self { instance, mounted, stop: Arc::default(), reader: None };
         std::fs::create_dir(&me.instance).with_context(|| {

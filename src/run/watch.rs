@@ -556,6 +556,7 @@ fn restart(
         }
         return Ok(());
     }
+    let refused = refused_resume(launch, role);
     let child = launch.spawn(role, rss).with_context(|| format!("cannot restart {role}"))?;
     if let Some(c) = children.get_mut(role) {
         *c = child;
@@ -572,7 +573,34 @@ fn restart(
         e.restart_ns = Some(now_ns());
     }
     eprintln!("launcher: restarted {role} at {at:.3} s");
+    if let Some(why) = refused {
+        eprintln!(
+            "launcher: {role}'s resume slot was refused ({why}); it starts as a fresh {role}"
+        );
+        let e = FaultEvent::now(role, "resume-refused", why);
+        w.events.push(FaultEvent { restart_ns: Some(e.kill_ns), ..e });
+    }
     Ok(())
+}
+
+/// A role about to be restarted: its resume slot checked as the role itself will check it
+/// ([`Resumable`]). One it would refuse is forgotten here (the role starts as a fresh one
+/// would) and the reason returned, for the launcher to list as a fault of its own.
+fn refused_resume(launch: &Launch, role: &str) -> Option<String> {
+    use iceoryx2::prelude::ZeroCopySend;
+    use rotorloop_common::resume::{Resumable, ResumeSlot};
+    fn check<T: Copy + ZeroCopySend + Resumable>(launch: &Launch, role: &str) -> Option<String> {
+        // None, or not this user's own (then the role refuses to start: exit 2).
+        let slot = ResumeSlot::<T>::open_existing(launch.domain_of(role), role).ok()??;
+        slot.load_checked(launch.ticks).err()
+    }
+    match role {
+        "plant" => check::<rotorloop_common::wire::StateSample>(launch, role),
+        "controller" => check::<rotorloop_controller::policy::ControllerResume>(launch, role),
+        "reference" => check::<rotorloop_reference::policy::ReferenceResume>(launch, role),
+        "monitor" => check::<rotorloop_monitor::policy::MonitorResume>(launch, role),
+        _ => None,
+    }
 }
 
 /// Carries out one action of the `--fault` schedule, as its row of `fault::KINDS` says.

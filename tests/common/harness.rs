@@ -109,7 +109,8 @@ impl Harness {
             })
             .unwrap_or_default();
         assert!(shm.is_empty(), "left in /dev/shm: {shm:?}");
-        let root = Path::new(rotorloop_common::ipc::domain::ICEORYX2_ROOT).join(prefix);
+        let root =
+            PathBuf::from(format!("{}{prefix}", rotorloop_common::ipc::domain::ICEORYX2_ROOT));
         let files = files_under(&root);
         assert!(files.is_empty(), "left under {}: {files:?}", root.display());
     }

@@ -16,20 +16,23 @@ use crate::wire::{ReferenceSample, StateSample, TorqueSample};
 use iceoryx2::service::static_config::messaging_pattern::MessagingPattern as StaticPattern;
 
 /// Where every domain keeps iceoryx2's static files (node details, service configurations):
-/// a directory of its own directly in `/dev/shm`, `/dev/shm/<prefix>/` (a tmpfs, not
-/// iceoryx2's default `/tmp/iceoryx2`). iceoryx2 0.10 `fsync`s each of these files as it
-/// writes it (`iceoryx2-cal` `static_storage/file.rs`); on a disk with other writes
-/// pending that waited for the disk, and a role (re)started beside a busy disk took up to
-/// 3.6 s to create its node (measured: the far-host controller restart that brought
-/// control back only after seconds). On a tmpfs the `fsync` does not wait.
+/// a directory of its own directly in `/dev/shm`, `/dev/shm/.<prefix>/` (this string, then
+/// the domain's prefix; a tmpfs, not iceoryx2's default `/tmp/iceoryx2`). iceoryx2 0.10
+/// `fsync`s each of these files as it writes it (`iceoryx2-cal` `static_storage/file.rs`);
+/// on a disk with other writes pending that waited for the disk, and a role (re)started
+/// beside a busy disk took up to 3.6 s to create its node (measured: the far-host
+/// controller restart that brought control back only after seconds). On a tmpfs the
+/// `fsync` does not wait.
 ///
 /// Each domain's directory is its user's alone (made 0700 by [`Domain::make_private`]),
 /// in the sticky `/dev/shm`: no directory shared by every user's domains, which would
 /// belong to whoever made it first (an earlier `/dev/shm/iox2/` did: root owning it
 /// locked every other user out, and another user owning it could rename a live domain's
-/// directory). The event services' Unix sockets live under it, a socket path has at most
-/// 108 bytes, and that bounds the domain and host names ([`Domain::on_host`]).
-pub const ICEORYX2_ROOT: &str = "/dev/shm/";
+/// directory). Its name starts with a `.`: iceoryx2 lists `/dev/shm` by the domain's
+/// prefix, and an entry named the bare prefix stops it ("Stripping the prefix … leads to
+/// invalid content"). The event services' Unix sockets live under it, a socket path has
+/// at most 108 bytes, and that bounds the domain and host names ([`Domain::on_host`]).
+pub const ICEORYX2_ROOT: &str = "/dev/shm/.";
 
 /// The file iceoryx2 0.10 makes for a domain's global management segment (a node
 /// counter), `/dev/shm/<prefix><type hash>_node.<version>.global_mgmt`
@@ -114,6 +117,12 @@ impl Domain {
         Ok(Self { name: name.to_owned(), host: host.map(str::to_owned), prefix, config })
     }
 
+    /// The file of the domain's iceoryx2 global management segment (a node counter), which
+    /// [`Domain::make_private`] makes.
+    pub fn global_segment(&self) -> std::path::PathBuf {
+        global_segment_path(&self.prefix)
+    }
+
     /// The domain's shared-memory file prefix (`rl_<name>_` or `rh_<host>_<name>_`).
     pub fn prefix(&self) -> &str {
         &self.prefix
@@ -148,6 +157,11 @@ impl Domain {
         std::fs::create_dir_all(dir.join("config"))?;
         std::fs::write(&path, text)?;
         Ok(path)
+    }
+
+    /// The domain's iceoryx2 directory, without a trailing `/` ([`ICEORYX2_ROOT`]).
+    pub fn root_dir(&self) -> std::path::PathBuf {
+        std::path::PathBuf::from(format!("{ICEORYX2_ROOT}{}", self.prefix))
     }
 
     /// The iceoryx2 root directory (static service and node files).
@@ -210,9 +224,7 @@ impl Domain {
     /// Anything else already there (another user's, a link, a file others may open) is
     /// refused with [`IpcError::Private`], naming the path and its owner.
     pub fn make_private(&self) -> Result<(), IpcError> {
-        // Without the trailing `/`, which would make the system follow a link in its place.
-        let root = self.root_path();
-        crate::private::dir(std::path::Path::new(root.trim_end_matches('/')))?;
+        crate::private::dir(&self.root_dir())?;
         let path = global_segment_path(&self.prefix);
         let (file, created) = crate::private::open_or_create_file(&path)?;
         if created {
@@ -221,7 +233,10 @@ impl Domain {
             // (u32), padded to 16 bytes. The version is written last: a node that opens
             // the segment while it is 0 waits for it, as for iceoryx2's own creation.
             let version = iceoryx2_bb_elementary::package_version::PackageVersion::get();
-            let io = |e: std::io::Error| crate::private::PrivateError::Io { path: path.clone(), source: e };
+            let io = |e: std::io::Error| crate::private::PrivateError::Io {
+                path: path.clone(),
+                source: e,
+            };
             file.set_len(16).map_err(io)?;
             file.write_all_at(&version.to_u64().to_ne_bytes(), 0).map_err(io)?;
         }
@@ -232,13 +247,14 @@ impl Domain {
     /// this user's own: never used, never removed.
     pub fn foreign_files(&self) -> Vec<crate::private::Foreign> {
         let mut out = Vec::new();
-        for e in std::fs::read_dir("/dev/shm").into_iter().flatten().flatten() {
-            if !e.file_name().to_string_lossy().starts_with(&self.prefix) {
-                continue;
-            }
-            let Ok(meta) = std::fs::symlink_metadata(e.path()) else { continue };
+        let shm = std::fs::read_dir("/dev/shm").into_iter().flatten().flatten().map(|e| e.path());
+        let ours = shm.filter(|p| {
+            p.file_name().is_some_and(|n| n.to_string_lossy().starts_with(&self.prefix))
+        });
+        for path in std::iter::once(self.root_dir()).chain(ours) {
+            let Ok(meta) = std::fs::symlink_metadata(&path) else { continue };
             let dir = meta.is_dir();
-            if let Err(f) = crate::private::check(&e.path(), &meta, dir) {
+            if let Err(f) = crate::private::check(&path, &meta, dir) {
                 // Ours with a looser mode (iceoryx2's static files are 0400, its own
                 // directories 0750) is ours: only another owner or a link is foreign.
                 use std::os::unix::fs::MetadataExt;
@@ -303,7 +319,7 @@ impl Domain {
         }
         if alive == 0 && live == 0 {
             // No process of the domain is left: whatever remains is stale.
-            let root = std::path::PathBuf::from(self.root_path());
+            let root = self.root_dir();
             if root.exists() {
                 std::fs::remove_dir_all(&root).map_err(|e| IpcError::Iceoryx {
                     what: format!("cannot remove {}", root.display()),
@@ -700,16 +716,24 @@ mod tests {
         let domain = Domain::new(&format!("ipc-fo{}", std::process::id())).expect("domain");
         domain.cleanup().expect("clean");
         // A link where the domain's directory goes: "another user's" for the check.
-        let root = std::path::PathBuf::from(domain.root_path());
-        let root = root.to_string_lossy().trim_end_matches('/').to_owned();
-        std::os::unix::fs::symlink("/tmp", &root).expect("link");
-        let e = domain.node("plant").err().expect("refused");
+        let root = domain.root_dir().to_string_lossy().into_owned();
+        // It points at a scratch directory of the test's own: a bug that followed the link
+        // and made its target private must not touch anything else.
+        let target = std::env::temp_dir().join(format!("rl-link-target-{}", std::process::id()));
+        std::fs::create_dir_all(&target).expect("target");
+        std::fs::set_permissions(&target, std::os::unix::fs::PermissionsExt::from_mode(0o1777))
+            .expect("chmod");
+        std::os::unix::fs::symlink(&target, &root).expect("link");
+        let e = domain.node("plant").expect_err("refused");
         assert!(e.is_foreign(), "{e}");
         assert!(e.to_string().contains(&root) && e.to_string().contains("symbolic link"), "{e}");
-        let e = domain.cleanup().err().expect("clean-up refuses too");
+        let e = domain.cleanup().expect_err("clean-up refuses too");
         assert!(e.is_foreign(), "{e}");
         assert!(std::fs::symlink_metadata(&root).is_ok(), "the link was removed");
+        let mode = std::fs::metadata(&target).expect("target").permissions();
+        assert_eq!(std::os::unix::fs::PermissionsExt::mode(&mode) & 0o7777, 0o1777, "followed");
         std::fs::remove_file(&root).expect("unlink");
+        std::fs::remove_dir(&target).expect("target");
     }
 
     #[test]

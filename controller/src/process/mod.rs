@@ -27,8 +27,12 @@ pub fn run(args: &args::ControllerArgs) -> anyhow::Result<()> {
     let mut ports = Ports::open(role, scenario.ticks())?;
     let dt = scenario.dt();
     let mut answers = TorqueAnswers::new(law).leaving_unanswered(role.hooks.test_skip_state_at);
-    let mut pairing = ReferencePairing::new(args.reference_hold_ticks, dt);
-    if let Some(r) = ports.slot.load().filter(|r| r.last.tick < scenario.ticks()) {
+    let mut pairing = ReferencePairing::new(args.reference_hold_ticks, dt, scenario.ticks());
+    let resumed = ports.slot.load_checked(scenario.ticks()).unwrap_or_else(|why| {
+        eprintln!("controller: resume slot refused ({why}); starting as a fresh controller");
+        None
+    });
+    if let Some(r) = resumed {
         answers.resume(&r);
         pairing.resume(&r.last);
         eprintln!("controller: resuming after tick {} with its law's last state", r.last.tick);

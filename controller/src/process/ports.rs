@@ -6,7 +6,7 @@ use std::cell::Cell;
 use anyhow::Context;
 use rotorloop_common::clock::now_ns;
 use rotorloop_common::flight::{FlightRecorder, Stream};
-use rotorloop_common::graph::Topic;
+use rotorloop_common::graph::{Role, Topic};
 use rotorloop_common::ipc::ports::{Inbox, Outbox, RoleNode};
 use rotorloop_common::ipc::wait::Wait;
 use rotorloop_common::params::ReferenceState;
@@ -29,6 +29,9 @@ pub(super) struct Ports {
     pub states: Inbox<StateSample>,
     pub slot: ResumeSlot<ControllerResume>,
     pub plant: PlantWatch,
+    /// The plant's resume slot: the newest state it has published, which a reference
+    /// beyond the newest state taken (and its lead) is checked against (the tick rule).
+    plant_published: ResumeSlot<StateSample>,
     /// Every torque published, in the run's flight record.
     flight: FlightRecorder<TorqueSample>,
     /// The hot path with its overhead cut (not `--plain-hot-path`): the reference topic
@@ -53,9 +56,21 @@ impl Ports {
         let states = states.context(ROLE)?;
         let slot = ResumeSlot::<ControllerResume>::open(&domain, ROLE).context(ROLE)?;
         let plant = PlantWatch::open(&domain, ROLE).context(ROLE)?;
+        let plant_published = ResumeSlot::open(&domain, Role::Plant.name()).context(ROLE)?;
         let last_publish = Cell::new((NO_TICK, SendCost::default()));
         let cut = !role.plain_hot_path;
-        Ok(Self { out, refs, states, slot, plant, flight, cut, last_publish, _node: node })
+        Ok(Self {
+            out,
+            refs,
+            states,
+            slot,
+            plant,
+            plant_published,
+            flight,
+            cut,
+            last_publish,
+            _node: node,
+        })
     }
 
     /// Waits until `until` for states; every one goes through `answers` (older ones are
@@ -101,7 +116,8 @@ impl Ports {
     /// Pairs the state of tick `k` with its reference (in lockstep waiting for it, polling
     /// every 100 µs), under the pairing rule. The reference works ahead and publishes in
     /// batches: the topic is read only when tick `k`'s is not in hand yet (each empty
-    /// read of a subscriber costs about 0.2–0.7 µs here).
+    /// read of a subscriber costs about 0.2–0.7 µs here). A reference beyond `k` and the
+    /// lead is checked against the plant's resume slot (the tick rule), read only then.
     pub fn pair(
         &self,
         pairing: &mut ReferencePairing,
@@ -109,12 +125,14 @@ impl Ports {
         state_ok: bool,
         lockstep: bool,
     ) -> anyhow::Result<Option<ReferenceState>> {
+        let published = || self.plant_published.load().map(|s| s.tick);
+        pairing.saw_state(k);
         if !self.cut || pairing.lookup(k).is_none() {
-            self.refs.drain(|r| pairing.take(r))?;
+            self.refs.drain(|r| pairing.take(r, published))?;
         }
         pairing.pair(k, state_ok, lockstep, |p| {
             std::thread::sleep(std::time::Duration::from_micros(100));
-            self.refs.drain(|r| p.take(r))?;
+            self.refs.drain(|r| p.take(r, published))?;
             Ok(!shutdown_requested())
         })
     }

@@ -143,7 +143,11 @@ impl TorqueWait {
             let mut answer: Option<Answer> = None;
             inbox.drain(|t| {
                 let took = plant.take(&t, k, deadline, now_ns());
-                ports.torques_flight.record(&t);
+                // The record is by tick: one for a tick not reached has no slot there (it
+                // would take the one of a true tick).
+                if !matches!(took, Some(Answer::Future(..))) {
+                    ports.torques_flight.record(&t);
+                }
                 answer = took.filter(Answer::answers_the_tick).or(answer);
             })?;
             if answer.is_none() && now_ns() - self.last_update > 5_000_000 {

@@ -382,7 +382,9 @@ impl FaultSchedule {
 pub struct FaultEvent {
     /// The role.
     pub role: String,
-    /// `kill` or `stop` (injected by `--fault`), `killed`, `crash`, `exited` or `hang`.
+    /// `kill` or `stop` (injected by `--fault`), `killed`, `crash`, `exited` or `hang`;
+    /// `resume-refused` when a restarted role's resume slot failed its check (the role
+    /// started as a fresh one).
     pub kind: &'static str,
     /// What happened, in words (the exit status, what the watchdog did).
     pub detail: String,

@@ -1,7 +1,10 @@
-//! Why an incident happened: from the launcher's faults and the fault schedule, from the
-//! loop's own stamps (which stage of the tick held it up, beyond its median, and whose
-//! process that stage is), and from the kernel's view of that process (`sched.csv`: time
-//! runnable but not running, stopped, on a CPU; the machine's steal time).
+//! Why an incident happened: from the launcher's faults and the fault schedule, from a
+//! rejected sample (what was rejected, by whom, and whose it was), from the loop's own
+//! stamps (which stage of the tick held it up, beyond its median, and whose process that
+//! stage is), and from the kernel's view of that process (`sched.csv`: time runnable but
+//! not running, stopped, on a CPU; the machine's steal time).
+
+use rotorloop_common::wire::{ReferenceSample, StateSample, TorqueSample};
 
 use super::load::{FaultRow, RunRecord, SchedRow};
 use super::ticks::{self, DELAY, LATE, MISS, NOT_FRESH, REFERENCE_LATE, REJECTED, SAFE, TickFlags};
@@ -12,13 +15,18 @@ pub struct Cause {
     /// `simulator stall`, `fault`, `injected delay`, `miss`, `late torque`, `safe mode`,
     /// `rejected samples`, `late reference`.
     pub kind: &'static str,
-    /// The process.
+    /// The process ([`ANOTHER_PUBLISHER`] for a rejected sample the role of its topic did
+    /// not publish).
     pub role: String,
     /// The stage of the tick that held it up, or what was done to the process.
     pub stage: String,
     /// The stamps and kernel figures behind it, in words.
     pub evidence: String,
 }
+
+/// Who sent a rejected sample that the role publishing its topic did not send (its own
+/// record of that tick is valid): a same-user process, or a link gateway's peer.
+pub const ANOTHER_PUBLISHER: &str = "another publisher";
 
 /// The stages of one tick that belong to one process (ns): the plant's wake after its
 /// grid time; its work from its wake to the state's publish; the state's delivery up to
@@ -119,6 +127,7 @@ pub fn fault_cause(run: &RunRecord, f: &FaultRow) -> Cause {
         "hang" => "hung (the watchdog found no progress)",
         "crash" => "crashed",
         "exited" => "exited",
+        "resume-refused" => "restarted from scratch (its resume slot was refused)",
         _ => "lost its link",
     };
     let end = match (f.kind.as_str(), f.ended_s.or(f.restart_s)) {
@@ -163,10 +172,77 @@ pub fn cause(
                 d.until_s.map(|u| format!(" until {u:.3} s")).unwrap_or_default()
             ),
         }
+    } else if all & REJECTED != 0 {
+        rejected(run, flags, [start, end], kind_of(all))
     } else {
         from_stamps(run, flags, medians, [start, end], all)
     };
     with_kernel(run, c, [start, end])
+}
+
+/// The kind of an incident from its ticks' flags, when no fault or injected delay explains
+/// it.
+fn kind_of(all: u16) -> &'static str {
+    match all {
+        a if a & SAFE != 0 => "safe mode",
+        a if a & REJECTED != 0 => "rejected samples",
+        a if a & REFERENCE_LATE != 0 => "late reference",
+        a if a & (MISS | NOT_FRESH) != 0 => "miss",
+        _ => "late torque",
+    }
+}
+
+/// An incident in which a sample was rejected is named after the rejection, never after a
+/// stage's timing: a stage slower than usual on one of its ticks did not make it an
+/// incident (a torque for a tick the loop had not reached, from a same-user process, was
+/// once reported as a "simulator stall"). It names the first such tick, the receiver and
+/// the topic, and whose the sample was: the publishing role's own, if its record of that
+/// tick fails the same validation, else [`ANOTHER_PUBLISHER`]'s.
+fn rejected(
+    run: &RunRecord,
+    flags: &TickFlags,
+    [start, end]: [u64; 2],
+    kind: &'static str,
+) -> Cause {
+    let k = (start..=end).find(|k| flags.flags[*k as usize] & REJECTED != 0).unwrap_or(start);
+    let more = |before: u64, after: u64| after.saturating_sub(before);
+    let (s, n) = (run.state(k), run.state(k + 1));
+    let torques = s.zip(n).map_or(0, |(s, n)| more(s.torques_rejected, n.torques_rejected));
+    // The controller's counts, in its answer to state k against its previous one.
+    let answers = run.torque(k).zip(ticks::previous_answer(run, k));
+    let states = answers.map_or(0, |(t, p)| more(p.states_rejected, t.states_rejected));
+    let limits = run.scenario.limits_for(run.scenario.actuation());
+    let limit = TorqueSample::absurd_limit(limits.rotor_torque);
+    // What was rejected, how many, by whom, whose topic it is, and that role's own sample
+    // of the tick as validated again.
+    let (what, count, receiver, role, own) = if torques > 0 {
+        ("torque", torques, "plant", "controller", run.torque(k).map(|t| t.validate(limit)))
+    } else if states > 0 {
+        ("state", states, "controller", "plant", s.map(StateSample::validate))
+    } else {
+        let references =
+            answers.map_or(0, |(t, p)| more(p.references_rejected, t.references_rejected));
+        let own = run.references.get(k).map(ReferenceSample::validate);
+        ("reference", references, "controller", "reference", own)
+    };
+    let (role, whose) = match own {
+        Some(Err(f)) => (role, format!("its own {what} of tick {k} was invalid: {f}")),
+        Some(Ok(())) => (
+            ANOTHER_PUBLISHER,
+            format!(
+                "the {role}'s own {what} of tick {k} was valid: the rejected one came from \
+                 another publisher on the topic (a same-user process or a link peer; \
+                 summary.json's wire_faults has the monitor's view of it)"
+            ),
+        ),
+        None => (role, format!("the {role}'s record has no {what} of tick {k}")),
+    };
+    Cause {
+        kind,
+        role: role.into(),
+        stage: format!("{what} rejected by the {receiver}"),
+        evidence: format!("tick {k}: the {receiver} rejected {count} {what} sample(s); {whose}"),
+    }
 }
 
 /// `c` with the kernel's view of its process over `[start, end]` added.
@@ -220,13 +296,7 @@ fn from_stamps(
     [start, end]: [u64; 2],
     all: u16,
 ) -> Cause {
-    let kind = match all {
-        a if a & SAFE != 0 => "safe mode",
-        a if a & REJECTED != 0 => "rejected samples",
-        a if a & REFERENCE_LATE != 0 => "late reference",
-        a if a & (MISS | NOT_FRESH) != 0 => "miss",
-        _ => "late torque",
-    };
+    let kind = kind_of(all);
     let worst = (start..=end)
         .flat_map(|k| {
             let st = stages(run, k);
@@ -375,4 +445,62 @@ fn ran_instead(run: &RunRecord, cpu: u32, pids: &[u32], window: [u64; 2]) -> Str
         ms(irq_ns as f64),
         ms(idle as f64)
     )
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use rotorloop_common::scenario::Scenario;
+
+    /// A lockstep run of 20 ticks in which the plant rejected one torque while it waited
+    /// for tick 10, and whose plant took 0.5 ms to publish state 10 (its median: 1 µs).
+    fn run_with_a_rejection(controllers_own: TorqueSample) -> RunRecord {
+        let scenario = Scenario::load("paper-zero").expect("built-in");
+        let dt = scenario.dt();
+        let publish = |k: u64| 1_000_000 * (k + 1);
+        let states = (0..20)
+            .map(|k| {
+                let mut s = StateSample::of(k, k as f64 * dt, &scenario.plant_init);
+                s.publish_ns = publish(k);
+                s.wake_ns = publish(k) - if k == 10 { 500_000 } else { 1_000 };
+                s.torques_rejected = u64::from(k > 10);
+                if k > 0 {
+                    (s.effects, s.effect_ticks[0], s.effect_offsets_s[0]) = (1, k - 1, 1e-5);
+                }
+                s
+            })
+            .collect();
+        let torques = (0..20)
+            .map(|k| TorqueSample {
+                tick: k,
+                state_recv_ns: publish(k) + 2_000,
+                publish_ns: publish(k) + 3_000,
+                ..if k == 10 { controllers_own } else { TorqueSample::default() }
+            })
+            .collect();
+        RunRecord::of(scenario, states, torques)
+    }
+
+    fn cause_at(run: &RunRecord, k: u64) -> Cause {
+        let flags = ticks::flag(run, 0.25);
+        let medians = stage_medians(run, &flags);
+        let windows = ticks::windows_of(&flags.flags, super::super::GAP);
+        let w = windows.iter().find(|w| w[0] <= k && k <= w[1]).expect("an incident at k");
+        cause(run, &flags, &medians, *w)
+    }
+
+    /// Issue 42: a torque for a tick the loop had not reached, from a same-user process,
+    /// was reported as a "simulator stall" (the plant's slowest stage in the window).
+    #[test]
+    fn a_rejected_sample_is_named_after_the_rejection_never_a_stall() {
+        let c = cause_at(&run_with_a_rejection(TorqueSample::default()), 10);
+        assert_eq!((c.kind, c.role.as_str()), ("rejected samples", ANOTHER_PUBLISHER), "{c:?}");
+        assert_eq!(c.stage, "torque rejected by the plant");
+        assert!(c.evidence.contains("the controller's own torque of tick 10 was valid"), "{c:?}");
+        // The controller's own answer was the bad one: it is named.
+        let nan = TorqueSample { rotor_torque_nm: [f64::NAN, 0.0, 0.0], ..Default::default() };
+        let c = cause_at(&run_with_a_rejection(nan), 10);
+        assert_eq!((c.kind, c.role.as_str()), ("rejected samples", "controller"), "{c:?}");
+        assert!(c.evidence.contains("torque.rotor_torque is not finite"), "{c:?}");
+    }
 }

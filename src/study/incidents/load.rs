@@ -157,6 +157,34 @@ impl RunRecord {
         })
     }
 
+    /// A lockstep run of these records alone (no faults, schedule or kernel figures),
+    /// each tick's grid time its state's publish: for the incidents' unit tests.
+    #[cfg(test)]
+    pub(crate) fn of(
+        scenario: Scenario,
+        states: Vec<StateSample>,
+        torques: Vec<TorqueSample>,
+    ) -> Self {
+        fn log<T>(v: Vec<T>) -> FlightLog<T> {
+            FlightLog { records: v.into_iter().map(Some).collect(), opens: 1, beyond: 0 }
+        }
+        let grid_ns: Vec<u64> = states.iter().map(|s| s.publish_ns).collect();
+        Self {
+            dt: scenario.dt(),
+            scenario,
+            last: (states.len() as u64).saturating_sub(1),
+            t0_ns: grid_ns.first().copied().unwrap_or(0),
+            grid_ns,
+            states: log(states),
+            torques: log(torques),
+            references: FlightLog { records: Vec::new(), opens: 0, beyond: 0 },
+            faults: Vec::new(),
+            schedule: Vec::new(),
+            sched: Vec::new(),
+            trace: Vec::new(),
+        }
+    }
+
     /// Whether the run was in real time (its states carry grid times).
     pub fn realtime(&self) -> bool {
         self.states.records.iter().flatten().any(|s| s.deadline_ns > 0)
