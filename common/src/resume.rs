@@ -159,6 +159,15 @@ impl<T: Copy + ZeroCopySend + Resumable> ResumeSlot<T> {
             }
         }
     }
+
+    /// [`Self::load_checked`] for `role` itself: a value it cannot continue from is
+    /// refused with a line on stderr, and the role starts as a fresh one would (`None`).
+    pub fn load_for(&self, role: &str, ticks: u64) -> Option<T> {
+        self.load_checked(ticks).unwrap_or_else(|why| {
+            eprintln!("{role}: resume slot refused ({why}); starting as a fresh {role}");
+            None
+        })
+    }
 }
 
 /// What a role checks in its slot before it continues from it: like a received sample

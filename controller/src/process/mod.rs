@@ -28,10 +28,7 @@ pub fn run(args: &args::ControllerArgs) -> anyhow::Result<()> {
     let dt = scenario.dt();
     let mut answers = TorqueAnswers::new(law).leaving_unanswered(role.hooks.test_skip_state_at);
     let mut pairing = ReferencePairing::new(args.reference_hold_ticks, dt, scenario.ticks());
-    let resumed = ports.slot.load_checked(scenario.ticks()).unwrap_or_else(|why| {
-        eprintln!("controller: resume slot refused ({why}); starting as a fresh controller");
-        None
-    });
+    let resumed = ports.slot.load_for(ROLE, scenario.ticks());
     if let Some(r) = resumed {
         answers.resume(&r);
         pairing.resume(&r.last);

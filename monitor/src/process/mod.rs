@@ -26,10 +26,7 @@ pub fn run(args: &args::MonitorArgs) -> anyhow::Result<()> {
     let ports = Ports::open(role, &args.out)?;
     // A restart continues the report in the same directory.
     let stall = role.hooks.test_files_stall_ms.map(std::time::Duration::from_millis);
-    let resumed = ports.slot.load_checked(scenario.ticks()).unwrap_or_else(|why| {
-        eprintln!("monitor: resume slot refused ({why}); starting as a fresh monitor");
-        None
-    });
+    let resumed = ports.slot.load_for(ROLE, scenario.ticks());
     let (mut rec, resumed) = Recording::open(&args.out, &scenario, resumed, (now_ns(), stall));
     rec.hosts = args.hosts.clone().unwrap_or_default();
     let mut joiner = RowJoiner::for_scenario(&scenario, now_ns());

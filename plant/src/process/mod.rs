@@ -25,10 +25,7 @@ pub fn run(args: &args::PlantArgs) -> anyhow::Result<()> {
     let ports = Ports::open(role, scenario.ticks())?;
     let realtime = role.mode == Mode::Realtime;
     let mut plant = PlantTicker::new(&scenario, args.hold_ticks, realtime, args.actuation_delay);
-    let resumed = ports.slot.load_checked(scenario.ticks()).unwrap_or_else(|why| {
-        eprintln!("plant: resume slot refused ({why}); starting as a fresh plant");
-        None
-    });
+    let resumed = ports.slot.load_for(ROLE, scenario.ticks());
     match resumed.filter(|s| plant.can_resume(s)) {
         Some(s) => plant.resume(&s),
         None if !ports.states.wait_for_subscribers(args.subscribers) => return Ok(()),

@@ -32,10 +32,7 @@ pub fn run(args: &args::ReferenceArgs) -> anyhow::Result<()> {
     let flight = role.flight(Stream::Reference, scenario.ticks(), ROLE);
     let send =
         |s: ReferenceSample| out.send_then(s, |s| s.publish_ns = now_ns(), |s| flight.record(s));
-    let resumed = slot.load_checked(scenario.ticks()).unwrap_or_else(|why| {
-        eprintln!("reference: resume slot refused ({why}); starting as a fresh reference");
-        None
-    });
+    let resumed = slot.load_for(ROLE, scenario.ticks());
     if let Some(r) = resumed.filter(|r| lead.can_resume(r)) {
         for again in lead.resume(&scenario, &r) {
             send(again).context("reference: re-publishing")?;
