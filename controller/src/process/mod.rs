@@ -28,8 +28,7 @@ pub fn run(args: &args::ControllerArgs) -> anyhow::Result<()> {
     let dt = scenario.dt();
     let mut answers = TorqueAnswers::new(law).leaving_unanswered(role.hooks.test_skip_state_at);
     let mut pairing = ReferencePairing::new(args.reference_hold_ticks, dt, scenario.ticks());
-    let resumed = ports.slot.load_for(ROLE, scenario.ticks());
-    if let Some(r) = resumed {
+    if let Some(r) = ports.slot.load_for(ROLE, scenario.ticks()) {
         answers.resume(&r);
         pairing.resume(&r.last);
         eprintln!("controller: resuming after tick {} with its law's last state", r.last.tick);
