@@ -287,6 +287,12 @@ pub(crate) struct TempUser {
 }
 
 impl TempUser {
+    /// A second OS user for test `test`, or `None` once the reason it is skipped is said
+    /// (not root, no `useradd`).
+    pub(crate) fn for_test(test: &str) -> Option<Self> {
+        Self::create().map_err(|why| eprintln!("SKIPPED {test}: {why}")).ok()
+    }
+
     pub(crate) fn create() -> Result<Self, String> {
         // SAFETY: plain getter.
         if unsafe { libc::geteuid() } != 0 {
@@ -337,13 +343,7 @@ fn probe(binary: &Path, domain: &str, uid: Option<u32>) -> String {
 /// the reason, where a second user cannot be created.
 #[test]
 fn another_os_user_can_neither_subscribe_to_the_state_nor_publish_a_torque() {
-    let user = match TempUser::create() {
-        Ok(u) => u,
-        Err(why) => {
-            eprintln!("SKIPPED another_os_user_…: {why}");
-            return;
-        }
-    };
+    let Some(user) = TempUser::for_test("another_os_user_…") else { return };
     let mut h = Harness::new("users");
     // The other user needs an executable it may reach.
     let bin_dir = tempfile::tempdir().expect("tempdir");
@@ -449,13 +449,7 @@ impl Secret {
 /// where a second user cannot be created.
 #[test]
 fn what_another_user_plants_in_a_runs_place_is_refused_naming_it_and_never_used() {
-    let user = match TempUser::create() {
-        Ok(u) => u,
-        Err(why) => {
-            eprintln!("SKIPPED what_another_user_plants_…: {why}");
-            return;
-        }
-    };
+    let Some(user) = TempUser::for_test("what_another_user_plants_…") else { return };
     let h = Harness::new("plant");
     let secret = Secret::new(&h);
     let domain = Domain::new(&h.domain).expect("domain");
@@ -502,13 +496,7 @@ fn what_another_user_plants_in_a_runs_place_is_refused_naming_it_and_never_used(
 /// is random, it completes, and the file is untouched.
 #[test]
 fn a_run_without_a_domain_cannot_be_planted_ahead_of_it() {
-    let user = match TempUser::create() {
-        Ok(u) => u,
-        Err(why) => {
-            eprintln!("SKIPPED a_run_without_a_domain_…: {why}");
-            return;
-        }
-    };
+    let Some(user) = TempUser::for_test("a_run_without_a_domain_…") else { return };
     let h = Harness::new("nodomain");
     let secret = Secret::new(&h);
     let last: u32 = std::fs::read_to_string("/proc/sys/kernel/ns_last_pid")
@@ -600,24 +588,7 @@ fn a_second_launch_on_a_live_domain_touches_nothing_of_it() {
     let mut h = Harness::new("second");
     let out = h.path("run");
     let run = start_realtime_run(&mut h, &out, "3");
-    let other = h.path("second");
-    let o = h.rotorloop(
-        &[
-            "run",
-            "--scenario",
-            "paper-zero",
-            "--duration",
-            "1",
-            "--mode",
-            "lockstep",
-            "--quiet",
-            "--domain",
-            &h.domain,
-            "--out",
-            other.to_str().expect("utf8"),
-        ],
-        LIMIT,
-    );
+    let o = lockstep_run(&h, &h.path("second"));
     let err = String::from_utf8_lossy(&o.stderr);
     assert_eq!(o.status.code(), Some(2), "{err}");
     assert!(err.contains("is in use"), "{err}");
@@ -645,13 +616,7 @@ fn a_second_launch_on_a_live_domain_touches_nothing_of_it() {
 #[test]
 fn another_user_racing_for_the_global_segment_never_holds_it_open() {
     use std::os::unix::fs::MetadataExt;
-    let user = match TempUser::create() {
-        Ok(u) => u,
-        Err(why) => {
-            eprintln!("SKIPPED another_user_racing_…: {why}");
-            return;
-        }
-    };
+    let Some(user) = TempUser::for_test("another_user_racing_…") else { return };
     let mut h = Harness::new("race");
     let segment = Domain::new(&h.domain).expect("domain").global_segment();
     std::fs::set_permissions(h.dir.path(), std::fs::Permissions::from_mode(0o755)).expect("dir");

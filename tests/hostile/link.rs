@@ -174,13 +174,7 @@ fn start_split_run(h: &mut Harness, out: &Path) -> (usize, Vec<String>) {
 /// where the test is not root or a user namespace with its own `/dev/shm` is not allowed.
 #[test]
 fn another_os_users_gateway_gets_nothing_from_a_split_run() {
-    let user = match TempUser::create() {
-        Ok(u) => u,
-        Err(why) => {
-            eprintln!("SKIPPED another_os_users_gateway_…: {why}");
-            return;
-        }
-    };
+    let Some(user) = TempUser::for_test("another_os_users_gateway_…") else { return };
     if let Err(why) = private_shm(user.uid) {
         eprintln!("SKIPPED another_os_users_gateway_…: {} cannot: {why}", user.name);
         return;

@@ -138,12 +138,8 @@ fn as_user(binary: &Path, uid: u32, args: &[&str]) -> Output {
 /// a control, sees it tick. Skipped, with the reason, where a second user cannot be made.
 #[test]
 fn watch_and_ps_as_another_os_user_are_refused_naming_the_domain() {
-    let user = match TempUser::create() {
-        Ok(u) => u,
-        Err(why) => {
-            eprintln!("SKIPPED watch_and_ps_as_another_os_user_…: {why}");
-            return;
-        }
+    let Some(user) = TempUser::for_test("watch_and_ps_as_another_os_user_…") else {
+        return;
     };
     let mut h = Harness::new("watchuser");
     let (_bin_dir, binary) = binary_for_everyone();
