@@ -13,7 +13,7 @@
 //!
 //! A run is its user's alone (owner-only files, docs/security.md). Another user's `watch`,
 //! `ps --domain D` or `foxglove` of it is refused (exit 2) naming the domain, the file
-//! refused and its owner's uid ([`unreachable`]), rather than showing a loop of zeros; a
+//! refused and its owner's uid ([`unreachable()`]), rather than showing a loop of zeros; a
 //! listing of every domain (`ps`) says which it cannot read.
 
 pub mod charts;
@@ -170,7 +170,7 @@ pub fn unreachable(domain: &Domain) -> Option<String> {
     None
 }
 
-/// [`unreachable`] as a usage error (exit 2): an observer never shows a loop it cannot read.
+/// [`unreachable()`] as a usage error (exit 2): an observer never shows a loop it cannot read.
 pub fn refuse_unreachable(domain: &Domain) -> Result<(), UsageError> {
     unreachable(domain).map_or(Ok(()), |why| Err(UsageError(why)))
 }
