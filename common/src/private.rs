@@ -207,31 +207,38 @@ pub fn write_new(path: &Path, bytes: &[u8]) -> Result<(), PrivateError> {
     f.write_all(bytes).map_err(|e| PrivateError::io(path, e))
 }
 
-/// Random characters from `a-z 0-9` (the kernel's randomness), for names another user
-/// cannot guess.
-pub fn random_name(len: usize) -> String {
-    const ALPHABET: &[u8] = b"abcdefghijklmnopqrstuvwxyz0123456789";
-    let mut bytes = vec![0u8; len];
+/// `N` bytes from the kernel's randomness (`getrandom(2)`, which blocks only until the
+/// kernel's pool was first seeded at boot).
+pub fn random_bytes<const N: usize>() -> std::io::Result<[u8; N]> {
+    let mut buf = [0u8; N];
     let mut filled = 0;
-    while filled < len {
-        // SAFETY: writes at most len - filled bytes into the buffer's tail.
-        let n = unsafe { libc::getrandom(bytes[filled..].as_mut_ptr().cast(), len - filled, 0) };
-        if n > 0 {
-            filled += n as usize;
-        } else if std::io::Error::last_os_error().kind() != std::io::ErrorKind::Interrupted {
-            panic!("getrandom failed: {}", std::io::Error::last_os_error());
+    while filled < N {
+        let rest = &mut buf[filled..];
+        // SAFETY: the kernel writes at most `rest.len()` bytes into memory we own.
+        let n = unsafe { libc::getrandom(rest.as_mut_ptr().cast(), rest.len(), 0) };
+        match usize::try_from(n) {
+            Ok(n) => filled += n,
+            Err(_) => {
+                let e = std::io::Error::last_os_error();
+                if e.kind() != std::io::ErrorKind::Interrupted {
+                    return Err(e);
+                }
+            }
         }
     }
-    // 256 is a multiple of 4 but not of 36: reject the bytes that would bias the draw.
+    Ok(buf)
+}
+
+/// Random characters from `a-z 0-9` ([`random_bytes`]), for names another user cannot
+/// guess.
+pub fn random_name(len: usize) -> String {
+    const ALPHABET: &[u8] = b"abcdefghijklmnopqrstuvwxyz0123456789";
     let mut out = String::with_capacity(len);
-    let mut extra = [0u8; 1];
-    for mut b in bytes {
-        while b >= 252 {
-            // SAFETY: one byte into `extra`.
-            while unsafe { libc::getrandom(extra.as_mut_ptr().cast(), 1, 0) } != 1 {}
-            b = extra[0];
-        }
-        out.push(ALPHABET[(b % 36) as usize] as char);
+    while out.len() < len {
+        let bytes = random_bytes::<16>().expect("getrandom(2) failed");
+        // 252 = 7 × 36: the bytes above would bias the draw towards the first letters.
+        let fair = bytes.into_iter().filter(|&b| b < 252).take(len - out.len());
+        out.extend(fair.map(|b| ALPHABET[usize::from(b % 36)] as char));
     }
     out
 }

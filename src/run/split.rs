@@ -337,8 +337,7 @@ impl LinkCredentials {
         std::fs::DirBuilder::new().mode(0o700).create(&dir)?;
         let meta = std::fs::symlink_metadata(&dir)?;
         let made = Self { dir, made: (meta.dev(), meta.ino()) };
-        // SAFETY: plain getter.
-        let me = unsafe { libc::geteuid() };
+        let me = rotorloop_common::private::euid();
         if !meta.is_dir() || meta.uid() != me || meta.mode() & 0o077 != 0 {
             return Err(std::io::Error::other(format!(
                 "{} is not a private directory of this user (mode {:o}, owner {}): its \
@@ -348,9 +347,13 @@ impl LinkCredentials {
                 meta.uid()
             )));
         }
-        let password = hex(&kernel_random::<32>()?);
-        write_private(&made.dir.join(USERS_FILE), &format!("{LINK_USER}:{password}\n"))?;
-        write_private(&made.dir.join(PASSWORD_FILE), &format!("{password}\n"))?;
+        let password = hex(&rotorloop_common::private::random_bytes::<32>()?);
+        let write = |name: &str, text: String| {
+            rotorloop_common::private::write_new(&made.dir.join(name), text.as_bytes())
+                .map_err(std::io::Error::other)
+        };
+        write(USERS_FILE, format!("{LINK_USER}:{password}\n"))?;
+        write(PASSWORD_FILE, format!("{password}\n"))?;
         Ok(made)
     }
 
@@ -373,42 +376,6 @@ impl Drop for LinkCredentials {
         }
         let _ = std::fs::remove_dir(&self.dir);
     }
-}
-
-/// Writes `text` into a new file `path` that only its owner can read (0600), refusing a
-/// file or link already there (`O_EXCL`, `O_NOFOLLOW`).
-fn write_private(path: &Path, text: &str) -> std::io::Result<()> {
-    use std::io::Write;
-    use std::os::unix::fs::OpenOptionsExt;
-    let mut f = std::fs::OpenOptions::new()
-        .write(true)
-        .create_new(true)
-        .mode(0o600)
-        .custom_flags(libc::O_NOFOLLOW)
-        .open(path)?;
-    f.write_all(text.as_bytes())
-}
-
-/// `N` bytes from the kernel's randomness (`getrandom(2)`, which blocks only until the
-/// kernel's pool was first seeded at boot).
-fn kernel_random<const N: usize>() -> std::io::Result<[u8; N]> {
-    let mut buf = [0u8; N];
-    let mut filled = 0;
-    while filled < N {
-        let rest = &mut buf[filled..];
-        // SAFETY: the kernel writes at most `rest.len()` bytes into memory we own.
-        let n = unsafe { libc::getrandom(rest.as_mut_ptr().cast(), rest.len(), 0) };
-        match usize::try_from(n) {
-            Ok(n) => filled += n,
-            Err(_) => {
-                let e = std::io::Error::last_os_error();
-                if e.kind() != std::io::ErrorKind::Interrupted {
-                    return Err(e);
-                }
-            }
-        }
-    }
-    Ok(buf)
 }
 
 fn hex(bytes: &[u8]) -> String {
