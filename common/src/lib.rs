@@ -23,6 +23,7 @@ pub mod clock;
 pub mod flight;
 pub mod graph;
 pub mod hgrm;
+pub mod input;
 pub mod ipc;
 pub mod output;
 pub mod params;

@@ -17,6 +17,8 @@ use serde::{Deserialize, Serialize};
 use crate::params::{ActuatorLimits, AntiWindup, BodyParams, Gains, RotorBodyState};
 use crate::so3;
 
+mod shape;
+
 /// Scenarios that ship with rotorloop, by name: the paper's three reference torques, and
 /// the extensions' demonstrations (a constant disturbance with PID and with PD;
 /// saturated rotors with and without anti-windup).
@@ -41,17 +43,23 @@ pub const ORTHONORMAL_TOL: f64 = 1e-6;
 pub const INERTIA_FACTOR_RANGE: (f64, f64) = (0.1, 10.0);
 /// Largest magnitude accepted for any vector entry (rates, torques, momenta).
 pub const MAX_MAGNITUDE: f64 = 1e6;
+/// Largest scenario file read (bytes); the built-in ones are about 2 KiB.
+pub const MAX_FILE_BYTES: u64 = 1 << 20;
+/// Most characters of a value echoed in an error, and of the parser's message (which
+/// lists the keys allowed): a 4 MB line is named by its line and column, not printed.
+const MAX_ECHO: usize = 160;
+const MAX_MESSAGE: usize = 600;
 
 /// What went wrong with a scenario. Every message names the field and what is allowed.
 #[derive(Debug, thiserror::Error)]
 pub enum ScenarioError {
-    /// The file could not be read.
+    /// The file could not be read (not a regular file, too large, not UTF-8, an I/O error).
     #[error("cannot read scenario file {path}: {source}")]
     Io {
         /// The file.
         path: PathBuf,
-        /// The read error.
-        source: std::io::Error,
+        /// Why.
+        source: crate::input::InputError,
     },
     /// The TOML did not parse or did not match the schema (includes unknown keys).
     #[error("scenario {origin}: {message}")]
@@ -87,9 +95,51 @@ impl ScenarioError {
     fn invalid(field: &str, value: impl std::fmt::Debug, allowed: impl Into<String>) -> Self {
         Self::Invalid {
             field: field.to_owned(),
-            value: format!("{value:?}"),
+            value: capped(&format!("{value:?}")),
             allowed: allowed.into(),
         }
+    }
+}
+
+/// `s`, or its first [`MAX_ECHO`] characters and how long it is.
+fn capped(s: &str) -> String {
+    capped_at(s, MAX_ECHO)
+}
+
+fn capped_at(s: &str, max: usize) -> String {
+    match s.char_indices().nth(max) {
+        None => s.to_owned(),
+        Some((end, _)) => format!("{}… ({} bytes in all)", &s[..end], s.len()),
+    }
+}
+
+/// A TOML error as a line, a column and the parser's message, with an excerpt of the line
+/// around the column: never the whole line (toml's own rendering echoes it whole, with a
+/// caret line as long).
+fn parse_error(origin: &str, text: &str, e: &toml::de::Error) -> ScenarioError {
+    let message = capped_at(e.message().trim_end(), MAX_MESSAGE);
+    let Some(span) = e.span() else {
+        return ScenarioError::Parse { origin: origin.to_owned(), message };
+    };
+    let mut at = span.start.min(text.len());
+    while !text.is_char_boundary(at) {
+        at -= 1;
+    }
+    let line_start = text[..at].rfind('\n').map_or(0, |i| i + 1);
+    let line_end = text[at..].find('\n').map_or(text.len(), |i| at + i);
+    let line = text[..at].matches('\n').count() + 1;
+    let column = text[line_start..at].chars().count() + 1;
+    // At most 40 characters either side of the column.
+    let before: Vec<(usize, char)> = text[line_start..at].char_indices().collect();
+    let from = before.len().checked_sub(40).map_or(line_start, |i| line_start + before[i].0);
+    let to = text[at..line_end].char_indices().nth(40).map_or(line_end, |(i, _)| at + i);
+    let (lead, tail) =
+        (if from > line_start { "…" } else { "" }, if to < line_end { "…" } else { "" });
+    let excerpt = format!("{lead}{}{tail}", &text[from..to]);
+    let caret = " ".repeat(lead.chars().count() + text[from..at].chars().count());
+    ScenarioError::Parse {
+        origin: origin.to_owned(),
+        message: format!("line {line}, column {column}: {message}\n  | {excerpt}\n  | {caret}^"),
     }
 }
 
@@ -506,15 +556,14 @@ impl ScenarioFile {
             return Self::parse(text, name_or_path);
         }
         let path = Path::new(name_or_path);
-        if !path.exists() {
-            return Err(ScenarioError::Unknown {
-                name: name_or_path.to_owned(),
+        let text = crate::input::read_text(path, MAX_FILE_BYTES).map_err(|e| match e {
+            crate::input::InputError::Missing => ScenarioError::Unknown {
+                name: capped(name_or_path),
                 allowed: BUILTIN.iter().map(|(n, _)| *n).collect::<Vec<_>>().join(", ")
                     + ", or the path of a .toml file",
-            });
-        }
-        let text = std::fs::read_to_string(path)
-            .map_err(|source| ScenarioError::Io { path: path.to_owned(), source })?;
+            },
+            source => ScenarioError::Io { path: path.to_owned(), source },
+        })?;
         let mut file = Self::parse(&text, &path.display().to_string())?;
         if file.name.is_empty() {
             file.name =
@@ -523,12 +572,12 @@ impl ScenarioFile {
         Ok(file)
     }
 
-    /// Parses TOML text; `origin` names it in messages. Checks the schema only.
+    /// Parses TOML text; `origin` names it in messages. Checks the schema only: the
+    /// sizes and sections first ([`shape`]), then the keys and types.
     pub fn parse(text: &str, origin: &str) -> Result<Self, ScenarioError> {
-        let mut file: Self = toml::from_str(text).map_err(|e| ScenarioError::Parse {
-            origin: origin.to_owned(),
-            message: e.to_string().trim_end().to_owned(),
-        })?;
+        let table: toml::Table = toml::from_str(text).map_err(|e| parse_error(origin, text, &e))?;
+        shape::check(&table)?;
+        let mut file: Self = toml::from_str(text).map_err(|e| parse_error(origin, text, &e))?;
         if file.name.is_empty() {
             file.name = origin.to_owned();
         }
@@ -845,6 +894,55 @@ mod tests {
         assert_eq!((named.law.as_deref(), &named.gains), (Some("geometric-pid"), &plain.gains));
         // Written out, a law left out stays out: reports of today's files are unchanged.
         assert!(!toml::to_string(&plain.file).expect("toml").contains("law"));
+    }
+
+    /// A parse error names its line and column and shows a bounded excerpt of the line: a
+    /// 4 MB line is not echoed (it was, whole, with a caret line as long).
+    #[test]
+    fn a_parse_error_names_line_and_column_with_a_bounded_excerpt() {
+        let text = BUILTIN[0].1.replace("kp = 1.0", &format!("kp = 1.0{}", "9x".repeat(2 << 20)));
+        let e = Scenario::from_toml(&text, "long").expect_err("not a number").to_string();
+        assert!(e.starts_with("scenario long: line "), "{}", &e[..200.min(e.len())]);
+        assert!(e.contains(", column "), "{}", &e[..200.min(e.len())]);
+        assert!(e.len() < 1000, "{} bytes: {}", e.len(), &e[..300]);
+    }
+
+    /// A byte that is not UTF-8 is named by its line and column; a FIFO is refused, not
+    /// waited on; a file larger than any scenario is refused by its size.
+    #[test]
+    fn files_that_are_not_scenario_text_are_refused_naming_why() {
+        let dir = std::env::temp_dir().join(format!("rl-scenario-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).expect("temp dir");
+        let bad = dir.join("bad.toml");
+        std::fs::write(&bad, b"name = \"x\"\n\n  kp = \"\xfe\"\n").expect("write");
+        let e = Scenario::load(bad.to_str().expect("utf-8")).expect_err("not UTF-8").to_string();
+        assert!(e.contains("line 3, column 9: byte 0xfe is not UTF-8"), "{e}");
+        let fifo = dir.join("fifo.toml");
+        let c = std::ffi::CString::new(fifo.as_os_str().as_encoded_bytes()).expect("path");
+        // SAFETY: a valid path for the call.
+        assert_eq!(unsafe { libc::mkfifo(c.as_ptr(), 0o600) }, 0, "mkfifo");
+        let e = Scenario::load(fifo.to_str().expect("utf-8")).expect_err("a FIFO").to_string();
+        assert!(e.contains("a FIFO, not a regular file"), "{e}");
+        let big = dir.join("big.toml");
+        std::fs::write(&big, vec![b'#'; MAX_FILE_BYTES as usize + 1]).expect("write");
+        let e = Scenario::load(big.to_str().expect("utf-8")).expect_err("too big").to_string();
+        assert!(e.contains("more than the 1048576 bytes"), "{e}");
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    /// The one rule for sizes holds for the whole file (`shape`): a 3-vector with extra
+    /// items and a table written as an array were read without a word.
+    #[test]
+    fn oversize_vectors_and_sections_as_arrays_are_refused() {
+        let text = BUILTIN[0].1;
+        let extra = "rotor_inertia = [5.0, 6.0, 7.0, \"ignored\", {x = 1}, ";
+        let long = text.replacen("rotor_inertia = [", extra, 1);
+        let e = Scenario::from_toml(&long, "t").expect_err("5 items").to_string();
+        assert!(e.starts_with("plant.rotor_inertia = ") && e.contains("(here 8 items)"), "{e}");
+        // `run = [1, 2]` ran at 2 Hz for 1 s.
+        let head = text.split("[run]").next().expect("a [run] section");
+        let e = Scenario::from_toml(&format!("run = [1, 2]\n{head}"), "t").expect_err("array");
+        assert!(e.to_string().starts_with("run = [1, 2] is not allowed: a table"), "{e}");
     }
 
     #[test]
