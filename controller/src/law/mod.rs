@@ -90,6 +90,9 @@ pub enum UnknownLaw {
     Name(String),
     /// `[controller.law_params]` has a key the law does not take: (law, key, what it takes).
     Param(&'static str, String, &'static str),
+    /// A key of `[controller.law_params]` holds a value the law does not take: (law, key,
+    /// the value as written, what it takes).
+    Value(&'static str, String, String, &'static str),
 }
 
 impl std::fmt::Display for UnknownLaw {
@@ -106,6 +109,12 @@ impl std::fmt::Display for UnknownLaw {
             }
             Self::Param(law, key, takes) => {
                 write!(f, "controller.law_params.{key}: {law} takes {takes}")
+            }
+            Self::Value(law, key, value, takes) => {
+                write!(
+                    f,
+                    "controller.law_params.{key} = {value} is not allowed: {law} takes {takes}"
+                )
             }
         }
     }

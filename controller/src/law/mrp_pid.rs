@@ -30,6 +30,7 @@
 
 use glam::{DMat3, DVec3};
 use rotorloop_common::params::{BodyParams, ReferenceState, RotorBodyState};
+use rotorloop_common::scenario::MAX_MAGNITUDE;
 
 use super::{ControlOutput, Law, LawState, UnknownLaw};
 
@@ -77,7 +78,8 @@ impl MrpPid {
     /// body model `model` (its `I` and `K`), with zero integral state.
     pub fn from_params(params: &toml::Table, model: BodyParams) -> Result<Self, UnknownLaw> {
         const LAW: &str = "mrp-pid";
-        let takes = "k > 0, p > 0, ki ≥ 0 and integral_limit > 0 (optional), finite numbers";
+        let takes = "k > 0, p > 0, ki ≥ 0 and integral_limit > 0 (optional), numbers ≤ 1e6 \
+                     (as the common gains)";
         for key in params.keys() {
             if !["k", "p", "ki", "integral_limit"].contains(&key.as_str()) {
                 return Err(UnknownLaw::Param(LAW, key.clone(), takes));
@@ -85,13 +87,23 @@ impl MrpPid {
         }
         let get = |key: &str, default: Option<f64>, ok: fn(f64) -> bool| {
             let v = match params.get(key) {
-                Some(toml::Value::Float(x)) => Some(*x),
-                Some(toml::Value::Integer(i)) => Some(*i as f64),
-                Some(_) => None,
-                None => default,
+                Some(toml::Value::Float(x)) => *x,
+                Some(toml::Value::Integer(i)) => *i as f64,
+                Some(other) => {
+                    let mut shown = other.to_string();
+                    if shown.len() > 80 {
+                        shown = format!("a {} of {} bytes", other.type_str(), shown.len());
+                    }
+                    return Err(UnknownLaw::Value(LAW, key.to_owned(), shown, takes));
+                }
+                None => {
+                    return default.ok_or_else(|| UnknownLaw::Param(LAW, key.to_owned(), takes));
+                }
             };
-            v.filter(|x| x.is_finite() && ok(*x))
-                .ok_or_else(|| UnknownLaw::Param(LAW, key.to_owned(), takes))
+            match v.is_finite() && v <= MAX_MAGNITUDE && ok(v) {
+                true => Ok(v),
+                false => Err(UnknownLaw::Value(LAW, key.to_owned(), format!("{v:?}"), takes)),
+            }
         };
         Ok(Self {
             k: get("k", None, |x| x > 0.0)?,
@@ -261,7 +273,18 @@ mod tests {
         let e = MrpPid::from_params(&t, model).expect_err("no ki");
         assert!(e.to_string().contains("law_params.ki"), "{e}");
         t.insert("ki".into(), (-1.0).into());
-        assert!(MrpPid::from_params(&t, model).is_err());
+        let e = MrpPid::from_params(&t, model).expect_err("ki < 0").to_string();
+        assert!(
+            e.starts_with("controller.law_params.ki = -1.0 is not allowed: mrp-pid takes"),
+            "{e}"
+        );
+        // Capped as the common gains are (1e308 was accepted).
+        t.insert("ki".into(), 1e308.into());
+        let e = MrpPid::from_params(&t, model).expect_err("ki > 1e6").to_string();
+        assert!(e.starts_with("controller.law_params.ki = 1e308 is not allowed"), "{e}");
+        t.insert("ki".into(), "1".into());
+        let e = MrpPid::from_params(&t, model).expect_err("a string").to_string();
+        assert!(e.starts_with("controller.law_params.ki = \"1\" is not allowed"), "{e}");
         t.insert("ki".into(), 0.0.into());
         t.insert("gain".into(), 1.0.into());
         let e = MrpPid::from_params(&t, model).expect_err("unknown key");
