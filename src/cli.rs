@@ -13,8 +13,9 @@ use rotorloop_common::scenario::Actuation;
 use crate::sim::{self, SimOptions, summary_table};
 use crate::study::gains;
 use crate::study::montecarlo::{self, McOptions};
+use rotorloop_common::input::whole_in;
 use rotorloop_common::role::UsageError;
-use rotorloop_common::role::args::scenario_with_overrides;
+use rotorloop_common::role::args::{duration_s, rate_hz, scenario_with_overrides};
 use rotorloop_plant::actuator::ActuationDelay;
 
 /// Attitude tracking of a rigid body with three internal rotors (geometric PID,
@@ -36,11 +37,11 @@ enum Command {
         /// Output directory: one sub-directory per run, plus report.md.
         #[arg(long, default_value = "out/paper")]
         out: PathBuf,
-        /// Simulated seconds per run.
-        #[arg(long, allow_negative_numbers = true, default_value_t = 30.0)]
+        /// Simulated seconds per run, 0.001 to 86400.
+        #[arg(long, allow_hyphen_values = true, default_value_t = 30.0, value_parser = duration_s())]
         duration: f64,
-        /// Tick rate (Hz).
-        #[arg(long, allow_negative_numbers = true, default_value_t = 1000.0)]
+        /// Tick rate (Hz), 1 to 100000.
+        #[arg(long, allow_hyphen_values = true, default_value_t = 1000.0, value_parser = rate_hz())]
         rate: f64,
         /// Only the in-process simulator (no four-process runs).
         #[arg(long)]
@@ -102,8 +103,9 @@ enum Command {
     Explain {
         /// The run directory (the `--out` of `rotorloop run`).
         dir: PathBuf,
-        /// A plant wake or an answer this many ticks later than usual is abnormal.
-        #[arg(long, default_value_t = 0.25)]
+        /// A plant wake or an answer this many ticks later than usual is abnormal: more
+        /// than 0, at most 100.
+        #[arg(long, allow_hyphen_values = true, default_value_t = 0.25)]
         threshold_ticks: f64,
     },
     /// The link gateway of one host: carries a run domain's services to and from another
@@ -141,11 +143,11 @@ struct SimArgs {
     /// or the path of a TOML file.
     #[arg(long, required_unless_present = "replay")]
     scenario: Option<String>,
-    /// Simulated seconds (default: the scenario's, 30).
-    #[arg(long, allow_negative_numbers = true)]
+    /// Simulated seconds, 0.001 to 86400 (default: the scenario's, 30).
+    #[arg(long, allow_hyphen_values = true, value_parser = duration_s())]
     duration: Option<f64>,
-    /// Tick rate in Hz (default: the scenario's, 1000).
-    #[arg(long, allow_negative_numbers = true)]
+    /// Tick rate in Hz, 1 to 100000 (default: the scenario's, 1000).
+    #[arg(long, allow_hyphen_values = true, value_parser = rate_hz())]
     rate: Option<f64>,
     /// `internal` (rotors) or `external` (gas jets) (default: the scenario's).
     #[arg(long)]
@@ -153,22 +155,24 @@ struct SimArgs {
     /// Switch the controller off and hold this rotor torque (N m): U1,U2,U3.
     #[arg(long, value_parser = parse_vec3, allow_hyphen_values = true)]
     open_loop: Option<DVec3>,
-    /// Write every N-th tick to trace.csv (the last tick always).
-    #[arg(long, allow_negative_numbers = true, default_value_t = 1, value_parser = clap::value_parser!(u64).range(1..))]
+    /// Write every N-th tick to trace.csv (the last tick always), 1 or more.
+    #[arg(long, allow_negative_numbers = true, default_value_t = 1,
+          value_parser = whole_in(1u64, u64::MAX, "ticks"))]
     trace_every: u64,
     /// Skip the PNG figures.
     #[arg(long)]
     no_figures: bool,
     /// Each torque takes effect this many seconds after its tick's time (delayed
-    /// zero-order hold; any length, longer than a tick is a queue; 0: the plain hold).
-    #[arg(long, allow_negative_numbers = true, default_value = "0", conflicts_with = "delay_from")]
+    /// zero-order hold; 0 to 3600, longer than a tick is a queue; 0: the plain hold).
+    #[arg(long, allow_hyphen_values = true, default_value = "0", conflicts_with = "delay_from")]
     actuation_delay: String,
     /// Draw each torque's delay from a measured latency distribution: a `.hgrm` file such
     /// as a real-time run's `sense_to_actuate.hgrm` (µs), with `--seed`.
     #[arg(long)]
     delay_from: Option<PathBuf>,
-    /// Seed of the delays drawn with `--delay-from`.
-    #[arg(long, allow_negative_numbers = true, default_value_t = 1)]
+    /// Seed of the delays drawn with `--delay-from`, 0 to 2⁶⁴ − 1.
+    #[arg(long, allow_negative_numbers = true, default_value_t = 1,
+          value_parser = whole_in(0u64, u64::MAX, "seeds"))]
     seed: u64,
     /// Re-run a finished real-time run DIR (its `summary.json`, `trace.csv`, `timing.csv`)
     /// in process, with each torque taking effect where and when it did there; writes the
@@ -182,26 +186,29 @@ struct SimArgs {
 
 #[derive(Debug, clap::Args)]
 struct McArgs {
-    /// Number of runs.
-    #[arg(long, allow_negative_numbers = true, default_value_t = 100, value_parser = clap::value_parser!(u64).range(1..=100_000))]
+    /// Number of runs, 1 to 100000.
+    #[arg(long, allow_negative_numbers = true, default_value_t = 100,
+          value_parser = whole_in(1u64, 100_000, "runs"))]
     runs: u64,
-    /// RNG seed.
-    #[arg(long, allow_negative_numbers = true, default_value_t = 1)]
+    /// RNG seed, 0 to 2⁶⁴ − 1.
+    #[arg(long, allow_negative_numbers = true, default_value_t = 1,
+          value_parser = whole_in(0u64, u64::MAX, "seeds"))]
     seed: u64,
     /// Base scenario (bodies, reference, gains).
     #[arg(long, default_value = "paper-zero")]
     scenario: String,
-    /// Simulated seconds per run.
-    #[arg(long, allow_negative_numbers = true, default_value_t = 60.0)]
+    /// Simulated seconds per run, 0.001 to 86400.
+    #[arg(long, allow_hyphen_values = true, default_value_t = 60.0, value_parser = duration_s())]
     duration: f64,
-    /// Tick rate (Hz).
-    #[arg(long, allow_negative_numbers = true, default_value_t = 1000.0)]
+    /// Tick rate (Hz), 1 to 100000.
+    #[arg(long, allow_hyphen_values = true, default_value_t = 1000.0, value_parser = rate_hz())]
     rate: f64,
-    /// Every N-th run starts within 2° of a 180° error.
-    #[arg(long, allow_negative_numbers = true, default_value_t = 3, value_parser = clap::value_parser!(u64).range(1..))]
+    /// Every N-th run starts within 2° of a 180° error, 1 or more.
+    #[arg(long, allow_negative_numbers = true, default_value_t = 3,
+          value_parser = whole_in(1u64, u64::MAX, "runs"))]
     near_pi_every: u64,
-    /// Largest |IΩ(0)| and |Ω_r(0)| component drawn.
-    #[arg(long, allow_negative_numbers = true, default_value_t = 3.0)]
+    /// Largest |IΩ(0)| and |Ω_r(0)| component drawn: more than 0, at most 1000.
+    #[arg(long, allow_hyphen_values = true, default_value_t = 3.0)]
     max_rate: f64,
     /// Output directory.
     #[arg(long)]
@@ -222,7 +229,11 @@ fn parse_vec3(s: &str) -> Result<DVec3, String> {
 }
 
 /// Parses the command line, runs, prints errors with their chain, and returns the exit
-/// code: 0 success, 1 failure, 2 bad arguments or scenario.
+/// code (docs/running.md, "Exit codes"): 0 success; 1 the command failed on its own (a
+/// role beyond its restart policy, a write that failed midway); 2 the input is the user's
+/// to mend (a flag's value, the scenario, a file or directory named on the command line
+/// that is missing, unreadable or damaged, an `--out` that cannot be made, a run that
+/// diverged); 3 `run` stopped by a signal.
 pub fn main() -> ExitCode {
     rotorloop_common::ipc::quiet_iceoryx_logs();
     let cli = Cli::parse();
@@ -277,8 +288,61 @@ fn print_warnings(w: &[String]) {
     }
 }
 
+/// The output directory a command writes into, if any.
+fn out_dir(command: &Command) -> Option<&std::path::Path> {
+    match command {
+        Command::Sim(a) => Some(&a.out),
+        Command::Paper { out, .. } => Some(out),
+        Command::Montecarlo(a) => Some(&a.out),
+        Command::Run(a) => Some(&a.out),
+        Command::Bench(a) => Some(&a.out),
+        Command::Margin(a) => Some(&a.out),
+        _ => None,
+    }
+}
+
+/// The finished run a command reads (`explain`, `recover`, `export`, `sim --replay`): an
+/// existing directory, or exit 2 naming it, the same for every command (`export` gave 1).
+fn run_dir(command: &Command) -> Option<&std::path::Path> {
+    match command {
+        Command::Explain { dir, .. } | Command::Recover { dir } => Some(dir),
+        Command::Export(a) => Some(&a.dir),
+        Command::Sim(a) => a.replay.as_deref(),
+        _ => None,
+    }
+}
+
+/// What every command checks of the paths it is given before it starts (exit 2): the run
+/// directory it reads exists, and the output directory can be made or written into.
+fn check_paths(command: &Command) -> Result<(), UsageError> {
+    if let Some(dir) = run_dir(command) {
+        match std::fs::metadata(dir) {
+            Ok(m) if m.is_dir() => {}
+            Ok(_) => {
+                return Err(UsageError(format!(
+                    "{} is not allowed: a run directory (the --out of `rotorloop run`); this \
+                     is not a directory",
+                    dir.display()
+                )));
+            }
+            Err(e) => {
+                return Err(UsageError(format!(
+                    "{} is not allowed: a run directory (the --out of `rotorloop run`): {e}",
+                    dir.display()
+                )));
+            }
+        }
+    }
+    if let Some(out) = out_dir(command) {
+        rotorloop_common::input::check_out_dir(out)
+            .map_err(|why| UsageError(format!("--out {} is not allowed: {why}", out.display())))?;
+    }
+    Ok(())
+}
+
 /// Runs a parsed command line.
 pub fn run(cli: Cli) -> anyhow::Result<()> {
+    check_paths(&cli.command)?;
     match cli.command {
         Command::Sim(a) => sim_command(&a)?,
         Command::Paper { out, duration, rate, in_process } => {

@@ -1,5 +1,6 @@
 //! HdrHistogram's percentile-distribution text (`.hgrm`), in µs, as HdrHistogram's own
 //! tools write it: the monitor writes one per hop, the plant its own sense-to-actuate.
+//! Its checked reader ([`read_distribution`]) is beside the writer.
 
 use std::io::{self, Write};
 
@@ -44,4 +45,69 @@ pub fn write_hgrm_file(path: &std::path::Path, h: &Histogram<u64>) -> io::Result
         })?);
     write_percentile_distribution(h, &mut f)?;
     f.flush()
+}
+
+/// The largest `.hgrm` file read (bytes): a distribution is a few hundred lines.
+pub const MAX_FILE_BYTES: u64 = 16 << 20;
+/// The largest value a distribution read as delays may hold (µs): an hour, as
+/// `--actuation-delay` allows.
+pub const MAX_VALUE_US: f64 = 3.6e9;
+
+/// The percentile distribution of the `.hgrm` file `path`: `(percentile, value in s)`,
+/// both non-decreasing, at least two points. Lines that are not `Value Percentile …`
+/// (the header, the `#[…]` footer) are skipped; a value out of `0..=MAX_VALUE_US` or a
+/// percentile out of `[0, 1]` is refused naming the line. The file is read as any input
+/// named on the command line ([`crate::input`]): regular, bounded, UTF-8.
+pub fn read_distribution(path: &std::path::Path) -> Result<Vec<(f64, f64)>, String> {
+    let text = crate::input::read_text(path, MAX_FILE_BYTES).map_err(|e| e.to_string())?;
+    let mut q: Vec<(f64, f64)> = Vec::new();
+    for (i, line) in text.lines().enumerate().filter(|(_, l)| !l.trim_start().starts_with('#')) {
+        let f: Vec<&str> = line.split_whitespace().collect();
+        let (Some(v), Some(p)) = (f.first(), f.get(1)) else { continue };
+        let (Ok(v_us), Ok(p)) = (v.parse::<f64>(), p.parse::<f64>()) else { continue };
+        if !((0.0..=MAX_VALUE_US).contains(&v_us) && (0.0..=1.0).contains(&p)) {
+            let shown: String = line.chars().take(80).collect();
+            return Err(format!(
+                "line {}: `{shown}` is not allowed: a value in µs from 0 to {MAX_VALUE_US:e} \
+                 (an hour) and a percentile from 0 to 1",
+                i + 1
+            ));
+        }
+        if q.last().is_none_or(|(lp, lv)| p >= *lp && v_us * 1e-6 >= *lv) {
+            q.push((p, v_us * 1e-6));
+        }
+    }
+    if q.len() < 2 {
+        return Err("no percentile distribution in it (HdrHistogram's .hgrm text: Value \
+                    Percentile TotalCount …)"
+            .into());
+    }
+    Ok(q)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// What the writer writes, the reader reads; delays beyond an hour (1e300 µs ran) and
+    /// percentiles beyond 1 are refused naming the line.
+    #[test]
+    fn the_reader_reads_what_the_writer_wrote_and_refuses_absurd_values() {
+        let dir = std::env::temp_dir().join(format!("rl-hgrm-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).expect("temp dir");
+        let mut h = Histogram::<u64>::new(3).expect("histogram");
+        for ns in [1_000, 2_000, 50_000] {
+            h.record(ns).expect("record");
+        }
+        let path = dir.join("ok.hgrm");
+        write_hgrm_file(&path, &h).expect("write");
+        let q = read_distribution(&path).expect("read");
+        assert!(q.len() >= 2 && (q[q.len() - 1].1 - 50e-6).abs() < 1e-7, "{q:?}");
+        for (line, what) in [("1e300 0.5 1", "line 2: `1e300 0.5 1`"), ("5.0 1.5 1", "line 2")] {
+            std::fs::write(&path, format!("1.0 0.0 1\n{line}\n")).expect("write");
+            let e = read_distribution(&path).expect_err(line);
+            assert!(e.starts_with(what) && e.contains("is not allowed"), "{e}");
+        }
+        let _ = std::fs::remove_dir_all(&dir);
+    }
 }

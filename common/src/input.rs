@@ -48,7 +48,9 @@ pub enum InputError {
 
 /// What a file type is, in words.
 fn kind(t: std::fs::FileType) -> &'static str {
-    if t.is_dir() {
+    if t.is_file() {
+        "a file"
+    } else if t.is_dir() {
         "a directory"
     } else if t.is_fifo() {
         "a FIFO"
@@ -152,21 +154,36 @@ pub fn number_in(
 ) -> impl Fn(&str) -> Result<f64, RangeError> + Clone + Send + Sync + 'static {
     move |s: &str| match s.trim().parse::<f64>() {
         Ok(v) if v.is_finite() && v >= lo && v <= hi => Ok(v),
-        _ => Err(RangeError { lo, hi, unit }),
+        _ => Err(RangeError { range: format!("a finite number of {unit} from {lo} to {hi}") }),
+    }
+}
+
+/// A clap value parser for an integer flag: a whole number from `lo` to `hi` (`unit`
+/// names what it counts), as the flag's help states. Unlike clap's own ranged parsers,
+/// a negative or malformed value gets the range too, not "invalid digit".
+pub fn whole_in<T>(
+    lo: T,
+    hi: T,
+    unit: &'static str,
+) -> impl Fn(&str) -> Result<T, RangeError> + Clone + Send + Sync + 'static
+where
+    T: std::str::FromStr + PartialOrd + fmt::Display + Copy + Send + Sync + 'static,
+{
+    move |s: &str| match s.trim().parse::<T>() {
+        Ok(v) if v >= lo && v <= hi => Ok(v),
+        _ => Err(RangeError { range: format!("a whole number of {unit} from {lo} to {hi}") }),
     }
 }
 
 /// A number outside its flag's range (clap names the flag and the value).
 #[derive(Debug, Clone)]
 pub struct RangeError {
-    lo: f64,
-    hi: f64,
-    unit: &'static str,
+    range: String,
 }
 
 impl fmt::Display for RangeError {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        write!(f, "allowed: a finite number of {} from {} to {}", self.unit, self.lo, self.hi)
+        write!(f, "allowed: {}", self.range)
     }
 }
 
@@ -212,6 +229,12 @@ mod tests {
         for bad in ["-1", "nan", "inf", "1e300", "x", ""] {
             let e = p(bad).expect_err(bad).to_string();
             assert_eq!(e, "allowed: a finite number of seconds from 0 to 10");
+        }
+        let w = whole_in(512u64, 1 << 24, "ticks");
+        assert_eq!(w("512").ok(), Some(512));
+        for bad in ["-1", "511", "16777217", "18446744073709551615", "1.5", "x"] {
+            let e = w(bad).expect_err(bad).to_string();
+            assert_eq!(e, "allowed: a whole number of ticks from 512 to 16777216");
         }
     }
 }

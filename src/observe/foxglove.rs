@@ -69,8 +69,10 @@ pub struct FoxgloveArgs {
     /// Write the address actually bound (`HOST:PORT`) to this file once serving.
     #[arg(long)]
     pub addr_file: Option<PathBuf>,
-    /// Seconds to wait for the loop to appear before giving up.
-    #[arg(long, default_value_t = 30.0)]
+    /// Seconds to wait for the loop to appear before giving up, 0 to 86400 (a day, the
+    /// longest run).
+    #[arg(long, allow_hyphen_values = true, default_value_t = 30.0,
+          value_parser = rotorloop_common::input::number_in(0.0, 86_400.0, "seconds"))]
     pub wait_s: f64,
 }
 

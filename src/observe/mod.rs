@@ -48,7 +48,7 @@ pub struct PsArgs {
     /// JSON instead of a table.
     #[arg(long)]
     pub json: bool,
-    /// How long to watch the plant's tick to measure its rate (ms).
+    /// How long to watch the plant's tick to measure its rate (ms), 10 to 10000.
     #[arg(long, allow_negative_numbers = true, default_value_t = 1000, value_parser = clap::value_parser!(u64).range(10..=10_000))]
     pub sample_ms: u64,
 }
@@ -406,10 +406,12 @@ pub struct WatchArgs {
     /// With `--once`: JSON (the default for `--once`).
     #[arg(long)]
     pub json: bool,
-    /// How long to watch before the snapshot of `--once` (s).
-    #[arg(long, allow_negative_numbers = true, default_value_t = 2.0)]
+    /// How long to watch before the snapshot of `--once` (s), 0 to 86400 (a day, the
+    /// longest run).
+    #[arg(long, allow_hyphen_values = true, default_value_t = 2.0,
+          value_parser = rotorloop_common::input::number_in(0.0, 86_400.0, "seconds"))]
     pub seconds: f64,
-    /// Slot samples per second.
+    /// Slot samples per second, 1 to 2000.
     #[arg(long, allow_negative_numbers = true, default_value_t = 250, value_parser = clap::value_parser!(u64).range(1..=2000))]
     pub sample_hz: u64,
 }

@@ -7,8 +7,10 @@ use clap::Args;
 
 use rotorloop_common::graph::Role;
 
+use rotorloop_common::input::whole_in;
 use rotorloop_common::role::UsageError;
 use rotorloop_common::role::args::RoleArgs;
+use rotorloop_common::role::args::{dma_latency_us, hold_ticks, spin_us};
 use rotorloop_plant::actuator::ActuationDelay;
 
 /// `rotorloop run` arguments.
@@ -51,14 +53,15 @@ pub struct RunArgs {
     #[arg(long)]
     pub trace_sched: bool,
     /// Real time: the plant sleeps until this many µs before each grid time and spins
-    /// the rest (sharper ticks, one core busier).
-    #[arg(long, allow_negative_numbers = true, default_value_t = 0)]
+    /// the rest (sharper ticks, one core busier), 0 to 1000000.
+    #[arg(long, allow_negative_numbers = true, default_value_t = 0, value_parser = spin_us())]
     pub spin_before_tick_us: u64,
     /// Hold `/dev/cpu_dma_latency` at this many µs while it runs: no CPU enters an idle
     /// state that takes longer to leave (0: idle CPUs poll instead of halting, as
     /// cyclictest asks by default; sharper timer wake-ups on a VM, idle cores kept busy).
-    /// Needs root; without it a warning, and the idle states stay as they are.
-    #[arg(long)]
+    /// Needs root; without it a warning, and the idle states stay as they are. 0 to
+    /// 1000000.
+    #[arg(long, allow_negative_numbers = true, value_parser = dma_latency_us())]
     pub cpu_dma_latency: Option<u32>,
     /// Start this command in the built-in controller's place (a controller of your own,
     /// in any language: docs/wire.md): split into words, no shell; the built-in
@@ -79,8 +82,8 @@ pub struct RunArgs {
     /// watches the loop, with no authentication. Refused without this flag (exit 2).
     #[arg(long, requires = "foxglove")]
     pub foxglove_allow_network: bool,
-    /// Real time: ticks the plant holds the last torque before safe mode.
-    #[arg(long, allow_negative_numbers = true, default_value_t = 50)]
+    /// Real time: ticks the plant holds the last torque before safe mode, 0 to 1000000.
+    #[arg(long, allow_negative_numbers = true, default_value_t = 50, value_parser = hold_ticks())]
     pub hold_ticks: u64,
     /// Inject a fault (each kind, its syntax and its help: `run::fault::KINDS`).
     #[arg(long, help = crate::run::fault::help())]
@@ -95,7 +98,7 @@ pub struct RunArgs {
     /// real latency, delayed zero-order hold; in lockstep at its own tick's time), `0` (at
     /// the start of the tick it arrives in: the plain zero-order hold), or SECONDS after
     /// its tick's time (a fixed delay of any length, never before it arrives).
-    #[arg(long, default_value = "measured")]
+    #[arg(long, default_value = "measured", allow_hyphen_values = true)]
     pub actuation_delay: ActuationDelay,
     /// Real time, when the plant process wakes more than a quarter tick late (a simulator
     /// stall, not the loop's latency): `hold` (the world's clock goes on and the torque in
@@ -111,11 +114,13 @@ pub struct RunArgs {
     pub restart: String,
     /// Restart intensity limit `N/SECONDS`: a role restarted more than N times within that
     /// many seconds stops the run (the monitor is then given up instead; the loop goes on).
-    #[arg(long, default_value = "5/10")]
+    #[arg(long, default_value = "5/10", allow_hyphen_values = true)]
     pub restart_limit: String,
     /// A role with work waiting that makes no progress (its resume slot does not move) for
-    /// this many milliseconds is killed and restarted by its policy (0: no watchdog).
-    #[arg(long, allow_negative_numbers = true, default_value_t = 3000)]
+    /// this many milliseconds is killed and restarted by its policy (0: no watchdog), 0 to
+    /// 3600000.
+    #[arg(long, allow_negative_numbers = true, default_value_t = 3000,
+          value_parser = whole_in(0u64, 3_600_000, "ms"))]
     pub watchdog_ms: u64,
     /// `dedicated`: every role on a core of its own (the machine's last four), every role
     /// busy-waiting (`--wait spin`), the plant spinning the last 50 µs before each tick
@@ -202,7 +207,28 @@ impl RunArgs {
     }
 }
 
-/// Parses `--pin`: `role=core` pairs separated by commas.
+/// Refuses the flags `run` shares with the roles (`RoleArgs`) but does not honour, which
+/// were accepted and ignored: `--core` (the launcher pins each role with `--pin`) and
+/// `--host` (the launcher places roles on hosts with `--split`; the roles ran in the
+/// domain without a host while the launcher made and cleaned the host's, which was left
+/// behind).
+pub(crate) fn check_role_flags(a: &RunArgs) -> Result<(), UsageError> {
+    if let Some(core) = a.role.core {
+        return Err(UsageError(format!(
+            "--core {core} is not allowed with `rotorloop run`: it pins each role with --pin \
+             ROLE=CORE,… (--core is for a role started by hand)"
+        )));
+    }
+    if let Some(host) = &a.role.host {
+        return Err(UsageError(format!(
+            "--host {host} is not allowed with `rotorloop run`: it places roles on hosts with \
+             --split \"ROLES@HOST ROLES@HOST\" (--host is for a role or gateway started by hand)"
+        )));
+    }
+    Ok(())
+}
+
+/// Parses `--pin`: `role=core` pairs separated by commas, each role at most once.
 pub fn parse_pins(s: &str) -> Result<BTreeMap<String, usize>, UsageError> {
     let mut pins = BTreeMap::new();
     let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
@@ -221,7 +247,48 @@ pub fn parse_pins(s: &str) -> Result<BTreeMap<String, usize>, UsageError> {
                 cores - 1
             ))
         })?;
-        pins.insert(role.to_owned(), core);
+        if let Some(first) = pins.insert(role.to_owned(), core) {
+            return Err(UsageError(format!(
+                "--pin {role}={core} is not allowed: {role} is already pinned ({role}={first}); \
+                 each role at most once"
+            )));
+        }
     }
     Ok(pins)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// `--pin plant=0,plant=1` was accepted and the last one won.
+    #[test]
+    fn a_role_is_pinned_at_most_once() {
+        let e = parse_pins("plant=0,controller=0,plant=0").expect_err("plant twice").0;
+        assert!(e.starts_with("--pin plant=0 is not allowed: plant is already pinned"), "{e}");
+        let pins = parse_pins("plant=0,controller=0").expect("once each");
+        assert_eq!(pins.len(), 2);
+    }
+
+    /// `run --core N` was accepted and ignored (the launcher pins with `--pin`).
+    #[test]
+    fn run_refuses_the_core_and_host_of_a_role_started_by_hand() {
+        use clap::Parser;
+        #[derive(Debug, Parser)]
+        struct Cli {
+            #[command(flatten)]
+            run: RunArgs,
+        }
+        let parse = |extra: &[&str]| {
+            let mut argv = vec!["run", "--scenario", "paper-zero", "--out", "o"];
+            argv.extend(extra);
+            Cli::try_parse_from(argv).expect("parses").run
+        };
+        assert!(check_role_flags(&parse(&[])).is_ok());
+        let e = check_role_flags(&parse(&["--core", "0"])).expect_err("--core").0;
+        assert!(e.starts_with("--core 0 is not allowed with `rotorloop run`"), "{e}");
+        // `--host h` without `--split` left the domain's files behind (issue 45, 16).
+        let e = check_role_flags(&parse(&["--host", "h"])).expect_err("--host").0;
+        assert!(e.starts_with("--host h is not allowed with `rotorloop run`"), "{e}");
+    }
 }

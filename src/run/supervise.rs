@@ -157,6 +157,9 @@ pub enum Verdict {
     Fail(String),
 }
 
+/// How a [`Verdict::Fail`] of a role that exited 2 ends (the launcher exits 2 on it too).
+pub const REFUSED: &str = "a bad argument or scenario value, or the run diverged: not restarted";
+
 /// The restart rule (module docs).
 #[derive(Debug, Clone)]
 pub struct Supervisor {
@@ -198,9 +201,7 @@ impl Supervisor {
         let restart = match how {
             Ending::Exited => policy == RestartPolicy::Always && !run_over,
             _ if code == Some(2) => {
-                return Verdict::Fail(format!(
-                    "{role} {what} (a bad argument or scenario value, or the run diverged: not restarted)"
-                ));
+                return Verdict::Fail(format!("{role} {what} ({REFUSED})"));
             }
             _ => policy != RestartPolicy::Never,
         };

@@ -86,27 +86,8 @@ impl SimOptions {
 /// The delays of `--delay-from FILE --seed S`: the inverse CDF of a `.hgrm` percentile
 /// distribution (values in µs), drawn with the seed.
 pub fn drawn_delays(path: &Path, seed: u64) -> Result<DrawnDelays, UsageError> {
-    let bad = |why: &str| UsageError(format!("--delay-from {}: {why}", path.display()));
-    let text = std::fs::read_to_string(path).map_err(|e| bad(&e.to_string()))?;
-    let mut q: Vec<(f64, f64)> = Vec::new();
-    for line in text.lines().filter(|l| !l.trim_start().starts_with('#')) {
-        let f: Vec<&str> = line.split_whitespace().collect();
-        let (Some(v), Some(p)) = (f.first(), f.get(1)) else { continue };
-        let (Ok(v_us), Ok(p)) = (v.parse::<f64>(), p.parse::<f64>()) else { continue };
-        if !(v_us.is_finite() && v_us >= 0.0 && (0.0..=1.0).contains(&p)) {
-            return Err(bad(&format!(
-                "`{line}` is not a value (µs ≥ 0) and a percentile in [0, 1]"
-            )));
-        }
-        if q.last().is_none_or(|(lp, lv)| p >= *lp && v_us * 1e-6 >= *lv) {
-            q.push((p, v_us * 1e-6));
-        }
-    }
-    if q.len() < 2 {
-        return Err(bad(
-            "no percentile distribution in it (HdrHistogram's .hgrm text: Value Percentile TotalCount …)",
-        ));
-    }
+    let q = rotorloop_common::hgrm::read_distribution(path)
+        .map_err(|why| UsageError(format!("--delay-from {}: {why}", path.display())))?;
     Ok(DrawnDelays::new(q, seed))
 }
 

@@ -9,6 +9,37 @@ use crate::scenario::RunFile;
 use crate::scenario::{Actuation, Scenario};
 
 use super::UsageError;
+use crate::input::{number_in, whole_in};
+use crate::scenario::{DURATION_RANGE_S, RATE_RANGE_HZ};
+
+/// The largest `--flight-ring-ticks` (2²⁴: about 20 GB of tmpfs for the four streams).
+/// Above 2⁶³ the power of two it is rounded up to wrapped to 0, and the plant crashed.
+pub const MAX_RING_TICKS: u64 = 1 << 24;
+
+/// The parser of `--duration` (s): the range a scenario's `run.duration_s` has.
+pub fn duration_s() -> impl clap::builder::TypedValueParser<Value = f64> {
+    number_in(DURATION_RANGE_S.0, DURATION_RANGE_S.1, "seconds")
+}
+
+/// The parser of `--rate` (Hz): the range a scenario's `run.rate_hz` has.
+pub fn rate_hz() -> impl clap::builder::TypedValueParser<Value = f64> {
+    number_in(RATE_RANGE_HZ.0, RATE_RANGE_HZ.1, "Hz")
+}
+
+/// `--spin-before-tick-us` (of `run`, `bench` and the plant): 0 to 1 s.
+pub fn spin_us() -> impl clap::builder::TypedValueParser<Value = u64> {
+    whole_in(0u64, 1_000_000, "µs")
+}
+
+/// `--cpu-dma-latency` (of `run` and `bench`): 0 to 1 s.
+pub fn dma_latency_us() -> impl clap::builder::TypedValueParser<Value = u32> {
+    whole_in(0u32, 1_000_000, "µs")
+}
+
+/// `--hold-ticks` (of `run` and the plant): 0 to a million ticks.
+pub fn hold_ticks() -> impl clap::builder::TypedValueParser<Value = u64> {
+    whole_in(0u64, 1_000_000, "ticks")
+}
 
 /// Lockstep or real time.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
@@ -36,11 +67,11 @@ pub struct RoleArgs {
     /// Built-in scenario name or TOML path (every role reads the same one).
     #[arg(long)]
     pub scenario: String,
-    /// Simulated seconds (default: the scenario's).
-    #[arg(long, allow_negative_numbers = true)]
+    /// Simulated seconds, 0.001 to 86400 (default: the scenario's).
+    #[arg(long, allow_hyphen_values = true, value_parser = duration_s())]
     pub duration: Option<f64>,
-    /// Tick rate in Hz (default: the scenario's).
-    #[arg(long, allow_negative_numbers = true)]
+    /// Tick rate in Hz, 1 to 100000 (default: the scenario's).
+    #[arg(long, allow_hyphen_values = true, value_parser = rate_hz())]
     pub rate: Option<f64>,
     /// `internal` or `external` (default: the scenario's).
     #[arg(long)]
@@ -51,10 +82,11 @@ pub struct RoleArgs {
     /// How to wait for input: `event` (block), `spin` (busy-poll), `hybrid` (spin 50 µs, then block).
     #[arg(long, default_value = "event")]
     pub wait: Wait,
-    /// Pin the process to this core.
-    #[arg(long, allow_negative_numbers = true)]
+    /// Pin the process to this core (a role started by hand; `rotorloop run` pins with
+    /// `--pin`).
+    #[arg(long, allow_negative_numbers = true, value_parser = whole_in(0usize, 4095, "cores"))]
     pub core: Option<usize>,
-    /// SCHED_FIFO priority 1–99 (a warning and the default policy when not permitted).
+    /// SCHED_FIFO priority, 1 to 99 (a warning and the default policy when not permitted).
     #[arg(long, allow_negative_numbers = true, value_parser = clap::value_parser!(i32).range(1..=99))]
     pub rt_priority: Option<i32>,
     /// Lock the process's memory (mlockall).
@@ -69,12 +101,13 @@ pub struct RoleArgs {
     /// `DIR/*.flight` (`common::flight`); `rotorloop run` records into `OUT/flight`.
     #[arg(long, value_name = "DIR")]
     pub record: Option<std::path::PathBuf>,
-    /// Slots of each flight record's ring on tmpfs (rounded up to a power of two; 1224
-    /// bytes a tick for the four streams): the RAM the records take whatever the run's
-    /// duration. A run longer than that has the finished halves moved into `OUT/flight`
-    /// while it goes on.
+    /// Slots of each flight record's ring on tmpfs, 512 to 16777216 (rounded up to a power
+    /// of two; 1224 bytes a tick for the four streams, so at most about 20 GB): the RAM the
+    /// records take whatever the run's duration. A run longer than that has the finished
+    /// halves moved into `OUT/flight` while it goes on.
     #[arg(long, value_name = "TICKS", default_value_t = crate::flight::DEFAULT_RING_TICKS,
-          value_parser = clap::value_parser!(u64).range(crate::flight::MIN_RING_TICKS..))]
+          allow_negative_numbers = true,
+          value_parser = whole_in(crate::flight::MIN_RING_TICKS, MAX_RING_TICKS, "ticks"))]
     pub flight_ring_ticks: u64,
     /// The launcher moves the rings' finished halves (`common::flight::Mover`): in
     /// lockstep the plant waits for it rather than let a ring come round unmoved.

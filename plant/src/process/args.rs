@@ -37,20 +37,25 @@ pub struct PlantArgs {
     #[arg(long)]
     pub corrupt: Vec<Corrupt>,
     /// Wait for this many subscribers to the state before tick 0 (controller and
-    /// reference; 3 with a monitor that must see every tick).
-    #[arg(long, allow_negative_numbers = true, default_value_t = 2)]
+    /// reference; 3 with a monitor that must see every tick), 0 to 64.
+    #[arg(long, allow_negative_numbers = true, default_value_t = 2,
+          value_parser = rotorloop_common::input::whole_in(0usize, 64, "subscribers"))]
     pub subscribers: usize,
-    /// In real time, sleep until this many µs before each grid time and spin the rest.
-    #[arg(long, allow_negative_numbers = true, default_value_t = 0)]
+    /// In real time, sleep until this many µs before each grid time and spin the rest,
+    /// 0 to 1000000.
+    #[arg(long, allow_negative_numbers = true, default_value_t = 0,
+          value_parser = rotorloop_common::role::args::spin_us())]
     pub spin_before_tick_us: u64,
-    /// Real time: ticks to hold the last torque without a fresh one before safe mode.
-    #[arg(long, allow_negative_numbers = true, default_value_t = 50)]
+    /// Real time: ticks to hold the last torque without a fresh one before safe mode, 0 to
+    /// 1000000.
+    #[arg(long, allow_negative_numbers = true, default_value_t = 50,
+          value_parser = rotorloop_common::role::args::hold_ticks())]
     pub hold_ticks: u64,
     /// When a torque takes effect: `measured` (when it arrives; in lockstep at its own
     /// tick's time), `0` (at the start of the tick it arrives in: the plain zero-order
     /// hold), or SECONDS after its own tick's time (a fixed delay of any length, and never
     /// before it arrives).
-    #[arg(long, default_value = "measured")]
+    #[arg(long, default_value = "measured", allow_hyphen_values = true)]
     pub actuation_delay: ActuationDelay,
     /// Real time, when the simulator wakes more than a quarter tick late: `hold` (the
     /// world's clock went on: the torque in force acted on the body all that time) or

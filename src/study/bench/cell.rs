@@ -47,8 +47,9 @@ pub struct BenchArgs {
     /// over Zenoh on loopback: `rotorloop run --split`; needs `rotorloop-link`).
     #[arg(long, value_delimiter = ',', default_value = "same-core,cross-core,unpinned")]
     pub placement: Vec<String>,
-    /// Seconds per measurement.
-    #[arg(long, allow_negative_numbers = true, default_value_t = 3.0)]
+    /// Seconds per measurement, 0.05 to 3600.
+    #[arg(long, allow_hyphen_values = true, default_value_t = 3.0,
+          value_parser = rotorloop_common::input::number_in(0.05, 3600.0, "seconds"))]
     pub seconds: f64,
     /// Load: none, or other-core (a CPU hog on the core the loop is not pinned to).
     #[arg(long, value_delimiter = ',', default_value = "none")]
@@ -58,17 +59,21 @@ pub struct BenchArgs {
     #[arg(long, value_delimiter = ',', default_value = "atomic,iceoryx2,uds")]
     pub baselines: Vec<String>,
     /// SCHED_FIFO priority of every role of the loop and of the timer baseline (default:
-    /// the normal policy).
-    #[arg(long, value_parser = clap::value_parser!(i32).range(1..=99))]
+    /// the normal policy), 1 to 99.
+    #[arg(long, allow_negative_numbers = true, value_parser = clap::value_parser!(i32).range(1..=99))]
     pub rt_priority: Option<i32>,
-    /// The plant sleeps until this many µs before each tick and spins the rest.
-    #[arg(long, allow_negative_numbers = true, default_value_t = 0)]
+    /// The plant sleeps until this many µs before each tick and spins the rest, 0 to
+    /// 1000000.
+    #[arg(long, allow_negative_numbers = true, default_value_t = 0,
+          value_parser = rotorloop_common::role::args::spin_us())]
     pub spin_before_tick_us: u64,
     /// Hold `/dev/cpu_dma_latency` at this many µs for the whole invocation (the loop and every baseline): no CPU enters an idle
     /// state that takes longer to leave (0: idle CPUs poll instead of halting, as
     /// cyclictest asks by default; sharper timer wake-ups on a VM, idle cores kept busy).
-    /// Needs root; without it a warning, and the idle states stay as they are.
-    #[arg(long)]
+    /// Needs root; without it a warning, and the idle states stay as they are. 0 to
+    /// 1000000.
+    #[arg(long, allow_negative_numbers = true,
+          value_parser = rotorloop_common::role::args::dma_latency_us())]
     pub cpu_dma_latency: Option<u32>,
     /// Also run each loop cell without the monitor and report the change of the
     /// plant-measured sense-to-actuate p50 (`loop-nomon` rows).
@@ -84,13 +89,17 @@ pub struct BenchArgs {
     pub before_after: Option<BeforeAfter>,
     /// With `--before-after`: measure before and after this many times each, alternating
     /// (before, after, before, …), and report the run with the median p50 of each (the
-    /// difference between two runs of one loop here is often larger than the change).
-    #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u64).range(1..=99))]
+    /// difference between two runs of one loop here is often larger than the change), 1 to
+    /// 99.
+    #[arg(long, allow_negative_numbers = true, default_value_t = 1,
+          value_parser = rotorloop_common::input::whole_in(1u64, 99, "pairs"))]
     pub pairs: u64,
     /// Scale: also run 2, 4, … up to N independent loops (domains) at once per cell, each
     /// with its own four processes (`-xN` cells, a `loop-I` row per loop), and report the
     /// largest N at which every loop has no more misses than the bare iceoryx2 baseline.
-    #[arg(long, default_value_t = 1)]
+    /// 1 to 64.
+    #[arg(long, allow_negative_numbers = true, default_value_t = 1,
+          value_parser = rotorloop_common::input::whole_in(1usize, 64, "loops"))]
     pub loops: usize,
     /// Also run each loop cell with another controller (`loop-<name>` rows), against
     /// the same baselines: `mrp-pid` (the second law, Basilisk's MRP feedback, with

@@ -21,6 +21,7 @@ use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 
 use anyhow::Context;
+use rotorloop_common::role::UsageError;
 use rotorloop_common::scenario::Scenario;
 use rotorloop_monitor::plot::{Series, YScale, line_chart};
 use rotorloop_plant::actuator::ActuationDelay;
@@ -35,14 +36,18 @@ pub struct MarginArgs {
     /// Built-in scenario name or TOML path.
     #[arg(long, default_value = "paper-sinusoid")]
     pub scenario: String,
-    /// Delays to run (s), comma-separated (default: 0 to twice the predicted margin).
-    #[arg(long, value_delimiter = ',', allow_negative_numbers = true)]
+    /// Delays to run (s), comma-separated, each 0 to 60 (default: 0 to twice the
+    /// predicted margin).
+    #[arg(long, value_delimiter = ',', allow_hyphen_values = true,
+          value_parser = rotorloop_common::input::number_in(0.0, 60.0, "seconds"))]
     pub delays: Option<Vec<f64>>,
-    /// Simulated seconds per run.
-    #[arg(long, allow_negative_numbers = true, default_value_t = 60.0)]
+    /// Simulated seconds per run, 0.001 to 86400.
+    #[arg(long, allow_hyphen_values = true, default_value_t = 60.0,
+          value_parser = rotorloop_common::role::args::duration_s())]
     pub duration: f64,
-    /// Tick rate (Hz).
-    #[arg(long, allow_negative_numbers = true, default_value_t = 1000.0)]
+    /// Tick rate (Hz), 1 to 100000.
+    #[arg(long, allow_hyphen_values = true, default_value_t = 1000.0,
+          value_parser = rotorloop_common::role::args::rate_hz())]
     pub rate: f64,
     /// A real-time run's `summary.json`: its sense-to-actuate figures are put on the same
     /// scale as the margins.
@@ -219,16 +224,16 @@ pub fn run(a: &MarginArgs) -> anyhow::Result<(Vec<ModeMargin>, Vec<SweepRun>)> {
         None => default_delays(tau_star),
     };
     if let Some(bad) = delays.iter().find(|d| !(d.is_finite() && **d >= 0.0 && **d <= 60.0)) {
-        return Err(rotorloop_common::role::UsageError(format!(
-            "--delays {bad} is not allowed: seconds from 0 to 60"
-        ))
-        .into());
+        return Err(
+            UsageError(format!("--delays {bad} is not allowed: seconds from 0 to 60")).into()
+        );
     }
+    // Read before the sweep: a bad file is refused before minutes of runs, not after.
+    let latency = a.latency_from.as_deref().map(read_latency).transpose()?;
     std::fs::create_dir_all(&a.out)
         .with_context(|| format!("cannot create {}", a.out.display()))?;
     let runs = delays.iter().map(|d| sweep_run(&s, *d)).collect::<Result<Vec<_>, _>>()?;
     write_csv(&a.out.join("margin.csv"), &runs)?;
-    let latency = a.latency_from.as_deref().map(read_latency).transpose()?;
     let md = report(&s, &modes, &runs, latency.as_ref());
     std::fs::write(a.out.join("margin.md"), &md)
         .with_context(|| format!("cannot write {}", a.out.display()))?;
@@ -272,23 +277,36 @@ fn write_csv(path: &Path, runs: &[SweepRun]) -> anyhow::Result<()> {
     std::fs::write(path, t).with_context(|| format!("cannot write {}", path.display()))
 }
 
-/// Sense-to-actuate p50, p99 and max (s) of a real-time run's `summary.json`.
-fn read_latency(path: &Path) -> anyhow::Result<(f64, f64, f64)> {
-    let j: serde_json::Value = serde_json::from_str(
-        &std::fs::read_to_string(path)
-            .with_context(|| format!("cannot read {}", path.display()))?,
-    )
-    .with_context(|| format!("{} is not a run's summary.json", path.display()))?;
+/// Sense-to-actuate p50, p99 and max (s) of a real-time run's `summary.json`, read as any
+/// input named on the command line (`common::input`) and checked as the monitor writes
+/// them: a count of at least one, whole nanoseconds within the histogram's hour, and
+/// p50 ≤ p99 ≤ max. Anything else is refused naming the file and the figure (a summary of
+/// −1 figures with count 0 was accepted).
+fn read_latency(path: &Path) -> Result<(f64, f64, f64), UsageError> {
+    const MAX_NS: u64 = 3_600_000_000_000;
+    let bad = |why: String| UsageError(format!("--latency-from {}: {why}", path.display()));
+    let text =
+        rotorloop_common::input::read_text(path, 64 << 20).map_err(|e| bad(e.to_string()))?;
+    let j: serde_json::Value =
+        serde_json::from_str(&text).map_err(|e| bad(format!("not a run's summary.json ({e})")))?;
     let h = &j["hops"]["sense_to_actuate"];
-    let s = |q: &str| h[q].as_f64().map(|ns| ns / 1e9);
-    match (s("p50"), s("p99"), s("max")) {
-        (Some(a), Some(b), Some(c)) => Ok((a, b, c)),
-        _ => Err(rotorloop_common::role::UsageError(format!(
-            "--latency-from {}: no sense_to_actuate figures",
-            path.display()
-        ))
-        .into()),
+    let figure = |q: &str, lo: u64| match h[q].as_u64() {
+        Some(v) if (lo..=MAX_NS).contains(&v) => Ok(v),
+        _ => Err(bad(format!(
+            "hops.sense_to_actuate.{q} = {} is not allowed: a whole number from {lo} to \
+             {MAX_NS} (ns)",
+            h[q]
+        ))),
+    };
+    figure("count", 1)?;
+    let (p50, p99, max) = (figure("p50", 0)?, figure("p99", 0)?, figure("max", 0)?);
+    if !(p50 <= p99 && p99 <= max) {
+        return Err(bad(format!(
+            "hops.sense_to_actuate p50 {p50}, p99 {p99}, max {max} are not allowed: \
+             p50 ≤ p99 ≤ max"
+        )));
     }
+    Ok((p50 as f64 / 1e9, p99 as f64 / 1e9, max as f64 / 1e9))
 }
 
 fn report(
@@ -412,4 +430,38 @@ fn plots(out: &Path, name: &str, runs: &[SweepRun], tau_star: f64) -> anyhow::Re
         YScale::Log { floor: 1e-3 },
     )?;
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// `--latency-from` is read as the monitor writes it: a summary of −1 figures with count
+    /// 0, figures out of order and a missing file are refused naming the file (exit 2).
+    #[test]
+    fn latency_from_refuses_figures_the_monitor_cannot_have_written() {
+        let dir = std::env::temp_dir().join(format!("rl-margin-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).expect("temp dir");
+        let path = dir.join("summary.json");
+        let hops = |count: i64, p50: i64, p99: i64, max: i64| {
+            let j = serde_json::json!({"hops": {"sense_to_actuate":
+                {"count": count, "p50": p50, "p99": p99, "max": max}}});
+            std::fs::write(&path, j.to_string()).expect("write");
+        };
+        hops(10, 20_000, 50_000, 90_000);
+        let (p50, _, max) = read_latency(&path).expect("a sound summary");
+        assert!((p50 - 20e-6).abs() < 1e-15 && (max - 90e-6).abs() < 1e-15);
+        for (c, a, b, m, what) in [
+            (0, -1, -1, -1, "hops.sense_to_actuate.count = 0"),
+            (5, -1, 1, 2, "hops.sense_to_actuate.p50 = -1"),
+            (5, 3, 2, 4, "p50 3, p99 2, max 4 are not allowed"),
+        ] {
+            hops(c, a, b, m);
+            let e = read_latency(&path).expect_err(what).0;
+            assert!(e.starts_with("--latency-from ") && e.contains(what), "{e}");
+        }
+        let e = read_latency(&dir.join("none.json")).expect_err("missing").0;
+        assert!(e.ends_with("none.json: no such file"), "{e}");
+        let _ = std::fs::remove_dir_all(&dir);
+    }
 }
