@@ -31,6 +31,8 @@ pub struct FlightRecords {
     received: FlightLog<TorqueSample>,
     torques: Option<FlightLog<TorqueSample>>,
     references: FlightLog<ReferenceSample>,
+    /// The last tick the run could hold (its ticks and the reference's lead).
+    limit: u64,
 }
 
 impl StreamSummary {
@@ -39,33 +41,51 @@ impl StreamSummary {
         log: &FlightLog<T>,
         last: u64,
     ) -> Self {
-        let mut missing = log.missing(last);
-        missing.truncate(16);
+        let count = log.count(last);
+        let mut problems = log.problems.clone();
+        if log.more_problems > 0 {
+            problems.push(format!("and {} more", log.more_problems));
+        }
         Self {
             stream: stream.name(),
-            records: log.records.iter().flatten().count() as u64,
-            missing,
+            records: count.records,
+            missing: count.missing,
             opens: log.opens,
             beyond: log.beyond,
+            problems,
         }
     }
 }
 
 impl FlightRecords {
-    /// Reads the records in `dir`. The plant's and the reference's are required; the
+    /// Opens the records in `dir` of a run of `ticks` ticks (a block at a time: the
+    /// stream is never held). The plant's and the reference's are required; the
     /// controller's is optional (the plant's record of what it received stands in).
-    pub fn read(dir: &Path) -> Result<Self, FlightError> {
+    pub fn read(dir: &Path, ticks: u64) -> Result<Self, FlightError> {
+        let limit = ticks.saturating_add(SPARE_SLOTS);
         Ok(Self {
-            states: FlightLog::read(dir, Stream::PlantState)?,
-            received: FlightLog::read(dir, Stream::PlantTorque)?,
-            torques: FlightLog::read(dir, Stream::ControllerTorque).ok(),
-            references: FlightLog::read(dir, Stream::Reference)?,
+            states: FlightLog::read(dir, Stream::PlantState, limit)?,
+            received: FlightLog::read(dir, Stream::PlantTorque, limit)?,
+            torques: FlightLog::read(dir, Stream::ControllerTorque, limit).ok(),
+            references: FlightLog::read(dir, Stream::Reference, limit)?,
+            limit,
         })
     }
 
     /// The newest state recorded.
-    pub fn last_state(&self) -> Option<&StateSample> {
-        self.states.records.iter().rev().flatten().next()
+    pub fn last_state(&self) -> Option<StateSample> {
+        self.states.last().and_then(|k| self.states.get(k))
+    }
+
+    /// The newest tick any stream recorded (no later tick holds anything).
+    fn last_tick(&self) -> u64 {
+        let torques = self.torques.as_ref().and_then(FlightLog::last);
+        [self.states.last(), self.received.last(), torques, self.references.last()]
+            .into_iter()
+            .flatten()
+            .max()
+            .unwrap_or(0)
+            .min(self.limit)
     }
 
     fn summary(&self, dir: &Path, ticks: u64) -> FlightSummary {
@@ -108,21 +128,23 @@ pub fn report(
     // The records hold each tick's sample in that tick's slot, so none is beyond the run;
     // no later state says more than the run's last tick (the tick rule's stand-in).
     let published = || None;
-    for k in 0..=ticks + SPARE_SLOTS {
+    // Ticks past the newest record hold nothing: a run whose files claim more ticks than
+    // were recorded is read as far as it goes, not looped over to its claim.
+    for k in 0..=records.last_tick() {
         if let Some(r) = records.references.get(k) {
-            joiner.take_reference(*r, published);
+            joiner.take_reference(r, published);
         }
         let torque = records.torques.as_ref().and_then(|t| t.get(k));
         match (torque, records.received.get(k)) {
-            (Some(t), _) => joiner.take_torque(*t, published),
+            (Some(t), _) => joiner.take_torque(t, published),
             (None, Some(t)) => {
                 flight.torques_from_plant += 1;
-                joiner.take_torque(*t, published);
+                joiner.take_torque(t, published);
             }
             (None, None) => {}
         }
         if let Some(s) = records.states.get(k) {
-            joiner.take_state(*s);
+            joiner.take_state(s);
         }
         while let Some(row) = joiner.next_row(false) {
             rec.write(&row);
@@ -178,7 +200,7 @@ pub fn final_report(
     if let Some(dir) = record {
         wait_for_records(dir, joiner);
     }
-    let records = record.map(|d| (d, FlightRecords::read(d)));
+    let records = record.map(|d| (d, FlightRecords::read(d, scenario.ticks())));
     if let Some((dir, Ok(records))) = &records {
         let hosts = rec.hosts.clone();
         drop(rec); // its buffered rows go to disk before the files are rewritten

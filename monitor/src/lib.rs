@@ -18,6 +18,7 @@ pub mod policy;
 pub mod process;
 pub mod recording;
 pub mod report;
+pub mod rows;
 pub mod stages;
 pub mod timing;
 pub mod trace;

@@ -332,4 +332,8 @@ pub struct StreamSummary {
     pub opens: u64,
     /// Samples whose tick lay beyond the file (not recorded).
     pub beyond: u64,
+    /// What in its files could not be read (a torn or foreign segment, samples for ticks
+    /// beyond the run), in words; the stream was read as far as it is sound.
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub problems: Vec<String>,
 }

@@ -111,6 +111,43 @@ impl TimingRow {
     }
 }
 
+/// `timing.csv` read a row at a time in tick order ([`crate::rows`]): its header must be
+/// this version's, and a row that does not parse is an error naming the file and tick.
+#[derive(Debug)]
+pub struct TimingRows {
+    rows: crate::rows::TickRows,
+    path: std::path::PathBuf,
+}
+
+impl TimingRows {
+    /// Opens `path` and checks its header.
+    pub fn open(path: &Path) -> anyhow::Result<Self> {
+        let rows = crate::rows::TickRows::open(path)?;
+        anyhow::ensure!(
+            rows.header() == header(),
+            "{}: not a timing.csv of this version (header `{}`, expected `{}`)",
+            path.display(),
+            rows.header(),
+            header()
+        );
+        Ok(Self { rows, path: path.to_owned() })
+    }
+
+    fn parse(&self, k: u64, line: &str) -> anyhow::Result<TimingRow> {
+        TimingRow::parse(line).map_err(|e| anyhow::anyhow!("{} tick {k}: {e}", self.path.display()))
+    }
+
+    /// The row of tick `k` (ticks asked for in increasing order).
+    pub fn row(&mut self, k: u64) -> anyhow::Result<Option<TimingRow>> {
+        self.rows.row(k).map(|l| self.parse(k, &l)).transpose()
+    }
+
+    /// The next row.
+    pub fn next_row(&mut self) -> anyhow::Result<Option<TimingRow>> {
+        self.rows.next_row().map(|(k, l)| self.parse(k, &l)).transpose()
+    }
+}
+
 /// Reads `path` (a `timing.csv`) by tick: its header must be this version's and every row
 /// must parse; the error names the file and the line.
 pub fn read(path: &Path) -> anyhow::Result<BTreeMap<u64, TimingRow>> {

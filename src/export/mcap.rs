@@ -28,10 +28,11 @@ use anyhow::Context as _;
 use foxglove::messages::{FrameTransform, Log, Quaternion, Timestamp, Vector3};
 use foxglove::{Channel, ChannelBuilder, Context, McapAttachment, McapWriter, RawChannel, Schema};
 use glam::{DMat3, DQuat};
-use rotorloop_common::flight::{FlightLog, Stream};
+use rotorloop_common::flight::{FlightLog, SPARE_SLOTS, Stream};
 use rotorloop_common::wire::{
     FLAG_REALTIME, FLAG_SAFE_MODE, ReferenceSample, StateSample, TorqueSample,
 };
+use rotorloop_monitor::rows::TickRows;
 use serde::Serialize;
 use serde_json::Value;
 
@@ -47,13 +48,13 @@ pub struct McapCounts {
 /// The records and files of one run directory.
 struct Run {
     states: FlightLog<StateSample>,
-    torques: FlightLog<TorqueSample>,
+    torques: Option<FlightLog<TorqueSample>>,
     /// The plant's record of what it received: the answer where the controller's record
     /// lacks it (a controller killed between its publish and its record).
     received: FlightLog<TorqueSample>,
     references: FlightLog<ReferenceSample>,
-    /// `trace.csv` rows by tick: column name → value.
-    trace: BTreeMap<u64, Vec<f64>>,
+    /// `trace.csv`, a row at a time in tick order.
+    trace: std::cell::RefCell<TickRows>,
     trace_columns: Vec<String>,
     summary: Option<Value>,
 }
@@ -84,41 +85,41 @@ impl Run {
                 dir.display()
             )
         };
-        let states = FlightLog::read(&flight, Stream::PlantState).with_context(missing)?;
-        let received = FlightLog::read(&flight, Stream::PlantTorque).with_context(missing)?;
-        let torques =
-            FlightLog::read(&flight, Stream::ControllerTorque).unwrap_or_else(|_| received.clone());
-        let references = FlightLog::read(&flight, Stream::Reference).with_context(missing)?;
-        let (trace_columns, trace) = read_trace(&dir.join("trace.csv"))?;
+        // The run's ticks as its summary says (a later tick is not the run's; without a
+        // summary the records' own geometry bounds them).
+        let ticks = summary.as_ref().and_then(|s| s["ticks"].as_u64()).unwrap_or(u64::MAX);
+        let limit = ticks.saturating_add(SPARE_SLOTS);
+        let states = FlightLog::read(&flight, Stream::PlantState, limit).with_context(missing)?;
+        let received =
+            FlightLog::read(&flight, Stream::PlantTorque, limit).with_context(missing)?;
+        let torques = FlightLog::read(&flight, Stream::ControllerTorque, limit).ok();
+        let references =
+            FlightLog::read(&flight, Stream::Reference, limit).with_context(missing)?;
+        let trace = open_trace(&dir.join("trace.csv"))?;
+        let trace_columns = trace.columns();
+        let trace = trace.into();
         Ok(Self { states, torques, received, references, trace, trace_columns, summary })
     }
 
-    fn torque(&self, k: u64) -> Option<&TorqueSample> {
-        self.torques.get(k).or_else(|| self.received.get(k))
+    fn torque(&self, k: u64) -> Option<TorqueSample> {
+        self.torques.as_ref().and_then(|t| t.get(k)).or_else(|| self.received.get(k))
+    }
+
+    /// The trace row of tick `k` (asked for in increasing order), every value a float.
+    fn trace_row(&self, k: u64) -> Option<Vec<f64>> {
+        self.trace.borrow_mut().row(k).map(|l| parse_row(&l))
     }
 }
 
-/// `trace.csv`'s columns, and its rows by tick.
-type Trace = (Vec<String>, BTreeMap<u64, Vec<f64>>);
+/// Opens `trace.csv` to be read a row at a time.
+fn open_trace(path: &Path) -> anyhow::Result<TickRows> {
+    TickRows::open(path)
+        .with_context(|| format!("cannot read {} (the run's report)", path.display()))
+}
 
-/// Reads `trace.csv` (every value as a float; NaN where it is not a number).
-fn read_trace(path: &Path) -> anyhow::Result<Trace> {
-    let text = std::fs::read_to_string(path)
-        .with_context(|| format!("cannot read {} (the run's report)", path.display()))?;
-    let mut lines = text.lines();
-    let columns: Vec<String> = lines.next().unwrap_or("").split(',').map(str::to_owned).collect();
-    let tick = columns
-        .iter()
-        .position(|c| c == "tick")
-        .with_context(|| format!("{} has no tick column", path.display()))?;
-    let mut rows = BTreeMap::new();
-    for line in lines {
-        let row: Vec<f64> = line.split(',').map(|v| v.parse().unwrap_or(f64::NAN)).collect();
-        if let Some(k) = row.get(tick).filter(|k| k.is_finite()) {
-            rows.insert(*k as u64, row);
-        }
-    }
-    Ok((columns, rows))
+/// A trace row's values (NaN where one is not a number).
+fn parse_row(line: &str) -> Vec<f64> {
+    line.split(',').map(|v| v.parse().unwrap_or(f64::NAN)).collect()
 }
 
 /// A JSON channel with a JSON schema derived from its first message.
@@ -293,7 +294,8 @@ fn write_messages(
     let tf: Channel<FrameTransform> = ChannelBuilder::new("/tf").context(ctx).build();
     let log: Channel<Log> = ChannelBuilder::new("/rotorloop/log").context(ctx).build();
     let (mut tfs, mut logs) = (0u64, 0u64);
-    let first = run.states.records.iter().flatten().next();
+    let first = run.states.iter().next();
+    let first = first.as_ref();
     let realtime = first.is_some_and(|s| s.publish_ns != 0);
     // Without stamps (a run in process) the log time is the simulated time.
     let time = |stamp: u64, t_s: f64| if realtime { stamp } else { (t_s * 1e9) as u64 };
@@ -310,15 +312,18 @@ fn write_messages(
     }
     let columns = &run.trace_columns;
     let mut safe = false;
-    for s in run.states.records.iter().flatten() {
+    for s in run.states.iter() {
+        let s = &s;
         let k = s.tick;
         let ns = time(s.publish_ns, s.t_s);
         state.log(&serde_json::to_value(s)?, ns)?;
         let t = run.torque(k);
+        let t = t.as_ref();
         if let Some(t) = t {
             torque.log(&serde_json::to_value(t)?, time(t.publish_ns, s.t_s))?;
         }
         let r = run.references.get(k);
+        let r = r.as_ref();
         if let Some(r) = r {
             reference.log(&serde_json::to_value(r)?, time(r.publish_ns, r.t_s))?;
             tf.log_with_time(&transform("world", "reference", &r.r_d_row_major, ns), ns);
@@ -327,8 +332,8 @@ fn write_messages(
         tf.log_with_time(&transform("world", "body", &s.r_row_major, ns), ns);
         tfs += 1;
         lat.log(&latency(s, t, r), ns)?;
-        if let Some(row) = run.trace.get(&k) {
-            tracking.log(&tracking_row(columns, row), ns)?;
+        if let Some(row) = run.trace_row(k) {
+            tracking.log(&tracking_row(columns, &row), ns)?;
         }
         let now_safe = s.flags & FLAG_SAFE_MODE != 0;
         if now_safe != safe {
@@ -361,7 +366,8 @@ fn write_trace_messages(
     dir: &Path,
     mcap: &Handle,
 ) -> anyhow::Result<BTreeMap<String, u64>> {
-    let (columns, rows) = read_trace(&dir.join("trace.csv"))?;
+    let mut rows = open_trace(&dir.join("trace.csv"))?;
+    let columns = rows.columns();
     let col = |n: &str| {
         columns.iter().position(|c| c == n).with_context(|| format!("trace.csv has no {n} column"))
     };
@@ -391,12 +397,16 @@ fn write_trace_messages(
     let mut tracking = JsonChannel::new(ctx, "/rotorloop/tracking", "rotorloop.Tracking");
     let tf: Channel<FrameTransform> = ChannelBuilder::new("/tf").context(ctx).build();
     let mut tfs = 0u64;
-    for row in rows.values().filter(|r| r.len() == columns.len()) {
+    while let Some((_, line)) = rows.next_row() {
+        let row = parse_row(&line);
+        if row.len() != columns.len() {
+            continue;
+        }
         let ns = (row[t] * 1e9).round() as u64;
         tf.log_with_time(&transform("world", "body", &nine(&row[..], r11), ns), ns);
         tf.log_with_time(&transform("world", "reference", &nine(&row[..], rd11), ns), ns);
         tfs += 2;
-        tracking.log(&tracking_row(&columns, row), ns)?;
+        tracking.log(&tracking_row(&columns, &row), ns)?;
     }
     Ok(BTreeMap::from([("/tf".to_owned(), tfs), (tracking.topic.clone(), tracking.count)]))
 }
@@ -447,7 +457,7 @@ fn events(run: &Run, t0: u64) -> Vec<(u64, foxglove::messages::log::Level, Strin
             out.push((at(e), Level::Info, role, format!("stop ended: {how}")));
         }
     }
-    let last = run.states.records.iter().flatten().last();
+    let last = run.states.last().and_then(|k| run.states.get(k));
     let end =
         last.map_or(t0, |l| if l.publish_ns != 0 { l.publish_ns } else { (l.t_s * 1e9) as u64 });
     for w in s["storage_errors"].as_array().into_iter().flatten().filter_map(Value::as_str) {

@@ -41,7 +41,8 @@ pub struct LaunchRecord {
     pub hosts: Option<String>,
     /// The arguments every role got (`RoleArgs::to_args`).
     pub role_args: Vec<String>,
-    /// The scenario as run.
+    /// The scenario as run (read under a scenario file's rule for sizes and sections).
+    #[serde(deserialize_with = "ScenarioFile::checked")]
     pub scenario: ScenarioFile,
     /// Where the roles recorded during the run (`None`: no flight records).
     pub staging: Option<PathBuf>,
@@ -76,7 +77,8 @@ impl LaunchRecord {
     /// Reads `dir/launch.json`.
     pub fn read(dir: &Path) -> anyhow::Result<Self> {
         let path = dir.join(LAUNCH_FILE);
-        let text = std::fs::read_to_string(&path).map_err(|e| {
+        // Read as any input: a FIFO in its place is refused, not waited on.
+        let text = rotorloop_common::input::read_text(&path, 64 << 20).map_err(|e| {
             UsageError(format!(
                 "{}: {e}: not the directory of a `rotorloop run` (its --out)",
                 path.display()
@@ -160,7 +162,7 @@ pub fn run(dir: &Path) -> anyhow::Result<()> {
             dir.display()
         ))),
     }
-    let records = rotorloop_monitor::assemble::FlightRecords::read(&kept)
+    let records = rotorloop_monitor::assemble::FlightRecords::read(&kept, scenario.ticks())
         .with_context(|| format!("cannot read the flight records in {}", kept.display()))?;
     let summary =
         rotorloop_monitor::assemble::report(dir, &kept, &records, &scenario, &role, &hosts, None);

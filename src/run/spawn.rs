@@ -162,7 +162,8 @@ impl Launch<'_> {
         if self.args.no_monitor || out.join("summary.json").exists() {
             return;
         }
-        let records = match rotorloop_monitor::assemble::FlightRecords::read(dir) {
+        let records = match rotorloop_monitor::assemble::FlightRecords::read(dir, scenario.ticks())
+        {
             Ok(r) => r,
             Err(e) => return eprintln!("launcher: no summary.json and no report from {e}"),
         };

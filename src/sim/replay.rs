@@ -23,7 +23,8 @@ use glam::DVec3;
 use rotorloop_common::scenario::{Actuation, Scenario};
 use rotorloop_common::wire::FLAG_SAFE_MODE;
 use rotorloop_monitor::metrics::Metrics;
-use rotorloop_monitor::timing::TimingRow;
+use rotorloop_monitor::rows::{TickRows, last_tick};
+use rotorloop_monitor::timing::TimingRows;
 use rotorloop_monitor::trace::TraceWriter;
 use rotorloop_plant::actuator::{ActuationDelay, DelayLine, integrate_tick};
 use rotorloop_plant::{Body, BodyInput};
@@ -68,38 +69,77 @@ fn bad(dir: &Path, what: &str) -> UsageError {
     UsageError(format!("--replay {}: {what}", dir.display()))
 }
 
-fn read_timing(dir: &Path) -> anyhow::Result<BTreeMap<u64, TimingRow>> {
-    rotorloop_monitor::timing::read(&dir.join("timing.csv"))
-        .map_err(|e| bad(dir, &format!("{e:#}")).into())
-}
+/// A trace row's torques `u`, `τ`.
+type Torques = (DVec3, DVec3);
 
-/// A trace row: the whole line, and its torques `u`, `τ`.
-type Row = (String, DVec3, DVec3);
-
-/// The trace's header and rows by tick.
-fn read_trace(dir: &Path) -> anyhow::Result<(String, BTreeMap<u64, Row>)> {
-    let text = std::fs::read_to_string(dir.join("trace.csv"))
-        .map_err(|e| bad(dir, &format!("trace.csv: {e}")))?;
-    let mut lines = text.lines();
-    let header = lines.next().unwrap_or_default().to_owned();
+/// The columns of `u1` and `tau1` in a trace header.
+fn torque_columns(dir: &Path, header: &str) -> anyhow::Result<(usize, usize)> {
     let cols: Vec<&str> = header.split(',').collect();
     let at = |name: &str| cols.iter().position(|c| *c == name);
-    let (Some(u1), Some(tau1), Some(tick)) = (at("u1"), at("tau1"), at("tick")) else {
-        return Err(bad(dir, "trace.csv has no u1, tau1 and tick columns").into());
-    };
-    let mut rows = BTreeMap::new();
-    for line in lines {
-        let f: Vec<&str> = line.split(',').collect();
-        let v = |j: usize| f.get(j).and_then(|x| x.parse::<f64>().ok()).unwrap_or(f64::NAN);
-        let k: u64 = f
-            .get(tick)
-            .and_then(|x| x.parse().ok())
-            .ok_or_else(|| bad(dir, "a trace row without a tick"))?;
-        let u = DVec3::new(v(u1), v(u1 + 1), v(u1 + 2));
-        let tau = DVec3::new(v(tau1), v(tau1 + 1), v(tau1 + 2));
-        rows.insert(k, (line.to_owned(), u, tau));
+    match (at("u1"), at("tau1")) {
+        (Some(u1), Some(tau1)) => Ok((u1, tau1)),
+        _ => Err(bad(dir, "trace.csv has no u1, tau1 and tick columns").into()),
     }
-    Ok((header, rows))
+}
+
+/// The torques of a trace line.
+fn torques_of(line: &str, (u1, tau1): (usize, usize)) -> Torques {
+    let f: Vec<&str> = line.split(',').collect();
+    let v = |j: usize| f.get(j).and_then(|x| x.parse::<f64>().ok()).unwrap_or(f64::NAN);
+    (DVec3::new(v(u1), v(u1 + 1), v(u1 + 2)), DVec3::new(v(tau1), v(tau1 + 1), v(tau1 + 2)))
+}
+
+/// The trace's torques looked up by the tick whose torque took effect: a second pass over
+/// `trace.csv` that lags behind the replay, with the last [`SOURCES_KEPT`] rows it passed
+/// (an effect's source is at or before the tick it takes effect in, in order).
+struct Sources {
+    rows: TickRows,
+    columns: (usize, usize),
+    recent: BTreeMap<u64, Torques>,
+}
+
+/// Trace rows a [`Sources`] keeps behind its position.
+const SOURCES_KEPT: usize = 256;
+
+impl Sources {
+    fn get(&mut self, k: u64) -> Option<Torques> {
+        while self.rows.peek_tick().is_some_and(|t| t <= k) {
+            let Some((t, line)) = self.rows.next_row() else { break };
+            self.recent.insert(t, torques_of(&line, self.columns));
+            if self.recent.len() > SOURCES_KEPT {
+                self.recent.pop_first();
+            }
+        }
+        self.recent.get(&k).copied()
+    }
+}
+
+/// Compares the replayed trace with the run's, a row at a time: the first tick whose row
+/// differs (0 for the header), and the rows of each.
+fn compare(dir: &Path, out: &Path) -> anyhow::Result<(Option<u64>, u64, u64)> {
+    let open =
+        |d: &Path| TickRows::open(&d.join("trace.csv")).map_err(|e| bad(dir, &format!("{e:#}")));
+    let (mut run, mut replayed) = (open(dir)?, open(out)?);
+    let mut first = (run.header() != replayed.header()).then_some(0);
+    let (mut rows, mut replayed_rows) = (0u64, 0u64);
+    while let Some((k, line)) = run.next_row() {
+        rows += 1;
+        while replayed.peek_tick().is_some_and(|t| t < k) {
+            replayed.next_row();
+            replayed_rows += 1;
+        }
+        let same = replayed.row(k).is_some_and(|l| {
+            replayed_rows += 1;
+            l == line
+        });
+        if !same && first.is_none() {
+            first = Some(k);
+        }
+    }
+    while replayed.next_row().is_some() {
+        replayed_rows += 1;
+    }
+    Ok((first, rows + run.skipped, replayed_rows))
 }
 
 /// Replays the real-time run in `dir` into `out` (module docs).
@@ -112,8 +152,14 @@ pub fn run(dir: &Path, out: &Path) -> anyhow::Result<ReplaySummary> {
     let file = serde_json::from_value(summary["scenario"].clone())
         .map_err(|e| bad(dir, &format!("summary.json has no scenario as run: {e}")))?;
     let scenario = Scenario::from_file(file).map_err(UsageError::from)?;
-    let timing = read_timing(dir)?;
-    let (header, rows) = read_trace(dir)?;
+    let timing_path = dir.join("timing.csv");
+    let timing_err = |e: anyhow::Error| -> anyhow::Error { bad(dir, &format!("{e:#}")).into() };
+    let mut timing = TimingRows::open(&timing_path).map_err(timing_err)?;
+    let mut current = TickRows::open(&dir.join("trace.csv"))
+        .map_err(|e| bad(dir, &format!("trace.csv: {e:#}")))?;
+    let columns = torque_columns(dir, current.header())?;
+    let mut sources =
+        Sources { rows: TickRows::open(&dir.join("trace.csv"))?, columns, recent: BTreeMap::new() };
     let (actuation, dt, ticks) = (scenario.actuation(), scenario.dt(), scenario.ticks());
     let params = scenario.plant_params(actuation);
     let mut body = Body::new(params, scenario.plant_init);
@@ -121,13 +167,13 @@ pub fn run(dir: &Path, out: &Path) -> anyhow::Result<ReplaySummary> {
     let mut metrics = Metrics::new(params, &body.state()).with_disturbance(scenario.disturbance);
     let limits = scenario.limits_for(actuation);
     let mut line = DelayLine::new(ActuationDelay::Instant, dt);
-    let input_of = |k: u64| -> anyhow::Result<BodyInput> {
-        let (_, u, tau) = rows.get(&k).ok_or_else(|| {
+    let mut input_of = |k: u64| -> anyhow::Result<BodyInput> {
+        let (u, tau) = sources.get(k).ok_or_else(|| {
             bad(dir, &format!("the torque of tick {k} took effect but its trace row is missing"))
         })?;
         Ok(match actuation {
-            Actuation::Internal => BodyInput { rotor_torque: *u, body_torque: DVec3::ZERO },
-            Actuation::External => BodyInput { rotor_torque: DVec3::ZERO, body_torque: *tau },
+            Actuation::Internal => BodyInput { rotor_torque: u, body_torque: DVec3::ZERO },
+            Actuation::External => BodyInput { rotor_torque: DVec3::ZERO, body_torque: tau },
         })
     };
     std::fs::create_dir_all(out).with_context(|| format!("cannot create {}", out.display()))?;
@@ -145,18 +191,19 @@ pub fn run(dir: &Path, out: &Path) -> anyhow::Result<ReplaySummary> {
     let mut work = 0.0;
     // A run that ended early (its launcher killed, then `rotorloop recover`) is replayed
     // up to its last recorded tick.
-    let last = timing.keys().next_back().map_or(ticks, |k| (*k).min(ticks));
+    let last = last_tick(&timing_path).map_err(timing_err)?.map_or(ticks, |k| k.min(ticks));
     for k in 0..=last {
         let t = k as f64 * dt;
         let x = body.state();
         let rd = reference.sample(t);
-        let (u, tau) = rows.get(&k).map_or((DVec3::NAN, DVec3::NAN), |r| (r.1, r.2));
+        let (u, tau) = current.row(k).map_or((DVec3::NAN, DVec3::NAN), |l| torques_of(&l, columns));
         let u_traced = if actuation == Actuation::Internal { u } else { DVec3::ZERO };
         let mut row = metrics.observe_work(k, t, &x, &rd, u_traced, tau, work);
         if k < last {
             // What happened in tick k, as the state of tick k + 1 recorded it.
             let next = timing
-                .get(&(k + 1))
+                .row(k + 1)
+                .map_err(timing_err)?
                 .ok_or_else(|| bad(dir, &format!("timing.csv has no row for tick {}", k + 1)))?;
             if next.flags & FLAG_SAFE_MODE != 0 {
                 line.clear();
@@ -179,15 +226,9 @@ pub fn run(dir: &Path, out: &Path) -> anyhow::Result<ReplaySummary> {
     file.flush()?;
     drop(file);
     // Compare with the run's trace, row by row.
-    let (replayed_header, replayed) = read_trace(out)?;
-    let mut first = (replayed_header != header).then_some(0);
-    for (k, (line, _, _)) in &rows {
-        if first.is_none() && replayed.get(k).map(|r| &r.0) != Some(line) {
-            first = Some(*k);
-        }
-    }
+    let (first, rows, replayed) = compare(dir, out)?;
     result.first_difference = first;
-    result.identical = first.is_none() && replayed.len() == rows.len();
+    result.identical = first.is_none() && replayed == rows;
     let text = serde_json::to_string_pretty(&result)?;
     std::fs::write(out.join("replay.json"), text + "\n")
         .with_context(|| format!("cannot write {}", out.display()))?;

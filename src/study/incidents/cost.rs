@@ -64,7 +64,7 @@ pub struct Cost {
 pub fn reference(run: &RunRecord, k: u64, from: Option<u64>) -> Option<ReferenceState> {
     match from {
         None => run.references.get(k).map(|r| r.reference_state()),
-        Some(j) => run.references.get(j).map(|r| propagate(r, k, run.dt)),
+        Some(j) => run.references.get(j).map(|r| propagate(&r, k, run.dt)),
     }
 }
 
@@ -203,7 +203,7 @@ pub fn cost(
     let (mut peak, mut peak_tick, mut below_since) = (0.0f64, start, None::<u64>);
     for k in start..=run.last {
         let real = run.state(k)?;
-        let d = deviation_deg(real, &body);
+        let d = deviation_deg(&real, &body);
         if curve.len() < CURVE_TICKS {
             curve.push(d);
         }
@@ -220,7 +220,7 @@ pub fn cost(
             break;
         }
         let next = run.state(k + 1)?;
-        let replaced = disturbed && k <= end && flags.flags[k as usize] & LOOP != 0;
+        let replaced = disturbed && k <= end && flags.get(run, k) & LOOP != 0;
         let real_answer = run.torque(k).is_some_and(|t| t.computed());
         if replaced || real_answer {
             // An undisturbed tick has its own reference; another tracks what the run's did.

@@ -5,7 +5,7 @@
 
 use std::path::Path;
 
-use rotorloop_common::flight::{FlightLog, Stream};
+use rotorloop_common::flight::{FlightLog, SPARE_SLOTS, Stream};
 use rotorloop_common::role::UsageError;
 use rotorloop_common::scenario::Scenario;
 use rotorloop_common::wire::{ReferenceSample, StateSample, TorqueSample};
@@ -95,9 +95,23 @@ pub struct RunRecord {
     pub trace: Vec<super::trace::Traced>,
     /// The first state's publish (ns): the origin of the faults' times.
     pub t0_ns: u64,
-    /// Each tick's grid time (its publish in lockstep; a tick without a state: the one
-    /// before it), ns.
-    grid_ns: Vec<u64>,
+    /// Whether any state carries a grid time (a real-time run).
+    realtime: bool,
+    /// The grid time of every [`GRID_STRIDE`]-th tick (the largest of the states' up to
+    /// it: ticks without a state take the one before), ns; the ticks between are read
+    /// from the records when asked for.
+    grid_marks: Vec<u64>,
+}
+
+/// Ticks between two of [`RunRecord`]'s grid marks (a day at 1 kHz: 84 000 marks).
+const GRID_STRIDE: u64 = 1024;
+
+/// A state's grid time: its deadline in real time, its publish in lockstep.
+fn grid_of(s: &StateSample) -> u64 {
+    match s.deadline_ns {
+        0 => s.publish_ns,
+        d => d,
+    }
 }
 
 fn bad(dir: &Path, what: impl std::fmt::Display) -> UsageError {
@@ -124,25 +138,31 @@ impl RunRecord {
         if !plant_state.exists() {
             return Err(bad(dir, format!("no flight record {}", plant_state.display())).into());
         }
-        let states = FlightLog::<StateSample>::read(&flight, Stream::PlantState)?;
-        let torques = FlightLog::<TorqueSample>::read(&flight, Stream::ControllerTorque)
-            .unwrap_or(FlightLog { records: Vec::new(), opens: 0, beyond: 0 });
-        let references = FlightLog::<ReferenceSample>::read(&flight, Stream::Reference)
-            .unwrap_or(FlightLog { records: Vec::new(), opens: 0, beyond: 0 });
-        let last = (states.records.len() as u64).saturating_sub(1).min(scenario.ticks());
-        let t0_ns = states.records.iter().flatten().map(|s| s.publish_ns).min().unwrap_or(0);
-        let sched = read_sched(&dir.join("sched.csv"));
-        let mut grid_ns = Vec::with_capacity(last as usize + 1);
+        let limit = scenario.ticks().saturating_add(SPARE_SLOTS);
+        let states = FlightLog::<StateSample>::read(&flight, Stream::PlantState, limit)?;
+        let torques = FlightLog::<TorqueSample>::read(&flight, Stream::ControllerTorque, limit)
+            .unwrap_or_else(|_| FlightLog::empty());
+        let references = FlightLog::<ReferenceSample>::read(&flight, Stream::Reference, limit)
+            .unwrap_or_else(|_| FlightLog::empty());
+        let last = states.last().unwrap_or(0).min(scenario.ticks());
+        // One pass over the states: the origin, the mode, and the grid marks.
+        let (mut t0_ns, mut realtime, mut grid) = (u64::MAX, false, 0u64);
+        let mut grid_marks = Vec::new();
         for k in 0..=last {
-            let before = grid_ns.last().copied().unwrap_or(0);
-            let t = states.get(k).map_or(before, |s| match s.deadline_ns {
-                0 => s.publish_ns,
-                d => d,
-            });
-            grid_ns.push(t.max(before));
+            if let Some(s) = states.get(k) {
+                t0_ns = t0_ns.min(s.publish_ns);
+                realtime |= s.deadline_ns > 0;
+                grid = grid.max(grid_of(&s));
+            }
+            if k % GRID_STRIDE == 0 {
+                grid_marks.push(grid);
+            }
         }
+        let t0_ns = if t0_ns == u64::MAX { 0 } else { t0_ns };
+        let sched = read_sched(&dir.join("sched.csv"));
         Ok(Self {
-            grid_ns,
+            grid_marks,
+            realtime,
             dt: scenario.dt(),
             scenario,
             last,
@@ -165,19 +185,23 @@ impl RunRecord {
         states: Vec<StateSample>,
         torques: Vec<TorqueSample>,
     ) -> Self {
-        fn log<T>(v: Vec<T>) -> FlightLog<T> {
-            FlightLog { records: v.into_iter().map(Some).collect(), opens: 1, beyond: 0 }
-        }
-        let grid_ns: Vec<u64> = states.iter().map(|s| s.publish_ns).collect();
+        let mut grid = 0;
+        let grid_marks = (states.iter().enumerate())
+            .filter_map(|(k, s)| {
+                grid = grid.max(s.publish_ns);
+                (k as u64 % GRID_STRIDE == 0).then_some(grid)
+            })
+            .collect();
         Self {
             dt: scenario.dt(),
             scenario,
             last: (states.len() as u64).saturating_sub(1),
-            t0_ns: grid_ns.first().copied().unwrap_or(0),
-            grid_ns,
-            states: log(states),
-            torques: log(torques),
-            references: FlightLog { records: Vec::new(), opens: 0, beyond: 0 },
+            t0_ns: states.first().map_or(0, |s| s.publish_ns),
+            realtime: false,
+            grid_marks,
+            states: FlightLog::of(states),
+            torques: FlightLog::of(torques),
+            references: FlightLog::empty(),
             faults: Vec::new(),
             schedule: Vec::new(),
             sched: Vec::new(),
@@ -187,27 +211,45 @@ impl RunRecord {
 
     /// Whether the run was in real time (its states carry grid times).
     pub fn realtime(&self) -> bool {
-        self.states.records.iter().flatten().any(|s| s.deadline_ns > 0)
+        self.realtime
     }
 
     /// The state of tick `k`.
-    pub fn state(&self, k: u64) -> Option<&StateSample> {
+    pub fn state(&self, k: u64) -> Option<StateSample> {
         self.states.get(k)
     }
 
     /// The controller's answer to state `k`.
-    pub fn torque(&self, k: u64) -> Option<&TorqueSample> {
+    pub fn torque(&self, k: u64) -> Option<TorqueSample> {
         self.torques.get(k)
+    }
+
+    /// The grid times of the ticks from mark `m` on (up to the next mark and the last
+    /// tick), each the largest of the states' so far, with their ticks.
+    fn grid_from_mark(&self, m: usize) -> impl Iterator<Item = (u64, u64)> + '_ {
+        let first = m as u64 * GRID_STRIDE;
+        let end = (first + GRID_STRIDE).min(self.last + 1);
+        let mut grid = self.grid_marks.get(m).copied().unwrap_or(0);
+        (first..end.max(first + 1)).map(move |k| {
+            if let Some(s) = self.states.get(k) {
+                grid = grid.max(grid_of(&s));
+            }
+            (k, grid)
+        })
     }
 
     /// The newest tick whose grid time (its publish in lockstep) is at or before `ns`.
     pub fn tick_at_ns(&self, ns: u64) -> u64 {
-        self.grid_ns.partition_point(|t| *t <= ns).saturating_sub(1) as u64
+        let m = self.grid_marks.partition_point(|t| *t <= ns);
+        let Some(m) = m.checked_sub(1) else { return 0 };
+        self.grid_from_mark(m).take_while(|(_, t)| *t <= ns).last().map_or(0, |(k, _)| k)
     }
 
     /// The grid time of tick `k` (its publish in lockstep; ns).
     pub fn grid_ns(&self, k: u64) -> u64 {
-        self.grid_ns.get(k as usize).or(self.grid_ns.last()).copied().unwrap_or(0)
+        let k = k.min(self.last);
+        let m = (k / GRID_STRIDE) as usize;
+        self.grid_from_mark(m).take_while(|(j, _)| *j <= k).last().map_or(0, |(_, t)| t)
     }
 
     /// The time of tick `k` (s after tick 0).

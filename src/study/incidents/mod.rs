@@ -142,7 +142,7 @@ pub fn find(dir: &Path, options: Options) -> anyhow::Result<Explained> {
     let flags = ticks::flag(&run, options.threshold_ticks);
     // The loop's windows, then each fault outside the loop as an incident of its own.
     let mut windows: Vec<([u64; 2], Option<usize>)> =
-        ticks::windows_of(&flags.flags, GAP).into_iter().map(|w| (w, None)).collect();
+        flags.windows(&run, GAP).into_iter().map(|w| (w, None)).collect();
     for (i, f) in run.faults.iter().enumerate().filter(|(_, f)| !ticks::in_loop(&f.role)) {
         windows.push((ticks::fault_ticks(&run, f), Some(i)));
     }
@@ -166,9 +166,9 @@ pub fn find(dir: &Path, options: Options) -> anyhow::Result<Explained> {
                 (c, ticks::FAULT, 0)
             }
             None => {
-                let all = flags.flags[w[0] as usize..=w[1] as usize].iter().fold(0, |a, f| a | f);
+                let all = flags.all(&run, *w);
                 let misses =
-                    (w[0]..=w[1]).filter(|k| flags.flags[*k as usize] & ticks::MISS != 0).count();
+                    (w[0]..=w[1]).filter(|k| flags.get(&run, *k) & ticks::MISS != 0).count();
                 (cause::cause(&run, &flags, &medians, *w), all, misses as u64)
             }
         };

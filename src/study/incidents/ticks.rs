@@ -43,15 +43,111 @@ pub const WORDS: [&str; 9] = [
     "injected delay",
 ];
 
-/// Each tick's flags and the run's typical figures.
+/// The run's typical figures, and each tick's flags computed from its records when asked
+/// for ([`TickFlags::get`]): nothing is kept per tick, so a day's run takes the memory of
+/// a minute's.
 #[derive(Debug, Clone)]
 pub struct TickFlags {
-    /// Flags of tick `k` (`0..last`).
-    pub flags: Vec<u16>,
     /// The median offset at which a tick's fresh answer took effect (s).
     pub median_delay_s: f64,
     /// The threshold of lateness (s).
     pub threshold_s: f64,
+    /// The launcher's fault windows and the injected delays ([`windows`]).
+    windows: Vec<(u64, u64, u16)>,
+    /// Ticks `0..last` have flags.
+    last: u64,
+}
+
+/// Exact medians (the element at index `n / 2` of the sorted values, as [`median`] gives)
+/// of `N` series of values that can be produced again, in bounded memory: a first pass
+/// counts them in a histogram of their nanoseconds, which names the narrow bin that
+/// holds each median; a second keeps only the values in that bin, and the median is
+/// picked among them. Feed every value with [`Medians::add`] in each of the two passes
+/// ([`Medians::second_pass`] between them).
+#[derive(Debug)]
+pub struct Medians<const N: usize> {
+    hist: [hdrhistogram::Histogram<u64>; N],
+    /// Per series, after the first pass: the bin `[lo, hi]` (ns keys) holding the median,
+    /// the values below it, and the values in it by their bits (ordered as the floats).
+    bins: Option<[MedianBin; N]>,
+}
+
+/// The bin `[lo, hi]` (ns keys) that holds a median, the values below it, and the values
+/// in it by their bits (ordered as the floats), with their counts.
+type MedianBin = (u64, u64, u64, std::collections::BTreeMap<i64, u64>);
+
+/// A value's histogram key: its nanoseconds, rounded (negative ones are 0; the rounding
+/// keeps the order).
+fn key(v: f64) -> u64 {
+    (v.max(0.0) * 1e9).round().min(1e18) as u64
+}
+
+/// A float's bits as a signed integer ordered as the floats are (finite values).
+fn ordered(v: f64) -> i64 {
+    let b = v.to_bits() as i64;
+    if b < 0 { b ^ i64::MAX } else { b }
+}
+
+impl<const N: usize> Default for Medians<N> {
+    fn default() -> Self {
+        let h = || {
+            hdrhistogram::Histogram::new_with_bounds(1, 1_000_000_000_000_000_000, 3)
+                .expect("constant bounds are valid")
+        };
+        Self { hist: std::array::from_fn(|_| h()), bins: None }
+    }
+}
+
+impl<const N: usize> Medians<N> {
+    /// Adds value `v` (s) of series `i` (non-finite values are left out).
+    pub fn add(&mut self, i: usize, v: f64) {
+        if !v.is_finite() {
+            return;
+        }
+        let k = key(v);
+        match &mut self.bins {
+            None => self.hist[i].saturating_record(k.max(1)),
+            Some(bins) => {
+                let (lo, hi, below, values) = &mut bins[i];
+                if k.max(1) < *lo {
+                    *below += 1;
+                } else if k.max(1) <= *hi {
+                    *values.entry(ordered(v)).or_default() += 1;
+                }
+            }
+        }
+    }
+
+    /// Ends the first pass.
+    pub fn second_pass(&mut self) {
+        self.bins = Some(std::array::from_fn(|i| {
+            let h = &self.hist[i];
+            let at = h.value_at_quantile(0.5);
+            (h.lowest_equivalent(at), h.highest_equivalent(at), 0, Default::default())
+        }));
+    }
+
+    /// The medians (NaN for a series without values), after the second pass.
+    pub fn medians(&self) -> [f64; N] {
+        std::array::from_fn(|i| {
+            let n = self.hist[i].len();
+            let Some((_, _, below, values)) = self.bins.as_ref().map(|b| &b[i]) else {
+                return f64::NAN;
+            };
+            if n == 0 {
+                return f64::NAN;
+            }
+            let mut rank = (n / 2).saturating_sub(*below);
+            for (bits, count) in values {
+                if rank < *count {
+                    let b = if *bits < 0 { *bits ^ i64::MAX } else { *bits };
+                    return f64::from_bits(b as u64);
+                }
+                rank -= count;
+            }
+            f64::NAN
+        })
+    }
 }
 
 /// The fresh answer's offset in tick `k`, as state `k + 1` recorded it.
@@ -61,7 +157,7 @@ pub fn fresh_offset(next: &StateSample, k: u64) -> Option<f64> {
 
 /// The previous answer the controller computed before tick `k` (its counters are
 /// cumulative).
-pub fn previous_answer(run: &RunRecord, k: u64) -> Option<&TorqueSample> {
+pub fn previous_answer(run: &RunRecord, k: u64) -> Option<TorqueSample> {
     (k.saturating_sub(64)..k).rev().find_map(|j| run.torque(j))
 }
 
@@ -87,56 +183,80 @@ pub fn median(v: &mut [f64]) -> f64 {
     v[v.len() / 2]
 }
 
-/// Flags every tick of `run`, lateness measured against `threshold_ticks` of a tick.
+/// The figures by which the ticks of `run` are flagged, lateness measured against
+/// `threshold_ticks` of a tick.
 pub fn flag(run: &RunRecord, threshold_ticks: f64) -> TickFlags {
     let threshold_s = threshold_ticks * run.dt;
-    let threshold_ns = (threshold_s * 1e9) as u64;
-    let mut offsets: Vec<f64> =
-        (0..run.last).filter_map(|k| fresh_offset(run.state(k + 1)?, k)).collect();
-    let median_delay_s = median(&mut offsets);
-    let mut flags = vec![0u16; run.last as usize];
-    for (k, f) in flags.iter_mut().enumerate() {
-        let k = k as u64;
-        let (Some(s), Some(n)) = (run.state(k), run.state(k + 1)) else { continue };
+    let mut offsets = Medians::<1>::default();
+    for pass in 0..2 {
+        for k in 0..run.last {
+            if let Some(o) = run.state(k + 1).and_then(|n| fresh_offset(&n, k)) {
+                offsets.add(0, o);
+            }
+        }
+        if pass == 0 {
+            offsets.second_pass();
+        }
+    }
+    let [median_delay_s] = offsets.medians();
+    TickFlags { median_delay_s, threshold_s, windows: windows(run), last: run.last }
+}
+
+impl TickFlags {
+    /// The flags of tick `k` (`0..last`; 0 beyond).
+    pub fn get(&self, run: &RunRecord, k: u64) -> u16 {
+        if k >= self.last {
+            return 0;
+        }
+        let mut f =
+            self.windows.iter().filter(|(a, b, _)| (*a..=*b).contains(&k)).fold(0, |f, w| f | w.2);
+        let (Some(s), Some(n)) = (run.state(k), run.state(k + 1)) else { return f };
+        let threshold_ns = (self.threshold_s * 1e9) as u64;
         if s.deadline_ns > 0 && s.wake_ns > s.deadline_ns + threshold_ns {
-            *f |= LATE;
+            f |= LATE;
         }
         if paused_ns(run, k) > threshold_ns {
-            *f |= LATE;
+            f |= LATE;
         }
-        match fresh_offset(n, k) {
-            Some(o) if o > median_delay_s + threshold_s => *f |= SLOW,
+        match fresh_offset(&n, k) {
+            Some(o) if o > self.median_delay_s + self.threshold_s => f |= SLOW,
             Some(_) => {}
-            None => *f |= NOT_FRESH,
+            None => f |= NOT_FRESH,
         }
         if n.misses > s.misses {
-            *f |= MISS;
+            f |= MISS;
         }
         if n.flags & FLAG_SAFE_MODE != 0 {
-            *f |= SAFE;
+            f |= SAFE;
         }
         if n.torques_rejected > s.torques_rejected {
-            *f |= REJECTED;
+            f |= REJECTED;
         }
         if let (Some(t), Some(p)) = (run.torque(k), previous_answer(run, k)) {
             if t.states_rejected > p.states_rejected
                 || t.references_rejected > p.references_rejected
             {
-                *f |= REJECTED;
+                f |= REJECTED;
             }
             // In lockstep the controller waits for a late reference: only in real time
             // does it answer without it.
             if t.reference_misses > p.reference_misses && s.deadline_ns > 0 {
-                *f |= REFERENCE_LATE;
+                f |= REFERENCE_LATE;
             }
         }
+        f
     }
-    for (from, to, bit) in windows(run) {
-        for f in flags.iter_mut().take(to as usize + 1).skip(from as usize) {
-            *f |= bit;
-        }
+
+    /// The flags of ticks `from..=to`, or-ed together.
+    pub fn all(&self, run: &RunRecord, [from, to]: [u64; 2]) -> u16 {
+        (from..=to).fold(0, |a, k| a | self.get(run, k))
     }
-    TickFlags { flags, median_delay_s, threshold_s }
+
+    /// Maximal windows of abnormal ticks `[start, end]` of the run, two windows with at
+    /// most `gap` normal ticks between them being one (one pass over the ticks).
+    pub fn windows(&self, run: &RunRecord, gap: u64) -> Vec<[u64; 2]> {
+        windows_of((0..self.last).map(|k| self.get(run, k)), gap)
+    }
 }
 
 /// Whether a fault of `role` is one of the loop's: the monitor is outside it (its faults
@@ -170,10 +290,10 @@ pub fn windows(run: &RunRecord) -> Vec<(u64, u64, u16)> {
 
 /// Maximal windows of abnormal ticks `[start, end]`, two windows with at most `gap`
 /// normal ticks between them being one.
-pub fn windows_of(flags: &[u16], gap: u64) -> Vec<[u64; 2]> {
+pub fn windows_of(flags: impl IntoIterator<Item = u16>, gap: u64) -> Vec<[u64; 2]> {
     let mut out: Vec<[u64; 2]> = Vec::new();
-    for (k, f) in flags.iter().enumerate() {
-        if *f == 0 {
+    for (k, f) in flags.into_iter().enumerate() {
+        if f == 0 {
             continue;
         }
         let k = k as u64;
@@ -203,9 +323,40 @@ mod tests {
     #[test]
     fn windows_join_over_small_gaps_only() {
         let f = [0, 1, 1, 0, 2, 0, 0, 0, 4, 0];
-        assert_eq!(windows_of(&f, 1), vec![[1, 4], [8, 8]]);
-        assert_eq!(windows_of(&f, 0), vec![[1, 2], [4, 4], [8, 8]]);
-        assert_eq!(windows_of(&[0, 0], 2), Vec::<[u64; 2]>::new());
+        assert_eq!(windows_of(f, 1), vec![[1, 4], [8, 8]]);
+        assert_eq!(windows_of(f, 0), vec![[1, 2], [4, 4], [8, 8]]);
+        assert_eq!(windows_of([0, 0], 2), Vec::<[u64; 2]>::new());
+    }
+
+    /// The two-pass median is the sorted middle element, exactly, whatever the values:
+    /// equal ones (lockstep), spread ones, negative and non-finite ones.
+    #[test]
+    fn two_pass_medians_are_exact() {
+        let series: [Vec<f64>; 4] = [
+            vec![2.5e-4; 1001],
+            (0..5001).map(|i| ((i * 7919) % 5001) as f64 * 1.37e-7 + 1e-5).collect(),
+            vec![-1.0, 3e-3, 1e-9, 5.0, f64::NAN, 2e-3, 2e-3 + 1e-15],
+            Vec::new(),
+        ];
+        let mut m = Medians::<4>::default();
+        for pass in 0..2 {
+            for (i, v) in series.iter().enumerate() {
+                v.iter().for_each(|x| m.add(i, *x));
+            }
+            if pass == 0 {
+                m.second_pass();
+            }
+        }
+        let got = m.medians();
+        for (i, v) in series.iter().enumerate() {
+            let mut v: Vec<f64> = v.iter().copied().filter(|x| x.is_finite()).collect();
+            let want = median(&mut v);
+            assert!(
+                want.to_bits() == got[i].to_bits() || (want.is_nan() && got[i].is_nan()),
+                "{i}: {want} vs {}",
+                got[i]
+            );
+        }
     }
 
     #[test]

@@ -17,7 +17,7 @@
 //! streams), or to the whole run when that is shorter. The launcher, off the hot path,
 //! copies each finished half of a ring ([`Mover`]) into a segment file
 //! `DIR/STREAM.NNNNNN.flight` of the run directory before the ring comes round to it; a
-//! reader ([`FlightLog::read`]) takes the segments and the ring together. A launcher killed
+//! reader ([`FlightLog`]) takes the segments and the ring together, a block at a time. A launcher killed
 //! mid-run leaves the ring in place (the roles end with it, so it does not come round),
 //! and `rotorloop recover` moves it beside the segments already moved.
 //!
@@ -39,6 +39,9 @@ use std::sync::atomic::{AtomicU64, Ordering, fence};
 use iceoryx2::prelude::ZeroCopySend;
 
 use crate::wire::{LAYOUT_VERSION, ReferenceSample, StateSample, TorqueSample};
+
+mod read;
+pub use read::{FlightLog, StreamCount};
 
 const MAGIC: u64 = 0x7468_6769_6c66_6c72; // "rlflight"
 const HEADER: usize = 64;
@@ -661,100 +664,6 @@ impl Drop for MovedWord {
     }
 }
 
-/// What a recorder's file holds, read after the run.
-#[derive(Debug, Clone)]
-pub struct FlightLog<T> {
-    /// The sample of each tick `0..capacity`, `None` where none was (completely) written.
-    pub records: Vec<Option<T>>,
-    /// How often the file was opened for writing (1 + the writer's restarts).
-    pub opens: u64,
-    /// Samples whose tick lay beyond the capacity (not recorded).
-    pub beyond: u64,
-}
-
-impl<T: Record> FlightLog<T> {
-    /// Reads `stream`'s record in `dir`: the segments the launcher moved there during the
-    /// run, then the ring (whose copy of a tick is the newer one).
-    pub fn read(dir: &Path, stream: Stream) -> Result<Self, FlightError> {
-        let mut log = Self { records: Vec::new(), opens: 0, beyond: 0 };
-        for seg in segments(dir, stream) {
-            log.add(&seg)?;
-        }
-        let (opens, beyond) = log.add(&stream.path(dir))?;
-        (log.opens, log.beyond) = (opens, beyond);
-        Ok(log)
-    }
-
-    /// Adds the records of one file (each slot's tag says its tick); returns the file's
-    /// opens and beyond words.
-    fn add(&mut self, path: &Path) -> Result<(u64, u64), FlightError> {
-        let shown = path.display().to_string();
-        let bytes = std::fs::read(path)
-            .map_err(|e| FlightError::Missing { path: shown.clone(), why: e.to_string() })?;
-        let foreign = |why: String| FlightError::Foreign { path: shown.clone(), why };
-        let w = |i: usize| -> u64 {
-            bytes
-                .get(8 * i..8 * i + 8)
-                .map_or(0, |b| u64::from_ne_bytes(b.try_into().unwrap_or_default()))
-        };
-        if bytes.len() < HEADER || w(word::MAGIC) != MAGIC {
-            return Err(foreign("not a flight record (or never written)".into()));
-        }
-        if w(word::VERSION) != u64::from(LAYOUT_VERSION) || w(word::SIZE) != size_of::<T>() as u64 {
-            return Err(foreign(format!(
-                "written by layout v{} with {}-byte samples; this build reads layout v{} with \
-                 {}-byte samples",
-                w(word::VERSION),
-                w(word::SIZE),
-                LAYOUT_VERSION,
-                size_of::<T>()
-            )));
-        }
-        let capacity = w(word::CAPACITY);
-        if bytes.len() != HEADER + capacity as usize * slot_len::<T>() {
-            return Err(foreign(format!("{} bytes, not {capacity} slots", bytes.len())));
-        }
-        for (i, slot) in bytes[HEADER..].chunks_exact(slot_len::<T>()).enumerate() {
-            let tag = u64::from_ne_bytes(slot[..8].try_into().unwrap_or_default());
-            // A slot holds tick `tag - 1`, which is `i` modulo the capacity (else the tag
-            // is torn or stale: skipped).
-            let Some(k) =
-                tag.checked_sub(1).filter(|k| k % capacity.max(1) == i as u64 % capacity.max(1))
-            else {
-                continue;
-            };
-            // SAFETY: the slot holds `size_of::<T>()` bytes after its tag; T is plain old
-            // data (f64/u64 fields), valid for any bit pattern.
-            let sample = unsafe { std::ptr::read_unaligned(slot[8..].as_ptr() as *const T) };
-            if sample.tick() != k {
-                continue;
-            }
-            if self.records.len() <= k as usize {
-                self.records.resize(k as usize + 1, None);
-            }
-            self.records[k as usize] = Some(sample);
-        }
-        Ok((w(word::OPENS), w(word::BEYOND)))
-    }
-
-    /// The sample of tick `k`, if recorded.
-    pub fn get(&self, k: u64) -> Option<&T> {
-        self.records.get(k as usize).and_then(Option::as_ref)
-    }
-
-    /// Ticks of `0..=last` with no record, as `[first, last]` ranges.
-    pub fn missing(&self, last: u64) -> Vec<[u64; 2]> {
-        let mut out: Vec<[u64; 2]> = Vec::new();
-        for k in (0..=last).filter(|k| self.get(*k).is_none()) {
-            match out.last_mut() {
-                Some(r) if r[1] + 1 == k => r[1] = k,
-                _ => out.push([k, k]),
-            }
-        }
-        out
-    }
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -779,12 +688,13 @@ mod tests {
             r.record(&torque(5));
             r.record(&torque(18)); // a ring: tick 18 takes tick 2's slot
         }
-        let log = FlightLog::<TorqueSample>::read(&dir, Stream::ControllerTorque).expect("read");
+        let log =
+            FlightLog::<TorqueSample>::read(&dir, Stream::ControllerTorque, 1 << 20).expect("read");
         assert_eq!(log.opens, 2);
         assert_eq!(log.beyond, 0);
         assert_eq!(log.get(3).map(|t| t.rotor_torque_nm), Some([9.0; 3]));
-        assert_eq!(log.get(1), Some(&torque(1)));
-        assert_eq!(log.get(18), Some(&torque(18)));
+        assert_eq!(log.get(1), Some(torque(1)));
+        assert_eq!(log.get(18), Some(torque(18)));
         assert_eq!(log.missing(6), vec![[2, 2], [4, 4], [6, 6]]);
         let _ = std::fs::remove_dir_all(&dir);
     }
@@ -803,9 +713,9 @@ mod tests {
         bytes[slot..slot + 8].fill(0);
         bytes[slot + 16..slot + 40].fill(0xff);
         std::fs::write(&path, bytes).expect("write");
-        let log = FlightLog::<TorqueSample>::read(&dir, Stream::Reference).expect("read");
+        let log = FlightLog::<TorqueSample>::read(&dir, Stream::Reference, 1 << 20).expect("read");
         assert_eq!(log.missing(2), vec![[1, 1]]);
-        assert_eq!(log.get(2), Some(&torque(2)));
+        assert_eq!(log.get(2), Some(torque(2)));
         let _ = std::fs::remove_dir_all(&dir);
     }
 
@@ -820,7 +730,7 @@ mod tests {
         (0..3).for_each(|k| r.record(&torque(k)));
         assert_eq!(r.unrecorded(), 3);
         assert!(matches!(
-            FlightLog::<TorqueSample>::read(&dir, Stream::PlantTorque),
+            FlightLog::<TorqueSample>::read(&dir, Stream::PlantTorque, 1 << 20),
             Err(FlightError::Missing { .. })
         ));
         let _ = std::fs::remove_file(&dir);
@@ -845,9 +755,10 @@ mod tests {
         assert_eq!(mover.lost, 0);
         std::fs::copy(Stream::PlantTorque.path(&staged), Stream::PlantTorque.path(&kept))
             .expect("the ring beside its segments");
-        let log = FlightLog::<TorqueSample>::read(&kept, Stream::PlantTorque).expect("read");
+        let log =
+            FlightLog::<TorqueSample>::read(&kept, Stream::PlantTorque, 1 << 20).expect("read");
         assert_eq!(log.missing(1999), Vec::<[u64; 2]>::new());
-        assert_eq!(log.get(1000), Some(&torque(1000)));
+        assert_eq!(log.get(1000), Some(torque(1000)));
         let len = std::fs::metadata(Stream::PlantTorque.path(&staged)).expect("ring").len();
         assert_eq!(len, (HEADER + 512 * slot_len::<TorqueSample>()) as u64);
         // A mover asleep while the writer went round twice: halves lost, and counted.

@@ -1,0 +1,519 @@
+//! Reading a stream's record after the run in bounded memory, whatever the run's length.
+//!
+//! A [`FlightLog`] holds no samples: it knows the stream's files (the ring and the
+//! segments moved out of it, module docs of [`super`]) and reads a block of slots at a time
+//! with `pread`, keeping the last [`BLOCKS`] blocks. Reading ticks in order (the report,
+//! the export, the replay) reads each block once; looking back a few thousand ticks (the
+//! incidents) stays in the kept blocks. Its memory is a few MB, the same for a minute's run
+//! as for a day's.
+//!
+//! **It trusts nothing in the files.** Every header is checked against its file's length
+//! before anything is read, a tick is only ever looked up, never used as an index of
+//! memory, and ticks beyond the run's last (`limit`) are not the run's: a far-future tick
+//! written into a record (damage, or a writer that went wrong) is counted and ignored. A
+//! segment that is torn, foreign or of another size is skipped, named in
+//! [`FlightLog::problems`], and its ticks read as missing: the rest of the stream is read.
+
+use std::cell::RefCell;
+use std::os::unix::fs::FileExt;
+use std::path::{Path, PathBuf};
+
+use super::{FlightError, HEADER, MAGIC, Record, SPARE_SLOTS, Stream, segments, slot_len, word};
+use crate::wire::LAYOUT_VERSION;
+
+/// Slots read from a file at once.
+const BLOCK_SLOTS: u64 = 1024;
+/// Blocks kept (about 4 MB of state samples).
+const BLOCKS: usize = 8;
+/// Problems kept in words; the rest are counted.
+const MAX_PROBLEMS: usize = 16;
+
+/// One file of a stream: the ring (slot `k mod capacity`) or a segment (half `j`: ticks
+/// `j·H … (j+1)·H − 1`, slot `k − j·H`).
+#[derive(Debug)]
+struct Source {
+    path: PathBuf,
+    capacity: u64,
+}
+
+/// Slots of one source read at once.
+#[derive(Debug)]
+struct Block {
+    /// 0: the ring; `i + 1`: segment `i` of the list.
+    source: usize,
+    index: u64,
+    bytes: Vec<u8>,
+    used: u64,
+}
+
+#[derive(Debug, Default)]
+struct Cache {
+    blocks: Vec<Block>,
+    clock: u64,
+}
+
+/// What a stream's record holds, read after the run (module docs). Memory: a few blocks,
+/// never the stream.
+#[derive(Debug)]
+pub struct FlightLog<T: Record> {
+    ring: Option<Source>,
+    /// The segments that are sound, by half index, in order.
+    segments: Vec<(u64, Source)>,
+    /// Ticks per segment.
+    half: u64,
+    /// Samples held in memory instead of files ([`FlightLog::of`]).
+    memory: Vec<Option<T>>,
+    /// The last tick the run could hold; later ones are not the run's.
+    limit: u64,
+    last: Option<u64>,
+    /// How often the ring was opened for writing (1 + the writer's restarts).
+    pub opens: u64,
+    /// Samples whose tick lay beyond the ring's capacity (not recorded).
+    pub beyond: u64,
+    /// What in the files could not be read, in words (the first [`MAX_PROBLEMS`]).
+    pub problems: Vec<String>,
+    /// Problems beyond those.
+    pub more_problems: u64,
+    cache: RefCell<Cache>,
+}
+
+/// A stream's records counted over ticks `0..=last`.
+#[derive(Debug, Clone, Default, PartialEq, Eq)]
+pub struct StreamCount {
+    /// Ticks with a record.
+    pub records: u64,
+    /// The first ranges of ticks without one, `[first, last]` (at most 16).
+    pub missing: Vec<[u64; 2]>,
+    /// How many such ranges there are in all.
+    pub missing_ranges: u64,
+}
+
+/// A file's header words, checked against its length for samples of type `T`: its
+/// capacity, or why it is not a record of this build.
+fn check_header<T>(path: &Path) -> Result<([u64; 8], u64), FlightError> {
+    let shown = path.display().to_string();
+    let file = std::fs::File::open(path)
+        .map_err(|e| FlightError::Missing { path: shown.clone(), why: e.to_string() })?;
+    let foreign = |why: String| FlightError::Foreign { path: shown.clone(), why };
+    let len = file.metadata().map_err(|e| foreign(e.to_string()))?.len();
+    let mut header = [0u8; HEADER];
+    if len < HEADER as u64 || file.read_exact_at(&mut header, 0).is_err() {
+        return Err(foreign(format!("{len} bytes: not a flight record (or never written)")));
+    }
+    let mut w = [0u64; 8];
+    for (i, c) in header.chunks_exact(8).enumerate() {
+        w[i] = u64::from_ne_bytes(c.try_into().unwrap_or_default());
+    }
+    if w[word::MAGIC] != MAGIC {
+        return Err(foreign("not a flight record (or never written)".into()));
+    }
+    if w[word::VERSION] != u64::from(LAYOUT_VERSION) || w[word::SIZE] != size_of::<T>() as u64 {
+        return Err(foreign(format!(
+            "written by layout v{} with {}-byte samples; this build reads layout v{} with \
+             {}-byte samples",
+            w[word::VERSION],
+            w[word::SIZE],
+            LAYOUT_VERSION,
+            size_of::<T>()
+        )));
+    }
+    let capacity = w[word::CAPACITY];
+    let expected = (capacity as u128) * slot_len::<T>() as u128 + HEADER as u128;
+    if capacity == 0 || expected != u128::from(len) {
+        return Err(foreign(format!(
+            "{len} bytes, not a file of {capacity} slots (torn or damaged)"
+        )));
+    }
+    Ok((w, capacity))
+}
+
+impl<T: Record> FlightLog<T> {
+    /// Opens `stream`'s record in `dir` (the ring and the segments the launcher moved
+    /// there during the run) for a run whose ticks end at `limit` (the scenario's last
+    /// tick and the spare slots: a later tick is not the run's). The ring must be sound;
+    /// a segment that is not is skipped and named in [`Self::problems`].
+    pub fn read(dir: &Path, stream: Stream, limit: u64) -> Result<Self, FlightError> {
+        let ring_path = stream.path(dir);
+        let (w, capacity) = check_header::<T>(&ring_path)?;
+        let mut log = Self {
+            ring: Some(Source { path: ring_path, capacity }),
+            opens: w[word::OPENS],
+            beyond: w[word::BEYOND],
+            ..Self::empty()
+        };
+        log.limit = limit;
+        log.half = if capacity % 2 == 0 { capacity / 2 } else { 0 };
+        log.open_segments(dir, stream);
+        // Whatever a run's files claim, its ring holds no tick beyond two rounds past the
+        // last segment moved out of it (the writers end with the mover): a bound that
+        // needs no file but the records themselves.
+        let after = log.segments.last().map_or(0, |(j, _)| j + 1);
+        let bound = after.saturating_add(2).saturating_mul(capacity).saturating_add(SPARE_SLOTS);
+        log.limit = log.limit.min(bound);
+        log.last = log.find_last();
+        Ok(log)
+    }
+
+    /// A stream with no record at all (a role that ran without one).
+    pub fn empty() -> Self {
+        Self {
+            ring: None,
+            segments: Vec::new(),
+            half: 0,
+            memory: Vec::new(),
+            limit: u64::MAX,
+            last: None,
+            opens: 0,
+            beyond: 0,
+            problems: Vec::new(),
+            more_problems: 0,
+            cache: RefCell::default(),
+        }
+    }
+
+    /// A stream of the samples `records`, tick `k` at index `k`, held in memory (tests;
+    /// in-process runs).
+    pub fn of(records: Vec<T>) -> Self {
+        let last = records.len().checked_sub(1).map(|l| l as u64);
+        Self { memory: records.into_iter().map(Some).collect(), last, opens: 1, ..Self::empty() }
+    }
+
+    fn problem(&mut self, what: String) {
+        if self.problems.len() < MAX_PROBLEMS {
+            self.problems.push(what);
+        } else {
+            self.more_problems += 1;
+        }
+    }
+
+    /// Checks each segment's header against its length and the ring's halves: the sound
+    /// ones are kept, the others named.
+    fn open_segments(&mut self, dir: &Path, stream: Stream) {
+        let prefix = format!("{}.", stream.name());
+        for path in segments(dir, stream) {
+            let name = path.file_name().map(|n| n.to_string_lossy().into_owned());
+            let Some(j) = name.as_deref().and_then(|n| {
+                n.strip_prefix(&prefix)?.strip_suffix(".flight")?.parse::<u64>().ok()
+            }) else {
+                continue;
+            };
+            let capacity = match check_header::<T>(&path) {
+                Ok((_, c)) => c,
+                Err(e) => {
+                    self.problem(format!("{e}: skipped, its ticks read as missing"));
+                    continue;
+                }
+            };
+            if self.half == 0 {
+                self.half = capacity;
+            }
+            if capacity != self.half {
+                self.problem(format!(
+                    "{}: segment of {capacity} ticks where the ring's halves hold {}: skipped",
+                    path.display(),
+                    self.half
+                ));
+                continue;
+            }
+            if j.checked_mul(capacity).is_none_or(|first| first > self.limit) {
+                self.problem(format!(
+                    "{}: segment {j} lies beyond the run's last tick {}: skipped",
+                    path.display(),
+                    self.limit
+                ));
+                continue;
+            }
+            if self.segments.last().is_some_and(|(i, _)| *i == j) {
+                continue; // the same half in the staging directory and the run directory
+            }
+            self.segments.push((j, Source { path, capacity }));
+        }
+    }
+
+    /// The newest tick recorded within the run (the ring's newest, or the newest of the
+    /// last segments), counting the ring's samples for ticks beyond the run.
+    fn find_last(&mut self) -> Option<u64> {
+        let mut last = None;
+        let mut beyond_run = 0u64;
+        if let Some(ring) = &self.ring {
+            scan::<T>(ring, |slot, k, _| {
+                if k % ring.capacity != slot {
+                    return;
+                }
+                if k > self.limit {
+                    beyond_run += 1;
+                } else {
+                    last = last.max(Some(k));
+                }
+            });
+        }
+        if beyond_run > 0 {
+            self.problem(format!(
+                "{}: {beyond_run} samples for ticks beyond the run's last tick {}: ignored",
+                self.ring.as_ref().map_or(String::new(), |r| r.path.display().to_string()),
+                self.limit
+            ));
+        }
+        for (j, seg) in self.segments.iter().rev() {
+            let mut newest = None;
+            scan::<T>(seg, |slot, k, _| {
+                if k == j * seg.capacity + slot {
+                    newest = newest.max(Some(k));
+                }
+            });
+            if newest.is_some() {
+                return last.max(newest);
+            }
+        }
+        last
+    }
+
+    /// The newest tick recorded within the run.
+    pub fn last(&self) -> Option<u64> {
+        self.last
+    }
+
+    /// The sample of tick `k`, if recorded: the ring's copy (the newer), else its
+    /// segment's.
+    pub fn get(&self, k: u64) -> Option<T> {
+        if k > self.limit || self.last.is_none_or(|l| k > l) {
+            return None;
+        }
+        if self.ring.is_none() {
+            return self.memory.get(usize::try_from(k).ok()?).copied().flatten();
+        }
+        let ring = self.ring.as_ref()?;
+        if let Some(s) = self.lookup(0, ring, k % ring.capacity, k) {
+            return Some(s);
+        }
+        if self.half == 0 {
+            return None;
+        }
+        let j = k / self.half;
+        let i = self.segments.binary_search_by_key(&j, |(j, _)| *j).ok()?;
+        self.lookup(i + 1, &self.segments[i].1, k % self.half, k)
+    }
+
+    /// The sample in `slot` of `source` if it is tick `k`'s.
+    fn lookup(&self, id: usize, source: &Source, slot: u64, k: u64) -> Option<T> {
+        let mut cache = self.cache.borrow_mut();
+        let index = slot / BLOCK_SLOTS;
+        cache.clock += 1;
+        let clock = cache.clock;
+        let at = match cache.blocks.iter().position(|b| b.source == id && b.index == index) {
+            Some(at) => at,
+            None => {
+                let bytes = read_block::<T>(source, index);
+                let block = Block { source: id, index, bytes, used: clock };
+                if cache.blocks.len() < BLOCKS {
+                    cache.blocks.push(block);
+                    cache.blocks.len() - 1
+                } else {
+                    let oldest =
+                        (0..cache.blocks.len()).min_by_key(|i| cache.blocks[*i].used).unwrap_or(0);
+                    cache.blocks[oldest] = block;
+                    oldest
+                }
+            }
+        };
+        let block = &mut cache.blocks[at];
+        block.used = clock;
+        let len = slot_len::<T>();
+        let off = (slot - index * BLOCK_SLOTS) as usize * len;
+        let bytes = block.bytes.get(off..off + len)?;
+        let tag = u64::from_ne_bytes(bytes[..8].try_into().unwrap_or_default());
+        if tag != k.wrapping_add(1) {
+            return None;
+        }
+        // SAFETY: the slot holds `size_of::<T>()` bytes after its tag; T is plain old data
+        // (f64/u64 fields), valid for any bit pattern.
+        let sample = unsafe { std::ptr::read_unaligned(bytes[8..].as_ptr() as *const T) };
+        (sample.tick() == k).then_some(sample)
+    }
+
+    /// Every sample recorded, in tick order.
+    pub fn iter(&self) -> impl Iterator<Item = T> + '_ {
+        let end = self.last.map_or(0, |l| l + 1);
+        (0..end).filter_map(|k| self.get(k))
+    }
+
+    /// The records of ticks `0..=last` counted, with the ranges of ticks that have none.
+    pub fn count(&self, last: u64) -> StreamCount {
+        let mut c = StreamCount::default();
+        let mut open: Option<[u64; 2]> = None;
+        let close = |c: &mut StreamCount, r: [u64; 2]| {
+            c.missing_ranges += 1;
+            if c.missing.len() < 16 {
+                c.missing.push(r);
+            }
+        };
+        for k in 0..=last {
+            if self.get(k).is_some() {
+                c.records += 1;
+                if let Some(r) = open.take() {
+                    close(&mut c, r);
+                }
+            } else {
+                match &mut open {
+                    Some(r) => r[1] = k,
+                    None => open = Some([k, k]),
+                }
+            }
+        }
+        if let Some(r) = open {
+            close(&mut c, r);
+        }
+        c
+    }
+
+    /// Ticks of `0..=last` with no record, as `[first, last]` ranges (the first 16).
+    pub fn missing(&self, last: u64) -> Vec<[u64; 2]> {
+        self.count(last).missing
+    }
+}
+
+/// Block `index` of `source`'s slots, as read (shorter, or empty, where the file was cut
+/// since it was checked: those slots read as missing).
+fn read_block<T>(source: &Source, index: u64) -> Vec<u8> {
+    let first = index * BLOCK_SLOTS;
+    let n = BLOCK_SLOTS.min(source.capacity.saturating_sub(first));
+    let len = slot_len::<T>();
+    let mut bytes = vec![0u8; n as usize * len];
+    let Ok(f) = std::fs::File::open(&source.path) else { return Vec::new() };
+    let at = HEADER as u64 + first * len as u64;
+    match f.read_exact_at(&mut bytes, at) {
+        Ok(()) => bytes,
+        Err(_) => Vec::new(),
+    }
+}
+
+/// Calls `f(slot, tick, sample)` for each slot of `source` whose tag and sample agree on
+/// a tick (one block in memory at a time).
+fn scan<T: Record>(source: &Source, mut f: impl FnMut(u64, u64, &T)) {
+    let len = slot_len::<T>();
+    for index in 0..source.capacity.div_ceil(BLOCK_SLOTS) {
+        let bytes = read_block::<T>(source, index);
+        for (i, s) in bytes.chunks_exact(len).enumerate() {
+            let tag = u64::from_ne_bytes(s[..8].try_into().unwrap_or_default());
+            let Some(k) = tag.checked_sub(1) else { continue };
+            // SAFETY: as in `lookup`.
+            let sample = unsafe { std::ptr::read_unaligned(s[8..].as_ptr() as *const T) };
+            if sample.tick() == k {
+                f(index * BLOCK_SLOTS + i as u64, k, &sample);
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::super::{FlightRecorder, Mover, ring_capacity, segment_path};
+    use super::*;
+    use crate::wire::TorqueSample;
+
+    fn torque(k: u64) -> TorqueSample {
+        TorqueSample { tick: k, rotor_torque_nm: [k as f64, 1.0, 2.0], ..Default::default() }
+    }
+
+    /// A run of `ticks` recorded into a ring of 512 slots, its halves moved as it goes:
+    /// the run directory (`kept`) with its segments and the ring beside them.
+    fn recorded(name: &str, ticks: u64) -> PathBuf {
+        let base =
+            std::env::temp_dir().join(format!("rotorloop-read-{}-{name}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&base);
+        let (staged, kept) = (base.join("staged"), base.join("kept"));
+        let cap = ring_capacity(ticks, 512);
+        let r = FlightRecorder::<TorqueSample>::open(Some(&staged), Stream::PlantTorque, cap, "t");
+        let mut mover = Mover::new(&staged, &kept);
+        for k in 0..ticks {
+            r.record(&torque(k));
+            assert!(mover.pass(k).is_empty());
+        }
+        std::fs::create_dir_all(&kept).expect("kept");
+        std::fs::copy(Stream::PlantTorque.path(&staged), Stream::PlantTorque.path(&kept))
+            .expect("the ring beside its segments");
+        kept
+    }
+
+    fn read(dir: &Path, limit: u64) -> FlightLog<TorqueSample> {
+        FlightLog::read(dir, Stream::PlantTorque, limit).expect("read")
+    }
+
+    /// 40 segments and the ring: every tick in order, looked up again far back, and the
+    /// reader's memory the same blocks whatever the length.
+    #[test]
+    fn many_segments_read_in_order_and_back_in_bounded_blocks() {
+        let dir = recorded("many", 10_000);
+        assert!(segments(&dir, Stream::PlantTorque).len() >= 36);
+        let log = read(&dir, 10_063);
+        assert_eq!(log.last(), Some(9_999));
+        assert!(log.problems.is_empty(), "{:?}", log.problems);
+        let ticks: Vec<u64> = log.iter().map(|t| t.tick).collect();
+        assert_eq!(ticks, (0..10_000).collect::<Vec<_>>());
+        assert_eq!(log.count(9_999), StreamCount { records: 10_000, ..Default::default() });
+        for k in [9_000, 17, 5_000, 9_999, 0] {
+            assert_eq!(log.get(k), Some(torque(k)));
+        }
+        assert!(log.cache.borrow().blocks.len() <= BLOCKS);
+        let _ = std::fs::remove_dir_all(dir.parent().expect("base"));
+    }
+
+    /// A torn segment (cut short by a full disk, say) and a missing one: their ticks read
+    /// as missing, the problem is named, and every other tick is read.
+    #[test]
+    fn a_torn_and_a_missing_segment_leave_the_rest_readable() {
+        let dir = recorded("torn", 3_000);
+        let torn = segment_path(&dir, Stream::PlantTorque, 2); // ticks 512–767
+        let len = std::fs::metadata(&torn).expect("segment").len();
+        std::fs::OpenOptions::new()
+            .write(true)
+            .open(&torn)
+            .expect("open")
+            .set_len(len / 2)
+            .expect("cut");
+        std::fs::remove_file(segment_path(&dir, Stream::PlantTorque, 4)).expect("rm"); // 1024–1279
+        let empty = segment_path(&dir, Stream::PlantTorque, 5);
+        std::fs::write(&empty, b"").expect("zero-length");
+        let log = read(&dir, 3_063);
+        assert_eq!(log.problems.len(), 2, "{:?}", log.problems);
+        assert!(log.problems[0].contains("torn or damaged"), "{}", log.problems[0]);
+        let c = log.count(2_999);
+        assert_eq!(c.missing, vec![[512, 767], [1024, 1535]]);
+        assert_eq!(c.records, 3_000 - 256 - 512);
+        assert_eq!(log.get(768), Some(torque(768)));
+        let _ = std::fs::remove_dir_all(dir.parent().expect("base"));
+    }
+
+    /// A tick far beyond the run written into the ring (tag and sample agreeing, as a
+    /// fuzzer wrote it: capacity × 2⁴⁰) allocates nothing and is not the run's.
+    #[test]
+    fn a_far_future_tick_is_counted_and_ignored_not_allocated() {
+        let dir = recorded("far", 300);
+        let ring = Stream::PlantTorque.path(&dir);
+        let (_, cap) = check_header::<TorqueSample>(&ring).expect("ring");
+        let k = cap << 40;
+        let f = std::fs::OpenOptions::new().write(true).open(&ring).expect("open");
+        let mut slot = (k + 1).to_ne_bytes().to_vec();
+        slot.extend_from_slice(&k.to_ne_bytes());
+        f.write_all_at(&slot, HEADER as u64).expect("write");
+        let log = read(&dir, 363);
+        assert_eq!(log.last(), Some(299));
+        assert_eq!(log.get(k), None);
+        assert!(log.problems[0].contains("beyond the run's last tick 363"), "{:?}", log.problems);
+        assert_eq!(log.count(299).missing, vec![[0, 0]]);
+        let _ = std::fs::remove_dir_all(dir.parent().expect("base"));
+    }
+
+    /// A ring whose header claims more slots than its file holds is refused before
+    /// anything is read.
+    #[test]
+    fn a_ring_whose_header_lies_about_its_size_is_refused() {
+        let dir = recorded("lies", 300);
+        let ring = Stream::PlantTorque.path(&dir);
+        let f = std::fs::OpenOptions::new().write(true).open(&ring).expect("open");
+        f.write_all_at(&(1u64 << 60).to_ne_bytes(), 8 * word::CAPACITY as u64).expect("write");
+        let e = FlightLog::<TorqueSample>::read(&dir, Stream::PlantTorque, 363).expect_err("lies");
+        assert!(e.to_string().contains("not a file of 1152921504606846976 slots"), "{e}");
+        let _ = std::fs::remove_dir_all(dir.parent().expect("base"));
+    }
+}

@@ -1,0 +1,134 @@
+//! A report's CSV files (`trace.csv`, `timing.csv`) read a row at a time, in tick order,
+//! in bounded memory: the readers of a finished run (the replay, the export, the fault
+//! report) walk the ticks in order and ask for each tick's row, so one row is held, never
+//! the file.
+
+use std::io::{BufRead, BufReader};
+use std::path::Path;
+
+use anyhow::Context;
+
+/// The rows of a CSV file with a `tick` column, in file order (module docs).
+#[derive(Debug)]
+pub struct TickRows {
+    lines: std::io::Lines<BufReader<std::fs::File>>,
+    header: String,
+    tick: usize,
+    /// The next row not yet handed out: its tick and line.
+    ahead: Option<(u64, String)>,
+    /// Rows skipped because their tick was not after the row before (out of order or
+    /// repeated) or did not parse.
+    pub skipped: u64,
+    last: Option<u64>,
+}
+
+impl TickRows {
+    /// Opens `path` and reads its header, which must have a `tick` column.
+    pub fn open(path: &Path) -> anyhow::Result<Self> {
+        let file =
+            std::fs::File::open(path).with_context(|| format!("cannot read {}", path.display()))?;
+        let mut lines = BufReader::new(file).lines();
+        let header = lines
+            .next()
+            .transpose()
+            .with_context(|| format!("cannot read {}", path.display()))?
+            .unwrap_or_default();
+        let tick = header
+            .split(',')
+            .position(|c| c == "tick")
+            .with_context(|| format!("{} has no tick column", path.display()))?;
+        let mut rows = Self { lines, header, tick, ahead: None, skipped: 0, last: None };
+        rows.advance();
+        Ok(rows)
+    }
+
+    /// The header line.
+    pub fn header(&self) -> &str {
+        &self.header
+    }
+
+    /// The column names.
+    pub fn columns(&self) -> Vec<String> {
+        self.header.split(',').map(str::to_owned).collect()
+    }
+
+    /// Reads the next row whose tick comes after the last one's into `ahead`.
+    fn advance(&mut self) {
+        self.ahead = None;
+        for line in self.lines.by_ref() {
+            let Ok(line) = line else {
+                self.skipped += 1;
+                continue;
+            };
+            let tick = line.split(',').nth(self.tick).and_then(|t| t.parse::<u64>().ok());
+            match tick {
+                Some(k) if self.last.is_none_or(|l| k > l) => {
+                    self.last = Some(k);
+                    self.ahead = Some((k, line));
+                    return;
+                }
+                _ => self.skipped += 1,
+            }
+        }
+    }
+
+    /// The next row: its tick and line.
+    pub fn next_row(&mut self) -> Option<(u64, String)> {
+        let row = self.ahead.take();
+        if row.is_some() {
+            self.advance();
+        }
+        row
+    }
+
+    /// The tick of the next row, without taking it.
+    pub fn peek_tick(&self) -> Option<u64> {
+        self.ahead.as_ref().map(|(k, _)| *k)
+    }
+
+    /// The row of tick `k`, the rows before it passed over (a reader asks for ticks in
+    /// increasing order; a tick asked for again after its row was taken gives `None`).
+    pub fn row(&mut self, k: u64) -> Option<String> {
+        while self.peek_tick().is_some_and(|t| t < k) {
+            self.next_row();
+        }
+        if self.peek_tick() == Some(k) { self.next_row().map(|(_, l)| l) } else { None }
+    }
+}
+
+/// The tick of the last row of the CSV file at `path`, in one pass a row at a time.
+pub fn last_tick(path: &Path) -> anyhow::Result<Option<u64>> {
+    let mut rows = TickRows::open(path)?;
+    let mut last = None;
+    while let Some((k, _)) = rows.next_row() {
+        last = Some(k);
+    }
+    Ok(last)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn rows_come_in_tick_order_one_at_a_time_and_disorder_is_skipped() {
+        let dir = std::env::temp_dir().join(format!("rotorloop-rows-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).expect("dir");
+        let path = dir.join("t.csv");
+        std::fs::write(&path, "t,tick,x\n0,0,a\n0,1,b\n0,1,dup\n0,x,bad\n0,3,c\n0,2,late\n0,5,d\n")
+            .expect("write");
+        let mut rows = TickRows::open(&path).expect("open");
+        assert_eq!(rows.header(), "t,tick,x");
+        assert_eq!(rows.row(1).as_deref(), Some("0,1,b"));
+        assert_eq!(rows.row(2), None);
+        assert_eq!(rows.row(3).as_deref(), Some("0,3,c"));
+        assert_eq!(rows.next_row(), Some((5, "0,5,d".to_owned())));
+        assert_eq!(rows.next_row(), None);
+        assert_eq!(rows.skipped, 3);
+        assert_eq!(last_tick(&path).expect("last"), Some(5));
+        assert!(TickRows::open(&dir.join("none.csv")).is_err());
+        std::fs::write(&path, "a,b\n").expect("write");
+        assert!(TickRows::open(&path).unwrap_err().to_string().contains("no tick column"));
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+}
