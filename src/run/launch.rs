@@ -28,9 +28,14 @@ pub enum RunEnd {
 }
 
 /// The `--fault`s, checked against each other and against the placement of the roles.
-fn checked_faults(args: &RunArgs, split: Option<&Split>) -> anyhow::Result<Vec<Fault>> {
+fn checked_faults(
+    args: &RunArgs,
+    split: Option<&Split>,
+    duration_s: f64,
+) -> anyhow::Result<Vec<Fault>> {
     let faults = args.fault.iter().map(|f| parse_fault(f)).collect::<Result<Vec<_>, _>>()?;
     crate::run::fault::check_overlaps(&args.fault, &faults)?;
+    crate::run::fault::check_against_run(&args.fault, &faults, duration_s)?;
     for f in &faults {
         match split {
             Some(s) => s.check_fault_target(&f.role)?,
@@ -98,7 +103,6 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
     // `--wait` has a default, so "explicit" means: not the default (event).
     let explicit_wait = args.role.wait != rotorloop_common::ipc::wait::Wait::Event;
     let args = &with_preset(args, explicit_wait)?;
-    crate::run::args::check_role_flags(args)?;
     // Held to the end of the run (and by the kernel to this launcher's death).
     let _idle = rotorloop_common::rt::CpuDmaLatency::hold_or_warn(args.cpu_dma_latency);
     let scenario = args.role.scenario()?;
@@ -125,7 +129,8 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
         }
     };
     let split = args.split.as_deref().map(|s| Split::parse(s, !args.no_monitor)).transpose()?;
-    let faults = checked_faults(args, split.as_ref())?;
+    let duration_s = scenario.ticks() as f64 * scenario.dt();
+    let faults = checked_faults(args, split.as_ref(), duration_s)?;
     let external = crate::run::external::check(args, &faults)?.map(|e| (e, scenario.clone()));
     if split.is_some() {
         crate::run::split::link_binary()?;
@@ -185,6 +190,7 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
     let domain = launch.role_args.domain();
     let live = args.foxglove.as_deref().map(|a| Beside::start(&launch.exe, domain, a, &args.out));
     let live = live.transpose()?;
+    let launched_ns = rotorloop_common::clock::now_ns();
     let started = start(&launch, &mut children, &mut rss);
     let supervised = started
         .and_then(|()| supervise(&launch, &mut children, &mut rss, FaultSchedule::new(faults)));
@@ -198,12 +204,8 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
     // A failure stops the run, but its report (the faults that led to it among them) is
     // written as for any other end.
     let (events, failure) = supervised?;
-    let reported = report(&launch, &scenario, &rss, &events, flight.as_deref());
+    let reported = report(&launch, &scenario, &rss, (&events, launched_ns), flight.as_deref());
     match failure {
-        // A role that refused its input or diverged: the user's to mend, as in `sim`.
-        Some(f) if f.to_string().contains(crate::run::supervise::REFUSED) => {
-            Err(UsageError(format!("{f:#}")).into())
-        }
         Some(f) => Err(f),
         None => reported,
     }
@@ -243,7 +245,7 @@ fn report(
     launch: &Launch,
     scenario: &rotorloop_common::scenario::Scenario,
     rss: &RssLog,
-    events: &[FaultEvent],
+    (events, launched_ns): (&[FaultEvent], u64),
     flight: Option<&std::path::Path>,
 ) -> anyhow::Result<()> {
     let args = launch.args;
@@ -272,7 +274,8 @@ fn report(
         }
     }
     if !events.is_empty() && !args.no_monitor {
-        if let Err(e) = crate::run::fault::report::report(&args.out, scenario, events) {
+        if let Err(e) = crate::run::fault::report::report(&args.out, scenario, events, launched_ns)
+        {
             eprintln!("warning: no fault report: {e:#}");
             for e in events {
                 eprintln!("  {} {}: {}", e.kind, e.role, e.detail);

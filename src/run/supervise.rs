@@ -119,6 +119,8 @@ pub enum Ending {
     Exited,
     /// Found hung by the watchdog and killed.
     Hang,
+    /// A controller whose every answer the plant refused ([`RejectWatch`]), killed.
+    Rejected,
 }
 
 impl Ending {
@@ -129,6 +131,7 @@ impl Ending {
             Self::Crash => "crash",
             Self::Exited => "exited",
             Self::Hang => "hang",
+            Self::Rejected => "rejected",
         }
     }
 
@@ -157,15 +160,24 @@ pub enum Verdict {
     Fail(String),
 }
 
-/// How a [`Verdict::Fail`] of a role that exited 2 ends (the launcher exits 2 on it too).
-pub const REFUSED: &str = "a bad argument or scenario value, or the run diverged: not restarted";
-
 /// The restart rule (module docs).
 #[derive(Debug, Clone)]
 pub struct Supervisor {
     policies: BTreeMap<String, RestartPolicy>,
     limit: RestartLimit,
-    restarts: BTreeMap<String, Vec<f64>>,
+    roles: BTreeMap<String, RestartRecord>,
+}
+
+/// One role's restarts, aged by the time it ran with progress (see [`Supervisor::on_end`]).
+#[derive(Debug, Clone, Default)]
+struct RestartRecord {
+    /// Time run with progress so far (s): from the first progress after each start to the
+    /// last progress before its end.
+    healthy_s: f64,
+    /// The first and the last progress of the current incarnation (s).
+    progress: Option<(f64, f64)>,
+    /// `healthy_s` at each restart still in the window.
+    restarts: Vec<f64>,
 }
 
 /// The first restart of a role is immediate; each further one within the window waits
@@ -177,7 +189,7 @@ pub const MAX_BACKOFF_S: f64 = 2.0;
 impl Supervisor {
     /// Restarts by `policies` (one per role) within `limit`.
     pub fn new(policies: BTreeMap<String, RestartPolicy>, limit: RestartLimit) -> Self {
-        Self { policies, limit, restarts: BTreeMap::new() }
+        Self { policies, limit, roles: BTreeMap::new() }
     }
 
     /// The policy of `role`.
@@ -185,9 +197,24 @@ impl Supervisor {
         self.policies.get(role).copied().unwrap_or(RestartPolicy::OnFailure)
     }
 
+    /// `role` made progress at `now_s` (its mark moved: for a controller, a torque the plant
+    /// accepted).
+    pub fn progressed(&mut self, role: &str, now_s: f64) {
+        let r = self.roles.entry(role.to_owned()).or_default();
+        r.progress = Some(r.progress.map_or((now_s, now_s), |(first, _)| (first, now_s)));
+    }
+
     /// `role` ended unplanned (`how`, described by `what`, e.g. its exit status) at `now_s`;
     /// `run_over`: the plant has published its last tick. Exit code 2 (a bad argument or
-    /// scenario value, or a run that diverged) is never restarted: it would fail again.
+    /// scenario value, or a run that diverged) is never restarted: it would fail again. A
+    /// clean exit before the run's last tick is an end like any other (the role left work
+    /// undone), restarted only by `always`: under `on-failure` and `never` it stops the run.
+    ///
+    /// The restart intensity counts a role's restarts within `window_s` of the time it ran
+    /// *with progress* (its first to its last progress in each incarnation), not of the
+    /// wall clock: a role that never makes progress is found hung only after the start
+    /// timeout (10 s), so its restarts were never 5 within 10 s of wall time, and a lockstep
+    /// run whose controller never answered was restarted every 10 s for ever.
     pub fn on_end(
         &mut self,
         role: &str,
@@ -198,35 +225,115 @@ impl Supervisor {
         run_over: bool,
     ) -> Verdict {
         let policy = self.policy(role);
-        let restart = match how {
-            Ending::Exited => policy == RestartPolicy::Always && !run_over,
-            _ if code == Some(2) => {
-                return Verdict::Fail(format!("{role} {what} ({REFUSED})"));
+        match how {
+            Ending::Exited if run_over => return Verdict::Done,
+            Ending::Exited if policy != RestartPolicy::Always => {
+                return Verdict::Fail(format!(
+                    "{role} {what} before the run's last tick (restart policy {policy} does not \
+                     restart a clean exit; --restart {role}=always does)"
+                ));
             }
-            _ => policy != RestartPolicy::Never,
-        };
-        if !restart {
-            return match how {
-                Ending::Exited => Verdict::Done,
-                _ => Verdict::Fail(format!("{role} {what} (restart policy {policy})")),
-            };
+            _ if code == Some(2) => {
+                return Verdict::Fail(format!(
+                    "{role} {what} (a bad argument or scenario value, or the run diverged: not restarted)"
+                ));
+            }
+            _ if policy == RestartPolicy::Never => {
+                return Verdict::Fail(format!("{role} {what} (restart policy {policy})"));
+            }
+            _ => {}
         }
         let window = self.limit.window_s;
-        let times = self.restarts.entry(role.to_owned()).or_default();
-        times.retain(|t| now_s - t < window);
-        if times.len() >= self.limit.burst {
+        let r = self.roles.entry(role.to_owned()).or_default();
+        if let Some((first, last)) = r.progress.take() {
+            r.healthy_s += last - first;
+        }
+        let healthy = r.healthy_s;
+        r.restarts.retain(|h| healthy - h < window);
+        if r.restarts.len() >= self.limit.burst {
             return Verdict::Fail(format!(
-                "{role} {what}, its restart {} within {window} s (limit {}/{window}): not restarted again",
-                times.len() + 1,
+                "{role} {what}; its restart {} within {window} s of running would pass the limit {}/{window}: not restarted again",
+                r.restarts.len() + 1,
                 self.limit.burst,
             ));
         }
-        let backoff = match times.len() {
+        let backoff = match r.restarts.len() {
             0 => 0.0,
             n => (FIRST_BACKOFF_S * 2f64.powi(n as i32 - 1)).min(MAX_BACKOFF_S),
         };
-        times.push(now_s);
+        r.restarts.push(healthy);
         Verdict::Restart { at_s: now_s + backoff }
+    }
+}
+
+/// The rule for a controller that answers but is always refused: the plant rejects its
+/// torques (NaN, infinite, absurd, for a tick the loop has not reached) and accepts none.
+/// That is not a hang (it answers), and not a plant's fault (the plant publishes on
+/// time): it is a fault of its own kind, `rejected`, of the controller. Fed with the plant's
+/// newest state as the launcher polls it: once `hold_ticks` answers in a row were rejected
+/// (the plant entered safe mode for them, `--hold-ticks`) with none accepted since, the
+/// controller is at fault.
+#[derive(Debug, Clone, Default)]
+pub struct RejectWatch {
+    hold_ticks: u64,
+    /// Since the last torque accepted: its tick, the plant's tick and rejections count then.
+    since: Option<Streak>,
+}
+
+/// Rejections since the last torque the plant accepted.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Streak {
+    /// The newest torque tick the plant accepted then (or [`rotorloop_common::wire::NO_TICK`]).
+    pub accepted: u64,
+    /// The plant's tick when the streak began.
+    pub from_tick: u64,
+    /// The plant's rejection count when it began.
+    pub rejected_before: u64,
+    /// Rejections since (filled in by [`RejectWatch::check`]).
+    pub rejected: u64,
+    /// The plant's tick at the last check.
+    pub to_tick: u64,
+}
+
+impl RejectWatch {
+    /// At fault after `hold_ticks` rejections in a row (at least 1).
+    pub fn new(hold_ticks: u64) -> Self {
+        Self { hold_ticks: hold_ticks.max(1), since: None }
+    }
+
+    /// The plant is at `tick`, has accepted torques up to `accepted` and rejected
+    /// `rejected` in all: the streak so far, if answers were rejected since the last one
+    /// accepted.
+    pub fn streak(&mut self, tick: u64, accepted: u64, rejected: u64) -> Option<Streak> {
+        let s = self.since.get_or_insert(Streak {
+            accepted,
+            from_tick: tick,
+            rejected_before: rejected,
+            rejected: 0,
+            to_tick: tick,
+        });
+        if s.accepted != accepted || rejected < s.rejected_before {
+            *s = Streak {
+                accepted,
+                from_tick: tick,
+                rejected_before: rejected,
+                rejected: 0,
+                to_tick: tick,
+            };
+        }
+        s.rejected = rejected - s.rejected_before;
+        s.to_tick = tick;
+        (s.rejected > 0).then_some(*s)
+    }
+
+    /// As [`RejectWatch::streak`]: `Some` once the streak is `hold_ticks` long (the fault).
+    pub fn check(&mut self, tick: u64, accepted: u64, rejected: u64) -> Option<Streak> {
+        self.streak(tick, accepted, rejected).filter(|s| s.rejected >= self.hold_ticks)
+    }
+
+    /// The controller was started again: a new streak begins with its answers.
+    pub fn reset(&mut self) {
+        self.since = None;
     }
 }
 
@@ -522,8 +629,28 @@ mod tests {
             panic!("not stopped")
         };
         assert!(m.contains("monitor") && m.contains("exit status: 1") && m.contains("2/10"), "{m}");
-        // Outside the window the count starts afresh.
+        // Outside the window of running with progress the count starts afresh.
+        s.progressed("monitor", 3.0);
+        s.progressed("monitor", 29.0);
         assert!(matches!(end(&mut s, "monitor", killed, 30.0), Verdict::Restart { .. }));
+    }
+
+    #[test]
+    fn restarts_with_no_progress_between_them_never_leave_the_window() {
+        // A controller that never answers is judged hung only after the start timeout,
+        // 10 s after each restart: by the wall clock never 2 within 10 s.
+        let mut s = supervisor("on-failure", "2/10");
+        let hung =
+            |s: &mut Supervisor, t| s.on_end("controller", Ending::Hang, "hung", None, t, false);
+        assert!(matches!(hung(&mut s, 3.0), Verdict::Restart { .. }));
+        assert!(matches!(hung(&mut s, 13.1), Verdict::Restart { .. }));
+        assert!(matches!(hung(&mut s, 23.3), Verdict::Fail(m) if m.contains("2/10")));
+        // One that answers once after each restart, and then too late again: no time run
+        // with progress either (its first progress is its last).
+        let mut late = supervisor("on-failure", "1/10");
+        assert!(matches!(hung(&mut late, 0.5), Verdict::Restart { .. }));
+        late.progressed("controller", 1.5);
+        assert!(matches!(hung(&mut late, 2.1), Verdict::Fail(_)));
     }
 
     #[test]
@@ -532,7 +659,13 @@ mod tests {
         assert!(
             matches!(end(&mut s, "controller", ExitStatus::from_raw(libc::SIGKILL), 1.0), Verdict::Fail(m) if m.contains("never"))
         );
-        assert_eq!(end(&mut s, "controller", exited(0), 1.0), Verdict::Done);
+        let over = s.on_end("controller", Ending::Exited, "exited", Some(0), 9.0, true);
+        assert_eq!(over, Verdict::Done, "a clean exit after the last tick is the end");
+        // Before it, a clean exit left work undone: only `always` restarts it.
+        let early = end(&mut s, "controller", exited(0), 1.0);
+        assert!(matches!(early, Verdict::Fail(m) if m.contains("before the run's last tick")));
+        let mut on_failure = supervisor("on-failure", "5/10");
+        assert!(matches!(end(&mut on_failure, "plant", exited(0), 1.0), Verdict::Fail(_)));
         assert!(matches!(end(&mut s, "monitor", exited(0), 1.0), Verdict::Restart { .. }));
         let over = s.on_end("monitor", Ending::Exited, "exited", Some(0), 9.0, true);
         assert_eq!(over, Verdict::Done, "always does not restart a role the run is over for");
@@ -637,6 +770,26 @@ mod tests {
         assert!(behind.work_waiting_with_stops(Role::Monitor, true, 16, &[Role::Monitor]));
         let caught_up = Marks { monitor_next: Some(9), ..m };
         assert!(!caught_up.work_waiting_with_stops(Role::Monitor, true, 16, &[Role::Monitor]));
+    }
+
+    #[test]
+    fn a_controller_whose_every_answer_is_refused_is_at_fault_after_hold_ticks() {
+        let none = rotorloop_common::wire::NO_TICK;
+        let mut r = RejectWatch::new(50);
+        assert_eq!(r.check(0, none, 0), None);
+        assert_eq!(r.check(30, none, 30), None, "30 refused: not yet");
+        let s = r.check(50, none, 50).expect("50 in a row");
+        assert_eq!((s.from_tick, s.to_tick, s.rejected), (0, 50, 50));
+        // One accepted answer ends the streak: a controller refused every other tick is
+        // counted (torques_rejected), never at fault.
+        let mut every_other = RejectWatch::new(50);
+        for k in 0..400u64 {
+            assert_eq!(every_other.check(k, k - k % 2, k / 2), None, "tick {k}");
+        }
+        // A restart starts a new streak.
+        r.reset();
+        assert_eq!(r.check(60, none, 55), None);
+        assert!(r.streak(61, none, 56).is_some_and(|s| s.rejected == 1));
     }
 
     #[test]

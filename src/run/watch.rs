@@ -22,7 +22,8 @@ use crate::run::mover::MoverThread;
 use crate::run::resources::RssLog;
 use crate::run::spawn::Launch;
 use crate::run::supervise::{
-    Children, Ending, LinkWatch, Marks, START_TIMEOUT_S, Supervisor, Verdict, Watchdog, signal,
+    Children, Ending, LinkWatch, Marks, RejectWatch, START_TIMEOUT_S, Streak, Supervisor, Verdict,
+    Watchdog, signal,
 };
 use rotorloop_common::role::args::Mode;
 use rotorloop_common::wire::NO_TICK;
@@ -48,6 +49,19 @@ impl Progress {
             monitor_next: self.0.monitor_next(),
         }
     }
+
+    /// What the watchdog reads as `role`'s sign of life: its mark, but for a user's
+    /// controller any answer the plant took, accepted or not (one whose every torque is
+    /// refused answers all the same: it is not hung, [`RejectWatch`] judges it). In
+    /// lockstep that is the plant's tick (the plant moves on once its tick is answered,
+    /// even by a torque it refused); in real time, the torques it received or rejected.
+    fn alive(&self, role: Role, marks: &Marks, lockstep: bool) -> Option<u64> {
+        match (role, self.1, self.0.plant()) {
+            (Role::Controller, true, Some(s)) if lockstep => Some(s.tick),
+            (Role::Controller, true, Some(s)) => Some(s.torques_received + s.torques_rejected),
+            _ => marks.of(role),
+        }
+    }
 }
 
 /// What the supervision loop keeps between polls.
@@ -68,6 +82,10 @@ struct Watch {
     supervisor: Supervisor,
     /// The hang watchdog's state.
     watchdog: Watchdog,
+    /// Whether the controller's answers are all refused.
+    rejects: RejectWatch,
+    /// The marks at the last poll (a mark that moved is progress, for the restart limit).
+    last_marks: Marks,
     /// Split: whether the link carries the loop again after a restart.
     link: LinkWatch,
     /// Torque samples the plant has received so far.
@@ -92,6 +110,8 @@ impl Watch {
             open_stops: BTreeMap::new(),
             supervisor: launch.supervisor.clone(),
             watchdog: Watchdog::new(watchdog_s),
+            rejects: RejectWatch::new(launch.args.hold_ticks),
+            last_marks: Marks::default(),
             link: LinkWatch::new(START_TIMEOUT_S.max(watchdog_s)),
             torques_received: 0,
             mover: launch.mover().and_then(|m| {
@@ -133,7 +153,6 @@ pub(crate) fn supervise(
     rss: &mut RssLog,
     mut schedule: FaultSchedule,
 ) -> anyhow::Result<(Vec<FaultEvent>, Option<anyhow::Error>)> {
-    let lockstep = launch.role_args.mode == Mode::Lockstep;
     // The fault clock starts when the plant has published tick 0 (its resume slot is
     // written just before each publish).
     let progress = Progress::open(launch)?;
@@ -162,7 +181,8 @@ pub(crate) fn supervise(
             watch_the_link(&mut w, now_s);
         }
         if !stopping && run_t0.is_some() && !w.loop_complete && w.failures.is_empty() {
-            watch_for_hangs(launch, children, &mut w, &progress.marks(), lockstep, now_s);
+            watch_for_hangs(launch, children, &mut w, &progress, now_s);
+            watch_for_rejections(children, &mut w, &progress, now_s);
         }
         let due: Vec<String> = w
             .restarts
@@ -181,6 +201,8 @@ pub(crate) fn supervise(
         remove_dead_ports_after_the_end(launch, &w, &mut dead_after_end);
         if launch.split.is_some() && w.loop_complete && !stopping {
             term_sent_at = stop_far_roles_after_the_end(children, &mut plant_ended_at);
+        } else if launch.external.is_some() && w.loop_complete && !stopping {
+            stop_a_lingering_controller(children, &mut w, &mut plant_ended_at);
         }
         // Restarts still to come keep the launcher waiting, but only until the last tick:
         // after it nobody is started again (see `restart`).
@@ -202,10 +224,8 @@ pub(crate) fn supervise(
         eprintln!("launcher: --fault {f}: not carried out, the run ended first");
     }
     w.finish(&progress);
-    let failure = w
-        .failures
-        .first()
-        .map(|f| anyhow::anyhow!("{f}; the run was stopped ({} failed)", w.failures.join(", ")));
+    let failure = (!w.failures.is_empty())
+        .then(|| anyhow::anyhow!("the run was stopped: {}", w.failures.join("; ")));
     Ok((w.events, failure))
 }
 
@@ -223,6 +243,32 @@ fn stop_far_roles_after_the_end(children: &mut Children, since: &mut Option<u64>
     eprintln!("launcher: the plant ended {} s ago; stopping the roles still waiting", LINGER_S + 5);
     children.signal_all(libc::SIGTERM);
     Some(now_ns())
+}
+
+/// A user's controller that does not stop after the plant's last tick (it missed the last
+/// state, or never looks at its flag) would keep the launcher waiting for ever: once the
+/// plant has ended, it gets the linger time of a role, then SIGTERM, and 10 s later
+/// SIGKILL. Neither is a fault: the run was over.
+fn stop_a_lingering_controller(children: &mut Children, w: &mut Watch, since: &mut Option<u64>) {
+    let plant_gone =
+        children.get_mut(Role::Plant.name()).is_none_or(|c| !matches!(c.try_wait(), Ok(None)));
+    if !plant_gone {
+        return;
+    }
+    let since = *since.get_or_insert_with(now_ns);
+    let Some(c) = children.get_mut(Role::Controller.name()) else { return };
+    let (pid, waited_s) = (c.id(), (now_ns() - since) / 1_000_000_000);
+    if !matches!(c.try_wait(), Ok(None)) || waited_s < LINGER_S + 5 {
+        return;
+    }
+    let sig = if waited_s < LINGER_S + 15 { libc::SIGTERM } else { libc::SIGKILL };
+    if w.planned.insert(pid) || (sig == libc::SIGKILL && !dying(pid)) {
+        let name = signal_name(sig);
+        eprintln!(
+            "launcher: the controller is still running {waited_s} s after the plant ended; {name}"
+        );
+        signal(c, sig);
+    }
 }
 
 /// After the last tick the schedule is moot: a role it stopped and has not continued
@@ -409,21 +455,26 @@ fn remove_dead_ports_after_the_end(launch: &Launch, w: &Watch, dead: &mut usize)
 }
 
 /// The watchdog's pass: a role with work waiting and no progress for `--watchdog-ms` is
-/// hung: killed (SIGKILL), recorded as a fault, and handed to the restart policy.
+/// hung: killed (SIGKILL), recorded as a fault, and handed to the restart policy. A
+/// controller whose answers since its last accepted one were all refused is not hung but
+/// `rejected` (in lockstep an answer for a tick not reached does not end the plant's wait,
+/// so such a controller stops the loop as a silent one does). Each role's progress (its mark
+/// moved) is told to the restart policy, whose limit ages restarts by it.
 fn watch_for_hangs(
     launch: &Launch,
     children: &mut Children,
     w: &mut Watch,
-    marks: &Marks,
-    lockstep: bool,
+    progress: &Progress,
     now_s: f64,
 ) {
-    let stopped: Vec<Role> = Role::ALL
-        .into_iter()
-        .filter(|r| children.get_mut(r.name()).is_some_and(|c| w.open_stops.contains_key(&c.id())))
-        .collect();
+    let lockstep = launch.role_args.mode == Mode::Lockstep;
+    let marks = progress.marks();
+    let stopped = holding_the_loop(launch, children, w, lockstep, now_s);
     for r in Role::ALL {
         let role = r.name();
+        if marks.of(r) != w.last_marks.of(r) {
+            w.supervisor.progressed(role, now_s);
+        }
         let pid = children.get_mut(role).map(|c| c.id());
         // A pid already killed (by the schedule or by this watchdog) is not judged again:
         // a stopped process that got its SIGKILL may take a while to die and be reaped on
@@ -437,7 +488,7 @@ fn watch_for_hangs(
             && w.mover.as_ref().zip(marks.plant).is_some_and(|(m, k)| m.holds(k));
         let pending =
             alive && !held && marks.work_waiting_with_stops(r, lockstep, REFERENCE_LEAD, &stopped);
-        if !w.watchdog.check(role, marks.of(r), pending, now_s) {
+        if !w.watchdog.check(role, progress.alive(r, &marks, lockstep), pending, now_s) {
             continue;
         }
         let c = children.get_mut(role).expect("alive");
@@ -449,20 +500,109 @@ fn watch_for_hangs(
             // Not a hang; `reap` gives its end its own name.
             continue;
         }
-        let pid = c.id();
-        w.planned.insert(pid);
-        signal(c, libc::SIGKILL);
-        end_stop(w, pid, "hung");
-        let ms = launch.args.watchdog_ms;
-        eprintln!(
-            "launcher: {role} made no progress for {ms} ms with work waiting: hung; killed (SIGKILL) at {now_s:.3} s"
-        );
-        let detail = format!("no progress for {ms} ms; killed by the watchdog");
-        let hang = FaultEvent { signal: Some("SIGKILL"), ..FaultEvent::now(role, "hang", detail) };
-        w.events.push(hang);
-        let verdict = w.supervisor.on_end(role, Ending::Hang, "hung", None, now_s, false);
-        decide(role, verdict, w, now_s);
+        let refused = (r == Role::Controller).then(|| rejected_since_accepted(w, progress));
+        match refused.flatten() {
+            Some(streak) => kill_rejected(children, w, streak, now_s),
+            None => kill_hung(launch, children, w, role, now_s),
+        }
     }
+    for (role, c) in &children.0 {
+        // A gateway has no mark: alive is its progress.
+        if role.starts_with("link-") && !w.handled.contains(&c.id()) {
+            w.supervisor.progressed(role, now_s);
+        }
+    }
+    w.last_marks = marks;
+}
+
+/// The roles of the loop that hold it up whatever their marks say: those stopped now (any
+/// stop, whoever sent it), and in lockstep a controller whose answers an injected delay
+/// holds back (`--fault controller:delay`). Such a controller has stored its answer (its
+/// mark says answered) but not sent it, and the plant waiting for it by design was judged
+/// hung and killed every 3 s (a 60 s delay); it is the controller's answer that is late.
+fn holding_the_loop(
+    launch: &Launch,
+    children: &mut Children,
+    w: &Watch,
+    lockstep: bool,
+    now_s: f64,
+) -> Vec<Role> {
+    let mut stopped: Vec<Role> = Role::ALL
+        .into_iter()
+        .filter(|r| children.get_mut(r.name()).is_some_and(|c| w.open_stops.contains_key(&c.id())))
+        .collect();
+    let delaying = launch.faults.iter().any(|f| match f.kind {
+        FaultKind::Delay(d) => {
+            now_s >= f.kill_s && f.restart_s.is_none_or(|until| now_s < until + d)
+        }
+        _ => false,
+    });
+    if lockstep && delaying && !stopped.contains(&Role::Controller) {
+        stopped.push(Role::Controller);
+    }
+    stopped
+}
+
+/// Kills `role`, found hung, and hands it to the restart policy.
+fn kill_hung(launch: &Launch, children: &mut Children, w: &mut Watch, role: &str, now_s: f64) {
+    let Some(c) = children.get_mut(role) else { return };
+    let pid = c.id();
+    w.planned.insert(pid);
+    signal(c, libc::SIGKILL);
+    end_stop(w, pid, "hung");
+    let ms = launch.args.watchdog_ms;
+    eprintln!(
+        "launcher: {role} made no progress for {ms} ms with work waiting: hung; killed (SIGKILL) at {now_s:.3} s"
+    );
+    let detail = format!("no progress for {ms} ms; killed by the watchdog");
+    let hang = FaultEvent { signal: Some("SIGKILL"), ..FaultEvent::now(role, "hang", detail) };
+    w.events.push(hang);
+    let verdict = w.supervisor.on_end(role, Ending::Hang, "hung", None, now_s, false);
+    decide(role, verdict, w, now_s);
+}
+
+/// The controller's answers since the plant last accepted one, if any were refused.
+fn rejected_since_accepted(w: &mut Watch, progress: &Progress) -> Option<Streak> {
+    let s = progress.0.plant()?;
+    w.rejects.streak(s.tick, s.applied_torque_tick, s.torques_rejected)
+}
+
+/// The rule for a controller that answers but is always refused ([`RejectWatch`]): once
+/// `--hold-ticks` of its answers in a row were rejected, it is killed (SIGKILL), listed as
+/// a `rejected` fault of the controller, and handed to the restart policy.
+fn watch_for_rejections(children: &mut Children, w: &mut Watch, progress: &Progress, now_s: f64) {
+    let role = Role::Controller.name();
+    let Some(pid) = children.get_mut(role).map(|c| c.id()) else { return };
+    if w.handled.contains(&pid) || w.planned.contains(&pid) || w.open_stops.contains_key(&pid) {
+        return;
+    }
+    let Some(s) = progress.0.plant() else { return };
+    let streak = w.rejects.check(s.tick, s.applied_torque_tick, s.torques_rejected);
+    if let Some(streak) = streak.filter(|_| !dying(pid)) {
+        kill_rejected(children, w, streak, now_s);
+    }
+}
+
+/// Kills the controller whose answers the plant refused (`streak`), lists the fault and
+/// hands it to the restart policy.
+fn kill_rejected(children: &mut Children, w: &mut Watch, streak: Streak, now_s: f64) {
+    let role = Role::Controller.name();
+    let Some(c) = children.get_mut(role) else { return };
+    let pid = c.id();
+    w.planned.insert(pid);
+    signal(c, libc::SIGKILL);
+    end_stop(w, pid, "rejected");
+    let Streak { rejected, from_tick, to_tick, .. } = streak;
+    let detail = format!(
+        "the plant refused its answers: {rejected} in a row and none accepted, over ticks \
+         {from_tick} to {to_tick}; killed (SIGKILL)"
+    );
+    eprintln!("launcher: {role} answers but every answer is refused: {detail}, at {now_s:.3} s");
+    let e = FaultEvent { signal: Some("SIGKILL"), ..FaultEvent::now(role, "rejected", detail) };
+    w.events.push(e);
+    let what = "answered only with torques the plant refused";
+    let verdict = w.supervisor.on_end(role, Ending::Rejected, what, None, now_s, false);
+    decide(role, verdict, w, now_s);
 }
 
 /// Reaps the children that ended: an end nobody planned is a fault (unless it is a clean
@@ -486,8 +626,16 @@ fn reap(
                 if !w.handled.insert(pid) || w.planned.contains(&pid) || stopping {
                     continue;
                 }
-                if how != Ending::Exited {
-                    eprintln!("launcher: {role} {} ({st}) at {now_s:.3} s", how.name());
+                // A clean exit before the last tick left work undone: a fault like any
+                // other end (a controller that exits 0 at once left the plant waiting for
+                // a subscriber for ever).
+                let complete = progress.0.loop_complete();
+                if how != Ending::Exited || !complete {
+                    let early = match how {
+                        Ending::Exited => ", before the run's last tick",
+                        _ => "",
+                    };
+                    eprintln!("launcher: {role} {} ({st}) at {now_s:.3} s{early}", how.name());
                     let detail = st.to_string();
                     let signal = st.signal().map(signal_name);
                     let e =
@@ -495,7 +643,6 @@ fn reap(
                     w.events.push(e);
                 }
                 let what = format!("exited with {st}");
-                let complete = progress.0.loop_complete();
                 let verdict = w.supervisor.on_end(role, how, &what, st.code(), now_s, complete);
                 decide(role, verdict, w, now_s);
             }
@@ -562,6 +709,9 @@ fn restart(
         *c = child;
     }
     w.watchdog.reset(role, at);
+    if role == Role::Controller.name() {
+        w.rejects.reset();
+    }
     if let Some(split) = &launch.split {
         let plant_host = split.host_of(Role::Plant.name());
         let far = role != Role::Monitor.name() && split.host_of(role) != plant_host;
@@ -601,6 +751,24 @@ fn refused_resume(launch: &Launch, role: &str) -> Option<String> {
         "monitor" => check::<rotorloop_monitor::policy::MonitorResume>(launch, role),
         _ => None,
     }
+}
+
+/// `role` was killed by a `--fault` without `restart@`: it stays down to the end. Under
+/// `--restart never` that is a role lost beyond its policy, and in lockstep a loop without
+/// its plant, controller, reference or gateway cannot go on (the plant waited for a torque
+/// for ever): either way the run stops, exit 1, with its report. A monitor is an observer.
+fn down_for_good(launch: &Launch, w: &mut Watch, role: &str) {
+    if role == Role::Monitor.name() {
+        return;
+    }
+    let never = w.supervisor.policy(role) == crate::run::supervise::RestartPolicy::Never;
+    let lockstep = launch.role_args.mode == Mode::Lockstep;
+    let why = match (never, lockstep) {
+        (true, _) => "its restart policy is never",
+        (false, true) => "a lockstep loop cannot go on without it",
+        (false, false) => return,
+    };
+    w.failures.push(format!("{role} was killed by --fault with no restart@, and {why}"));
 }
 
 /// Carries out one action of the `--fault` schedule, as its row of `fault::KINDS` says.
@@ -664,6 +832,9 @@ fn injected(
             };
             eprintln!("launcher: {verb} {role} ({name}) at {at:.3} s");
             w.events.push(e);
+            if sig == libc::SIGKILL && !action.ends {
+                down_for_good(launch, w, role);
+            }
         }
         Apply::Restart => {
             w.restarts.remove(role); // the schedule's restart replaces a supervisor's

@@ -302,6 +302,28 @@ pub fn check_overlaps(specs: &[String], faults: &[Fault]) -> Result<(), UsageErr
     Ok(())
 }
 
+/// Refuses a `--fault` delay as long as the run or longer (`duration_s`, the run's
+/// simulated length): no answer it holds back would reach the plant within the run, and
+/// in lockstep, where the plant waits for each answer, the run would take the delay times
+/// its ticks (`controller:delay@0=60` on a 2 s run: 33 hours).
+pub fn check_against_run(
+    specs: &[String],
+    faults: &[Fault],
+    duration_s: f64,
+) -> Result<(), UsageError> {
+    for (spec, f) in specs.iter().zip(faults) {
+        if let FaultKind::Delay(d) = f.kind
+            && d >= duration_s
+        {
+            return Err(UsageError(format!(
+                "--fault `{spec}` is not allowed: the delay ({d} s) must be shorter than the \
+                 run ({duration_s} s)"
+            )));
+        }
+    }
+    Ok(())
+}
+
 /// What the schedule asks the launcher to do now: the start or the end of a fault of
 /// `role`, applied as its row of [`KINDS`] says.
 #[derive(Debug, Clone, PartialEq)]
@@ -312,6 +334,9 @@ pub struct Action {
     pub kind: FaultKind,
     /// Its start (`true`) or its end.
     pub starts: bool,
+    /// The fault has an end (`restart@`, `cont@`, `until@`): a kill without one leaves the
+    /// role down to the end of the run.
+    pub ends: bool,
 }
 
 impl Action {
@@ -340,14 +365,14 @@ impl FaultSchedule {
         let Some(t) = elapsed_s else { return Vec::new() };
         let mut actions = Vec::new();
         for f in &mut self.faults {
-            let (role, kind) = (&f.role, f.kind);
+            let (role, kind, ends) = (&f.role, f.kind, f.restart_s.is_some());
             if !f.killed && t >= f.kill_s {
                 f.killed = true;
-                actions.push(Action { role: role.clone(), kind, starts: true });
+                actions.push(Action { role: role.clone(), kind, starts: true, ends });
             }
             if f.killed && !f.restarted && f.restart_s.is_some_and(|at| t >= at) {
                 f.restarted = true;
-                actions.push(Action { role: role.clone(), kind, starts: false });
+                actions.push(Action { role: role.clone(), kind, starts: false, ends });
             }
         }
         actions
@@ -412,14 +437,15 @@ mod tests {
     use super::*;
 
     fn act(role: &str, kind: FaultKind, starts: bool) -> Action {
-        Action { role: role.to_owned(), kind, starts }
+        Action { role: role.to_owned(), kind, starts, ends: true }
     }
 
     #[test]
     fn nothing_is_due_before_tick_zero_however_late() {
         let mut s = FaultSchedule::new(vec![parse_fault("controller:kill@0").expect("valid")]);
         assert!(s.due(None).is_empty());
-        assert_eq!(s.due(Some(0.0)), [act("controller", FaultKind::Kill, true)]);
+        let kill = Action { ends: false, ..act("controller", FaultKind::Kill, true) };
+        assert_eq!(s.due(Some(0.0)), [kill]);
     }
 
     #[test]
@@ -461,6 +487,15 @@ mod tests {
         assert!(check(&["plant:kill@1:restart@2", "plant:kill@2:restart@3"]).is_ok());
         assert!(check(&["plant:kill@1:restart@2", "controller:kill@1:restart@2"]).is_ok());
         assert!(check(&["controller:kill@1:restart@2", "controller:delay@1=0.01"]).is_ok());
+    }
+
+    #[test]
+    fn a_delay_as_long_as_the_run_is_refused_naming_both() {
+        let specs = ["controller:delay@0=60".to_owned(), "controller:kill@1".to_owned()];
+        let faults: Vec<Fault> = specs.iter().map(|s| parse_fault(s).expect("valid")).collect();
+        let e = check_against_run(&specs, &faults, 2.0).expect_err("longer than the run");
+        assert!(e.0.contains("controller:delay@0=60") && e.0.contains("(2 s)"), "{e}");
+        assert!(check_against_run(&specs[..1], &faults[..1], 60.5).is_ok());
     }
 
     #[test]

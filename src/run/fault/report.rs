@@ -28,7 +28,7 @@ pub struct FaultReport {
     pub kind: &'static str,
     /// What happened, in words: the exit status, what the watchdog and the supervisor did.
     pub detail: String,
-    /// Kill time (s after the first tick was published).
+    /// Kill time (s after the first tick was published; if none was, after the launch).
     pub kill_s: f64,
     /// Restart time (s), if restarted; for a stop, when it was continued.
     pub restart_s: Option<f64>,
@@ -79,16 +79,19 @@ fn read_errors(path: &Path) -> anyhow::Result<BTreeMap<u64, (f64, f64)>> {
 }
 
 /// Computes the fault reports, adds them to `out/summary.json`, draws `out/faults.png`.
+///
+/// A run whose plant never published tick 0 (a controller that failed at once) still lists
+/// its faults, timed from `launched_ns` (when the launcher started the roles), with no
+/// tick and nothing to cost.
 pub fn report(
     out: &Path,
     scenario: &Scenario,
     events: &[FaultEvent],
+    launched_ns: u64,
 ) -> anyhow::Result<Vec<FaultReport>> {
-    let timing = rotorloop_monitor::timing::read(&out.join("timing.csv"))?;
-    let errors = read_errors(&out.join("trace.csv"))?;
-    let Some(t0) = timing.values().map(|t| t.state_publish_ns).min() else {
-        return Ok(Vec::new());
-    };
+    let timing = rotorloop_monitor::timing::read(&out.join("timing.csv")).unwrap_or_default();
+    let errors = read_errors(&out.join("trace.csv")).unwrap_or_default();
+    let t0 = timing.values().map(|t| t.state_publish_ns).min().unwrap_or(launched_ns);
     // The no-fault run: the same scenario in process.
     let mut lp = ClosedLoop::new(scenario, scenario.actuation(), None)?;
     let nofault: Vec<f64> = (0..=scenario.ticks()).map(|_| lp.tick().err_deg).collect();
@@ -134,13 +137,26 @@ pub fn report(
     }
 
     let summary_path = out.join("summary.json");
-    if let Ok(text) = std::fs::read_to_string(&summary_path) {
-        let mut j: serde_json::Value = serde_json::from_str(&text)?;
+    let mut j: serde_json::Value = match std::fs::read_to_string(&summary_path) {
+        Ok(text) => serde_json::from_str(&text)?,
+        // Stopped before the monitor had anything to report (a controller that failed at
+        // once): the faults are the report.
+        Err(_) if timing.is_empty() => serde_json::json!({
+            "name": scenario.file.name,
+            "completed": false,
+            "trace_rows": 0,
+            "note": "the run stopped before the plant published its first tick: no loop to report, only its faults",
+        }),
+        Err(_) => serde_json::json!({}),
+    };
+    if j.as_object().is_some_and(|o| !o.is_empty()) {
         j["faults"] = serde_json::to_value(&reports)?;
         rotorloop_common::output::write_json(&summary_path, &j)?;
     }
 
-    draw(out, scenario, &errors, &nofault, &reports)?;
+    if !errors.is_empty() {
+        draw(out, scenario, &errors, &nofault, &reports)?;
+    }
     Ok(reports)
 }
 
