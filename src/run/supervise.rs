@@ -160,6 +160,9 @@ pub enum Verdict {
     Fail(String),
 }
 
+/// How a [`Verdict::Fail`] of a role that exited 2 ends (the launcher exits 2 on it too).
+pub const REFUSED: &str = "a bad argument or scenario value, or the run diverged: not restarted";
+
 /// The restart rule (module docs).
 #[derive(Debug, Clone)]
 pub struct Supervisor {
@@ -234,9 +237,7 @@ impl Supervisor {
                 ));
             }
             _ if code == Some(2) => {
-                return Verdict::Fail(format!(
-                    "{role} {what} (a bad argument or scenario value, or the run diverged: not restarted)"
-                ));
+                return Verdict::Fail(format!("{role} {what} ({REFUSED})"));
             }
             _ if policy == RestartPolicy::Never => {
                 return Verdict::Fail(format!("{role} {what} (restart policy {policy})"));

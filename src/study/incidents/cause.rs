@@ -73,15 +73,22 @@ fn stages(run: &RunRecord, k: u64) -> [Option<u64>; 5] {
 
 /// Each stage's median over the run's fresh ticks (ns).
 pub fn stage_medians(run: &RunRecord, flags: &TickFlags) -> [f64; 5] {
-    let mut v: [Vec<f64>; 5] = Default::default();
-    for k in (0..run.last).filter(|k| flags.flags[*k as usize] == 0) {
-        for (i, x) in stages(run, k).iter().enumerate() {
-            if let Some(x) = x {
-                v[i].push(*x as f64);
+    // Two passes over the fresh ticks, in bounded memory (`ticks::Medians`); the stages
+    // are in ns, the medians' keys in s.
+    let mut m = ticks::Medians::<5>::default();
+    for pass in 0..2 {
+        for k in (0..run.last).filter(|k| flags.get(run, *k) == 0) {
+            for (i, x) in stages(run, k).iter().enumerate() {
+                if let Some(x) = x {
+                    m.add(i, *x as f64 / 1e9);
+                }
             }
         }
+        if pass == 0 {
+            m.second_pass();
+        }
     }
-    v.map(|mut x| ticks::median(&mut x))
+    m.medians().map(|s| (s * 1e9).round())
 }
 
 fn ms(ns: f64) -> String {
@@ -154,7 +161,7 @@ pub fn cause(
     medians: &[f64; 5],
     [start, end]: [u64; 2],
 ) -> Cause {
-    let all = flags.flags[start as usize..=end as usize].iter().fold(0, |a, f| a | f);
+    let all = flags.all(run, [start, end]);
     let c = if let Some(f) = fault_of(run, [start, end]).map(|i| &run.faults[i]) {
         fault_cause(run, f)
     } else if let Some(d) =
@@ -205,7 +212,7 @@ fn rejected(
     [start, end]: [u64; 2],
     kind: &'static str,
 ) -> Cause {
-    let k = (start..=end).find(|k| flags.flags[*k as usize] & REJECTED != 0).unwrap_or(start);
+    let k = (start..=end).find(|k| flags.get(run, *k) & REJECTED != 0).unwrap_or(start);
     let more = |before: u64, after: u64| after.saturating_sub(before);
     let (s, n) = (run.state(k), run.state(k + 1));
     let torques = s.zip(n).map_or(0, |(s, n)| more(s.torques_rejected, n.torques_rejected));
@@ -219,11 +226,11 @@ fn rejected(
     let (what, count, receiver, role, own) = if torques > 0 {
         ("torque", torques, "plant", "controller", run.torque(k).map(|t| t.validate(limit)))
     } else if states > 0 {
-        ("state", states, "controller", "plant", s.map(StateSample::validate))
+        ("state", states, "controller", "plant", s.as_ref().map(StateSample::validate))
     } else {
         let references =
             answers.map_or(0, |(t, p)| more(p.references_rejected, t.references_rejected));
-        let own = run.references.get(k).map(ReferenceSample::validate);
+        let own = run.references.get(k).as_ref().map(ReferenceSample::validate);
         ("reference", references, "controller", "reference", own)
     };
     let (role, whose) = match own {
@@ -273,9 +280,7 @@ fn late_wake(run: &RunRecord, flags: &TickFlags, [start, end]: [u64; 2]) -> Caus
             ),
         };
     }
-    let burst = (worst..=end.min(run.last))
-        .take_while(|k| flags.flags.get(*k as usize).is_some_and(|f| f & LATE != 0))
-        .count();
+    let burst = (worst..=end.min(run.last)).take_while(|k| flags.get(run, *k) & LATE != 0).count();
     Cause {
         kind: "simulator stall",
         role: "plant".into(),
@@ -353,7 +358,7 @@ fn unanswered(run: &RunRecord, [start, end]: [u64; 2], kind: &'static str) -> Ca
 }
 
 /// The controller's next answer after state `k` (within 10 000 ticks).
-fn next_answer(run: &RunRecord, k: u64) -> Option<&rotorloop_common::wire::TorqueSample> {
+fn next_answer(run: &RunRecord, k: u64) -> Option<rotorloop_common::wire::TorqueSample> {
     (k + 1..(k + 10_000).min(run.last + 1)).find_map(|j| run.torque(j))
 }
 
@@ -485,7 +490,7 @@ mod tests {
     fn cause_at(run: &RunRecord, k: u64) -> Cause {
         let flags = ticks::flag(run, 0.25);
         let medians = stage_medians(run, &flags);
-        let windows = ticks::windows_of(&flags.flags, super::super::GAP);
+        let windows = flags.windows(run, super::super::GAP);
         let w = windows.iter().find(|w| w[0] <= k && k <= w[1]).expect("an incident at k");
         cause(run, &flags, &medians, *w)
     }
