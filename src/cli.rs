@@ -13,7 +13,7 @@ use rotorloop_common::scenario::Actuation;
 use crate::sim::{self, SimOptions, summary_table};
 use crate::study::gains;
 use crate::study::montecarlo::{self, McOptions};
-use rotorloop_common::input::whole_in;
+use rotorloop_common::input::{number_in, whole_in};
 use rotorloop_common::role::UsageError;
 use rotorloop_common::role::args::{duration_s, rate_hz, scenario_with_overrides};
 use rotorloop_plant::actuator::ActuationDelay;
@@ -103,9 +103,10 @@ enum Command {
     Explain {
         /// The run directory (the `--out` of `rotorloop run`).
         dir: PathBuf,
-        /// A plant wake or an answer this many ticks later than usual is abnormal: more
-        /// than 0, at most 100.
-        #[arg(long, allow_hyphen_values = true, default_value_t = 0.25)]
+        /// A plant wake or an answer this many ticks later than usual is abnormal, 0.001 to
+        /// 100.
+        #[arg(long, allow_hyphen_values = true, default_value_t = 0.25,
+              value_parser = number_in(0.001, 100.0, "ticks"))]
         threshold_ticks: f64,
     },
     /// The link gateway of one host: carries a run domain's services to and from another
@@ -156,7 +157,7 @@ struct SimArgs {
     #[arg(long, value_parser = parse_vec3, allow_hyphen_values = true)]
     open_loop: Option<DVec3>,
     /// Write every N-th tick to trace.csv (the last tick always), 1 or more.
-    #[arg(long, allow_negative_numbers = true, default_value_t = 1,
+    #[arg(long, allow_hyphen_values = true, default_value_t = 1,
           value_parser = whole_in(1u64, u64::MAX, "ticks"))]
     trace_every: u64,
     /// Skip the PNG figures.
@@ -171,7 +172,7 @@ struct SimArgs {
     #[arg(long)]
     delay_from: Option<PathBuf>,
     /// Seed of the delays drawn with `--delay-from`, 0 to 2⁶⁴ − 1.
-    #[arg(long, allow_negative_numbers = true, default_value_t = 1,
+    #[arg(long, allow_hyphen_values = true, default_value_t = 1,
           value_parser = whole_in(0u64, u64::MAX, "seeds"))]
     seed: u64,
     /// Re-run a finished real-time run DIR (its `summary.json`, `trace.csv`, `timing.csv`)
@@ -187,11 +188,11 @@ struct SimArgs {
 #[derive(Debug, clap::Args)]
 struct McArgs {
     /// Number of runs, 1 to 100000.
-    #[arg(long, allow_negative_numbers = true, default_value_t = 100,
+    #[arg(long, allow_hyphen_values = true, default_value_t = 100,
           value_parser = whole_in(1u64, 100_000, "runs"))]
     runs: u64,
     /// RNG seed, 0 to 2⁶⁴ − 1.
-    #[arg(long, allow_negative_numbers = true, default_value_t = 1,
+    #[arg(long, allow_hyphen_values = true, default_value_t = 1,
           value_parser = whole_in(0u64, u64::MAX, "seeds"))]
     seed: u64,
     /// Base scenario (bodies, reference, gains).
@@ -204,11 +205,12 @@ struct McArgs {
     #[arg(long, allow_hyphen_values = true, default_value_t = 1000.0, value_parser = rate_hz())]
     rate: f64,
     /// Every N-th run starts within 2° of a 180° error, 1 or more.
-    #[arg(long, allow_negative_numbers = true, default_value_t = 3,
+    #[arg(long, allow_hyphen_values = true, default_value_t = 3,
           value_parser = whole_in(1u64, u64::MAX, "runs"))]
     near_pi_every: u64,
-    /// Largest |IΩ(0)| and |Ω_r(0)| component drawn: more than 0, at most 1000.
-    #[arg(long, allow_hyphen_values = true, default_value_t = 3.0)]
+    /// Largest |IΩ(0)| and |Ω_r(0)| component drawn, 0.001 to 1000.
+    #[arg(long, allow_hyphen_values = true, default_value_t = 3.0,
+          value_parser = number_in(0.001, 1000.0, "N m s and rad/s"))]
     max_rate: f64,
     /// Output directory.
     #[arg(long)]
@@ -422,12 +424,6 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
 
 /// `rotorloop explain DIR`.
 fn explain_command(dir: &std::path::Path, threshold_ticks: f64) -> anyhow::Result<()> {
-    if !(threshold_ticks > 0.0 && threshold_ticks <= 100.0) {
-        return Err(UsageError(format!(
-            "--threshold-ticks {threshold_ticks}: allowed: more than 0, at most 100 ticks"
-        ))
-        .into());
-    }
     let options = crate::study::incidents::Options { threshold_ticks };
     let found = crate::study::incidents::explain(dir, options)?;
     println!("{}: {}", dir.display(), found.describe_worst());
@@ -476,13 +472,6 @@ fn sim_command(a: &SimArgs) -> anyhow::Result<()> {
 /// `rotorloop montecarlo`: many in-process runs from random initial attitudes.
 fn montecarlo_command(a: &McArgs) -> anyhow::Result<()> {
     let scenario = scenario_with_overrides(&a.scenario, Some(a.duration), Some(a.rate), None)?;
-    if !(a.max_rate.is_finite() && a.max_rate > 0.0 && a.max_rate <= 1e3) {
-        return Err(UsageError(format!(
-            "--max-rate {} is not allowed: a number > 0 and ≤ 1000",
-            a.max_rate
-        ))
-        .into());
-    }
     let opts = McOptions {
         scenario,
         runs: a.runs as usize,

@@ -145,8 +145,8 @@ pub fn check_out_dir(out: &Path) -> Result<(), String> {
     Ok(())
 }
 
-/// A clap value parser for an `f64` flag: a finite number from `lo` to `hi` (`unit` names
-/// what it counts), as the flag's help states.
+/// A clap value parser for an `f64` flag: a finite number from `lo` to `hi` (`unit` says
+/// what it is), as the flag's help states.
 pub fn number_in(
     lo: f64,
     hi: f64,
@@ -154,12 +154,12 @@ pub fn number_in(
 ) -> impl Fn(&str) -> Result<f64, RangeError> + Clone + Send + Sync + 'static {
     move |s: &str| match s.trim().parse::<f64>() {
         Ok(v) if v.is_finite() && v >= lo && v <= hi => Ok(v),
-        _ => Err(RangeError { range: format!("a finite number of {unit} from {lo} to {hi}") }),
+        _ => Err(RangeError { range: format!("a finite number from {lo} to {hi} ({unit})") }),
     }
 }
 
-/// A clap value parser for an integer flag: a whole number from `lo` to `hi` (`unit`
-/// names what it counts), as the flag's help states. Unlike clap's own ranged parsers,
+/// A clap value parser for an integer flag: a whole number from `lo` to `hi` (`unit` says
+/// what it is), as the flag's help states. Unlike clap's own ranged parsers,
 /// a negative or malformed value gets the range too, not "invalid digit".
 pub fn whole_in<T>(
     lo: T,
@@ -171,7 +171,7 @@ where
 {
     move |s: &str| match s.trim().parse::<T>() {
         Ok(v) if v >= lo && v <= hi => Ok(v),
-        _ => Err(RangeError { range: format!("a whole number of {unit} from {lo} to {hi}") }),
+        _ => Err(RangeError { range: format!("a whole number from {lo} to {hi} ({unit})") }),
     }
 }
 
@@ -228,13 +228,13 @@ mod tests {
         assert_eq!(p("-0").ok(), Some(0.0));
         for bad in ["-1", "nan", "inf", "1e300", "x", ""] {
             let e = p(bad).expect_err(bad).to_string();
-            assert_eq!(e, "allowed: a finite number of seconds from 0 to 10");
+            assert_eq!(e, "allowed: a finite number from 0 to 10 (seconds)");
         }
         let w = whole_in(512u64, 1 << 24, "ticks");
         assert_eq!(w("512").ok(), Some(512));
         for bad in ["-1", "511", "16777217", "18446744073709551615", "1.5", "x"] {
             let e = w(bad).expect_err(bad).to_string();
-            assert_eq!(e, "allowed: a whole number of ticks from 512 to 16777216");
+            assert_eq!(e, "allowed: a whole number from 512 to 16777216 (ticks)");
         }
     }
 }

@@ -584,6 +584,23 @@ impl ScenarioFile {
         Ok(file)
     }
 
+    /// Deserializes a scenario kept in another format (`launch.json` keeps the one a run
+    /// ran) under the same rule for sizes and sections as a TOML file ([`shape`]): serde
+    /// alone reads a longer array's first three items, and a struct from an array. For
+    /// `#[serde(deserialize_with = "ScenarioFile::checked")]`.
+    pub fn checked<'de, D: serde::Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
+        use serde::de::Error;
+        let value = toml::Value::deserialize(d)?;
+        let toml::Value::Table(table) = &value else {
+            return Err(D::Error::custom(format!(
+                "a scenario is a table of sections, not {}",
+                value.type_str()
+            )));
+        };
+        shape::check(table).map_err(D::Error::custom)?;
+        Self::deserialize(value).map_err(D::Error::custom)
+    }
+
     /// The file as TOML text.
     pub fn to_toml(&self) -> String {
         toml::to_string(self).unwrap_or_else(|e| format!("# cannot serialise scenario: {e}\n"))
@@ -943,6 +960,28 @@ mod tests {
         let head = text.split("[run]").next().expect("a [run] section");
         let e = Scenario::from_toml(&format!("run = [1, 2]\n{head}"), "t").expect_err("array");
         assert!(e.to_string().starts_with("run = [1, 2] is not allowed: a table"), "{e}");
+    }
+
+    /// A scenario kept as JSON (`launch.json`) is read under the same rule: serde_json
+    /// read `"run": [1, 2]` by position and a 5-item vector's first three.
+    #[test]
+    fn a_scenario_kept_as_json_is_checked_as_a_file_is() {
+        #[derive(Debug, Deserialize)]
+        struct Kept {
+            #[serde(deserialize_with = "ScenarioFile::checked")]
+            #[allow(dead_code)]
+            scenario: ScenarioFile,
+        }
+        let file = ScenarioFile::load("paper-zero").expect("built-in");
+        let mut j = serde_json::json!({ "scenario": file });
+        serde_json::from_value::<Kept>(j.clone()).expect("as written");
+        j["scenario"]["run"] = serde_json::json!([1, 2]);
+        let e = serde_json::from_value::<Kept>(j.clone()).expect_err("array").to_string();
+        assert!(e.starts_with("run = [1, 2] is not allowed: a table"), "{e}");
+        j["scenario"]["run"] = serde_json::json!({"rate_hz": 2.0});
+        j["scenario"]["plant"]["rotor_inertia"] = serde_json::json!([5.0, 6.0, 7.0, "x"]);
+        let e = serde_json::from_value::<Kept>(j).expect_err("4 items").to_string();
+        assert!(e.starts_with("plant.rotor_inertia = [5.0, 6.0, 7.0, \"x\"] is not"), "{e}");
     }
 
     #[test]

@@ -97,8 +97,9 @@ pub struct LinkArgs {
     /// How often the gateway looks for services that appeared or went away (ms). Nothing
     /// crosses while it looks (3-7 ms each on 2 vCPUs; the gateway says at exit): at 20 ms
     /// a fifth of the samples waited behind a discovery. Every 20 ms while nothing is
-    /// bridged yet and for 2 s after what is bridged changed.
-    #[arg(long, default_value_t = 500)]
+    /// bridged yet and for 2 s after what is bridged changed. 1 to 60000.
+    #[arg(long, allow_hyphen_values = true, default_value_t = 500,
+          value_parser = rotorloop_common::input::whole_in(1u64, 60_000, "ms"))]
     pub discover_ms: u64,
 }
 

@@ -49,7 +49,8 @@ pub struct PsArgs {
     #[arg(long)]
     pub json: bool,
     /// How long to watch the plant's tick to measure its rate (ms), 10 to 10000.
-    #[arg(long, allow_negative_numbers = true, default_value_t = 1000, value_parser = clap::value_parser!(u64).range(10..=10_000))]
+    #[arg(long, allow_hyphen_values = true, default_value_t = 1000,
+          value_parser = rotorloop_common::input::whole_in(10u64, 10_000, "ms"))]
     pub sample_ms: u64,
 }
 
@@ -412,7 +413,8 @@ pub struct WatchArgs {
           value_parser = rotorloop_common::input::number_in(0.0, 86_400.0, "seconds"))]
     pub seconds: f64,
     /// Slot samples per second, 1 to 2000.
-    #[arg(long, allow_negative_numbers = true, default_value_t = 250, value_parser = clap::value_parser!(u64).range(1..=2000))]
+    #[arg(long, allow_hyphen_values = true, default_value_t = 250,
+          value_parser = rotorloop_common::input::whole_in(1u64, 2000, "samples a second"))]
     pub sample_hz: u64,
 }
 

@@ -54,14 +54,14 @@ pub struct RunArgs {
     pub trace_sched: bool,
     /// Real time: the plant sleeps until this many µs before each grid time and spins
     /// the rest (sharper ticks, one core busier), 0 to 1000000.
-    #[arg(long, allow_negative_numbers = true, default_value_t = 0, value_parser = spin_us())]
+    #[arg(long, allow_hyphen_values = true, default_value_t = 0, value_parser = spin_us())]
     pub spin_before_tick_us: u64,
     /// Hold `/dev/cpu_dma_latency` at this many µs while it runs: no CPU enters an idle
     /// state that takes longer to leave (0: idle CPUs poll instead of halting, as
     /// cyclictest asks by default; sharper timer wake-ups on a VM, idle cores kept busy).
     /// Needs root; without it a warning, and the idle states stay as they are. 0 to
     /// 1000000.
-    #[arg(long, allow_negative_numbers = true, value_parser = dma_latency_us())]
+    #[arg(long, allow_hyphen_values = true, value_parser = dma_latency_us())]
     pub cpu_dma_latency: Option<u32>,
     /// Start this command in the built-in controller's place (a controller of your own,
     /// in any language: docs/wire.md): split into words, no shell; the built-in
@@ -83,7 +83,7 @@ pub struct RunArgs {
     #[arg(long, requires = "foxglove")]
     pub foxglove_allow_network: bool,
     /// Real time: ticks the plant holds the last torque before safe mode, 0 to 1000000.
-    #[arg(long, allow_negative_numbers = true, default_value_t = 50, value_parser = hold_ticks())]
+    #[arg(long, allow_hyphen_values = true, default_value_t = 50, value_parser = hold_ticks())]
     pub hold_ticks: u64,
     /// Inject a fault (each kind, its syntax and its help: `run::fault::KINDS`).
     #[arg(long, help = crate::run::fault::help())]
@@ -119,7 +119,7 @@ pub struct RunArgs {
     /// A role with work waiting that makes no progress (its resume slot does not move) for
     /// this many milliseconds is killed and restarted by its policy (0: no watchdog), 0 to
     /// 3600000.
-    #[arg(long, allow_negative_numbers = true, default_value_t = 3000,
+    #[arg(long, allow_hyphen_values = true, default_value_t = 3000,
           value_parser = whole_in(0u64, 3_600_000, "ms"))]
     pub watchdog_ms: u64,
     /// `dedicated`: every role on a core of its own (the machine's last four), every role

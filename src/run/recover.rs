@@ -111,7 +111,8 @@ pub fn run_dir_of(staging: &Path) -> Option<PathBuf> {
 pub fn run(dir: &Path) -> anyhow::Result<()> {
     let launch = LaunchRecord::read(dir)?;
     let role = launch.role_args()?;
-    let scenario = Scenario::from_file(launch.scenario.clone()).map_err(UsageError::from)?;
+    let scenario = Scenario::from_file(launch.scenario.clone())
+        .map_err(|e| UsageError(format!("{LAUNCH_FILE}: scenario: {e}")))?;
     let hosts = match &launch.hosts {
         Some(h) => Hosts::parse(h).map_err(|e| UsageError(format!("{LAUNCH_FILE}: hosts: {e}")))?,
         None => Hosts::default(),

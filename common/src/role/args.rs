@@ -84,10 +84,10 @@ pub struct RoleArgs {
     pub wait: Wait,
     /// Pin the process to this core (a role started by hand; `rotorloop run` pins with
     /// `--pin`).
-    #[arg(long, allow_negative_numbers = true, value_parser = whole_in(0usize, 4095, "cores"))]
+    #[arg(long, allow_hyphen_values = true, value_parser = whole_in(0usize, 4095, "cores"))]
     pub core: Option<usize>,
     /// SCHED_FIFO priority, 1 to 99 (a warning and the default policy when not permitted).
-    #[arg(long, allow_negative_numbers = true, value_parser = clap::value_parser!(i32).range(1..=99))]
+    #[arg(long, allow_hyphen_values = true, value_parser = whole_in(1i32, 99, "priority"))]
     pub rt_priority: Option<i32>,
     /// Lock the process's memory (mlockall).
     #[arg(long)]
@@ -106,7 +106,7 @@ pub struct RoleArgs {
     /// records take whatever the run's duration. A run longer than that has the finished
     /// halves moved into `OUT/flight` while it goes on.
     #[arg(long, value_name = "TICKS", default_value_t = crate::flight::DEFAULT_RING_TICKS,
-          allow_negative_numbers = true,
+          allow_hyphen_values = true,
           value_parser = whole_in(crate::flight::MIN_RING_TICKS, MAX_RING_TICKS, "ticks"))]
     pub flight_ring_ticks: u64,
     /// The launcher moves the rings' finished halves (`common::flight::Mover`): in

@@ -23,7 +23,7 @@ pub struct ControllerArgs {
     #[arg(long)]
     pub inject_delay: Vec<InjectedDelay>,
     /// Real time: ticks to propagate the last reference when it is missing, 0 to 1000000.
-    #[arg(long, allow_negative_numbers = true, default_value_t = 1000,
+    #[arg(long, allow_hyphen_values = true, default_value_t = 1000,
           value_parser = rotorloop_common::role::args::hold_ticks())]
     pub reference_hold_ticks: u64,
 }

@@ -17,8 +17,8 @@ pub struct MonitorArgs {
     /// Print a live status line on stderr.
     #[arg(long)]
     pub status: bool,
-    /// Poll period (µs).
-    #[arg(long, allow_negative_numbers = true, default_value_t = 2000, value_parser = clap::value_parser!(u64).range(50..=100_000))]
+    /// Poll period (µs), 50 to 100000.
+    #[arg(long, allow_hyphen_values = true, default_value_t = 2000, value_parser = rotorloop_common::input::whole_in(50u64, 100_000, "µs"))]
     pub poll_us: u64,
     /// The host of each role when the run spans hosts (`plant=a,controller=b,…`): hops
     /// between two hosts' clocks are then left out (`rotorloop run --split` sets it).

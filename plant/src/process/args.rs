@@ -38,17 +38,17 @@ pub struct PlantArgs {
     pub corrupt: Vec<Corrupt>,
     /// Wait for this many subscribers to the state before tick 0 (controller and
     /// reference; 3 with a monitor that must see every tick), 0 to 64.
-    #[arg(long, allow_negative_numbers = true, default_value_t = 2,
+    #[arg(long, allow_hyphen_values = true, default_value_t = 2,
           value_parser = rotorloop_common::input::whole_in(0usize, 64, "subscribers"))]
     pub subscribers: usize,
     /// In real time, sleep until this many µs before each grid time and spin the rest,
     /// 0 to 1000000.
-    #[arg(long, allow_negative_numbers = true, default_value_t = 0,
+    #[arg(long, allow_hyphen_values = true, default_value_t = 0,
           value_parser = rotorloop_common::role::args::spin_us())]
     pub spin_before_tick_us: u64,
     /// Real time: ticks to hold the last torque without a fresh one before safe mode, 0 to
     /// 1000000.
-    #[arg(long, allow_negative_numbers = true, default_value_t = 50,
+    #[arg(long, allow_hyphen_values = true, default_value_t = 50,
           value_parser = rotorloop_common::role::args::hold_ticks())]
     pub hold_ticks: u64,
     /// When a torque takes effect: `measured` (when it arrives; in lockstep at its own

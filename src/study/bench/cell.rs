@@ -32,7 +32,7 @@ pub struct BenchArgs {
     /// Tick rates (Hz).
     #[arg(
         long,
-        allow_negative_numbers = true,
+        allow_hyphen_values = true,
         value_delimiter = ',',
         default_value = "1000,2000,5000,10000,20000"
     )]
@@ -60,11 +60,12 @@ pub struct BenchArgs {
     pub baselines: Vec<String>,
     /// SCHED_FIFO priority of every role of the loop and of the timer baseline (default:
     /// the normal policy), 1 to 99.
-    #[arg(long, allow_negative_numbers = true, value_parser = clap::value_parser!(i32).range(1..=99))]
+    #[arg(long, allow_hyphen_values = true,
+          value_parser = rotorloop_common::input::whole_in(1i32, 99, "priority"))]
     pub rt_priority: Option<i32>,
     /// The plant sleeps until this many µs before each tick and spins the rest, 0 to
     /// 1000000.
-    #[arg(long, allow_negative_numbers = true, default_value_t = 0,
+    #[arg(long, allow_hyphen_values = true, default_value_t = 0,
           value_parser = rotorloop_common::role::args::spin_us())]
     pub spin_before_tick_us: u64,
     /// Hold `/dev/cpu_dma_latency` at this many µs for the whole invocation (the loop and every baseline): no CPU enters an idle
@@ -72,7 +73,7 @@ pub struct BenchArgs {
     /// cyclictest asks by default; sharper timer wake-ups on a VM, idle cores kept busy).
     /// Needs root; without it a warning, and the idle states stay as they are. 0 to
     /// 1000000.
-    #[arg(long, allow_negative_numbers = true,
+    #[arg(long, allow_hyphen_values = true,
           value_parser = rotorloop_common::role::args::dma_latency_us())]
     pub cpu_dma_latency: Option<u32>,
     /// Also run each loop cell without the monitor and report the change of the
@@ -91,14 +92,14 @@ pub struct BenchArgs {
     /// (before, after, before, …), and report the run with the median p50 of each (the
     /// difference between two runs of one loop here is often larger than the change), 1 to
     /// 99.
-    #[arg(long, allow_negative_numbers = true, default_value_t = 1,
+    #[arg(long, allow_hyphen_values = true, default_value_t = 1,
           value_parser = rotorloop_common::input::whole_in(1u64, 99, "pairs"))]
     pub pairs: u64,
     /// Scale: also run 2, 4, … up to N independent loops (domains) at once per cell, each
     /// with its own four processes (`-xN` cells, a `loop-I` row per loop), and report the
     /// largest N at which every loop has no more misses than the bare iceoryx2 baseline.
     /// 1 to 64.
-    #[arg(long, allow_negative_numbers = true, default_value_t = 1,
+    #[arg(long, allow_hyphen_values = true, default_value_t = 1,
           value_parser = rotorloop_common::input::whole_in(1usize, 64, "loops"))]
     pub loops: usize,
     /// Also run each loop cell with another controller (`loop-<name>` rows), against
