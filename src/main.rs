@@ -1,5 +1,31 @@
 //! The `rotorloop` binary: a thin shell over the library (see `rotorloop::cli`).
 
 fn main() -> std::process::ExitCode {
-    rotorloop::cli::main()
+    let code = rotorloop::cli::main();
+    peak_rss_report();
+    code
+}
+
+/// `ROTORLOOP_PEAK_RSS=FILE`: each `rotorloop` process (the launcher, every role, every
+/// command) appends one line to FILE as it ends normally: its arguments after the
+/// program's name, a tab, and its peak resident memory in KiB (`getrusage`'s `ru_maxrss`).
+/// How the memory of every phase of a run is measured (docs/measurements.md,
+/// `tests/memory.rs`); a process killed by a signal writes nothing.
+fn peak_rss_report() {
+    use std::io::Write;
+    let Some(path) = std::env::var_os("ROTORLOOP_PEAK_RSS") else { return };
+    // SAFETY: getrusage fills the struct it is given.
+    let peak_kib = unsafe {
+        let mut u: libc::rusage = std::mem::zeroed();
+        libc::getrusage(libc::RUSAGE_SELF, &mut u);
+        u.ru_maxrss
+    };
+    let args: Vec<String> = std::env::args().skip(1).collect();
+    let line = format!("{}\t{peak_kib}\n", args.join(" "));
+    // One write of a short line to a file opened for appending: lines of processes
+    // ending at once do not interleave.
+    let file = std::fs::OpenOptions::new().create(true).append(true).open(path);
+    if let Ok(mut f) = file {
+        let _ = f.write_all(line.as_bytes());
+    }
 }

@@ -24,6 +24,7 @@ mod hostile;
 mod incidents;
 mod layout;
 mod live;
+mod memory;
 mod misbehaving;
 mod multiprocess;
 mod observe;

@@ -1,0 +1,107 @@
+//! A run's memory does not grow with its length, after the last tick as before it: two
+//! lockstep runs, one ten times the other, with flight rings of 512 slots so that both
+//! span many segments; every `rotorloop` process of each (the launcher, the four roles)
+//! and every reader of the finished run (`explain`, `export --mcap`, `sim --replay`)
+//! reports its peak resident memory as it ends (`ROTORLOOP_PEAK_RSS`, src/main.rs), and
+//! the longer run's peaks are the shorter's within a small constant.
+//!
+//! Before the readers were bounded (44dbcd5) this failed: at 3 s against 30 s the
+//! launcher's peak went from about 23 to 60 MiB, `export --mcap` from 18 to 90 and
+//! `sim --replay` from 24 to 110 (each held the whole run).
+
+use std::collections::BTreeMap;
+use std::process::Command;
+use std::time::Duration;
+
+use crate::common::harness::{Harness, ROTORLOOP, group, wait_output};
+
+/// What a longer run's process may take beyond the shorter's (KiB): allocator noise and
+/// the few structures that grow with the number of segments (a path per segment).
+const SLACK_KIB: u64 = 8 * 1024;
+
+/// Runs `rotorloop args` with the peak report going to `file`; panics on failure.
+fn rotorloop(args: &[&str], file: &std::path::Path) {
+    let child = group(&mut Command::new(ROTORLOOP))
+        .args(args)
+        .env("ROTORLOOP_PEAK_RSS", file)
+        .stdin(std::process::Stdio::null())
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .expect("spawn rotorloop");
+    let out = wait_output(child, Duration::from_secs(600));
+    assert!(
+        out.status.success(),
+        "rotorloop {args:?}: {:?}\n{}",
+        out.status,
+        String::from_utf8_lossy(&out.stderr)
+    );
+}
+
+/// A run of `seconds` and its readers: each process's peak (KiB) by what it was (`run`,
+/// `role plant`, …, `explain`, `export`, `sim`).
+fn peaks(h: &Harness, seconds: u64) -> BTreeMap<String, u64> {
+    let out = h.path(&format!("run-{seconds}"));
+    let file = h.path(&format!("peaks-{seconds}.tsv"));
+    let (out_s, duration) = (out.display().to_string(), seconds.to_string());
+    let domain = format!("{}-{seconds}", h.domain);
+    rotorloop(
+        &[
+            "run",
+            "--scenario",
+            "paper-sinusoid",
+            "--mode",
+            "lockstep",
+            "--duration",
+            &duration,
+            "--flight-ring-ticks",
+            "512",
+            "--domain",
+            &domain,
+            "--out",
+            &out_s,
+            "--quiet",
+        ],
+        &file,
+    );
+    let segments = std::fs::read_dir(out.join("flight")).expect("flight").count();
+    assert!(segments as u64 > seconds, "{segments} files: the run spans many segments");
+    rotorloop(&["explain", &out_s], &file);
+    rotorloop(&["export", &out_s, "--mcap"], &file);
+    let replay = out.join("replay").display().to_string();
+    rotorloop(&["sim", "--replay", &out_s, "--out", &replay], &file);
+    let verdict = std::fs::read_to_string(out.join("replay/replay.json")).expect("replay.json");
+    assert!(verdict.contains("\"identical\": true"), "{verdict}");
+    let text = std::fs::read_to_string(&file).expect("peaks");
+    let mut peaks = BTreeMap::new();
+    for line in text.lines() {
+        let (args, kib) = line.split_once('\t').expect("args TAB kib");
+        let words: Vec<&str> = args.split(' ').collect();
+        let what = match words[0] {
+            "role" => format!("role {}", words[1]),
+            w => w.to_owned(),
+        };
+        let kib: u64 = kib.parse().expect("KiB");
+        let e = peaks.entry(what).or_insert(0);
+        *e = (*e).max(kib);
+    }
+    peaks
+}
+
+#[test]
+fn peak_memory_of_every_process_and_reader_does_not_grow_with_the_runs_length() {
+    let h = Harness::new("memory");
+    let (short, long) = (peaks(&h, 3), peaks(&h, 30));
+    let want = ["run", "role plant", "role controller", "role reference", "role monitor"];
+    for what in want.into_iter().chain(["explain", "export", "sim"]) {
+        let (s, l) = (short.get(what), long.get(what));
+        let (Some(s), Some(l)) = (s, l) else {
+            panic!("{what}: no peak reported (short {short:?}, long {long:?})");
+        };
+        assert!(
+            *l <= s + SLACK_KIB,
+            "{what}: {l} KiB for a 30 s run against {s} KiB for 3 s (every peak: short \
+             {short:?}, long {long:?})"
+        );
+    }
+}
