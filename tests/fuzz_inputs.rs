@@ -501,6 +501,9 @@ fn mkfifo(path: &Path) {
     assert_eq!(unsafe { libc::mkfifo(c.as_ptr(), 0o600) }, 0, "mkfifo {}", path.display());
 }
 
+/// A change made to a `launch.json`.
+type Damage = Box<dyn Fn(&mut serde_json::Value)>;
+
 /// A run directory's `launch.json`, damaged where it holds arguments and the scenario:
 /// `recover` refuses each with exit 2, naming the file and the key or flag (`run = [1, 2]`
 /// was read by position, a ring of 2⁶³ ticks passed), and a FIFO in its place is refused,
@@ -524,7 +527,7 @@ fn damaged_launch_json_is_refused_naming_the_file_and_the_key() {
     };
     let sound = serde_json::to_value(&record).expect("json");
     let ring = ["--flight-ring-ticks", "9223372036854775808"];
-    let cases: Vec<(&str, Box<dyn Fn(&mut serde_json::Value)>, &str)> = vec![
+    let cases: Vec<(&str, Damage, &str)> = vec![
         (
             "run as array",
             Box::new(|j| j["scenario"]["run"] = serde_json::json!([1, 2])),

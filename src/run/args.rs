@@ -149,7 +149,9 @@ pub fn dedicated_cores(ncores: usize) -> Result<[usize; 4], String> {
 }
 
 /// Applies `--preset` (`dedicated`) to what the command line left unsaid.
+/// Refuses first what `run` does not honour ([`check_role_flags`]).
 pub(crate) fn with_preset(args: &RunArgs, explicit_wait: bool) -> Result<RunArgs, UsageError> {
+    check_role_flags(args)?;
     let mut a = args.clone();
     match args.preset.as_deref() {
         None => {}

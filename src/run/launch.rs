@@ -103,7 +103,6 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
     // `--wait` has a default, so "explicit" means: not the default (event).
     let explicit_wait = args.role.wait != rotorloop_common::ipc::wait::Wait::Event;
     let args = &with_preset(args, explicit_wait)?;
-    crate::run::args::check_role_flags(args)?;
     // Held to the end of the run (and by the kernel to this launcher's death).
     let _idle = rotorloop_common::rt::CpuDmaLatency::hold_or_warn(args.cpu_dma_latency);
     let scenario = args.role.scenario()?;
@@ -207,12 +206,17 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
     let (events, failure) = supervised?;
     let reported = report(&launch, &scenario, &rss, (&events, launched_ns), flight.as_deref());
     match failure {
-        // A role that refused its input or diverged: the user's to mend, as in `sim`.
-        Some(f) if f.to_string().contains(crate::run::supervise::REFUSED) => {
-            Err(UsageError(format!("{f:#}")).into())
-        }
-        Some(f) => Err(f),
+        Some(f) => Err(refusal_or(f)),
         None => reported,
+    }
+}
+
+/// A run stopped by a role that refused its input or diverged (it exited 2:
+/// [`crate::run::supervise::REFUSED`]) is the user's to mend (exit 2), as in `sim`.
+fn refusal_or(failure: anyhow::Error) -> anyhow::Error {
+    match failure.to_string().contains(crate::run::supervise::REFUSED) {
+        true => UsageError(format!("{failure:#}")).into(),
+        false => failure,
     }
 }
 
