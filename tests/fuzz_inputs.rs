@@ -661,3 +661,38 @@ fn inputs_that_are_not_what_their_flag_reads_exit_2_without_waiting() {
         assert!(err.len() < 4000, "{args:?}: {} bytes of errors", err.len());
     }
 }
+
+/// One exit-code rule: a run stopped by a role that exited 2 (it refused its input, or the
+/// run diverged: the plant's `diverged`) exits 2, as `sim` does for the same scenario;
+/// it exited 1. A controller of the user's own that exits 2 at once stands for it.
+#[test]
+fn a_run_stopped_by_a_role_that_refused_its_input_exits_2() {
+    use std::os::unix::fs::PermissionsExt;
+    let h = Harness::new("fuzz-exit2");
+    let ctl = h.path("refuses.sh");
+    std::fs::write(&ctl, "#!/bin/sh\necho 'controller: error: a value it refuses' >&2\nexit 2\n")
+        .expect("write");
+    std::fs::set_permissions(&ctl, std::fs::Permissions::from_mode(0o755)).expect("chmod");
+    let out = h.path("out");
+    let args = [
+        "run",
+        "--scenario",
+        "paper-zero",
+        "--mode",
+        "lockstep",
+        "--duration",
+        "0.05",
+        "--quiet",
+        "--domain",
+        &h.domain,
+        "--controller-cmd",
+        ctl.to_str().expect("utf-8"),
+        "--out",
+        out.to_str().expect("utf-8"),
+    ];
+    let o = h.rotorloop(&args, Duration::from_secs(120));
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(2), "{err}");
+    assert!(err.contains("controller") && err.contains("not restarted"), "{err}");
+    h.assert_no_leftovers();
+}
