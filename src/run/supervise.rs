@@ -279,6 +279,8 @@ pub struct RejectWatch {
     hold_ticks: u64,
     /// Since the last torque accepted: its tick, the plant's tick and rejections count then.
     since: Option<Streak>,
+    /// The plant's tick, accepted torque and rejections at the last look.
+    last: Option<(u64, u64, u64)>,
 }
 
 /// Rejections since the last torque the plant accepted.
@@ -299,17 +301,22 @@ pub struct Streak {
 impl RejectWatch {
     /// At fault after `hold_ticks` rejections in a row (at least 1).
     pub fn new(hold_ticks: u64) -> Self {
-        Self { hold_ticks: hold_ticks.max(1), since: None }
+        Self { hold_ticks: hold_ticks.max(1), since: None, last: None }
     }
 
     /// The plant is at `tick`, has accepted torques up to `accepted` and rejected
     /// `rejected` in all: the streak so far, if answers were rejected since the last one
     /// accepted.
+    /// Before any torque was accepted, every rejection of the run is in the streak (the
+    /// first look may come after them: in lockstep one answer for a tick not reached is all
+    /// a controller sends).
     pub fn streak(&mut self, tick: u64, accepted: u64, rejected: u64) -> Option<Streak> {
+        self.last = Some((tick, accepted, rejected));
+        let never = accepted == rotorloop_common::wire::NO_TICK;
         let s = self.since.get_or_insert(Streak {
             accepted,
-            from_tick: tick,
-            rejected_before: rejected,
+            from_tick: if never { 0 } else { tick },
+            rejected_before: if never { 0 } else { rejected },
             rejected: 0,
             to_tick: tick,
         });
@@ -332,9 +339,16 @@ impl RejectWatch {
         self.streak(tick, accepted, rejected).filter(|s| s.rejected >= self.hold_ticks)
     }
 
-    /// The controller was started again: a new streak begins with its answers.
+    /// The controller was started again: a new streak begins with its answers, from the
+    /// plant's counts at the last look.
     pub fn reset(&mut self) {
-        self.since = None;
+        self.since = self.last.map(|(tick, accepted, rejected)| Streak {
+            accepted,
+            from_tick: tick,
+            rejected_before: rejected,
+            rejected: 0,
+            to_tick: tick,
+        });
     }
 }
 
@@ -787,10 +801,13 @@ mod tests {
         for k in 0..400u64 {
             assert_eq!(every_other.check(k, k - k % 2, k / 2), None, "tick {k}");
         }
-        // A restart starts a new streak.
+        // A restart starts a new streak, from the counts at the last look.
         r.reset();
         assert_eq!(r.check(60, none, 55), None);
-        assert!(r.streak(61, none, 56).is_some_and(|s| s.rejected == 1));
+        assert!(r.streak(61, none, 56).is_some_and(|s| s.rejected == 6));
+        // A first look after the rejections (lockstep: one answer for a tick not reached).
+        let mut late = RejectWatch::new(50);
+        assert!(late.streak(0, none, 1).is_some_and(|s| s.rejected == 1));
     }
 
     #[test]
