@@ -128,7 +128,7 @@ mod tests {
         assert_eq!(last_tick(&path).expect("last"), Some(5));
         assert!(TickRows::open(&dir.join("none.csv")).is_err());
         std::fs::write(&path, "a,b\n").expect("write");
-        assert!(TickRows::open(&path).unwrap_err().to_string().contains("no tick column"));
+        assert!(TickRows::open(&path).is_err_and(|e| e.to_string().contains("no tick column")));
         let _ = std::fs::remove_dir_all(&dir);
     }
 }

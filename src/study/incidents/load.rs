@@ -89,14 +89,20 @@ pub struct RunRecord {
     pub faults: Vec<FaultRow>,
     /// The `--fault` schedule.
     pub schedule: Vec<Scheduled>,
-    /// The scheduler samples (empty without `sched.csv`).
+    /// The scheduler samples near the incidents (empty without `sched.csv`, and until
+    /// [`RunRecord::keep_sched`] names the windows: the file has a row per role per
+    /// millisecond of the run, which is not held whole).
     pub sched: Vec<SchedRow>,
+    /// Whether `sched.csv` has any row.
+    pub kernel_view: bool,
     /// The kernel's scheduler trace (empty without `--trace-sched`).
     pub trace: Vec<super::trace::Traced>,
     /// The first state's publish (ns): the origin of the faults' times.
     pub t0_ns: u64,
     /// Whether any state carries a grid time (a real-time run).
     realtime: bool,
+    /// `sched.csv`, read by [`RunRecord::keep_sched`].
+    sched_path: std::path::PathBuf,
     /// The grid time of every [`GRID_STRIDE`]-th tick (the largest of the states' up to
     /// it: ticks without a state take the one before), ns; the ticks between are read
     /// from the records when asked for.
@@ -159,7 +165,8 @@ impl RunRecord {
             }
         }
         let t0_ns = if t0_ns == u64::MAX { 0 } else { t0_ns };
-        let sched = read_sched(&dir.join("sched.csv"));
+        let kernel_view = sched_rows(&dir.join("sched.csv")).next().is_some();
+        let sched_path = dir.join("sched.csv");
         Ok(Self {
             grid_marks,
             realtime,
@@ -171,7 +178,9 @@ impl RunRecord {
             references,
             faults,
             schedule,
-            sched,
+            sched: Vec::new(),
+            kernel_view,
+            sched_path,
             trace: super::trace::read(&dir.join("sched-trace.txt")),
             t0_ns,
         })
@@ -205,6 +214,8 @@ impl RunRecord {
             faults: Vec::new(),
             schedule: Vec::new(),
             sched: Vec::new(),
+            kernel_view: false,
+            sched_path: Default::default(),
             trace: Vec::new(),
         }
     }
@@ -258,23 +269,48 @@ impl RunRecord {
     }
 }
 
-/// `sched.csv`'s rows (none where it is missing; a row that does not parse is skipped).
-pub fn read_sched(path: &Path) -> Vec<SchedRow> {
-    let Ok(text) = std::fs::read_to_string(path) else { return Vec::new() };
-    text.lines()
-        .skip(1)
-        .filter_map(|l| {
-            let f: Vec<&str> = l.split(',').collect();
-            Some(SchedRow {
-                t_ns: f.first()?.parse().ok()?,
-                role: (*f.get(1)?).to_owned(),
-                pid: f.get(2)?.parse().ok()?,
-                state: f.get(3)?.chars().next()?,
-                cpu: f.get(4)?.parse().ok()?,
-                on_cpu_ns: f.get(5)?.parse().ok()?,
-                wait_ns: f.get(6)?.parse().ok()?,
-                steal_ns: f.get(7)?.parse().ok()?,
-            })
+/// `sched.csv`'s rows, a line at a time (none where it is missing; a row that does not
+/// parse is skipped).
+pub fn sched_rows(path: &Path) -> impl Iterator<Item = SchedRow> {
+    use std::io::BufRead;
+    let lines = std::fs::File::open(path).ok().map(|f| std::io::BufReader::new(f).lines());
+    lines.into_iter().flatten().skip(1).map_while(Result::ok).filter_map(|l| {
+        let f: Vec<&str> = l.split(',').collect();
+        Some(SchedRow {
+            t_ns: f.first()?.parse().ok()?,
+            role: (*f.get(1)?).to_owned(),
+            pid: f.get(2)?.parse().ok()?,
+            state: f.get(3)?.chars().next()?,
+            cpu: f.get(4)?.parse().ok()?,
+            on_cpu_ns: f.get(5)?.parse().ok()?,
+            wait_ns: f.get(6)?.parse().ok()?,
+            steal_ns: f.get(7)?.parse().ok()?,
         })
-        .collect()
+    })
+}
+
+impl RunRecord {
+    /// Reads the scheduler samples of `sched.csv` within a second of any of `windows`
+    /// (tick ranges; a row per role per millisecond is kept only where an incident needs
+    /// it), in one pass a line at a time.
+    pub fn keep_sched(&mut self, windows: &[[u64; 2]]) {
+        let slack = 1_000_000_000 + (self.dt * 1e9) as u64;
+        let mut spans: Vec<[u64; 2]> = windows
+            .iter()
+            .map(|w| [self.grid_ns(w[0]).saturating_sub(slack), self.grid_ns(w[1] + 1) + slack])
+            .collect();
+        spans.sort_unstable();
+        let mut merged: Vec<[u64; 2]> = Vec::new();
+        for s in spans {
+            match merged.last_mut() {
+                Some(m) if s[0] <= m[1] => m[1] = m[1].max(s[1]),
+                _ => merged.push(s),
+            }
+        }
+        let near = |t: u64| {
+            let i = merged.partition_point(|s| s[0] <= t);
+            i.checked_sub(1).is_some_and(|i| t <= merged[i][1])
+        };
+        self.sched = sched_rows(&self.sched_path).filter(|r| near(r.t_ns)).collect();
+    }
 }

@@ -138,7 +138,7 @@ impl Explained {
 
 /// Finds, explains and costs the incidents of the run in `dir`.
 pub fn find(dir: &Path, options: Options) -> anyhow::Result<Explained> {
-    let run = RunRecord::read(dir)?;
+    let mut run = RunRecord::read(dir)?;
     let flags = ticks::flag(&run, options.threshold_ticks);
     // The loop's windows, then each fault outside the loop as an incident of its own.
     let mut windows: Vec<([u64; 2], Option<usize>)> =
@@ -147,6 +147,7 @@ pub fn find(dir: &Path, options: Options) -> anyhow::Result<Explained> {
         windows.push((ticks::fault_ticks(&run, f), Some(i)));
     }
     windows.sort_by_key(|(w, _)| w[0]);
+    run.keep_sched(&windows.iter().map(|(w, _)| *w).collect::<Vec<_>>());
     let medians = cause::stage_medians(&run, &flags);
     // The longest windows are costed.
     let mut by_length: Vec<usize> = (0..windows.len()).collect();
@@ -200,7 +201,7 @@ pub fn find(dir: &Path, options: Options) -> anyhow::Result<Explained> {
         median_delay_s: flags.median_delay_s,
         law_reproduced: [pass.same, pass.computed],
         realtime: run.realtime(),
-        kernel_view: !run.sched.is_empty(),
+        kernel_view: run.kernel_view,
         traced: !run.trace.is_empty(),
     })
 }

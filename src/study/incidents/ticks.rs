@@ -121,8 +121,16 @@ impl<const N: usize> Medians<N> {
     /// Ends the first pass.
     pub fn second_pass(&mut self) {
         self.bins = Some(std::array::from_fn(|i| {
+            // The bin of the value at index n / 2 of the sorted values.
             let h = &self.hist[i];
-            let at = h.value_at_quantile(0.5);
+            let (n, mut seen) = (h.len(), 0);
+            let at = h
+                .iter_recorded()
+                .find(|v| {
+                    seen += v.count_at_value();
+                    seen > n / 2
+                })
+                .map_or(0, |v| v.value_iterated_to());
             (h.lowest_equivalent(at), h.highest_equivalent(at), 0, Default::default())
         }));
     }
@@ -332,13 +340,15 @@ mod tests {
     /// equal ones (lockstep), spread ones, negative and non-finite ones.
     #[test]
     fn two_pass_medians_are_exact() {
-        let series: [Vec<f64>; 4] = [
+        let series: [Vec<f64>; 6] = [
             vec![2.5e-4; 1001],
             (0..5001).map(|i| ((i * 7919) % 5001) as f64 * 1.37e-7 + 1e-5).collect(),
             vec![-1.0, 3e-3, 1e-9, 5.0, f64::NAN, 2e-3, 2e-3 + 1e-15],
             Vec::new(),
+            vec![2e-3, 1e-6],
+            vec![7e-6, 1e-6, 5e-3, 4e-3],
         ];
-        let mut m = Medians::<4>::default();
+        let mut m = Medians::<6>::default();
         for pass in 0..2 {
             for (i, v) in series.iter().enumerate() {
                 v.iter().for_each(|x| m.add(i, *x));
