@@ -1,6 +1,7 @@
 //! A run's memory does not grow with its length, after the last tick as before it: two
 //! lockstep runs, one ten times the other, with flight rings of 512 slots so that both
-//! span many segments; every `rotorloop` process of each (the launcher, the four roles)
+//! span many segments, and a controller killed and restarted in each (the fault report,
+//! an incident and its cost after the run); every `rotorloop` process of each (the launcher, the four roles)
 //! and every reader of the finished run (`explain`, `export --mcap`, `sim --replay`)
 //! reports its peak resident memory as it ends (`ROTORLOOP_PEAK_RSS`, src/main.rs), and
 //! the longer run's peaks are the shorter's within a small constant.
@@ -56,6 +57,8 @@ fn peaks(h: &Harness, seconds: u64) -> BTreeMap<String, u64> {
             &duration,
             "--flight-ring-ticks",
             "512",
+            "--fault",
+            "controller:kill@1:restart@1.5",
             "--domain",
             &domain,
             "--out",

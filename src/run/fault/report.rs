@@ -6,13 +6,13 @@
 use std::collections::BTreeMap;
 use std::path::Path;
 
-use anyhow::Context;
 use rotorloop_common::scenario::Scenario;
 use rotorloop_monitor::plot::{Series, YScale, line_chart};
 use serde::Serialize;
 
 use crate::run::fault::FaultEvent;
 use crate::sim::closed_loop::ClosedLoop;
+use rotorloop_monitor::timing::{TimingRow, TimingRows};
 
 /// One fault's cost.
 #[derive(Debug, Clone, Serialize)]
@@ -57,28 +57,57 @@ pub struct FaultReport {
     pub incident: Option<usize>,
 }
 
-fn read_errors(path: &Path) -> anyhow::Result<BTreeMap<u64, (f64, f64)>> {
-    let text =
-        std::fs::read_to_string(path).with_context(|| format!("cannot read {}", path.display()))?;
-    let mut lines = text.lines();
-    let header: Vec<&str> = lines.next().unwrap_or("").split(',').collect();
+/// Most points of each curve in `faults.png` (the run's and the no-fault run's).
+const CURVE_POINTS: u64 = 6000;
+
+/// The run's attitude error from `trace.csv`, a row at a time: every `every`-th row as
+/// `(t, err_deg)`, and the time of each tick of `at`.
+fn read_errors(
+    path: &Path,
+    every: u64,
+    at: &[u64],
+) -> anyhow::Result<(Vec<(f64, f64)>, BTreeMap<u64, f64>)> {
+    let mut rows = rotorloop_monitor::rows::TickRows::open(path)?;
+    let header = rows.columns();
     let col = |n: &str| header.iter().position(|h| *h == n);
-    let (Some(ct), Some(ce), Some(ck)) = (col("t"), col("err_deg"), col("tick")) else {
+    let (Some(ct), Some(ce)) = (col("t"), col("err_deg")) else {
         anyhow::bail!("{} lacks the t, err_deg or tick column", path.display());
     };
-    let mut m = BTreeMap::new();
-    for line in lines {
+    let (mut curve, mut times) = (Vec::new(), BTreeMap::new());
+    while let Some((k, line)) = rows.next_row() {
         let f: Vec<&str> = line.split(',').collect();
-        if let (Some(t), Some(e), Some(k)) = (f.get(ct), f.get(ce), f.get(ck)) {
-            if let (Ok(t), Ok(e), Ok(k)) = (t.parse(), e.parse(), k.parse()) {
-                m.insert(k, (t, e));
-            }
+        let value = |c: usize| f.get(c).and_then(|v| v.parse::<f64>().ok());
+        let (Some(t), Some(e)) = (value(ct), value(ce)) else { continue };
+        if k % every == 0 {
+            curve.push((t, e));
+        }
+        if at.contains(&k) {
+            times.insert(k, t);
         }
     }
-    Ok(m)
+    Ok((curve, times))
 }
 
-/// Computes the fault reports, adds them to `out/summary.json`, draws `out/faults.png`.
+/// `timing.csv`'s rows in tick order, as far as they read (none without the file).
+fn timing_rows(out: &Path) -> impl Iterator<Item = TimingRow> {
+    let mut rows = TimingRows::open(&out.join("timing.csv")).ok();
+    std::iter::from_fn(move || rows.as_mut()?.next_row().ok().flatten())
+}
+
+/// Where a fault lies in `timing.csv`'s ticks: the newest tick published before it, the
+/// first published after its restart (first pass); the ticks after the kill without a
+/// fresh torque until the first fresh one at or after the restart (second pass).
+#[derive(Debug, Clone, Copy, Default)]
+struct Placed {
+    kill_tick: Option<u64>,
+    restart_tick: Option<u64>,
+    without: u64,
+    first_fresh: Option<u64>,
+}
+
+/// Computes the fault reports, adds them to `out/summary.json`, draws `out/faults.png`:
+/// two passes over `timing.csv` and one over `trace.csv`, a row at a time, so its memory
+/// is the same whatever the run's length.
 ///
 /// A run whose plant never published tick 0 (a controller that failed at once) still lists
 /// its faults, timed from `launched_ns` (when the launcher started the roles), with no
@@ -89,32 +118,34 @@ pub fn report(
     events: &[FaultEvent],
     launched_ns: u64,
 ) -> anyhow::Result<Vec<FaultReport>> {
-    let timing = rotorloop_monitor::timing::read(&out.join("timing.csv")).unwrap_or_default();
-    let errors = read_errors(&out.join("trace.csv")).unwrap_or_default();
-    let t0 = timing.values().map(|t| t.state_publish_ns).min().unwrap_or(launched_ns);
-    // The no-fault run: the same scenario in process.
-    let mut lp = ClosedLoop::new(scenario, scenario.actuation(), None)?;
-    let nofault: Vec<f64> = (0..=scenario.ticks()).map(|_| lp.tick().err_deg).collect();
-    let last_tick = timing.keys().next_back().copied().unwrap_or(0);
-    let fresh =
-        |k: u64| timing.get(&k).is_some_and(|t| k > 0 && t.applied_torque_tick == Some(k - 1));
-
+    let mut placed = vec![Placed::default(); events.len()];
+    let mut t0 = None::<u64>;
+    for t in timing_rows(out) {
+        t0 = Some(t0.map_or(t.state_publish_ns, |t0| t0.min(t.state_publish_ns)));
+        for (p, e) in placed.iter_mut().zip(events) {
+            if t.state_publish_ns <= e.kill_ns {
+                p.kill_tick = Some(t.tick);
+            }
+            if p.restart_tick.is_none() && e.restart_ns.is_some_and(|r| t.state_publish_ns >= r) {
+                p.restart_tick = Some(t.tick);
+            }
+        }
+    }
+    let no_timing = t0.is_none();
+    let t0 = t0.unwrap_or(launched_ns);
+    for t in timing_rows(out) {
+        let k = t.tick;
+        let fresh = k > 0 && t.applied_torque_tick == Some(k - 1);
+        for p in placed.iter_mut().filter(|p| p.first_fresh.is_none()) {
+            if p.restart_tick.is_some_and(|r| k >= r) && fresh {
+                p.first_fresh = Some(k);
+            } else if k > p.kill_tick.unwrap_or(0) && !fresh {
+                p.without += 1;
+            }
+        }
+    }
     let mut reports = Vec::new();
-    for e in events {
-        let kill_tick = timing
-            .iter()
-            .filter(|(_, t)| t.state_publish_ns <= e.kill_ns)
-            .map(|(k, _)| *k)
-            .next_back();
-        let restart_tick = e
-            .restart_ns
-            .and_then(|r| timing.iter().find(|(_, t)| t.state_publish_ns >= r).map(|(k, _)| *k));
-        let from = kill_tick.unwrap_or(0);
-        let first_fresh_after_restart =
-            restart_tick.and_then(|r| (r..=last_tick).find(|k| fresh(*k)));
-        let until = first_fresh_after_restart.unwrap_or(last_tick);
-        let without =
-            ((from + 1)..=until).filter(|k| timing.contains_key(k) && !fresh(*k)).count() as u64;
+    for (e, p) in events.iter().zip(&placed) {
         reports.push(FaultReport {
             role: e.role.clone(),
             kind: e.kind,
@@ -124,9 +155,9 @@ pub fn report(
             signal: e.signal,
             ended: e.ended.map(|(how, _)| how),
             ended_s: e.ended.map(|(_, at)| at.saturating_sub(t0) as f64 / 1e9),
-            kill_tick,
-            ticks_without_fresh_torque: without,
-            ticks_to_first_fresh_torque: match (restart_tick, first_fresh_after_restart) {
+            kill_tick: p.kill_tick,
+            ticks_without_fresh_torque: p.without,
+            ticks_to_first_fresh_torque: match (p.restart_tick, p.first_fresh) {
                 (Some(r), Some(f)) => Some(f.saturating_sub(r)),
                 _ => None,
             },
@@ -141,7 +172,7 @@ pub fn report(
         Ok(text) => serde_json::from_str(&text)?,
         // Stopped before the monitor had anything to report (a controller that failed at
         // once): the faults are the report.
-        Err(_) if timing.is_empty() => serde_json::json!({
+        Err(_) if no_timing => serde_json::json!({
             "name": scenario.file.name,
             "completed": false,
             "trace_rows": 0,
@@ -154,29 +185,38 @@ pub fn report(
         rotorloop_common::output::write_json(&summary_path, &j)?;
     }
 
-    if !errors.is_empty() {
-        draw(out, scenario, &errors, &nofault, &reports)?;
-    }
+    draw(out, scenario, &reports)?;
     Ok(reports)
 }
 
 /// Draws `out/faults.png`: the error of this run and of the no-fault run, faults marked.
-fn draw(
-    out: &Path,
-    scenario: &Scenario,
-    errors: &BTreeMap<u64, (f64, f64)>,
-    nofault: &[f64],
-    reports: &[FaultReport],
-) -> anyhow::Result<()> {
-    let run: Vec<(f64, f64)> = errors.values().copied().collect();
+fn draw(out: &Path, scenario: &Scenario, reports: &[FaultReport]) -> anyhow::Result<()> {
     let dt = scenario.dt();
-    let every = (nofault.len() / 6000).max(1);
-    let reference: Vec<(f64, f64)> =
-        nofault.iter().enumerate().step_by(every).map(|(k, e)| (k as f64 * dt, *e)).collect();
+    let every = ((scenario.ticks() + 1) / CURVE_POINTS).max(1);
+    let marked: Vec<u64> = reports
+        .iter()
+        .flat_map(|r| [r.kill_tick, r.kill_tick.map(|k| k + r.ticks_without_fresh_torque)])
+        .flatten()
+        .collect();
+    let Ok((run, times)) = read_errors(&out.join("trace.csv"), every, &marked) else {
+        return Ok(());
+    };
+    if run.is_empty() {
+        return Ok(());
+    }
+    // The no-fault run: the same scenario in process, every `every`-th tick kept.
+    let mut lp = ClosedLoop::new(scenario, scenario.actuation(), None)?;
+    let mut reference = Vec::new();
+    for k in 0..=scenario.ticks() {
+        let e = lp.tick().err_deg;
+        if k % every == 0 {
+            reference.push((k as f64 * dt, e));
+        }
+    }
     let top = run.iter().map(|p| p.1).fold(1.0f64, f64::max);
     let mut markers: Vec<(String, Vec<(f64, f64)>)> = Vec::new();
     for r in reports {
-        let at = |k: Option<u64>| k.and_then(|k| errors.get(&k)).map(|(t, _)| *t);
+        let at = |k: Option<u64>| k.and_then(|k| times.get(&k)).copied();
         if let Some(t) = at(r.kill_tick) {
             markers.push((format!("{} {}", r.kind, r.role), vec![(t, 1e-6), (t, top)]));
         }
