@@ -1,6 +1,13 @@
 //! The `rotorloop` binary: a thin shell over the library (see `rotorloop::cli`).
 
 fn main() -> std::process::ExitCode {
+    // A fixed threshold above which the allocator maps a block of its own and unmaps it
+    // when freed. glibc's default raises the threshold to the size of every large block
+    // freed (up to 32 MiB), after which blocks that size stay in the heap once freed: the
+    // launcher's record mover, which reads halves of the rings of tens of MB, then kept
+    // their peak for the rest of the run, and the phases after the last tick added theirs.
+    // SAFETY: mallopt before any thread exists.
+    unsafe { libc::mallopt(libc::M_MMAP_THRESHOLD, 1 << 20) };
     let code = rotorloop::cli::main();
     peak_rss_report();
     code

@@ -108,3 +108,50 @@ fn peak_memory_of_every_process_and_reader_does_not_grow_with_the_runs_length() 
         );
     }
 }
+
+/// A run whose output cannot fit is refused before anything starts, naming the space it
+/// needs, the free space and `--force`; a run that fits says what it will write.
+#[test]
+fn a_run_too_large_for_its_disk_is_refused_before_it_starts_and_others_say_their_size() {
+    let h = Harness::new("budget");
+    let out = h.path("huge");
+    let o = h.rotorloop(
+        &[
+            "run",
+            "--scenario",
+            "paper-sinusoid",
+            "--duration",
+            "86400",
+            "--rate",
+            "100000",
+            "--domain",
+            &h.domain,
+            "--out",
+            &out.display().to_string(),
+        ],
+        Duration::from_secs(60),
+    );
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(2), "{err}");
+    assert!(err.contains("its output needs about") && err.contains("--force"), "{err}");
+    assert!(err.contains("free there"), "{err}");
+    assert!(!out.exists(), "nothing of the refused run was made");
+    let small = h.path("small");
+    let o = h.rotorloop(
+        &[
+            "run",
+            "--scenario",
+            "paper-constant",
+            "--duration",
+            "0.5",
+            "--domain",
+            &h.domain,
+            "--out",
+            &small.display().to_string(),
+        ],
+        Duration::from_secs(120),
+    );
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(o.status.success(), "{err}");
+    assert!(err.contains("run: 0.5 s at 1000 Hz writes about"), "{err}");
+}

@@ -37,6 +37,11 @@ pub struct RunArgs {
     /// recorders cost (`bench --before-after`).
     #[arg(long)]
     pub no_record: bool,
+    /// Run even where the estimate of what the run writes (printed before it starts)
+    /// exceeds the free space of `--out`'s filesystem or of `/dev/shm` (a full disk stops
+    /// the files, never the loop).
+    #[arg(long)]
+    pub force: bool,
     /// Do not write `OUT/run.mcap` at the end (`rotorloop export OUT --mcap` writes it
     /// later from the records).
     #[arg(long)]
@@ -188,6 +193,7 @@ impl RunArgs {
             quiet: false,
             no_record: false,
             no_mcap: false,
+            force: false,
             no_sched_sample: false,
             trace_sched: false,
             spin_before_tick_us: 0,

@@ -112,6 +112,7 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
     for w in &scenario.warnings {
         eprintln!("warning: {w}");
     }
+    crate::run::budget::check(args, &scenario)?;
     let corrupt = args
         .corrupt
         .iter()

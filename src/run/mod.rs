@@ -17,6 +17,7 @@
 //! - [`recover`]: `rotorloop recover`, the report of a run whose launcher was killed.
 
 pub mod args;
+pub mod budget;
 pub mod external;
 pub mod fault;
 pub mod launch;

@@ -172,6 +172,12 @@ impl Record for ReferenceSample {
     }
 }
 
+/// Bytes a tick takes in the records of the four streams (a slot of each).
+pub fn bytes_per_tick() -> u64 {
+    (slot_len::<StateSample>() + 2 * slot_len::<TorqueSample>() + slot_len::<ReferenceSample>())
+        as u64
+}
+
 fn slot_len<T>() -> usize {
     8 + size_of::<T>().next_multiple_of(8)
 }

@@ -2,7 +2,7 @@
 //!
 //! A [`FlightLog`] holds no samples: it knows the stream's files (the ring and the
 //! segments moved out of it, module docs of [`super`]) and reads a block of slots at a time
-//! with `pread`, keeping the last [`BLOCKS`] blocks. Reading ticks in order (the report,
+//! with `pread`, keeping the last [`BLOCKS`] blocks of [`BLOCK_SLOTS`]. Reading ticks in order (the report,
 //! the export, the replay) reads each block once; looking back a few thousand ticks (the
 //! incidents) stays in the kept blocks. Its memory is a few MB, the same for a minute's run
 //! as for a day's.
@@ -22,9 +22,9 @@ use super::{FlightError, HEADER, MAGIC, Record, SPARE_SLOTS, Stream, segments, s
 use crate::wire::LAYOUT_VERSION;
 
 /// Slots read from a file at once.
-const BLOCK_SLOTS: u64 = 1024;
-/// Blocks kept (about 4 MB of state samples).
-const BLOCKS: usize = 8;
+const BLOCK_SLOTS: u64 = 512;
+/// Blocks kept (about 1.6 MB of state samples).
+const BLOCKS: usize = 6;
 /// Problems kept in words; the rest are counted.
 const MAX_PROBLEMS: usize = 16;
 

@@ -1,0 +1,129 @@
+//! What a run will write, said before it starts: `rotorloop run` prints an estimate of the
+//! disk space of its output and of the RAM its flight rings take on tmpfs, and refuses to
+//! start (exit 2) when the output's filesystem or `/dev/shm` cannot hold it, unless
+//! `--force` is given (a disk that fills up mid-run stops the files, never the loop).
+//!
+//! The estimate is per tick of the run: the flight records exactly (a slot of each
+//! stream, [`flight::bytes_per_tick`], and the ring moved in beside its segments), the
+//! report's files by what they measured on runs of this build (docs/measurements.md,
+//! "A run's disk and memory"), rounded up: `trace.csv` 800 B, `run.mcap` 1000 B,
+//! `timing.csv` 60 B a tick, `sched.csv` 300 kB a second of wall time.
+
+use std::path::Path;
+
+use rotorloop_common::flight::{self, DEFAULT_RING_TICKS};
+use rotorloop_common::role::UsageError;
+use rotorloop_common::scenario::Scenario;
+
+use crate::run::args::RunArgs;
+
+/// `trace.csv`'s bytes per tick (measured: 783 on `paper-sinusoid`, rounded up).
+const TRACE_PER_TICK: u64 = 800;
+/// `run.mcap`'s bytes per tick (measured: 983).
+const MCAP_PER_TICK: u64 = 1000;
+/// `timing.csv`'s bytes per tick (measured: 51).
+const TIMING_PER_TICK: u64 = 60;
+/// `sched.csv`'s bytes per second of the run (a row per role when its state changed,
+/// sampled every millisecond; at most about 280 kB).
+const SCHED_PER_S: u64 = 300_000;
+
+/// A run's output, estimated before it starts (bytes).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Estimate {
+    /// Into `--out`: the records, the report's files, `run.mcap`.
+    pub out: u64,
+    /// Of that, the flight records.
+    pub flight: u64,
+    /// On tmpfs while the run goes on: the rings.
+    pub staging: u64,
+}
+
+/// The estimate for `args` running `scenario`.
+pub fn estimate(args: &RunArgs, scenario: &Scenario) -> Estimate {
+    let ticks = scenario.ticks();
+    let per_tick = flight::bytes_per_tick();
+    let ring = flight::ring_capacity(ticks, args.role.flight_ring_ticks.max(1));
+    let (flight, staging) = match args.no_record {
+        true => (0, 0),
+        // Every tick in a segment, and the ring moved in beside them at the end.
+        false if flight::ring_wraps(ticks, ring) => ((ticks + ring) * per_tick, ring * per_tick),
+        false => (ring * per_tick, ring * per_tick),
+    };
+    let report = match args.no_monitor {
+        true => 0,
+        false => ticks * (TRACE_PER_TICK + TIMING_PER_TICK),
+    };
+    let mcap = if args.no_mcap || args.no_monitor { 0 } else { ticks * MCAP_PER_TICK };
+    let seconds = (ticks as f64 * scenario.dt()).ceil() as u64;
+    let sched = if args.no_sched_sample { 0 } else { seconds * SCHED_PER_S };
+    let out = flight.saturating_add(report).saturating_add(mcap).saturating_add(sched);
+    Estimate { out, flight, staging }
+}
+
+/// Free bytes of the filesystem that holds `path` (or would: its nearest existing
+/// ancestor), if it can be asked.
+pub fn free_bytes(path: &Path) -> Option<u64> {
+    let mut at = if path.is_absolute() { path.to_owned() } else { Path::new(".").join(path) };
+    while !at.exists() {
+        at = at.parent()?.to_owned();
+    }
+    let c = std::ffi::CString::new(at.as_os_str().as_encoded_bytes()).ok()?;
+    // SAFETY: statvfs fills the struct from a NUL-terminated path; checked for failure.
+    let st = unsafe {
+        let mut st: libc::statvfs = std::mem::zeroed();
+        (libc::statvfs(c.as_ptr(), &mut st) == 0).then_some(st)
+    }?;
+    Some(st.f_bavail.saturating_mul(st.f_frsize))
+}
+
+fn size(bytes: u64) -> String {
+    match bytes {
+        b if b >= 10_000_000_000 => format!("{:.0} GB", b as f64 / 1e9),
+        b if b >= 1_000_000_000 => format!("{:.1} GB", b as f64 / 1e9),
+        b => format!("{:.0} MB", (b as f64 / 1e6).ceil()),
+    }
+}
+
+/// Says what the run will write (unless `--quiet`) and refuses it where it cannot fit.
+pub fn check(args: &RunArgs, scenario: &Scenario) -> anyhow::Result<()> {
+    let e = estimate(args, scenario);
+    let seconds = scenario.file.run.duration_s;
+    if !args.quiet {
+        eprintln!(
+            "run: {seconds} s at {} Hz writes about {} into {} (flight records {}), and \
+             takes {} of /dev/shm while it runs",
+            scenario.file.run.rate_hz,
+            size(e.out),
+            args.out.display(),
+            size(e.flight),
+            size(e.staging)
+        );
+    }
+    let places = [(args.out.as_path(), e.out, "--out"), (Path::new("/dev/shm"), e.staging, "")];
+    for (path, need, flag) in places {
+        let Some(free) = free_bytes(path) else { continue };
+        if need <= free {
+            continue;
+        }
+        let what = if flag.is_empty() { "its flight rings need" } else { "its output needs" };
+        let msg = format!(
+            "--duration {seconds} s at {} Hz: {what} about {} in {} ({} free there); \
+             shorten the run, {}or give --force to run anyway (a full disk stops the files, \
+             never the loop)",
+            scenario.file.run.rate_hz,
+            size(need),
+            path.display(),
+            size(free),
+            if flag.is_empty() {
+                format!("take smaller rings (--flight-ring-ticks, default {DEFAULT_RING_TICKS}), ")
+            } else {
+                "point --out at a larger disk, ".to_owned()
+            }
+        );
+        if !args.force {
+            return Err(UsageError(msg).into());
+        }
+        eprintln!("warning (--force): {msg}");
+    }
+    Ok(())
+}
