@@ -65,11 +65,7 @@ type ErrorCurve = (Vec<(f64, f64)>, BTreeMap<u64, f64>);
 
 /// The run's attitude error from `trace.csv`, a row at a time: every `every`-th row as
 /// `(t, err_deg)`, and the time of each tick of `at`.
-fn read_errors(
-    path: &Path,
-    every: u64,
-    at: &[u64],
-) -> anyhow::Result<ErrorCurve> {
+fn read_errors(path: &Path, every: u64, at: &[u64]) -> anyhow::Result<ErrorCurve> {
     let mut rows = rotorloop_monitor::rows::TickRows::open(path)?;
     let header = rows.columns();
     let col = |n: &str| header.iter().position(|h| *h == n);
