@@ -573,7 +573,7 @@ impl ScenarioFile {
     }
 
     /// Parses TOML text; `origin` names it in messages. Checks the schema only: the
-    /// sizes and sections first ([`shape`]), then the keys and types.
+    /// sizes and sections first (`scenario::shape`), then the keys and types.
     pub fn parse(text: &str, origin: &str) -> Result<Self, ScenarioError> {
         let table: toml::Table = toml::from_str(text).map_err(|e| parse_error(origin, text, &e))?;
         shape::check(&table)?;
@@ -585,7 +585,7 @@ impl ScenarioFile {
     }
 
     /// Deserializes a scenario kept in another format (`launch.json` keeps the one a run
-    /// ran) under the same rule for sizes and sections as a TOML file ([`shape`]): serde
+    /// ran) under the same rule for sizes and sections as a TOML file (`scenario::shape`): serde
     /// alone reads a longer array's first three items, and a struct from an array. For
     /// `#[serde(deserialize_with = "ScenarioFile::checked")]`.
     pub fn checked<'de, D: serde::Deserializer<'de>>(d: D) -> Result<Self, D::Error> {

@@ -70,7 +70,7 @@ pub struct FlightLog<T: Record> {
     pub opens: u64,
     /// Samples whose tick lay beyond the ring's capacity (not recorded).
     pub beyond: u64,
-    /// What in the files could not be read, in words (the first [`MAX_PROBLEMS`]).
+    /// What in the files could not be read, in words (the first 16).
     pub problems: Vec<String>,
     /// Problems beyond those.
     pub more_problems: u64,
