@@ -433,6 +433,14 @@ fn flag_values_are_refused(all: bool) {
         (vec!["margin", "--out", out], &["--duration", "--rate", "--delays"]),
         (vec!["explain", run], &["--threshold-ticks"]),
         (
+            vec!["role", "timer", "--out", out],
+            &["--rate", "--seconds", "--core", "--rt-priority", "--spin-before-tick-us"],
+        ),
+        (
+            vec!["role", "pingpong", "--kind", "uds", "--side", "ping", "--name", "fuzz"],
+            &["--rate", "--seconds", "--core"],
+        ),
+        (
             vec!["bench", "--out", out],
             &[
                 "--seconds",
@@ -695,4 +703,96 @@ fn a_run_stopped_by_a_role_that_refused_its_input_exits_2() {
     assert_eq!(o.status.code(), Some(2), "{err}");
     assert!(err.contains("controller") && err.contains("not restarted"), "{err}");
     h.assert_no_leftovers();
+}
+
+/// Damaged flight records and a `launch.json` that claims more than its records hold
+/// (issue 45, points 1 and 5): a far-future tick in every stream (tag and sample agreeing
+/// on capacity × 2⁴⁰, which made `explain`, `export --mcap` and `recover` abort allocating
+/// exabytes), a torn and a zero-length segment, then a claim of 86 400 s at 100 kHz over
+/// 2001 recorded ticks (which `recover` looped over). Each reader ends, reads what is
+/// sound, and names in `summary.json` what it skipped.
+#[test]
+fn damaged_records_and_claims_are_read_as_far_as_they_are_sound() {
+    let h = Harness::new("damaged-records");
+    let dir = h.path("run");
+    let d = dir.display().to_string();
+    let run = [
+        "run",
+        "--scenario",
+        "paper-constant",
+        "--duration",
+        "2",
+        "--mode",
+        "lockstep",
+        "--flight-ring-ticks",
+        "512",
+        "--domain",
+        &h.domain,
+        "--out",
+        &d,
+        "--quiet",
+    ];
+    let o = h.rotorloop(&run, Duration::from_secs(120));
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let flight = dir.join("flight");
+    for stream in ["plant-state", "plant-torque", "controller-torque", "reference"] {
+        use std::os::unix::fs::FileExt;
+        let f = std::fs::OpenOptions::new()
+            .read(true)
+            .write(true)
+            .open(flight.join(format!("{stream}.flight")))
+            .expect("ring");
+        let mut capacity = [0u8; 8];
+        f.read_exact_at(&mut capacity, 24).expect("header");
+        let k = u64::from_ne_bytes(capacity) << 40;
+        let slot: Vec<u8> = [(k + 1).to_ne_bytes(), k.to_ne_bytes()].concat();
+        f.write_all_at(&slot, 64).expect("far tick");
+    }
+    let torn = flight.join("plant-state.000001.flight");
+    let len = std::fs::metadata(&torn).expect("segment 1").len();
+    std::fs::OpenOptions::new()
+        .write(true)
+        .open(&torn)
+        .expect("open")
+        .set_len(len / 3)
+        .expect("tear");
+    std::fs::write(flight.join("reference.000002.flight"), b"").expect("zero-length");
+    let launch = dir.join("launch.json");
+    let mut j: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&launch).expect("launch.json"))
+            .expect("json");
+    j["scenario"]["run"]["duration_s"] = serde_json::json!(86400.0);
+    j["scenario"]["run"]["rate_hz"] = serde_json::json!(100000.0);
+    std::fs::write(&launch, j.to_string()).expect("claim");
+    for args in [vec!["explain", &d], vec!["export", &d, "--mcap"], vec!["recover", &d]] {
+        let o = h.rotorloop(&args, Duration::from_secs(120));
+        assert!(
+            o.status.success(),
+            "{args:?}: {:?}\n{}",
+            o.status,
+            String::from_utf8_lossy(&o.stderr)
+        );
+    }
+    let summary: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(dir.join("summary.json")).expect("summary"))
+            .expect("json");
+    let streams = summary["flight"]["streams"].as_array().expect("streams");
+    let problems = |name: &str| {
+        let s = streams.iter().find(|s| s["stream"] == name).expect("stream");
+        s["problems"].to_string()
+    };
+    assert!(
+        problems("plant-state").contains("plant-state.000001.flight"),
+        "{}",
+        problems("plant-state")
+    );
+    assert!(problems("plant-state").contains("beyond the run"), "{}", problems("plant-state"));
+    assert!(problems("reference").contains("reference.000002.flight"), "{}", problems("reference"));
+    let state = streams.iter().find(|s| s["stream"] == "plant-state").expect("state");
+    // Tick 0's ring slot held tick 1536 by the end, which its segment still has: only
+    // the torn segment's ticks are missing.
+    assert_eq!(state["missing"], serde_json::json!([[256, 511]]), "the torn segment's ticks");
+    // A row needs its state and its reference: the torn state segment's ticks and the
+    // empty reference segment's (512–767) have none; every other tick has its row.
+    assert_eq!(summary["trace_rows"], serde_json::json!(2001 - 256 - 256));
 }

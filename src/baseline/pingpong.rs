@@ -19,8 +19,10 @@ use hdrhistogram::Histogram;
 use rotorloop_common::clock::{now_ns, sleep_until_ns};
 use rotorloop_common::graph::Topic;
 use rotorloop_common::hgrm::write_percentile_distribution;
+use rotorloop_common::input::whole_in;
 use rotorloop_common::ipc::domain::Domain;
 use rotorloop_common::ipc::wait::Wait;
+use rotorloop_common::role::args::{duration_s, rate_hz};
 use rotorloop_common::rt::RtSetup;
 use rotorloop_common::signals::shutdown_requested;
 use rotorloop_common::wire::StateSample;
@@ -60,17 +62,17 @@ pub struct PingPongArgs {
     /// Rendezvous name (domain / file stem).
     #[arg(long)]
     pub name: String,
-    /// Exchanges per second, on an absolute grid.
-    #[arg(long, allow_negative_numbers = true, default_value_t = 1000.0)]
+    /// Exchanges per second, on an absolute grid, 1 to 100000 Hz.
+    #[arg(long, allow_hyphen_values = true, default_value_t = 1000.0, value_parser = rate_hz())]
     pub rate: f64,
-    /// How long to exchange.
-    #[arg(long, allow_negative_numbers = true, default_value_t = 3.0)]
+    /// How long to exchange, 0.001 to 86400 s.
+    #[arg(long, allow_hyphen_values = true, default_value_t = 3.0, value_parser = duration_s())]
     pub seconds: f64,
     /// How each side waits for the other (as the loop's `--wait`).
     #[arg(long, default_value = "event")]
     pub wait: Wait,
-    /// The core to pin this side to.
-    #[arg(long, allow_negative_numbers = true)]
+    /// The core to pin this side to, 0 to 4095.
+    #[arg(long, allow_hyphen_values = true, value_parser = whole_in(0usize, 4095, "cores"))]
     pub core: Option<usize>,
     /// Ping: output stem (`STEM.hgrm`, `STEM.json`).
     #[arg(long)]

@@ -10,30 +10,33 @@ use std::path::PathBuf;
 use anyhow::Context;
 use hdrhistogram::Histogram;
 use rotorloop_common::clock::{TickGrid, now_ns, sleep_until_ns};
+use rotorloop_common::input::whole_in;
+use rotorloop_common::role::args::{dma_latency_us, duration_s, rate_hz, spin_us};
 use rotorloop_common::rt::RtSetup;
 use rotorloop_common::signals::shutdown_requested;
 
 /// `rotorloop role timer` arguments.
 #[derive(Debug, Clone, clap::Args)]
 pub struct TimerArgs {
-    /// Ticks per second.
-    #[arg(long)]
+    /// Ticks per second, 1 to 100000 Hz.
+    #[arg(long, allow_hyphen_values = true, value_parser = rate_hz())]
     pub rate: f64,
-    /// Seconds to sleep to the grid.
-    #[arg(long)]
+    /// Seconds to sleep to the grid, 0.001 to 86400.
+    #[arg(long, allow_hyphen_values = true, value_parser = duration_s())]
     pub seconds: f64,
-    /// Pin to this core (the plant's).
-    #[arg(long)]
+    /// Pin to this core (the plant's), 0 to 4095.
+    #[arg(long, allow_hyphen_values = true, value_parser = whole_in(0usize, 4095, "cores"))]
     pub core: Option<usize>,
-    /// SCHED_FIFO priority (the plant's).
-    #[arg(long)]
+    /// SCHED_FIFO priority (the plant's), 1 to 99.
+    #[arg(long, allow_hyphen_values = true, value_parser = whole_in(1i32, 99, "priority"))]
     pub rt_priority: Option<i32>,
-    /// Sleep until this many µs before each tick and spin the rest (the plant's).
-    #[arg(long, default_value_t = 0)]
+    /// Sleep until this many µs before each tick and spin the rest (the plant's), 0 to
+    /// 1000000.
+    #[arg(long, allow_hyphen_values = true, default_value_t = 0, value_parser = spin_us())]
     pub spin_before_tick_us: u64,
     /// Hold `/dev/cpu_dma_latency` at this many µs while measuring (cyclictest's default
-    /// is 0; the bench holds it itself for the whole invocation instead).
-    #[arg(long)]
+    /// is 0; the bench holds it itself for the whole invocation instead), 0 to 1000000.
+    #[arg(long, allow_hyphen_values = true, value_parser = dma_latency_us())]
     pub cpu_dma_latency: Option<u32>,
     /// Writes `OUT.json` (count, p50, p99, p99.9, max of the lateness, ns) and `OUT.hgrm`.
     #[arg(long)]
