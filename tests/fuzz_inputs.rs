@@ -796,3 +796,63 @@ fn damaged_records_and_claims_are_read_as_far_as_they_are_sound() {
     // empty reference segment's (512–767) have none; every other tick has its row.
     assert_eq!(summary["trace_rows"], serde_json::json!(2001 - 256 - 256));
 }
+
+/// A damaged `summary.json` (not JSON, no scenario, a scenario claiming a day at 100 kHz,
+/// an absurd tick count) fed to the readers of a finished run: each ends at once, with
+/// exit 2 naming `summary.json` where it needs what is damaged, or reads the run from its
+/// records (`export` only attaches the summary), never looping over a claim.
+#[test]
+fn a_damaged_summary_is_refused_by_name_or_read_around() {
+    let h = Harness::new("damaged-summary");
+    let dir = h.path("run");
+    let d = dir.display().to_string();
+    let run = [
+        "run",
+        "--scenario",
+        "paper-constant",
+        "--duration",
+        "1",
+        "--mode",
+        "realtime",
+        "--domain",
+        &h.domain,
+        "--out",
+        &d,
+        "--quiet",
+    ];
+    let o = h.rotorloop(&run, Duration::from_secs(120));
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let path = dir.join("summary.json");
+    let good: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&path).expect("summary")).expect("json");
+    let mut claim = good.clone();
+    claim["scenario"]["run"]["duration_s"] = serde_json::json!(86400.0);
+    claim["scenario"]["run"]["rate_hz"] = serde_json::json!(100000.0);
+    let mut no_scenario = good.clone();
+    no_scenario["scenario"] = serde_json::Value::Null;
+    let mut ticks = good.clone();
+    ticks["ticks"] = serde_json::json!(u64::MAX);
+    let cases = [
+        ("not JSON", "{\"scenario\": [1, 2".to_owned()),
+        ("no scenario", no_scenario.to_string()),
+        ("a day at 100 kHz", claim.to_string()),
+        ("2^64 - 1 ticks", ticks.to_string()),
+    ];
+    let replay = h.path("replay").display().to_string();
+    for (what, text) in cases {
+        for args in [
+            vec!["explain", &d],
+            vec!["export", &d, "--mcap"],
+            vec!["sim", "--replay", &d, "--out", &replay],
+        ] {
+            std::fs::write(&path, &text).expect("damage");
+            let o = h.rotorloop(&args, Duration::from_secs(60));
+            let err = String::from_utf8_lossy(&o.stderr);
+            match o.status.code() {
+                Some(0) => {}
+                Some(2) => assert!(err.contains("summary.json"), "{what}: {args:?}: {err}"),
+                c => panic!("{what}: {args:?}: exit {c:?}: {err}"),
+            }
+        }
+    }
+}
