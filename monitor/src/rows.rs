@@ -86,24 +86,21 @@ impl TickRows {
         self.ahead.as_ref().map(|(k, _)| *k)
     }
 
+    /// Passes over the rows of ticks up to `k`.
+    pub fn skip_through(&mut self, k: u64) {
+        while self.peek_tick().is_some_and(|t| t <= k) {
+            self.next_row();
+        }
+    }
+
     /// The row of tick `k`, the rows before it passed over (a reader asks for ticks in
     /// increasing order; a tick asked for again after its row was taken gives `None`).
     pub fn row(&mut self, k: u64) -> Option<String> {
-        while self.peek_tick().is_some_and(|t| t < k) {
-            self.next_row();
+        if let Some(before) = k.checked_sub(1) {
+            self.skip_through(before);
         }
         if self.peek_tick() == Some(k) { self.next_row().map(|(_, l)| l) } else { None }
     }
-}
-
-/// The tick of the last row of the CSV file at `path`, in one pass a row at a time.
-pub fn last_tick(path: &Path) -> anyhow::Result<Option<u64>> {
-    let mut rows = TickRows::open(path)?;
-    let mut last = None;
-    while let Some((k, _)) = rows.next_row() {
-        last = Some(k);
-    }
-    Ok(last)
 }
 
 #[cfg(test)]
@@ -125,7 +122,6 @@ mod tests {
         assert_eq!(rows.next_row(), Some((5, "0,5,d".to_owned())));
         assert_eq!(rows.next_row(), None);
         assert_eq!(rows.skipped, 3);
-        assert_eq!(last_tick(&path).expect("last"), Some(5));
         assert!(TickRows::open(&dir.join("none.csv")).is_err());
         std::fs::write(&path, "a,b\n").expect("write");
         assert!(TickRows::open(&path).is_err_and(|e| e.to_string().contains("no tick column")));

@@ -142,6 +142,17 @@ impl TimingRows {
         self.rows.row(k).map(|l| self.parse(k, &l)).transpose()
     }
 
+    /// Whether no row is left.
+    pub fn is_empty(&self) -> bool {
+        self.rows.peek_tick().is_none()
+    }
+
+    /// Whether a row of a tick after `k` follows (rows up to `k` are passed over unread).
+    pub fn more_after(&mut self, k: u64) -> bool {
+        self.rows.skip_through(k);
+        self.rows.peek_tick().is_some()
+    }
+
     /// The next row.
     pub fn next_row(&mut self) -> anyhow::Result<Option<TimingRow>> {
         self.rows.next_row().map(|(k, l)| self.parse(k, &l)).transpose()

@@ -23,7 +23,7 @@ use glam::DVec3;
 use rotorloop_common::scenario::{Actuation, Scenario};
 use rotorloop_common::wire::FLAG_SAFE_MODE;
 use rotorloop_monitor::metrics::Metrics;
-use rotorloop_monitor::rows::{TickRows, last_tick};
+use rotorloop_monitor::rows::TickRows;
 use rotorloop_monitor::timing::TimingRows;
 use rotorloop_monitor::trace::TraceWriter;
 use rotorloop_plant::actuator::{ActuationDelay, DelayLine, integrate_tick};
@@ -89,20 +89,22 @@ fn torques_of(line: &str, (u1, tau1): (usize, usize)) -> Torques {
     (DVec3::new(v(u1), v(u1 + 1), v(u1 + 2)), DVec3::new(v(tau1), v(tau1 + 1), v(tau1 + 2)))
 }
 
-/// The trace's torques looked up by the tick whose torque took effect: a second pass over
-/// `trace.csv` that lags behind the replay, with the last [`SOURCES_KEPT`] rows it passed
-/// (an effect's source is at or before the tick it takes effect in, in order).
-struct Sources {
+/// `trace.csv` read once, in tick order: each tick's torques for the replay's row, and the
+/// torques of the last [`SOURCES_KEPT`] rows passed, where the tick whose torque took
+/// effect is looked up (an effect's source is at or before the tick it takes effect in).
+struct Trace {
     rows: TickRows,
     columns: (usize, usize),
     recent: BTreeMap<u64, Torques>,
 }
 
-/// Trace rows a [`Sources`] keeps behind its position.
+/// Trace rows a [`Trace`] keeps behind its position.
 const SOURCES_KEPT: usize = 256;
 
-impl Sources {
-    fn get(&mut self, k: u64) -> Option<Torques> {
+impl Trace {
+    /// The torques of tick `k`'s row, if it has one (ticks asked for in increasing order);
+    /// the rows up to it are kept as sources.
+    fn row(&mut self, k: u64) -> Option<Torques> {
         while self.rows.peek_tick().is_some_and(|t| t <= k) {
             let Some((t, line)) = self.rows.next_row() else { break };
             self.recent.insert(t, torques_of(&line, self.columns));
@@ -111,6 +113,17 @@ impl Sources {
             }
         }
         self.recent.get(&k).copied()
+    }
+
+    /// What the torque of tick `j` (at or before the last row asked for) put on the body.
+    fn input(&self, dir: &Path, j: u64, actuation: Actuation) -> anyhow::Result<BodyInput> {
+        let (u, tau) = self.recent.get(&j).copied().ok_or_else(|| {
+            bad(dir, &format!("the torque of tick {j} took effect but its trace row is missing"))
+        })?;
+        Ok(match actuation {
+            Actuation::Internal => BodyInput { rotor_torque: u, body_torque: DVec3::ZERO },
+            Actuation::External => BodyInput { rotor_torque: DVec3::ZERO, body_torque: tau },
+        })
     }
 }
 
@@ -152,14 +165,12 @@ pub fn run(dir: &Path, out: &Path) -> anyhow::Result<ReplaySummary> {
     let file = serde_json::from_value(summary["scenario"].clone())
         .map_err(|e| bad(dir, &format!("summary.json has no scenario as run: {e}")))?;
     let scenario = Scenario::from_file(file).map_err(UsageError::from)?;
-    let timing_path = dir.join("timing.csv");
     let timing_err = |e: anyhow::Error| -> anyhow::Error { bad(dir, &format!("{e:#}")).into() };
-    let mut timing = TimingRows::open(&timing_path).map_err(timing_err)?;
-    let mut current = TickRows::open(&dir.join("trace.csv"))
+    let mut timing = TimingRows::open(&dir.join("timing.csv")).map_err(timing_err)?;
+    let rows = TickRows::open(&dir.join("trace.csv"))
         .map_err(|e| bad(dir, &format!("trace.csv: {e:#}")))?;
-    let columns = torque_columns(dir, current.header())?;
-    let mut sources =
-        Sources { rows: TickRows::open(&dir.join("trace.csv"))?, columns, recent: BTreeMap::new() };
+    let columns = torque_columns(dir, rows.header())?;
+    let mut run_trace = Trace { rows, columns, recent: BTreeMap::new() };
     let (actuation, dt, ticks) = (scenario.actuation(), scenario.dt(), scenario.ticks());
     let params = scenario.plant_params(actuation);
     let mut body = Body::new(params, scenario.plant_init);
@@ -167,15 +178,6 @@ pub fn run(dir: &Path, out: &Path) -> anyhow::Result<ReplaySummary> {
     let mut metrics = Metrics::new(params, &body.state()).with_disturbance(scenario.disturbance);
     let limits = scenario.limits_for(actuation);
     let mut line = DelayLine::new(ActuationDelay::Instant, dt);
-    let mut input_of = |k: u64| -> anyhow::Result<BodyInput> {
-        let (u, tau) = sources.get(k).ok_or_else(|| {
-            bad(dir, &format!("the torque of tick {k} took effect but its trace row is missing"))
-        })?;
-        Ok(match actuation {
-            Actuation::Internal => BodyInput { rotor_torque: u, body_torque: DVec3::ZERO },
-            Actuation::External => BodyInput { rotor_torque: DVec3::ZERO, body_torque: tau },
-        })
-    };
     std::fs::create_dir_all(out).with_context(|| format!("cannot create {}", out.display()))?;
     let mut trace = TraceWriter::new(std::io::BufWriter::new(
         std::fs::File::create(out.join("trace.csv"))
@@ -190,16 +192,18 @@ pub fn run(dir: &Path, out: &Path) -> anyhow::Result<ReplaySummary> {
     };
     let mut work = 0.0;
     // A run that ended early (its launcher killed, then `rotorloop recover`) is replayed
-    // up to its last recorded tick.
-    let last = last_tick(&timing_path).map_err(timing_err)?.map_or(ticks, |k| k.min(ticks));
-    for k in 0..=last {
+    // up to its last recorded tick: the tick with no timing row after it (a timing.csv
+    // without rows is refused at tick 1).
+    let no_timing = timing.is_empty();
+    for k in 0..=ticks {
         let t = k as f64 * dt;
         let x = body.state();
         let rd = reference.sample(t);
-        let (u, tau) = current.row(k).map_or((DVec3::NAN, DVec3::NAN), |l| torques_of(&l, columns));
+        let (u, tau) = run_trace.row(k).unwrap_or((DVec3::NAN, DVec3::NAN));
         let u_traced = if actuation == Actuation::Internal { u } else { DVec3::ZERO };
         let mut row = metrics.observe_work(k, t, &x, &rd, u_traced, tau, work);
-        if k < last {
+        let last = k == ticks || (!no_timing && !timing.more_after(k));
+        if !last {
             // What happened in tick k, as the state of tick k + 1 recorded it.
             let next = timing
                 .row(k + 1)
@@ -212,7 +216,7 @@ pub fn run(dir: &Path, out: &Path) -> anyhow::Result<ReplaySummary> {
                 result.unrecorded_effects.push(k);
             }
             for (source, offset) in next.recorded() {
-                line.schedule(k, *offset, *source, input_of(*source)?);
+                line.schedule(k, *offset, *source, run_trace.input(dir, *source, actuation)?);
             }
             let step = integrate_tick(&mut body, &mut line, k, &limits, scenario.disturbance);
             work = step.work;
@@ -221,6 +225,9 @@ pub fn run(dir: &Path, out: &Path) -> anyhow::Result<ReplaySummary> {
         reference.step(t, dt);
         trace.write(&row)?;
         result.rows += 1;
+        if last {
+            break;
+        }
     }
     let mut file = trace.finish()?;
     file.flush()?;
