@@ -705,6 +705,19 @@ fn a_run_stopped_by_a_role_that_refused_its_input_exits_2() {
     h.assert_no_leftovers();
 }
 
+/// A `paper-constant` run of `h` with `args` into `h`'s `run` directory, finished: the
+/// directory and its path as text.
+fn finished_run(h: &Harness, args: &[&str]) -> (std::path::PathBuf, String) {
+    let dir = h.path("run");
+    let d = dir.display().to_string();
+    let mut run = vec!["run", "--scenario", "paper-constant", "--domain", &h.domain];
+    run.extend(args);
+    run.extend(["--out", &d, "--quiet"]);
+    let o = h.rotorloop(&run, Duration::from_secs(120));
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    (dir, d)
+}
+
 /// Damaged flight records and a `launch.json` that claims more than its records hold
 /// (issue 45, points 1 and 5): a far-future tick in every stream (tag and sample agreeing
 /// on capacity × 2⁴⁰, which made `explain`, `export --mcap` and `recover` abort allocating
@@ -714,26 +727,8 @@ fn a_run_stopped_by_a_role_that_refused_its_input_exits_2() {
 #[test]
 fn damaged_records_and_claims_are_read_as_far_as_they_are_sound() {
     let h = Harness::new("damaged-records");
-    let dir = h.path("run");
-    let d = dir.display().to_string();
-    let run = [
-        "run",
-        "--scenario",
-        "paper-constant",
-        "--duration",
-        "2",
-        "--mode",
-        "lockstep",
-        "--flight-ring-ticks",
-        "512",
-        "--domain",
-        &h.domain,
-        "--out",
-        &d,
-        "--quiet",
-    ];
-    let o = h.rotorloop(&run, Duration::from_secs(120));
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let (dir, d) =
+        finished_run(&h, &["--duration", "2", "--mode", "lockstep", "--flight-ring-ticks", "512"]);
     let flight = dir.join("flight");
     for stream in ["plant-state", "plant-torque", "controller-torque", "reference"] {
         use std::os::unix::fs::FileExt;
@@ -804,24 +799,7 @@ fn damaged_records_and_claims_are_read_as_far_as_they_are_sound() {
 #[test]
 fn a_damaged_summary_is_refused_by_name_or_read_around() {
     let h = Harness::new("damaged-summary");
-    let dir = h.path("run");
-    let d = dir.display().to_string();
-    let run = [
-        "run",
-        "--scenario",
-        "paper-constant",
-        "--duration",
-        "1",
-        "--mode",
-        "realtime",
-        "--domain",
-        &h.domain,
-        "--out",
-        &d,
-        "--quiet",
-    ];
-    let o = h.rotorloop(&run, Duration::from_secs(120));
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let (dir, d) = finished_run(&h, &["--duration", "1", "--mode", "realtime"]);
     let path = dir.join("summary.json");
     let good: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(&path).expect("summary")).expect("json");
