@@ -424,8 +424,8 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
 
 /// `rotorloop explain DIR`.
 fn explain_command(dir: &std::path::Path, threshold_ticks: f64) -> anyhow::Result<()> {
-    let options = crate::study::incidents::Options { threshold_ticks };
-    let found = crate::study::incidents::explain(dir, options)?;
+    let options = crate::pipeline::incidents::Options { threshold_ticks };
+    let found = crate::pipeline::incidents::explain(dir, options)?;
     println!("{}: {}", dir.display(), found.describe_worst());
     println!("incidents: {}", dir.join("incidents.md").display());
     Ok(())

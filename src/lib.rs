@@ -17,6 +17,9 @@
 //!   margin, Monte Carlo of almost-global convergence, the paper's scenarios, and the
 //!   latency bench;
 //! - [`observe`]: `rotorloop ps` and `watch`, which see a live loop without touching it;
+//! - [`pipeline`]: after the last tick, what turns a run's records into its analyses
+//!   and files: the incidents (why a tick was late, what it cost) and `run.mcap`; beneath
+//!   both `run` and `study`, so neither imports the other's callers;
 //! - [`export`]: a finished run as an MCAP file for Foxglove (`rotorloop export`, and
 //!   at the end of every `run`);
 //! - [`baseline`]: what the bench compares the loop with (ping-pong over atomics, bare
@@ -26,6 +29,7 @@ pub mod baseline;
 pub mod cli;
 pub mod export;
 pub mod observe;
+pub mod pipeline;
 pub mod run;
 pub mod sim;
 pub mod study;

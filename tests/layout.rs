@@ -2,7 +2,8 @@
 //! (`*/src/process/mod.rs`) is under 80 lines. No function is over 100 lines: clippy's
 //! `too_many_lines` enforces that (workspace lints in `Cargo.toml`, the threshold in
 //! `clippy.toml`), and a test here checks it stays switched on. No crate has an import
-//! circle between its modules.
+//! circle between its modules, and the root crate none between its rooms (`run`, `study`,
+//! `pipeline`, …).
 
 use std::path::Path;
 
@@ -101,7 +102,31 @@ fn modules_of(src: &Path) -> Vec<(Vec<String>, String)> {
 
 /// A cycle of imports between the modules of one crate, if there is one.
 fn import_cycle(src: &Path) -> Option<Vec<String>> {
-    let mods = modules_of(src);
+    cycle_among(modules_of(src))
+}
+
+/// A cycle of imports between the crate's rooms (its top-level modules, each with
+/// everything inside it), if there is one: `run` importing `study` while `study` imports
+/// `run` is a circle even when no two files import each other.
+fn room_cycle(src: &Path) -> Option<Vec<String>> {
+    let mut rooms: Vec<(Vec<String>, String)> = Vec::new();
+    for (m, text) in modules_of(src) {
+        let room: Vec<String> = m.into_iter().take(1).collect();
+        match rooms.iter_mut().find(|(r, _)| *r == room) {
+            Some((_, all)) => {
+                // Each file's test part stays out, as in `imports`.
+                all.push_str(text.split("#[cfg(test)]").next().unwrap_or_default());
+                all.push('\n');
+            }
+            None => {
+                rooms.push((room, text.split("#[cfg(test)]").next().unwrap_or_default().into()))
+            }
+        }
+    }
+    cycle_among(rooms)
+}
+
+fn cycle_among(mods: Vec<(Vec<String>, String)>) -> Option<Vec<String>> {
     let names: Vec<Vec<String>> = mods.iter().map(|(m, _)| m.clone()).collect();
     let edges: Vec<Vec<usize>> = mods
         .iter()
@@ -163,6 +188,37 @@ fn no_crate_has_an_import_circle_between_its_modules() {
             panic!("{src}: an import circle: {}", cycle.join(" → "));
         }
     }
+}
+
+#[test]
+fn the_rooms_of_the_root_crate_have_no_import_circle() {
+    // The root crate's rooms (run, study, pipeline, sim, export, observe, baseline, cli):
+    // the launcher calls the post-run pipeline, the bench calls the launcher, and nothing
+    // beneath calls back up.
+    if let Some(cycle) = room_cycle(&root().join("src")) {
+        panic!("src: an import circle between rooms: {}", cycle.join(" → "));
+    }
+}
+
+#[test]
+fn the_room_check_finds_a_circle_that_no_two_files_make() {
+    let dir = std::env::temp_dir().join(format!("rotorloop-rooms-{}", std::process::id()));
+    for room in ["run", "study"] {
+        std::fs::create_dir_all(dir.join(room)).expect("a temporary folder");
+    }
+    let write = |p: &str, t: &str| std::fs::write(dir.join(p), t).expect("write");
+    write("lib.rs", "pub mod run;\npub mod study;\n");
+    write("run/mod.rs", "pub mod launch;\npub mod sched;\n");
+    write("run/launch.rs", "fn f() { crate::study::incidents::explain(); }\n");
+    write("run/sched.rs", "pub const PERIOD_NS: u64 = 1;\n");
+    write("study/mod.rs", "pub mod incidents;\n");
+    write("study/incidents.rs", "fn g() -> u64 { crate::run::sched::PERIOD_NS }\n");
+    assert_eq!(import_cycle(&dir), None, "no two files import each other");
+    let cycle = room_cycle(&dir).expect("run → study → run");
+    assert_eq!(cycle.len(), 3, "{cycle:?}");
+    write("study/incidents.rs", "fn g() -> u64 { 1 }\n");
+    assert_eq!(room_cycle(&dir), None, "study no longer imports run");
+    std::fs::remove_dir_all(&dir).expect("remove");
 }
 
 #[test]

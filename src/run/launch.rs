@@ -292,16 +292,13 @@ fn report(
             }
         }
     }
-    if flight.is_some() && !args.no_monitor && args.out.join("summary.json").exists() {
-        let options = crate::study::incidents::Options::default();
-        match crate::study::incidents::explain_yielding(&args.out, options) {
-            Ok(found) if !args.quiet => println!("incidents: {}", found.describe_worst()),
-            Ok(_) => {}
-            Err(e) => eprintln!("warning: no incidents report: {e:#}"),
-        }
-    }
-    if flight.is_some() && !args.no_mcap && args.out.join("summary.json").exists() {
-        crate::export::mcap_after_run(&args.out, args.quiet);
+    if flight.is_some() {
+        let steps = crate::pipeline::Steps {
+            incidents: !args.no_monitor,
+            mcap: !args.no_mcap,
+            quiet: args.quiet,
+        };
+        crate::pipeline::finish(&args.out, steps);
     }
     if shutdown_requested() {
         eprintln!("stopped by signal; partial report in {}", args.out.display());

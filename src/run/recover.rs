@@ -176,7 +176,10 @@ pub fn run(dir: &Path) -> anyhow::Result<()> {
             "why": "the launcher did not end normally: no fault report, no memory figures",
         });
     })?;
-    crate::export::mcap_after_run(dir, false);
+    crate::pipeline::finish(
+        dir,
+        crate::pipeline::Steps { incidents: true, mcap: true, quiet: false },
+    );
     println!("{}", rotorloop_monitor::report::console_summary(&summary));
     println!(
         "recovered: {} rows from the flight records into {}{}",

@@ -3,7 +3,7 @@
 //! each role's `/proc/PID/schedstat` (time on a CPU, time runnable but waiting for one),
 //! its state and last CPU in `/proc/PID/stat` (`R` running or runnable, `S` sleeping, `T`
 //! stopped, …) and the machine's steal time in `/proc/stat` every [`PERIOD_NS`], into
-//! `OUT/sched.csv`. The incidents of the run (`crate::study::incidents`) read it to say
+//! `OUT/sched.csv`. The incidents of the run (`crate::pipeline::incidents`) read it to say
 //! "runnable, not running for 29 ms", "stopped", or "the host took the vCPU".
 //!
 //! The files are opened once per life of a role and read with `pread` at offset 0 (a
@@ -18,11 +18,7 @@ use std::sync::{Arc, Mutex};
 
 use rotorloop_common::clock::now_ns;
 
-/// How often each role is looked at (ns).
-pub const PERIOD_NS: u64 = 1_000_000;
-
-/// The header of `sched.csv`.
-pub const HEADER: &str = "t_ns,role,pid,state,cpu,on_cpu_ns,wait_ns,steal_ns";
+use crate::pipeline::sched_csv::{HEADER, PERIOD_NS};
 
 /// One role's life: its pid and its open `/proc` files.
 struct Life {

@@ -1,5 +1,5 @@
 //! `run --trace-sched`: the kernel's scheduler and IRQ events during the run, so that an
-//! incident names what ran instead of the late process (`crate::study::incidents`).
+//! incident names what ran instead of the late process (`crate::pipeline::incidents`).
 //!
 //! A tracefs instance of the run's own (`instances/rotorloop-DOMAIN`: other tracers on
 //! the machine are not touched) with the `mono` clock (`CLOCK_MONOTONIC`, the clock of

@@ -1,7 +1,6 @@
 //! What is computed from many runs, in process or through the four processes:
 //!
 //! - [`gains`]: the paper's gain analysis (the linearised loop's poles);
-//! - [`incidents`]: why a run's ticks were late, and what it cost;
 //! - [`margin`]: the delay margin, measured against the computed one;
 //! - [`montecarlo`]: almost-global convergence from near-π errors;
 //! - [`paper`]: the paper's scenarios, in process and in real time, with one report;
@@ -9,7 +8,6 @@
 
 pub mod bench;
 pub mod gains;
-pub mod incidents;
 pub mod margin;
 pub mod montecarlo;
 pub mod paper;

@@ -48,7 +48,7 @@ pub struct FaultReport {
     /// What the fault cost the control: the peak attitude deviation of the run from the
     /// loop that had no incident, over the incident that holds the fault (deg; 0 where the
     /// loop did not feel it, a monitor's kill say). Filled in by the run's incidents
-    /// (`crate::study::incidents`); `None` where they could not be computed.
+    /// (`crate::pipeline::incidents`); `None` where they could not be computed.
     pub peak_deviation_deg: Option<f64>,
     /// From the incident's start until that deviation is below 10 % of its peak (s);
     /// `None`: not within the run.

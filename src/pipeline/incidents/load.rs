@@ -49,7 +49,7 @@ pub struct Scheduled {
     pub value_s: Option<f64>,
 }
 
-/// One row of `sched.csv` (`crate::run::sched`).
+/// One row of `sched.csv` (`crate::pipeline::sched_csv`).
 #[derive(Debug, Clone, PartialEq)]
 pub struct SchedRow {
     /// When (monotonic ns).

@@ -387,7 +387,7 @@ fn stopped_ns(seen: &[&SchedRow]) -> u64 {
         }
     }
     let last = seen.last().map_or(0, |r| r.t_ns);
-    total + since.map_or(0, |s| last.saturating_sub(s) + crate::run::sched::PERIOD_NS)
+    total + since.map_or(0, |s| last.saturating_sub(s) + crate::pipeline::sched_csv::PERIOD_NS)
 }
 
 /// The kernel's view of `role` over the incident, from `sched.csv`.
