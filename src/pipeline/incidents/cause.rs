@@ -423,7 +423,7 @@ fn kernel(run: &RunRecord, role: &str, [start, end]: [u64; 2]) -> Option<String>
     let mut cpus: Vec<u32> = seen.iter().map(|r| r.cpu).collect();
     cpus.sort_unstable();
     cpus.dedup();
-    for cpu in cpus.iter().filter(|_| !run.trace.is_empty()) {
+    for cpu in cpus.iter().filter(|_| run.traced) {
         words.push(ran_instead(run, *cpu, &pids, [from, to]));
     }
     Some(format!(

@@ -95,8 +95,13 @@ pub struct RunRecord {
     pub sched: Vec<SchedRow>,
     /// Whether `sched.csv` has any row.
     pub kernel_view: bool,
-    /// The kernel's scheduler trace (empty without `--trace-sched`).
+    /// The kernel's scheduler trace near the incidents (empty without `--trace-sched`, and
+    /// until [`RunRecord::keep_sched`] names the windows, as for `sched`).
     pub trace: Vec<super::trace::Traced>,
+    /// Whether the run has a scheduler trace with any event (`--trace-sched`).
+    pub traced: bool,
+    /// `sched-trace.txt`, read by [`RunRecord::keep_sched`].
+    trace_path: std::path::PathBuf,
     /// The first state's publish (ns): the origin of the faults' times.
     pub t0_ns: u64,
     /// Whether any state carries a grid time (a real-time run).
@@ -181,7 +186,9 @@ impl RunRecord {
             sched: Vec::new(),
             kernel_view,
             sched_path,
-            trace: super::trace::read(&dir.join("sched-trace.txt")),
+            trace: Vec::new(),
+            traced: false,
+            trace_path: dir.join("sched-trace.txt"),
             t0_ns,
         })
     }
@@ -217,6 +224,8 @@ impl RunRecord {
             kernel_view: false,
             sched_path: Default::default(),
             trace: Vec::new(),
+            traced: false,
+            trace_path: Default::default(),
         }
     }
 
@@ -290,9 +299,10 @@ pub fn sched_rows(path: &Path) -> impl Iterator<Item = SchedRow> {
 }
 
 impl RunRecord {
-    /// Reads the scheduler samples of `sched.csv` within a second of any of `windows`
-    /// (tick ranges; a row per role per millisecond is kept only where an incident needs
-    /// it), in one pass a line at a time.
+    /// Reads the scheduler samples of `sched.csv` and the events of `sched-trace.txt`
+    /// within a second of any of `windows` (tick ranges; a row per role per millisecond,
+    /// and every context switch of the machine, are kept only where an incident needs
+    /// them), each file in one pass a line at a time.
     pub fn keep_sched(&mut self, windows: &[[u64; 2]]) {
         let slack = 1_000_000_000 + (self.dt * 1e9) as u64;
         let mut spans: Vec<[u64; 2]> = windows
@@ -312,5 +322,6 @@ impl RunRecord {
             i.checked_sub(1).is_some_and(|i| t <= merged[i][1])
         };
         self.sched = sched_rows(&self.sched_path).filter(|r| near(r.t_ns)).collect();
+        (self.traced, self.trace) = super::trace::read_near(&self.trace_path, near);
     }
 }

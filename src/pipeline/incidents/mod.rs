@@ -202,7 +202,7 @@ pub fn find(dir: &Path, options: Options) -> anyhow::Result<Explained> {
         law_reproduced: [pass.same, pass.computed],
         realtime: run.realtime(),
         kernel_view: run.kernel_view,
-        traced: !run.trace.is_empty(),
+        traced: run.traced,
     })
 }
 

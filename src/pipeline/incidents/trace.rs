@@ -83,12 +83,22 @@ pub fn parse(line: &str) -> Option<Traced> {
     Some(Traced { t_ns, cpu, event })
 }
 
-/// The events of `path`, in time order (none without the file).
-pub fn read(path: &Path) -> Vec<Traced> {
-    let Ok(text) = std::fs::read_to_string(path) else { return Vec::new() };
-    let mut v: Vec<Traced> = text.lines().filter_map(parse).collect();
+/// The events of the trace at `path` whose time `near` accepts, in time order, read a line
+/// at a time (a day's trace is not held whole: only what the incidents look at), with
+/// whether the file held any event at all.
+pub fn read_near(path: &Path, near: impl Fn(u64) -> bool) -> (bool, Vec<Traced>) {
+    use std::io::BufRead;
+    let Ok(file) = std::fs::File::open(path) else { return (false, Vec::new()) };
+    let mut any = false;
+    let mut v: Vec<Traced> = std::io::BufReader::new(file)
+        .lines()
+        .map_while(Result::ok)
+        .filter_map(|l| parse(&l))
+        .inspect(|_| any = true)
+        .filter(|e| near(e.t_ns))
+        .collect();
     v.sort_by_key(|e| e.t_ns);
-    v
+    (any, v)
 }
 
 /// What ran on `cpu` over `[from, to]` (ns): each task's time on it, and the IRQ
@@ -162,5 +172,23 @@ mod tests {
         let (ran, irq) = occupancy(&events, 1, [50, 200]);
         assert_eq!(ran, vec![(("p7".into(), 7), 100), (("p9".into(), 9), 50)]);
         assert_eq!(irq, 0);
+    }
+
+    #[test]
+    fn only_the_events_near_an_incident_are_kept_and_a_trace_is_known_without_them() {
+        let dir = std::env::temp_dir().join(format!("rotorloop-trace-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).expect("a temporary folder");
+        let path = dir.join("sched-trace.txt");
+        let line = |t: &str| SWITCH.replace("1234.567890", t);
+        // Out of order across CPUs, as per-CPU buffers can be; a header line; a bad line.
+        let text = ["# tracer: nop".to_owned(), line("7.0"), line("2.5"), line("3.0"), line("x")];
+        std::fs::write(&path, text.join("\n")).expect("write");
+        let (any, kept) = read_near(&path, |t| (2_000_000_000..=3_000_000_000).contains(&t));
+        assert!(any);
+        assert_eq!(kept.iter().map(|e| e.t_ns).collect::<Vec<_>>(), [2_500_000_000, 3_000_000_000]);
+        let (any, kept) = read_near(&path, |_| false);
+        assert!(any && kept.is_empty(), "a trace with no event near an incident is still a trace");
+        assert_eq!(read_near(&dir.join("none.txt"), |_| true), (false, Vec::new()));
+        std::fs::remove_dir_all(&dir).expect("remove");
     }
 }
