@@ -492,6 +492,9 @@ fn recovers_the_run(h: &Harness, out: &std::path::Path) {
     assert!(said.contains("recovered:"), "{said}");
     let s = json(&out.join("summary.json"));
     assert_eq!(s["recovered"]["by"], "rotorloop recover", "{s}");
+    // The steps after the last tick, as a launcher would have taken them.
+    assert!(s["incidents"]["count"].is_u64(), "recover found the incidents: {s}");
+    assert!(out.join("incidents.md").exists() && out.join("run.mcap").exists(), "{said}");
     assert_eq!(s["completed"], false, "the loop ended with the launcher");
     assert!(out.join("flight/plant-state.flight").exists());
     let streams = s["flight"]["streams"].as_array().expect("streams");
