@@ -357,3 +357,64 @@ fn the_controller_axis_measures_each_law_in_the_same_invocation() {
         None => assert!(rows[2][14].contains("cannot import"), "{:?}", rows[2]),
     }
 }
+
+/// Two runs started at once with disjoint `--cpus` never share a core: every role's
+/// affinity, as the kernel gave it (`cpus.json`, read from `/proc/PID/status`
+/// `Cpus_allowed_list`), is inside its own run's set, and a `--pin` outside the run's set
+/// or a `--cpus` outside the process's CPU set is refused naming the flag.
+#[test]
+fn runs_with_disjoint_cpus_get_disjoint_affinities() {
+    use crate::common::harness::ROTORLOOP;
+    use rotorloop::run::cpus::{allowed_now, parse_list};
+    let mut h = Harness::new("cpus");
+    let allowed = allowed_now();
+    assert!(allowed.len() >= 2, "this test needs 2 CPUs in the process's set: {allowed:?}");
+    let (a, b) = (allowed[0].to_string(), allowed[1].to_string());
+    let start = |h: &mut Harness, cpu: &str, pin: Option<&str>| {
+        let out = h.path(&format!("run-{cpu}"));
+        let mut args: Vec<String> = ["run", "--scenario", "paper-zero", "--mode", "realtime"]
+            .iter()
+            .map(|s| s.to_string())
+            .collect();
+        args.extend(["--duration", "1", "--quiet", "--no-mcap", "--cpus", cpu].map(String::from));
+        args.extend(["--domain".into(), format!("{}-{cpu}", h.domain)]);
+        args.extend(["--out".into(), out.display().to_string()]);
+        if let Some(p) = pin {
+            args.extend(["--pin".into(), p.to_owned()]);
+        }
+        h.spawn(ROTORLOOP, &args);
+        out
+    };
+    let out_a = start(&mut h, &a, None);
+    let out_b = start(&mut h, &b, Some(&format!("plant={b},controller={b}")));
+    let statuses = h.wait_all(Duration::from_secs(120));
+    assert!(statuses.iter().all(|s| s.success()), "{statuses:?}");
+    for (out, mine) in [(&out_a, &a), (&out_b, &b)] {
+        let record = crate::common::harness::json(&out.join("cpus.json"));
+        assert_eq!(record["cpus"].as_str(), Some(mine.as_str()), "{record}");
+        let roles = record["roles"].as_object().expect("roles");
+        assert_eq!(roles.len(), 4, "{record}");
+        for (role, r) in roles {
+            let list = r["cpus_allowed_list"].as_str().unwrap_or_else(|| panic!("{role}: {r}"));
+            let cpus = parse_list(list, "Cpus_allowed_list").expect("a CPU list");
+            assert_eq!(cpus, vec![mine.parse::<usize>().expect("a CPU")], "{role} of {mine}");
+        }
+    }
+    let outside = h.path("outside");
+    let refused = |extra: &[&str]| {
+        let mut args =
+            vec!["run", "--scenario", "paper-zero", "--duration", "0.01", "--mode", "lockstep"];
+        args.extend(["--out", outside.to_str().expect("utf-8")]);
+        args.extend(extra);
+        let o = h.rotorloop(&args, Duration::from_secs(60));
+        assert_eq!(o.status.code(), Some(2), "{extra:?}");
+        String::from_utf8_lossy(&o.stderr).into_owned()
+    };
+    let e = refused(&["--cpus", &a, "--pin", &format!("plant={b}")]);
+    assert!(
+        e.contains(&format!("--pin plant=`{b}` is not allowed: a CPU of the run's set")),
+        "{e}"
+    );
+    let e = refused(&["--cpus", "4095"]);
+    assert!(e.contains("--cpus `4095` is not allowed"), "{e}");
+}

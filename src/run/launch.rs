@@ -144,7 +144,9 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
         .iter()
         .map(|h| Domain::on_host(role_args.domain(), *h).map_err(|e| UsageError(e.to_string())))
         .collect::<Result<Vec<_>, _>>()?;
-    let pins = args.pin.as_deref().map(parse_pins).transpose()?.unwrap_or_default();
+    let topology = crate::run::args::run_topology(args.cpus.as_deref())?;
+    let pins = args.pin.as_deref().map(|p| parse_pins(p, &topology.allowed)).transpose()?;
+    let pins = pins.unwrap_or_default();
     std::fs::create_dir_all(&args.out)
         .with_context(|| format!("cannot create {}", args.out.display()))?;
     claim(args, role_args.record.as_deref(), &domains)?;
@@ -168,6 +170,7 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
         supervisor,
         role_args,
         pins,
+        cpus: args.cpus.is_some().then(|| crate::run::cpus::cpu_set(&topology.allowed)),
         corrupt,
         exe,
         ticks: scenario.ticks(),
@@ -193,6 +196,14 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
     let live = live.transpose()?;
     let launched_ns = rotorloop_common::clock::now_ns();
     let started = start(&launch, &mut children, &mut rss);
+    if started.is_ok() {
+        crate::run::cpus::write_record(
+            &args.out,
+            &topology.allowed,
+            args.pin.as_deref(),
+            &children,
+        );
+    }
     let supervised = started
         .and_then(|()| supervise(&launch, &mut children, &mut rss, FaultSchedule::new(faults)));
     stop_gateways(&mut children, args.quiet);

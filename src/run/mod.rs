@@ -18,6 +18,7 @@
 
 pub mod args;
 pub mod budget;
+pub mod cpus;
 pub mod external;
 pub mod fault;
 pub mod launch;

@@ -43,6 +43,22 @@ fn stop_with_parent(cmd: &mut Command) {
     }
 }
 
+/// Gives the child `set` as its CPU affinity (`--cpus`) before it runs anything.
+fn on_cpus(cmd: &mut Command, set: Option<libc::cpu_set_t>) {
+    use std::os::unix::process::CommandExt;
+    let Some(set) = set else { return };
+    // SAFETY: runs in the child between fork and exec, calling only sched_setaffinity
+    // (a plain syscall) with a set made before the fork.
+    unsafe {
+        cmd.pre_exec(move || {
+            if libc::sched_setaffinity(0, size_of::<libc::cpu_set_t>(), &set) != 0 {
+                return Err(std::io::Error::last_os_error());
+            }
+            Ok(())
+        });
+    }
+}
+
 /// What the launcher starts, and how: the roles' arguments, pins, corruptions, and the
 /// executable they run from (this one, so the four are always the same build).
 pub(crate) struct Launch<'a> {
@@ -56,6 +72,8 @@ pub(crate) struct Launch<'a> {
     pub(crate) supervisor: Supervisor,
     pub(crate) role_args: RoleArgs,
     pub(crate) pins: BTreeMap<String, usize>,
+    /// `--cpus`: every child's affinity, set between fork and exec.
+    pub(crate) cpus: Option<libc::cpu_set_t>,
     pub(crate) corrupt: Vec<(String, Corrupt)>,
     pub(crate) exe: PathBuf,
     /// The run's ticks.
@@ -84,6 +102,7 @@ impl Launch<'_> {
                 cmd.stderr(f);
             }
             stop_with_parent(&mut cmd);
+            on_cpus(&mut cmd, self.cpus);
             return cmd;
         }
         let mut r = self.role_args.clone();
@@ -93,6 +112,7 @@ impl Launch<'_> {
             let mut cmd = ext.command(&r, &args.out, scenario);
             cmd.stdin(Stdio::null());
             stop_with_parent(&mut cmd);
+            on_cpus(&mut cmd, self.cpus);
             if args.quiet {
                 cmd.stdout(Stdio::null());
             }
@@ -101,6 +121,7 @@ impl Launch<'_> {
         let mut cmd = Command::new(&self.exe);
         cmd.arg("role").arg(role).args(r.to_args()).stdin(Stdio::null());
         stop_with_parent(&mut cmd);
+        on_cpus(&mut cmd, self.cpus);
         for (_, c) in self.corrupt.iter().filter(|(r, _)| r == role) {
             cmd.arg("--corrupt").arg(c.to_string());
         }

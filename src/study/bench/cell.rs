@@ -4,6 +4,8 @@
 use std::path::PathBuf;
 
 use clap::Args;
+
+use crate::run::cpus::{Shape, Topology, place};
 use rotorloop_common::ipc::wait::Wait;
 
 use rotorloop_common::role::UsageError;
@@ -230,12 +232,14 @@ impl Row {
     }
 }
 
-/// Cores of plant/controller (and ping/pong) for a placement; `None` = unpinned.
-pub(super) fn cores(placement: &str, ncores: usize) -> Option<(usize, usize)> {
+/// Cores of plant/controller (and ping/pong) for a placement of one loop among the CPUs
+/// of `t` ([`crate::run::cpus::place`]); `None` = unpinned.
+pub(super) fn cores(placement: &str, t: &Topology) -> Option<(usize, usize)> {
     match placement {
-        "same-core" => Some((0, 0)),
-        "cross-core" => Some((0, 1)),
-        "dedicated" => crate::run::args::dedicated_cores(ncores).ok().map(|c| (c[0], c[1])),
+        "same-core" | "cross-core" => {
+            place(t, 1, Shape::of_placement(placement)).loops[0].roles.map(|r| (r[0], r[1]))
+        }
+        "dedicated" => crate::run::args::dedicated_cores(t).ok().map(|c| (c[0], c[1])),
         _ => None, // unpinned, cross-host
     }
 }
@@ -249,7 +253,8 @@ pub fn skip_reason(
     ncores: usize,
 ) -> Option<String> {
     if placement == "dedicated" {
-        return crate::run::args::dedicated_cores(ncores).err();
+        return (ncores < 4)
+            .then(|| format!("dedicated needs 4 cores (one per role); this machine has {ncores}"));
     }
     let spins = matches!(wait, Wait::Spin) || kind == "atomic";
     if spins && placement == "same-core" {

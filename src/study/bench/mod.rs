@@ -48,7 +48,8 @@ pub fn run(a: &BenchArgs) -> anyhow::Result<()> {
     std::fs::create_dir_all(&a.out)
         .with_context(|| format!("cannot create {}", a.out.display()))?;
     let exe = std::env::current_exe().context("cannot find the rotorloop executable")?;
-    let ncores = std::thread::available_parallelism().map_or(1, |n| n.get());
+    let topology = crate::run::cpus::Topology::this_process();
+    let ncores = topology.allowed.len();
     rotorloop_common::signals::install_signal_handlers();
     // Held to the end of the invocation, so the loop and every baseline run under it.
     let (_idle, idle_note) = hold_idle_states(a.cpu_dma_latency);
@@ -86,7 +87,9 @@ pub fn run(a: &BenchArgs) -> anyhow::Result<()> {
         let hog = if load == "other-core"
             && skip_reason("loop", *wait, placement, load, ncores).is_none()
         {
-            let core = cores(placement, ncores).map(|(p, _)| (p + 1) % ncores);
+            // The hog on another CPU of the process's set than the loop's.
+            let core = cores(placement, &topology)
+                .and_then(|(p, _)| topology.allowed.iter().copied().find(|c| *c != p));
             let mut cmd = Command::new(&exe);
             cmd.args(["role", "hog"]).stdin(Stdio::null());
             if let Some(c) = core {
@@ -96,12 +99,12 @@ pub fn run(a: &BenchArgs) -> anyhow::Result<()> {
         } else {
             None
         };
-        let mut measured = measure_loop_variants(a, &base, ncores, &dir)?;
+        let mut measured = measure_loop_variants(a, &base, &topology, &dir)?;
         for b in &a.baselines {
-            measured.push(measure_baseline(&exe, a, &base, b, *wait, placement, ncores, &dir)?);
+            measured.push(measure_baseline(&exe, a, &base, b, *wait, placement, &topology, &dir)?);
         }
         for n in scale_steps(a.loops) {
-            measured.extend(measure_loops(a, &base, ncores, n)?);
+            measured.extend(measure_loops(a, &base, &topology, n)?);
         }
         if let Some(mut h) = hog {
             // SAFETY: signals our own child.

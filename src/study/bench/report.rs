@@ -89,7 +89,7 @@ pub(super) fn write_markdown(a: &BenchArgs, rows: &[Row], idle_note: &str) -> an
     md.push_str(&zero_miss_md(a, rows));
     md.push_str(&breakdown_md(a, rows));
     md.push_str(&before_after_md(rows, a));
-    md.push_str(&scale_md(rows));
+    md.push_str(&scale_md(rows, &a.out));
     md.push_str(&cross_host_md(rows));
     std::fs::write(a.out.join("bench.md"), md)?;
     Ok(())
@@ -340,9 +340,31 @@ pub(super) fn before_after_md(rows: &[Row], a: &BenchArgs) -> String {
     md
 }
 
+/// Where the loops of a scale cell ran (`placement.json`, written by the bench): each
+/// loop's CPUs, and what was said of SMT and of shared cores.
+fn placement_md(out: &Path, cell: &str) -> Option<String> {
+    let text = std::fs::read_to_string(out.join("cells").join(cell).join("placement.json")).ok()?;
+    let j: serde_json::Value = serde_json::from_str(&text).ok()?;
+    let cpus: Vec<String> = j["loops"]
+        .as_array()?
+        .iter()
+        .map(|l| l["cpus"].as_str().unwrap_or("?").to_owned())
+        .collect();
+    let mut line = format!("- {cell}: CPUs of each loop {}", cpus.join(" | "));
+    line.push_str(match j["shared"].as_bool() {
+        Some(true) => "; cores shared",
+        _ => "; no core carries roles of two loops",
+    });
+    for n in j["notes"].as_array().into_iter().flatten().filter_map(|n| n.as_str()) {
+        let _ = write!(line, ". {n}");
+    }
+    Some(line + ".\n")
+}
+
 /// The scale cells: per loop count, the loops' p50s, worst p99 and misses, against the
-/// bare baseline's misses; the largest count at which no loop missed more.
-pub(super) fn scale_md(rows: &[Row]) -> String {
+/// bare baseline's misses; the largest count at which no loop missed more; where each
+/// count's loops ran.
+pub(super) fn scale_md(rows: &[Row], out: &Path) -> String {
     let mut md = String::new();
     for base in rows.iter().filter(|r| r.kind == "loop" && r.skipped.is_empty()) {
         let scaled: Vec<(usize, Vec<&Row>)> = (2..=64)
@@ -396,6 +418,19 @@ pub(super) fn scale_md(rows: &[Row]) -> String {
             "\nLargest number of loops with every loop at or below the bare baseline's misses: {}.",
             largest.map_or("none measured".into(), |n| n.to_string())
         );
+        let placed: Vec<String> = all
+            .iter()
+            .skip(1)
+            .filter_map(|(n, _)| placement_md(out, &format!("{}-x{n}", base.cell)))
+            .collect();
+        if !placed.is_empty() {
+            let _ = write!(
+                md,
+                "\nPlacement (disjoint core sets from the process's CPU set, isolated CPUs \
+                 first, CPU 0 last):\n\n{}",
+                placed.concat()
+            );
+        }
     }
     md
 }
