@@ -16,6 +16,8 @@
 //! - [`study`]: what is computed from many runs: the paper's gain analysis, the delay
 //!   margin, Monte Carlo of almost-global convergence, the paper's scenarios, and the
 //!   latency bench;
+//! - [`doctor`]: `rotorloop doctor`, what this machine allows a real-time loop (also
+//!   `doctor.json` in every run and bench directory);
 //! - [`observe`]: `rotorloop ps` and `watch`, which see a live loop without touching it;
 //! - [`export`]: a finished run as an MCAP file for Foxglove (`rotorloop export`, and
 //!   at the end of every `run`);
@@ -24,6 +26,7 @@
 
 pub mod baseline;
 pub mod cli;
+pub mod doctor;
 pub mod export;
 pub mod observe;
 pub mod run;

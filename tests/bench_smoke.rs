@@ -26,6 +26,11 @@ fn short_bench_writes_every_output_file() {
         "--rates 500 --wait event --placement same-core,cross-core --baselines iceoryx2 --seconds 0.3",
         180,
     );
+    // The machine state of the invocation, and of each loop's run.
+    let doctor = crate::common::harness::json(&out.join("doctor.json"));
+    assert!(doctor["items"].as_array().is_some_and(|i| !i.is_empty()), "{doctor}");
+    let cell = out.join("cells/r500-event-cross-core-none/loop");
+    assert!(cell.join("doctor.json").exists() && cell.join("cpus.json").exists());
     let csv = std::fs::read_to_string(out.join("bench.csv")).expect("bench.csv");
     let mut lines = csv.lines();
     let header: Vec<&str> = lines.next().expect("header").split(',').collect();
@@ -229,6 +234,11 @@ fn the_timer_baseline_is_measured_beside_the_plants_tick() {
          --cpu-dma-latency 0",
         180,
     );
+    // The machine state of the invocation, and of each loop's run.
+    let doctor = crate::common::harness::json(&out.join("doctor.json"));
+    assert!(doctor["items"].as_array().is_some_and(|i| !i.is_empty()), "{doctor}");
+    let cell = out.join("cells/r500-event-cross-core-none/loop");
+    assert!(cell.join("doctor.json").exists() && cell.join("cpus.json").exists());
     let csv = std::fs::read_to_string(out.join("bench.csv")).expect("bench.csv");
     let mut lines = csv.lines();
     let header: Vec<&str> = lines.next().expect("header").split(',').collect();

@@ -431,6 +431,7 @@ fn flag_values_are_refused(all: bool) {
         ),
         (vec!["watch", "--domain", "none", "--once"], &["--seconds", "--sample-hz"]),
         (vec!["ps"], &["--sample-ms"]),
+        (vec!["doctor"], &["--rate", "--seconds", "--cpus"]),
         (vec!["foxglove", "--domain", "none"], &["--wait-s"]),
         (vec!["margin", "--out", out], &["--duration", "--rate", "--delays"]),
         (vec!["explain", run], &["--threshold-ticks"]),

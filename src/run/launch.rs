@@ -149,6 +149,8 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
     let pins = pins.unwrap_or_default();
     std::fs::create_dir_all(&args.out)
         .with_context(|| format!("cannot create {}", args.out.display()))?;
+    // The machine state the run's figures were taken in.
+    crate::doctor::write_into(&args.out, 1.0 / scenario.dt(), duration_s, Some(&topology.allowed));
     claim(args, role_args.record.as_deref(), &domains)?;
     if let Some(s) = &split {
         // The link's one-time credentials, before any gateway: a run that cannot make

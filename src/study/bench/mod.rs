@@ -54,6 +54,9 @@ pub fn run(a: &BenchArgs) -> anyhow::Result<()> {
     // Held to the end of the invocation, so the loop and every baseline run under it.
     let (_idle, idle_note) = hold_idle_states(a.cpu_dma_latency);
 
+    // The machine state the figures were taken in; bench.md quotes what matters.
+    let doctor = crate::doctor::write_into(&a.out, a.rates[0], a.seconds, Some(&topology.allowed));
+    let idle_note = machine_note(a, &doctor, idle_note);
     let csv_path = a.out.join("bench.csv");
     std::fs::write(&csv_path, format!("{CSV_HEADER}\n"))?;
     let mut rows: Vec<Row> = Vec::new();
@@ -125,6 +128,29 @@ pub fn run(a: &BenchArgs) -> anyhow::Result<()> {
     plots(a, &rows)?;
     println!("bench: {} measurements in {}", rows.len(), a.out.display());
     Ok(())
+}
+
+/// The lines of the invocation's `doctor.json` that matter (what is not as a real-time
+/// loop wants it), after the idle-state line, for bench.md; SCHED_FIFO's first, saying
+/// at what priority the invocation ran.
+fn machine_note(a: &BenchArgs, doctor: &std::path::Path, idle_note: String) -> String {
+    let lines = crate::doctor::quoted_lines(doctor);
+    let mut note = idle_note;
+    if let Some(fifo) = lines.iter().find(|l| l.starts_with("sched_fifo")) {
+        let ran = match a.rt_priority {
+            Some(p) => format!("--rt-priority {p} asked, so the roles ran at normal priority"),
+            None => "ran at normal priority".to_owned(),
+        };
+        note.push_str(&format!("\n\nSCHED_FIFO not available: {ran} ({fifo})."));
+    }
+    let others: Vec<&String> = lines.iter().filter(|l| !l.starts_with("sched_fifo")).collect();
+    if !others.is_empty() {
+        note.push_str("\n\nThis machine (`doctor.json`, `rotorloop doctor`), what is not as a real-time loop wants it:\n");
+        for l in others {
+            note.push_str(&format!("\n- {l}"));
+        }
+    }
+    note
 }
 
 /// Holds `--cpu-dma-latency` where it is given, and says in a line of `bench.md` which idle
