@@ -428,3 +428,63 @@ fn runs_with_disjoint_cpus_get_disjoint_affinities() {
     let e = refused(&["--cpus", "4095"]);
     assert!(e.contains("--cpus `4095` is not allowed"), "{e}");
 }
+
+/// `--repeat 3`: the loop and each baseline measured three times in turn (a row each,
+/// `repeat` 0 to 2); the loop rows carry each ratio's median and interval, the median
+/// inside its interval, in columns that say what they are; bench.md shows them with
+/// their level and verdicts. `rotorloop compare` of the bench with itself finds every
+/// figure indistinguishable, and of two runs says there is no interval.
+#[test]
+fn repeated_cells_give_intervals_and_compare_reads_them() {
+    let h = Harness::new("benchrepeat");
+    let out = bench(
+        &h,
+        "--rates 500 --wait event --placement cross-core --baselines iceoryx2,timer --seconds 0.3 --repeat 3",
+        300,
+    );
+    let csv = std::fs::read_to_string(out.join("bench.csv")).expect("bench.csv");
+    let mut lines = csv.lines();
+    let header: Vec<&str> = lines.next().expect("header").split(',').collect();
+    let col =
+        |name: &str| header.iter().position(|c| *c == name).unwrap_or_else(|| panic!("{name}"));
+    let rows: Vec<Vec<&str>> = lines.map(|l| l.split(',').collect()).collect();
+    assert_eq!(rows.len(), 9, "3 × (loop, iceoryx2, timer): {csv}");
+    let loops: Vec<&Vec<&str>> = rows.iter().filter(|r| r[1] == "loop").collect();
+    let reps: Vec<&str> = loops.iter().map(|r| r[col("repeat")]).collect();
+    assert_eq!(reps, ["0", "1", "2"]);
+    for r in &loops {
+        for name in
+            ["loop_over_iceoryx2_p50", "loop_over_iceoryx2_p99", "plant_over_timer_lateness_p99"]
+        {
+            let v = |s: &str| r[col(&format!("{name}_{s}"))].parse::<f64>().expect(name);
+            assert!(v("ci_low") <= v("median") && v("median") <= v("ci_high"), "{name}: {r:?}");
+            let verdict = r[col(&format!("{name}_verdict"))];
+            assert!(["faster", "slower", "indistinguishable"].contains(&verdict), "{verdict}");
+        }
+        assert_eq!(r[col("repetitions")], "3");
+        assert_eq!(r[col("ci_level")], "0.7500", "the range of 3 is a 75 % interval");
+    }
+    let md = std::fs::read_to_string(out.join("bench.md")).expect("bench.md");
+    assert!(md.contains("## Repetitions"), "{md}");
+    assert!(md.contains("| r500-event-cross-core-none | loop_over_iceoryx2_p50 |"), "{md}");
+    let twice = h.rotorloop(
+        &["compare", out.to_str().expect("utf-8"), out.to_str().expect("utf-8")],
+        Duration::from_secs(60),
+    );
+    let text = ok(&twice);
+    assert!(text.contains("| r500-event-cross-core-none | loop | p50 µs |"), "{text}");
+    assert!(text.contains("indistinguishable (intervals overlap)"), "{text}");
+    assert!(!text.contains("intervals apart"), "a bench against itself: {text}");
+    let cell = out.join("cells/r500-event-cross-core-none");
+    let (a, b) = (cell.join("loop"), cell.join("rep1/loop"));
+    let runs = ok(&h.rotorloop(
+        &["compare", a.to_str().expect("utf-8"), b.to_str().expect("utf-8")],
+        Duration::from_secs(60),
+    ));
+    assert!(runs.contains("One run on each side: no interval"), "{runs}");
+    let mixed = h.rotorloop(
+        &["compare", a.to_str().expect("utf-8"), out.to_str().expect("utf-8")],
+        Duration::from_secs(60),
+    );
+    assert_eq!(mixed.status.code(), Some(2));
+}

@@ -449,6 +449,7 @@ fn flag_values_are_refused(all: bool) {
                 "--seconds",
                 "--loops",
                 "--pairs",
+                "--repeat",
                 "--spin-before-tick-us",
                 "--cpu-dma-latency",
                 "--rt-priority",

@@ -74,11 +74,34 @@ pub(super) fn before_after(
             after.push(measure_loop(a, base, t, &d, f)?);
         }
     }
+    write_pair_intervals(dir, &before, &after)?;
     let (after, before) = (median_p50(after), median_p50(before));
     Ok(match plain_after {
         true => (after, before),
         false => (before, after),
     })
+}
+
+/// `before-after.json` of a cell: the after / before ratios of each pair at p50 and p99,
+/// their median, interval and verdict ([`crate::study::stats`], as `--repeat`).
+fn write_pair_intervals(dir: &Path, before: &[Row], after: &[Row]) -> anyhow::Result<()> {
+    use crate::study::stats::{Verdict, median_interval, paired_ratios};
+    let mut j = serde_json::json!({ "pairs": before.len().min(after.len()) });
+    for (name, f) in [("p50", (|r: &Row| r.p50) as fn(&Row) -> f64), ("p99", |r: &Row| r.p99)] {
+        let a: Vec<f64> = after.iter().map(f).collect();
+        let b: Vec<f64> = before.iter().map(f).collect();
+        let ratios = paired_ratios(&a, &b);
+        j[format!("after_over_before_{name}")] = match median_interval(&ratios) {
+            Some(i) => serde_json::json!({
+                "ratios": ratios, "median": i.median, "ci_low": i.low, "ci_high": i.high,
+                "level": i.level, "verdict": Verdict::of(&i).name(),
+            }),
+            None => serde_json::Value::Null,
+        };
+    }
+    let path = dir.join("before-after.json");
+    std::fs::write(&path, format!("{j:#}\n"))
+        .with_context(|| format!("cannot write {}", path.display()))
 }
 
 /// The row with the median p50 of `rows` (the upper one of an even count; skipped rows

@@ -10,10 +10,12 @@
 //!
 //! - [`cell`]: the arguments, the cells, what cannot be measured here, a row;
 //! - [`measure`]: measuring a cell and its baselines;
+//! - [`repeat`]: `--repeat`'s medians, intervals and verdicts;
 //! - [`report`]: `bench.md` and the plots.
 
 pub mod cell;
 pub mod measure;
+pub mod repeat;
 pub mod report;
 
 use std::io::{IsTerminal, Write};
@@ -22,8 +24,10 @@ use std::process::{Command, Stdio};
 use anyhow::Context;
 use rotorloop_common::signals::shutdown_requested;
 
-use cell::{BenchArgs, CSV_HEADER, Row, cells, cores, skip_reason, validate};
-use measure::{measure_baseline, measure_loop_variants, measure_loops, scale_steps};
+use cell::{BenchArgs, Row, cells, cores, csv_header, skip_reason, validate};
+use measure::{
+    Variant, measure_baseline, measure_loop, measure_loop_variants, measure_loops, scale_steps,
+};
 use report::{plots, write_markdown};
 use rotorloop_common::rt::CpuDmaLatency;
 
@@ -58,7 +62,7 @@ pub fn run(a: &BenchArgs) -> anyhow::Result<()> {
     let doctor = crate::doctor::write_into(&a.out, a.rates[0], a.seconds, Some(&topology.allowed));
     let idle_note = machine_note(a, &doctor, idle_note);
     let csv_path = a.out.join("bench.csv");
-    std::fs::write(&csv_path, format!("{CSV_HEADER}\n"))?;
+    std::fs::write(&csv_path, format!("{}\n", csv_header()))?;
     let mut rows: Vec<Row> = Vec::new();
     let cells = cells(a);
     let tty = std::io::stderr().is_terminal();
@@ -102,10 +106,28 @@ pub fn run(a: &BenchArgs) -> anyhow::Result<()> {
         } else {
             None
         };
-        let mut measured = measure_loop_variants(a, &base, &topology, &dir)?;
-        for b in &a.baselines {
-            measured.push(measure_baseline(&exe, a, &base, b, *wait, placement, &topology, &dir)?);
+        // `--repeat`: loop, baselines, loop, baselines, … (the variants once, first).
+        let mut measured = Vec::new();
+        for rep in 0..a.repeat {
+            let d = match rep {
+                0 => dir.clone(),
+                r => dir.join(format!("rep{r}")),
+            };
+            std::fs::create_dir_all(&d)?;
+            let mut these = match rep {
+                0 => measure_loop_variants(a, &base, &topology, &d)?,
+                _ => vec![measure_loop(a, &base, &topology, &d, Variant::Loop)?],
+            };
+            for b in &a.baselines {
+                these.push(measure_baseline(&exe, a, &base, b, *wait, placement, &topology, &d)?);
+            }
+            these.iter_mut().for_each(|r| r.repeat = rep);
+            measured.extend(these);
+            if shutdown_requested() {
+                break;
+            }
         }
+        repeat::fill(&mut measured);
         for n in scale_steps(a.loops) {
             measured.extend(measure_loops(a, &base, &topology, n)?);
         }

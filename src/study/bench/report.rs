@@ -84,6 +84,7 @@ pub(super) fn write_markdown(a: &BenchArgs, rows: &[Row], idle_note: &str) -> an
             );
         }
     }
+    md.push_str(&super::repeat::repeat_md(rows));
     md.push_str(&timer_md(rows));
     md.push_str(&controllers_md(rows, a));
     md.push_str(&zero_miss_md(a, rows));
@@ -324,6 +325,30 @@ pub(super) fn before_after_md(rows: &[Row], a: &BenchArgs) -> String {
             r.p99,
             before.p99
         );
+    }
+    for r in rows.iter().filter(|r| r.kind == after_kind && r.skipped.is_empty() && r.repeat == 0) {
+        let path = a.out.join("cells").join(&r.cell).join("before-after.json");
+        let Some(j) = std::fs::read_to_string(path)
+            .ok()
+            .and_then(|t| serde_json::from_str::<serde_json::Value>(&t).ok())
+        else {
+            continue;
+        };
+        for q in ["p50", "p99"] {
+            let i = &j[format!("after_over_before_{q}")];
+            let Some(m) = i["median"].as_f64() else { continue };
+            let f = |k: &str| i[k].as_f64().unwrap_or(f64::NAN);
+            let _ = writeln!(
+                md,
+                "\n{}: after / before {q} over {} pair(s): median {m:.3}, interval [{:.3}, {:.3}] at {:.1} %: {}.",
+                r.cell,
+                j["pairs"],
+                f("ci_low"),
+                f("ci_high"),
+                100.0 * f("level"),
+                i["verdict"].as_str().unwrap_or("?")
+            );
+        }
     }
     if change == BeforeAfter::Foxglove {
         for r in rows.iter().filter(|r| r.kind == after_kind && r.skipped.is_empty()) {
