@@ -180,7 +180,7 @@ pub struct Row {
     pub index: usize,
     /// Which repetition of the cell (`--repeat`), from 0.
     pub repeat: usize,
-    /// On the loop rows of a cell measured more than once: the values of [`CI_COLUMNS`]
+    /// On the loop rows of a cell measured more than once: the values of [`ci_columns`]
     /// (empty: none).
     pub ci: Vec<String>,
 }

@@ -106,28 +106,7 @@ pub fn run(a: &BenchArgs) -> anyhow::Result<()> {
         } else {
             None
         };
-        // `--repeat`: loop, baselines, loop, baselines, … (the variants once, first).
-        let mut measured = Vec::new();
-        for rep in 0..a.repeat {
-            let d = match rep {
-                0 => dir.clone(),
-                r => dir.join(format!("rep{r}")),
-            };
-            std::fs::create_dir_all(&d)?;
-            let mut these = match rep {
-                0 => measure_loop_variants(a, &base, &topology, &d)?,
-                _ => vec![measure_loop(a, &base, &topology, &d, Variant::Loop)?],
-            };
-            for b in &a.baselines {
-                these.push(measure_baseline(&exe, a, &base, b, *wait, placement, &topology, &d)?);
-            }
-            these.iter_mut().for_each(|r| r.repeat = rep);
-            measured.extend(these);
-            if shutdown_requested() {
-                break;
-            }
-        }
-        repeat::fill(&mut measured);
+        let mut measured = measure_repeated(a, &exe, &base, &topology, &dir)?;
         for n in scale_steps(a.loops) {
             measured.extend(measure_loops(a, &base, &topology, n)?);
         }
@@ -150,6 +129,42 @@ pub fn run(a: &BenchArgs) -> anyhow::Result<()> {
     plots(a, &rows)?;
     println!("bench: {} measurements in {}", rows.len(), a.out.display());
     Ok(())
+}
+
+/// One cell's loop and baselines, `--repeat` times in turn (loop, baselines, loop, …; the
+/// loop's variants once, first; the repetitions after the first in `DIR/repI`), with
+/// each ratio's interval on the loop rows.
+fn measure_repeated(
+    a: &BenchArgs,
+    exe: &std::path::Path,
+    base: &Row,
+    topology: &crate::run::cpus::Topology,
+    dir: &std::path::Path,
+) -> anyhow::Result<Vec<Row>> {
+    let wait: rotorloop_common::ipc::wait::Wait =
+        base.wait.parse().unwrap_or(rotorloop_common::ipc::wait::Wait::Event);
+    let mut measured = Vec::new();
+    for rep in 0..a.repeat {
+        let d = match rep {
+            0 => dir.to_owned(),
+            r => dir.join(format!("rep{r}")),
+        };
+        std::fs::create_dir_all(&d)?;
+        let mut these = match rep {
+            0 => measure_loop_variants(a, base, topology, &d)?,
+            _ => vec![measure_loop(a, base, topology, &d, Variant::Loop)?],
+        };
+        for b in &a.baselines {
+            these.push(measure_baseline(exe, a, base, b, wait, &base.placement, topology, &d)?);
+        }
+        these.iter_mut().for_each(|r| r.repeat = rep);
+        measured.extend(these);
+        if shutdown_requested() {
+            break;
+        }
+    }
+    repeat::fill(&mut measured);
+    Ok(measured)
 }
 
 /// The lines of the invocation's `doctor.json` that matter (what is not as a real-time

@@ -326,6 +326,26 @@ pub(super) fn before_after_md(rows: &[Row], a: &BenchArgs) -> String {
             before.p99
         );
     }
+    md.push_str(&pair_intervals_md(rows, a, after_kind));
+    if change == BeforeAfter::Foxglove {
+        for r in rows.iter().filter(|r| r.kind == after_kind && r.skipped.is_empty()) {
+            let seen = a.out.join("cells").join(&r.cell).join(after_kind).join("viewer.json");
+            let n = std::fs::read_to_string(seen)
+                .ok()
+                .and_then(|t| serde_json::from_str::<serde_json::Value>(&t).ok())
+                .and_then(|v| v["messages"].as_u64());
+            let said =
+                n.map_or("its count was not written".to_owned(), |n| format!("{n} messages"));
+            let _ = writeln!(md, "\n{}: the viewer of the first pair received {said}.", r.cell);
+        }
+    }
+    md
+}
+
+/// Under the before/after table: each cell's after / before ratios of its pairs at p50
+/// and p99, their median, interval and verdict (`before-after.json`).
+fn pair_intervals_md(rows: &[Row], a: &BenchArgs, after_kind: &str) -> String {
+    let mut md = String::new();
     for r in rows.iter().filter(|r| r.kind == after_kind && r.skipped.is_empty() && r.repeat == 0) {
         let path = a.out.join("cells").join(&r.cell).join("before-after.json");
         let Some(j) = std::fs::read_to_string(path)
@@ -348,18 +368,6 @@ pub(super) fn before_after_md(rows: &[Row], a: &BenchArgs) -> String {
                 100.0 * f("level"),
                 i["verdict"].as_str().unwrap_or("?")
             );
-        }
-    }
-    if change == BeforeAfter::Foxglove {
-        for r in rows.iter().filter(|r| r.kind == after_kind && r.skipped.is_empty()) {
-            let seen = a.out.join("cells").join(&r.cell).join(after_kind).join("viewer.json");
-            let n = std::fs::read_to_string(seen)
-                .ok()
-                .and_then(|t| serde_json::from_str::<serde_json::Value>(&t).ok())
-                .and_then(|v| v["messages"].as_u64());
-            let said =
-                n.map_or("its count was not written".to_owned(), |n| format!("{n} messages"));
-            let _ = writeln!(md, "\n{}: the viewer of the first pair received {said}.", r.cell);
         }
     }
     md
