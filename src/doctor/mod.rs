@@ -34,7 +34,7 @@ pub struct DoctorArgs {
     pub seconds: f64,
     /// The CPUs a run would use (`run --cpus`), whose IRQs are counted (default: the
     /// process's CPU set).
-    #[arg(long, value_name = "LIST")]
+    #[arg(long, allow_hyphen_values = true, value_name = "LIST")]
     pub cpus: Option<String>,
 }
 

@@ -30,7 +30,7 @@ pub struct RunArgs {
     /// runs on these CPUs only, and `--pin` and `--preset` place the roles inside them.
     /// Several runs started with disjoint `--cpus` never share a core (default: the
     /// launcher's own CPU set).
-    #[arg(long, value_name = "LIST")]
+    #[arg(long, allow_hyphen_values = true, value_name = "LIST")]
     pub cpus: Option<String>,
     /// Output directory of the monitor's report.
     #[arg(long)]
