@@ -488,3 +488,19 @@ fn repeated_cells_give_intervals_and_compare_reads_them() {
     );
     assert_eq!(mixed.status.code(), Some(2));
 }
+
+/// `bench --smt` takes `idle` or `use` and refuses anything else naming the flag and both
+/// values, before anything is measured.
+#[test]
+fn bench_smt_choice_is_checked() {
+    let h = Harness::new("benchsmt");
+    let out = h.path("bench");
+    let o = h.rotorloop(
+        &["bench", "--smt", "both", "--out", out.to_str().expect("utf-8")],
+        Duration::from_secs(60),
+    );
+    assert_eq!(o.status.code(), Some(2));
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(err.contains("--smt") && err.contains("idle, use"), "{err}");
+    assert!(!out.join("bench.csv").exists());
+}

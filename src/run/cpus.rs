@@ -224,8 +224,26 @@ pub struct Placement {
     pub notes: Vec<String>,
 }
 
-/// Places `n` loops of `shape` on the cores of `t` (module docs: the order, SMT, sharing).
+/// What is done with SMT sibling hyperthreads.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, clap::ValueEnum)]
+pub enum Smt {
+    /// One role per physical core: the siblings stay idle while the physical cores
+    /// suffice (then used, both hyperthreads of a core to the same loop).
+    #[default]
+    Idle,
+    /// Every hyperthread a core of its own from the start, both hyperthreads of a
+    /// physical core to the same loop: more loops apart, each sharing its cores' pipelines.
+    Use,
+}
+
+/// Places `n` loops of `shape` on the cores of `t` (module docs: the order, SMT, sharing),
+/// the siblings left idle while the physical cores suffice ([`Smt::Idle`]).
 pub fn place(t: &Topology, n: usize, shape: Shape) -> Placement {
+    place_smt(t, n, shape, Smt::Idle)
+}
+
+/// [`place`], with `smt` saying what is done with sibling hyperthreads.
+pub fn place_smt(t: &Topology, n: usize, shape: Shape, mode: Smt) -> Placement {
     let n = n.max(1);
     let cores = t.cores();
     let physical: Vec<usize> = cores.iter().map(|k| k[0]).collect();
@@ -234,7 +252,14 @@ pub fn place(t: &Topology, n: usize, shape: Shape) -> Placement {
     let need = n * per_loop;
     let mut notes = Vec::new();
     let smt = threads > physical.len();
-    let order: Vec<usize> = if need <= physical.len() || !smt {
+    let order: Vec<usize> = if smt && mode == Smt::Use {
+        notes.push(format!(
+            "SMT: every hyperthread used as a core (--smt use): {threads} CPUs on {} physical \
+             cores, both hyperthreads of a physical core given to the same loop",
+            physical.len()
+        ));
+        cores.iter().flatten().copied().collect()
+    } else if need <= physical.len() || !smt {
         if smt {
             notes.push(format!(
                 "SMT: one role per physical core; the sibling hyperthreads of the {} physical \
@@ -452,6 +477,25 @@ mod tests {
         assert_eq!(two.loops[0].cpus, vec![1, 3]);
         assert_eq!(two.loops[1].cpus, vec![0, 2]);
         assert!(two.notes[0].contains("sibling hyperthreads used"), "{two:?}");
+    }
+
+    /// `--smt use` on 2 physical cores of 2 hyperthreads: two cross-core loops apart at
+    /// once, each on both hyperthreads of one physical core, and said.
+    #[test]
+    fn smt_use_gives_each_loop_both_hyperthreads_of_its_cores() {
+        let t = machine(2, 2, &[]);
+        let one = place_smt(&t, 1, Shape::CrossCore, Smt::Use);
+        assert_eq!(one.loops[0].cpus, vec![1, 3], "{one:?}");
+        assert!(one.notes[0].contains("--smt use"), "{one:?}");
+        let two = place_smt(&t, 2, Shape::CrossCore, Smt::Use);
+        assert!(!two.shared);
+        assert_eq!(two.loops[1].cpus, vec![0, 2]);
+        // Without SMT the choice changes nothing.
+        let flat = machine(4, 1, &[]);
+        assert_eq!(
+            place_smt(&flat, 2, Shape::CrossCore, Smt::Use),
+            place(&flat, 2, Shape::CrossCore)
+        );
     }
 
     #[test]

@@ -104,6 +104,12 @@ pub struct BenchArgs {
     #[arg(long, allow_hyphen_values = true, default_value_t = 1,
           value_parser = rotorloop_common::input::whole_in(1usize, 64, "loops"))]
     pub loops: usize,
+    /// With SMT, what the scale cells (`--loops`) do with sibling hyperthreads: `idle`
+    /// (one role per physical core while the physical cores suffice) or `use` (every
+    /// hyperthread a core, both hyperthreads of a physical core to the same loop). Measure
+    /// both on a machine with SMT; without SMT they are the same.
+    #[arg(long, value_enum, default_value = "idle")]
+    pub smt: crate::run::cpus::Smt,
     /// Also run each loop cell with another controller (`loop-<name>` rows), against
     /// the same baselines: `mrp-pid` (the second law, Basilisk's MRP feedback, with
     /// `mrp-regulation`'s gains, on the bench's scenario) and `python` (the Python

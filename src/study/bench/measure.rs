@@ -318,7 +318,7 @@ pub(super) fn measure_loops(
     if let Some(why) = skip_reason("loop", wait, &base.placement, &base.load, t.allowed.len()) {
         return Ok((1..=n).map(|i| Row { skipped: why.clone(), ..row(i) }).collect());
     }
-    let placed = place(t, n, Shape::of_placement(&base.placement));
+    let placed = crate::run::cpus::place_smt(t, n, Shape::of_placement(&base.placement), a.smt);
     std::fs::create_dir_all(&dir)?;
     write_placement(&dir.join("placement.json"), &placed)?;
     let results: Vec<anyhow::Result<()>> = std::thread::scope(|scope| {
