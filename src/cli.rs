@@ -62,6 +62,13 @@ enum Command {
     Run(crate::run::args::RunArgs),
     /// The latency study: the loop against same-invocation baselines, per cell.
     Bench(crate::study::bench::cell::BenchArgs),
+    /// What this machine allows a real-time loop: CPUs, scheduling (whether SCHED_FIFO
+    /// works, and why not), timers and idle states, memory, interference; each item with
+    /// what it means for a loop at `--rate` and the command that changes it.
+    Doctor(crate::doctor::DoctorArgs),
+    /// Two run or bench directories side by side: the same figures, with their intervals
+    /// where the benches measured repetitions (`bench --repeat`), a plain statement where not.
+    Compare(crate::study::compare::CompareArgs),
     /// The rotorloop domains on this machine: roles with pid, core, policy, state, ticks,
     /// rate, and the services (read-only: no node, no port).
     Ps(crate::observe::PsArgs),
@@ -372,6 +379,8 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Link { args } => crate::run::split::exec_link(&args)?,
         Command::Bench(a) => crate::study::bench::run(&a)?,
         Command::Ps(a) => crate::observe::ps(&a)?,
+        Command::Doctor(a) => crate::doctor::run(&a)?,
+        Command::Compare(a) => crate::study::compare::run(&a)?,
         Command::Watch(a) => crate::observe::watch(&a)?,
         Command::Foxglove(a) => crate::observe::foxglove::run(&a)?,
         Command::Margin(a) => {

@@ -16,6 +16,10 @@
 //! - [`study`]: what is computed from many runs: the paper's gain analysis, the delay
 //!   margin, Monte Carlo of almost-global convergence, the paper's scenarios, and the
 //!   latency bench;
+//! - [`cpus`]: which CPUs a run or a bench's loops get (CPU lists, the process's CPU set,
+//!   isolated CPUs, SMT siblings, disjoint placement), beneath `run`, `study` and `doctor`;
+//! - [`doctor`]: `rotorloop doctor`, what this machine allows a real-time loop (also
+//!   `doctor.json` in every run and bench directory);
 //! - [`observe`]: `rotorloop ps` and `watch`, which see a live loop without touching it;
 //! - [`pipeline`]: after the last tick, what turns a run's records into its analyses
 //!   and files: the incidents (why a tick was late, what it cost) and `run.mcap`; beneath
@@ -27,6 +31,8 @@
 
 pub mod baseline;
 pub mod cli;
+pub mod cpus;
+pub mod doctor;
 pub mod export;
 pub mod observe;
 pub mod pipeline;

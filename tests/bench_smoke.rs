@@ -26,6 +26,11 @@ fn short_bench_writes_every_output_file() {
         "--rates 500 --wait event --placement same-core,cross-core --baselines iceoryx2 --seconds 0.3",
         180,
     );
+    // The machine state of the invocation, and of each loop's run.
+    let doctor = crate::common::harness::json(&out.join("doctor.json"));
+    assert!(doctor["items"].as_array().is_some_and(|i| !i.is_empty()), "{doctor}");
+    let cell = out.join("cells/r500-event-cross-core-none/loop");
+    assert!(cell.join("doctor.json").exists() && cell.join("cpus.json").exists());
     let csv = std::fs::read_to_string(out.join("bench.csv")).expect("bench.csv");
     let mut lines = csv.lines();
     let header: Vec<&str> = lines.next().expect("header").split(',').collect();
@@ -229,6 +234,11 @@ fn the_timer_baseline_is_measured_beside_the_plants_tick() {
          --cpu-dma-latency 0",
         180,
     );
+    // The machine state of the invocation, and of each loop's run.
+    let doctor = crate::common::harness::json(&out.join("doctor.json"));
+    assert!(doctor["items"].as_array().is_some_and(|i| !i.is_empty()), "{doctor}");
+    let cell = out.join("cells/r500-event-cross-core-none/loop");
+    assert!(cell.join("doctor.json").exists() && cell.join("cpus.json").exists());
     let csv = std::fs::read_to_string(out.join("bench.csv")).expect("bench.csv");
     let mut lines = csv.lines();
     let header: Vec<&str> = lines.next().expect("header").split(',').collect();
@@ -356,4 +366,141 @@ fn the_controller_axis_measures_each_law_in_the_same_invocation() {
         }
         None => assert!(rows[2][14].contains("cannot import"), "{:?}", rows[2]),
     }
+}
+
+/// Two runs started at once with disjoint `--cpus` never share a core: every role's
+/// affinity, as the kernel gave it (`cpus.json`, read from `/proc/PID/status`
+/// `Cpus_allowed_list`), is inside its own run's set, and a `--pin` outside the run's set
+/// or a `--cpus` outside the process's CPU set is refused naming the flag.
+#[test]
+fn runs_with_disjoint_cpus_get_disjoint_affinities() {
+    use crate::common::harness::ROTORLOOP;
+    use rotorloop::cpus::{allowed_now, parse_list};
+    let mut h = Harness::new("cpus");
+    let allowed = allowed_now();
+    assert!(allowed.len() >= 2, "this test needs 2 CPUs in the process's set: {allowed:?}");
+    let (a, b) = (allowed[0].to_string(), allowed[1].to_string());
+    let start = |h: &mut Harness, cpu: &str, pin: Option<&str>| {
+        let out = h.path(&format!("run-{cpu}"));
+        let mut args: Vec<String> = ["run", "--scenario", "paper-zero", "--mode", "realtime"]
+            .iter()
+            .map(|s| s.to_string())
+            .collect();
+        args.extend(["--duration", "1", "--quiet", "--no-mcap", "--cpus", cpu].map(String::from));
+        args.extend(["--domain".into(), format!("{}-{cpu}", h.domain)]);
+        args.extend(["--out".into(), out.display().to_string()]);
+        if let Some(p) = pin {
+            args.extend(["--pin".into(), p.to_owned()]);
+        }
+        h.spawn(ROTORLOOP, &args);
+        out
+    };
+    let out_a = start(&mut h, &a, None);
+    let out_b = start(&mut h, &b, Some(&format!("plant={b},controller={b}")));
+    let statuses = h.wait_all(Duration::from_secs(120));
+    assert!(statuses.iter().all(|s| s.success()), "{statuses:?}");
+    for (out, mine) in [(&out_a, &a), (&out_b, &b)] {
+        let record = crate::common::harness::json(&out.join("cpus.json"));
+        assert_eq!(record["cpus"].as_str(), Some(mine.as_str()), "{record}");
+        let roles = record["roles"].as_object().expect("roles");
+        assert_eq!(roles.len(), 4, "{record}");
+        for (role, r) in roles {
+            let list = r["cpus_allowed_list"].as_str().unwrap_or_else(|| panic!("{role}: {r}"));
+            let cpus = parse_list(list, "Cpus_allowed_list").expect("a CPU list");
+            assert_eq!(cpus, vec![mine.parse::<usize>().expect("a CPU")], "{role} of {mine}");
+        }
+    }
+    let outside = h.path("outside");
+    let refused = |extra: &[&str]| {
+        let mut args =
+            vec!["run", "--scenario", "paper-zero", "--duration", "0.01", "--mode", "lockstep"];
+        args.extend(["--out", outside.to_str().expect("utf-8")]);
+        args.extend(extra);
+        let o = h.rotorloop(&args, Duration::from_secs(60));
+        assert_eq!(o.status.code(), Some(2), "{extra:?}");
+        String::from_utf8_lossy(&o.stderr).into_owned()
+    };
+    let e = refused(&["--cpus", &a, "--pin", &format!("plant={b}")]);
+    assert!(
+        e.contains(&format!("--pin plant=`{b}` is not allowed: a CPU of the run's set")),
+        "{e}"
+    );
+    let e = refused(&["--cpus", "4095"]);
+    assert!(e.contains("--cpus `4095` is not allowed"), "{e}");
+}
+
+/// `--repeat 3`: the loop and each baseline measured three times in turn (a row each,
+/// `repeat` 0 to 2); the loop rows carry each ratio's median and interval, the median
+/// inside its interval, in columns that say what they are; bench.md shows them with
+/// their level and verdicts. `rotorloop compare` of the bench with itself finds every
+/// figure indistinguishable, and of two runs says there is no interval.
+#[test]
+fn repeated_cells_give_intervals_and_compare_reads_them() {
+    let h = Harness::new("benchrepeat");
+    let out = bench(
+        &h,
+        "--rates 500 --wait event --placement cross-core --baselines iceoryx2,timer --seconds 0.3 --repeat 3",
+        300,
+    );
+    let csv = std::fs::read_to_string(out.join("bench.csv")).expect("bench.csv");
+    let mut lines = csv.lines();
+    let header: Vec<&str> = lines.next().expect("header").split(',').collect();
+    let col =
+        |name: &str| header.iter().position(|c| *c == name).unwrap_or_else(|| panic!("{name}"));
+    let rows: Vec<Vec<&str>> = lines.map(|l| l.split(',').collect()).collect();
+    assert_eq!(rows.len(), 9, "3 × (loop, iceoryx2, timer): {csv}");
+    let loops: Vec<&Vec<&str>> = rows.iter().filter(|r| r[1] == "loop").collect();
+    let reps: Vec<&str> = loops.iter().map(|r| r[col("repeat")]).collect();
+    assert_eq!(reps, ["0", "1", "2"]);
+    for r in &loops {
+        for name in
+            ["loop_over_iceoryx2_p50", "loop_over_iceoryx2_p99", "plant_over_timer_lateness_p99"]
+        {
+            let v = |s: &str| r[col(&format!("{name}_{s}"))].parse::<f64>().expect(name);
+            assert!(v("ci_low") <= v("median") && v("median") <= v("ci_high"), "{name}: {r:?}");
+            let verdict = r[col(&format!("{name}_verdict"))];
+            assert!(["faster", "slower", "indistinguishable"].contains(&verdict), "{verdict}");
+        }
+        assert_eq!(r[col("repetitions")], "3");
+        assert_eq!(r[col("ci_level")], "0.7500", "the range of 3 is a 75 % interval");
+    }
+    let md = std::fs::read_to_string(out.join("bench.md")).expect("bench.md");
+    assert!(md.contains("## Repetitions"), "{md}");
+    assert!(md.contains("| r500-event-cross-core-none | loop_over_iceoryx2_p50 |"), "{md}");
+    let twice = h.rotorloop(
+        &["compare", out.to_str().expect("utf-8"), out.to_str().expect("utf-8")],
+        Duration::from_secs(60),
+    );
+    let text = ok(&twice);
+    assert!(text.contains("| r500-event-cross-core-none | loop | p50 µs |"), "{text}");
+    assert!(text.contains("indistinguishable (intervals overlap)"), "{text}");
+    assert!(!text.contains("intervals apart"), "a bench against itself: {text}");
+    let cell = out.join("cells/r500-event-cross-core-none");
+    let (a, b) = (cell.join("loop"), cell.join("rep1/loop"));
+    let runs = ok(&h.rotorloop(
+        &["compare", a.to_str().expect("utf-8"), b.to_str().expect("utf-8")],
+        Duration::from_secs(60),
+    ));
+    assert!(runs.contains("One run on each side: no interval"), "{runs}");
+    let mixed = h.rotorloop(
+        &["compare", a.to_str().expect("utf-8"), out.to_str().expect("utf-8")],
+        Duration::from_secs(60),
+    );
+    assert_eq!(mixed.status.code(), Some(2));
+}
+
+/// `bench --smt` takes `idle` or `use` and refuses anything else naming the flag and both
+/// values, before anything is measured.
+#[test]
+fn bench_smt_choice_is_checked() {
+    let h = Harness::new("benchsmt");
+    let out = h.path("bench");
+    let o = h.rotorloop(
+        &["bench", "--smt", "both", "--out", out.to_str().expect("utf-8")],
+        Duration::from_secs(60),
+    );
+    assert_eq!(o.status.code(), Some(2));
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(err.contains("--smt") && err.contains("idle, use"), "{err}");
+    assert!(!out.join("bench.csv").exists());
 }

@@ -199,3 +199,52 @@ fn paper_runs_the_three_scenarios_and_writes_a_report() {
         assert!(report.contains(&format!("- **{name}**")), "{name}: {report}");
     }
 }
+
+/// `rotorloop doctor --json` names every item it promises (CPUs, scheduling, timers and
+/// idle, memory, interference), each with what it is here and what it means; the text
+/// form says the same items. Whether SCHED_FIFO works is what the kernel said to a child.
+#[test]
+fn doctor_names_what_this_machine_allows_a_loop() {
+    let text = rotorloop(&["doctor", "--json", "--rate", "2000"]);
+    let j: serde_json::Value = serde_json::from_str(&text).expect("json");
+    assert_eq!(j["rate_hz"].as_f64(), Some(2000.0));
+    let items = j["items"].as_array().expect("items");
+    let names: Vec<&str> = items.iter().filter_map(|i| i["name"].as_str()).collect();
+    for want in [
+        "cpus",
+        "smt",
+        "numa",
+        "isolated",
+        "nohz_full",
+        "rcu_nocbs",
+        "sched_fifo",
+        "rt_throttling",
+        "preemption",
+        "clocksource",
+        "cpuidle",
+        "cpu_dma_latency",
+        "governor",
+        "mlockall",
+        "thp",
+        "swap",
+        "shm",
+        "irqbalance",
+        "irq_affinity",
+        "steal",
+    ] {
+        assert!(names.contains(&want), "doctor lacks {want}: {names:?}");
+    }
+    for i in items {
+        assert!(!i["value"].as_str().unwrap_or_default().is_empty(), "{i}");
+        assert!(!i["meaning"].as_str().unwrap_or_default().is_empty(), "{i}");
+    }
+    let fifo = items.iter().find(|i| i["name"] == "sched_fifo").expect("sched_fifo");
+    let value = fifo["value"].as_str().unwrap_or_default();
+    assert!(
+        value.starts_with("SCHED_FIFO available")
+            || value.starts_with("SCHED_FIFO not available ("),
+        "{value}"
+    );
+    let text = rotorloop(&["doctor"]);
+    assert!(text.contains("sched_fifo: ") && text.contains("irq_affinity: "), "{text}");
+}

@@ -251,8 +251,9 @@ fn random_sim_arguments_give_a_report_or_exit_2() {
 #[test]
 fn bad_run_arguments_exit_2_before_starting_anything() {
     let h = Harness::new("fuzz-run");
-    let bad: [(&str, &[&str]); 10] = [
+    let bad: [(&str, &[&str]); 11] = [
         ("--pin", &["plant", "plant=99", "nobody=0", "plant=-1", "plant=0,controller=x"]),
+        ("--cpus", &["", "x", "3-1", "0,,1", "4096"]),
         (
             "--fault",
             &["plant", "plant:kill", "x:kill@1", "plant:kill@-1", "plant:kill@2:restart@1"],
@@ -420,6 +421,7 @@ fn flag_values_are_refused(all: bool) {
                 "--rt-priority",
                 "--actuation-delay",
                 "--core",
+                "--cpus",
             ],
         ),
         (vec!["paper", "--out", out], &["--duration", "--rate"]),
@@ -429,6 +431,7 @@ fn flag_values_are_refused(all: bool) {
         ),
         (vec!["watch", "--domain", "none", "--once"], &["--seconds", "--sample-hz"]),
         (vec!["ps"], &["--sample-ms"]),
+        (vec!["doctor"], &["--rate", "--seconds", "--cpus"]),
         (vec!["foxglove", "--domain", "none"], &["--wait-s"]),
         (vec!["margin", "--out", out], &["--duration", "--rate", "--delays"]),
         (vec!["explain", run], &["--threshold-ticks"]),
@@ -446,6 +449,7 @@ fn flag_values_are_refused(all: bool) {
                 "--seconds",
                 "--loops",
                 "--pairs",
+                "--repeat",
                 "--spin-before-tick-us",
                 "--cpu-dma-latency",
                 "--rt-priority",

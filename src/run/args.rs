@@ -7,6 +7,8 @@ use clap::Args;
 
 use rotorloop_common::graph::Role;
 
+use crate::cpus::{Shape, Topology, run_topology};
+
 use rotorloop_common::input::whole_in;
 use rotorloop_common::role::UsageError;
 use rotorloop_common::role::args::RoleArgs;
@@ -19,9 +21,17 @@ pub struct RunArgs {
     /// What every role takes, passed on to each.
     #[command(flatten)]
     pub role: RoleArgs,
-    /// Cores per role, e.g. `plant=0,controller=1,reference=0,monitor=1`.
+    /// Cores per role, e.g. `plant=0,controller=1,reference=0,monitor=1`: CPUs of the
+    /// run's set (`--cpus`, else the launcher's own CPU set).
     #[arg(long)]
     pub pin: Option<String>,
+    /// The run's CPU set, a CPU list such as `2-5` or `4,6` (CPUs 0 to 4095, each in the
+    /// launcher's own CPU set: `taskset`, a cgroup's cpuset): every role (and gateway)
+    /// runs on these CPUs only, and `--pin` and `--preset` place the roles inside them.
+    /// Several runs started with disjoint `--cpus` never share a core (default: the
+    /// launcher's own CPU set).
+    #[arg(long, allow_hyphen_values = true, value_name = "LIST")]
+    pub cpus: Option<String>,
     /// Output directory of the monitor's report.
     #[arg(long)]
     pub out: PathBuf,
@@ -127,7 +137,8 @@ pub struct RunArgs {
     #[arg(long, allow_hyphen_values = true, default_value_t = 3000,
           value_parser = whole_in(0u64, 3_600_000, "ms"))]
     pub watchdog_ms: u64,
-    /// `dedicated`: every role on a core of its own (the machine's last four), every role
+    /// `dedicated`: every role on a core of its own (four of the run's CPUs, `--cpus`:
+    /// isolated ones first, CPU 0 last, one hyperthread per physical core), every role
     /// busy-waiting (`--wait spin`), the plant spinning the last 50 µs before each tick
     /// (sharp ticks on a VM whose timer wake-ups are late), and `--cpu-dma-latency 0`. Needs 4 cores. A `--pin`, a
     /// `--spin-before-tick-us` other than 0 or a `--wait` other than `event` (the
@@ -143,14 +154,17 @@ pub struct RunArgs {
     pub split: Option<String>,
 }
 
-/// The cores of the `dedicated` preset on a machine with `ncores`: plant, controller,
-/// reference, monitor on the last four (core 0 takes most of the housekeeping), or why
+/// The cores of the `dedicated` preset among the CPUs of `t`: plant, controller,
+/// reference, monitor, each on a core of its own ([`crate::cpus::place`]: isolated
+/// CPUs first, CPU 0 last, one hyperthread per physical core while they suffice), or why
 /// there are not enough.
-pub fn dedicated_cores(ncores: usize) -> Result<[usize; 4], String> {
-    if ncores < 4 {
-        return Err(format!("dedicated needs 4 cores (one per role); this machine has {ncores}"));
+pub fn dedicated_cores(t: &Topology) -> Result<[usize; 4], String> {
+    let n = t.allowed.len();
+    if n < 4 {
+        return Err(format!("dedicated needs 4 cores (one per role); this machine has {n}"));
     }
-    Ok([ncores - 4, ncores - 3, ncores - 2, ncores - 1])
+    let placed = crate::cpus::place(t, 1, Shape::Dedicated);
+    Ok(placed.loops[0].roles.unwrap_or([0; 4]))
 }
 
 /// Applies `--preset` (`dedicated`) to what the command line left unsaid.
@@ -161,9 +175,9 @@ pub(crate) fn with_preset(args: &RunArgs, explicit_wait: bool) -> Result<RunArgs
     match args.preset.as_deref() {
         None => {}
         Some("dedicated") => {
-            let ncores = std::thread::available_parallelism().map_or(1, |n| n.get());
+            let t = run_topology(args.cpus.as_deref())?;
             let [p, c, r, m] =
-                dedicated_cores(ncores).map_err(|e| UsageError(format!("--preset {e}")))?;
+                dedicated_cores(&t).map_err(|e| UsageError(format!("--preset {e}")))?;
             a.pin.get_or_insert_with(|| {
                 format!("plant={p},controller={c},reference={r},monitor={m}")
             });
@@ -188,6 +202,7 @@ impl RunArgs {
         Self {
             role,
             pin: None,
+            cpus: None,
             out,
             no_monitor: false,
             quiet: false,
@@ -236,10 +251,10 @@ pub(crate) fn check_role_flags(a: &RunArgs) -> Result<(), UsageError> {
     Ok(())
 }
 
-/// Parses `--pin`: `role=core` pairs separated by commas, each role at most once.
-pub fn parse_pins(s: &str) -> Result<BTreeMap<String, usize>, UsageError> {
+/// Parses `--pin`: `role=core` pairs separated by commas, each role at most once, each
+/// core one of `allowed` (the run's CPUs).
+pub fn parse_pins(s: &str, allowed: &[usize]) -> Result<BTreeMap<String, usize>, UsageError> {
     let mut pins = BTreeMap::new();
-    let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
     for part in s.split(',').filter(|p| !p.is_empty()) {
         let (role, core) = part.split_once('=').ok_or_else(|| {
             UsageError(format!("--pin `{part}` is not allowed: role=core, e.g. plant=0"))
@@ -249,10 +264,10 @@ pub fn parse_pins(s: &str) -> Result<BTreeMap<String, usize>, UsageError> {
                 "--pin role `{role}` is not allowed: plant, reference, controller or monitor"
             )));
         }
-        let core: usize = core.parse().ok().filter(|c| *c < cores).ok_or_else(|| {
+        let core: usize = core.parse().ok().filter(|c| allowed.contains(c)).ok_or_else(|| {
             UsageError(format!(
-                "--pin {role}=`{core}` is not allowed: a core from 0 to {}",
-                cores - 1
+                "--pin {role}=`{core}` is not allowed: a CPU of the run's set ({})",
+                crate::cpus::format_list(allowed)
             ))
         })?;
         if let Some(first) = pins.insert(role.to_owned(), core) {
@@ -272,10 +287,21 @@ mod tests {
     /// `--pin plant=0,plant=1` was accepted and the last one won.
     #[test]
     fn a_role_is_pinned_at_most_once() {
-        let e = parse_pins("plant=0,controller=0,plant=0").expect_err("plant twice").0;
+        let e = parse_pins("plant=0,controller=0,plant=0", &[0, 1]).expect_err("plant twice").0;
         assert!(e.starts_with("--pin plant=0 is not allowed: plant is already pinned"), "{e}");
-        let pins = parse_pins("plant=0,controller=0").expect("once each");
+        let pins = parse_pins("plant=0,controller=0", &[0, 1]).expect("once each");
         assert_eq!(pins.len(), 2);
+    }
+
+    /// With `--cpus 2-3` a pin outside the run's set is refused, naming the set.
+    #[test]
+    fn a_pin_stays_inside_the_run_cpus() {
+        let e = parse_pins("plant=1", &[2, 3]).expect_err("outside").0;
+        assert!(
+            e.starts_with("--pin plant=`1` is not allowed: a CPU of the run's set (2-3)"),
+            "{e}"
+        );
+        assert!(parse_pins("plant=3,controller=2", &[2, 3]).is_ok());
     }
 
     /// `run --core N` was accepted and ignored (the launcher pins with `--pin`).

@@ -60,22 +60,6 @@ pub fn estimate(args: &RunArgs, scenario: &Scenario) -> Estimate {
     Estimate { out, flight, staging }
 }
 
-/// Free bytes of the filesystem that holds `path` (or would: its nearest existing
-/// ancestor), if it can be asked.
-pub fn free_bytes(path: &Path) -> Option<u64> {
-    let mut at = if path.is_absolute() { path.to_owned() } else { Path::new(".").join(path) };
-    while !at.exists() {
-        at = at.parent()?.to_owned();
-    }
-    let c = std::ffi::CString::new(at.as_os_str().as_encoded_bytes()).ok()?;
-    // SAFETY: statvfs fills the struct from a NUL-terminated path; checked for failure.
-    let st = unsafe {
-        let mut st: libc::statvfs = std::mem::zeroed();
-        (libc::statvfs(c.as_ptr(), &mut st) == 0).then_some(st)
-    }?;
-    Some(st.f_bavail.saturating_mul(st.f_frsize))
-}
-
 fn size(bytes: u64) -> String {
     match bytes {
         b if b >= 10_000_000_000 => format!("{:.0} GB", b as f64 / 1e9),
@@ -101,7 +85,7 @@ pub fn check(args: &RunArgs, scenario: &Scenario) -> anyhow::Result<()> {
     }
     let places = [(args.out.as_path(), e.out, "--out"), (Path::new("/dev/shm"), e.staging, "")];
     for (path, need, flag) in places {
-        let Some(free) = free_bytes(path) else { continue };
+        let Some(free) = crate::doctor::probe::free_bytes(path) else { continue };
         if need <= free {
             continue;
         }

@@ -18,6 +18,7 @@ use crate::run::split::Split;
 use crate::run::supervise::{Children, RestartLimit, Supervisor, parse_restart};
 use crate::run::watch::supervise;
 use rotorloop_common::role::UsageError;
+use rotorloop_common::role::args::RoleArgs;
 use rotorloop_controller::law::AnyLaw;
 /// How a run ended without completing its control loop (mapped to exit codes by the CLI).
 #[derive(Debug, thiserror::Error)]
@@ -98,6 +99,33 @@ fn claim(
     Ok(())
 }
 
+/// `--corrupt`'s corruptions and the supervisor of `--restart` and `--restart-limit`.
+#[allow(clippy::type_complexity)]
+fn corruptions_and_supervisor(
+    args: &RunArgs,
+) -> Result<(Vec<(String, rotorloop_common::role::inject::Corrupt)>, Supervisor), UsageError> {
+    let corrupt = args
+        .corrupt
+        .iter()
+        .map(|c| crate::run::fault::parse_corrupt(c))
+        .collect::<Result<Vec<_>, _>>()?;
+    let limit: RestartLimit =
+        args.restart_limit.parse().map_err(|e| UsageError(format!("--restart-limit {e}")))?;
+    Ok((corrupt, Supervisor::new(parse_restart(&args.restart)?, limit)))
+}
+
+/// The run's domain as each of its hosts sees it (one, with no host, unless split).
+fn domains_of(split: Option<&Split>, role_args: &RoleArgs) -> Result<Vec<Domain>, UsageError> {
+    let hosts: Vec<Option<&str>> = match split {
+        Some(s) => s.hosts().iter().map(|h| Some(h.as_str())).collect(),
+        None => vec![role_args.host.as_deref()],
+    };
+    hosts
+        .iter()
+        .map(|h| Domain::on_host(role_args.domain(), *h).map_err(|e| UsageError(e.to_string())))
+        .collect()
+}
+
 /// Runs the four processes to the end of the scenario.
 pub fn run(args: &RunArgs) -> anyhow::Result<()> {
     // `--wait` has a default, so "explicit" means: not the default (event).
@@ -113,14 +141,7 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
         eprintln!("warning: {w}");
     }
     crate::run::budget::check(args, &scenario)?;
-    let corrupt = args
-        .corrupt
-        .iter()
-        .map(|c| crate::run::fault::parse_corrupt(c))
-        .collect::<Result<Vec<_>, _>>()?;
-    let limit: RestartLimit =
-        args.restart_limit.parse().map_err(|e| UsageError(format!("--restart-limit {e}")))?;
-    let supervisor = Supervisor::new(parse_restart(&args.restart)?, limit);
+    let (corrupt, supervisor) = corruptions_and_supervisor(args)?;
     let mut role_args = args.role.clone();
     role_args.domain.get_or_insert_with(default_domain);
     role_args.record = match args.no_record {
@@ -136,17 +157,14 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
     if split.is_some() {
         crate::run::split::link_binary()?;
     }
-    let hosts: Vec<Option<&str>> = match &split {
-        Some(s) => s.hosts().iter().map(|h| Some(h.as_str())).collect(),
-        None => vec![role_args.host.as_deref()],
-    };
-    let domains = hosts
-        .iter()
-        .map(|h| Domain::on_host(role_args.domain(), *h).map_err(|e| UsageError(e.to_string())))
-        .collect::<Result<Vec<_>, _>>()?;
-    let pins = args.pin.as_deref().map(parse_pins).transpose()?.unwrap_or_default();
+    let domains = domains_of(split.as_ref(), &role_args)?;
+    let topology = crate::cpus::run_topology(args.cpus.as_deref())?;
+    let pins = args.pin.as_deref().map(|p| parse_pins(p, &topology.allowed)).transpose()?;
+    let pins = pins.unwrap_or_default();
     std::fs::create_dir_all(&args.out)
         .with_context(|| format!("cannot create {}", args.out.display()))?;
+    // The machine state the run's figures were taken in.
+    crate::doctor::write_into(&args.out, 1.0 / scenario.dt(), duration_s, Some(&topology.allowed));
     claim(args, role_args.record.as_deref(), &domains)?;
     if let Some(s) = &split {
         // The link's one-time credentials, before any gateway: a run that cannot make
@@ -168,6 +186,7 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
         supervisor,
         role_args,
         pins,
+        cpus: args.cpus.is_some().then(|| crate::cpus::cpu_set(&topology.allowed)),
         corrupt,
         exe,
         ticks: scenario.ticks(),
@@ -193,6 +212,14 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
     let live = live.transpose()?;
     let launched_ns = rotorloop_common::clock::now_ns();
     let started = start(&launch, &mut children, &mut rss);
+    if started.is_ok() {
+        crate::run::spawn::write_record(
+            &args.out,
+            &topology.allowed,
+            args.pin.as_deref(),
+            &children,
+        );
+    }
     let supervised = started
         .and_then(|()| supervise(&launch, &mut children, &mut rss, FaultSchedule::new(faults)));
     stop_gateways(&mut children, args.quiet);

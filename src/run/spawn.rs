@@ -43,6 +43,22 @@ fn stop_with_parent(cmd: &mut Command) {
     }
 }
 
+/// Gives the child `set` as its CPU affinity (`--cpus`) before it runs anything.
+fn on_cpus(cmd: &mut Command, set: Option<libc::cpu_set_t>) {
+    use std::os::unix::process::CommandExt;
+    let Some(set) = set else { return };
+    // SAFETY: runs in the child between fork and exec, calling only sched_setaffinity
+    // (a plain syscall) with a set made before the fork.
+    unsafe {
+        cmd.pre_exec(move || {
+            if libc::sched_setaffinity(0, size_of::<libc::cpu_set_t>(), &set) != 0 {
+                return Err(std::io::Error::last_os_error());
+            }
+            Ok(())
+        });
+    }
+}
+
 /// What the launcher starts, and how: the roles' arguments, pins, corruptions, and the
 /// executable they run from (this one, so the four are always the same build).
 pub(crate) struct Launch<'a> {
@@ -56,6 +72,8 @@ pub(crate) struct Launch<'a> {
     pub(crate) supervisor: Supervisor,
     pub(crate) role_args: RoleArgs,
     pub(crate) pins: BTreeMap<String, usize>,
+    /// `--cpus`: every child's affinity, set between fork and exec.
+    pub(crate) cpus: Option<libc::cpu_set_t>,
     pub(crate) corrupt: Vec<(String, Corrupt)>,
     pub(crate) exe: PathBuf,
     /// The run's ticks.
@@ -84,6 +102,7 @@ impl Launch<'_> {
                 cmd.stderr(f);
             }
             stop_with_parent(&mut cmd);
+            on_cpus(&mut cmd, self.cpus);
             return cmd;
         }
         let mut r = self.role_args.clone();
@@ -93,6 +112,7 @@ impl Launch<'_> {
             let mut cmd = ext.command(&r, &args.out, scenario);
             cmd.stdin(Stdio::null());
             stop_with_parent(&mut cmd);
+            on_cpus(&mut cmd, self.cpus);
             if args.quiet {
                 cmd.stdout(Stdio::null());
             }
@@ -101,6 +121,7 @@ impl Launch<'_> {
         let mut cmd = Command::new(&self.exe);
         cmd.arg("role").arg(role).args(r.to_args()).stdin(Stdio::null());
         stop_with_parent(&mut cmd);
+        on_cpus(&mut cmd, self.cpus);
         for (_, c) in self.corrupt.iter().filter(|(r, _)| r == role) {
             cmd.arg("--corrupt").arg(c.to_string());
         }
@@ -365,4 +386,28 @@ pub(crate) fn stop_gateways(children: &mut Children, quiet: bool) {
 
 fn running(c: &mut std::process::Child) -> bool {
     matches!(c.try_wait(), Ok(None))
+}
+
+/// `OUT/cpus.json`: the run's CPU set, its `--pin`, and each child's affinity as the
+/// kernel gave it just after the start (before a pinned role has pinned itself, its
+/// run's set; after, its core). Not written is no matter to the run (a warning).
+pub fn write_record(
+    out: &std::path::Path,
+    cpus: &[usize],
+    pin: Option<&str>,
+    children: &crate::run::supervise::Children,
+) {
+    let roles: serde_json::Map<String, serde_json::Value> = children
+        .0
+        .iter()
+        .map(|(name, c)| {
+            let allowed = crate::cpus::allowed_of(c.id());
+            (name.clone(), serde_json::json!({ "pid": c.id(), "cpus_allowed_list": allowed }))
+        })
+        .collect();
+    let j =
+        serde_json::json!({ "cpus": crate::cpus::format_list(cpus), "pin": pin, "roles": roles });
+    if let Err(e) = std::fs::write(out.join("cpus.json"), format!("{j:#}\n")) {
+        eprintln!("warning: cannot write {}: {e}", out.join("cpus.json").display());
+    }
 }

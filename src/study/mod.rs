@@ -5,9 +5,13 @@
 //! - [`montecarlo`]: almost-global convergence from near-π errors;
 //! - [`paper`]: the paper's scenarios, in process and in real time, with one report;
 //! - [`bench`](mod@bench): the latency bench, the loop against its baselines in one invocation.
+//! - [`stats`]: the median of repeated paired ratios with its confidence interval and verdict;
+//!   [`compare`]: two run or bench directories side by side with those intervals.
 
 pub mod bench;
+pub mod compare;
 pub mod gains;
 pub mod margin;
 pub mod montecarlo;
 pub mod paper;
+pub mod stats;

@@ -4,6 +4,8 @@
 use std::path::PathBuf;
 
 use clap::Args;
+
+use crate::cpus::{Shape, Topology, place};
 use rotorloop_common::ipc::wait::Wait;
 
 use rotorloop_common::role::UsageError;
@@ -102,6 +104,12 @@ pub struct BenchArgs {
     #[arg(long, allow_hyphen_values = true, default_value_t = 1,
           value_parser = rotorloop_common::input::whole_in(1usize, 64, "loops"))]
     pub loops: usize,
+    /// With SMT, what the scale cells (`--loops`) do with sibling hyperthreads: `idle`
+    /// (one role per physical core while the physical cores suffice) or `use` (every
+    /// hyperthread a core, both hyperthreads of a physical core to the same loop). Measure
+    /// both on a machine with SMT; without SMT they are the same.
+    #[arg(long, value_enum, default_value = "idle")]
+    pub smt: crate::cpus::Smt,
     /// Also run each loop cell with another controller (`loop-<name>` rows), against
     /// the same baselines: `mrp-pid` (the second law, Basilisk's MRP feedback, with
     /// `mrp-regulation`'s gains, on the bench's scenario) and `python` (the Python
@@ -113,6 +121,15 @@ pub struct BenchArgs {
     /// installed).
     #[arg(long, default_value = "python3")]
     pub python: String,
+    /// Measure the loop and each baseline this many times, interleaved (loop, baselines,
+    /// loop, baselines, …), and give each ratio (loop / baseline p50 and p99, the plant's
+    /// tick lateness / the timer's) as the median of the paired ratios with its 95 %
+    /// confidence interval and a verdict (bench.csv's `…_ci_low`, `…_ci_high` columns,
+    /// bench.md's "Repetitions"; 6 or more for a 95 % interval, fewer give the range and
+    /// its lower level, said). 1 to 99.
+    #[arg(long, allow_hyphen_values = true, default_value_t = 1,
+          value_parser = rotorloop_common::input::whole_in(1usize, 99, "repeat"))]
+    pub repeat: usize,
     /// Rebuild bench.md and the plots from an existing `--out` directory, measuring nothing.
     #[arg(long)]
     pub replot: bool,
@@ -167,16 +184,54 @@ pub struct Row {
     pub err_deg_rms: f64,
     /// Cell number (for short domain names).
     pub index: usize,
+    /// Which repetition of the cell (`--repeat`), from 0.
+    pub repeat: usize,
+    /// On the loop rows of a cell measured more than once: the values of [`ci_columns`]
+    /// (empty: none).
+    pub ci: Vec<String>,
 }
 
-pub(super) const CSV_HEADER: &str = "cell,kind,rate_hz,wait,placement,load,count,p50_us,p99_us,p99_9_us,max_us,misses,achieved_rate_hz,tick_lateness_p99_us,skipped,err_deg_final,err_deg_rms,tick_lateness_p50_us,tick_lateness_p99_9_us";
+/// The ratios whose median over repetitions and interval the bench gives: the loop over
+/// each pair baseline at p50 and p99, the plant's tick lateness over the timer's.
+pub const RATIOS: [(&str, &str, &str); 8] = [
+    ("loop_over_atomic_p50", "atomic", "p50"),
+    ("loop_over_atomic_p99", "atomic", "p99"),
+    ("loop_over_iceoryx2_p50", "iceoryx2", "p50"),
+    ("loop_over_iceoryx2_p99", "iceoryx2", "p99"),
+    ("loop_over_uds_p50", "uds", "p50"),
+    ("loop_over_uds_p99", "uds", "p99"),
+    ("plant_over_timer_lateness_p50", "timer", "p50"),
+    ("plant_over_timer_lateness_p99", "timer", "p99"),
+];
+
+/// The interval columns of bench.csv: per ratio its median, interval and verdict, then
+/// the interval's confidence level and the number of repetitions.
+pub fn ci_columns() -> Vec<String> {
+    let mut c: Vec<String> = RATIOS
+        .iter()
+        .flat_map(|(name, _, _)| {
+            ["median", "ci_low", "ci_high", "verdict"].map(|s| format!("{name}_{s}"))
+        })
+        .collect();
+    c.extend(["ci_level".to_owned(), "repetitions".to_owned()]);
+    c
+}
+
+pub(super) const CSV_HEADER: &str = "cell,kind,rate_hz,wait,placement,load,count,p50_us,p99_us,p99_9_us,max_us,misses,achieved_rate_hz,tick_lateness_p99_us,skipped,err_deg_final,err_deg_rms,tick_lateness_p50_us,tick_lateness_p99_9_us,repeat";
+
+/// bench.csv's header: [`CSV_HEADER`] and the interval columns.
+pub(super) fn csv_header() -> String {
+    format!("{CSV_HEADER},{}", ci_columns().join(","))
+}
 
 impl Row {
-    pub(super) fn parse(line: &str) -> Option<Self> {
+    /// A row of bench.csv (any of its past column counts); `None` for another line.
+    pub fn parse(line: &str) -> Option<Self> {
         let f: Vec<&str> = line.split(',').collect();
         // Bench files written before `err_deg_final` have 15 columns, before `err_deg_rms`
-        // 16, before the lateness p50 and p99.9 17.
-        if !(15..=19).contains(&f.len()) {
+        // 16, before the lateness p50 and p99.9 17, before `--repeat` 19.
+        let full = 20 + ci_columns().len();
+        if !(15..=19).contains(&f.len()) && f.len() != full {
             return None;
         }
         let num = |i: usize| f.get(i).map_or(f64::NAN, |v| v.parse::<f64>().unwrap_or(f64::NAN));
@@ -201,12 +256,21 @@ impl Row {
             lateness_p50: num(17),
             lateness_p99_9: num(18),
             index: 0,
+            repeat: f.get(19).and_then(|v| v.parse().ok()).unwrap_or(0),
+            ci: match f.len() == full && !f[20].is_empty() {
+                true => f[20..].iter().map(|v| v.to_string()).collect(),
+                false => Vec::new(),
+            },
         })
     }
 
     pub(super) fn csv(&self) -> String {
+        let ci = match self.ci.is_empty() {
+            true => vec![String::new(); ci_columns().len()],
+            false => self.ci.clone(),
+        };
         format!(
-            "{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{}",
+            "{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{}",
             self.cell,
             self.kind,
             self.rate,
@@ -225,17 +289,21 @@ impl Row {
             self.err_deg_final,
             self.err_deg_rms,
             self.lateness_p50,
-            self.lateness_p99_9
+            self.lateness_p99_9,
+            self.repeat,
+            ci.join(",")
         )
     }
 }
 
-/// Cores of plant/controller (and ping/pong) for a placement; `None` = unpinned.
-pub(super) fn cores(placement: &str, ncores: usize) -> Option<(usize, usize)> {
+/// Cores of plant/controller (and ping/pong) for a placement of one loop among the CPUs
+/// of `t` ([`crate::cpus::place`]); `None` = unpinned.
+pub(super) fn cores(placement: &str, t: &Topology) -> Option<(usize, usize)> {
     match placement {
-        "same-core" => Some((0, 0)),
-        "cross-core" => Some((0, 1)),
-        "dedicated" => crate::run::args::dedicated_cores(ncores).ok().map(|c| (c[0], c[1])),
+        "same-core" | "cross-core" => {
+            place(t, 1, Shape::of_placement(placement)).loops[0].roles.map(|r| (r[0], r[1]))
+        }
+        "dedicated" => crate::run::args::dedicated_cores(t).ok().map(|c| (c[0], c[1])),
         _ => None, // unpinned, cross-host
     }
 }
@@ -249,7 +317,8 @@ pub fn skip_reason(
     ncores: usize,
 ) -> Option<String> {
     if placement == "dedicated" {
-        return crate::run::args::dedicated_cores(ncores).err();
+        return (ncores < 4)
+            .then(|| format!("dedicated needs 4 cores (one per role); this machine has {ncores}"));
     }
     let spins = matches!(wait, Wait::Spin) || kind == "atomic";
     if spins && placement == "same-core" {
@@ -315,6 +384,9 @@ pub(super) fn validate(a: &BenchArgs) -> Result<(), UsageError> {
         if !["mrp-pid", "python"].contains(&c.as_str()) {
             return Err(UsageError(format!("--controllers `{c}` is not allowed: mrp-pid, python")));
         }
+    }
+    if !(1..=99).contains(&a.repeat) {
+        return Err(UsageError(format!("--repeat {} is not allowed: 1 to 99", a.repeat)));
     }
     if !(1..=64).contains(&a.loops) {
         return Err(UsageError(format!("--loops {} is not allowed: 1 to 64", a.loops)));

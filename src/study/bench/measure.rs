@@ -12,6 +12,7 @@ use rotorloop_common::ipc::wait::Wait;
 use super::cell::{BeforeAfter, BenchArgs, Row, cores, skip_reason};
 use super::report::{hgrm_count, hgrm_quantile};
 use crate::baseline::pingpong::Kind;
+use crate::cpus::{LoopCores, Shape, Topology, place};
 use crate::run::args::RunArgs;
 use rotorloop_common::role::args::RoleArgs;
 
@@ -20,18 +21,18 @@ use rotorloop_common::role::args::RoleArgs;
 pub(super) fn measure_loop_variants(
     a: &BenchArgs,
     base: &Row,
-    ncores: usize,
+    t: &Topology,
     dir: &Path,
 ) -> anyhow::Result<Vec<Row>> {
-    let mut measured = vec![measure_loop(a, base, ncores, dir, Variant::Loop)?];
+    let mut measured = vec![measure_loop(a, base, t, dir, Variant::Loop)?];
     if a.monitor_cost {
-        measured.push(measure_loop(a, base, ncores, dir, Variant::NoMonitor)?);
+        measured.push(measure_loop(a, base, t, dir, Variant::NoMonitor)?);
     }
     for c in &a.controllers {
-        measured.push(measure_loop(a, base, ncores, dir, Variant::of_controller(c))?);
+        measured.push(measure_loop(a, base, t, dir, Variant::of_controller(c))?);
     }
     if let Some(change) = a.before_after {
-        let (plain, other) = before_after(a, change, base, ncores, dir, measured.remove(0))?;
+        let (plain, other) = before_after(a, change, base, t, dir, measured.remove(0))?;
         measured.insert(0, plain);
         measured.push(other);
     }
@@ -45,7 +46,7 @@ pub(super) fn before_after(
     a: &BenchArgs,
     change: BeforeAfter,
     base: &Row,
-    ncores: usize,
+    t: &Topology,
     dir: &Path,
     first: Row,
 ) -> anyhow::Result<(Row, Row)> {
@@ -67,17 +68,40 @@ pub(super) fn before_after(
     for i in 0..a.pairs as usize {
         let d = if i == 0 { dir.to_owned() } else { dir.join(format!("pair{i}")) };
         if before.len() <= i {
-            before.push(measure_loop(a, base, ncores, &d, b)?);
+            before.push(measure_loop(a, base, t, &d, b)?);
         }
         if after.len() <= i {
-            after.push(measure_loop(a, base, ncores, &d, f)?);
+            after.push(measure_loop(a, base, t, &d, f)?);
         }
     }
+    write_pair_intervals(dir, &before, &after)?;
     let (after, before) = (median_p50(after), median_p50(before));
     Ok(match plain_after {
         true => (after, before),
         false => (before, after),
     })
+}
+
+/// `before-after.json` of a cell: the after / before ratios of each pair at p50 and p99,
+/// their median, interval and verdict ([`crate::study::stats`], as `--repeat`).
+fn write_pair_intervals(dir: &Path, before: &[Row], after: &[Row]) -> anyhow::Result<()> {
+    use crate::study::stats::{Verdict, median_interval, paired_ratios};
+    let mut j = serde_json::json!({ "pairs": before.len().min(after.len()) });
+    for (name, f) in [("p50", (|r: &Row| r.p50) as fn(&Row) -> f64), ("p99", |r: &Row| r.p99)] {
+        let a: Vec<f64> = after.iter().map(f).collect();
+        let b: Vec<f64> = before.iter().map(f).collect();
+        let ratios = paired_ratios(&a, &b);
+        j[format!("after_over_before_{name}")] = match median_interval(&ratios) {
+            Some(i) => serde_json::json!({
+                "ratios": ratios, "median": i.median, "ci_low": i.low, "ci_high": i.high,
+                "level": i.level, "verdict": Verdict::of(&i).name(),
+            }),
+            None => serde_json::Value::Null,
+        };
+    }
+    let path = dir.join("before-after.json");
+    std::fs::write(&path, format!("{j:#}\n"))
+        .with_context(|| format!("cannot write {}", path.display()))
 }
 
 /// The row with the median p50 of `rows` (the upper one of an even count; skipped rows
@@ -145,20 +169,20 @@ pub(super) fn scale_steps(max: usize) -> Vec<usize> {
     steps
 }
 
-/// The launcher's arguments of one loop of cell `base` in domain `domain`, into `out`.
+/// The launcher's arguments of one loop of cell `base` on `cores` (its `--cpus` and, pinned,
+/// its `--pin`) in domain `domain`, into `out`.
 pub(super) fn loop_run_args(
     a: &BenchArgs,
     base: &Row,
-    ncores: usize,
+    cores: &LoopCores,
     domain: String,
     out: PathBuf,
 ) -> RunArgs {
     let wait: Wait = base.wait.parse().unwrap_or(Wait::Event);
     let dedicated = base.placement == "dedicated";
-    let pin = cores(&base.placement, ncores).filter(|_| !dedicated).map(|(p, c)| {
-        let other = |x: usize| (x + 1) % ncores;
-        format!("plant={p},controller={c},reference={},monitor={}", other(p), other(c))
-    });
+    let cross_host = base.placement == "cross-host";
+    let pin = cores.pin();
+    let cpus = (!cross_host).then(|| crate::cpus::format_list(&cores.cpus));
     let role = RoleArgs {
         domain: Some(domain),
         rt_priority: a.rt_priority,
@@ -166,6 +190,7 @@ pub(super) fn loop_run_args(
     };
     RunArgs {
         pin,
+        cpus,
         quiet: true,
         no_mcap: true,
         spin_before_tick_us: a.spin_before_tick_us,
@@ -178,10 +203,11 @@ pub(super) fn loop_run_args(
 pub(super) fn measure_loop(
     a: &BenchArgs,
     base: &Row,
-    ncores: usize,
+    t: &Topology,
     dir: &Path,
     variant: Variant,
 ) -> anyhow::Result<Row> {
+    let ncores = t.allowed.len();
     let kind = variant.kind();
     let without_monitor = variant == Variant::NoMonitor;
     let mut row = Row { kind: kind.into(), ..base.clone() };
@@ -208,7 +234,8 @@ pub(super) fn measure_loop(
         Variant::Python => "p",
     };
     let domain = format!("bl{}-{}{suffix}", std::process::id(), base.index);
-    let mut run = loop_run_args(a, base, ncores, domain, out.clone());
+    let one = place(t, 1, Shape::of_placement(&base.placement));
+    let mut run = loop_run_args(a, base, &one.loops[0], domain, out.clone());
     run.no_monitor = without_monitor;
     run.no_record = variant == Variant::Before;
     run.no_sched_sample = variant == Variant::NoSched;
@@ -281,21 +308,25 @@ pub(super) fn read_loop_summary(row: &mut Row, out: &Path) -> anyhow::Result<()>
 pub(super) fn measure_loops(
     a: &BenchArgs,
     base: &Row,
-    ncores: usize,
+    t: &Topology,
     n: usize,
 ) -> anyhow::Result<Vec<Row>> {
     let cell = format!("{}-x{n}", base.cell);
     let dir = a.out.join("cells").join(&cell);
     let row = |i: usize| Row { cell: cell.clone(), kind: format!("loop-{i}"), ..base.clone() };
     let wait: Wait = base.wait.parse().unwrap_or(Wait::Event);
-    if let Some(why) = skip_reason("loop", wait, &base.placement, &base.load, ncores) {
+    if let Some(why) = skip_reason("loop", wait, &base.placement, &base.load, t.allowed.len()) {
         return Ok((1..=n).map(|i| Row { skipped: why.clone(), ..row(i) }).collect());
     }
+    let placed = crate::cpus::place_smt(t, n, Shape::of_placement(&base.placement), a.smt);
+    std::fs::create_dir_all(&dir)?;
+    write_placement(&dir.join("placement.json"), &placed)?;
     let results: Vec<anyhow::Result<()>> = std::thread::scope(|scope| {
         let handles: Vec<_> = (1..=n)
             .map(|i| {
                 let domain = format!("bs{}-{}-{n}-{i}", std::process::id(), base.index);
-                let run = loop_run_args(a, base, ncores, domain, dir.join(format!("loop-{i}")));
+                let cores = &placed.loops[i - 1];
+                let run = loop_run_args(a, base, cores, domain, dir.join(format!("loop-{i}")));
                 scope.spawn(move || crate::run::launch::run(&run))
             })
             .collect();
@@ -317,6 +348,19 @@ pub(super) fn measure_loops(
     Ok(rows)
 }
 
+/// `placement.json` of a scale cell: each loop's CPUs and pins, whether cores are shared,
+/// and the notes (SMT, sharing) that bench.md quotes.
+fn write_placement(path: &Path, p: &crate::cpus::Placement) -> anyhow::Result<()> {
+    let loops: Vec<serde_json::Value> = p
+        .loops
+        .iter()
+        .map(|l| serde_json::json!({ "cpus": crate::cpus::format_list(&l.cpus), "pin": l.pin() }))
+        .collect();
+    let j = serde_json::json!({ "loops": loops, "shared": p.shared, "notes": p.notes });
+    std::fs::write(path, format!("{j:#}\n"))
+        .with_context(|| format!("cannot write {}", path.display()))
+}
+
 #[allow(clippy::too_many_arguments)]
 pub(super) fn measure_baseline(
     exe: &Path,
@@ -325,14 +369,14 @@ pub(super) fn measure_baseline(
     kind: &str,
     wait: Wait,
     placement: &str,
-    ncores: usize,
+    t: &Topology,
     dir: &Path,
 ) -> anyhow::Result<Row> {
     if kind == "timer" {
-        return measure_timer(exe, a, base, placement, ncores, dir);
+        return measure_timer(exe, a, base, placement, t, dir);
     }
     let mut row = Row { kind: kind.into(), ..base.clone() };
-    if let Some(why) = skip_reason(kind, wait, placement, &base.load, ncores) {
+    if let Some(why) = skip_reason(kind, wait, placement, &base.load, t.allowed.len()) {
         row.skipped = why;
         return Ok(row);
     }
@@ -344,7 +388,7 @@ pub(super) fn measure_baseline(
     let w = if k == Kind::Atomic { Wait::Spin } else { wait };
     let name = format!("bb{}-{kind}", std::process::id());
     let (ping_core, pong_core) =
-        cores(placement, ncores).map_or((None, None), |(p, c)| (Some(p), Some(c)));
+        cores(placement, t).map_or((None, None), |(p, c)| (Some(p), Some(c)));
     // Across hosts: ping on host a, pong on host b, two gateways between them.
     let split = (placement == "cross-host")
         .then(|| crate::run::split::Split::parse(crate::run::split::CROSS_HOST, true))
@@ -417,12 +461,12 @@ fn measure_timer(
     a: &BenchArgs,
     base: &Row,
     placement: &str,
-    ncores: usize,
+    t: &Topology,
     dir: &Path,
 ) -> anyhow::Result<Row> {
     let mut row = Row { kind: "timer".into(), ..base.clone() };
     if placement == "dedicated" {
-        if let Err(why) = crate::run::args::dedicated_cores(ncores) {
+        if let Err(why) = crate::run::args::dedicated_cores(t) {
             row.skipped = why;
             return Ok(row);
         }
@@ -439,7 +483,7 @@ fn measure_timer(
         .arg("--out")
         .arg(&stem)
         .stdin(Stdio::null());
-    if let Some((plant, _)) = cores(placement, ncores) {
+    if let Some((plant, _)) = cores(placement, t) {
         cmd.args(["--core", &plant.to_string()]);
     }
     if let Some(p) = a.rt_priority {

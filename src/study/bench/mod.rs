@@ -10,10 +10,12 @@
 //!
 //! - [`cell`]: the arguments, the cells, what cannot be measured here, a row;
 //! - [`measure`]: measuring a cell and its baselines;
+//! - [`repeat`]: `--repeat`'s medians, intervals and verdicts;
 //! - [`report`]: `bench.md` and the plots.
 
 pub mod cell;
 pub mod measure;
+pub mod repeat;
 pub mod report;
 
 use std::io::{IsTerminal, Write};
@@ -22,8 +24,10 @@ use std::process::{Command, Stdio};
 use anyhow::Context;
 use rotorloop_common::signals::shutdown_requested;
 
-use cell::{BenchArgs, CSV_HEADER, Row, cells, cores, skip_reason, validate};
-use measure::{measure_baseline, measure_loop_variants, measure_loops, scale_steps};
+use cell::{BenchArgs, Row, cells, cores, csv_header, skip_reason, validate};
+use measure::{
+    Variant, measure_baseline, measure_loop, measure_loop_variants, measure_loops, scale_steps,
+};
 use report::{plots, write_markdown};
 use rotorloop_common::rt::CpuDmaLatency;
 
@@ -48,13 +52,17 @@ pub fn run(a: &BenchArgs) -> anyhow::Result<()> {
     std::fs::create_dir_all(&a.out)
         .with_context(|| format!("cannot create {}", a.out.display()))?;
     let exe = std::env::current_exe().context("cannot find the rotorloop executable")?;
-    let ncores = std::thread::available_parallelism().map_or(1, |n| n.get());
+    let topology = crate::cpus::Topology::this_process();
+    let ncores = topology.allowed.len();
     rotorloop_common::signals::install_signal_handlers();
     // Held to the end of the invocation, so the loop and every baseline run under it.
     let (_idle, idle_note) = hold_idle_states(a.cpu_dma_latency);
 
+    // The machine state the figures were taken in; bench.md quotes what matters.
+    let doctor = crate::doctor::write_into(&a.out, a.rates[0], a.seconds, Some(&topology.allowed));
+    let idle_note = machine_note(a, &doctor, idle_note);
     let csv_path = a.out.join("bench.csv");
-    std::fs::write(&csv_path, format!("{CSV_HEADER}\n"))?;
+    std::fs::write(&csv_path, format!("{}\n", csv_header()))?;
     let mut rows: Vec<Row> = Vec::new();
     let cells = cells(a);
     let tty = std::io::stderr().is_terminal();
@@ -86,7 +94,9 @@ pub fn run(a: &BenchArgs) -> anyhow::Result<()> {
         let hog = if load == "other-core"
             && skip_reason("loop", *wait, placement, load, ncores).is_none()
         {
-            let core = cores(placement, ncores).map(|(p, _)| (p + 1) % ncores);
+            // The hog on another CPU of the process's set than the loop's.
+            let core = cores(placement, &topology)
+                .and_then(|(p, _)| topology.allowed.iter().copied().find(|c| *c != p));
             let mut cmd = Command::new(&exe);
             cmd.args(["role", "hog"]).stdin(Stdio::null());
             if let Some(c) = core {
@@ -96,12 +106,9 @@ pub fn run(a: &BenchArgs) -> anyhow::Result<()> {
         } else {
             None
         };
-        let mut measured = measure_loop_variants(a, &base, ncores, &dir)?;
-        for b in &a.baselines {
-            measured.push(measure_baseline(&exe, a, &base, b, *wait, placement, ncores, &dir)?);
-        }
+        let mut measured = measure_repeated(a, &exe, &base, &topology, &dir)?;
         for n in scale_steps(a.loops) {
-            measured.extend(measure_loops(a, &base, ncores, n)?);
+            measured.extend(measure_loops(a, &base, &topology, n)?);
         }
         if let Some(mut h) = hog {
             // SAFETY: signals our own child.
@@ -122,6 +129,65 @@ pub fn run(a: &BenchArgs) -> anyhow::Result<()> {
     plots(a, &rows)?;
     println!("bench: {} measurements in {}", rows.len(), a.out.display());
     Ok(())
+}
+
+/// One cell's loop and baselines, `--repeat` times in turn (loop, baselines, loop, …; the
+/// loop's variants once, first; the repetitions after the first in `DIR/repI`), with
+/// each ratio's interval on the loop rows.
+fn measure_repeated(
+    a: &BenchArgs,
+    exe: &std::path::Path,
+    base: &Row,
+    topology: &crate::cpus::Topology,
+    dir: &std::path::Path,
+) -> anyhow::Result<Vec<Row>> {
+    let wait: rotorloop_common::ipc::wait::Wait =
+        base.wait.parse().unwrap_or(rotorloop_common::ipc::wait::Wait::Event);
+    let mut measured = Vec::new();
+    for rep in 0..a.repeat {
+        let d = match rep {
+            0 => dir.to_owned(),
+            r => dir.join(format!("rep{r}")),
+        };
+        std::fs::create_dir_all(&d)?;
+        let mut these = match rep {
+            0 => measure_loop_variants(a, base, topology, &d)?,
+            _ => vec![measure_loop(a, base, topology, &d, Variant::Loop)?],
+        };
+        for b in &a.baselines {
+            these.push(measure_baseline(exe, a, base, b, wait, &base.placement, topology, &d)?);
+        }
+        these.iter_mut().for_each(|r| r.repeat = rep);
+        measured.extend(these);
+        if shutdown_requested() {
+            break;
+        }
+    }
+    repeat::fill(&mut measured);
+    Ok(measured)
+}
+
+/// The lines of the invocation's `doctor.json` that matter (what is not as a real-time
+/// loop wants it), after the idle-state line, for bench.md; SCHED_FIFO's first, saying
+/// at what priority the invocation ran.
+fn machine_note(a: &BenchArgs, doctor: &std::path::Path, idle_note: String) -> String {
+    let lines = crate::doctor::quoted_lines(doctor);
+    let mut note = idle_note;
+    if let Some(fifo) = lines.iter().find(|l| l.starts_with("sched_fifo")) {
+        let ran = match a.rt_priority {
+            Some(p) => format!("--rt-priority {p} asked, so the roles ran at normal priority"),
+            None => "ran at normal priority".to_owned(),
+        };
+        note.push_str(&format!("\n\nSCHED_FIFO not available: {ran} ({fifo})."));
+    }
+    let others: Vec<&String> = lines.iter().filter(|l| !l.starts_with("sched_fifo")).collect();
+    if !others.is_empty() {
+        note.push_str("\n\nThis machine (`doctor.json`, `rotorloop doctor`), what is not as a real-time loop wants it:\n");
+        for l in others {
+            note.push_str(&format!("\n- {l}"));
+        }
+    }
+    note
 }
 
 /// Holds `--cpu-dma-latency` where it is given, and says in a line of `bench.md` which idle

@@ -84,12 +84,13 @@ pub(super) fn write_markdown(a: &BenchArgs, rows: &[Row], idle_note: &str) -> an
             );
         }
     }
+    md.push_str(&super::repeat::repeat_md(rows));
     md.push_str(&timer_md(rows));
     md.push_str(&controllers_md(rows, a));
     md.push_str(&zero_miss_md(a, rows));
     md.push_str(&breakdown_md(a, rows));
     md.push_str(&before_after_md(rows, a));
-    md.push_str(&scale_md(rows));
+    md.push_str(&scale_md(rows, &a.out));
     md.push_str(&cross_host_md(rows));
     std::fs::write(a.out.join("bench.md"), md)?;
     Ok(())
@@ -325,6 +326,7 @@ pub(super) fn before_after_md(rows: &[Row], a: &BenchArgs) -> String {
             before.p99
         );
     }
+    md.push_str(&pair_intervals_md(rows, a, after_kind));
     if change == BeforeAfter::Foxglove {
         for r in rows.iter().filter(|r| r.kind == after_kind && r.skipped.is_empty()) {
             let seen = a.out.join("cells").join(&r.cell).join(after_kind).join("viewer.json");
@@ -340,9 +342,62 @@ pub(super) fn before_after_md(rows: &[Row], a: &BenchArgs) -> String {
     md
 }
 
+/// Under the before/after table: each cell's after / before ratios of its pairs at p50
+/// and p99, their median, interval and verdict (`before-after.json`).
+fn pair_intervals_md(rows: &[Row], a: &BenchArgs, after_kind: &str) -> String {
+    let mut md = String::new();
+    for r in rows.iter().filter(|r| r.kind == after_kind && r.skipped.is_empty() && r.repeat == 0) {
+        let path = a.out.join("cells").join(&r.cell).join("before-after.json");
+        let Some(j) = std::fs::read_to_string(path)
+            .ok()
+            .and_then(|t| serde_json::from_str::<serde_json::Value>(&t).ok())
+        else {
+            continue;
+        };
+        for q in ["p50", "p99"] {
+            let i = &j[format!("after_over_before_{q}")];
+            let Some(m) = i["median"].as_f64() else { continue };
+            let f = |k: &str| i[k].as_f64().unwrap_or(f64::NAN);
+            let _ = writeln!(
+                md,
+                "\n{}: after / before {q} over {} pair(s): median {m:.3}, interval [{:.3}, {:.3}] at {:.1} %: {}.",
+                r.cell,
+                j["pairs"],
+                f("ci_low"),
+                f("ci_high"),
+                100.0 * f("level"),
+                i["verdict"].as_str().unwrap_or("?")
+            );
+        }
+    }
+    md
+}
+
+/// Where the loops of a scale cell ran (`placement.json`, written by the bench): each
+/// loop's CPUs, and what was said of SMT and of shared cores.
+fn placement_md(out: &Path, cell: &str) -> Option<String> {
+    let text = std::fs::read_to_string(out.join("cells").join(cell).join("placement.json")).ok()?;
+    let j: serde_json::Value = serde_json::from_str(&text).ok()?;
+    let cpus: Vec<String> = j["loops"]
+        .as_array()?
+        .iter()
+        .map(|l| l["cpus"].as_str().unwrap_or("?").to_owned())
+        .collect();
+    let mut line = format!("- {cell}: CPUs of each loop {}", cpus.join(" | "));
+    line.push_str(match j["shared"].as_bool() {
+        Some(true) => "; cores shared",
+        _ => "; no core carries roles of two loops",
+    });
+    for n in j["notes"].as_array().into_iter().flatten().filter_map(|n| n.as_str()) {
+        let _ = write!(line, ". {n}");
+    }
+    Some(line + ".\n")
+}
+
 /// The scale cells: per loop count, the loops' p50s, worst p99 and misses, against the
-/// bare baseline's misses; the largest count at which no loop missed more.
-pub(super) fn scale_md(rows: &[Row]) -> String {
+/// bare baseline's misses; the largest count at which no loop missed more; where each
+/// count's loops ran.
+pub(super) fn scale_md(rows: &[Row], out: &Path) -> String {
     let mut md = String::new();
     for base in rows.iter().filter(|r| r.kind == "loop" && r.skipped.is_empty()) {
         let scaled: Vec<(usize, Vec<&Row>)> = (2..=64)
@@ -396,6 +451,19 @@ pub(super) fn scale_md(rows: &[Row]) -> String {
             "\nLargest number of loops with every loop at or below the bare baseline's misses: {}.",
             largest.map_or("none measured".into(), |n| n.to_string())
         );
+        let placed: Vec<String> = all
+            .iter()
+            .skip(1)
+            .filter_map(|(n, _)| placement_md(out, &format!("{}-x{n}", base.cell)))
+            .collect();
+        if !placed.is_empty() {
+            let _ = write!(
+                md,
+                "\nPlacement (disjoint core sets from the process's CPU set, isolated CPUs \
+                 first, CPU 0 last):\n\n{}",
+                placed.concat()
+            );
+        }
     }
     md
 }
