@@ -192,7 +192,7 @@ fn load_config(path: &str) -> anyhow::Result<RotorloopLawConfig> {
     let j: ControllerJson = serde_json::from_str(&text).context("not a controller.json")?;
     let version = rotorloop_common::controller_json::CONTROLLER_JSON_VERSION;
     anyhow::ensure!(
-        j.layout_version == u64::from(version) as u32,
+        j.layout_version == version,
         "layout_version {} is not this library's {version}: rebuild against the run's rotorloop",
         j.layout_version
     );
@@ -271,12 +271,11 @@ pub unsafe extern "C" fn rotorloop_controller_open(
         return fail(RotorloopStatus::ErrArgument, "rotorloop_controller_open: out is NULL");
     }
     // SAFETY: the caller's strings.
-    let (name, wait) = match unsafe {
-        (arg_or_env(domain, "domain", "ROTORLOOP_DOMAIN"), wait_arg(wait))
-    } {
-        (Ok(n), Ok(w)) => (n, w),
-        (Err(s), _) | (_, Err(s)) => return s,
-    };
+    let (name, wait) =
+        match unsafe { (arg_or_env(domain, "domain", "ROTORLOOP_DOMAIN"), wait_arg(wait)) } {
+            (Ok(n), Ok(w)) => (n, w),
+            (Err(s), _) | (_, Err(s)) => return s,
+        };
     match open(&name, wait) {
         Ok(c) => {
             // SAFETY: checked non-null; the caller's writable pointer.
@@ -304,6 +303,7 @@ unsafe fn wait_arg(wait: *const c_char) -> Result<Wait, RotorloopStatus> {
 /// The ports, opened in the built-in controller's order (the state subscriber last: the
 /// plant starts when it sees its state subscribers).
 fn open(name: &str, wait: Wait) -> Result<Box<RotorloopController>, IpcError> {
+    rotorloop_common::ipc::quiet_iceoryx_logs();
     let domain = Domain::new(name)?;
     let node = domain.node("controller")?;
     let out = domain.outbox::<TorqueSample>(&node, Topic::Torque)?;
@@ -362,7 +362,10 @@ pub unsafe extern "C" fn rotorloop_controller_receive_state(
         Err(s) => return s,
     };
     if state.is_null() {
-        return fail(RotorloopStatus::ErrArgument, "rotorloop_controller_receive_state: state is NULL");
+        return fail(
+            RotorloopStatus::ErrArgument,
+            "rotorloop_controller_receive_state: state is NULL",
+        );
     }
     let deadline = now_ns().saturating_add(timeout_ns);
     let (mut received, mut skipped) = (0u64, 0u64);
@@ -397,7 +400,12 @@ pub unsafe extern "C" fn rotorloop_controller_receive_state(
 /// Puts reference `r` into `ring`, unless it is beyond the newest state taken
 /// (`newest`) and [`REFERENCE_ACCEPT_AHEAD`]: refused and counted in `rejected` (it would
 /// displace a true one).
-fn store(ring: &mut [ReferenceSample; REFERENCE_RING], newest: u64, rejected: &mut u64, r: ReferenceSample) {
+fn store(
+    ring: &mut [ReferenceSample; REFERENCE_RING],
+    newest: u64,
+    rejected: &mut u64,
+    r: ReferenceSample,
+) {
     let ahead = newest != NO_TICK && r.tick > newest.saturating_add(REFERENCE_ACCEPT_AHEAD);
     if ahead || r.tick == NO_TICK {
         *rejected += 1;
@@ -441,7 +449,10 @@ pub unsafe extern "C" fn rotorloop_controller_reference(
         Err(s) => return s,
     };
     if reference.is_null() {
-        return fail(RotorloopStatus::ErrArgument, "rotorloop_controller_reference: reference is NULL");
+        return fail(
+            RotorloopStatus::ErrArgument,
+            "rotorloop_controller_reference: reference is NULL",
+        );
     }
     let deadline = now_ns().saturating_add(timeout_ns);
     let RotorloopController { refs, ring, newest_state, references_rejected, wait, .. } = c;
@@ -513,14 +524,19 @@ pub unsafe extern "C" fn rotorloop_controller_loan(
 /// # Safety
 /// `c` is an open handle.
 #[unsafe(no_mangle)]
-pub unsafe extern "C" fn rotorloop_controller_publish(c: *mut RotorloopController) -> RotorloopStatus {
+pub unsafe extern "C" fn rotorloop_controller_publish(
+    c: *mut RotorloopController,
+) -> RotorloopStatus {
     // SAFETY: the caller's handle.
     let c = match unsafe { handle(c, "rotorloop_controller_publish") } {
         Ok(c) => c,
         Err(s) => return s,
     };
     if !c.loaned {
-        return fail(RotorloopStatus::ErrOrder, "rotorloop_controller_publish: no sample is loaned");
+        return fail(
+            RotorloopStatus::ErrOrder,
+            "rotorloop_controller_publish: no sample is loaned",
+        );
     }
     c.loaned = false;
     let (prev_tick, prev_cost) = c.last_publish;
@@ -571,4 +587,80 @@ pub unsafe extern "C" fn rotorloop_controller_close(c: *mut RotorloopController,
         std::thread::sleep(std::time::Duration::from_millis(1));
     }
     drop(c);
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn last_error() -> String {
+        // SAFETY: the library's own NUL-terminated message.
+        unsafe { CStr::from_ptr(rotorloop_last_error()) }.to_string_lossy().into_owned()
+    }
+
+    /// Every refusal is a code with a message that names what was wrong.
+    #[test]
+    fn bad_arguments_are_refused_with_a_code_and_a_message() {
+        let mut c: *mut RotorloopController = std::ptr::null_mut();
+        let bad = c"no_underscores";
+        // SAFETY: valid strings and a writable pointer.
+        let s = unsafe { rotorloop_controller_open(bad.as_ptr(), c"event".as_ptr(), &mut c) };
+        assert_eq!(s, RotorloopStatus::ErrArgument);
+        assert!(last_error().contains("no_underscores"), "{}", last_error());
+        // SAFETY: as above.
+        let s = unsafe { rotorloop_controller_open(c"ok".as_ptr(), c"busy".as_ptr(), &mut c) };
+        assert_eq!(s, RotorloopStatus::ErrArgument);
+        assert!(last_error().contains("busy") && last_error().contains("spin"), "{}", last_error());
+        assert!(c.is_null());
+        // SAFETY: a null handle is allowed.
+        let s = unsafe { rotorloop_controller_publish(std::ptr::null_mut()) };
+        assert_eq!(s, RotorloopStatus::ErrArgument);
+        let mut cfg = std::mem::MaybeUninit::<RotorloopLawConfig>::uninit();
+        // SAFETY: a valid string and a writable struct.
+        let s = unsafe {
+            rotorloop_law_config_load(c"/nonexistent/controller.json".as_ptr(), cfg.as_mut_ptr())
+        };
+        assert_eq!(s, RotorloopStatus::ErrConfig);
+        assert!(last_error().contains("/nonexistent/controller.json"), "{}", last_error());
+    }
+
+    /// `controller.json` as the launcher writes it reads into the C struct, rows kept.
+    #[test]
+    fn a_controller_json_reads_into_the_c_struct() {
+        use rotorloop_common::controller_json::*;
+        let j = ControllerJson {
+            layout_version: CONTROLLER_JSON_VERSION,
+            law: "geometric-pid".into(),
+            actuation: "internal".into(),
+            dt_s: 1e-3,
+            rate_hz: 1e3,
+            ticks: 7,
+            gains: JsonGains {
+                kp: 1.0,
+                kd: 2.0,
+                ki: 3.0,
+                p: [[1.0, 2.0, 3.0], [4.0, 5.0, 6.0], [7.0, 8.0, 9.0]],
+            },
+            model: JsonModel { inertia: [[0.0; 3]; 3], rotor_inertia: [0.1, 0.2, 0.3] },
+            limits: JsonLimits { rotor_torque_nm: Some(0.5), rotor_rate_rad_s: None },
+            anti_windup: "conditional".into(),
+            law_params: serde_json::Map::new(),
+        };
+        let dir = std::env::temp_dir().join(format!("rl-capi-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).expect("dir");
+        let path = dir.join("controller.json");
+        std::fs::write(&path, serde_json::to_string(&j).expect("json")).expect("write");
+        let c = load_config(path.to_str().expect("utf8")).expect("reads");
+        assert_eq!(c.p_row_major, [1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 7.0, 8.0, 9.0]);
+        assert_eq!((c.ticks, c.kd, c.internal_actuation), (7, 2.0, 1));
+        assert_eq!((c.has_rotor_torque_limit, c.rotor_torque_limit_nm), (1, 0.5));
+        assert_eq!((c.has_rotor_rate_limit, c.anti_windup_conditional), (0, 1));
+        assert_eq!(c.law[..13].iter().map(|&b| b as u8).collect::<Vec<_>>(), b"geometric-pid");
+        let mut old = j.clone();
+        old.layout_version = 0;
+        std::fs::write(&path, serde_json::to_string(&old).expect("json")).expect("write");
+        let e = load_config(path.to_str().expect("utf8")).expect_err("another version");
+        assert!(format!("{e:#}").contains("layout_version 0"), "{e:#}");
+        let _ = std::fs::remove_dir_all(&dir);
+    }
 }

@@ -1,0 +1,132 @@
+//! The C controller (`examples/c/controller.c`, the geometric PID against rotorloop's C
+//! API `include/rotorloop.h`) under `rotorloop run --controller-cmd`: built here with
+//! `make -C examples/c` against the `librotorloop_c.so` cargo built for these tests (the
+//! C API crate is a dev-dependency, so `cargo test --workspace` alone builds it), its
+//! lockstep traces are the built-in law's byte for byte (with and without actuator
+//! limits), a `kill -9` of it is restarted and resumes bumplessly, and a real-time run
+//! completes. Skipped with a message where `cc` or `make` is missing.
+
+use std::path::{Path, PathBuf};
+use std::process::Command;
+use std::sync::Mutex;
+use std::time::Duration;
+
+use crate::common::harness::{Harness, json, ok};
+
+const LIMIT: Duration = Duration::from_secs(300);
+const ROOT: &str = env!("CARGO_MANIFEST_DIR");
+
+/// `examples/c/controller`, built once by `make` against this build's library, or `None`
+/// (and a message) where `cc` or `make` is missing.
+pub(crate) fn c_controller() -> Option<PathBuf> {
+    static BUILT: Mutex<Option<PathBuf>> = Mutex::new(None);
+    let mut built = BUILT.lock().unwrap_or_else(|p| p.into_inner());
+    if let Some(p) = built.as_ref() {
+        return Some(p.clone());
+    }
+    for tool in ["cc", "make"] {
+        if Command::new(tool).arg("--version").output().is_err() {
+            eprintln!("skipped: {tool} is not installed here");
+            return None;
+        }
+    }
+    // The test binary lies in target/<profile>/deps/, beside the dev-dependency's cdylib.
+    let exe = std::env::current_exe().expect("the test binary");
+    let libdir = exe.parent().expect("its directory").to_path_buf();
+    assert!(
+        libdir.join("librotorloop_c.so").exists(),
+        "{} has no librotorloop_c.so (rotorloop-capi is a dev-dependency)",
+        libdir.display()
+    );
+    let dir = Path::new(ROOT).join("examples/c");
+    let o = Command::new("make")
+        .arg("-C")
+        .arg(&dir)
+        .arg(format!("LIBDIR={}", libdir.display()))
+        .output()
+        .expect("make");
+    assert!(
+        o.status.success(),
+        "make -C examples/c: {}{}",
+        String::from_utf8_lossy(&o.stdout),
+        String::from_utf8_lossy(&o.stderr)
+    );
+    let exe = dir.join("controller");
+    *built = Some(exe.clone());
+    Some(exe)
+}
+
+/// `rotorloop run` of `scenario` for `duration` s in `mode` into `h/name`, with `extra`
+/// arguments; the run must succeed.
+fn run(
+    h: &Harness,
+    name: &str,
+    scenario: &str,
+    mode: &str,
+    duration: &str,
+    extra: &[&str],
+) -> PathBuf {
+    let out = h.path(name);
+    let domain = format!("{}{name}", h.domain);
+    let mut args = vec!["run", "--scenario", scenario, "--mode", mode];
+    args.extend(["--duration", duration, "--quiet", "--no-mcap", "--domain", &domain]);
+    args.extend(extra);
+    args.extend(["--out", out.to_str().expect("utf8")]);
+    ok(&h.rotorloop(&args, LIMIT));
+    out
+}
+
+fn read(d: &Path) -> Vec<u8> {
+    std::fs::read(d.join("trace.csv")).expect("trace")
+}
+
+/// Lockstep, the C law against the Rust law: the same `trace.csv`, byte for byte, on
+/// the paper's sinusoid and on a scenario whose actuators saturate (anti-windup).
+#[test]
+fn the_c_controller_gives_the_built_in_trace_byte_for_byte() {
+    let Some(c) = c_controller() else { return };
+    let cmd = c.to_str().expect("utf8");
+    let h = Harness::new("cclock");
+    for (i, scenario) in ["paper-sinusoid", "saturation-antiwindup"].into_iter().enumerate() {
+        let rust = run(&h, &format!("r{i}"), scenario, "lockstep", "4", &[]);
+        let ext = run(&h, &format!("c{i}"), scenario, "lockstep", "4", &["--controller-cmd", cmd]);
+        assert!(read(&rust) == read(&ext), "{scenario}: the C controller's trace differs");
+        let s = json(&ext.join("summary.json"));
+        assert_eq!(s["faults"].as_array().map(Vec::len), Some(0), "{}", s["faults"]);
+    }
+    h.assert_no_leftovers();
+}
+
+/// `kill -9` of the C controller mid-run (the fault schedule): the launcher restarts it,
+/// it resumes from its state file, and the trace is the uninterrupted one byte for byte.
+#[test]
+fn a_killed_c_controller_is_restarted_and_resumes_bumplessly() {
+    let Some(c) = c_controller() else { return };
+    let cmd = c.to_str().expect("utf8");
+    let h = Harness::new("cckill");
+    let calm = run(&h, "calm", "paper-sinusoid", "lockstep", "30", &["--controller-cmd", cmd]);
+    let fault = "controller:kill@1:restart@1.3";
+    let extra = ["--controller-cmd", cmd, "--fault", fault];
+    let killed = run(&h, "kill", "paper-sinusoid", "lockstep", "30", &extra);
+    let s = json(&killed.join("summary.json"));
+    assert_eq!(s["faults"].as_array().map(Vec::len), Some(1), "{}", s["faults"]);
+    assert!(read(&calm) == read(&killed), "the trace after the restart differs");
+    h.assert_no_leftovers();
+}
+
+/// A real-time run with the C controller completes, its stamps fill the stage breakdown.
+#[test]
+fn the_c_controller_completes_a_real_time_run() {
+    let Some(c) = c_controller() else { return };
+    let h = Harness::new("ccrt");
+    let extra = ["--controller-cmd", c.to_str().expect("utf8")];
+    let out = run(&h, "rt", "paper-sinusoid", "realtime", "3", &extra);
+    let s = json(&out.join("summary.json"));
+    assert_eq!(s["completed"], true, "{s}");
+    let compute = &s["hops"]["controller_compute"];
+    assert!(compute["count"].as_u64().is_some_and(|n| n > 2000), "{compute}");
+    let law =
+        s["stages"].as_array().and_then(|st| st.iter().find(|x| x["stage"] == "controller_law"));
+    assert!(law.is_some_and(|l| l["p50"].as_f64().is_some_and(|p| p > 0.0)), "{law:?}");
+    h.assert_no_leftovers();
+}
