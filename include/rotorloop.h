@@ -115,7 +115,9 @@ rotorloop_status rotorloop_controller_reference(rotorloop_controller *c, uint64_
                                                 uint64_t timeout_ns, ReferenceSample *reference);
 
 /* A torque sample in shared memory, every byte zero, in *sample: write the answer in
- * place, then rotorloop_controller_publish. Valid until that publish. */
+ * place, then rotorloop_controller_publish. Valid until that publish. Each publish loans
+ * the next sample once its own is on its way (off the path from state to torque, as the
+ * built-in controller does), so this call then only zeroes it. */
 rotorloop_status rotorloop_controller_loan(rotorloop_controller *c, TorqueSample **sample);
 
 /* Publishes the loaned sample and wakes its readers. Sets just before the send:

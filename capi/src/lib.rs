@@ -479,6 +479,9 @@ pub unsafe extern "C" fn rotorloop_controller_reference(
 
 /// A torque sample in shared memory for the next publish, every byte zero, in
 /// `*sample`: write the answer into it in place, then [`rotorloop_controller_publish`].
+/// After the first publish the sample is already loaned (each publish loans the next
+/// one once its own is on its way, off the path from state to torque): this only zeroes
+/// it.
 /// `ErrOrder` when a loaned sample is not published yet.
 ///
 /// # Safety
@@ -552,7 +555,12 @@ pub unsafe extern "C" fn rotorloop_controller_publish(
         Ok(cost) => {
             c.published += 1;
             c.last_publish = (tick, cost);
-            RotorloopStatus::Ok
+            // The next answer's sample, loaned now (after this one is on its way), as the
+            // built-in controller does: its loan then only zeroes it.
+            match c.out.prewrite(TorqueSample::default()) {
+                Ok(()) => RotorloopStatus::Ok,
+                Err(e) => ipc_fail(&e),
+            }
         }
         Err(e) => ipc_fail(&e),
     }
