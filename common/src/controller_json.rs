@@ -74,9 +74,17 @@ pub struct JsonLimits {
 
 /// Every key of the file, as docs/wire.md's table: (key path, JSON type, meaning).
 pub const KEYS: &[(&str, &str, &str)] = &[
-    ("layout_version", "integer", "this file's layout version (now 1); raised when a key is renamed, removed or changes meaning"),
+    (
+        "layout_version",
+        "integer",
+        "this file's layout version (now 1); raised when a key is renamed, removed or changes meaning",
+    ),
     ("law", "string", "the law: `geometric-pid` or `mrp-pid`"),
-    ("actuation", "string", "`internal` (answer with the rotor torque `u`) or `external` (the body torque `τ`)"),
+    (
+        "actuation",
+        "string",
+        "`internal` (answer with the rotor torque `u`) or `external` (the body torque `τ`)",
+    ),
     ("dt_s", "number", "the tick `dt = 1/rate_hz` (s): the integral's step"),
     ("rate_hz", "number", "the loop rate (Hz)"),
     ("ticks", "integer", "ticks in the run (the last has `FLAG_LAST`)"),
@@ -84,19 +92,43 @@ pub const KEYS: &[(&str, &str, &str)] = &[
     ("gains.kd", "number", "`k_d`"),
     ("gains.ki", "number", "`k_i`"),
     ("gains.p", "3×3 numbers, rows", "`P` (the attitude error's weight)"),
-    ("model.inertia", "3×3 numbers, rows", "the controller's model of `I`, the body's inertia without the rotors' spin inertia (kg m²)"),
-    ("model.rotor_inertia", "3 numbers", "the controller's model of `K`, the rotors' spin inertia (diagonal, kg m²)"),
-    ("limits.rotor_torque_nm", "number or null", "`u_max`: each `|u_i|` is clamped to it by the plant; null: no limit"),
-    ("limits.rotor_rate_rad_s", "number or null", "`Ω_max`: torque that would spin a rotor at or past it is cut by the plant; null: no limit"),
-    ("anti_windup", "string", "`conditional` (hold `ξ_I` on a tick whose `u` the limits change unless the step shrinks it) or `none`; matters only with limits"),
-    ("law_params", "object", "the scenario's `[controller.law_params]` as given (empty for `geometric-pid`)"),
+    (
+        "model.inertia",
+        "3×3 numbers, rows",
+        "the controller's model of `I`, the body's inertia without the rotors' spin inertia (kg m²)",
+    ),
+    (
+        "model.rotor_inertia",
+        "3 numbers",
+        "the controller's model of `K`, the rotors' spin inertia (diagonal, kg m²)",
+    ),
+    (
+        "limits.rotor_torque_nm",
+        "number or null",
+        "`u_max`: each `|u_i|` is clamped to it by the plant; null: no limit",
+    ),
+    (
+        "limits.rotor_rate_rad_s",
+        "number or null",
+        "`Ω_max`: torque that would spin a rotor at or past it is cut by the plant; null: no limit",
+    ),
+    (
+        "anti_windup",
+        "string",
+        "`conditional` (hold `ξ_I` on a tick whose `u` the limits change unless the step shrinks it) or `none`; matters only with limits",
+    ),
+    (
+        "law_params",
+        "object",
+        "the scenario's `[controller.law_params]` as given (empty for `geometric-pid`)",
+    ),
 ];
 
 /// [`KEYS`] as a markdown table.
 pub fn keys_markdown() -> String {
     let mut md = String::from("| key | type | meaning |\n|---|---|---|\n");
     for (k, t, m) in KEYS {
-        md.push_str(&format!("| `{k}` | {t} | {m} |\n"));
+        md.push_str(&format!("| `{k}` | {t} | {} |\n", m.replace('|', "\\|")));
     }
     md
 }

@@ -193,6 +193,12 @@ fn markdown() -> String {
     for (n, v, d) in constants() {
         let _ = writeln!(md, "| `{n}` | {v} | {d} |");
     }
+    let _ = writeln!(
+        md,
+        "\n### `controller.json` (`$ROTORLOOP_CONTROLLER_JSON`, `layout_version` {})\n",
+        rotorloop_common::controller_json::CONTROLLER_JSON_VERSION
+    );
+    md.push_str(&rotorloop_common::controller_json::keys_markdown());
     md
 }
 

@@ -4,7 +4,8 @@
 //!
 //! The command is split into words (`'…'` and `"…"` group words; no shell runs it) and
 //! started as a plain process with the built-in controller's arguments appended
-//! (`--domain D --scenario S --mode M --wait W …`, which a program may ignore), and with
+//! (`--domain D --scenario OUT/scenario.toml --mode M --wait W …`, which a program may
+//! ignore; the scenario is the file as run, never a built-in name), and with
 //! the run described in its environment:
 //!
 //! | variable | what |
@@ -107,7 +108,11 @@ impl ExternalController {
     /// SCHED_FIFO `priority` before it runs.
     pub fn command(&self, role_args: &RoleArgs, out: &Path, scenario: &Scenario) -> Command {
         let mut cmd = Command::new(&self.program);
-        cmd.args(&self.args).args(role_args.to_args());
+        // `--scenario` names the scenario as run, a file any program can read: a built-in
+        // name would mean nothing outside rotorloop.
+        let mut appended = role_args.clone();
+        appended.scenario = out.join(SCENARIO_FILE).display().to_string();
+        cmd.args(&self.args).args(appended.to_args());
         let mode = match role_args.mode {
             rotorloop_common::role::args::Mode::Lockstep => "lockstep",
             rotorloop_common::role::args::Mode::Realtime => "realtime",
