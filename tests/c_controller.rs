@@ -130,3 +130,26 @@ fn the_c_controller_completes_a_real_time_run() {
     assert!(law.is_some_and(|l| l["p50"].as_f64().is_some_and(|p| p > 0.0)), "{law:?}");
     h.assert_no_leftovers();
 }
+
+/// A second run into the same `--out` starts its controller with an empty state
+/// directory: the C controller (which resumes from `ROTORLOOP_STATE_DIR/pid.state` when
+/// it finds one) does not take the first run's state as its own, and the second run's
+/// trace is the first's byte for byte. With the directory kept, it resumed after the
+/// first run's last tick and answered none of the second run's states.
+#[test]
+fn a_new_run_into_the_same_out_does_not_resume_the_last_runs_controller_state() {
+    let Some(c) = c_controller() else { return };
+    let cmd = c.to_str().expect("utf8");
+    let h = Harness::new("ccstate");
+    let first = run(&h, "same", "paper-sinusoid", "lockstep", "2", &["--controller-cmd", cmd]);
+    let trace = read(&first);
+    assert!(
+        first.join("controller-state/pid.state").exists(),
+        "the C controller keeps its state there"
+    );
+    let again = run(&h, "same", "paper-sinusoid", "lockstep", "2", &["--controller-cmd", cmd]);
+    let s = json(&again.join("summary.json"));
+    assert_eq!(s["faults"].as_array().map(Vec::len), Some(0), "{}", s["faults"]);
+    assert!(read(&again) == trace, "the second run's trace differs");
+    h.assert_no_leftovers();
+}
