@@ -153,3 +153,29 @@ fn a_new_run_into_the_same_out_does_not_resume_the_last_runs_controller_state() 
     assert!(read(&again) == trace, "the second run's trace differs");
     h.assert_no_leftovers();
 }
+
+/// The incidents of a run with an outside controller are costed: the C controller keeps
+/// no flight record of its own, and the counterfactual takes its answers from the
+/// plant's record of what it received (before, `law_reproduced` was [0, 0] and every
+/// cost "not computed").
+#[test]
+fn the_incidents_of_a_run_with_an_outside_controller_are_costed() {
+    let Some(c) = c_controller() else { return };
+    let cmd = c.to_str().expect("utf8");
+    let h = Harness::new("cccost");
+    let extra = ["--controller-cmd", cmd, "--fault", "controller:kill@1:restart@1.2"];
+    let out = run(&h, "rt", "paper-sinusoid", "realtime", "3", &extra);
+    let s = json(&out.join("summary.json"));
+    let reproduced = &s["incidents"]["law_reproduced"];
+    let [same, computed] = [0, 1].map(|i| reproduced[i].as_u64().unwrap_or(0));
+    assert!(computed > 1000 && same == computed, "{reproduced}");
+    // The kill's incident has its cost.
+    let fault = &s["faults"][0];
+    assert!(fault["peak_deviation_deg"].as_f64().is_some_and(|p| p > 0.0), "{fault}");
+    assert!(
+        !std::fs::read_to_string(out.join("incidents.md"))
+            .expect("incidents.md")
+            .contains("Cost:** not computed")
+    );
+    h.assert_no_leftovers();
+}
