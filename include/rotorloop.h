@@ -6,9 +6,10 @@
  * rotorloop_wire.h (generated from the Rust types).
  *
  * One handle per process, opened once: it opens the run's controller node and its
- * services with the QoS of docs/wire.md. After the open no call allocates, no call starts
- * a thread, and the library keeps no thread: each call runs on the caller's thread and
- * returns. A call that fails returns a status other than ROTORLOOP_OK and
+ * services with the QoS of docs/wire.md. After the open the library allocates nothing
+ * per tick (a publish allocates only what iceoryx2's own loan and send of a sample do,
+ * as the built-in controller's publish), no call starts a thread, and the library keeps
+ * no thread: each call runs on the caller's thread and returns. A call that fails returns a status other than ROTORLOOP_OK and
  * ROTORLOOP_TIMEOUT; rotorloop_last_error() then says why, in words.
  *
  * A tick, as examples/c/controller.c does it:

@@ -6,9 +6,10 @@
 //! One handle, [`RotorloopController`], made once by [`rotorloop_controller_open`]:
 //! the node `rotorloop/<D>/controller`, the torque publisher and its notifier, the state
 //! and reference subscribers (and their event listeners when the wait is `event` or
-//! `hybrid`), and a ring of the last [`REFERENCE_RING`] references by tick. After that no
-//! call allocates, none starts a thread, and none keeps a thread of its own: every call
-//! runs on the caller's thread and returns. A call that fails returns an error code and
+//! `hybrid`), and a ring of the last [`REFERENCE_RING`] references by tick. After that the
+//! library allocates nothing per tick (a publish allocates only what iceoryx2's loan and
+//! send of a sample do: `tests/no_alloc.rs`), starts no thread and keeps none: every
+//! call runs on the caller's thread and returns. A call that fails returns an error code and
 //! leaves its message for [`rotorloop_last_error`].
 //!
 //! The per-tick calls: [`rotorloop_controller_receive_state`] (the newest state, waiting
