@@ -73,11 +73,7 @@ typedef struct rotorloop_law_config {
     uint64_t anti_windup_conditional; /* 1: conditional integration; 0: none */
 } rotorloop_law_config;
 
-#if defined(__cplusplus)
-static_assert(sizeof(rotorloop_law_config) == 304, "rotorloop_law_config layout");
-#else
-_Static_assert(sizeof(rotorloop_law_config) == 304, "rotorloop_law_config layout");
-#endif
+ROTORLOOP_STATIC_ASSERT(sizeof(rotorloop_law_config) == 304, "rotorloop_law_config layout");
 
 /* A controller's port of a run's domain (opaque). */
 typedef struct rotorloop_controller rotorloop_controller;

@@ -179,3 +179,41 @@ fn the_incidents_of_a_run_with_an_outside_controller_are_costed() {
     );
     h.assert_no_leftovers();
 }
+
+/// The thin C++ header (`include/rotorloop.hpp`) compiles with the C API's headers and
+/// turns a refused call into a `rotorloop::error` carrying the status. Skipped with a
+/// message without `c++`.
+#[test]
+fn the_cpp_header_compiles_and_throws_the_status_of_a_refusal() {
+    if c_controller().is_none() {
+        return;
+    }
+    if Command::new("c++").arg("--version").output().is_err() {
+        eprintln!("skipped: c++ is not installed here");
+        return;
+    }
+    let dir = tempfile::tempdir().expect("tempdir");
+    let src = dir.path().join("t.cpp");
+    std::fs::write(
+        &src,
+        "#include \"rotorloop.hpp\"\nint main() {\n  try { rotorloop::controller c(\"no_underscores\"); }\n  \
+         catch (const rotorloop::error &e) {\n    return e.status() == ROTORLOOP_ERR_ARGUMENT \
+         && std::string(e.what()).find(\"no_underscores\") != std::string::npos ? 0 : 1;\n  }\n  \
+         return 2;\n}\n",
+    )
+    .expect("write");
+    let libdir = std::env::current_exe().expect("exe").parent().expect("dir").to_path_buf();
+    let exe = dir.path().join("t");
+    let o = Command::new("c++")
+        .args(["-std=c++17", "-Wall", "-Wextra", "-Werror", "-I"])
+        .arg(Path::new(ROOT).join("include"))
+        .arg(&src)
+        .arg(format!("-L{}", libdir.display()))
+        .args(["-lrotorloop_c", &format!("-Wl,-rpath,{}", libdir.display()), "-o"])
+        .arg(&exe)
+        .output()
+        .expect("c++");
+    assert!(o.status.success(), "c++: {}", String::from_utf8_lossy(&o.stderr));
+    let status = Command::new(&exe).status().expect("run");
+    assert_eq!(status.code(), Some(0), "the refusal was not a rotorloop::error with its status");
+}
