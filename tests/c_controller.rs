@@ -43,6 +43,9 @@ pub(crate) fn c_controller() -> Option<PathBuf> {
         .arg("-C")
         .arg(&dir)
         .arg(format!("LIBDIR={}", libdir.display()))
+        // Always against this build's library: the binary may have been linked against
+        // another (the bench links it against target/release).
+        .arg("-B")
         .output()
         .expect("make");
     assert!(
