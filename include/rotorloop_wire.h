@@ -9,6 +9,13 @@
 #include <stddef.h>
 #include <stdint.h>
 
+/* C11's _Static_assert is C++'s static_assert: the header compiles as either. */
+#ifdef __cplusplus
+#define ROTORLOOP_STATIC_ASSERT static_assert
+#else
+#define ROTORLOOP_STATIC_ASSERT _Static_assert
+#endif
+
 #define ROTORLOOP_LAYOUT_VERSION UINT64_C(6) /* the layout version in every type name */
 #define ROTORLOOP_MAX_EFFECTS UINT64_C(8) /* length of StateSample.effect_ticks and effect_offsets_s */
 #define ROTORLOOP_NO_TICK UINT64_C(18446744073709551615) /* "no torque sample" in a tick field */
@@ -24,10 +31,10 @@ typedef struct SendCost {
     uint64_t send_ns; /* From the publish timestamp until `send` returned: the sample is delivered. */
     uint64_t notify_ns; /* The notifier's `notify` (wakes the listeners; after the delivery). */
 } SendCost;
-_Static_assert(sizeof(SendCost) == 24, "SendCost size");
-_Static_assert(offsetof(SendCost, loan_ns) == 0, "SendCost.loan_ns offset");
-_Static_assert(offsetof(SendCost, send_ns) == 8, "SendCost.send_ns offset");
-_Static_assert(offsetof(SendCost, notify_ns) == 16, "SendCost.notify_ns offset");
+ROTORLOOP_STATIC_ASSERT(sizeof(SendCost) == 24, "SendCost size");
+ROTORLOOP_STATIC_ASSERT(offsetof(SendCost, loan_ns) == 0, "SendCost.loan_ns offset");
+ROTORLOOP_STATIC_ASSERT(offsetof(SendCost, send_ns) == 8, "SendCost.send_ns offset");
+ROTORLOOP_STATIC_ASSERT(offsetof(SendCost, notify_ns) == 16, "SendCost.notify_ns offset");
 
 /* The plant's state at tick `tick`, published once per tick. */
 typedef struct StateSample {
@@ -60,34 +67,34 @@ typedef struct StateSample {
     SendCost prev_publish; /* What publishing the previous state cost (the stage breakdown of `rotorloop bench`). */
 } StateSample;
 #define ROTORLOOP_STATESAMPLE_TYPE_NAME "rotorloop::StateSample_v6"
-_Static_assert(sizeof(StateSample) == 520, "StateSample size");
-_Static_assert(offsetof(StateSample, tick) == 0, "StateSample.tick offset");
-_Static_assert(offsetof(StateSample, t_s) == 8, "StateSample.t_s offset");
-_Static_assert(offsetof(StateSample, r_row_major) == 16, "StateSample.r_row_major offset");
-_Static_assert(offsetof(StateSample, omega_body_rad_s) == 88, "StateSample.omega_body_rad_s offset");
-_Static_assert(offsetof(StateSample, omega_rotor_rad_s) == 112, "StateSample.omega_rotor_rad_s offset");
-_Static_assert(offsetof(StateSample, theta_rotor_rad) == 136, "StateSample.theta_rotor_rad offset");
-_Static_assert(offsetof(StateSample, applied_rotor_torque_nm) == 160, "StateSample.applied_rotor_torque_nm offset");
-_Static_assert(offsetof(StateSample, applied_body_torque_nm) == 184, "StateSample.applied_body_torque_nm offset");
-_Static_assert(offsetof(StateSample, applied_torque_tick) == 208, "StateSample.applied_torque_tick offset");
-_Static_assert(offsetof(StateSample, applied_torque_recv_ns) == 216, "StateSample.applied_torque_recv_ns offset");
-_Static_assert(offsetof(StateSample, deadline_ns) == 224, "StateSample.deadline_ns offset");
-_Static_assert(offsetof(StateSample, wake_ns) == 232, "StateSample.wake_ns offset");
-_Static_assert(offsetof(StateSample, publish_ns) == 240, "StateSample.publish_ns offset");
-_Static_assert(offsetof(StateSample, misses) == 248, "StateSample.misses offset");
-_Static_assert(offsetof(StateSample, torques_received) == 256, "StateSample.torques_received offset");
-_Static_assert(offsetof(StateSample, torques_lost) == 264, "StateSample.torques_lost offset");
-_Static_assert(offsetof(StateSample, safe_mode_ticks) == 272, "StateSample.safe_mode_ticks offset");
-_Static_assert(offsetof(StateSample, torques_rejected) == 280, "StateSample.torques_rejected offset");
-_Static_assert(offsetof(StateSample, saturated_ticks) == 288, "StateSample.saturated_ticks offset");
-_Static_assert(offsetof(StateSample, flags) == 296, "StateSample.flags offset");
-_Static_assert(offsetof(StateSample, internal_h) == 304, "StateSample.internal_h offset");
-_Static_assert(offsetof(StateSample, internal_p) == 328, "StateSample.internal_p offset");
-_Static_assert(offsetof(StateSample, rotor_work_j) == 352, "StateSample.rotor_work_j offset");
-_Static_assert(offsetof(StateSample, effects) == 360, "StateSample.effects offset");
-_Static_assert(offsetof(StateSample, effect_ticks) == 368, "StateSample.effect_ticks offset");
-_Static_assert(offsetof(StateSample, effect_offsets_s) == 432, "StateSample.effect_offsets_s offset");
-_Static_assert(offsetof(StateSample, prev_publish) == 496, "StateSample.prev_publish offset");
+ROTORLOOP_STATIC_ASSERT(sizeof(StateSample) == 520, "StateSample size");
+ROTORLOOP_STATIC_ASSERT(offsetof(StateSample, tick) == 0, "StateSample.tick offset");
+ROTORLOOP_STATIC_ASSERT(offsetof(StateSample, t_s) == 8, "StateSample.t_s offset");
+ROTORLOOP_STATIC_ASSERT(offsetof(StateSample, r_row_major) == 16, "StateSample.r_row_major offset");
+ROTORLOOP_STATIC_ASSERT(offsetof(StateSample, omega_body_rad_s) == 88, "StateSample.omega_body_rad_s offset");
+ROTORLOOP_STATIC_ASSERT(offsetof(StateSample, omega_rotor_rad_s) == 112, "StateSample.omega_rotor_rad_s offset");
+ROTORLOOP_STATIC_ASSERT(offsetof(StateSample, theta_rotor_rad) == 136, "StateSample.theta_rotor_rad offset");
+ROTORLOOP_STATIC_ASSERT(offsetof(StateSample, applied_rotor_torque_nm) == 160, "StateSample.applied_rotor_torque_nm offset");
+ROTORLOOP_STATIC_ASSERT(offsetof(StateSample, applied_body_torque_nm) == 184, "StateSample.applied_body_torque_nm offset");
+ROTORLOOP_STATIC_ASSERT(offsetof(StateSample, applied_torque_tick) == 208, "StateSample.applied_torque_tick offset");
+ROTORLOOP_STATIC_ASSERT(offsetof(StateSample, applied_torque_recv_ns) == 216, "StateSample.applied_torque_recv_ns offset");
+ROTORLOOP_STATIC_ASSERT(offsetof(StateSample, deadline_ns) == 224, "StateSample.deadline_ns offset");
+ROTORLOOP_STATIC_ASSERT(offsetof(StateSample, wake_ns) == 232, "StateSample.wake_ns offset");
+ROTORLOOP_STATIC_ASSERT(offsetof(StateSample, publish_ns) == 240, "StateSample.publish_ns offset");
+ROTORLOOP_STATIC_ASSERT(offsetof(StateSample, misses) == 248, "StateSample.misses offset");
+ROTORLOOP_STATIC_ASSERT(offsetof(StateSample, torques_received) == 256, "StateSample.torques_received offset");
+ROTORLOOP_STATIC_ASSERT(offsetof(StateSample, torques_lost) == 264, "StateSample.torques_lost offset");
+ROTORLOOP_STATIC_ASSERT(offsetof(StateSample, safe_mode_ticks) == 272, "StateSample.safe_mode_ticks offset");
+ROTORLOOP_STATIC_ASSERT(offsetof(StateSample, torques_rejected) == 280, "StateSample.torques_rejected offset");
+ROTORLOOP_STATIC_ASSERT(offsetof(StateSample, saturated_ticks) == 288, "StateSample.saturated_ticks offset");
+ROTORLOOP_STATIC_ASSERT(offsetof(StateSample, flags) == 296, "StateSample.flags offset");
+ROTORLOOP_STATIC_ASSERT(offsetof(StateSample, internal_h) == 304, "StateSample.internal_h offset");
+ROTORLOOP_STATIC_ASSERT(offsetof(StateSample, internal_p) == 328, "StateSample.internal_p offset");
+ROTORLOOP_STATIC_ASSERT(offsetof(StateSample, rotor_work_j) == 352, "StateSample.rotor_work_j offset");
+ROTORLOOP_STATIC_ASSERT(offsetof(StateSample, effects) == 360, "StateSample.effects offset");
+ROTORLOOP_STATIC_ASSERT(offsetof(StateSample, effect_ticks) == 368, "StateSample.effect_ticks offset");
+ROTORLOOP_STATIC_ASSERT(offsetof(StateSample, effect_offsets_s) == 432, "StateSample.effect_offsets_s offset");
+ROTORLOOP_STATIC_ASSERT(offsetof(StateSample, prev_publish) == 496, "StateSample.prev_publish offset");
 
 /* The desired attitude for tick `tick`, published ahead of the plant. */
 typedef struct ReferenceSample {
@@ -103,17 +110,17 @@ typedef struct ReferenceSample {
     double internal_p[3]; /* The dummy body's integrator rotor momenta `p`. */
 } ReferenceSample;
 #define ROTORLOOP_REFERENCESAMPLE_TYPE_NAME "rotorloop::ReferenceSample_v6"
-_Static_assert(sizeof(ReferenceSample) == 240, "ReferenceSample size");
-_Static_assert(offsetof(ReferenceSample, tick) == 0, "ReferenceSample.tick offset");
-_Static_assert(offsetof(ReferenceSample, t_s) == 8, "ReferenceSample.t_s offset");
-_Static_assert(offsetof(ReferenceSample, r_d_row_major) == 16, "ReferenceSample.r_d_row_major offset");
-_Static_assert(offsetof(ReferenceSample, omega_d_rad_s) == 88, "ReferenceSample.omega_d_rad_s offset");
-_Static_assert(offsetof(ReferenceSample, omega_d_dot_rad_s2) == 112, "ReferenceSample.omega_d_dot_rad_s2 offset");
-_Static_assert(offsetof(ReferenceSample, omega_rotor_rad_s) == 136, "ReferenceSample.omega_rotor_rad_s offset");
-_Static_assert(offsetof(ReferenceSample, theta_rotor_rad) == 160, "ReferenceSample.theta_rotor_rad offset");
-_Static_assert(offsetof(ReferenceSample, publish_ns) == 184, "ReferenceSample.publish_ns offset");
-_Static_assert(offsetof(ReferenceSample, internal_h) == 192, "ReferenceSample.internal_h offset");
-_Static_assert(offsetof(ReferenceSample, internal_p) == 216, "ReferenceSample.internal_p offset");
+ROTORLOOP_STATIC_ASSERT(sizeof(ReferenceSample) == 240, "ReferenceSample size");
+ROTORLOOP_STATIC_ASSERT(offsetof(ReferenceSample, tick) == 0, "ReferenceSample.tick offset");
+ROTORLOOP_STATIC_ASSERT(offsetof(ReferenceSample, t_s) == 8, "ReferenceSample.t_s offset");
+ROTORLOOP_STATIC_ASSERT(offsetof(ReferenceSample, r_d_row_major) == 16, "ReferenceSample.r_d_row_major offset");
+ROTORLOOP_STATIC_ASSERT(offsetof(ReferenceSample, omega_d_rad_s) == 88, "ReferenceSample.omega_d_rad_s offset");
+ROTORLOOP_STATIC_ASSERT(offsetof(ReferenceSample, omega_d_dot_rad_s2) == 112, "ReferenceSample.omega_d_dot_rad_s2 offset");
+ROTORLOOP_STATIC_ASSERT(offsetof(ReferenceSample, omega_rotor_rad_s) == 136, "ReferenceSample.omega_rotor_rad_s offset");
+ROTORLOOP_STATIC_ASSERT(offsetof(ReferenceSample, theta_rotor_rad) == 160, "ReferenceSample.theta_rotor_rad offset");
+ROTORLOOP_STATIC_ASSERT(offsetof(ReferenceSample, publish_ns) == 184, "ReferenceSample.publish_ns offset");
+ROTORLOOP_STATIC_ASSERT(offsetof(ReferenceSample, internal_h) == 192, "ReferenceSample.internal_h offset");
+ROTORLOOP_STATIC_ASSERT(offsetof(ReferenceSample, internal_p) == 216, "ReferenceSample.internal_p offset");
 
 /* The controller's answer to state sample `tick`. */
 typedef struct TorqueSample {
@@ -137,24 +144,24 @@ typedef struct TorqueSample {
     SendCost prev_publish; /* What publishing it cost. */
 } TorqueSample;
 #define ROTORLOOP_TORQUESAMPLE_TYPE_NAME "rotorloop::TorqueSample_v6"
-_Static_assert(sizeof(TorqueSample) == 192, "TorqueSample size");
-_Static_assert(offsetof(TorqueSample, tick) == 0, "TorqueSample.tick offset");
-_Static_assert(offsetof(TorqueSample, rotor_torque_nm) == 8, "TorqueSample.rotor_torque_nm offset");
-_Static_assert(offsetof(TorqueSample, body_torque_nm) == 32, "TorqueSample.body_torque_nm offset");
-_Static_assert(offsetof(TorqueSample, state_recv_ns) == 56, "TorqueSample.state_recv_ns offset");
-_Static_assert(offsetof(TorqueSample, publish_ns) == 64, "TorqueSample.publish_ns offset");
-_Static_assert(offsetof(TorqueSample, states_received) == 72, "TorqueSample.states_received offset");
-_Static_assert(offsetof(TorqueSample, states_lost) == 80, "TorqueSample.states_lost offset");
-_Static_assert(offsetof(TorqueSample, states_skipped) == 88, "TorqueSample.states_skipped offset");
-_Static_assert(offsetof(TorqueSample, reference_misses) == 96, "TorqueSample.reference_misses offset");
-_Static_assert(offsetof(TorqueSample, published) == 104, "TorqueSample.published offset");
-_Static_assert(offsetof(TorqueSample, states_rejected) == 112, "TorqueSample.states_rejected offset");
-_Static_assert(offsetof(TorqueSample, references_rejected) == 120, "TorqueSample.references_rejected offset");
-_Static_assert(offsetof(TorqueSample, flags) == 128, "TorqueSample.flags offset");
-_Static_assert(offsetof(TorqueSample, validated_ns) == 136, "TorqueSample.validated_ns offset");
-_Static_assert(offsetof(TorqueSample, paired_ns) == 144, "TorqueSample.paired_ns offset");
-_Static_assert(offsetof(TorqueSample, computed_ns) == 152, "TorqueSample.computed_ns offset");
-_Static_assert(offsetof(TorqueSample, prev_tick) == 160, "TorqueSample.prev_tick offset");
-_Static_assert(offsetof(TorqueSample, prev_publish) == 168, "TorqueSample.prev_publish offset");
+ROTORLOOP_STATIC_ASSERT(sizeof(TorqueSample) == 192, "TorqueSample size");
+ROTORLOOP_STATIC_ASSERT(offsetof(TorqueSample, tick) == 0, "TorqueSample.tick offset");
+ROTORLOOP_STATIC_ASSERT(offsetof(TorqueSample, rotor_torque_nm) == 8, "TorqueSample.rotor_torque_nm offset");
+ROTORLOOP_STATIC_ASSERT(offsetof(TorqueSample, body_torque_nm) == 32, "TorqueSample.body_torque_nm offset");
+ROTORLOOP_STATIC_ASSERT(offsetof(TorqueSample, state_recv_ns) == 56, "TorqueSample.state_recv_ns offset");
+ROTORLOOP_STATIC_ASSERT(offsetof(TorqueSample, publish_ns) == 64, "TorqueSample.publish_ns offset");
+ROTORLOOP_STATIC_ASSERT(offsetof(TorqueSample, states_received) == 72, "TorqueSample.states_received offset");
+ROTORLOOP_STATIC_ASSERT(offsetof(TorqueSample, states_lost) == 80, "TorqueSample.states_lost offset");
+ROTORLOOP_STATIC_ASSERT(offsetof(TorqueSample, states_skipped) == 88, "TorqueSample.states_skipped offset");
+ROTORLOOP_STATIC_ASSERT(offsetof(TorqueSample, reference_misses) == 96, "TorqueSample.reference_misses offset");
+ROTORLOOP_STATIC_ASSERT(offsetof(TorqueSample, published) == 104, "TorqueSample.published offset");
+ROTORLOOP_STATIC_ASSERT(offsetof(TorqueSample, states_rejected) == 112, "TorqueSample.states_rejected offset");
+ROTORLOOP_STATIC_ASSERT(offsetof(TorqueSample, references_rejected) == 120, "TorqueSample.references_rejected offset");
+ROTORLOOP_STATIC_ASSERT(offsetof(TorqueSample, flags) == 128, "TorqueSample.flags offset");
+ROTORLOOP_STATIC_ASSERT(offsetof(TorqueSample, validated_ns) == 136, "TorqueSample.validated_ns offset");
+ROTORLOOP_STATIC_ASSERT(offsetof(TorqueSample, paired_ns) == 144, "TorqueSample.paired_ns offset");
+ROTORLOOP_STATIC_ASSERT(offsetof(TorqueSample, computed_ns) == 152, "TorqueSample.computed_ns offset");
+ROTORLOOP_STATIC_ASSERT(offsetof(TorqueSample, prev_tick) == 160, "TorqueSample.prev_tick offset");
+ROTORLOOP_STATIC_ASSERT(offsetof(TorqueSample, prev_publish) == 168, "TorqueSample.prev_publish offset");
 
 #endif /* ROTORLOOP_WIRE_H */

@@ -19,12 +19,21 @@ thread_local! {
     /// Whether this thread's allocations are counted (a const initialiser: reading it
     /// never allocates).
     static COUNTED: Cell<bool> = const { Cell::new(false) };
+    /// This thread's counted allocations (the tests run on threads of one binary: each
+    /// counts its own).
+    static MINE: Cell<u64> = const { Cell::new(0) };
 }
 
 fn count() {
     if COUNTED.with(Cell::get) {
         ALLOCATIONS.fetch_add(1, Ordering::Relaxed);
+        MINE.with(|m| m.set(m.get() + 1));
     }
+}
+
+/// This thread's counted allocations so far.
+fn mine() -> u64 {
+    MINE.with(Cell::get)
 }
 
 // SAFETY: forwards to the system allocator unchanged; only counts calls.
@@ -85,4 +94,83 @@ fn a_tick_does_not_allocate() {
         std::hint::black_box(sum);
         assert_eq!(after - before, 0, "{} allocations in 10 000 ticks", after - before);
     }
+}
+
+/// The C API's tick allocates nothing of its own once the port is open: receiving the
+/// newest state and its reference allocates nothing, and loan + publish allocate exactly
+/// what a loan and send of one sample through iceoryx2 allocates (the built-in
+/// controller's path: once per sample here, inside iceoryx2). A thousand ticks against a plant and a
+/// reference played by this test in its own domain.
+#[test]
+fn the_c_apis_tick_allocates_only_what_iceoryx2s_send_does() {
+    use rotorloop_c::*;
+    use rotorloop_common::graph::Topic;
+    use rotorloop_common::ipc::domain::Domain;
+    use rotorloop_common::wire::{ReferenceSample, StateSample, TorqueSample};
+
+    let name = format!("na{}", std::process::id());
+    let domain = Domain::new(&name).expect("domain");
+    let s = Scenario::load("paper-sinusoid").expect("builtin");
+    let cname = std::ffi::CString::new(name.clone()).expect("name");
+    let mut c: *mut RotorloopController = std::ptr::null_mut();
+    // SAFETY: valid strings and a writable pointer.
+    let opened = unsafe { rotorloop_controller_open(cname.as_ptr(), c"event".as_ptr(), &mut c) };
+    assert_eq!(opened, RotorloopStatus::Ok);
+    let plant = domain.node("plant").expect("plant node");
+    let states = domain.outbox::<StateSample>(&plant, Topic::State).expect("states");
+    let torques = domain.inbox::<TorqueSample>(&plant, Topic::Torque, 8, false).expect("torques");
+    let refnode = domain.node("reference").expect("reference node");
+    let refs = domain.outbox::<ReferenceSample>(&refnode, Topic::Reference).expect("refs");
+    let probe = domain.node("monitor").expect("monitor node");
+    let loans = domain.outbox::<TorqueSample>(&probe, Topic::Torque).expect("a second publisher");
+    states.update_connections();
+    refs.update_connections();
+    let x = s.plant_init;
+    let (mut reading, mut sending, mut iceoryx2_loans, mut answered) = (0, 0, 0, 0);
+    for k in 0..1100u64 {
+        // SAFETY: every field a number: zero bytes are a value.
+        let mut r: ReferenceSample = unsafe { std::mem::zeroed() };
+        r.tick = k;
+        r.r_d_row_major = StateSample::of(0, 0.0, &x).r_row_major;
+        refs.send(r, |_| ()).expect("reference");
+        states.send(StateSample::of(k, k as f64 * 1e-3, &x), |_| ()).expect("state");
+        COUNTED.with(|f| f.set(k >= 100));
+        let before = mine();
+        // SAFETY: an open handle and writable outputs, as the header says.
+        unsafe {
+            let mut state = std::mem::MaybeUninit::<StateSample>::uninit();
+            let mut recv = 0u64;
+            let got =
+                rotorloop_controller_receive_state(c, 1_000_000_000, state.as_mut_ptr(), &mut recv);
+            assert_eq!(got, RotorloopStatus::Ok);
+            let tick = state.assume_init().tick;
+            let mut rd = std::mem::MaybeUninit::<ReferenceSample>::uninit();
+            let got = rotorloop_controller_reference(c, tick, 0, rd.as_mut_ptr());
+            assert_eq!(got, RotorloopStatus::Ok);
+            reading += mine() - before;
+            let before = mine();
+            let mut t: *mut TorqueSample = std::ptr::null_mut();
+            assert_eq!(rotorloop_controller_loan(c, &mut t), RotorloopStatus::Ok);
+            (*t).tick = tick;
+            assert_eq!(rotorloop_controller_publish(c), RotorloopStatus::Ok);
+            sending += mine() - before;
+        }
+        // iceoryx2's own loan and send of one sample (the built-in controller's path), for
+        // comparison.
+        let before = mine();
+        loans.send(TorqueSample::default(), |_| ()).expect("send");
+        iceoryx2_loans += mine() - before;
+        COUNTED.with(|f| f.set(false));
+        torques.drain(|_| answered += 1).expect("torques");
+    }
+    // SAFETY: the open handle, closed once.
+    unsafe { rotorloop_controller_close(c, 0) };
+    drop((states, torques, refs, loans, plant, refnode, probe));
+    let _ = domain.cleanup();
+    assert!(answered >= 1000, "{answered} torques came back");
+    assert_eq!(reading, 0, "receiving 1000 states and references allocated {reading} times");
+    assert_eq!(
+        sending, iceoryx2_loans,
+        "1000 loans and publishes allocated {sending} times, 1000 of iceoryx2's {iceoryx2_loans}"
+    );
 }

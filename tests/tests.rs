@@ -14,6 +14,7 @@ mod actuators;
 mod almost_global;
 mod bad_input;
 mod bench_smoke;
+mod c_controller;
 mod cli_outputs;
 mod controller_cmd;
 mod delay;

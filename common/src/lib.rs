@@ -20,6 +20,7 @@
 //! inside a tick converts between them.
 
 pub mod clock;
+pub mod controller_json;
 pub mod flight;
 pub mod graph;
 pub mod hgrm;

@@ -40,7 +40,7 @@ import rotorloop_wire as w  # noqa: E402
 import rotorloop_iox as rl  # noqa: E402
 
 CLOCK = time.CLOCK_MONOTONIC
-HOLD_TICKS = 50  # how long a missing reference is propagated (real time), as the built-in
+HOLD_TICKS = 1000  # how long a missing reference is propagated (real time), as the built-in (docs/wire.md)
 
 
 def now_ns() -> int:

@@ -193,6 +193,12 @@ fn markdown() -> String {
     for (n, v, d) in constants() {
         let _ = writeln!(md, "| `{n}` | {v} | {d} |");
     }
+    let _ = writeln!(
+        md,
+        "\n### `controller.json` (`$ROTORLOOP_CONTROLLER_JSON`, `layout_version` {})\n",
+        rotorloop_common::controller_json::CONTROLLER_JSON_VERSION
+    );
+    md.push_str(&rotorloop_common::controller_json::keys_markdown());
     md
 }
 
@@ -256,7 +262,9 @@ fn c_header() -> String {
          do not edit; the layout\n * test compares this file with that output and compiles \
          it. docs/wire.md says\n * what each field means and how to take part in a loop. \
          */\n#ifndef ROTORLOOP_WIRE_H\n#define ROTORLOOP_WIRE_H\n\n#include <stddef.h>\n\
-         #include <stdint.h>\n\n"
+         #include <stdint.h>\n\n/* C11's _Static_assert is C++'s static_assert: the header \
+         compiles as either. */\n#ifdef __cplusplus\n#define ROTORLOOP_STATIC_ASSERT \
+         static_assert\n#else\n#define ROTORLOOP_STATIC_ASSERT _Static_assert\n#endif\n\n"
     );
     for (n, v, d) in constants() {
         let _ = writeln!(h, "#define ROTORLOOP_{n} UINT64_C({v}) /* {d} */");
@@ -277,12 +285,15 @@ fn c_header() -> String {
         if let Some(n) = t.type_name {
             let _ = writeln!(h, "#define ROTORLOOP_{}_TYPE_NAME \"{n}\"", t.name.to_uppercase());
         }
-        let _ =
-            writeln!(h, "_Static_assert(sizeof({}) == {}, \"{} size\");", t.name, t.size, t.name);
+        let _ = writeln!(
+            h,
+            "ROTORLOOP_STATIC_ASSERT(sizeof({}) == {}, \"{} size\");",
+            t.name, t.size, t.name
+        );
         for f in t.fields {
             let _ = writeln!(
                 h,
-                "_Static_assert(offsetof({}, {}) == {}, \"{}.{} offset\");",
+                "ROTORLOOP_STATIC_ASSERT(offsetof({}, {}) == {}, \"{}.{} offset\");",
                 t.name, f.name, f.offset, t.name, f.name
             );
         }

@@ -4,7 +4,8 @@
 //!
 //! The command is split into words (`'…'` and `"…"` group words; no shell runs it) and
 //! started as a plain process with the built-in controller's arguments appended
-//! (`--domain D --scenario S --mode M --wait W …`, which a program may ignore), and with
+//! (`--domain D --scenario OUT/scenario.toml --mode M --wait W …`, which a program may
+//! ignore; the scenario is the file as run, never a built-in name), and with
 //! the run described in its environment:
 //!
 //! | variable | what |
@@ -27,6 +28,9 @@
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
+use rotorloop_common::controller_json::{
+    CONTROLLER_JSON_VERSION, ControllerJson, JsonGains, JsonLimits, JsonModel,
+};
 use rotorloop_common::role::UsageError;
 use rotorloop_common::role::args::RoleArgs;
 use rotorloop_common::scenario::Scenario;
@@ -104,7 +108,11 @@ impl ExternalController {
     /// SCHED_FIFO `priority` before it runs.
     pub fn command(&self, role_args: &RoleArgs, out: &Path, scenario: &Scenario) -> Command {
         let mut cmd = Command::new(&self.program);
-        cmd.args(&self.args).args(role_args.to_args());
+        // `--scenario` names the scenario as run, a file any program can read: a built-in
+        // name would mean nothing outside rotorloop.
+        let mut appended = role_args.clone();
+        appended.scenario = out.join(SCENARIO_FILE).display().to_string();
+        cmd.args(&self.args).args(appended.to_args());
         let mode = match role_args.mode {
             rotorloop_common::role::args::Mode::Lockstep => "lockstep",
             rotorloop_common::role::args::Mode::Realtime => "realtime",
@@ -188,25 +196,44 @@ pub fn write_run_files(out: &Path, scenario: &Scenario) -> anyhow::Result<()> {
     let actuation = scenario.actuation();
     let model = scenario.controller_params(actuation);
     let limits = scenario.limits_for(actuation);
-    let rows = |m: glam::DMat3| {
-        let t = m.transpose().to_cols_array_2d();
-        serde_json::json!(t)
-    };
+    let rows = |m: glam::DMat3| m.transpose().to_cols_array_2d();
     let g = &scenario.gains;
-    let j = serde_json::json!({
-        "law": scenario.law.as_deref().unwrap_or("geometric-pid"),
-        "actuation": actuation.to_string(),
-        "dt_s": scenario.dt(),
-        "rate_hz": scenario.file.run.rate_hz,
-        "ticks": scenario.ticks(),
-        "gains": { "kp": g.kp, "kd": g.kd, "ki": g.ki, "p": rows(g.p) },
-        "model": { "inertia": rows(model.inertia), "rotor_inertia": model.rotor_inertia.to_array() },
-        "limits": { "rotor_torque_nm": limits.rotor_torque, "rotor_rate_rad_s": limits.rotor_rate },
-        "anti_windup": format!("{:?}", scenario.anti_windup).to_lowercase(),
-    });
+    let law_params = match serde_json::to_value(&scenario.law_params)? {
+        serde_json::Value::Object(m) => m,
+        _ => serde_json::Map::new(),
+    };
+    let j = ControllerJson {
+        layout_version: CONTROLLER_JSON_VERSION,
+        law: scenario.law.as_deref().unwrap_or("geometric-pid").to_owned(),
+        actuation: actuation.to_string(),
+        dt_s: scenario.dt(),
+        rate_hz: scenario.file.run.rate_hz,
+        ticks: scenario.ticks(),
+        gains: JsonGains { kp: g.kp, kd: g.kd, ki: g.ki, p: rows(g.p) },
+        model: JsonModel {
+            inertia: rows(model.inertia),
+            rotor_inertia: model.rotor_inertia.to_array(),
+        },
+        limits: JsonLimits {
+            rotor_torque_nm: limits.rotor_torque,
+            rotor_rate_rad_s: limits.rotor_rate,
+        },
+        anti_windup: format!("{:?}", scenario.anti_windup).to_lowercase(),
+        law_params,
+    };
     let path = out.join(CONTROLLER_FILE);
     std::fs::write(&path, serde_json::to_string_pretty(&j)? + "\n")
         .with_context(|| format!("cannot write {}", path.display()))?;
+    // A new run starts with an empty state directory: a controller must never resume
+    // the state of an earlier run written into the same `--out` (its restarts within
+    // this run keep it: this runs once, before the first start).
+    let dir = state_dir(out);
+    match std::fs::remove_dir_all(&dir) {
+        Err(e) if e.kind() != std::io::ErrorKind::NotFound => {
+            return Err(e).with_context(|| format!("cannot clear {}", dir.display()));
+        }
+        _ => {}
+    }
     std::fs::create_dir_all(state_dir(out))?;
     Ok(())
 }

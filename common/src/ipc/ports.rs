@@ -109,6 +109,20 @@ impl<T: ZeroCopySend + Debug + Copy + 'static> Outbox<T> {
         Ok(())
     }
 
+    /// The sample [`Outbox::prewrite`] wrote, in shared memory, for its owner to write in
+    /// place before [`Outbox::send_prewritten`] (the C API's loan): `None` when none is
+    /// held. The pointer stays valid until that send (the sample's memory does not move
+    /// with the handle that owns it).
+    pub fn prewritten_ptr(&self) -> Option<*mut T> {
+        let mut held = self.preloaned.0.take();
+        let ptr = match &mut held {
+            Some((Held::Written(s), _)) => Some(std::ptr::from_mut(s.payload_mut())),
+            _ => None,
+        };
+        self.preloaned.0.set(held);
+        ptr
+    }
+
     /// Sends the sample [`Outbox::prewrite`] wrote, `patch`ed with the publish stamp it is
     /// given, and notifies; `after` gets `value` (what was prewritten) patched the same way,
     /// as published. With no sample written ahead, a plain [`Outbox::send_then`] of

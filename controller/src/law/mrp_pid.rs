@@ -24,9 +24,12 @@
 //! ```
 //!
 //! `K`, `P`, `Ki` (and the optional `integral_limit`) come from `[controller.law_params]`
-//! (`k`, `p`, `ki`, `integral_limit`). The one difference from Basilisk: Basilisk
-//! integrates with the time since its previous call, 0 on its first; here every tick
-//! integrates with the tick's `dt`. The law's state is `∫σ`.
+//! (`k`, `p`, `ki`, `integral_limit`). `I` is the model of the body without the rotors'
+//! spin inertia (that is `K_rotor`). The one difference from Basilisk: Basilisk
+//! integrates with the time since its previous call and reads a previous call time of 0
+//! as none, so a simulation started at t = 0 leaves `∫σ` at zero for its first **two**
+//! calls; here every tick, the first included, integrates with the tick's `dt`
+//! (docs/scenarios.md). The law's state is `∫σ`.
 
 use glam::{DMat3, DVec3};
 use rotorloop_common::params::{BodyParams, ReferenceState, RotorBodyState};

@@ -151,8 +151,14 @@ impl RunRecord {
         }
         let limit = scenario.ticks().saturating_add(SPARE_SLOTS);
         let states = FlightLog::<StateSample>::read(&flight, Stream::PlantState, limit)?;
+        // The controller's answers from its own record; a controller of the user's own
+        // (`--controller-cmd`) keeps none, and its answers are then the plant's record of
+        // the torques it received (the same samples, less any lost on the way).
         let torques = FlightLog::<TorqueSample>::read(&flight, Stream::ControllerTorque, limit)
-            .unwrap_or_else(|_| FlightLog::empty());
+            .ok()
+            .filter(|t| t.last().is_some())
+            .or_else(|| FlightLog::read(&flight, Stream::PlantTorque, limit).ok())
+            .unwrap_or_else(FlightLog::empty);
         let references = FlightLog::<ReferenceSample>::read(&flight, Stream::Reference, limit)
             .unwrap_or_else(|_| FlightLog::empty());
         let last = states.last().unwrap_or(0).min(scenario.ticks());

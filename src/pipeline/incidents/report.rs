@@ -67,15 +67,21 @@ fn markdown(dir: &Path, found: &Explained) -> String {
         found.median_delay_s * 1e3,
     );
     let [same, computed] = found.law_reproduced;
-    let _ = writeln!(
-        md,
-        "The law in process reproduced {same} of the controller's {computed} answers bit for bit{}.\n",
-        if same == computed {
-            ""
-        } else {
-            " (the others: the counterfactual starts from an approximate law state)"
-        }
-    );
+    if computed == 0 {
+        md += "No answer of the controller was found in the flight records (neither its own \
+               `controller-torque.flight` nor the plant's `plant-torque.flight` holds one), so \
+               the law in process has nothing to start from: no incident's cost can be computed.\n\n";
+    } else {
+        let _ = writeln!(
+            md,
+            "The law in process reproduced {same} of the controller's {computed} answers bit for bit{}.\n",
+            if same == computed {
+                ""
+            } else {
+                " (the others: the counterfactual starts from an approximate law state)"
+            }
+        );
+    }
     if !found.kernel_view {
         md += "No `sched.csv`: the kernel's view of the processes is missing.\n\n";
     }
@@ -95,6 +101,9 @@ fn markdown(dir: &Path, found: &Explained) -> String {
         let _ = writeln!(md, "- **Evidence:** {}.", inc.evidence);
         let _ = writeln!(md, "- **Ticks:** {} ({} miss(es)).", inc.flags, inc.misses);
         let cost = match (inc.peak_deviation_deg, inc.recovery_s) {
+            (None, _) if computed == 0 => {
+                "not computed (no record of the controller's answers)".to_owned()
+            }
             (None, _) => "not computed (only the longest incidents are)".to_owned(),
             (Some(p), Some(r)) => {
                 format!("peak deviation {p:.4}°, below 10 % of it after {r:.3} s")
@@ -178,4 +187,30 @@ pub fn write(dir: &Path, found: &Explained) -> anyhow::Result<()> {
             f["recovery_s"] = serde_json::json!(i.and_then(|i| i.recovery_s));
         }
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// With no answer of the controller on record the report says why nothing is costed,
+    /// in words, instead of "reproduced 0 of 0".
+    #[test]
+    fn a_run_without_the_controllers_answers_says_why_nothing_is_costed() {
+        let mut found = Explained {
+            incidents: Vec::new(),
+            threshold_s: 2.5e-4,
+            median_delay_s: 1e-4,
+            law_reproduced: [0, 0],
+            realtime: true,
+            kernel_view: true,
+            traced: false,
+        };
+        let md = markdown(Path::new("run"), &found);
+        assert!(md.contains("no incident's cost can be computed"), "{md}");
+        assert!(!md.contains("reproduced 0 of"), "{md}");
+        found.law_reproduced = [5, 5];
+        let md = markdown(Path::new("run"), &found);
+        assert!(md.contains("reproduced 5 of the controller's 5 answers"), "{md}");
+    }
 }

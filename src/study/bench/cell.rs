@@ -113,8 +113,10 @@ pub struct BenchArgs {
     /// Also run each loop cell with another controller (`loop-<name>` rows), against
     /// the same baselines: `mrp-pid` (the second law, Basilisk's MRP feedback, with
     /// `mrp-regulation`'s gains, on the bench's scenario) and `python` (the Python
-    /// example, `examples/python/controller.py`, through `run --controller-cmd`). The
-    /// plain `loop` row is the built-in geometric PID.
+    /// example, `examples/python/controller.py`, through `run --controller-cmd`) and `c`
+    /// (the C example, `examples/c/controller.c` against the C API, built with `make`
+    /// against the `librotorloop_c.so` beside this executable). The plain `loop` row is
+    /// the built-in geometric PID.
     #[arg(long, value_delimiter = ',')]
     pub controllers: Vec<String>,
     /// The Python that runs the `python` controller (with `python/requirements.txt`
@@ -381,8 +383,10 @@ pub(super) fn validate(a: &BenchArgs) -> Result<(), UsageError> {
         }
     }
     for c in &a.controllers {
-        if !["mrp-pid", "python"].contains(&c.as_str()) {
-            return Err(UsageError(format!("--controllers `{c}` is not allowed: mrp-pid, python")));
+        if !["mrp-pid", "python", "c"].contains(&c.as_str()) {
+            return Err(UsageError(format!(
+                "--controllers `{c}` is not allowed: mrp-pid, python, c"
+            )));
         }
     }
     if !(1..=99).contains(&a.repeat) {

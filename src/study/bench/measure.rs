@@ -133,6 +133,8 @@ pub(super) enum Variant {
     MrpPid,
     /// With the Python example controller (`--controllers python`).
     Python,
+    /// With the C example controller (`--controllers c`).
+    C,
 }
 
 impl Variant {
@@ -147,6 +149,7 @@ impl Variant {
             Variant::PlainHotPath => "loop-plain",
             Variant::MrpPid => "loop-mrp-pid",
             Variant::Python => "loop-python",
+            Variant::C => "loop-c",
         }
     }
 
@@ -154,6 +157,7 @@ impl Variant {
     pub(super) fn of_controller(name: &str) -> Self {
         match name {
             "python" => Variant::Python,
+            "c" => Variant::C,
             _ => Variant::MrpPid,
         }
     }
@@ -232,6 +236,7 @@ pub(super) fn measure_loop(
         Variant::PlainHotPath => "h",
         Variant::MrpPid => "m",
         Variant::Python => "p",
+        Variant::C => "c",
     };
     let domain = format!("bl{}-{}{suffix}", std::process::id(), base.index);
     let one = place(t, 1, Shape::of_placement(&base.placement));
@@ -243,13 +248,16 @@ pub(super) fn measure_loop(
     run.role.plain_hot_path = variant == Variant::PlainHotPath;
     match variant {
         Variant::MrpPid => run.role.scenario = mrp_scenario(a, &out)?,
-        Variant::Python => match python_controller(a) {
-            Ok(cmd) => run.controller_cmd = Some(cmd),
-            Err(why) => {
-                row.skipped = why;
-                return Ok(row);
+        Variant::Python | Variant::C => {
+            let cmd = if variant == Variant::C { c_controller() } else { python_controller(a) };
+            match cmd {
+                Ok(cmd) => run.controller_cmd = Some(cmd),
+                Err(why) => {
+                    row.skipped = why;
+                    return Ok(row);
+                }
             }
-        },
+        }
         _ => {}
     }
     if variant == Variant::Foxglove {
@@ -573,6 +581,40 @@ fn mrp_scenario(a: &BenchArgs, out: &Path) -> anyhow::Result<String> {
     let path = out.with_extension("scenario.toml");
     std::fs::write(&path, file.to_toml())?;
     Ok(path.display().to_string())
+}
+
+/// The `--controller-cmd` of the C example, built by `make -C examples/c` against the
+/// `librotorloop_c.so` beside this executable (`cargo build --release --workspace` puts
+/// both in `target/release/`), or why it cannot run here.
+fn c_controller() -> Result<String, String> {
+    let dir = Path::new("examples/c");
+    if !dir.join("controller.c").exists() {
+        return Err(format!(
+            "no {}/controller.c here (run the bench from the repository)",
+            dir.display()
+        ));
+    }
+    let exe = std::env::current_exe().map_err(|e| format!("cannot find this executable: {e}"))?;
+    let libdir = exe.parent().map(Path::to_path_buf).unwrap_or_default();
+    if !libdir.join("librotorloop_c.so").exists() {
+        return Err(format!(
+            "no librotorloop_c.so in {} (cargo build --release --workspace)",
+            libdir.display()
+        ));
+    }
+    let made = Command::new("make")
+        .arg("-C")
+        .arg(dir)
+        .arg(format!("LIBDIR={}", libdir.display()))
+        .stdout(Stdio::null())
+        .output();
+    match made {
+        Ok(o) if o.status.success() => Ok(dir.join("controller").display().to_string()),
+        Ok(o) => {
+            Err(format!("make -C examples/c failed: {}", String::from_utf8_lossy(&o.stderr).trim()))
+        }
+        Err(e) => Err(format!("cannot run make ({e}): cc and make build the C controller")),
+    }
 }
 
 /// The `--controller-cmd` of the Python example, or why it cannot run here.

@@ -617,7 +617,8 @@ pub(super) fn controllers_md(rows: &[Row], a: &BenchArgs) -> String {
     let mut md = String::from(
         "\n## What each controller costs the loop\n\nThe same cell with the built-in geometric \
          PID (`loop`), the second law (`loop-mrp-pid`: Basilisk's MRP feedback) and the Python \
-         example through `run --controller-cmd` (`loop-python`), in the same invocation. \
+         example through `run --controller-cmd` (`loop-python`) and the C example against the \
+         C API (`loop-c`), in the same invocation. \
          Sense-to-actuate and the controller's compute (state received to torque published) \
          and its law stage, µs.\n\n\
          | cell | controller | sense-to-actuate p50 / p99 | / bare iceoryx2 p50 | compute p50 / p99 | law p50 | misses |\n\
@@ -626,7 +627,7 @@ pub(super) fn controllers_md(rows: &[Row], a: &BenchArgs) -> String {
     let us = |v: &serde_json::Value| v.as_f64().map_or(f64::NAN, |ns| ns / 1e3);
     for r in rows
         .iter()
-        .filter(|r| r.kind == "loop" || r.kind == "loop-mrp-pid" || r.kind == "loop-python")
+        .filter(|r| ["loop", "loop-mrp-pid", "loop-python", "loop-c"].contains(&r.kind.as_str()))
     {
         if !r.skipped.is_empty() {
             let _ = writeln!(md, "| {} | {} | skipped: {} | | | | |", r.cell, r.kind, r.skipped);
