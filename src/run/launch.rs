@@ -197,7 +197,7 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
         .and_then(|()| supervise(&launch, &mut children, &mut rss, FaultSchedule::new(faults)));
     stop_gateways(&mut children, args.quiet);
     drop(children);
-    live.into_iter().for_each(Beside::stop);
+    let unserved = live.and_then(Beside::stop);
     launch.clean_up();
     // sched.csv and the trace complete before the incidents read them.
     (rss.sched, _) = (None, traced);
@@ -205,6 +205,18 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
     // A failure stops the run, but its report (the faults that led to it among them) is
     // written as for any other end.
     let (events, failure) = supervised?;
+    if let Some(w) = unserved {
+        // In the report too: a run whose live view was not served still exits 0.
+        let warned = rotorloop_common::output::patch_summary(&args.out, |j| {
+            match j["warnings"].as_array_mut() {
+                Some(all) => all.push(w.clone().into()),
+                None => j["warnings"] = serde_json::json!([w]),
+            }
+        });
+        if let Err(e) = warned {
+            eprintln!("warning: the live view's warning is not in summary.json: {e:#}");
+        }
+    }
     let reported = report(&launch, &scenario, &rss, (&events, launched_ns), flight.as_deref());
     match failure {
         Some(f) => Err(refusal_or(f)),
