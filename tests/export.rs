@@ -46,7 +46,8 @@ fn trace_attitudes(out: &std::path::Path) -> BTreeMap<u64, [f64; 9]> {
 /// (schema name, schema data, messages).
 fn channels(bytes: &[u8]) -> BTreeMap<String, (String, Vec<u8>, u64)> {
     let summary = mcap::Summary::read(bytes).expect("readable").expect("a summary");
-    let counts = summary.stats.as_ref().map(|s| s.channel_message_counts.clone()).unwrap_or_default();
+    let counts =
+        summary.stats.as_ref().map(|s| s.channel_message_counts.clone()).unwrap_or_default();
     summary
         .channels
         .values()

@@ -143,7 +143,11 @@ fn a_viewer_connects_late_and_vanishes_and_the_loop_never_notices() {
     // after the server's close, and the server ends the connection.
     let closed = second.close(Duration::from_secs(10)).expect("close");
     eprintln!("close while streaming: {closed:?}");
-    assert_eq!((closed.code, closed.after_close, closed.ended), (Some(1000), 0, true), "{closed:?}");
+    assert_eq!(
+        (closed.code, closed.after_close, closed.ended),
+        (Some(1000), 0, true),
+        "{closed:?}"
+    );
     let output = wait_output(child, LIMIT);
     ok(&output);
     assert_untouched(&out, 0);
@@ -176,7 +180,8 @@ fn a_server_attached_to_a_running_loop_and_killed_is_no_matter_to_it() {
     let at = |p: &dyn Fn(&(String, i32, String)) -> bool| logs.iter().position(p);
     let fault = at(&|(n, l, m)| n == "controller" && *l == error && m.starts_with("fault: gone"));
     assert!(fault.is_some(), "{logs:?}");
-    let back = at(&|(n, _, m)| n == "controller" && (m.contains("restarted") || m.starts_with("up")));
+    let back =
+        at(&|(n, _, m)| n == "controller" && (m.contains("restarted") || m.starts_with("up")));
     assert!(back.is_some(), "{logs:?}");
     assert!(at(&|(_, _, m)| m.ends_with("entered safe mode")).is_some(), "{logs:?}");
     assert!(at(&|(_, _, m)| m.ends_with("left safe mode")).is_some(), "{logs:?}");
@@ -265,7 +270,7 @@ fn the_server_closes_as_rfc_6455_says_and_speaks_the_older_subprotocol() {
 #[test]
 fn an_attached_server_validates_and_ends_with_the_loop_leaving_nothing() {
     let h = Harness::new("fxvalid");
-    let (child, out) = start(&h, "5", &["--fault", "controller:kill@2:restart@2.3"]);
+    let (child, out) = start(&h, "7", &["--fault", "controller:kill@4:restart@4.3"]);
     let file = h.path("fx.addr");
     let server = group(&mut Command::new(crate::common::harness::ROTORLOOP))
         .args(["foxglove", "--domain", &h.domain, "127.0.0.1:0", "--addr-file"])
@@ -321,7 +326,10 @@ fn an_attached_server_validates_and_ends_with_the_loop_leaving_nothing() {
     let error = foxglove::messages::log::Level::Error as i32;
     let errors: Vec<_> = logs.iter().filter(|(_, l, _)| *l == error).collect();
     assert!(!errors.is_empty(), "{logs:?}");
-    assert!(errors.iter().all(|(n, _, m)| n == "controller" && m.starts_with("fault: gone")), "{logs:?}");
+    assert!(
+        errors.iter().all(|(n, _, m)| n == "controller" && m.starts_with("fault: gone")),
+        "{logs:?}"
+    );
     ok(&wait_output(child, LIMIT));
     assert_untouched(&out, 1);
     ok(&wait_output(server, LIMIT));

@@ -504,13 +504,8 @@ fn write_trace_messages(sink: &mut FileSink, dir: &Path) -> anyhow::Result<()> {
     if let Some(data) = summary {
         let name = "summary.json".into();
         let media_type = "application/json".into();
-        let a = mcap::Attachment {
-            log_time: 0,
-            create_time: 0,
-            name,
-            media_type,
-            data: data.into(),
-        };
+        let a =
+            mcap::Attachment { log_time: 0, create_time: 0, name, media_type, data: data.into() };
         sink.writer.attach(&a)?;
     }
     while let Some((_, line)) = rows.next_row() {

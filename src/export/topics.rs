@@ -273,10 +273,8 @@ mod tests {
     #[test]
     fn each_sample_schema_names_every_field() {
         let s = StateSample::of(0, 0.0, &rest());
-        for (v, topic) in [
-            (state_json(&s), STATE),
-            (torque_json(&TorqueSample::default()), TORQUE),
-        ] {
+        for (v, topic) in [(state_json(&s), STATE), (torque_json(&TorqueSample::default()), TORQUE)]
+        {
             let schema = topic.schema();
             let props = schema["properties"].as_object().expect("properties");
             let fields = v.as_object().expect("an object");

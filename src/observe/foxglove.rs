@@ -150,7 +150,8 @@ impl JsonChannel {
     fn log(&self, value: &serde_json::Value, log_time: u64) -> anyhow::Result<()> {
         if self.channel.has_sinks() {
             let bytes = serde_json::to_vec(value)?;
-            self.channel.log_with_meta(&bytes, foxglove::PartialMetadata { log_time: Some(log_time) });
+            self.channel
+                .log_with_meta(&bytes, foxglove::PartialMetadata { log_time: Some(log_time) });
         }
         Ok(())
     }
@@ -432,7 +433,11 @@ fn role_events(before: &BTreeMap<String, u32>, now: &BTreeMap<String, u32>) -> V
     let mut said = Vec::new();
     for (role, pid) in before {
         if now.get(role) != Some(pid) {
-            said.push(RoleEvent { role: role.clone(), before: Some(*pid), now: now.get(role).copied() });
+            said.push(RoleEvent {
+                role: role.clone(),
+                before: Some(*pid),
+                now: now.get(role).copied(),
+            });
         }
     }
     for (role, pid) in now.iter().filter(|(r, _)| !before.contains_key(*r)) {
@@ -659,7 +664,8 @@ impl Beside {
             return Some(w);
         };
         if let Ok(Some(status)) = child.try_wait() {
-            let w = format!("the Foxglove server ended during the run ({status}); the loop went on");
+            let w =
+                format!("the Foxglove server ended during the run ({status}); the loop went on");
             eprintln!("warning: {w}");
             return Some(w);
         }

@@ -33,7 +33,8 @@ use tokio_tungstenite::tungstenite::{Error, Message, client::IntoClientRequest};
 use tokio_tungstenite::{MaybeTlsStream, WebSocketStream};
 
 /// The subprotocols a viewer may offer, the preferred first.
-pub const SUBPROTOCOLS: [&str; 3] = ["foxglove.sdk.v1.1", "foxglove.sdk.v1", "foxglove.websocket.v1"];
+pub const SUBPROTOCOLS: [&str; 3] =
+    ["foxglove.sdk.v1.1", "foxglove.sdk.v1", "foxglove.websocket.v1"];
 
 /// The largest frame or message a viewer may send (bytes): larger is closed with `1009`.
 pub const MAX_MESSAGE: usize = 1 << 20;
@@ -108,7 +109,8 @@ async fn viewer(stream: TcpStream, upstream: SocketAddr) {
                 .unwrap_or_default()),
         }
     };
-    let accepted = tokio_tungstenite::accept_hdr_async_with_config(stream, callback, Some(config()));
+    let accepted =
+        tokio_tungstenite::accept_hdr_async_with_config(stream, callback, Some(config()));
     let Ok(Ok(mut client)) = tokio::time::timeout(PATIENCE, accepted).await else { return };
     let Some(sdk) = chosen else { return };
     let sdk = match connect(upstream, sdk).await {
@@ -209,9 +211,18 @@ mod tests {
     /// the SDK is spoken to in the one it knows.
     #[test]
     fn the_newest_offered_subprotocol_is_chosen() {
-        assert_eq!(choose(&["foxglove.websocket.v1"]), Some(("foxglove.websocket.v1", "foxglove.sdk.v1")));
-        assert_eq!(choose(&[" foxglove.sdk.v1", "foxglove.websocket.v1"]), Some(("foxglove.sdk.v1", "foxglove.sdk.v1")));
-        assert_eq!(choose(&["foxglove.sdk.v1", "foxglove.sdk.v1.1"]), Some(("foxglove.sdk.v1.1", "foxglove.sdk.v1.1")));
+        assert_eq!(
+            choose(&["foxglove.websocket.v1"]),
+            Some(("foxglove.websocket.v1", "foxglove.sdk.v1"))
+        );
+        assert_eq!(
+            choose(&[" foxglove.sdk.v1", "foxglove.websocket.v1"]),
+            Some(("foxglove.sdk.v1", "foxglove.sdk.v1"))
+        );
+        assert_eq!(
+            choose(&["foxglove.sdk.v1", "foxglove.sdk.v1.1"]),
+            Some(("foxglove.sdk.v1.1", "foxglove.sdk.v1.1"))
+        );
         assert_eq!(choose(&["foxglove.websocket"]), None);
     }
 }

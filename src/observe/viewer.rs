@@ -188,7 +188,8 @@ impl Viewer {
     /// close or `patience`: the server's close code (`None`: no close came), the data frames
     /// that came after ours, and whether anything came after the server's close.
     pub fn close(mut self, patience: Duration) -> anyhow::Result<Closed> {
-        self.ws.close(None)?;
+        use tungstenite::protocol::{CloseFrame, frame::coding::CloseCode};
+        self.ws.close(Some(CloseFrame { code: CloseCode::Normal, reason: "".into() }))?;
         self.read_close(patience)
     }
 
