@@ -72,18 +72,11 @@ fn a_run_with_kills_is_one_mcap_file_with_every_tick_its_attitudes_and_its_fault
     let h = Harness::new("mcap");
     let out = h.path("rt");
     let dir = out.to_str().expect("utf8");
-    let args = ["run", "--scenario", "paper-zero", "--duration", "4", "--mode", "realtime"];
-    let faults =
-        ["--fault", "controller:kill@1:restart@1.2", "--fault", "monitor:kill@2:restart@2.3"];
-    let o = h.rotorloop(
-        &args
-            .into_iter()
-            .chain(faults)
-            .chain(["--domain", &h.domain, "--out", dir])
-            .collect::<Vec<_>>(),
-        LIMIT,
-    );
-    let said = ok(&o);
+    let mut args = vec!["run", "--scenario", "paper-zero", "--duration", "4", "--mode", "realtime"];
+    let faults = "controller:kill@1:restart@1.2 monitor:kill@2:restart@2.3";
+    args.extend(faults.split(' ').flat_map(|f| ["--fault", f]));
+    args.extend(["--domain", &h.domain, "--out", dir]);
+    let said = ok(&h.rotorloop(&args, LIMIT));
     let s = json(&out.join("summary.json"));
     let kinds: Vec<&str> =
         s["faults"].as_array().expect("faults").iter().filter_map(|f| f["role"].as_str()).collect();
@@ -99,11 +92,9 @@ fn a_run_with_kills_is_one_mcap_file_with_every_tick_its_attitudes_and_its_fault
     let schemas: BTreeMap<String, Vec<u8>> =
         declared.iter().map(|(t, (_, data, _))| (t.clone(), data.clone())).collect();
     let mut valid = Schemas::default();
-    for (topic, (_, data, _)) in declared.iter().filter(|(t, _)| t.starts_with("/rotorloop/")) {
-        if topic != "/rotorloop/log" {
-            valid.declare(topic, data);
-        }
-    }
+    let json_channels =
+        declared.iter().filter(|(t, c)| t.starts_with("/rotorloop/") && c.0 != "foxglove.Log");
+    json_channels.for_each(|(topic, (_, data, _))| valid.declare(topic, data));
     let (mut incidents, mut marked) = (Vec::new(), 0u64);
     for m in mcap::MessageStream::new(&bytes).expect("an MCAP file") {
         let m = m.expect("a message");
@@ -111,13 +102,12 @@ fn a_run_with_kills_is_one_mcap_file_with_every_tick_its_attitudes_and_its_fault
             valid.check(&m.channel.topic, &m.data);
         }
         match m.channel.topic.as_str() {
-            "/rotorloop/incidents" => {
+            t @ ("/rotorloop/incidents" | "/rotorloop/tracking") => {
                 let v: serde_json::Value = serde_json::from_slice(&m.data).expect("json");
-                incidents.push((v["start_tick"].as_u64(), v["end_tick"].as_u64()));
-            }
-            "/rotorloop/tracking" => {
-                let v: serde_json::Value = serde_json::from_slice(&m.data).expect("json");
-                marked += v["in_incident"].as_u64().expect("known after the run");
+                match t.ends_with("incidents") {
+                    true => incidents.push((v["start_tick"].as_u64(), v["end_tick"].as_u64())),
+                    false => marked += v["in_incident"].as_u64().expect("known after the run"),
+                }
             }
             "/rotorloop/state" => {
                 assert_eq!(m.channel.message_encoding, "json");
@@ -168,6 +158,27 @@ fn a_run_with_kills_is_one_mcap_file_with_every_tick_its_attitudes_and_its_fault
         let logged = logs.iter().any(|(name, l)| name == role && l.starts_with(&said));
         assert!(logged, "{role} {kind} not in the log: {logs:?}");
     }
+    check_validated_and_incidents(&out, &valid, incidents, marked);
+    check_layout(&schemas);
+    // Rebuilt from the run directory: the same file.
+    std::fs::remove_file(out.join("run.mcap")).expect("rm");
+    ok(&h.rotorloop(&["export", dir, "--mcap"], LIMIT));
+    assert!(
+        std::fs::read(out.join("run.mcap")).expect("again") == bytes,
+        "export wrote another file"
+    );
+    h.assert_no_leftovers();
+}
+
+/// Every JSON topic had messages validated; one incidents message per row of
+/// `incidents.csv`, with its window, and `marked` (the tracking rows with `in_incident`)
+/// the ticks of their windows.
+fn check_validated_and_incidents(
+    out: &std::path::Path,
+    valid: &Schemas,
+    mut incidents: Vec<(Option<u64>, Option<u64>)>,
+    marked: u64,
+) {
     for topic in ["state", "torque", "reference", "tracking", "latency", "incidents"] {
         let n = valid.checked.get(&format!("/rotorloop/{topic}")).copied().unwrap_or(0);
         assert!(n > 0, "{topic}: {n} messages validated: {:?}", valid.checked);
@@ -195,15 +206,6 @@ fn a_run_with_kills_is_one_mcap_file_with_every_tick_its_attitudes_and_its_fault
         ticks.len() as u64
     };
     assert_eq!(marked, in_windows, "the ticks of the incidents' windows are marked");
-    check_layout(&schemas);
-    // Rebuilt from the run directory: the same file.
-    std::fs::remove_file(out.join("run.mcap")).expect("rm");
-    ok(&h.rotorloop(&["export", dir, "--mcap"], LIMIT));
-    assert!(
-        std::fs::read(out.join("run.mcap")).expect("again") == bytes,
-        "export wrote another file"
-    );
-    h.assert_no_leftovers();
 }
 
 /// Every message path of `docs/foxglove-layout.json` is a topic of the file with that

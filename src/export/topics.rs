@@ -263,8 +263,7 @@ mod tests {
         assert_eq!(v["effect_ticks"][0], 4);
         assert_eq!(v["effect_ticks"][1], Value::Null);
         assert!(!v.to_string().contains(&NO_TICK.to_string()));
-        let mut t = TorqueSample::default();
-        t.prev_tick = NO_TICK;
+        let t = TorqueSample { prev_tick: NO_TICK, ..TorqueSample::default() };
         assert_eq!(torque_json(&t)["prev_tick"], Value::Null);
     }
 

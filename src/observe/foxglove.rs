@@ -10,13 +10,17 @@
 //! connects late sees the loop from then on; a viewer gone is nothing to the loop, and
 //! neither is this process killed (`kill -9`): its node is cleaned like any dead one.
 //!
-//! Topics: those of `run.mcap` ([`crate::export::mcap`]) that a live loop has, at the same
-//! log times (the loop's `CLOCK_MONOTONIC` stamps): `/rotorloop/state`, `/rotorloop/torque`,
-//! `/rotorloop/reference`, `/rotorloop/latency` (per tick, once its answer came or two
-//! ticks later without it), `/rotorloop/tracking` (`err_deg`: the angle of `R_d Rᵀ`, and
-//! the torque in force), `/rotorloop/log` (safe mode entered and left; a role gone, up or
-//! restarted, seen five times a second) and `/tf`
-//! (`world → body`, `world → reference`).
+//! Topics: those of `run.mcap` ([`crate::export::mcap`]), with the same schemas
+//! ([`crate::export::topics`]) and log times (the loop's `CLOCK_MONOTONIC` stamps), all
+//! advertised from the start: `/rotorloop/state`, `/rotorloop/torque`,
+//! `/rotorloop/reference`, `/rotorloop/latency` (per tick in tick order, once its answer
+//! came or two ticks later without it), `/rotorloop/tracking` (`err_deg`: the angle of
+//! `R_d Rᵀ`, the torque in force, `in_incident`; what only `trace.csv` knows is `null`),
+//! `/rotorloop/incidents` (the windows this server sees abnormal, without cause or cost),
+//! `/rotorloop/log` (safe mode entered and left; a role lost during the run a fault, an
+//! error; up, restarted, or ended with the run, seen five times a second) and `/tf`
+//! (`world → body`, `world → reference`). Viewers connect to [`super::front`], which relays
+//! them to the SDK's server.
 //!
 //! Who may watch: the server has no authentication, so it listens on loopback only, where
 //! every user of the machine may connect; another address is refused (exit 2) unless the

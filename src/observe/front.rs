@@ -90,6 +90,8 @@ fn config() -> WebSocketConfig {
 /// One viewer: the handshake, the SDK's connection, the relay until either closes.
 async fn viewer(stream: TcpStream, upstream: SocketAddr) {
     let mut chosen = None;
+    // The callback's type is tungstenite's (its error is the HTTP response refusing).
+    #[allow(clippy::result_large_err)]
     let callback = |req: &Request, mut res: Response| {
         let offered: Vec<&str> = req
             .headers()
