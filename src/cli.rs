@@ -372,7 +372,12 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
             // Who may watch (loopback unless the user means it): a rule of the command line.
             if let Some(addr) = &a.foxglove {
                 let allowed = a.foxglove_allow_network;
-                crate::observe::foxglove::check_reach(addr, allowed, "--foxglove-allow-network")?;
+                crate::observe::foxglove::check_reach(
+                    addr,
+                    "--foxglove",
+                    allowed,
+                    "--foxglove-allow-network",
+                )?;
             }
             crate::run::launch::run(&a)?
         }

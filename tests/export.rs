@@ -5,6 +5,7 @@ use std::collections::BTreeMap;
 use std::time::Duration;
 
 use crate::common::harness::{Harness, json, ok};
+use crate::common::schemas::Schemas;
 
 const LIMIT: Duration = Duration::from_secs(180);
 
@@ -41,28 +42,41 @@ fn trace_attitudes(out: &std::path::Path) -> BTreeMap<u64, [f64; 9]> {
         .collect()
 }
 
+/// Every channel of the file (its summary's, also those without a message): topic →
+/// (schema name, schema data, messages).
+fn channels(bytes: &[u8]) -> BTreeMap<String, (String, Vec<u8>, u64)> {
+    let summary = mcap::Summary::read(bytes).expect("readable").expect("a summary");
+    let counts =
+        summary.stats.as_ref().map(|s| s.channel_message_counts.clone()).unwrap_or_default();
+    summary
+        .channels
+        .values()
+        .map(|c| {
+            let (name, data) =
+                c.schema.as_ref().map(|s| (s.name.clone(), s.data.to_vec())).unwrap_or_default();
+            (c.topic.clone(), (name, data, counts.get(&c.id).copied().unwrap_or(0)))
+        })
+        .collect()
+}
+
 /// A real-time run whose controller and monitor were killed (SIGKILL) and restarted is one
 /// MCAP file: one state message per tick, the body's and the reference's attitudes as
 /// `foxglove.FrameTransform`s whose quaternions give back `trace.csv`'s `R` within 1e-12,
-/// every fault of the report as a log message, and `rotorloop export` writes the same
-/// file again from the run directory.
+/// every fault of the report as a log message, every JSON message valid against its
+/// channel's schema (a JSON Schema validator) and none carrying `NO_TICK` as a number, one
+/// `/rotorloop/incidents` message per row of `incidents.csv` with the incidents' ticks
+/// marked on `/rotorloop/tracking`, and `rotorloop export` writes the same file again from
+/// the run directory.
 #[test]
 fn a_run_with_kills_is_one_mcap_file_with_every_tick_its_attitudes_and_its_faults() {
     let h = Harness::new("mcap");
     let out = h.path("rt");
     let dir = out.to_str().expect("utf8");
-    let args = ["run", "--scenario", "paper-zero", "--duration", "4", "--mode", "realtime"];
-    let faults =
-        ["--fault", "controller:kill@1:restart@1.2", "--fault", "monitor:kill@2:restart@2.3"];
-    let o = h.rotorloop(
-        &args
-            .into_iter()
-            .chain(faults)
-            .chain(["--domain", &h.domain, "--out", dir])
-            .collect::<Vec<_>>(),
-        LIMIT,
-    );
-    let said = ok(&o);
+    let mut args = vec!["run", "--scenario", "paper-zero", "--duration", "4", "--mode", "realtime"];
+    let faults = "controller:kill@1:restart@1.2 monitor:kill@2:restart@2.3";
+    args.extend(faults.split(' ').flat_map(|f| ["--fault", f]));
+    args.extend(["--domain", &h.domain, "--out", dir]);
+    let said = ok(&h.rotorloop(&args, LIMIT));
     let s = json(&out.join("summary.json"));
     let kinds: Vec<&str> =
         s["faults"].as_array().expect("faults").iter().filter_map(|f| f["role"].as_str()).collect();
@@ -74,13 +88,27 @@ fn a_run_with_kills_is_one_mcap_file_with_every_tick_its_attitudes_and_its_fault
     let mut bodies = Vec::new();
     let mut references = 0;
     let mut logs = Vec::new();
-    let mut schemas: BTreeMap<String, Vec<u8>> = BTreeMap::new();
+    let declared = channels(&bytes);
+    let schemas: BTreeMap<String, Vec<u8>> =
+        declared.iter().map(|(t, (_, data, _))| (t.clone(), data.clone())).collect();
+    let mut valid = Schemas::default();
+    let json_channels =
+        declared.iter().filter(|(t, c)| t.starts_with("/rotorloop/") && c.0 != "foxglove.Log");
+    json_channels.for_each(|(topic, (_, data, _))| valid.declare(topic, data));
+    let (mut incidents, mut marked) = (Vec::new(), 0u64);
     for m in mcap::MessageStream::new(&bytes).expect("an MCAP file") {
         let m = m.expect("a message");
-        if let Some(schema) = &m.channel.schema {
-            schemas.entry(m.channel.topic.clone()).or_insert_with(|| schema.data.to_vec());
+        if m.channel.message_encoding == "json" {
+            valid.check(&m.channel.topic, &m.data);
         }
         match m.channel.topic.as_str() {
+            t @ ("/rotorloop/incidents" | "/rotorloop/tracking") => {
+                let v: serde_json::Value = serde_json::from_slice(&m.data).expect("json");
+                match t.ends_with("incidents") {
+                    true => incidents.push((v["start_tick"].as_u64(), v["end_tick"].as_u64())),
+                    false => marked += v["in_incident"].as_u64().expect("known after the run"),
+                }
+            }
             "/rotorloop/state" => {
                 assert_eq!(m.channel.message_encoding, "json");
                 let v: serde_json::Value = serde_json::from_slice(&m.data).expect("json");
@@ -130,6 +158,7 @@ fn a_run_with_kills_is_one_mcap_file_with_every_tick_its_attitudes_and_its_fault
         let logged = logs.iter().any(|(name, l)| name == role && l.starts_with(&said));
         assert!(logged, "{role} {kind} not in the log: {logs:?}");
     }
+    check_validated_and_incidents(&out, &valid, incidents, marked);
     check_layout(&schemas);
     // Rebuilt from the run directory: the same file.
     std::fs::remove_file(out.join("run.mcap")).expect("rm");
@@ -139,6 +168,44 @@ fn a_run_with_kills_is_one_mcap_file_with_every_tick_its_attitudes_and_its_fault
         "export wrote another file"
     );
     h.assert_no_leftovers();
+}
+
+/// Every JSON topic had messages validated; one incidents message per row of
+/// `incidents.csv`, with its window, and `marked` (the tracking rows with `in_incident`)
+/// the ticks of their windows.
+fn check_validated_and_incidents(
+    out: &std::path::Path,
+    valid: &Schemas,
+    mut incidents: Vec<(Option<u64>, Option<u64>)>,
+    marked: u64,
+) {
+    for topic in ["state", "torque", "reference", "tracking", "latency", "incidents"] {
+        let n = valid.checked.get(&format!("/rotorloop/{topic}")).copied().unwrap_or(0);
+        assert!(n > 0, "{topic}: {n} messages validated: {:?}", valid.checked);
+    }
+    // The incidents of incidents.csv, one message each, their ticks marked on tracking.
+    let csv = std::fs::read_to_string(out.join("incidents.csv")).expect("incidents.csv");
+    let rows: Vec<(Option<u64>, Option<u64>)> = csv
+        .lines()
+        .skip(1)
+        .map(|l| {
+            let mut f = l.split(',').map(|v| v.parse().ok());
+            (f.next().flatten(), f.next().flatten())
+        })
+        .collect();
+    assert!(!rows.is_empty(), "a run with kills has incidents");
+    incidents.sort();
+    let mut sorted = rows.clone();
+    sorted.sort();
+    assert_eq!(incidents, sorted, "one message per incident, with its window");
+    let in_windows: u64 = {
+        let mut ticks = std::collections::BTreeSet::new();
+        for (a, b) in rows.iter().filter_map(|(a, b)| Some((a.as_ref()?, b.as_ref()?))) {
+            ticks.extend((*a..=*b).filter(|k| *k <= 4000));
+        }
+        ticks.len() as u64
+    };
+    assert_eq!(marked, in_windows, "the ticks of the incidents' windows are marked");
 }
 
 /// Every message path of `docs/foxglove-layout.json` is a topic of the file with that
@@ -159,9 +226,11 @@ fn check_layout(schemas: &BTreeMap<String, Vec<u8>>) {
             assert!(schema["properties"][field].is_object(), "{id}: {topic} has no field {field}");
             checked += 1;
         }
-        if let Some(topic) = config["topicToRender"].as_str() {
-            assert!(schemas.contains_key(topic), "{id}: no topic {topic}");
-            checked += 1;
+        for key in ["topicToRender", "topicPath"] {
+            if let Some(topic) = config[key].as_str() {
+                assert!(schemas.contains_key(topic), "{id}: no topic {topic}");
+                checked += 1;
+            }
         }
         for frame in config["transforms"].as_object().into_iter().flat_map(|t| t.keys()) {
             let frame = frame.strip_prefix("frame:").expect("frame:NAME");
@@ -169,12 +238,13 @@ fn check_layout(schemas: &BTreeMap<String, Vec<u8>>) {
             checked += 1;
         }
     }
-    assert!(checked >= 10, "the layout names what it shows: {checked}");
+    assert!(checked >= 12, "the layout names what it shows: {checked}");
 }
 
 /// A run in process (`sim`) has no flight records: its `run.mcap` holds the trace's
 /// attitudes as transforms (giving back `R` and `R_d` within 1e-12) and its tracking rows,
-/// one each per row, at the simulated time.
+/// one each per row, at the simulated time; the log and incidents channels are in it,
+/// without a message (what the layout names is in every file).
 #[test]
 fn a_sim_run_is_an_mcap_file_of_its_trace() {
     let h = Harness::new("mcapsim");
@@ -216,6 +286,11 @@ fn a_sim_run_is_an_mcap_file_of_its_trace() {
         }
     }
     assert_eq!((body.len(), reference.len(), tracking), (2001, 2001, 2001));
+    // A run without an event: its log and incidents channels are there, empty.
+    let declared = channels(&bytes);
+    for topic in ["/rotorloop/log", "/rotorloop/incidents"] {
+        assert_eq!(declared.get(topic).map(|c| c.2), Some(0), "{topic}: {:?}", declared.keys());
+    }
     let worst = |a: &[[f64; 9]], b: &mut dyn Iterator<Item = [f64; 9]>| {
         a.iter()
             .zip(b)

@@ -1,16 +1,20 @@
 //! The live view: `rotorloop run --foxglove` and `rotorloop foxglove --domain D` serve a
 //! running loop over the Foxglove WebSocket protocol. Checked with a viewer written against
 //! the protocol (`rotorloop::observe::viewer`, tungstenite, not the Foxglove SDK): it
-//! negotiates `foxglove.sdk.v1`, subscribes, decodes states and transforms while the loop
-//! runs, connects late and vanishes without a close; the loop ends as one nobody watched.
+//! negotiates `foxglove.sdk.v1` (or the older `foxglove.websocket.v1`), subscribes, decodes
+//! states and transforms while the loop runs, validates every JSON message against its
+//! channel's schema, connects late and vanishes without a close, closes as RFC 6455 says,
+//! and sends bad frames; the loop ends as one nobody watched, and nothing of the viewer's
+//! server is left.
 
 use std::path::Path;
 use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
-use rotorloop::observe::viewer::{SUBPROTOCOL, Viewer};
+use rotorloop::observe::viewer::{Closed, SUBPROTOCOL, Viewer};
 
 use crate::common::harness::{Harness, Running, group, json, ok, wait_output};
+use crate::common::schemas::Schemas;
 
 const LIMIT: Duration = Duration::from_secs(240);
 
@@ -52,7 +56,8 @@ struct Seen {
     ticks: Vec<u64>,
     stamps_match: bool,
     quaternions: Vec<[f64; 4]>,
-    logs: Vec<String>,
+    /// The log: (name, level, message).
+    logs: Vec<(String, i32, String)>,
 }
 
 /// Connects to `addr`, subscribes to the states and transforms, and reads for `secs`.
@@ -80,7 +85,7 @@ fn view(addr: &str, secs: f64) -> (Viewer, Seen) {
             "/rotorloop/log" => {
                 let l = <foxglove::messages::Log as prost::Message>::decode(&m.payload[..])
                     .expect("a Log");
-                seen.logs.push(l.message);
+                seen.logs.push((l.name, l.level, l.message));
             }
             _ => {}
         }
@@ -134,7 +139,15 @@ fn a_viewer_connects_late_and_vanishes_and_the_loop_never_notices() {
         "{:?} after {last}",
         again.ticks.first()
     );
-    drop(second);
+    // A close while the states flow is answered (RFC 6455: 1000 for 1000), nothing comes
+    // after the server's close, and the server ends the connection.
+    let closed = second.close(Duration::from_secs(10)).expect("close");
+    eprintln!("close while streaming: {closed:?}");
+    assert_eq!(
+        (closed.code, closed.after_close, closed.ended),
+        (Some(1000), 0, true),
+        "{closed:?}"
+    );
     let output = wait_output(child, LIMIT);
     ok(&output);
     assert_untouched(&out, 0);
@@ -142,9 +155,9 @@ fn a_viewer_connects_late_and_vanishes_and_the_loop_never_notices() {
 }
 
 /// `rotorloop foxglove --domain D` attached to a loop as it starts serves its states and
-/// logs the controller's restart (killed by the fault schedule at 2 s) on
-/// `/rotorloop/log`; `kill -9` of the server in the middle of the run is nothing to the
-/// loop.
+/// logs the controller's kill (by the fault schedule at 2 s) as a fault, an error, and its
+/// restart on `/rotorloop/log`; `kill -9` of the server in the middle of the run is nothing
+/// to the loop.
 #[test]
 fn a_server_attached_to_a_running_loop_and_killed_is_no_matter_to_it() {
     let h = Harness::new("fxattach");
@@ -160,19 +173,18 @@ fn a_server_attached_to_a_running_loop_and_killed_is_no_matter_to_it() {
     let addr = address(&file);
     let (v, seen) = view(&addr, 3.5);
     assert!(seen.ticks.len() > 300, "{} states", seen.ticks.len());
-    // Gone and back (seen five times a second: "restarted" when both fell between two
-    // looks), and safe mode entered and left in between.
+    // The controller's kill said as a fault (an error, as run.mcap says it), and its
+    // restart; safe mode entered and left in between, in run.mcap's words.
     let logs = &seen.logs;
-    let at = |p: &dyn Fn(&str) -> bool| logs.iter().position(|l| p(l));
-    let gone = at(&|l| l.starts_with("controller (pid") && l.ends_with("gone"));
-    let back = gone.and_then(|g| {
-        logs[g..].iter().position(|l| l.starts_with("controller (pid") && l.ends_with("up"))
-    });
-    let restarted = at(&|l| l.starts_with("controller restarted (pid"));
-    let cycle = restarted.is_some() || back.is_some();
-    assert!(cycle, "{logs:?}");
-    assert!(at(&|l| l.starts_with("safe mode entered")).is_some(), "{logs:?}");
-    assert!(at(&|l| l.starts_with("control resumed")).is_some(), "{logs:?}");
+    let error = foxglove::messages::log::Level::Error as i32;
+    let at = |p: &dyn Fn(&(String, i32, String)) -> bool| logs.iter().position(p);
+    let fault = at(&|(n, l, m)| n == "controller" && *l == error && m.starts_with("fault: gone"));
+    assert!(fault.is_some(), "{logs:?}");
+    let back =
+        at(&|(n, _, m)| n == "controller" && (m.contains("restarted") || m.starts_with("up")));
+    assert!(back.is_some(), "{logs:?}");
+    assert!(at(&|(_, _, m)| m.ends_with("entered safe mode")).is_some(), "{logs:?}");
+    assert!(at(&|(_, _, m)| m.ends_with("left safe mode")).is_some(), "{logs:?}");
     server.kill().expect("kill -9");
     let _ = server.wait();
     drop(v);
@@ -198,4 +210,139 @@ fn a_bad_foxglove_address_is_refused_before_the_run() {
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(err.contains("--foxglove") && err.contains("HOST:PORT"), "{err}");
     assert!(!out.join("summary.json").exists());
+}
+
+/// `rotorloop foxglove --domain D ADDR` serving (here before any loop appears), each
+/// connection's end as RFC 6455 says: a viewer's close is answered with its code (1000),
+/// text that is not UTF-8 gets 1007, a frame announced at 16 MiB gets 1009, and nothing
+/// comes after the server's close; a viewer offering only the older name of the protocol,
+/// `foxglove.websocket.v1`, is served. SIGTERM ends the server, exit 0, leaving nothing.
+#[test]
+fn the_server_closes_as_rfc_6455_says_and_speaks_the_older_subprotocol() {
+    let h = Harness::new("fxclose");
+    let file = h.path("fx.addr");
+    let server = group(&mut Command::new(crate::common::harness::ROTORLOOP))
+        .args(["foxglove", "--domain", &h.domain, "127.0.0.1:0", "--wait-s", "120"])
+        .arg("--addr-file")
+        .arg(&file)
+        .stdin(Stdio::null())
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .expect("spawn rotorloop foxglove");
+    let pid = server.id();
+    let server = Running::from(server);
+    let addr = address(&file);
+    let poll = Duration::from_millis(50);
+    let patience = Duration::from_secs(20);
+    let ended = |c: Closed, code: u16| {
+        assert_eq!((c.code, c.after_close, c.ended), (Some(code), 0, true), "{c:?}");
+    };
+    let v = Viewer::connect(&addr, poll).expect("connect");
+    ended(v.close(patience).expect("close"), 1000);
+    // A masked client frame by hand: FIN and opcode, the length announced, a zero mask.
+    let frame = |opcode: u8, len: u64, payload: &[u8]| {
+        let mut f = vec![0x80 | opcode, 0x80 | 127];
+        f.extend(len.to_be_bytes());
+        f.extend([0u8; 4]);
+        f.extend(payload);
+        f
+    };
+    let v = Viewer::connect(&addr, poll).expect("connect");
+    ended(v.send_raw(&frame(0x1, 2, &[0xff, 0xfe]), patience).expect("bad text"), 1007);
+    let v = Viewer::connect(&addr, poll).expect("connect");
+    ended(v.send_raw(&frame(0x2, 16 << 20, &[0; 16]), patience).expect("16 MiB"), 1009);
+    let old = Viewer::connect_with(&addr, poll, "foxglove.websocket.v1").expect("websocket.v1");
+    assert_eq!(old.subprotocol, "foxglove.websocket.v1");
+    ended(old.close(patience).expect("close"), 1000);
+    // SAFETY: signals our own child, which has not been waited for.
+    unsafe { libc::kill(pid as libc::pid_t, libc::SIGTERM) };
+    ok(&wait_output(server, LIMIT));
+    h.assert_no_leftovers();
+}
+
+/// `rotorloop foxglove --domain D` attached to a running loop whose controller is killed
+/// and restarted: every JSON message it sends validates against the schema its channel
+/// advertised (a JSON Schema validator) and carries no `NO_TICK`; the log and incidents
+/// channels are advertised; the kill is a fault (an error) and a live incident, the
+/// run's end no error; the latency's log times never go backwards. It ends by itself
+/// after the loop, exit 0, and the domain leaves nothing in /dev/shm.
+#[test]
+fn an_attached_server_validates_and_ends_with_the_loop_leaving_nothing() {
+    let h = Harness::new("fxvalid");
+    let (child, out) = start(&h, "7", &["--fault", "controller:kill@4:restart@4.3"]);
+    let file = h.path("fx.addr");
+    let server = group(&mut Command::new(crate::common::harness::ROTORLOOP))
+        .args(["foxglove", "--domain", &h.domain, "127.0.0.1:0", "--addr-file"])
+        .arg(&file)
+        .stdin(Stdio::null())
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .expect("spawn rotorloop foxglove");
+    let server = Running::from(server);
+    let addr = address(&file);
+    let mut v = Viewer::connect(&addr, Duration::from_millis(100)).expect("connect");
+    v.subscribe(&["*"]).expect("subscribe");
+    let mut schemas = Schemas::default();
+    let (mut logs, mut incidents, mut latency_times) = (Vec::new(), Vec::new(), Vec::new());
+    let until = Instant::now() + LIMIT;
+    // Until the server closes (the loop's end): every message of every topic.
+    while Instant::now() < until {
+        let m = match v.receive() {
+            Ok(Some(m)) => m,
+            Ok(None) => continue,
+            Err(_) => break,
+        };
+        let (schema_name, schema) = v.schemas.get(&m.topic).cloned().unwrap_or_default();
+        match m.topic.as_str() {
+            "/tf" => continue,
+            "/rotorloop/log" => {
+                let l = <foxglove::messages::Log as prost::Message>::decode(&m.payload[..])
+                    .expect("a Log");
+                logs.push((l.name, l.level, l.message));
+                continue;
+            }
+            "/rotorloop/latency" => latency_times.push(m.log_time),
+            "/rotorloop/incidents" => incidents.push(m.payload.clone()),
+            _ => {}
+        }
+        if !schemas.checked.contains_key(&m.topic) {
+            assert!(schema_name.starts_with("rotorloop."), "{}: {schema_name}", m.topic);
+            schemas.declare(&m.topic, schema.as_bytes());
+        }
+        schemas.check(&m.topic, &m.payload);
+    }
+    let topics: Vec<&String> = v.schemas.keys().collect();
+    for t in ["/rotorloop/log", "/rotorloop/incidents", "/rotorloop/tracking"] {
+        assert!(v.schemas.contains_key(t), "{t} not advertised: {topics:?}");
+    }
+    for t in ["state", "torque", "reference", "latency", "tracking"] {
+        let n = schemas.checked.get(&format!("/rotorloop/{t}")).copied().unwrap_or(0);
+        assert!(n > 1000, "{t}: {n} validated");
+    }
+    assert!(latency_times.windows(2).all(|w| w[1] >= w[0]), "latency log times go back");
+    assert!(!incidents.is_empty(), "the kill is a live incident");
+    let error = foxglove::messages::log::Level::Error as i32;
+    let errors: Vec<_> = logs.iter().filter(|(_, l, _)| *l == error).collect();
+    assert!(!errors.is_empty(), "{logs:?}");
+    assert!(
+        errors.iter().all(|(n, _, m)| n == "controller" && m.starts_with("fault: gone")),
+        "{logs:?}"
+    );
+    ok(&wait_output(child, LIMIT));
+    assert_untouched(&out, 1);
+    ok(&wait_output(server, LIMIT));
+    h.assert_no_leftovers();
+}
+
+/// A bad address of `rotorloop foxglove` is a usage error naming the argument the user
+/// gave (`ADDR`), never `--foxglove`, a flag of another command.
+#[test]
+fn a_bad_address_of_rotorloop_foxglove_names_its_own_argument() {
+    let h = Harness::new("fxbadpos");
+    let o = h.rotorloop(&["foxglove", "--domain", &h.domain, "nowhere"], LIMIT);
+    assert_eq!(o.status.code(), Some(2), "{o:?}");
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(err.contains("ADDR address `nowhere`") && !err.contains("--foxglove"), "{err}");
 }

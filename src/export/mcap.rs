@@ -10,10 +10,15 @@
 //! | `/rotorloop/state` | JSON, every field of the state sample | tick |
 //! | `/rotorloop/torque` | JSON, every field of the torque sample that answered it | answered tick |
 //! | `/rotorloop/reference` | JSON, every field of the reference sample | tick |
-//! | `/rotorloop/tracking` | JSON: attitude and rate error, momentum drift, energy residual, delay in force | tick (from `trace.csv`) |
+//! | `/rotorloop/tracking` | JSON: attitude and rate error, momentum drift, energy residual, delay in force, in an incident or not | tick (from `trace.csv`) |
 //! | `/rotorloop/latency` | JSON: the hops, stages, lateness, misses, safe mode, the torque in force | tick |
+//! | `/rotorloop/incidents` | JSON: window, kind, cause, evidence, peak deviation, recovery (`incidents.csv`) | incident |
 //! | `/rotorloop/log` | `foxglove.Log`: faults, safe mode entered and left, the report's warnings | event |
 //! | `/tf` | `foxglove.FrameTransform`: `world → body` and `world → reference` | tick, each |
+//!
+//! Every channel is declared before the first message, so each is in every file, also
+//! without a message (the log of a run without an event). Their schemas are
+//! [`super::topics`]', the live view's too.
 //!
 //! Log times are the loop's own `CLOCK_MONOTONIC` stamps (the state's publish time, the
 //! torque's and the reference's), not wall time; a run in process (no stamps) uses its
@@ -22,19 +27,19 @@
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
-use std::sync::Arc;
 
 use anyhow::Context as _;
 use foxglove::messages::{FrameTransform, Log, Quaternion, Timestamp, Vector3};
-use foxglove::{Channel, ChannelBuilder, Context, McapAttachment, McapWriter, RawChannel, Schema};
 use glam::{DMat3, DQuat};
 use rotorloop_common::flight::{FlightLog, SPARE_SLOTS, Stream};
 use rotorloop_common::wire::{
-    FLAG_REALTIME, FLAG_SAFE_MODE, ReferenceSample, StateSample, TorqueSample,
+    FLAG_REALTIME, FLAG_SAFE_MODE, NO_TICK, ReferenceSample, StateSample, TorqueSample,
 };
 use rotorloop_monitor::rows::TickRows;
 use serde::Serialize;
 use serde_json::Value;
+
+use super::topics;
 
 /// What [`write()`] put into the file.
 #[derive(Debug, Clone, Default, Serialize, PartialEq)]
@@ -122,59 +127,97 @@ fn parse_row(line: &str) -> Vec<f64> {
     line.split(',').map(|v| v.parse().unwrap_or(f64::NAN)).collect()
 }
 
-/// A JSON channel with a JSON schema derived from its first message.
-pub(crate) struct JsonChannel {
-    ctx: Arc<Context>,
-    topic: String,
-    schema_name: &'static str,
-    channel: Option<Arc<RawChannel>>,
-    count: u64,
+/// The file's channels, all declared before the first message, so that a channel with no
+/// message (the log of a run without an event, the incidents of a clean run) is in every
+/// file: the schemas are [`super::topics`]', the same as the live view's.
+struct FileSink {
+    writer: mcap::Writer<std::io::BufWriter<std::fs::File>>,
+    channels: BTreeMap<&'static str, (u16, u32, u64)>,
 }
 
-impl JsonChannel {
-    pub(crate) fn new(ctx: &Arc<Context>, topic: &str, schema_name: &'static str) -> Self {
-        let (ctx, topic) = (ctx.clone(), topic.to_owned());
-        Self { ctx, topic, schema_name, channel: None, count: 0 }
+impl FileSink {
+    fn create(part: &Path) -> anyhow::Result<Self> {
+        let file = std::fs::File::create(part)
+            .with_context(|| format!("cannot write {}", part.display()))?;
+        // zstd at level 1: with the writer's default, compression was over 40 % of the
+        // export's time (perf), and the file was 10 % larger (docs/measurements.md).
+        let options = mcap::WriteOptions::new()
+            .compression(Some(mcap::Compression::Zstd))
+            .compression_level(MCAP_ZSTD_LEVEL)
+            .library(format!("rotorloop {}", env!("CARGO_PKG_VERSION")));
+        let mut sink = Self {
+            writer: options.create(std::io::BufWriter::new(file))?,
+            channels: BTreeMap::new(),
+        };
+        for t in topics::JSON_TOPICS {
+            sink.declare(t.topic, t.schema_name, "jsonschema", &t.schema_bytes(), "json")?;
+        }
+        sink.declare_encoded::<Log>(topics::LOG)?;
+        sink.declare_encoded::<FrameTransform>(topics::TF)?;
+        Ok(sink)
     }
 
-    /// Logs `value` as JSON at `log_time`: serialized straight to bytes (a [`Value`] tree is
-    /// built only once, for the schema of the first message).
-    pub(crate) fn log<T: Serialize>(&mut self, value: &T, log_time: u64) -> anyhow::Result<()> {
-        if self.channel.is_none() {
-            let schema = serde_json::to_vec(&json_schema(&serde_json::to_value(value)?))?;
-            let c = ChannelBuilder::new(self.topic.as_str())
-                .context(&self.ctx)
-                .message_encoding("json")
-                .schema(Schema::new(self.schema_name, "jsonschema", schema))
-                .build_raw()
-                .with_context(|| format!("cannot make the MCAP channel {}", self.topic))?;
-            self.channel = Some(c);
-        }
-        if let Some(c) = self.channel.as_ref().filter(|c| c.has_sinks()) {
-            let bytes = serde_json::to_vec(value)?;
-            c.log_with_meta(&bytes, foxglove::PartialMetadata { log_time: Some(log_time) });
-        }
-        self.count += 1;
+    fn declare(
+        &mut self,
+        topic: &'static str,
+        name: &str,
+        schema_encoding: &str,
+        schema: &[u8],
+        encoding: &str,
+    ) -> anyhow::Result<()> {
+        let schema = self.writer.add_schema(name, schema_encoding, schema)?;
+        let id = self.writer.add_channel(schema, topic, encoding, &BTreeMap::new())?;
+        self.channels.insert(topic, (id, 0, 0));
         Ok(())
     }
-}
 
-/// A JSON schema of `v`'s shape (what Foxglove's plot panels offer as message paths).
-fn json_schema(v: &Value) -> Value {
-    match v {
-        Value::Object(m) => serde_json::json!({
-            "type": "object",
-            "properties": m.iter().map(|(k, v)| (k.clone(), json_schema(v))).collect::<serde_json::Map<_, _>>(),
-        }),
-        Value::Array(a) => serde_json::json!({
-            "type": "array",
-            "items": a.first().map_or(serde_json::json!({}), json_schema),
-        }),
-        Value::Number(n) if n.is_u64() || n.is_i64() => serde_json::json!({"type": "integer"}),
-        // NaN is written as null: a number or null.
-        Value::Number(_) | Value::Null => serde_json::json!({"type": ["number", "null"]}),
-        Value::String(_) => serde_json::json!({"type": "string"}),
-        Value::Bool(_) => serde_json::json!({"type": "boolean"}),
+    fn declare_encoded<T: foxglove::Encode>(&mut self, topic: &'static str) -> anyhow::Result<()> {
+        let s = T::get_schema().context("a Foxglove message without its schema")?;
+        self.declare(topic, &s.name, &s.encoding, &s.data, &T::get_message_encoding())
+    }
+
+    fn bytes(&mut self, topic: &str, data: &[u8], log_time: u64) -> anyhow::Result<()> {
+        let (id, sequence, count) =
+            self.channels.get_mut(topic).with_context(|| format!("no channel {topic}"))?;
+        *sequence += 1;
+        *count += 1;
+        let header = mcap::records::MessageHeader {
+            channel_id: *id,
+            sequence: *sequence,
+            log_time,
+            publish_time: log_time,
+        };
+        self.writer.write_to_known_channel(&header, data)?;
+        Ok(())
+    }
+
+    /// Logs `value` as JSON on `topic` at `log_time`.
+    fn json<T: Serialize>(&mut self, topic: &str, value: &T, log_time: u64) -> anyhow::Result<()> {
+        let data = serde_json::to_vec(value)?;
+        self.bytes(topic, &data, log_time)
+    }
+
+    /// Logs a Foxglove message (protobuf) on `topic` at `log_time`.
+    fn encoded<T: foxglove::Encode>(
+        &mut self,
+        topic: &str,
+        m: &T,
+        log_time: u64,
+    ) -> anyhow::Result<()> {
+        let mut data = Vec::with_capacity(m.encoded_len().unwrap_or(256));
+        m.encode(&mut data).map_err(|e| anyhow::anyhow!("cannot encode for {topic}: {e}"))?;
+        self.bytes(topic, &data, log_time)
+    }
+
+    fn counts(&self) -> BTreeMap<String, u64> {
+        self.channels.iter().map(|(t, (_, _, n))| ((*t).to_owned(), *n)).collect()
+    }
+
+    fn finish(mut self) -> anyhow::Result<()> {
+        use std::io::Write;
+        self.writer.finish()?;
+        self.writer.into_inner().flush()?;
+        Ok(())
     }
 }
 
@@ -214,8 +257,8 @@ pub(crate) fn log_message(
     }
 }
 
-/// The per-tick latency of state `s` answered by `t` (ns; `None` where a stamp is
-/// missing), the stages of the controller, and the state of the loop.
+/// The per-tick latency of state `s` answered by `t` (ns; `null` where a stamp is
+/// missing), the stages of the controller, and the state of the loop ([`topics::LATENCY`]).
 pub(crate) fn latency(
     s: &StateSample,
     t: Option<&TorqueSample>,
@@ -238,13 +281,14 @@ pub(crate) fn latency(
         "state_send_ns": s.prev_publish.send_ns,
         "misses": s.misses,
         "safe_mode": s.flags & FLAG_SAFE_MODE != 0,
-        "torque_in_force_tick": s.applied_torque_tick as i64,
+        "torque_in_force_tick": (s.applied_torque_tick != NO_TICK).then_some(s.applied_torque_tick),
         "torque_in_force_recv_ns": s.applied_torque_recv_ns,
     })
 }
 
-/// Writes `DIR/run.mcap` from the run in `dir` (records, `trace.csv`, `summary.json`):
-/// through a `.part` file renamed when complete, so a reader never sees half a file.
+/// Writes `DIR/run.mcap` from the run in `dir` (records, `trace.csv`, `summary.json`,
+/// `incidents.csv`): through a `.part` file renamed when complete, so a reader never sees
+/// half a file.
 pub fn write(dir: &Path) -> anyhow::Result<McapCounts> {
     // A run in process (`sim`, `sim --replay`, `paper`'s in-process runs) has no flight
     // records: its trace alone (attitudes, tracking) in simulated time.
@@ -253,28 +297,18 @@ pub fn write(dir: &Path) -> anyhow::Result<McapCounts> {
     let run = if records { Some(Run::read(dir)?) } else { None };
     let path = dir.join("run.mcap");
     let part = dir.join("run.mcap.part");
-    let ctx = Context::new();
-    let file =
-        std::fs::File::create(&part).with_context(|| format!("cannot write {}", part.display()))?;
-    // zstd at level 1: with the writer's default, compression was over 40 % of the
-    // export's time (perf), and the file was 10 % larger (docs/measurements.md).
-    let options = foxglove::McapWriteOptions::default().compression_level(MCAP_ZSTD_LEVEL);
-    let mcap = McapWriter::with_options(options)
-        .context(&ctx)
-        .create(std::io::BufWriter::new(file))
-        .with_context(|| format!("cannot write {}", part.display()))?;
-    let counts = match &run {
-        Some(run) => write_messages(&ctx, run, &mcap),
-        None => write_trace_messages(&ctx, dir, &mcap),
-    };
-    let closed = mcap.close().map_err(anyhow::Error::from).and_then(|mut w| {
-        use std::io::Write;
-        w.flush()?;
-        Ok(())
+    let written = FileSink::create(&part).and_then(|mut sink| {
+        match &run {
+            Some(run) => write_messages(&mut sink, run, dir)?,
+            None => write_trace_messages(&mut sink, dir)?,
+        }
+        let counts = sink.counts();
+        sink.finish()?;
+        Ok(counts)
     });
-    let counts = match (counts, closed) {
-        (Ok(c), Ok(())) => c,
-        (Err(e), _) | (_, Err(e)) => {
+    let counts = match written {
+        Ok(c) => c,
+        Err(e) => {
             let _ = std::fs::remove_file(&part);
             return Err(e.context(format!("cannot write {}", path.display())));
         }
@@ -286,31 +320,19 @@ pub fn write(dir: &Path) -> anyhow::Result<McapCounts> {
 /// The zstd level of `run.mcap`'s chunks.
 const MCAP_ZSTD_LEVEL: u32 = 1;
 
-type Handle = foxglove::McapWriterHandle<std::io::BufWriter<std::fs::File>>;
-
-fn write_messages(
-    ctx: &Arc<Context>,
-    run: &Run,
-    mcap: &Handle,
-) -> anyhow::Result<BTreeMap<String, u64>> {
-    use foxglove::messages::log::Level;
-    let mut state = JsonChannel::new(ctx, "/rotorloop/state", "rotorloop.StateSample");
-    let mut torque = JsonChannel::new(ctx, "/rotorloop/torque", "rotorloop.TorqueSample");
-    let mut reference = JsonChannel::new(ctx, "/rotorloop/reference", "rotorloop.ReferenceSample");
-    let mut tracking = JsonChannel::new(ctx, "/rotorloop/tracking", "rotorloop.Tracking");
-    let mut lat = JsonChannel::new(ctx, "/rotorloop/latency", "rotorloop.Latency");
-    let tf: Channel<FrameTransform> = ChannelBuilder::new("/tf").context(ctx).build();
-    let log: Channel<Log> = ChannelBuilder::new("/rotorloop/log").context(ctx).build();
-    let (mut tfs, mut logs) = (0u64, 0u64);
+fn write_messages(sink: &mut FileSink, run: &Run, dir: &Path) -> anyhow::Result<()> {
     let first = run.states.iter().next();
     let first = first.as_ref();
     let realtime = first.is_some_and(|s| s.publish_ns != 0);
     // Without stamps (a run in process) the log time is the simulated time.
     let time = |stamp: u64, t_s: f64| if realtime { stamp } else { (t_s * 1e9) as u64 };
     let t0 = first.map_or(0, |s| time(s.publish_ns, s.t_s));
-    mcap.write_metadata("rotorloop", metadata(run, first))?;
+    sink.writer.write_metadata(&mcap::records::Metadata {
+        name: "rotorloop".into(),
+        metadata: metadata(run, first),
+    })?;
     if let Some(s) = &run.summary {
-        mcap.attach(&McapAttachment {
+        sink.writer.attach(&mcap::Attachment {
             log_time: t0,
             create_time: t0,
             name: "summary.json".into(),
@@ -318,62 +340,144 @@ fn write_messages(
             data: serde_json::to_vec_pretty(s)?.into(),
         })?;
     }
+    let incidents = read_incidents(&dir.join("incidents.csv"));
+    let windows: Vec<[u64; 2]> = incidents
+        .iter()
+        .filter_map(|i| Some([i["start_tick"].as_u64()?, i["end_tick"].as_u64()?]))
+        .collect();
+    let mut in_window = InWindow::new(windows);
     let columns = &run.trace_columns;
     let mut safe = false;
     for s in run.states.iter() {
         let s = &s;
         let k = s.tick;
         let ns = time(s.publish_ns, s.t_s);
-        state.log(s, ns)?;
+        sink.json(topics::STATE.topic, &topics::state_json(s), ns)?;
         let t = run.torque(k);
         let t = t.as_ref();
         if let Some(t) = t {
-            torque.log(t, time(t.publish_ns, s.t_s))?;
+            sink.json(topics::TORQUE.topic, &topics::torque_json(t), time(t.publish_ns, s.t_s))?;
         }
         let r = run.references.get(k);
         let r = r.as_ref();
         if let Some(r) = r {
-            reference.log(r, time(r.publish_ns, r.t_s))?;
-            tf.log_with_time(&transform("world", "reference", &r.r_d_row_major, ns), ns);
-            tfs += 1;
+            let at = time(r.publish_ns, r.t_s);
+            sink.json(topics::REFERENCE.topic, &topics::reference_json(r), at)?;
+            sink.encoded(topics::TF, &transform("world", "reference", &r.r_d_row_major, ns), ns)?;
         }
-        tf.log_with_time(&transform("world", "body", &s.r_row_major, ns), ns);
-        tfs += 1;
-        lat.log(&latency(s, t, r), ns)?;
+        sink.encoded(topics::TF, &transform("world", "body", &s.r_row_major, ns), ns)?;
+        sink.json(topics::LATENCY.topic, &latency(s, t, r), ns)?;
         if let Some(row) = run.trace_row(k) {
-            tracking.log(&tracking_row(columns, &row), ns)?;
+            let row = tracking_row(columns, &row, Some(in_window.has(k)));
+            sink.json(topics::TRACKING.topic, &row, ns)?;
         }
         let now_safe = s.flags & FLAG_SAFE_MODE != 0;
         if now_safe != safe {
-            let what = if now_safe { "entered safe mode" } else { "left safe mode" };
-            log.log_with_time(
-                &log_message(ns, Level::Warning, "plant", format!("tick {k}: {what}")),
-                ns,
-            );
-            logs += 1;
+            let m = safe_mode_message(now_safe, k);
+            sink.encoded(topics::LOG, &log_message(ns, m.0, "plant", m.1), ns)?;
             safe = now_safe;
         }
     }
+    for i in incidents {
+        let k = i["start_tick"].as_u64().unwrap_or_default();
+        let at_s = i["start_s"].as_f64().unwrap_or_default();
+        let ns = run.states.get(k).map_or(t0 + (at_s * 1e9) as u64, |s| time(s.publish_ns, s.t_s));
+        sink.json(topics::INCIDENTS.topic, &i, ns)?;
+    }
     for (ns, level, name, message) in events(run, t0) {
-        log.log_with_time(&log_message(ns, level, &name, message), ns);
-        logs += 1;
+        sink.encoded(topics::LOG, &log_message(ns, level, &name, message), ns)?;
     }
-    let mut counts = BTreeMap::new();
-    for c in [&state, &torque, &reference, &tracking, &lat] {
-        counts.insert(c.topic.clone(), c.count);
+    Ok(())
+}
+
+/// The log line of safe mode entered (`true`) or left at tick `k`: the same words and
+/// level in `run.mcap` and live.
+pub(crate) fn safe_mode_message(entered: bool, k: u64) -> (foxglove::messages::log::Level, String) {
+    use foxglove::messages::log::Level;
+    match entered {
+        true => (Level::Warning, format!("tick {k}: entered safe mode")),
+        false => (Level::Info, format!("tick {k}: left safe mode")),
     }
-    counts.insert("/tf".into(), tfs);
-    counts.insert("/rotorloop/log".into(), logs);
-    Ok(counts)
+}
+
+/// Whether ticks, asked for in increasing order, are in one of the incidents' windows.
+struct InWindow {
+    windows: Vec<[u64; 2]>,
+    next: usize,
+}
+
+impl InWindow {
+    fn new(mut windows: Vec<[u64; 2]>) -> Self {
+        windows.sort_unstable();
+        Self { windows, next: 0 }
+    }
+
+    fn has(&mut self, k: u64) -> bool {
+        while self.windows.get(self.next).is_some_and(|w| w[1] < k) {
+            self.next += 1;
+        }
+        self.windows[self.next..].iter().take_while(|w| w[0] <= k).any(|w| w[1] >= k)
+    }
+}
+
+/// The incidents of `incidents.csv` (`rotorloop explain`'s, written after the run), each as
+/// its [`topics::INCIDENTS`] message; none without the file.
+fn read_incidents(path: &Path) -> Vec<Value> {
+    let Ok(text) = std::fs::read_to_string(path) else { return Vec::new() };
+    let mut lines = text.lines();
+    let header: Vec<String> = lines.next().map(split_csv).unwrap_or_default();
+    let mut out = Vec::new();
+    for line in lines {
+        let fields = split_csv(line);
+        if fields.len() != header.len() {
+            continue;
+        }
+        let get = |n: &str| header.iter().position(|h| h == n).map(|i| fields[i].as_str());
+        let int = |n: &str| get(n).and_then(|v| v.parse::<u64>().ok());
+        let num = |n: &str| get(n).and_then(|v| v.parse::<f64>().ok()).filter(|v| v.is_finite());
+        let text = |n: &str| get(n).map(str::to_owned);
+        let (Some(start), Some(end)) = (int("start_tick"), int("end_tick")) else { continue };
+        out.push(serde_json::json!({
+            "start_tick": start,
+            "end_tick": end,
+            "start_s": num("start_s"),
+            "duration_s": num("duration_s"),
+            "kind": text("kind").unwrap_or_default(),
+            "cause_role": text("cause_role"),
+            "cause_stage": text("cause_stage"),
+            "evidence": text("evidence"),
+            "flags": text("flags").unwrap_or_default(),
+            "misses": int("misses").unwrap_or_default(),
+            "peak_deviation_deg": num("peak_deviation_deg"),
+            "recovery_s": num("recovery_s"),
+            "analysed": true,
+        }));
+    }
+    out
+}
+
+/// A CSV line's fields (`"…"` quoted, `""` a quote inside).
+fn split_csv(line: &str) -> Vec<String> {
+    let (mut fields, mut field, mut quoted) = (Vec::new(), String::new(), false);
+    let mut chars = line.chars().peekable();
+    while let Some(c) = chars.next() {
+        match (c, quoted) {
+            ('"', true) if chars.peek() == Some(&'"') => {
+                field.push('"');
+                chars.next();
+            }
+            ('"', _) => quoted = !quoted,
+            (',', false) => fields.push(std::mem::take(&mut field)),
+            (c, _) => field.push(c),
+        }
+    }
+    fields.push(field);
+    fields
 }
 
 /// A run without flight records, from its `trace.csv` (and `summary.json`, attached):
 /// `/tf` and `/rotorloop/tracking` at the simulated time of each row.
-fn write_trace_messages(
-    ctx: &Arc<Context>,
-    dir: &Path,
-    mcap: &Handle,
-) -> anyhow::Result<BTreeMap<String, u64>> {
+fn write_trace_messages(sink: &mut FileSink, dir: &Path) -> anyhow::Result<()> {
     let mut rows = open_trace(&dir.join("trace.csv"))?;
     let columns = rows.columns();
     let col = |n: &str| {
@@ -395,54 +499,43 @@ fn write_trace_messages(
             }
         }
     }
-    mcap.write_metadata("rotorloop", meta)?;
+    let metadata = mcap::records::Metadata { name: "rotorloop".into(), metadata: meta };
+    sink.writer.write_metadata(&metadata)?;
     if let Some(data) = summary {
         let name = "summary.json".into();
         let media_type = "application/json".into();
-        let a = McapAttachment { log_time: 0, create_time: 0, name, media_type, data: data.into() };
-        mcap.attach(&a)?;
+        let a =
+            mcap::Attachment { log_time: 0, create_time: 0, name, media_type, data: data.into() };
+        sink.writer.attach(&a)?;
     }
-    let mut tracking = JsonChannel::new(ctx, "/rotorloop/tracking", "rotorloop.Tracking");
-    let tf: Channel<FrameTransform> = ChannelBuilder::new("/tf").context(ctx).build();
-    let mut tfs = 0u64;
     while let Some((_, line)) = rows.next_row() {
         let row = parse_row(&line);
         if row.len() != columns.len() {
             continue;
         }
         let ns = (row[t] * 1e9).round() as u64;
-        tf.log_with_time(&transform("world", "body", &nine(&row[..], r11), ns), ns);
-        tf.log_with_time(&transform("world", "reference", &nine(&row[..], rd11), ns), ns);
-        tfs += 2;
-        tracking.log(&tracking_row(&columns, &row), ns)?;
+        sink.encoded(topics::TF, &transform("world", "body", &nine(&row[..], r11), ns), ns)?;
+        sink.encoded(topics::TF, &transform("world", "reference", &nine(&row[..], rd11), ns), ns)?;
+        // A run in process has no incidents (nothing of it is late).
+        sink.json(topics::TRACKING.topic, &tracking_row(&columns, &row, None), ns)?;
     }
-    Ok(BTreeMap::from([("/tf".to_owned(), tfs), (tracking.topic.clone(), tracking.count)]))
+    Ok(())
 }
 
-/// A `trace.csv` row's [`TRACKING`] columns as a JSON object.
-fn tracking_row(columns: &[String], row: &[f64]) -> Value {
-    let m: serde_json::Map<String, Value> = columns
-        .iter()
-        .zip(row)
-        .filter(|(c, _)| TRACKING.contains(&c.as_str()))
-        .map(|(c, v)| (c.clone(), serde_json::json!(v)))
-        .collect();
+/// A `trace.csv` row as its [`topics::TRACKING`] message: the tick, the
+/// [`topics::TRACKING_COLUMNS`] (`null` where the trace has no such column, or NaN), and
+/// whether the tick is in an incident's window (`None`: not known).
+fn tracking_row(columns: &[String], row: &[f64], in_incident: Option<bool>) -> Value {
+    let mut m = serde_json::Map::new();
+    for c in topics::TRACKING_COLUMNS {
+        let v = columns.iter().position(|n| n == c).and_then(|i| row.get(i)).copied();
+        m.insert((*c).to_owned(), serde_json::json!(v.filter(|v| v.is_finite())));
+    }
+    let tick = columns.iter().position(|n| n == "tick").and_then(|i| row.get(i)).copied();
+    m.insert("tick".into(), serde_json::json!(tick.unwrap_or_default().max(0.0) as u64));
+    m.insert("in_incident".into(), serde_json::json!(in_incident.map(u8::from)));
     Value::Object(m)
 }
-
-/// `trace.csv`'s columns on `/rotorloop/tracking`.
-const TRACKING: &[&str] = &[
-    "t",
-    "tick",
-    "err_deg",
-    "werr",
-    "h_drift_rel",
-    "energy_residual",
-    "delay_s",
-    "u1",
-    "u2",
-    "u3",
-];
 
 /// The run's faults and warnings from `summary.json`, at their times: a fault's `kill_s`
 /// is seconds after the first state's publish (`t0`).
@@ -470,6 +563,9 @@ fn events(run: &Run, t0: u64) -> Vec<(u64, foxglove::messages::log::Level, Strin
         last.map_or(t0, |l| if l.publish_ns != 0 { l.publish_ns } else { (l.t_s * 1e9) as u64 });
     for w in s["storage_errors"].as_array().into_iter().flatten().filter_map(Value::as_str) {
         out.push((end, Level::Warning, "monitor".into(), w.to_owned()));
+    }
+    for w in s["warnings"].as_array().into_iter().flatten().filter_map(Value::as_str) {
+        out.push((end, Level::Warning, "launcher".into(), w.to_owned()));
     }
     out.sort_by_key(|e| e.0);
     out
@@ -519,15 +615,5 @@ mod tests {
             let diff = (back - m).to_cols_array().iter().fold(0.0f64, |a, v| a.max(v.abs()));
             assert!(diff < 1e-12, "{axis:?} {angle}: {diff}");
         }
-    }
-
-    /// A schema follows its message's shape: integers, numbers or null, arrays, objects.
-    #[test]
-    fn the_schema_follows_the_message() {
-        let v = serde_json::json!({"tick": 3, "x": 0.5, "r": [1.0, 2.0], "nan": null});
-        let s = json_schema(&v);
-        assert_eq!(s["properties"]["tick"]["type"], "integer");
-        assert_eq!(s["properties"]["r"]["items"]["type"], serde_json::json!(["number", "null"]));
-        assert_eq!(s["properties"]["nan"]["type"], serde_json::json!(["number", "null"]));
     }
 }

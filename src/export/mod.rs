@@ -2,6 +2,7 @@
 //! `run.mcap` ([`mcap`]), which `rotorloop run` also writes at the end of every run.
 
 pub mod mcap;
+pub mod topics;
 pub mod wire;
 
 use std::path::PathBuf;

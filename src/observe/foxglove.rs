@@ -10,13 +10,17 @@
 //! connects late sees the loop from then on; a viewer gone is nothing to the loop, and
 //! neither is this process killed (`kill -9`): its node is cleaned like any dead one.
 //!
-//! Topics: those of `run.mcap` ([`crate::export::mcap`]) that a live loop has, at the same
-//! log times (the loop's `CLOCK_MONOTONIC` stamps): `/rotorloop/state`, `/rotorloop/torque`,
-//! `/rotorloop/reference`, `/rotorloop/latency` (per tick, once its answer came or two
-//! ticks later without it), `/rotorloop/tracking` (`err_deg`: the angle of `R_d Rᵀ`, and
-//! the torque in force), `/rotorloop/log` (safe mode entered and left; a role gone, up or
-//! restarted, seen five times a second) and `/tf`
-//! (`world → body`, `world → reference`).
+//! Topics: those of `run.mcap` ([`crate::export::mcap`]), with the same schemas
+//! ([`crate::export::topics`]) and log times (the loop's `CLOCK_MONOTONIC` stamps), all
+//! advertised from the start: `/rotorloop/state`, `/rotorloop/torque`,
+//! `/rotorloop/reference`, `/rotorloop/latency` (per tick in tick order, once its answer
+//! came or two ticks later without it), `/rotorloop/tracking` (`err_deg`: the angle of
+//! `R_d Rᵀ`, the torque in force, `in_incident`; what only `trace.csv` knows is `null`),
+//! `/rotorloop/incidents` (the windows this server sees abnormal, without cause or cost),
+//! `/rotorloop/log` (safe mode entered and left; a role lost during the run a fault, an
+//! error; up, restarted, or ended with the run, seen five times a second) and `/tf`
+//! (`world → body`, `world → reference`). Viewers connect to [`super::front`], which relays
+//! them to the SDK's server.
 //!
 //! Who may watch: the server has no authentication, so it listens on loopback only, where
 //! every user of the machine may connect; another address is refused (exit 2) unless the
@@ -33,7 +37,7 @@ use std::time::Duration;
 
 use anyhow::Context as _;
 use foxglove::messages::{FrameTransform, Log};
-use foxglove::{Channel, ChannelBuilder, Context, WebSocketServer};
+use foxglove::{Channel, ChannelBuilder, Context, RawChannel, Schema, WebSocketServer};
 use rotorloop_common::clock::now_ns;
 use rotorloop_common::graph::Topic;
 use rotorloop_common::ipc::MAX_BUFFER;
@@ -41,9 +45,12 @@ use rotorloop_common::ipc::domain::Domain;
 use rotorloop_common::ipc::ports::Inbox;
 use rotorloop_common::role::UsageError;
 use rotorloop_common::signals::{install_signal_handlers, shutdown_requested};
-use rotorloop_common::wire::{FLAG_SAFE_MODE, ReferenceSample, StateSample, TorqueSample};
+use rotorloop_common::wire::{
+    FLAG_LAST, FLAG_SAFE_MODE, ReferenceSample, StateSample, TorqueSample,
+};
 
-use crate::export::mcap::{JsonChannel, latency, log_message, transform};
+use crate::export::mcap::{latency, log_message, safe_mode_message, transform};
+use crate::export::topics::{self, JsonTopic};
 
 /// Where the server listens unless told otherwise: loopback only.
 pub const DEFAULT_ADDR: &str = "127.0.0.1:8765";
@@ -76,21 +83,27 @@ pub struct FoxgloveArgs {
     pub wait_s: f64,
 }
 
-/// Parses `HOST:PORT`, or says what is allowed.
-pub fn parse_addr(addr: &str) -> Result<SocketAddr, UsageError> {
+/// Parses `HOST:PORT` given as `option` (`--foxglove`, or `rotorloop foxglove`'s `ADDR`), or
+/// says what is allowed.
+pub fn parse_addr(addr: &str, option: &str) -> Result<SocketAddr, UsageError> {
     addr.to_socket_addrs().ok().and_then(|mut a| a.next()).ok_or_else(|| {
         UsageError(format!(
-            "--foxglove address `{addr}` is not allowed: HOST:PORT, e.g. {DEFAULT_ADDR}"
+            "{option} address `{addr}` is not allowed: HOST:PORT, e.g. {DEFAULT_ADDR}"
         ))
     })
 }
 
-/// Parses `addr` and applies the rule of who may watch: the server has no authentication,
-/// so it serves on loopback only (where every local user may watch) unless `allowed`, the
-/// user's `flag` saying they mean it (as `rotorloop link` refuses a non-loopback endpoint
-/// without authentication).
-pub fn check_reach(addr: &str, allowed: bool, flag: &str) -> Result<SocketAddr, UsageError> {
-    let at = parse_addr(addr)?;
+/// Parses `addr` (given as `option`) and applies the rule of who may watch: the server has
+/// no authentication, so it serves on loopback only (where every local user may watch)
+/// unless `allowed`, the user's `flag` saying they mean it (as `rotorloop link` refuses a
+/// non-loopback endpoint without authentication).
+pub fn check_reach(
+    addr: &str,
+    option: &str,
+    allowed: bool,
+    flag: &str,
+) -> Result<SocketAddr, UsageError> {
+    let at = parse_addr(addr, option)?;
     if at.ip().is_loopback() || allowed {
         return Ok(at);
     }
@@ -120,6 +133,37 @@ fn can_listen(addr: SocketAddr) -> Result<(), UsageError> {
     }
 }
 
+/// A live JSON channel of [`topics`], declared (advertised to viewers) when made, with the
+/// same schema as in `run.mcap`.
+struct JsonChannel {
+    channel: Arc<RawChannel>,
+}
+
+impl JsonChannel {
+    fn new(ctx: &Arc<Context>, t: &JsonTopic) -> anyhow::Result<Self> {
+        let channel = ChannelBuilder::new(t.topic)
+            .context(ctx)
+            .message_encoding("json")
+            .schema(Schema::new(t.schema_name, "jsonschema", t.schema_bytes()))
+            .build_raw()
+            .with_context(|| format!("cannot make the channel {}", t.topic))?;
+        Ok(Self { channel })
+    }
+
+    /// Logs `value` as JSON at `log_time` (serialized only when a viewer is subscribed).
+    fn log(&self, value: &serde_json::Value, log_time: u64) -> anyhow::Result<()> {
+        if self.channel.has_sinks() {
+            let bytes = serde_json::to_vec(value)?;
+            self.channel
+                .log_with_meta(&bytes, foxglove::PartialMetadata { log_time: Some(log_time) });
+        }
+        Ok(())
+    }
+}
+
+/// A state waiting for its answer, and the answer once it came.
+type Pending = (StateSample, Option<TorqueSample>);
+
 /// The live channels and what they need to remember between ticks.
 struct Live {
     state: JsonChannel,
@@ -127,33 +171,41 @@ struct Live {
     reference: JsonChannel,
     latency: JsonChannel,
     tracking: JsonChannel,
+    incidents: JsonChannel,
     tf: Channel<FrameTransform>,
     log: Channel<Log>,
-    /// Recent states by tick, waiting for their answer (at most a few ticks).
-    pending: BTreeMap<u64, StateSample>,
+    /// Recent states by tick, waiting for their answer (at most a few ticks): their latency
+    /// is sent in tick order.
+    pending: BTreeMap<u64, Pending>,
     /// Recent references by tick (the reference leads the state).
     references: BTreeMap<u64, ReferenceSample>,
     safe: bool,
+    /// The run's last tick was seen: a role gone after it ended with the run.
+    ended: bool,
+    window: Window,
 }
 
 impl Live {
-    fn new(ctx: &Arc<Context>) -> Self {
-        Self {
-            state: JsonChannel::new(ctx, "/rotorloop/state", "rotorloop.StateSample"),
-            torque: JsonChannel::new(ctx, "/rotorloop/torque", "rotorloop.TorqueSample"),
-            reference: JsonChannel::new(ctx, "/rotorloop/reference", "rotorloop.ReferenceSample"),
-            latency: JsonChannel::new(ctx, "/rotorloop/latency", "rotorloop.Latency"),
-            tracking: JsonChannel::new(ctx, "/rotorloop/tracking", "rotorloop.Tracking"),
-            tf: ChannelBuilder::new("/tf").context(ctx).build(),
-            log: ChannelBuilder::new("/rotorloop/log").context(ctx).build(),
+    fn new(ctx: &Arc<Context>) -> anyhow::Result<Self> {
+        Ok(Self {
+            state: JsonChannel::new(ctx, &topics::STATE)?,
+            torque: JsonChannel::new(ctx, &topics::TORQUE)?,
+            reference: JsonChannel::new(ctx, &topics::REFERENCE)?,
+            latency: JsonChannel::new(ctx, &topics::LATENCY)?,
+            tracking: JsonChannel::new(ctx, &topics::TRACKING)?,
+            incidents: JsonChannel::new(ctx, &topics::INCIDENTS)?,
+            tf: ChannelBuilder::new(topics::TF).context(ctx).build(),
+            log: ChannelBuilder::new(topics::LOG).context(ctx).build(),
             pending: BTreeMap::new(),
             references: BTreeMap::new(),
             safe: false,
-        }
+            ended: false,
+            window: Window::default(),
+        })
     }
 
     fn on_reference(&mut self, r: ReferenceSample) -> anyhow::Result<()> {
-        self.reference.log(&serde_json::to_value(r)?, r.publish_ns)?;
+        self.reference.log(&topics::reference_json(&r), r.publish_ns)?;
         self.references.insert(r.tick, r);
         while self.references.len() > 256 {
             self.references.pop_first();
@@ -163,62 +215,160 @@ impl Live {
 
     fn on_state(&mut self, s: StateSample) -> anyhow::Result<()> {
         let ns = s.publish_ns;
-        self.state.log(&serde_json::to_value(s)?, ns)?;
+        self.state.log(&topics::state_json(&s), ns)?;
         self.tf.log_with_time(&transform("world", "body", &s.r_row_major, ns), ns);
         let r = self.references.get(&s.tick).copied();
         if let Some(r) = r {
             self.tf.log_with_time(&transform("world", "reference", &r.r_d_row_major, ns), ns);
         }
+        let safe = s.flags & FLAG_SAFE_MODE != 0;
+        let abnormal = self.window.abnormal(&s, safe);
         let err_deg = r.map(|r| attitude_error_deg(&s.r_row_major, &r.r_d_row_major));
         let u = s.applied_rotor_torque_nm;
+        // What trace.csv has after the run and a live view cannot know is null.
         let row = serde_json::json!({
-            "t": s.t_s, "err_deg": err_deg, "u1": u[0], "u2": u[1], "u3": u[2],
+            "t": s.t_s, "tick": s.tick, "err_deg": err_deg, "werr": null, "h_drift_rel": null,
+            "energy_residual": null, "delay_s": null, "u1": u[0], "u2": u[1], "u3": u[2],
+            "in_incident": u8::from(abnormal),
         });
         self.tracking.log(&row, ns)?;
-        let safe = s.flags & FLAG_SAFE_MODE != 0;
+        if let Some(incident) = self.window.closed(&s, abnormal) {
+            self.incidents.log(&incident.0, incident.1)?;
+        }
         if safe != self.safe {
-            use foxglove::messages::log::Level;
-            let (level, what) = match safe {
-                true => (Level::Warning, format!("safe mode entered at tick {}", s.tick)),
-                false => (Level::Info, format!("control resumed at tick {}", s.tick)),
-            };
+            let (level, what) = safe_mode_message(safe, s.tick);
             self.log.log_with_time(&log_message(ns, level, "plant", what), ns);
             self.safe = safe;
         }
-        // A state two ticks old has had its chance to be answered.
-        while let Some((&k, _)) = self.pending.first_key_value() {
-            if k + 2 > s.tick {
-                break;
-            }
-            if let Some(old) = self.pending.remove(&k) {
-                self.latency_of(&old, None)?;
-            }
-        }
-        self.pending.insert(s.tick, s);
-        Ok(())
+        self.ended |= s.flags & FLAG_LAST != 0;
+        self.pending.insert(s.tick, (s, None));
+        self.send_latency(s.tick)
     }
 
     fn on_torque(&mut self, t: TorqueSample) -> anyhow::Result<()> {
-        self.torque.log(&serde_json::to_value(t)?, t.publish_ns)?;
-        if let Some(s) = self.pending.remove(&t.tick) {
-            self.latency_of(&s, Some(&t))?;
+        self.torque.log(&topics::torque_json(&t), t.publish_ns)?;
+        if let Some(p) = self.pending.get_mut(&t.tick) {
+            p.1 = Some(t);
+        }
+        let newest = self.pending.last_key_value().map_or(0, |(k, _)| *k);
+        self.send_latency(newest)
+    }
+
+    /// Sends the latency of the pending states in tick order: each once answered, or once
+    /// two ticks old without an answer (`newest`: the newest state's tick). A tick waits
+    /// for the one before it, so the topic's log times never go backwards.
+    fn send_latency(&mut self, newest: u64) -> anyhow::Result<()> {
+        while let Some(e) = self.pending.first_entry() {
+            if e.get().1.is_none() && e.key() + 2 > newest {
+                break;
+            }
+            let (s, t) = e.remove();
+            let r = self.references.get(&s.tick);
+            self.latency.log(&latency(&s, t.as_ref(), r), s.publish_ns)?;
         }
         Ok(())
     }
 
     /// A role came, went or restarted (seen at `ns`, this process's clock, the same
     /// `CLOCK_MONOTONIC` as the loop's stamps on one machine).
-    fn log_event(&self, ns: u64, what: &str) {
-        use foxglove::messages::log::Level;
-        let level = if what.contains("gone") { Level::Error } else { Level::Info };
-        let role = what.split_whitespace().next().unwrap_or_default();
-        self.log.log_with_time(&log_message(ns, level, role, what.to_owned()), ns);
+    fn log_event(&mut self, ns: u64, e: &RoleEvent) {
+        let (level, text) = e.said(self.ended);
+        if e.is_fault(self.ended) {
+            self.window.fault = true;
+        }
+        self.log.log_with_time(&log_message(ns, level, &e.role, text), ns);
+    }
+}
+
+/// The live view's incidents: windows of ticks it saw abnormal (a miss counted, safe mode,
+/// a tick missing from the stream, a role gone), at most [`GAP`] normal ticks apart, sent
+/// once closed. Their cause and cost are `rotorloop explain`'s, after the run (`null` here).
+#[derive(Debug, Default)]
+struct Window {
+    /// The previous state (misses counted, tick).
+    last: Option<(u64, u64)>,
+    /// The open window: first state, last abnormal state, flags in words, misses.
+    open: Option<(StateSample, StateSample, std::collections::BTreeSet<&'static str>, u64)>,
+    /// A role was lost since the last state.
+    fault: bool,
+    /// What made the current tick abnormal.
+    why: Vec<&'static str>,
+}
+
+/// Abnormal windows at most this many normal ticks apart are one incident (as after the
+/// run: `pipeline::incidents::GAP`).
+const GAP: u64 = 2;
+
+impl Window {
+    /// Whether state `s` is abnormal (and why, kept for [`Window::closed`]).
+    fn abnormal(&mut self, s: &StateSample, safe: bool) -> bool {
+        self.why.clear();
+        if let Some((misses, tick)) = self.last {
+            if s.misses > misses {
+                self.why.push("miss");
+            }
+            if s.tick > tick + 1 {
+                self.why.push("ticks not seen");
+            }
+        }
+        if safe {
+            self.why.push("safe mode");
+        }
+        if std::mem::take(&mut self.fault) {
+            self.why.push("fault");
+        }
+        self.why.sort_unstable();
+        !self.why.is_empty()
     }
 
-    fn latency_of(&mut self, s: &StateSample, t: Option<&TorqueSample>) -> anyhow::Result<()> {
-        let r = self.references.get(&s.tick);
-        self.latency.log(&latency(s, t, r), s.publish_ns)
+    /// The incident that `s` closes (its message and log time), if any: more than [`GAP`]
+    /// normal ticks after its last abnormal one, or the run's last tick.
+    fn closed(&mut self, s: &StateSample, abnormal: bool) -> Option<(serde_json::Value, u64)> {
+        let misses = s.misses.saturating_sub(self.last.map_or(s.misses, |l| l.0));
+        self.last = Some((s.misses, s.tick));
+        if abnormal {
+            match &mut self.open {
+                Some((_, end, flags, n)) => {
+                    *end = *s;
+                    flags.extend(self.why.iter().copied());
+                    *n += misses;
+                }
+                None => self.open = Some((*s, *s, self.why.iter().copied().collect(), misses)),
+            }
+        }
+        let end = self.open.as_ref()?.1.tick;
+        if s.tick <= end + GAP && !is_last(s) {
+            return None;
+        }
+        let (first, end, flags, misses) = self.open.take()?;
+        // The loop's tick (s), from the state's own time.
+        let dt = if s.tick > 0 { s.t_s / s.tick as f64 } else { 0.0 };
+        let kind = ["fault", "safe mode", "miss", "ticks not seen"]
+            .into_iter()
+            .find(|k| flags.contains(k))
+            .unwrap_or("miss");
+        let words: Vec<&str> = flags.into_iter().collect();
+        let message = serde_json::json!({
+            "start_tick": first.tick,
+            "end_tick": end.tick,
+            "start_s": first.t_s,
+            "duration_s": (end.tick + 1 - first.tick) as f64 * dt,
+            "kind": kind,
+            "cause_role": null,
+            "cause_stage": null,
+            "evidence": null,
+            "flags": words.join(", "),
+            "misses": misses,
+            "peak_deviation_deg": null,
+            "recovery_s": null,
+            "analysed": false,
+        });
+        Some((message, first.publish_ns))
     }
+}
+
+fn is_last(s: &StateSample) -> bool {
+    s.flags & FLAG_LAST != 0
 }
 
 /// The angle of `R_d Rᵀ` (deg).
@@ -248,19 +398,54 @@ fn live_roles(domain: &Domain) -> BTreeMap<String, u32> {
     roles
 }
 
-/// What changed between two looks at the roles, as log lines: a role gone, back, or
-/// restarted (another pid).
-fn role_events(before: &BTreeMap<String, u32>, now: &BTreeMap<String, u32>) -> Vec<String> {
+/// A role seen gone, back, or restarted (another pid) between two looks at the roles.
+#[derive(Debug, Clone, PartialEq, Eq)]
+struct RoleEvent {
+    role: String,
+    /// The pid it had, if it was there.
+    before: Option<u32>,
+    /// The pid it has now, if it is there.
+    now: Option<u32>,
+}
+
+impl RoleEvent {
+    /// Whether it is a fault: a role lost before the run's last tick.
+    fn is_fault(&self, ended: bool) -> bool {
+        !ended && self.before.is_some() && self.before != self.now
+    }
+
+    /// Its log line: a role lost during the run is an error ("fault: …", as `run.mcap`
+    /// says a fault), its restart and its start are information, and a role that ends
+    /// after the run's last tick is the run's end, not an error.
+    fn said(&self, ended: bool) -> (foxglove::messages::log::Level, String) {
+        use foxglove::messages::log::Level;
+        match (self.before, self.now) {
+            (Some(a), Some(b)) if ended => (Level::Info, format!("restarted (pid {a} -> {b})")),
+            (Some(a), Some(b)) => {
+                (Level::Error, format!("fault: gone (pid {a}); restarted (pid {a} -> {b})"))
+            }
+            (Some(a), None) if ended => (Level::Info, format!("ended with the run (pid {a})")),
+            (Some(a), None) => (Level::Error, format!("fault: gone (pid {a})")),
+            (None, Some(b)) => (Level::Info, format!("up (pid {b})")),
+            (None, None) => (Level::Info, String::new()),
+        }
+    }
+}
+
+/// What changed between two looks at the roles: a role gone, back, or restarted.
+fn role_events(before: &BTreeMap<String, u32>, now: &BTreeMap<String, u32>) -> Vec<RoleEvent> {
     let mut said = Vec::new();
     for (role, pid) in before {
-        match now.get(role) {
-            None => said.push(format!("{role} (pid {pid}) gone")),
-            Some(p) if p != pid => said.push(format!("{role} restarted (pid {pid} -> {p})")),
-            Some(_) => {}
+        if now.get(role) != Some(pid) {
+            said.push(RoleEvent {
+                role: role.clone(),
+                before: Some(*pid),
+                now: now.get(role).copied(),
+            });
         }
     }
     for (role, pid) in now.iter().filter(|(r, _)| !before.contains_key(*r)) {
-        said.push(format!("{role} (pid {pid}) up"));
+        said.push(RoleEvent { role: role.clone(), before: None, now: Some(*pid) });
     }
     said
 }
@@ -284,27 +469,28 @@ where
 /// Runs `rotorloop foxglove`: serves until the loop has ended (no role alive for a
 /// second), or SIGINT/SIGTERM.
 pub fn run(a: &FoxgloveArgs) -> anyhow::Result<()> {
-    let addr = check_reach(&a.addr, a.allow_network, "--allow-network")?;
+    let addr = check_reach(&a.addr, "ADDR", a.allow_network, "--allow-network")?;
     let domain = Domain::new(&a.domain).map_err(|e| UsageError(e.to_string()))?;
     super::refuse_unreachable(&domain)?;
     install_signal_handlers();
+    // The viewers' port is the front's (`super::front`: the WebSocket's close handshake and
+    // close codes, both names of the protocol); the SDK's server is behind it on loopback.
+    let listener = std::net::TcpListener::bind(addr).map_err(|e| match e.kind() {
+        std::io::ErrorKind::AddrInUse => UsageError(taken(addr)),
+        _ => UsageError(format!("cannot serve the Foxglove WebSocket on {addr}: {e}")),
+    })?;
+    let port = listener.local_addr()?.port();
     let ctx = Context::new();
     let server = WebSocketServer::new()
         .name(format!("rotorloop {}", a.domain))
-        .bind(addr.ip().to_string(), addr.port())
+        .bind("127.0.0.1", 0)
         .context(&ctx)
         .start_blocking()
-        .map_err(|e| match e {
-            foxglove::FoxgloveError::Bind(e) if e.kind() == std::io::ErrorKind::AddrInUse => {
-                anyhow::Error::from(UsageError(taken(addr)))
-            }
-            foxglove::FoxgloveError::Bind(e) => {
-                UsageError(format!("cannot serve the Foxglove WebSocket on {addr}: {e}")).into()
-            }
-            e => anyhow::Error::from(e)
-                .context(format!("cannot serve the Foxglove WebSocket on {addr}")),
-        })?;
-    let bound = SocketAddr::new(addr.ip(), server.port());
+        .with_context(|| format!("cannot start the Foxglove server for {addr}"))?;
+    let sdk = SocketAddr::from(([127, 0, 0, 1], server.port()));
+    let front = super::front::Front::start(listener, sdk)
+        .with_context(|| format!("cannot serve the Foxglove WebSocket on {addr}"))?;
+    let bound = SocketAddr::new(addr.ip(), port);
     if let Some(f) = &a.addr_file {
         // Renamed into place: whoever waits for the file never reads half of it.
         let mut part = f.clone().into_os_string();
@@ -313,9 +499,19 @@ pub fn run(a: &FoxgloveArgs) -> anyhow::Result<()> {
             .and_then(|()| std::fs::rename(&part, f))
             .with_context(|| format!("cannot write {}", f.display()))?;
     }
-    eprintln!("foxglove: domain {} on ws://{bound} (subprotocol foxglove.sdk.v1)", a.domain);
+    eprintln!(
+        "foxglove: domain {} on ws://{bound} (subprotocols {})",
+        a.domain,
+        super::front::SUBPROTOCOLS.join(", ")
+    );
     let result = serve(a, &domain, &ctx);
-    let _ = server.stop();
+    // The SDK's server closes its connections; the front says so to each viewer (1001).
+    server.stop().wait_blocking();
+    front.stop(Duration::from_secs(1));
+    // Its node is gone: if it was the domain's last, what iceoryx2 keeps after the nodes
+    // (the domain's folder, `global_mgmt`, the resume slots) goes too, as the launcher
+    // removes it after the roles. A domain with a node alive is left as it is.
+    let _ = domain.cleanup();
     result
 }
 
@@ -332,7 +528,7 @@ fn serve(a: &FoxgloveArgs, domain: &Domain, ctx: &Arc<Context>) -> anyhow::Resul
     }
     let node = domain.node(NODE)?;
     let (mut states, mut torques, mut references) = (None, None, None);
-    let mut live = Live::new(ctx);
+    let mut live = Live::new(ctx)?;
     let mut last_alive = now_ns();
     let mut seen_roles = BTreeMap::new();
     let mut next_check = 0;
@@ -340,6 +536,10 @@ fn serve(a: &FoxgloveArgs, domain: &Domain, ctx: &Arc<Context>) -> anyhow::Resul
         open_when_there::<StateSample>(domain, &node, Topic::State, &mut states)?;
         open_when_there::<ReferenceSample>(domain, &node, Topic::Reference, &mut references)?;
         open_when_there::<TorqueSample>(domain, &node, Topic::Torque, &mut torques)?;
+        // The roles are looked at before the samples are read: whatever a role published
+        // before it went (the run's last tick among them) is read before its going is said.
+        let now = now_ns();
+        let roles = (now >= next_check).then(|| live_roles(domain));
         // References first: the reference leads the state it belongs to.
         if let Some(i) = &references {
             let mut got = Vec::new();
@@ -356,12 +556,10 @@ fn serve(a: &FoxgloveArgs, domain: &Domain, ctx: &Arc<Context>) -> anyhow::Resul
             i.drain(|t| got.push(t))?;
             got.into_iter().try_for_each(|t| live.on_torque(t))?;
         }
-        let now = now_ns();
-        if now >= next_check {
+        if let Some(roles) = roles {
             next_check = now + 200_000_000;
-            let roles = live_roles(domain);
-            for what in role_events(&seen_roles, &roles) {
-                live.log_event(now, &what);
+            for e in role_events(&seen_roles, &roles) {
+                live.log_event(now, &e);
             }
             if !roles.is_empty() {
                 last_alive = now;
@@ -390,7 +588,7 @@ impl Beside {
     /// The rule of who may watch is [`check_reach`]'s, applied by the command line.
     pub fn check(addr: Option<&str>, split: bool) -> Result<(), UsageError> {
         let Some(addr) = addr else { return Ok(()) };
-        let at = parse_addr(addr)?;
+        let at = parse_addr(addr, "--foxglove")?;
         if split {
             return Err(UsageError(
                 "--foxglove is not allowed with --split (each host has its own space): \
@@ -416,7 +614,7 @@ impl Beside {
         addr: &str,
         out: &std::path::Path,
     ) -> anyhow::Result<Self> {
-        let at = parse_addr(addr)?;
+        let at = parse_addr(addr, "--foxglove")?;
         let file = out.join("foxglove.addr");
         // An earlier run's address in the same directory is not this server's.
         let _ = std::fs::remove_file(&file);
@@ -461,17 +659,19 @@ impl Beside {
     }
 
     /// Stops the server (SIGTERM; SIGKILL after 3 s). One that ended during the run (killed
-    /// by hand) or never listened is said, and was no matter to the loop.
-    pub fn stop(self) {
+    /// by hand) or never listened is said, and was no matter to the loop: the warning is
+    /// returned, for `summary.json`'s `warnings`.
+    pub fn stop(self) -> Option<String> {
         let Some(mut child) = self.child else {
-            eprintln!("warning: {}", not_served(&self.addr));
-            return;
+            let w = not_served(&self.addr);
+            eprintln!("warning: {w}");
+            return Some(w);
         };
         if let Ok(Some(status)) = child.try_wait() {
-            eprintln!(
-                "warning: the Foxglove server ended during the run ({status}); the loop went on"
-            );
-            return;
+            let w =
+                format!("the Foxglove server ended during the run ({status}); the loop went on");
+            eprintln!("warning: {w}");
+            return Some(w);
         }
         let pid = child.id() as libc::pid_t;
         // SAFETY: signals our own child, which has not been reaped (try_wait said so).
@@ -479,12 +679,13 @@ impl Beside {
         let until = now_ns() + 3_000_000_000;
         while now_ns() < until {
             if let Ok(Some(_)) = child.try_wait() {
-                return;
+                return None;
             }
             std::thread::sleep(Duration::from_millis(20));
         }
         let _ = child.kill();
         let _ = child.wait();
+        None
     }
 }
 
@@ -510,20 +711,31 @@ mod tests {
         assert_eq!(attitude_error_deg(&i, &i), 0.0);
     }
 
-    /// A role killed and restarted under another pid, one gone, one new: each said once.
+    /// A role killed and restarted under another pid, one gone, one new: each said once,
+    /// a loss during the run as an error, and after the run's last tick as its end.
     #[test]
     fn role_changes_are_said() {
         let m = |v: &[(&str, u32)]| v.iter().map(|(r, p)| ((*r).to_owned(), *p)).collect();
         let before = m(&[("controller", 10), ("monitor", 11), ("plant", 12)]);
         let now = m(&[("controller", 20), ("plant", 12), ("reference", 13)]);
+        let said = |ended| {
+            role_events(&before, &now)
+                .iter()
+                .map(|e| (e.role.clone(), e.said(ended).0, e.said(ended).1))
+                .collect::<Vec<_>>()
+        };
+        use foxglove::messages::log::Level;
+        let s = |r: &str, l, t: &str| (r.to_owned(), l, t.to_owned());
         assert_eq!(
-            role_events(&before, &now),
+            said(false),
             [
-                "controller restarted (pid 10 -> 20)",
-                "monitor (pid 11) gone",
-                "reference (pid 13) up"
+                s("controller", Level::Error, "fault: gone (pid 10); restarted (pid 10 -> 20)"),
+                s("monitor", Level::Error, "fault: gone (pid 11)"),
+                s("reference", Level::Info, "up (pid 13)"),
             ]
         );
+        // After the run's last tick a role that goes is the run's end, not an error.
+        assert_eq!(said(true)[1], s("monitor", Level::Info, "ended with the run (pid 11)"));
         assert!(role_events(&now, &now).is_empty());
     }
 
@@ -532,11 +744,11 @@ mod tests {
     #[test]
     fn an_address_beyond_loopback_needs_the_users_word() {
         for a in ["127.0.0.1:0", "[::1]:8765", "127.3.2.1:1"] {
-            assert!(check_reach(a, false, "--flag").is_ok(), "{a}");
+            assert!(check_reach(a, "ADDR", false, "--flag").is_ok(), "{a}");
         }
-        let e = check_reach("0.0.0.0:8765", false, "--flag").expect_err("every interface");
+        let e = check_reach("0.0.0.0:8765", "ADDR", false, "--flag").expect_err("every interface");
         assert!(e.0.contains("`0.0.0.0:8765`") && e.0.contains("--flag"), "{e}");
-        assert!(check_reach("0.0.0.0:8765", true, "--flag").is_ok());
+        assert!(check_reach("0.0.0.0:8765", "ADDR", true, "--flag").is_ok());
     }
 
     /// A port another listener holds is refused, naming the address.
@@ -548,11 +760,14 @@ mod tests {
         assert!(e.0.contains(&at.to_string()) && e.0.contains("taken"), "{e}");
     }
 
-    /// An address that is not `HOST:PORT` is refused with the field and an example.
+    /// An address that is not `HOST:PORT` is refused with the option the user gave (the
+    /// positional `ADDR` of `rotorloop foxglove`, never a flag they did not use) and an
+    /// example.
     #[test]
     fn a_bad_address_is_refused_with_what_is_allowed() {
-        let e = parse_addr("localhost").expect_err("no port");
+        let e = parse_addr("localhost", "ADDR").expect_err("no port");
         assert!(e.0.contains("HOST:PORT") && e.0.contains("localhost"), "{e}");
-        assert_eq!(parse_addr("127.0.0.1:0").ok().map(|a| a.port()), Some(0));
+        assert!(e.0.starts_with("ADDR address") && !e.0.contains("--foxglove"), "{e}");
+        assert_eq!(parse_addr("127.0.0.1:0", "ADDR").ok().map(|a| a.port()), Some(0));
     }
 }

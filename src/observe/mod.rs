@@ -18,6 +18,7 @@
 
 pub mod charts;
 pub mod foxglove;
+pub mod front;
 pub mod slots;
 pub mod viewer;
 

@@ -1,7 +1,8 @@
 //! A minimal viewer of the Foxglove WebSocket protocol, written against the protocol, not
-//! with the SDK: it offers the subprotocol `foxglove.sdk.v1` only, reads the server's
-//! `advertise`, subscribes to topics by name and decodes message data frames (opcode 1:
-//! subscription id, log time, payload). The tests use it to check `rotorloop foxglove` as
+//! with the SDK: it offers one subprotocol (`foxglove.sdk.v1` unless told), reads the
+//! server's `advertise` (topics, encodings, schemas), subscribes to topics by name, decodes
+//! message data frames (opcode 1: subscription id, log time, payload) and closes as RFC 6455
+//! says. The tests use it to check `rotorloop foxglove` as
 //! a viewer would; `bench --before-after foxglove` uses it to load the server as a viewer
 //! subscribed to every topic does.
 
@@ -36,6 +37,8 @@ pub struct Viewer {
     pub subprotocol: String,
     /// Advertised channels: id → (topic, encoding).
     pub channels: HashMap<u64, (String, String)>,
+    /// The advertised schemas: topic → (schema name, schema text as advertised).
+    pub schemas: HashMap<String, (String, String)>,
     subscriptions: HashMap<u32, String>,
     wanted: Vec<String>,
     next_id: u32,
@@ -45,12 +48,18 @@ impl Viewer {
     /// Connects to `addr` (`HOST:PORT`), offering [`SUBPROTOCOL`]; reads time out after
     /// `poll` so [`Viewer::receive`] returns `None` while nothing comes.
     pub fn connect(addr: &str, poll: Duration) -> anyhow::Result<Self> {
+        Self::connect_with(addr, poll, SUBPROTOCOL)
+    }
+
+    /// Connects to `addr` offering `subprotocol` only.
+    pub fn connect_with(addr: &str, poll: Duration, subprotocol: &str) -> anyhow::Result<Self> {
+        let offered = subprotocol;
         let stream =
             TcpStream::connect(addr).with_context(|| format!("cannot connect to {addr}"))?;
         stream.set_read_timeout(Some(poll))?;
         stream.set_nodelay(true)?;
         let mut req = format!("ws://{addr}/").into_client_request()?;
-        req.headers_mut().insert("Sec-WebSocket-Protocol", SUBPROTOCOL.parse()?);
+        req.headers_mut().insert("Sec-WebSocket-Protocol", offered.parse()?);
         let (ws, response) =
             tungstenite::client(req, stream).map_err(|e| anyhow::anyhow!("handshake: {e}"))?;
         let subprotocol = response
@@ -59,13 +68,14 @@ impl Viewer {
             .and_then(|v| v.to_str().ok())
             .unwrap_or_default()
             .to_owned();
-        if subprotocol != SUBPROTOCOL {
-            bail!("the server speaks `{subprotocol}`, not {SUBPROTOCOL}");
+        if subprotocol != offered {
+            bail!("the server speaks `{subprotocol}`, not {offered}");
         }
         Ok(Self {
             ws,
             subprotocol,
             channels: HashMap::new(),
+            schemas: HashMap::new(),
             subscriptions: HashMap::new(),
             wanted: Vec::new(),
             next_id: 1,
@@ -139,6 +149,8 @@ impl Viewer {
                     };
                     let encoding = c["encoding"].as_str().unwrap_or_default().to_owned();
                     self.channels.insert(id, (topic.to_owned(), encoding));
+                    let text = |k: &str| c[k].as_str().unwrap_or_default().to_owned();
+                    self.schemas.insert(topic.to_owned(), (text("schemaName"), text("schema")));
                     ids.push(id);
                 }
                 self.subscribe_wanted(&ids)?;
@@ -171,4 +183,60 @@ impl Viewer {
     pub fn vanish(self) {
         let _ = self.ws.get_ref().shutdown(std::net::Shutdown::Both);
     }
+
+    /// Closes as RFC 6455 says (a close frame, code 1000) and reads until the server's
+    /// close or `patience`: the server's close code (`None`: no close came), the data frames
+    /// that came after ours, and whether anything came after the server's close.
+    pub fn close(mut self, patience: Duration) -> anyhow::Result<Closed> {
+        use tungstenite::protocol::{CloseFrame, frame::coding::CloseCode};
+        self.ws.close(Some(CloseFrame { code: CloseCode::Normal, reason: "".into() }))?;
+        self.read_close(patience)
+    }
+
+    /// Writes `bytes` as they are (a frame made by hand), then reads until the server's
+    /// close or `patience`, as [`Viewer::close`].
+    pub fn send_raw(mut self, bytes: &[u8], patience: Duration) -> anyhow::Result<Closed> {
+        use std::io::Write as _;
+        self.ws.get_mut().write_all(bytes)?;
+        self.read_close(patience)
+    }
+
+    fn read_close(&mut self, patience: Duration) -> anyhow::Result<Closed> {
+        let until = std::time::Instant::now() + patience;
+        let mut closed = Closed::default();
+        while std::time::Instant::now() < until {
+            match self.ws.read() {
+                Ok(Message::Close(frame)) if closed.code.is_none() => {
+                    closed.code = Some(frame.map_or(1005, |f| u16::from(f.code)));
+                }
+                Ok(_) if closed.code.is_some() => closed.after_close += 1,
+                Ok(Message::Binary(_) | Message::Text(_)) => closed.data_after_ours += 1,
+                Ok(_) => {}
+                Err(tungstenite::Error::Io(e))
+                    if matches!(
+                        e.kind(),
+                        std::io::ErrorKind::WouldBlock | std::io::ErrorKind::TimedOut
+                    ) => {}
+                Err(tungstenite::Error::ConnectionClosed | tungstenite::Error::AlreadyClosed) => {
+                    closed.ended = true;
+                    break;
+                }
+                Err(_) => break,
+            }
+        }
+        Ok(closed)
+    }
+}
+
+/// What came back after a viewer closed, or sent a bad frame.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct Closed {
+    /// The server's close code (1005: a close without one); `None`: no close came.
+    pub code: Option<u16>,
+    /// Data frames between the viewer's close and the server's.
+    pub data_after_ours: u64,
+    /// Frames after the server's close (none are allowed).
+    pub after_close: u64,
+    /// The server ended the connection after its close.
+    pub ended: bool,
 }

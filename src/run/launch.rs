@@ -224,7 +224,8 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
         .and_then(|()| supervise(&launch, &mut children, &mut rss, FaultSchedule::new(faults)));
     stop_gateways(&mut children, args.quiet);
     drop(children);
-    live.into_iter().for_each(Beside::stop);
+    // A live view not served is a warning of the report too (the run still exits 0).
+    let _ = live.and_then(Beside::stop).inspect(|w| warn_in_summary(&args.out, w));
     launch.clean_up();
     // sched.csv and the trace complete before the incidents read them.
     (rss.sched, _) = (None, traced);
@@ -236,6 +237,18 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
     match failure {
         Some(f) => Err(refusal_or(f)),
         None => reported,
+    }
+}
+
+/// Adds `w` to `summary.json`'s `warnings` (made if need be).
+fn warn_in_summary(out: &std::path::Path, w: &str) {
+    let warned =
+        rotorloop_common::output::patch_summary(out, |j| match j["warnings"].as_array_mut() {
+            Some(all) => all.push(w.into()),
+            None => j["warnings"] = serde_json::json!([w]),
+        });
+    if let Err(e) = warned {
+        eprintln!("warning: not in summary.json ({e:#}): {w}");
     }
 }
 

@@ -5,6 +5,7 @@
 
 pub mod harness;
 pub mod old_layout;
+pub mod schemas;
 
 use nalgebra::{Matrix3, Vector3};
 use rand::{Rng, SeedableRng};

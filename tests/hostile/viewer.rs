@@ -81,8 +81,9 @@ fn a_foxglove_port_asked_for_and_taken_is_refused_naming_it() {
 }
 
 /// The default port taken (by anyone: this test holds it if it is free) keeps the run
-/// going without a live view, and the launcher says that viewers at that port do not
-/// reach this run.
+/// going without a live view (exit 0, no `foxglove.addr`), and the launcher says that
+/// viewers at that port do not reach this run, on the console and in `summary.json`'s
+/// `warnings`.
 #[test]
 fn the_default_foxglove_port_taken_is_said_to_reach_another_process() {
     let h = Harness::new("fxdefault");
@@ -94,7 +95,11 @@ fn the_default_foxglove_port_taken_is_said_to_reach_another_process() {
     ok(&o);
     let said = format!("viewers at ws://{default} do not reach this run");
     assert!(err.contains(&said), "{err}");
-    assert_eq!(json(&out.join("summary.json"))["completed"], true);
+    let s = json(&out.join("summary.json"));
+    assert_eq!(s["completed"], true);
+    let warned = s["warnings"].as_array().into_iter().flatten().filter_map(|w| w.as_str());
+    assert!(warned.into_iter().any(|w| w.contains(&said)), "{}", s["warnings"]);
+    assert!(!out.join("foxglove.addr").exists());
     h.assert_no_leftovers();
 }
 
