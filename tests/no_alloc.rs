@@ -6,14 +6,11 @@
 
 use std::alloc::{GlobalAlloc, Layout, System};
 use std::cell::Cell;
-use std::sync::atomic::{AtomicU64, Ordering};
 
 use rotorloop::sim::closed_loop::ClosedLoop;
 use rotorloop_common::scenario::{Actuation, Scenario};
 
 struct Counting;
-
-static ALLOCATIONS: AtomicU64 = AtomicU64::new(0);
 
 thread_local! {
     /// Whether this thread's allocations are counted (a const initialiser: reading it
@@ -26,7 +23,6 @@ thread_local! {
 
 fn count() {
     if COUNTED.with(Cell::get) {
-        ALLOCATIONS.fetch_add(1, Ordering::Relaxed);
         MINE.with(|m| m.set(m.get() + 1));
     }
 }
@@ -69,11 +65,11 @@ fn a_tick_does_not_allocate() {
     ];
     COUNTED.with(|c| c.set(true));
     // The counter works: an allocation on this thread is seen, one on another is not.
-    let before = ALLOCATIONS.load(Ordering::Relaxed);
+    let before = mine();
     let v = std::hint::black_box(vec![1u8; 16]);
     drop(v);
-    assert!(ALLOCATIONS.load(Ordering::Relaxed) > before, "allocation counter is not wired");
-    let before = ALLOCATIONS.load(Ordering::Relaxed);
+    assert!(mine() > before, "allocation counter is not wired");
+    let before = mine();
     std::thread::spawn(|| {
         for n in 0..1000 {
             drop(std::hint::black_box(vec![1u8; 16 + n]));
@@ -81,16 +77,16 @@ fn a_tick_does_not_allocate() {
     })
     .join()
     .expect("thread");
-    let seen = ALLOCATIONS.load(Ordering::Relaxed) - before;
+    let seen = mine() - before;
     assert!(seen < 1000, "another thread's 1000 allocations were counted ({seen} seen)");
 
     for lp in &mut loops {
-        let before = ALLOCATIONS.load(Ordering::Relaxed);
+        let before = mine();
         let mut sum = 0.0;
         for _ in 0..10_000 {
             sum += lp.tick().err_deg;
         }
-        let after = ALLOCATIONS.load(Ordering::Relaxed);
+        let after = mine();
         std::hint::black_box(sum);
         assert_eq!(after - before, 0, "{} allocations in 10 000 ticks", after - before);
     }
