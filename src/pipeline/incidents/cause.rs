@@ -394,16 +394,13 @@ fn stopped_ns(seen: &[&SchedRow]) -> u64 {
 fn kernel(run: &RunRecord, role: &str, [start, end]: [u64; 2]) -> Option<String> {
     let from = run.grid_ns(start).saturating_sub((run.dt * 1e9) as u64);
     let to = run.grid_ns(end + 1) + (run.dt * 1e9) as u64;
-    let rows: Vec<&SchedRow> = run.sched.iter().filter(|r| r.role == role).collect();
-    let first = rows.iter().rposition(|r| r.t_ns <= from).unwrap_or(0);
-    let last = rows.iter().position(|r| r.t_ns >= to).unwrap_or(rows.len().checked_sub(1)?);
-    let seen = &rows[first..=last.max(first)];
+    let seen = role_rows(&run.sched, role, [from, to]);
     let (a, b) = (seen.first()?, seen.last()?);
     if b.t_ns <= a.t_ns {
         return None;
     }
     let mut words = Vec::new();
-    let stopped = stopped_ns(seen);
+    let stopped = stopped_ns(&seen);
     if stopped > 0 {
         words.push(format!("stopped (T) for about {}", ms(stopped as f64)));
     }
@@ -433,6 +430,28 @@ fn kernel(run: &RunRecord, role: &str, [start, end]: [u64; 2]) -> Option<String>
         ms((b.t_ns - a.t_ns) as f64),
         words.join(", ")
     ))
+}
+
+/// `role`'s rows of `sched` (in time order) from its last at or before `from` (its first,
+/// if none) to its first at or after `to` (its last, if none). Found by bisection, so an
+/// incident costs the rows near it, not all the rows kept: a soak with many incidents
+/// spent minutes scanning every row once per incident.
+fn role_rows<'a>(sched: &'a [SchedRow], role: &str, [from, to]: [u64; 2]) -> Vec<&'a SchedRow> {
+    let is = |r: &&SchedRow| r.role == role;
+    let lo = sched.partition_point(|r| r.t_ns <= from);
+    let start = match sched[..lo].iter().rposition(|r| is(&r)) {
+        Some(i) => i,
+        None => match sched.iter().position(|r| is(&r)) {
+            Some(i) => i,
+            None => return Vec::new(),
+        },
+    };
+    let hi = sched.partition_point(|r| r.t_ns < to);
+    let end = match sched[hi..].iter().position(|r| is(&r)) {
+        Some(i) => hi + i,
+        None => sched.iter().rposition(|r| is(&r)).unwrap_or(start),
+    };
+    sched[start..=end.max(start)].iter().filter(is).collect()
 }
 
 /// What the scheduler trace says ran on `cpu` over `[from, to]`, but the role's own `pids`.
@@ -508,5 +527,54 @@ mod tests {
         let c = cause_at(&run_with_a_rejection(nan), 10);
         assert_eq!((c.kind, c.role.as_str()), ("rejected samples", "controller"), "{c:?}");
         assert!(c.evidence.contains("torque.rotor_torque is not finite"), "{c:?}");
+    }
+
+    /// The bisection finds the same rows as a scan of every row (the form it replaced), on
+    /// rows with repeated times, roles missing from stretches, and windows before, inside
+    /// and after the rows.
+    #[test]
+    fn a_roles_rows_by_bisection_are_those_of_a_scan() {
+        fn scan<'a>(sched: &'a [SchedRow], role: &str, [from, to]: [u64; 2]) -> Vec<&'a SchedRow> {
+            let rows: Vec<&SchedRow> = sched.iter().filter(|r| r.role == role).collect();
+            let Some(len) = rows.len().checked_sub(1) else { return Vec::new() };
+            let first = rows.iter().rposition(|r| r.t_ns <= from).unwrap_or(0);
+            let last = rows.iter().position(|r| r.t_ns >= to).unwrap_or(len);
+            rows[first..=last.max(first)].to_vec()
+        }
+        let mut seed = 0x2545_f491_4f6c_dd1d_u64;
+        let mut next = |n: u64| {
+            seed ^= seed << 13;
+            seed ^= seed >> 7;
+            seed ^= seed << 17;
+            seed % n
+        };
+        let roles = ["plant", "controller", "monitor"];
+        let mut t = 0;
+        let sched: Vec<SchedRow> = (0..400)
+            .map(|i| {
+                t += next(3);
+                let role = if (100..180).contains(&i) { "plant" } else { roles[next(3) as usize] };
+                SchedRow {
+                    t_ns: t,
+                    role: role.into(),
+                    pid: i,
+                    state: 'R',
+                    cpu: 0,
+                    on_cpu_ns: 0,
+                    wait_ns: 0,
+                    steal_ns: 0,
+                }
+            })
+            .collect();
+        for _ in 0..2000 {
+            let from = next(t + 40);
+            let to = from + next(60);
+            for role in roles.iter().chain(&["reference"]) {
+                let (got, want) =
+                    (role_rows(&sched, role, [from, to]), scan(&sched, role, [from, to]));
+                let pids = |v: &[&SchedRow]| v.iter().map(|r| r.pid).collect::<Vec<_>>();
+                assert_eq!(pids(&got), pids(&want), "{role} over [{from}, {to}]");
+            }
+        }
     }
 }

@@ -328,6 +328,8 @@ impl RunRecord {
             i.checked_sub(1).is_some_and(|i| t <= merged[i][1])
         };
         self.sched = sched_rows(&self.sched_path).filter(|r| near(r.t_ns)).collect();
+        // In time order (the file is; a stable sort keeps it so), for the incidents' bisection.
+        self.sched.sort_by_key(|r| r.t_ns);
         (self.traced, self.trace) = super::trace::read_near(&self.trace_path, near);
     }
 }
