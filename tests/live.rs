@@ -18,6 +18,14 @@ use crate::common::schemas::Schemas;
 
 const LIMIT: Duration = Duration::from_secs(240);
 
+/// `rotorloop foxglove --domain D 127.0.0.1:0 EXTRA --addr-file FILE`, its stderr piped.
+fn server_command(h: &Harness, file: &std::path::Path, extra: &[&str]) -> Command {
+    let mut c = Command::new(crate::common::harness::ROTORLOOP);
+    c.args(["foxglove", "--domain", &h.domain, "127.0.0.1:0"]).args(extra);
+    c.arg("--addr-file").arg(file).stdin(Stdio::null()).stderr(Stdio::piped());
+    c
+}
+
 /// A real-time run of `seconds` in `h`'s domain with `extra` arguments.
 fn start(h: &Harness, seconds: &str, extra: &[&str]) -> (Running, std::path::PathBuf) {
     let out = h.path("run");
@@ -163,13 +171,7 @@ fn a_server_attached_to_a_running_loop_and_killed_is_no_matter_to_it() {
     let h = Harness::new("fxattach");
     let (child, out) = start(&h, "6", &["--fault", "controller:kill@2:restart@2.3"]);
     let file = h.path("fx.addr");
-    let mut server = Command::new(crate::common::harness::ROTORLOOP)
-        .args(["foxglove", "--domain", &h.domain, "127.0.0.1:0", "--addr-file"])
-        .arg(&file)
-        .stdin(Stdio::null())
-        .stderr(Stdio::piped())
-        .spawn()
-        .expect("spawn rotorloop foxglove");
+    let mut server = server_command(&h, &file, &[]).spawn().expect("spawn rotorloop foxglove");
     let addr = address(&file);
     let (v, seen) = view(&addr, 3.5);
     assert!(seen.ticks.len() > 300, "{} states", seen.ticks.len());
@@ -221,13 +223,8 @@ fn a_bad_foxglove_address_is_refused_before_the_run() {
 fn the_server_closes_as_rfc_6455_says_and_speaks_the_older_subprotocol() {
     let h = Harness::new("fxclose");
     let file = h.path("fx.addr");
-    let server = group(&mut Command::new(crate::common::harness::ROTORLOOP))
-        .args(["foxglove", "--domain", &h.domain, "127.0.0.1:0", "--wait-s", "120"])
-        .arg("--addr-file")
-        .arg(&file)
-        .stdin(Stdio::null())
+    let server = group(&mut server_command(&h, &file, &["--wait-s", "120"]))
         .stdout(Stdio::piped())
-        .stderr(Stdio::piped())
         .spawn()
         .expect("spawn rotorloop foxglove");
     let pid = server.id();
@@ -272,12 +269,8 @@ fn an_attached_server_validates_and_ends_with_the_loop_leaving_nothing() {
     let h = Harness::new("fxvalid");
     let (child, out) = start(&h, "7", &["--fault", "controller:kill@4:restart@4.3"]);
     let file = h.path("fx.addr");
-    let server = group(&mut Command::new(crate::common::harness::ROTORLOOP))
-        .args(["foxglove", "--domain", &h.domain, "127.0.0.1:0", "--addr-file"])
-        .arg(&file)
-        .stdin(Stdio::null())
+    let server = group(&mut server_command(&h, &file, &[]))
         .stdout(Stdio::piped())
-        .stderr(Stdio::piped())
         .spawn()
         .expect("spawn rotorloop foxglove");
     let server = Running::from(server);
