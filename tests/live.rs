@@ -66,6 +66,8 @@ struct Seen {
     quaternions: Vec<[f64; 4]>,
     /// The log: (name, level, message).
     logs: Vec<(String, i32, String)>,
+    /// Why the stream ended before the view did, if it did.
+    ended: Option<String>,
 }
 
 /// Connects to `addr`, subscribes to the states and transforms, and reads for `secs`.
@@ -81,8 +83,14 @@ fn view(addr: &str, secs: f64) -> (Viewer, Seen) {
     let deadline = Instant::now() + LIMIT;
     let (mut first_t, mut last_t) = (None::<f64>, 0.0);
     while Instant::now() < deadline && first_t.is_none_or(|f| last_t < f + secs) {
-        let Ok(read) = v.receive() else { break };
-        let Some(m) = read else { continue };
+        let m = match v.receive() {
+            Ok(Some(m)) => m,
+            Ok(None) => continue,
+            Err(e) => {
+                seen.ended = Some(format!("{e:#}"));
+                break;
+            }
+        };
         match m.topic.as_str() {
             "/rotorloop/state" => {
                 let s: serde_json::Value = serde_json::from_slice(&m.payload).expect("JSON state");
@@ -182,7 +190,7 @@ fn a_server_attached_to_a_running_loop_and_killed_is_no_matter_to_it() {
     let mut server = server_command(&h, &file, &[]).spawn().expect("spawn rotorloop foxglove");
     let addr = address(&file);
     let (v, seen) = view(&addr, 3.5);
-    assert!(seen.ticks.len() > 300, "{} states", seen.ticks.len());
+    assert!(seen.ticks.len() > 300, "{} states (stream: {:?})", seen.ticks.len(), seen.ended);
     // The controller's kill said as a fault (an error, as run.mcap says it), and its
     // restart; safe mode entered and left in between, in run.mcap's words.
     let logs = &seen.logs;
