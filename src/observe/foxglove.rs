@@ -481,6 +481,13 @@ pub fn run(a: &FoxgloveArgs) -> anyhow::Result<()> {
     })?;
     let port = listener.local_addr()?.port();
     let ctx = Context::new();
+    // Every channel exists before a viewer can connect: the SDK's server (0.30.3) sends a
+    // connected viewer the advertisement of a channel made later before it records the
+    // channel as advertised to it, and refuses a subscription that comes back in between
+    // ("Unknown channel ID"); under load a viewer attached before the loop appeared once
+    // got no states for the whole run. Channels there when a viewer connects are recorded
+    // before its requests are read.
+    let live = Live::new(&ctx)?;
     let server = WebSocketServer::new()
         .name(format!("rotorloop {}", a.domain))
         .bind("127.0.0.1", 0)
@@ -504,7 +511,7 @@ pub fn run(a: &FoxgloveArgs) -> anyhow::Result<()> {
         a.domain,
         super::front::SUBPROTOCOLS.join(", ")
     );
-    let result = serve(a, &domain, &ctx);
+    let result = serve(a, &domain, live);
     // The SDK's server closes its connections; the front says so to each viewer (1001).
     server.stop().wait_blocking();
     front.stop(Duration::from_secs(1));
@@ -515,7 +522,7 @@ pub fn run(a: &FoxgloveArgs) -> anyhow::Result<()> {
     result
 }
 
-fn serve(a: &FoxgloveArgs, domain: &Domain, ctx: &Arc<Context>) -> anyhow::Result<()> {
+fn serve(a: &FoxgloveArgs, domain: &Domain, mut live: Live) -> anyhow::Result<()> {
     let give_up = now_ns() + (a.wait_s * 1e9) as u64;
     while !domain.topic_exists(Topic::State) {
         if shutdown_requested() {
@@ -528,7 +535,6 @@ fn serve(a: &FoxgloveArgs, domain: &Domain, ctx: &Arc<Context>) -> anyhow::Resul
     }
     let node = domain.node(NODE)?;
     let (mut states, mut torques, mut references) = (None, None, None);
-    let mut live = Live::new(ctx)?;
     let mut last_alive = now_ns();
     let mut seen_roles = BTreeMap::new();
     let mut next_check = 0;
@@ -564,12 +570,14 @@ fn serve(a: &FoxgloveArgs, domain: &Domain, ctx: &Arc<Context>) -> anyhow::Resul
             if !roles.is_empty() {
                 last_alive = now;
             } else if now - last_alive > 1_000_000_000 {
-                break;
+                eprintln!("foxglove: the loop in domain `{}` has ended", a.domain);
+                return Ok(());
             }
             seen_roles = roles;
         }
         std::thread::sleep(Duration::from_millis(1));
     }
+    eprintln!("foxglove: stopped by a signal");
     Ok(())
 }
 
