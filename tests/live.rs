@@ -66,15 +66,18 @@ struct Seen {
     quaternions: Vec<[f64; 4]>,
     /// The log: (name, level, message).
     logs: Vec<(String, i32, String)>,
+    /// The last state's tick seen before each log message.
+    log_ticks: Vec<Option<u64>>,
     /// Why the stream ended before the view did, if it did.
     ended: Option<String>,
 }
 
-/// Connects to `addr`, subscribes to the states and transforms, and reads for `secs`.
-fn view(addr: &str, secs: f64) -> (Viewer, Seen) {
+/// Connects to `addr`, subscribes to `topics` (of the states, transforms and log), and
+/// reads for `secs`, or until what was seen is `enough`.
+fn view(addr: &str, secs: f64, topics: &[&str], enough: &dyn Fn(&Seen) -> bool) -> (Viewer, Seen) {
     let mut v = Viewer::connect(addr, Duration::from_millis(100)).expect("connect");
     assert_eq!(v.subprotocol, SUBPROTOCOL);
-    v.subscribe(&["/rotorloop/state", "/tf", "/rotorloop/log"]).expect("subscribe");
+    v.subscribe(topics).expect("subscribe");
     let mut seen = Seen { stamps_match: true, ..Seen::default() };
     // `secs` of the loop's own time from the first state seen, not of wall time from the
     // connection: a loop slow to start on a loaded machine (the suite beside it) once
@@ -82,7 +85,7 @@ fn view(addr: &str, secs: f64) -> (Viewer, Seen) {
     // run over) ends the view too; the callers' assertions judge what was seen.
     let deadline = Instant::now() + LIMIT;
     let (mut first_t, mut last_t) = (None::<f64>, 0.0);
-    while Instant::now() < deadline && first_t.is_none_or(|f| last_t < f + secs) {
+    while Instant::now() < deadline && first_t.is_none_or(|f| last_t < f + secs) && !enough(&seen) {
         let m = match v.receive() {
             Ok(Some(m)) => m,
             Ok(None) => continue,
@@ -110,6 +113,7 @@ fn view(addr: &str, secs: f64) -> (Viewer, Seen) {
                 let l = <foxglove::messages::Log as prost::Message>::decode(&m.payload[..])
                     .expect("a Log");
                 seen.logs.push((l.name, l.level, l.message));
+                seen.log_ticks.push(seen.ticks.last().copied());
             }
             _ => {}
         }
@@ -143,7 +147,8 @@ fn a_viewer_connects_late_and_vanishes_and_the_loop_never_notices() {
     let (child, out) = start(&h, "7", &["--foxglove", "127.0.0.1:0"]);
     let addr = address(&out.join("foxglove.addr"));
     std::thread::sleep(Duration::from_secs(2));
-    let (first, seen) = view(&addr, 1.5);
+    let all = ["/rotorloop/state", "/tf", "/rotorloop/log"];
+    let (first, seen) = view(&addr, 1.5, &all, &|_| false);
     assert!(seen.ticks.len() > 300, "{} states in 1.5 s of a 1 kHz loop", seen.ticks.len());
     assert!(seen.ticks[0] > 500, "connected late, yet saw tick {}", seen.ticks[0]);
     let consecutive = seen.ticks.windows(2).filter(|w| w[1] == w[0] + 1).count();
@@ -157,7 +162,7 @@ fn a_viewer_connects_late_and_vanishes_and_the_loop_never_notices() {
     }
     let last = *seen.ticks.last().expect("ticks");
     first.vanish();
-    let (second, again) = view(&addr, 1.0);
+    let (second, again) = view(&addr, 1.0, &all, &|_| false);
     assert!(
         again.ticks.first().is_some_and(|k| *k > last),
         "{:?} after {last}",
@@ -178,6 +183,26 @@ fn a_viewer_connects_late_and_vanishes_and_the_loop_never_notices() {
     h.assert_no_leftovers();
 }
 
+/// Where `logs` say the controller's kill (by the fault schedule) as a fault (an error, as
+/// run.mcap says it), its restart (said with it, when one look saw both, or as `up`
+/// later), and safe mode entered and left, in run.mcap's words.
+fn kill_said(logs: &[(String, i32, String)]) -> [Option<usize>; 4] {
+    let error = foxglove::messages::log::Level::Error as i32;
+    let at = |p: &dyn Fn(&(String, i32, String)) -> bool| logs.iter().position(p);
+    let fault = at(&|(n, l, m)| n == "controller" && *l == error && m.starts_with("fault: gone"));
+    let back = fault.and_then(|f| {
+        let (n, _, m) = &logs[f];
+        let later = logs[f + 1..].iter().position(|(r, _, m)| r == n && m.starts_with("up"));
+        if m.contains("restarted") { Some(f) } else { later.map(|k| f + 1 + k) }
+    });
+    [
+        fault,
+        back,
+        at(&|(_, _, m)| m.ends_with("entered safe mode")),
+        at(&|(_, _, m)| m.ends_with("left safe mode")),
+    ]
+}
+
 /// `rotorloop foxglove --domain D` attached to a loop as it starts serves its states and
 /// logs the controller's kill (by the fault schedule at 2 s) as a fault, an error, and its
 /// restart on `/rotorloop/log`; `kill -9` of the server in the middle of the run is nothing
@@ -185,38 +210,49 @@ fn a_viewer_connects_late_and_vanishes_and_the_loop_never_notices() {
 #[test]
 fn a_server_attached_to_a_running_loop_and_killed_is_no_matter_to_it() {
     let h = Harness::new("fxattach");
-    let (child, out) = start(&h, "6", &["--fault", "controller:kill@2:restart@2.3"]);
+    let (child, out) = start(&h, "10", &["--fault", "controller:kill@2:restart@2.3"]);
     let file = h.path("fx.addr");
     let mut server = server_command(&h, &file, &[]).spawn().expect("spawn rotorloop foxglove");
     let addr = address(&file);
-    let (v, seen) = view(&addr, 3.5);
+    // No transforms: two a tick would fill the server's queue for this viewer three times
+    // as fast when the machine is busy (the queue drops the oldest, the log among them).
+    // Until the kill is said, up to 7 s of the loop's 10: a server slowed by a busy
+    // machine says it later than the states of its moment.
+    let all_said = |s: &Seen| kill_said(&s.logs).iter().all(Option::is_some);
+    let (v, seen) = view(&addr, 7.0, &["/rotorloop/state", "/rotorloop/log"], &all_said);
     if seen.ticks.len() <= 300 {
         // The server's own words on why, if it said any.
         let _ = server.kill();
         let said = server.wait_with_output().map(|o| o.stderr).unwrap_or_default();
         panic!(
-            "{} states, {} transforms, {} logs (stream: {:?}; advertised: {:?}); the server \
-             said: {}",
+            "{} states, {} logs (stream: {:?}; advertised: {:?}); the server said: {}",
             seen.ticks.len(),
-            seen.quaternions.len(),
             seen.logs.len(),
             seen.ended,
             v.channels.values().map(|(t, _)| t.as_str()).collect::<Vec<_>>(),
             String::from_utf8_lossy(&said)
         );
     }
-    // The controller's kill said as a fault (an error, as run.mcap says it), and its
-    // restart; safe mode entered and left in between, in run.mcap's words.
-    let logs = &seen.logs;
-    let error = foxglove::messages::log::Level::Error as i32;
-    let at = |p: &dyn Fn(&(String, i32, String)) -> bool| logs.iter().position(p);
-    let fault = at(&|(n, l, m)| n == "controller" && *l == error && m.starts_with("fault: gone"));
-    assert!(fault.is_some(), "{logs:?}");
-    let back =
-        at(&|(n, _, m)| n == "controller" && (m.contains("restarted") || m.starts_with("up")));
-    assert!(back.is_some(), "{logs:?}");
-    assert!(at(&|(_, _, m)| m.ends_with("entered safe mode")).is_some(), "{logs:?}");
-    assert!(at(&|(_, _, m)| m.ends_with("left safe mode")).is_some(), "{logs:?}");
+    // A viewer that falls behind loses the oldest of what waits for it (the server's
+    // queue, as the live view is documented), logs included: on a busy machine that is
+    // allowed, but only where the states show the loss, a gap around the kill (2 s) and
+    // restart (2.3 s).
+    let said = kill_said(&seen.logs);
+    let gaps: Vec<(u64, u64)> =
+        seen.ticks.windows(2).filter(|w| w[1] != w[0] + 1).map(|w| (w[0], w[1])).collect();
+    let lost_around_the_kill = gaps.iter().any(|&(a, b)| a < 3_300 && b > 1_900);
+    let logs: Vec<_> = seen.logs.iter().zip(&seen.log_ticks).collect();
+    if !lost_around_the_kill {
+        assert!(
+            said.iter().all(Option::is_some),
+            "{logs:?} (after the tick; no state lost: {gaps:?}; ticks {:?} to {:?}; the \
+             view: {:?})",
+            seen.ticks.first(),
+            seen.ticks.last(),
+            seen.ended
+        );
+    }
+    eprintln!("logs (after the tick): {logs:?}; states lost: {gaps:?}");
     server.kill().expect("kill -9");
     let _ = server.wait();
     drop(v);
@@ -315,7 +351,8 @@ fn the_server_closes_as_rfc_6455_says_and_speaks_the_older_subprotocol() {
 /// advertised (a JSON Schema validator) and carries no `NO_TICK`; the log and incidents
 /// channels are advertised; the kill is a fault (an error) and a live incident, the
 /// run's end no error; the latency's log times never go backwards. It ends by itself
-/// after the loop, exit 0, and the domain leaves nothing in /dev/shm.
+/// after the loop, telling the viewer so (a close, 1001), exit 0, and the domain leaves
+/// nothing in /dev/shm.
 #[test]
 fn an_attached_server_validates_and_ends_with_the_loop_leaving_nothing() {
     let h = Harness::new("fxvalid");
@@ -331,15 +368,22 @@ fn an_attached_server_validates_and_ends_with_the_loop_leaving_nothing() {
     v.subscribe(&["*"]).expect("subscribe");
     let mut schemas = Schemas::default();
     let (mut logs, mut incidents, mut latency_times) = (Vec::new(), Vec::new(), Vec::new());
+    let (mut ticks, mut bytes) = (Vec::new(), std::collections::BTreeMap::new());
     let until = Instant::now() + LIMIT;
+    let mut end = None;
     // Until the server closes (the loop's end): every message of every topic.
     while Instant::now() < until {
         let m = match v.receive() {
             Ok(Some(m)) => m,
             Ok(None) => continue,
-            Err(_) => break,
+            Err(e) => {
+                end = Some(format!("{e:#}"));
+                break;
+            }
         };
         let (schema_name, schema) = v.schemas.get(&m.topic).cloned().unwrap_or_default();
+        let b = bytes.entry(m.topic.clone()).or_insert((0, 0));
+        *b = (b.0 + 1, b.1 + m.payload.len());
         match m.topic.as_str() {
             "/tf" => continue,
             "/rotorloop/log" => {
@@ -349,6 +393,10 @@ fn an_attached_server_validates_and_ends_with_the_loop_leaving_nothing() {
                 continue;
             }
             "/rotorloop/latency" => latency_times.push(m.log_time),
+            "/rotorloop/state" => {
+                let s: serde_json::Value = serde_json::from_slice(&m.payload).expect("JSON");
+                ticks.push(s["tick"].as_u64().expect("tick"));
+            }
             "/rotorloop/incidents" => incidents.push(m.payload.clone()),
             _ => {}
         }
@@ -361,6 +409,9 @@ fn an_attached_server_validates_and_ends_with_the_loop_leaving_nothing() {
     // The server ends with the loop; its words explain a stream that fell short.
     let served = wait_output(server, LIMIT);
     let said = String::from_utf8_lossy(&served.stderr).into_owned();
+    // The loop's end is said as RFC 6455 says: a close, 1001 (going away), not a reset.
+    let end = end.unwrap_or_default();
+    assert!(end.contains("closed the connection (1001"), "{end}; server: {said}");
     let topics: Vec<&String> = v.schemas.keys().collect();
     for t in ["/rotorloop/log", "/rotorloop/incidents", "/rotorloop/tracking"] {
         assert!(v.schemas.contains_key(t), "{t} not advertised: {topics:?}; server: {said}");
@@ -370,10 +421,19 @@ fn an_attached_server_validates_and_ends_with_the_loop_leaving_nothing() {
         assert!(n > 1000, "{t}: {n} validated; server: {said}");
     }
     assert!(latency_times.windows(2).all(|w| w[1] >= w[0]), "latency log times go back");
-    assert!(!incidents.is_empty(), "the kill is a live incident");
+    eprintln!("messages and payload bytes by topic: {bytes:?}");
+    // As in the test above: what a viewer that fell behind lost (the oldest dropped) may
+    // include the kill's incident and log, but only where the states show the loss, a gap
+    // around the kill (4 s) and restart (4.3 s).
+    let gaps: Vec<(u64, u64)> =
+        ticks.windows(2).filter(|w| w[1] != w[0] + 1).map(|w| (w[0], w[1])).collect();
+    let lost_around_the_kill = gaps.iter().any(|&(a, b)| a < 5_300 && b > 3_900);
     let error = foxglove::messages::log::Level::Error as i32;
     let errors: Vec<_> = logs.iter().filter(|(_, l, _)| *l == error).collect();
-    assert!(!errors.is_empty(), "{logs:?}");
+    if !lost_around_the_kill {
+        assert!(!incidents.is_empty(), "the kill is a live incident (no state lost: {gaps:?})");
+        assert!(!errors.is_empty(), "{logs:?} (no state lost: {gaps:?})");
+    }
     assert!(
         errors.iter().all(|(n, _, m)| n == "controller" && m.starts_with("fault: gone")),
         "{logs:?}"

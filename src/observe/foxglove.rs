@@ -466,6 +466,12 @@ where
     Ok(())
 }
 
+/// Messages kept for a viewer that falls behind before the oldest are dropped: every
+/// channel of a 1 kHz loop is eight messages a tick, 3.1 kB (measured by the live tests),
+/// so about 2 s of it, about 6.5 MB a viewer (the SDK's default, 1024, was 0.13 s: a
+/// busy machine's scheduling hiccup lost a viewer the log of a fault).
+const BACKLOG: usize = 16_384;
+
 /// Runs `rotorloop foxglove`: serves until the loop has ended (no role alive for a
 /// second), or SIGINT/SIGTERM.
 pub fn run(a: &FoxgloveArgs) -> anyhow::Result<()> {
@@ -490,6 +496,7 @@ pub fn run(a: &FoxgloveArgs) -> anyhow::Result<()> {
     let live = Live::new(&ctx)?;
     let server = WebSocketServer::new()
         .name(format!("rotorloop {}", a.domain))
+        .message_backlog_size(BACKLOG)
         .bind("127.0.0.1", 0)
         .context(&ctx)
         .start_blocking()
@@ -514,7 +521,7 @@ pub fn run(a: &FoxgloveArgs) -> anyhow::Result<()> {
     let result = serve(a, &domain, live);
     // The SDK's server closes its connections; the front says so to each viewer (1001).
     server.stop().wait_blocking();
-    front.stop(Duration::from_secs(1));
+    front.stop(Duration::from_secs(2));
     // Its node is gone: if it was the domain's last, what iceoryx2 keeps after the nodes
     // (the domain's folder, `global_mgmt`, the resume slots) goes too, as the launcher
     // removes it after the roles. A domain with a node alive is left as it is.

@@ -21,6 +21,8 @@
 //! from the SDK, which drops the oldest messages for it as before.
 
 use std::net::SocketAddr;
+use std::sync::Arc;
+use std::sync::atomic::{AtomicUsize, Ordering};
 use std::time::Duration;
 
 use futures_util::{SinkExt, StreamExt};
@@ -46,6 +48,24 @@ const PATIENCE: Duration = Duration::from_secs(5);
 #[derive(Debug)]
 pub struct Front {
     runtime: tokio::runtime::Runtime,
+    /// The viewers' connections not yet ended.
+    open: Arc<AtomicUsize>,
+}
+
+/// Counts a viewer's connection while it lasts.
+struct Open(Arc<AtomicUsize>);
+
+impl Open {
+    fn new(count: &Arc<AtomicUsize>) -> Self {
+        count.fetch_add(1, Ordering::SeqCst);
+        Self(Arc::clone(count))
+    }
+}
+
+impl Drop for Open {
+    fn drop(&mut self) {
+        self.0.fetch_sub(1, Ordering::SeqCst);
+    }
 }
 
 impl Front {
@@ -61,18 +81,31 @@ impl Front {
             let _in = runtime.enter();
             TcpListener::from_std(listener)?
         };
+        let open = Arc::new(AtomicUsize::new(0));
+        let count = Arc::clone(&open);
         runtime.spawn(async move {
             while let Ok((stream, _)) = listener.accept().await {
                 let _ = stream.set_nodelay(true);
-                tokio::spawn(viewer(stream, upstream));
+                let open = Open::new(&count);
+                tokio::spawn(async move {
+                    viewer(stream, upstream).await;
+                    drop(open);
+                });
             }
         });
-        Ok(Self { runtime })
+        Ok(Self { runtime, open })
     }
 
-    /// Gives the viewers up to `wait` to receive the server's close, then stops.
+    /// Called once the SDK's server has stopped: gives the viewers up to `wait` to be told
+    /// (`1001`, each relay's close) and their connections to end, then stops. The runtime's
+    /// shutdown drops a task where it stands: stopping at once once cut a viewer off in
+    /// the middle of its close (a reset, no close frame).
     pub fn stop(self, wait: Duration) {
-        self.runtime.shutdown_timeout(wait);
+        let until = std::time::Instant::now() + wait;
+        while self.open.load(Ordering::SeqCst) > 0 && std::time::Instant::now() < until {
+            std::thread::sleep(Duration::from_millis(5));
+        }
+        self.runtime.shutdown_timeout(Duration::ZERO);
     }
 }
 

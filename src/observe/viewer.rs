@@ -132,7 +132,14 @@ impl Viewer {
                         return Ok(Some(r));
                     }
                 }
-                Message::Close(_) => bail!("the server closed the connection"),
+                Message::Close(f) => match f {
+                    Some(f) => bail!(
+                        "the server closed the connection ({}: {})",
+                        u16::from(f.code),
+                        f.reason
+                    ),
+                    None => bail!("the server closed the connection (no code)"),
+                },
                 _ => {}
             }
         }
