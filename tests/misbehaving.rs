@@ -137,6 +137,14 @@ fn a_controller_refused_every_answer_in_real_time_is_rejected_not_hung() {
         detail.contains("refused") && detail.contains("in a row and none accepted"),
         "{detail}"
     );
+    // What was wrong with them, by the plant's count by kind: NaN, and nothing else.
+    let rejected: u64 = detail
+        .split(" in a row")
+        .next()
+        .and_then(|d| d.rsplit(' ').next())
+        .and_then(|n| n.parse().ok())
+        .expect("the count refused");
+    assert!(detail.contains(&format!("({rejected} with NaN or infinite torques;")), "{detail}");
     h.assert_no_leftovers();
 }
 
@@ -150,6 +158,8 @@ fn a_controller_refused_every_answer_in_lockstep_is_a_listed_fault_naming_it() {
     let o = run(&h, "r", "lockstep", "30", &cmd, &["--restart", "never"]);
     let s = ended_with(&o, 1, &h, "r");
     only_controller(&s, "rejected");
+    let detail = s["faults"][0]["detail"].as_str().unwrap_or("");
+    assert!(detail.contains("with NaN or infinite torques;"), "{detail}");
     let incidents = std::fs::read_to_string(h.path("r").join("incidents.md")).unwrap_or_default();
     assert!(incidents.contains("**Cause:** controller"), "{incidents}");
     // Restarted by the default policy, it is refused again: the limit ends the run.
@@ -159,19 +169,24 @@ fn a_controller_refused_every_answer_in_lockstep_is_a_listed_fault_naming_it() {
     h.assert_no_leftovers();
 }
 
-/// Answers for ticks the loop has not reached are refused (`future-tick`): in real time
-/// the controller's fault is `rejected`. In lockstep such an answer does not end the
-/// plant's wait, and the plant's count of it reaches its state (the launcher's view) only
-/// with the next tick, which never comes: the loop stops as for a silent controller, and
-/// the controller is `hang` (the plant's log names the refusal).
+/// Answers for ticks the loop has not reached are refused (`future-tick`): the
+/// controller's fault is `rejected` in both modes, and says what was wrong. In lockstep
+/// such an answer does not end the plant's wait, and the next tick, whose state would
+/// carry the plant's count of it, never comes; the plant's refusals by kind, kept as they
+/// happen, tell the launcher that the controller answered and was refused, not hung
+/// (before, it was judged `hang`).
 #[test]
-fn answers_for_ticks_not_reached_are_rejected_in_real_time_and_a_hang_in_lockstep() {
+fn answers_for_ticks_not_reached_are_rejected_in_both_modes_naming_the_tick() {
     let Some(cmd) = misbehaving("future") else { return };
     let h = Harness::new("mb-future");
     let never = ["--restart", "never", "--watchdog-ms", "500"];
-    for (mode, kind) in [("realtime", "rejected"), ("lockstep", "hang")] {
+    for mode in ["realtime", "lockstep"] {
         let o = run(&h, &mode[..2], mode, "4", &cmd, &never);
-        only_controller(&ended_with(&o, 1, &h, &mode[..2]), kind);
+        let s = ended_with(&o, 1, &h, &mode[..2]);
+        only_controller(&s, "rejected");
+        let detail = s["faults"][0]["detail"].as_str().unwrap_or("");
+        assert!(detail.contains("for ticks the loop had not reached;"), "{mode}: {detail}");
+        assert!(!detail.contains("NaN"), "{mode}: {detail}");
     }
     h.assert_no_leftovers();
 }

@@ -455,6 +455,75 @@ impl std::fmt::Display for WireFault {
     }
 }
 
+/// A receiver's refusals by kind ([`WireFault`]), counted as they happen: the plant keeps
+/// its torque refusals in a slot of their own ([`Refusals::SLOT`]) the moment it refuses
+/// one, so the launcher can say what was wrong with a controller's answers (and sees a
+/// refusal that ends no tick, as one for a tick not reached in lockstep). Not a wire
+/// sample: a resume slot's content.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, ZeroCopySend)]
+#[type_name("rotorloop::Refusals_v1")]
+#[repr(C)]
+pub struct Refusals {
+    /// Every refusal (the plant's `torques_rejected`, as of the last refusal).
+    pub total: u64,
+    /// NaN or infinite entries.
+    pub non_finite: u64,
+    /// Finite entries beyond the accepted magnitude.
+    pub absurd: u64,
+    /// A tick the loop has not reached.
+    pub future_tick: u64,
+    /// Another kind (an attitude off SO(3)).
+    pub other: u64,
+    /// The tick of the last sample refused.
+    pub last_tick: u64,
+}
+
+impl Refusals {
+    /// The resume-slot name of the plant's torque refusals.
+    pub const SLOT: &'static str = "plant-refusals";
+
+    /// Counts one refusal.
+    #[inline]
+    pub fn count(&mut self, tick: u64, f: &WireFault) {
+        self.total += 1;
+        match f {
+            WireFault::NonFinite { .. } => self.non_finite += 1,
+            WireFault::Absurd { .. } => self.absurd += 1,
+            WireFault::FutureTick { .. } => self.future_tick += 1,
+            WireFault::NotOrthonormal { .. } => self.other += 1,
+        }
+        self.last_tick = tick;
+    }
+
+    /// The refusals since `before` (counts that went back, a slot started again, count
+    /// from zero).
+    pub fn since(&self, before: &Self) -> Self {
+        let d = |a: u64, b: u64| if a >= b { a - b } else { a };
+        Self {
+            total: d(self.total, before.total),
+            non_finite: d(self.non_finite, before.non_finite),
+            absurd: d(self.absurd, before.absurd),
+            future_tick: d(self.future_tick, before.future_tick),
+            other: d(self.other, before.other),
+            last_tick: self.last_tick,
+        }
+    }
+
+    /// The kinds refused, with their counts, in words: `250 with NaN or infinite torques,
+    /// 3 for ticks not reached` (`none` when there were none).
+    pub fn describe(&self) -> String {
+        let kinds = [
+            (self.non_finite, "with NaN or infinite torques"),
+            (self.absurd, "with torques beyond the accepted magnitude"),
+            (self.future_tick, "for ticks the loop had not reached"),
+            (self.other, "otherwise invalid"),
+        ];
+        let said: Vec<String> =
+            kinds.iter().filter(|(n, _)| *n > 0).map(|(n, what)| format!("{n} {what}")).collect();
+        if said.is_empty() { "none".to_owned() } else { said.join(", ") }
+    }
+}
+
 #[inline]
 fn check_entries(field: &'static str, v: &[f64], limit: f64) -> Result<(), WireFault> {
     for &x in v {

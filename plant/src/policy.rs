@@ -34,8 +34,8 @@ use rotorloop_common::role::count::SeqCounter;
 use rotorloop_common::role::{UsageError, diverged};
 use rotorloop_common::scenario::{Actuation, Scenario};
 use rotorloop_common::wire::{
-    FLAG_LAST, FLAG_REALTIME, FLAG_SAFE_MODE, FLAG_SATURATED, NO_TICK, StateSample, TORQUE_SKIPPED,
-    TorqueSample, WireFault,
+    FLAG_LAST, FLAG_REALTIME, FLAG_SAFE_MODE, FLAG_SATURATED, NO_TICK, Refusals, StateSample,
+    TORQUE_SKIPPED, TorqueSample, WireFault,
 };
 
 use crate::actuator::{ActuationDelay, DelayLine, Effects, integrate_tick};
@@ -128,6 +128,8 @@ pub struct TorqueHold {
     misses: u64,
     safe_ticks: u64,
     rejected: u64,
+    /// The rejections by kind, continued across restarts from their own slot.
+    refusals: Refusals,
     seq: SeqCounter,
 }
 
@@ -148,6 +150,7 @@ impl TorqueHold {
             misses: 0,
             safe_ticks: 0,
             rejected: 0,
+            refusals: Refusals::default(),
             seq: SeqCounter::default(),
         }
     }
@@ -208,6 +211,10 @@ impl TorqueHold {
     /// for the log.
     fn reject(&mut self, tick: u64, f: WireFault) {
         self.rejected += 1;
+        self.refusals.count(tick, &f);
+        // The kinds' slot outlives the state's count when the plant is killed between a
+        // refusal and its next state: the total follows the newer of the two.
+        self.refusals.total = self.refusals.total.max(self.rejected);
         if !std::mem::replace(&mut self.rejection_seen, true) {
             self.first_rejection = Some((tick, f));
         }
@@ -265,6 +272,16 @@ impl TorqueHold {
     /// Torque samples rejected by validation, over the run.
     pub fn rejected(&self) -> u64 {
         self.rejected
+    }
+
+    /// The rejections by kind, over the run.
+    pub fn refusals(&self) -> Refusals {
+        self.refusals
+    }
+
+    /// Continues the count by kind a killed predecessor kept in its slot.
+    pub fn resume_refusals(&mut self, r: Refusals) {
+        self.refusals = r;
     }
 
     /// Torque samples received and lost.

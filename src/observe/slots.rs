@@ -8,7 +8,7 @@ use rotorloop_common::graph::Role;
 use rotorloop_common::ipc::IpcError;
 use rotorloop_common::ipc::domain::Domain;
 use rotorloop_common::resume::ResumeSlot;
-use rotorloop_common::wire::{FLAG_LAST, StateSample};
+use rotorloop_common::wire::{FLAG_LAST, Refusals, StateSample};
 use rotorloop_controller::policy::ControllerResume;
 use rotorloop_monitor::policy::MonitorResume;
 use rotorloop_reference::policy::ReferenceResume;
@@ -17,6 +17,8 @@ use rotorloop_reference::policy::ReferenceResume;
 #[derive(Debug)]
 pub struct Slots {
     plant: Option<ResumeSlot<StateSample>>,
+    /// The plant's torque refusals by kind ([`Refusals`]).
+    refusals: Option<ResumeSlot<Refusals>>,
     controller: Option<ResumeSlot<ControllerResume>>,
     /// The reference's slot (its window of samples).
     pub reference: Option<ResumeSlot<ReferenceResume>>,
@@ -45,6 +47,10 @@ impl Slots {
     ) -> Result<Self, IpcError> {
         Ok(Self {
             plant: one(domain_of(Role::Plant), Role::Plant, create)?,
+            refusals: match create {
+                true => Some(ResumeSlot::open(domain_of(Role::Plant), Refusals::SLOT)?),
+                false => ResumeSlot::open_existing(domain_of(Role::Plant), Refusals::SLOT)?,
+            },
             controller: one(domain_of(Role::Controller), Role::Controller, create)?,
             reference: one(domain_of(Role::Reference), Role::Reference, create)?,
             monitor: one(domain_of(Role::Monitor), Role::Monitor, create)?,
@@ -55,6 +61,7 @@ impl Slots {
     pub fn observe(domain: &Domain) -> Self {
         Self {
             plant: one(domain, Role::Plant, false).ok().flatten(),
+            refusals: ResumeSlot::open_existing(domain, Refusals::SLOT).ok().flatten(),
             controller: one(domain, Role::Controller, false).ok().flatten(),
             reference: one(domain, Role::Reference, false).ok().flatten(),
             monitor: one(domain, Role::Monitor, false).ok().flatten(),
@@ -64,12 +71,14 @@ impl Slots {
     /// Opens the slots that were not there yet (roles started since).
     pub fn reopen_missing(&mut self, domain: &Domain) {
         if self.plant.is_none()
+            || self.refusals.is_none()
             || self.controller.is_none()
             || self.reference.is_none()
             || self.monitor.is_none()
         {
             let fresh = Self::observe(domain);
             self.plant = self.plant.take().or(fresh.plant);
+            self.refusals = self.refusals.take().or(fresh.refusals);
             self.controller = self.controller.take().or(fresh.controller);
             self.reference = self.reference.take().or(fresh.reference);
             self.monitor = self.monitor.take().or(fresh.monitor);
@@ -79,6 +88,11 @@ impl Slots {
     /// The plant's last state sample.
     pub fn plant(&self) -> Option<StateSample> {
         self.plant.as_ref().and_then(ResumeSlot::load)
+    }
+
+    /// The plant's torque refusals by kind, as of its last refusal.
+    pub fn refusals(&self) -> Option<Refusals> {
+        self.refusals.as_ref().and_then(ResumeSlot::load)
     }
 
     /// The tick of the controller's last answer.

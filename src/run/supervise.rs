@@ -22,6 +22,7 @@ use std::process::{Child, ExitStatus};
 use rotorloop_common::graph::Role;
 
 use rotorloop_common::role::UsageError;
+use rotorloop_common::wire::Refusals;
 
 /// When a role that ended on its own is started again (systemd's `Restart=`).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -280,7 +281,7 @@ pub struct RejectWatch {
     /// Since the last torque accepted: its tick, the plant's tick and rejections count then.
     since: Option<Streak>,
     /// The plant's tick, accepted torque and rejections at the last look.
-    last: Option<(u64, u64, u64)>,
+    last: Option<(u64, u64, Refusals)>,
 }
 
 /// Rejections since the last torque the plant accepted.
@@ -292,8 +293,12 @@ pub struct Streak {
     pub from_tick: u64,
     /// The plant's rejection count when it began.
     pub rejected_before: u64,
+    /// The plant's rejections by kind when it began.
+    pub kinds_before: Refusals,
     /// Rejections since (filled in by [`RejectWatch::check`]).
     pub rejected: u64,
+    /// The same by kind.
+    pub kinds: Refusals,
     /// The plant's tick at the last check.
     pub to_tick: u64,
 }
@@ -305,50 +310,54 @@ impl RejectWatch {
     }
 
     /// The plant is at `tick`, has accepted torques up to `accepted` and rejected
-    /// `rejected` in all: the streak so far, if answers were rejected since the last one
-    /// accepted.
+    /// `refused.total` in all: the streak so far, if answers were rejected since the last
+    /// one accepted.
     /// Before any torque was accepted, every rejection of the run is in the streak (the
     /// first look may come after them: in lockstep one answer for a tick not reached is all
     /// a controller sends).
-    pub fn streak(&mut self, tick: u64, accepted: u64, rejected: u64) -> Option<Streak> {
-        self.last = Some((tick, accepted, rejected));
+    pub fn streak(&mut self, tick: u64, accepted: u64, refused: Refusals) -> Option<Streak> {
+        self.last = Some((tick, accepted, refused));
         let never = accepted == rotorloop_common::wire::NO_TICK;
-        let s = self.since.get_or_insert(Streak {
-            accepted,
-            from_tick: if never { 0 } else { tick },
-            rejected_before: if never { 0 } else { rejected },
-            rejected: 0,
-            to_tick: tick,
+        let rejected = refused.total;
+        let s = self.since.get_or_insert_with(|| match never {
+            true => Streak::begin(accepted, 0, &Refusals::default()),
+            false => Streak::begin(accepted, tick, &refused),
         });
         if s.accepted != accepted || rejected < s.rejected_before {
-            *s = Streak {
-                accepted,
-                from_tick: tick,
-                rejected_before: rejected,
-                rejected: 0,
-                to_tick: tick,
-            };
+            *s = Streak::begin(accepted, tick, &refused);
         }
         s.rejected = rejected - s.rejected_before;
+        s.kinds = refused.since(&s.kinds_before);
         s.to_tick = tick;
         (s.rejected > 0).then_some(*s)
     }
 
     /// As [`RejectWatch::streak`]: `Some` once the streak is `hold_ticks` long (the fault).
-    pub fn check(&mut self, tick: u64, accepted: u64, rejected: u64) -> Option<Streak> {
-        self.streak(tick, accepted, rejected).filter(|s| s.rejected >= self.hold_ticks)
+    pub fn check(&mut self, tick: u64, accepted: u64, refused: Refusals) -> Option<Streak> {
+        self.streak(tick, accepted, refused).filter(|s| s.rejected >= self.hold_ticks)
     }
 
     /// The controller was started again: a new streak begins with its answers, from the
     /// plant's counts at the last look.
     pub fn reset(&mut self) {
-        self.since = self.last.map(|(tick, accepted, rejected)| Streak {
+        self.since =
+            self.last.map(|(tick, accepted, refused)| Streak::begin(accepted, tick, &refused));
+    }
+}
+
+impl Streak {
+    /// A streak beginning at the plant's `tick`, after its torque `accepted`, with the
+    /// plant's rejections `refused` before it.
+    fn begin(accepted: u64, tick: u64, refused: &Refusals) -> Self {
+        Self {
             accepted,
             from_tick: tick,
-            rejected_before: rejected,
+            rejected_before: refused.total,
+            kinds_before: *refused,
             rejected: 0,
+            kinds: Refusals::default(),
             to_tick: tick,
-        });
+        }
     }
 }
 
@@ -790,24 +799,25 @@ mod tests {
     #[test]
     fn a_controller_whose_every_answer_is_refused_is_at_fault_after_hold_ticks() {
         let none = rotorloop_common::wire::NO_TICK;
+        let n = |total| Refusals { total, ..Refusals::default() };
         let mut r = RejectWatch::new(50);
-        assert_eq!(r.check(0, none, 0), None);
-        assert_eq!(r.check(30, none, 30), None, "30 refused: not yet");
-        let s = r.check(50, none, 50).expect("50 in a row");
+        assert_eq!(r.check(0, none, n(0)), None);
+        assert_eq!(r.check(30, none, n(30)), None, "30 refused: not yet");
+        let s = r.check(50, none, n(50)).expect("50 in a row");
         assert_eq!((s.from_tick, s.to_tick, s.rejected), (0, 50, 50));
         // One accepted answer ends the streak: a controller refused every other tick is
         // counted (torques_rejected), never at fault.
         let mut every_other = RejectWatch::new(50);
         for k in 0..400u64 {
-            assert_eq!(every_other.check(k, k - k % 2, k / 2), None, "tick {k}");
+            assert_eq!(every_other.check(k, k - k % 2, n(k / 2)), None, "tick {k}");
         }
         // A restart starts a new streak, from the counts at the last look.
         r.reset();
-        assert_eq!(r.check(60, none, 55), None);
-        assert!(r.streak(61, none, 56).is_some_and(|s| s.rejected == 6));
+        assert_eq!(r.check(60, none, n(55)), None);
+        assert!(r.streak(61, none, n(56)).is_some_and(|s| s.rejected == 6));
         // A first look after the rejections (lockstep: one answer for a tick not reached).
         let mut late = RejectWatch::new(50);
-        assert!(late.streak(0, none, 1).is_some_and(|s| s.rejected == 1));
+        assert!(late.streak(0, none, n(1)).is_some_and(|s| s.rejected == 1));
     }
 
     #[test]

@@ -26,7 +26,7 @@ use crate::run::supervise::{
     Watchdog, signal,
 };
 use rotorloop_common::role::args::Mode;
-use rotorloop_common::wire::NO_TICK;
+use rotorloop_common::wire::{NO_TICK, Refusals, StateSample};
 
 /// Where each role stands, from the resume slots (what the watchdog reads), and whether
 /// the controller is the user's (`--controller-cmd`: it keeps no slot of rotorloop's).
@@ -564,7 +564,17 @@ fn kill_hung(launch: &Launch, children: &mut Children, w: &mut Watch, role: &str
 /// The controller's answers since the plant last accepted one, if any were refused.
 fn rejected_since_accepted(w: &mut Watch, progress: &Progress) -> Option<Streak> {
     let s = progress.0.plant()?;
-    w.rejects.streak(s.tick, s.applied_torque_tick, s.torques_rejected)
+    w.rejects.streak(s.tick, s.applied_torque_tick, refused(progress, &s))
+}
+
+/// The plant's refusals by kind (its slot of them), counted up to its state `s`'s own
+/// count where that is newer. The slot is written at each refusal, the state once a
+/// tick: in lockstep a refusal that ends no tick (an answer for a tick not reached) is
+/// in the slot only.
+fn refused(progress: &Progress, s: &StateSample) -> Refusals {
+    let mut r = progress.0.refusals().unwrap_or_default();
+    r.total = r.total.max(s.torques_rejected);
+    r
 }
 
 /// The rule for a controller that answers but is always refused ([`RejectWatch`]): once
@@ -577,7 +587,7 @@ fn watch_for_rejections(children: &mut Children, w: &mut Watch, progress: &Progr
         return;
     }
     let Some(s) = progress.0.plant() else { return };
-    let streak = w.rejects.check(s.tick, s.applied_torque_tick, s.torques_rejected);
+    let streak = w.rejects.check(s.tick, s.applied_torque_tick, refused(progress, &s));
     if let Some(streak) = streak.filter(|_| !dying(pid)) {
         kill_rejected(children, w, streak, now_s);
     }
@@ -592,10 +602,12 @@ fn kill_rejected(children: &mut Children, w: &mut Watch, streak: Streak, now_s: 
     w.planned.insert(pid);
     signal(c, libc::SIGKILL);
     end_stop(w, pid, "rejected");
-    let Streak { rejected, from_tick, to_tick, .. } = streak;
+    let Streak { rejected, from_tick, to_tick, kinds, .. } = streak;
+    let last = kinds.last_tick;
     let detail = format!(
         "the plant refused its answers: {rejected} in a row and none accepted, over ticks \
-         {from_tick} to {to_tick}; killed (SIGKILL)"
+         {from_tick} to {to_tick} ({}; the last one for tick {last}); killed (SIGKILL)",
+        kinds.describe()
     );
     eprintln!("launcher: {role} answers but every answer is refused: {detail}, at {now_s:.3} s");
     let e = FaultEvent { signal: Some("SIGKILL"), ..FaultEvent::now(role, "rejected", detail) };

@@ -26,11 +26,15 @@ pub fn run(args: &args::PlantArgs) -> anyhow::Result<()> {
     let realtime = role.mode == Mode::Realtime;
     let mut plant = PlantTicker::new(&scenario, args.hold_ticks, realtime, args.actuation_delay);
     let resumed = ports.slot.load_for(ROLE, scenario.ticks());
-    match resumed.filter(|s| plant.can_resume(s)) {
+    let resumed = resumed.filter(|s| plant.can_resume(s));
+    match resumed {
         Some(s) => plant.resume(&s),
         None if !ports.states.wait_for_subscribers(args.subscribers) => return Ok(()),
         None => {}
     }
+    // Its refusals by kind continue with it; a fresh plant's start from none.
+    plant.hold.resume_refusals(resumed.and_then(|_| ports.refusals.load()).unwrap_or_default());
+    ports.refusals.store(&plant.hold.refusals());
     if plant.first() > 0 {
         eprintln!("plant: resuming at tick {} from its last published state", plant.first());
     }

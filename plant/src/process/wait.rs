@@ -12,7 +12,7 @@ use rotorloop_common::ipc::ports::{Inbox, Outbox, RoleNode};
 use rotorloop_common::resume::ResumeSlot;
 use rotorloop_common::role::args::{Mode, RoleArgs};
 use rotorloop_common::role::inject::{Corrupt, corrupted};
-use rotorloop_common::wire::{SendCost, StateSample, TorqueSample};
+use rotorloop_common::wire::{Refusals, SendCost, StateSample, TorqueSample};
 
 use crate::ROLE;
 use crate::policy::{Answer, PlantTicker, Settled};
@@ -23,6 +23,8 @@ pub(super) struct Ports {
     pub states: Outbox<StateSample>,
     pub torques: Inbox<TorqueSample>,
     pub slot: ResumeSlot<StateSample>,
+    /// The refusals by kind, stored as they happen ([`Refusals`]).
+    pub refusals: ResumeSlot<Refusals>,
     pub states_flight: FlightRecorder<StateSample>,
     torques_flight: FlightRecorder<TorqueSample>,
     /// Lockstep with rings the launcher moves: wait for it before coming round (off once
@@ -43,10 +45,20 @@ impl Ports {
         let states = domain.outbox::<StateSample>(&node, Topic::State).context(ROLE)?;
         let torques = domain.inbox::<TorqueSample>(&node, Topic::Torque, 16, role.wait.listens());
         let slot = ResumeSlot::<StateSample>::open(&domain, ROLE).context(ROLE)?;
+        let refusals = ResumeSlot::<Refusals>::open(&domain, Refusals::SLOT).context(ROLE)?;
         let torques = torques.context(ROLE)?;
         let wraps = ring_wraps(ticks, states_flight.capacity());
         let mover_gate = (role.flight_moved && role.mode == Mode::Lockstep && wraps).into();
-        Ok(Self { states, torques, slot, states_flight, torques_flight, mover_gate, _node: node })
+        Ok(Self {
+            states,
+            torques,
+            slot,
+            refusals,
+            states_flight,
+            torques_flight,
+            mover_gate,
+            _node: node,
+        })
     }
 
     /// Lockstep, before publishing tick `k`: waits until the launcher has moved the
@@ -142,7 +154,11 @@ impl TorqueWait {
         let answer = ports.torques.wait_for(role.wait, until, |inbox| {
             let mut answer: Option<Answer> = None;
             inbox.drain(|t| {
+                let before = plant.hold.rejected();
                 let took = plant.take(&t, k, deadline, now_ns());
+                if plant.hold.rejected() != before {
+                    ports.refusals.store(&plant.hold.refusals());
+                }
                 // The record is by tick: one for a tick not reached has no slot there (it
                 // would take the one of a true tick).
                 if !matches!(took, Some(Answer::Future(..))) {
