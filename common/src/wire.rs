@@ -829,6 +829,27 @@ mod tests {
     }
 
     #[test]
+    fn refusals_are_counted_by_kind_and_said_since_a_point() {
+        let mut r = Refusals::default();
+        assert_eq!(r.describe(), "none");
+        r.count(3, &WireFault::NonFinite { field: "torque.rotor_torque" });
+        let before = r;
+        let absurd = WireFault::Absurd { field: "torque.body_torque", value: 1e9, limit: 1e3 };
+        r.count(4, &absurd);
+        r.count(9, &WireFault::FutureTick { field: "torque.tick", tick: 9, allowed: 5 });
+        r.count(10, &WireFault::FutureTick { field: "torque.tick", tick: 10, allowed: 5 });
+        assert_eq!((r.total, r.non_finite, r.absurd, r.future_tick, r.last_tick), (4, 1, 1, 2, 10));
+        let d = r.since(&before);
+        assert_eq!((d.total, d.non_finite, d.absurd, d.future_tick), (3, 0, 1, 2));
+        assert_eq!(
+            d.describe(),
+            "1 with torques beyond the accepted magnitude, 2 for ticks the loop had not reached"
+        );
+        // A slot started again (counts below the point): counted from zero.
+        assert_eq!(before.since(&r).total, 1);
+    }
+
+    #[test]
     fn type_names_carry_the_layout_version() {
         use iceoryx2::prelude::ZeroCopySend;
         let v = format!("_v{LAYOUT_VERSION}");

@@ -585,6 +585,7 @@ pub fn signal(child: &Child, sig: libc::c_int) {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use rotorloop_common::wire::WireFault;
 
     #[test]
     fn a_restarted_role_has_the_start_timeout_until_its_first_progress() {
@@ -818,6 +819,17 @@ mod tests {
         // A first look after the rejections (lockstep: one answer for a tick not reached).
         let mut late = RejectWatch::new(50);
         assert!(late.streak(0, none, n(1)).is_some_and(|s| s.rejected == 1));
+        // The streak's kinds are those since it began, not the run's.
+        let mut kinds = RejectWatch::new(2);
+        let nan = WireFault::NonFinite { field: "torque.rotor_torque" };
+        let future = WireFault::FutureTick { field: "torque.tick", tick: 99, allowed: 10 };
+        let mut plant = Refusals::default();
+        plant.count(1, &nan);
+        assert_eq!(kinds.check(2, 1, plant), None, "after the torque of tick 1 accepted");
+        plant.count(3, &future);
+        plant.count(4, &future);
+        let s = kinds.check(5, 1, plant).expect("two in a row");
+        assert_eq!((s.kinds.total, s.kinds.non_finite, s.kinds.future_tick), (2, 0, 2));
     }
 
     #[test]
