@@ -22,8 +22,9 @@
  *
  * A restart continues from ROTORLOOP_STATE_DIR/pid.state (the last answer and xi, two
  * copies and a generation counter in a mapped file, written before each send): a state
- * it answered already gets the same answer again, never a second integration. The
- * launcher empties that directory at the start of every run, never between restarts.
+ * it answered already gets the same answer again (a skipped one skipped again), never a
+ * second integration. The launcher empties that directory at the start of every run,
+ * never between restarts.
  */
 #define _GNU_SOURCE
 #include <fcntl.h>
@@ -121,6 +122,7 @@ static int on_so3(const double *r) {
 typedef struct {
     uint64_t tick;
     double xi[3], u[3], tau[3];
+    uint64_t flags; /* ROTORLOOP_TORQUE_SKIPPED when it was no torque */
 } answer;
 typedef struct {
     uint64_t generation;
@@ -223,7 +225,7 @@ int main(int argc, char **argv) {
     rotorloop_controller *c = NULL;
     check(rotorloop_controller_open(NULL, NULL, &c), "opening the controller's ports");
     resume_file *resume = open_resume();
-    answer last = {ROTORLOOP_NO_TICK, {0, 0, 0}, {0, 0, 0}, {0, 0, 0}};
+    answer last = {ROTORLOOP_NO_TICK, {0, 0, 0}, {0, 0, 0}, {0, 0, 0}, 0};
     if (resume && resume->generation > 0) {
         last = resume->copy[resume->generation % 2];
         fprintf(stderr, "controller.c: resuming after tick %llu with its integral state\n",
@@ -242,11 +244,13 @@ int main(int argc, char **argv) {
         TorqueSample *t;
         if (last.tick != ROTORLOOP_NO_TICK && k <= last.tick) {
             if (k < last.tick) continue; /* older than the last answer: nothing to send */
-            /* Answered already (a restarted plant asks again): the same answer. */
+            /* Answered already (a restarted plant asks again): the same answer, a skipped
+             * one skipped again (its zeros are no torque to apply). */
             check(rotorloop_controller_loan(c, &t), "loaning");
             t->tick = k;
             store3(t->rotor_torque_nm, load3(last.u));
             store3(t->body_torque_nm, load3(last.tau));
+            t->flags = last.flags;
             t->state_recv_ns = t->validated_ns = t->paired_ns = t->computed_ns = recv_ns;
             t->reference_misses = reference_misses;
             t->states_rejected = states_rejected;
@@ -284,7 +288,7 @@ int main(int argc, char **argv) {
             }
         }
         uint64_t paired = rotorloop_now_ns();
-        answer a = {k, {xi.x, xi.y, xi.z}, {0, 0, 0}, {0, 0, 0}};
+        answer a = {k, {xi.x, xi.y, xi.z}, {0, 0, 0}, {0, 0, 0}, have ? 0 : ROTORLOOP_TORQUE_SKIPPED};
         if (have) {
             v3 u, tau;
             law_step(&l, &x, &rd, load3(ref.omega_d_rad_s), load3(ref.omega_d_dot_rad_s2), &xi, &u, &tau);
@@ -299,7 +303,7 @@ int main(int argc, char **argv) {
         t->tick = k;
         store3(t->rotor_torque_nm, load3(a.u));
         store3(t->body_torque_nm, load3(a.tau));
-        t->flags = have ? 0 : ROTORLOOP_TORQUE_SKIPPED;
+        t->flags = a.flags;
         t->state_recv_ns = recv_ns;
         t->validated_ns = validated;
         t->paired_ns = paired;
