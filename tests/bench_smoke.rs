@@ -279,7 +279,8 @@ fn kinds(out: &std::path::Path) -> Vec<String> {
 }
 
 /// `--before-after foxglove`: the loop alone and with the live Foxglove server and a viewer
-/// subscribed to every topic, alternating; the viewer received the loop's messages, and
+/// subscribed to every topic, alternating; the viewer received the loop's messages,
+/// `before-after.json` has the pairs' ratios with their interval and verdict, and
 /// `bench.md` compares the two.
 #[test]
 fn before_after_foxglove_measures_the_loop_with_a_viewer_attached() {
@@ -300,6 +301,30 @@ fn before_after_foxglove_measures_the_loop_with_a_viewer_attached() {
         assert!(pair.join("foxglove.addr").exists());
     }
     assert!(cell.join("pair1/loop/summary.json").exists(), "the plain loop measured twice");
+    // The pairs' after / before ratios: with two pairs the interval is their range, at
+    // level 1 − 2·(1/2)² = 0.5, and the verdict says where it lies against 1.
+    let ba = crate::common::harness::json(&cell.join("before-after.json"));
+    assert_eq!(ba["pairs"], 2, "{ba}");
+    for q in ["p50", "p99"] {
+        let r = &ba[format!("after_over_before_{q}")];
+        let ratios: Vec<f64> = r["ratios"]
+            .as_array()
+            .unwrap_or_else(|| panic!("{q}: {ba}"))
+            .iter()
+            .map(|x| x.as_f64().expect("a ratio"))
+            .collect();
+        assert!(ratios.len() == 2 && ratios.iter().all(|x| *x > 0.0), "{q}: {r}");
+        let (lo, hi) = (ratios[0].min(ratios[1]), ratios[0].max(ratios[1]));
+        let f = |k: &str| r[k].as_f64().unwrap_or(f64::NAN);
+        assert_eq!((f("ci_low"), f("ci_high"), f("level")), (lo, hi, 0.5), "{q}: {r}");
+        assert!((f("median") - (lo + hi) / 2.0).abs() <= 1e-12 * hi, "{q}: {r}");
+        let verdict = match (hi < 1.0, lo > 1.0) {
+            (true, _) => "faster",
+            (_, true) => "slower",
+            _ => "indistinguishable",
+        };
+        assert_eq!(r["verdict"], verdict, "{q}: {r}");
+    }
     let md = std::fs::read_to_string(out.join("bench.md")).expect("bench.md");
     assert!(md.contains("with the live Foxglove server"), "{md}");
     assert!(md.contains("| r500-event-cross-core-none |"), "{md}");
