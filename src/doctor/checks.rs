@@ -121,13 +121,21 @@ fn fifo_reason(s: &Sys, p: &Probe) -> String {
     if nice == Some(false) && p.euid != 0 {
         why.push("not root and without CAP_SYS_NICE".into());
     }
+    if let Some(group) = cgroup_v2_group(s).filter(|_| cgroup_rt_runtime(s).is_none()) {
+        why.push(format!(
+            "this process is in the cgroup v2 group {group}: where the kernel has real-time \
+             group scheduling (CONFIG_RT_GROUP_SCHED), a real-time task is refused outside \
+             the root group (cgroup v2 has no cpu.rt_runtime_us to grant it runtime)"
+        ));
+    }
     if why.is_empty() {
         why.push("none of RLIMIT_RTPRIO, cpu.rt_runtime_us or the capabilities explains it (a seccomp filter or a security module may)".into());
     }
     why.join("; ")
 }
 
-/// `cpu.rt_runtime_us` of this process's cgroup (v1 `cpu` controller), if there is one.
+/// `cpu.rt_runtime_us` of this process's cgroup (v1 `cpu` controller), if there is one
+/// (cgroup v2 has none: [`cgroup_v2_group`]).
 fn cgroup_rt_runtime(s: &Sys) -> Option<i64> {
     let groups = s.read("proc/self/cgroup")?;
     let path = groups.lines().find_map(|l| {
@@ -143,6 +151,17 @@ fn cgroup_rt_runtime(s: &Sys) -> Option<i64> {
         };
         s.read(&rel).and_then(|v| v.parse().ok())
     })
+}
+
+/// This process's cgroup v2 group (the `0::PATH` line of `/proc/self/cgroup`) where it is
+/// not the root group (`/`) and the `cpu` controller is not on a v1 hierarchy.
+fn cgroup_v2_group(s: &Sys) -> Option<String> {
+    let groups = s.read("proc/self/cgroup")?;
+    let v1_cpu = groups
+        .lines()
+        .any(|l| l.split(':').nth(1).is_some_and(|c| c.split(',').any(|c| c == "cpu")));
+    let path = groups.lines().find_map(|l| l.strip_prefix("0::"))?;
+    (!v1_cpu && path != "/").then(|| path.to_owned())
 }
 
 fn scheduling(s: &Sys, p: &Probe) -> Vec<Item> {

@@ -106,6 +106,19 @@ fn a_refused_sched_fifo_names_its_reasons() {
     }
     assert!(fifo.meaning.contains("normal priority"), "{}", fifo.meaning);
     assert!(fifo.fix.contains("ulimit -r"), "{}", fifo.fix);
+    // A pure cgroup v2 machine, the process in a group of its own: that group is named as
+    // a possible cause (v2 has no cpu.rt_runtime_us); in the root group it is not.
+    for (group, named) in [("/user.slice/loop.scope", true), ("/", false)] {
+        let dir = changed("fifo-v2", &[("proc/self/cgroup", &format!("0::{group}\n"))]);
+        let mut p = granted();
+        p.fifo = Err(libc::EPERM);
+        let r = report(&dir, &p, 1000.0);
+        std::fs::remove_dir_all(&dir).expect("clean up");
+        let v = r.item("sched_fifo").expect("fifo").value.clone();
+        let says = v.contains(&format!("cgroup v2 group {group}:"));
+        assert_eq!(says, named, "{group}: {v}");
+        assert_eq!(v.contains("none of RLIMIT_RTPRIO"), !named, "{group}: {v}");
+    }
     // With the capability and a runtime, the refusal is still said, its cause unknown.
     let mut p = granted();
     p.fifo = Err(libc::EPERM);
