@@ -702,7 +702,7 @@ mod tests {
         assert_eq!(log.get(1), Some(torque(1)));
         assert_eq!(log.get(18), Some(torque(18)));
         assert_eq!(log.missing(6), vec![[2, 2], [4, 4], [6, 6]]);
-        let _ = std::fs::remove_dir_all(&dir);
+        clean(&dir);
     }
 
     #[test]
@@ -722,7 +722,7 @@ mod tests {
         let log = FlightLog::<TorqueSample>::read(&dir, Stream::Reference, 1 << 20).expect("read");
         assert_eq!(log.missing(2), vec![[1, 1]]);
         assert_eq!(log.get(2), Some(torque(2)));
-        let _ = std::fs::remove_dir_all(&dir);
+        clean(&dir);
     }
 
     #[test]
@@ -739,7 +739,7 @@ mod tests {
             FlightLog::<TorqueSample>::read(&dir, Stream::PlantTorque, 1 << 20),
             Err(FlightError::Missing { .. })
         ));
-        let _ = std::fs::remove_file(&dir);
+        clean(&dir);
     }
 
     /// A ring of 512 slots over 2000 ticks, its halves moved as the writer goes: every
@@ -776,9 +776,8 @@ mod tests {
         late.pass(1199);
         // Halves 0–3 (ticks 0–1023) were due; the ring holds 688–1199 by then.
         assert_eq!(late.lost, 688, "ticks 0–687 were overwritten by 512–1199");
-        for d in [&staged, &kept, &staged2, &kept2] {
-            let _ = std::fs::remove_dir_all(d);
-        }
+        clean(&staged);
+        clean(&staged2);
     }
 
     /// The plant's lockstep wait: free while the ring has room, held at the tick that
@@ -803,9 +802,15 @@ mod tests {
         let t0 = std::time::Instant::now();
         assert!(r.wait_for_mover(10_000, limit), "no mover: gives up");
         assert!(t0.elapsed() >= limit, "after its limit");
-        let _ = std::fs::remove_dir_all(&staged);
+        clean(&staged);
     }
 
+    /// Removes the test's whole directory: the parent of `d` (from [`tempfile_dir`]).
+    fn clean(d: &Path) {
+        let _ = std::fs::remove_dir_all(d.parent().expect("its base"));
+    }
+
+    /// `TMP/rotorloop-flight-PID-NAME/flight`, empty.
     fn tempfile_dir(name: &str) -> PathBuf {
         let d = std::env::temp_dir()
             .join(format!("rotorloop-flight-{}-{name}", std::process::id()))
