@@ -210,6 +210,13 @@ fn processes_started_by_hand_in_every_order_connect_and_run() {
         for (i, st) in h.wait_all(LIMIT).into_iter().enumerate() {
             assert!(st.success(), "order {order:?}: {} exited with {st}", order[i]);
         }
+        // Shown with a failure (captured otherwise): once, in CI, the monitor's last row had
+        // no torque (the controller's last answer never reached it); what each role said.
+        for (i, role) in order.iter().enumerate() {
+            eprintln!("{role}:\n{}", h.stderr_of(i));
+        }
+        let summary = std::fs::read_to_string(out.join("summary.json")).unwrap_or_default();
+        eprintln!("the monitor's summary.json:\n{summary}");
         let trace = std::fs::read(out.join("trace.csv")).expect("trace");
         assert_same_trace(&format!("order {order:?}"), &trace, &sim);
         // Started by hand, nobody runs the launcher's final clean-up: `rotorloop clean` does.
