@@ -183,6 +183,12 @@ fn a_viewer_connects_late_and_vanishes_and_the_loop_never_notices() {
     h.assert_no_leftovers();
 }
 
+/// The gaps in `ticks` (messages the server dropped for a viewer that fell behind): each
+/// pair of neighbours that are not consecutive.
+fn gaps(ticks: &[u64]) -> Vec<(u64, u64)> {
+    ticks.windows(2).filter(|w| w[1] != w[0] + 1).map(|w| (w[0], w[1])).collect()
+}
+
 /// Where `logs` say the controller's kill (by the fault schedule) as a fault (an error, as
 /// run.mcap says it), its restart (said with it, when one look saw both, or as `up`
 /// later), and safe mode entered and left, in run.mcap's words.
@@ -238,8 +244,7 @@ fn a_server_attached_to_a_running_loop_and_killed_is_no_matter_to_it() {
     // allowed, but only where the states show the loss, a gap around the kill (2 s) and
     // restart (2.3 s).
     let said = kill_said(&seen.logs);
-    let gaps: Vec<(u64, u64)> =
-        seen.ticks.windows(2).filter(|w| w[1] != w[0] + 1).map(|w| (w[0], w[1])).collect();
+    let gaps = gaps(&seen.ticks);
     let lost_around_the_kill = gaps.iter().any(|&(a, b)| a < 3_300 && b > 1_900);
     let logs: Vec<_> = seen.logs.iter().zip(&seen.log_ticks).collect();
     if !lost_around_the_kill {
@@ -281,7 +286,8 @@ fn a_bad_foxglove_address_is_refused_before_the_run() {
 }
 
 /// `rotorloop foxglove --domain D ADDR` serving (here before any loop appears) advertises
-/// every channel to a viewer at once, and ends each connection as RFC 6455 says: a viewer's close is answered with its code (1000),
+/// every channel to a viewer at once, and ends each connection as RFC 6455 says: a
+/// viewer's close is answered with its code (1000),
 /// text that is not UTF-8 gets 1007, a frame announced at 16 MiB gets 1009, and nothing
 /// comes after the server's close; a viewer offering only the older name of the protocol,
 /// `foxglove.websocket.v1`, is served. SIGTERM ends the server, exit 0, leaving nothing.
@@ -425,8 +431,7 @@ fn an_attached_server_validates_and_ends_with_the_loop_leaving_nothing() {
     // As in the test above: what a viewer that fell behind lost (the oldest dropped) may
     // include the kill's incident and log, but only where the states show the loss, a gap
     // around the kill (4 s) and restart (4.3 s).
-    let gaps: Vec<(u64, u64)> =
-        ticks.windows(2).filter(|w| w[1] != w[0] + 1).map(|w| (w[0], w[1])).collect();
+    let gaps = gaps(&ticks);
     let lost_around_the_kill = gaps.iter().any(|&(a, b)| a < 5_300 && b > 3_900);
     let error = foxglove::messages::log::Level::Error as i32;
     let errors: Vec<_> = logs.iter().filter(|(_, l, _)| *l == error).collect();
