@@ -9,9 +9,7 @@ use std::process::{Command, Output, Stdio};
 use std::time::{Duration, Instant};
 
 use super::{LIMIT, TempUser};
-use crate::common::harness::{
-    Harness, ROTORLOOP, group, json, live_timing_rows, sim_trace, wait_output,
-};
+use crate::common::harness::{Harness, ROTORLOOP, group, json, live_timing_rows, wait_output};
 
 const SPLIT: &str = "plant,reference,monitor@a controller@b";
 
@@ -167,7 +165,7 @@ fn start_split_run(h: &mut Harness, out: &Path) -> (usize, Vec<String>) {
 /// A split run's link admits only the run's own gateways: a second OS user's gateway,
 /// connected to the run's loopback port from a `/dev/shm` of its own, gets no state of
 /// the loop (and says that no peer accepted its credentials), and the run completes with
-/// the simulator's final error (within 3°). The same probe with the run's credentials
+/// nothing in it but its own samples ([`nothing_but_the_runs_own`]). The same probe with the run's credentials
 /// (copied to the second user by the test) receives states, so the test would notice a
 /// probe that cannot receive at all. Before issue 42 the gateways listened without
 /// authentication and the first probe received the state. Skipped, with the reason,
@@ -228,17 +226,45 @@ fn another_os_users_gateway_gets_nothing_from_a_split_run() {
         String::from_utf8_lossy(&admitted.stderr)
     );
 
-    let status = h.wait_all(LIMIT);
+    // The report of a run with many misses (the machine's load) takes a while.
+    let status = h.wait_all(3 * LIMIT);
     assert!(status[run].success(), "the run failed: {}", h.stderr_of(run));
     let s = json(&out.join("summary.json"));
     assert_eq!(s["completed"], true);
-    sim_trace(&h, "paper-zero", "30", &[]);
-    let sim = json(&h.path("sim-paper-zero").join("summary.json"));
-    let (got, want) = (s["err_deg_final"].as_f64(), sim["err_deg_final"].as_f64());
-    let (got, want) = (got.expect("final error"), want.expect("sim's final error"));
-    assert!((got - want).abs() < 3.0, "final error {got:.2}° against the simulator's {want:.2}°");
+    nothing_but_the_runs_own(&out, &s);
     assert!(!out.join("link-credentials").exists(), "the run's credentials outlived it");
     h.assert_no_leftovers();
     h.assert_no_leftovers_on("a");
     h.assert_no_leftovers_on("b");
+}
+
+/// Every sample the run's roles took was the run's own, however many ticks the machine's
+/// load made late: no role rejected a sample, each torque the plant took (its flight
+/// record) is, field for field, one the controller published for that tick, and the law
+/// run in process reproduces every answer the controller computed from the plant's states
+/// bit for bit. (A final error within a few degrees of the simulator's said the same only
+/// on an idle machine: with the rest of the suite beside it, a run in CI missed enough
+/// ticks to end 4.7° off.)
+fn nothing_but_the_runs_own(out: &Path, s: &serde_json::Value) {
+    use rotorloop_common::flight::{FlightLog, Stream};
+    use rotorloop_common::wire::TorqueSample;
+    let rejected = s["wire_rejected"].as_object().expect("wire_rejected");
+    assert!(rejected.values().all(|n| n == 0), "a role rejected samples: {rejected:?}");
+    let last = s["ticks"].as_u64().expect("ticks");
+    let flight = out.join("flight");
+    let read = |stream| FlightLog::<TorqueSample>::read(&flight, stream, last).expect("record");
+    let (took, sent) = (read(Stream::PlantTorque), read(Stream::ControllerTorque));
+    let mut n = 0;
+    for t in took.iter() {
+        assert_eq!(
+            Some(t),
+            sent.get(t.tick),
+            "the plant took a torque the controller did not send"
+        );
+        n += 1;
+    }
+    assert!(n > 0, "the plant took no torque");
+    let reproduced = &s["incidents"]["law_reproduced"];
+    assert!(reproduced[1].as_u64() > Some(0), "the law checked no answer: {reproduced}");
+    assert_eq!(reproduced[0], reproduced[1], "answers the law does not reproduce: {reproduced}");
 }
