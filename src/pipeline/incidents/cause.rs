@@ -4,7 +4,7 @@
 //! stage is), and from the kernel's view of that process (`sched.csv`: time runnable but
 //! not running, stopped, on a CPU; the machine's steal time).
 
-use rotorloop_common::wire::{ReferenceSample, StateSample, TorqueSample};
+use rotorloop_common::wire::{NO_TICK, ReferenceSample, StateSample, TorqueSample};
 
 use super::load::{FaultRow, RunRecord, SchedRow};
 use super::ticks::{self, DELAY, LATE, MISS, NOT_FRESH, REFERENCE_LATE, REJECTED, SAFE, TickFlags};
@@ -41,13 +41,22 @@ const STAGES: [(&str, &str); 5] = [
 ];
 
 /// When the answer to state `k` took effect: (tick, offset), if it did within 10 000
-/// ticks.
+/// ticks. The search ends where a newer answer is in force: the plant accepts only a
+/// torque newer than every one it accepted before (`rotorloop_plant::policy`), so an
+/// answer not in effect by then never is (without that end, each tick of a window whose
+/// answers never took effect read the 10 000 states after it).
 fn took_effect(run: &RunRecord, k: u64) -> Option<(u64, f64)> {
-    (k..(k + 10_000).min(run.last)).find_map(|j| {
-        let n = run.state(j + 1)?;
+    for j in k..(k + 10_000).min(run.last) {
+        let Some(n) = run.state(j + 1) else { continue };
         let m = (n.effects as usize).min(n.effect_ticks.len());
-        (0..m).find(|i| n.effect_ticks[*i] == k).map(|i| (j, n.effect_offsets_s[i]))
-    })
+        if let Some(i) = (0..m).find(|i| n.effect_ticks[*i] == k) {
+            return Some((j, n.effect_offsets_s[i]));
+        }
+        if n.applied_torque_tick != NO_TICK && n.applied_torque_tick > k {
+            return None;
+        }
+    }
+    None
 }
 
 /// The five stages of tick `k` (ns), each where its stamps allow (the wake in real time
@@ -64,7 +73,7 @@ fn stages(run: &RunRecord, k: u64) -> [Option<u64>; 5] {
             .map(|w| w + ticks::paused_ns(run, k)),
         s.and_then(|s| s.publish_ns.checked_sub(s.wake_ns)),
         // A state never answered waited for the controller at least until it took the next.
-        s.zip(t.or_else(|| next_answer(run, k)))
+        s.zip(t.or_else(|| run.next_answer(k)))
             .and_then(|(s, t)| t.state_recv_ns.checked_sub(s.publish_ns)),
         t.and_then(|t| t.publish_ns.checked_sub(t.state_recv_ns)),
         n.zip(t).and_then(|(n, t)| n.applied_torque_recv_ns.checked_sub(t.publish_ns)),
@@ -357,11 +366,6 @@ fn unanswered(run: &RunRecord, [start, end]: [u64; 2], kind: &'static str) -> Ca
     Cause { kind, role: role.into(), stage: stage.into(), evidence: format!("state {k}: {detail}") }
 }
 
-/// The controller's next answer after state `k` (within 10 000 ticks).
-fn next_answer(run: &RunRecord, k: u64) -> Option<rotorloop_common::wire::TorqueSample> {
-    (k + 1..(k + 10_000).min(run.last + 1)).find_map(|j| run.torque(j))
-}
-
 /// Whether the controller took state `k` but answered a newer one (its next answer counts
 /// a skipped state more than its previous one).
 fn skipped(run: &RunRecord, k: u64) -> bool {
@@ -512,6 +516,70 @@ mod tests {
         let windows = flags.windows(run, super::super::GAP);
         let w = windows.iter().find(|w| w[0] <= k && k <= w[1]).expect("an incident at k");
         cause(run, &flags, &medians, *w)
+    }
+
+    /// The searches that end early (an answer's effect ends where a newer one is in force;
+    /// the next answer is remembered from the tick before) find what a scan of the next
+    /// 10 000 ticks finds, on a plant history made by the plant's own rule: an answer is
+    /// taken only if newer than every one taken before, late ones too, several per tick,
+    /// stretches of safe mode (nothing in force) and of silence.
+    #[test]
+    fn the_searches_that_stop_early_find_what_a_scan_finds() {
+        let scenario = Scenario::load("paper-zero").expect("built-in");
+        let mut seed = 0x9e37_79b9_7f4a_7c15_u64;
+        let mut next = |n: u64| {
+            seed ^= seed << 13;
+            seed ^= seed >> 7;
+            seed ^= seed << 17;
+            seed % n
+        };
+        let n = 3000;
+        let (mut newest, mut states, mut torques) = (NO_TICK, Vec::new(), Vec::new());
+        let mut effects: Vec<(u64, f64)> = Vec::new();
+        for k in 0..n {
+            let mut s = StateSample::of(k, k as f64 * scenario.dt(), &scenario.plant_init);
+            s.effects = effects.len() as u64;
+            for (i, (tick, offset)) in effects.drain(..).enumerate() {
+                (s.effect_ticks[i], s.effect_offsets_s[i]) = (tick, offset);
+            }
+            let safe = (k / 200) % 5 == 3;
+            s.applied_torque_tick = if safe { NO_TICK } else { newest };
+            states.push(s);
+            let silent = (k / 300) % 4 == 2;
+            if !silent && next(3) > 0 {
+                torques.push(TorqueSample { tick: k, ..Default::default() });
+            }
+            // What takes effect in tick k: answers to ticks up to k, some of them late.
+            for i in 0..next(4) {
+                let source = k.saturating_sub(next(40));
+                if newest == NO_TICK || source > newest {
+                    newest = source;
+                    effects.push((source, i as f64 * 1e-5));
+                }
+            }
+        }
+        let run = RunRecord::of(scenario, states, torques);
+        let scan_effect = |k: u64| {
+            (k..(k + 10_000).min(run.last)).find_map(|j| {
+                let s = run.state(j + 1)?;
+                let m = (s.effects as usize).min(s.effect_ticks.len());
+                (0..m).find(|i| s.effect_ticks[*i] == k).map(|i| (j, s.effect_offsets_s[i]))
+            })
+        };
+        let scan_answer =
+            |k: u64| (k + 1..(k + 10_000).min(run.last + 1)).find_map(|j| run.torque(j));
+        let (mut took, mut never) = (0, 0);
+        for k in 0..n {
+            let found = took_effect(&run, k);
+            assert_eq!(found, scan_effect(k), "tick {k}");
+            (took, never) = if found.is_some() { (took + 1, never) } else { (took, never + 1) };
+            assert_eq!(run.next_answer(k).map(|t| t.tick), scan_answer(k).map(|t| t.tick), "{k}");
+        }
+        assert!(took > 100 && never > 100, "{took} answers took effect, {never} never did");
+        for _ in 0..2000 {
+            let k = next(n);
+            assert_eq!(run.next_answer(k).map(|t| t.tick), scan_answer(k).map(|t| t.tick), "{k}");
+        }
     }
 
     /// Issue 42: a torque for a tick the loop had not reached, from a same-user process,

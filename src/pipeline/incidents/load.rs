@@ -112,6 +112,10 @@ pub struct RunRecord {
     /// it: ticks without a state take the one before), ns; the ticks between are read
     /// from the records when asked for.
     grid_marks: Vec<u64>,
+    /// The last [`RunRecord::next_answer`] found: `(k, j)`, no answer in `k + 1 .. j`
+    /// and one for `j`. The ticks of an incident ask in order, so a window in which the
+    /// controller was silent reads its records once, not once per tick.
+    next_found: std::cell::Cell<Option<(u64, u64)>>,
 }
 
 /// Ticks between two of [`RunRecord`]'s grid marks (a day at 1 kHz: 84 000 marks).
@@ -196,6 +200,7 @@ impl RunRecord {
             traced: false,
             trace_path: dir.join("sched-trace.txt"),
             t0_ns,
+            next_found: Default::default(),
         })
     }
 
@@ -219,6 +224,7 @@ impl RunRecord {
             scenario,
             last: (states.len() as u64).saturating_sub(1),
             t0_ns: states.first().map_or(0, |s| s.publish_ns),
+            next_found: Default::default(),
             realtime: false,
             grid_marks,
             states: FlightLog::of(states),
@@ -248,6 +254,17 @@ impl RunRecord {
     /// The controller's answer to state `k`.
     pub fn torque(&self, k: u64) -> Option<TorqueSample> {
         self.torques.get(k)
+    }
+
+    /// The controller's first answer after state `k`, within 10 000 ticks.
+    pub fn next_answer(&self, k: u64) -> Option<TorqueSample> {
+        if let Some((_, j)) = self.next_found.get().filter(|(from, j)| *from <= k && k < *j) {
+            return self.torque(j);
+        }
+        let (j, t) = (k + 1..(k + 10_000).min(self.last + 1))
+            .find_map(|j| self.torque(j).map(|t| (j, t)))?;
+        self.next_found.set(Some((k, j)));
+        Some(t)
     }
 
     /// The grid times of the ticks from mark `m` on (up to the next mark and the last
