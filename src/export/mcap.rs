@@ -340,18 +340,23 @@ fn write_messages(sink: &mut FileSink, run: &Run, dir: &Path) -> anyhow::Result<
             data: serde_json::to_vec_pretty(s)?.into(),
         })?;
     }
-    let incidents = read_incidents(&dir.join("incidents.csv"));
-    let windows: Vec<[u64; 2]> = incidents
-        .iter()
-        .filter_map(|i| Some([i["start_tick"].as_u64()?, i["end_tick"].as_u64()?]))
-        .collect();
-    let mut in_window = InWindow::new(windows);
+    let mut incidents = Incidents::open(&dir.join("incidents.csv"));
     let columns = &run.trace_columns;
     let mut safe = false;
     for s in run.states.iter() {
         let s = &s;
         let k = s.tick;
         let ns = time(s.publish_ns, s.t_s);
+        // The incidents that start by this tick, each at its start's time.
+        while let Some(i) = incidents.starting_by(k) {
+            let at_s = i["start_s"].as_f64().unwrap_or_default();
+            let start = i["start_tick"].as_u64().unwrap_or_default();
+            let at = run
+                .states
+                .get(start)
+                .map_or(t0 + (at_s * 1e9) as u64, |s| time(s.publish_ns, s.t_s));
+            sink.json(topics::INCIDENTS.topic, &i, at)?;
+        }
         sink.json(topics::STATE.topic, &topics::state_json(s), ns)?;
         let t = run.torque(k);
         let t = t.as_ref();
@@ -368,7 +373,7 @@ fn write_messages(sink: &mut FileSink, run: &Run, dir: &Path) -> anyhow::Result<
         sink.encoded(topics::TF, &transform("world", "body", &s.r_row_major, ns), ns)?;
         sink.json(topics::LATENCY.topic, &latency(s, t, r), ns)?;
         if let Some(row) = run.trace_row(k) {
-            let row = tracking_row(columns, &row, Some(in_window.has(k)));
+            let row = tracking_row(columns, &row, Some(incidents.holds(k)));
             sink.json(topics::TRACKING.topic, &row, ns)?;
         }
         let now_safe = s.flags & FLAG_SAFE_MODE != 0;
@@ -378,11 +383,10 @@ fn write_messages(sink: &mut FileSink, run: &Run, dir: &Path) -> anyhow::Result<
             safe = now_safe;
         }
     }
-    for i in incidents {
-        let k = i["start_tick"].as_u64().unwrap_or_default();
+    // Those that start after the last state (a fault outside the loop at its end).
+    while let Some(i) = incidents.starting_by(u64::MAX) {
         let at_s = i["start_s"].as_f64().unwrap_or_default();
-        let ns = run.states.get(k).map_or(t0 + (at_s * 1e9) as u64, |s| time(s.publish_ns, s.t_s));
-        sink.json(topics::INCIDENTS.topic, &i, ns)?;
+        sink.json(topics::INCIDENTS.topic, &i, t0 + (at_s * 1e9) as u64)?;
     }
     for (ns, level, name, message) in events(run, t0) {
         sink.encoded(topics::LOG, &log_message(ns, level, &name, message), ns)?;
@@ -400,60 +404,91 @@ pub(crate) fn safe_mode_message(entered: bool, k: u64) -> (foxglove::messages::l
     }
 }
 
-/// Whether ticks, asked for in increasing order, are in one of the incidents' windows.
-struct InWindow {
-    windows: Vec<[u64; 2]>,
-    next: usize,
+/// `incidents.csv` (`rotorloop explain`'s, written after the run, in the order of the
+/// incidents' first ticks) read a row at a time as the export's ticks reach them: what is
+/// held is the windows still open at the current tick, not the run's incidents.
+struct Incidents {
+    lines: Option<std::io::Lines<std::io::BufReader<std::fs::File>>>,
+    header: Vec<String>,
+    /// The next row, read but not yet due.
+    next: Option<Value>,
+    /// The windows begun by the current tick that had not ended before it.
+    open: Vec<[u64; 2]>,
 }
 
-impl InWindow {
-    fn new(mut windows: Vec<[u64; 2]>) -> Self {
-        windows.sort_unstable();
-        Self { windows, next: 0 }
+impl Incidents {
+    /// The file's rows; none without the file.
+    fn open(path: &Path) -> Self {
+        use std::io::BufRead;
+        let mut lines = std::fs::File::open(path).ok().map(|f| std::io::BufReader::new(f).lines());
+        let header = lines
+            .as_mut()
+            .and_then(|l| l.next())
+            .and_then(Result::ok)
+            .map(|h| split_csv(&h))
+            .unwrap_or_default();
+        Self { lines, header, next: None, open: Vec::new() }
     }
 
-    fn has(&mut self, k: u64) -> bool {
-        while self.windows.get(self.next).is_some_and(|w| w[1] < k) {
-            self.next += 1;
+    /// The next incident whose first tick is at most `k`, as its [`topics::INCIDENTS`]
+    /// message; its window counts for [`Incidents::holds`] from then on.
+    fn starting_by(&mut self, k: u64) -> Option<Value> {
+        if self.next.is_none() {
+            self.next = self.read();
         }
-        self.windows[self.next..].iter().take_while(|w| w[0] <= k).any(|w| w[1] >= k)
+        let start = self.next.as_ref()?["start_tick"].as_u64()?;
+        if start > k {
+            return None;
+        }
+        let i = self.next.take()?;
+        self.open.push([start, i["end_tick"].as_u64().unwrap_or(start)]);
+        Some(i)
+    }
+
+    /// Whether tick `k` (asked for in increasing order, after [`Incidents::starting_by`]
+    /// for it) is in one of the incidents' windows.
+    fn holds(&mut self, k: u64) -> bool {
+        self.open.retain(|w| w[1] >= k);
+        self.open.iter().any(|w| w[0] <= k)
+    }
+
+    /// The next row that is an incident (others are skipped).
+    fn read(&mut self) -> Option<Value> {
+        loop {
+            let line = self.lines.as_mut()?.next()?.ok()?;
+            if let Some(i) = incident_of(&self.header, &line) {
+                return Some(i);
+            }
+        }
     }
 }
 
-/// The incidents of `incidents.csv` (`rotorloop explain`'s, written after the run), each as
-/// its [`topics::INCIDENTS`] message; none without the file.
-fn read_incidents(path: &Path) -> Vec<Value> {
-    let Ok(text) = std::fs::read_to_string(path) else { return Vec::new() };
-    let mut lines = text.lines();
-    let header: Vec<String> = lines.next().map(split_csv).unwrap_or_default();
-    let mut out = Vec::new();
-    for line in lines {
-        let fields = split_csv(line);
-        if fields.len() != header.len() {
-            continue;
-        }
-        let get = |n: &str| header.iter().position(|h| h == n).map(|i| fields[i].as_str());
-        let int = |n: &str| get(n).and_then(|v| v.parse::<u64>().ok());
-        let num = |n: &str| get(n).and_then(|v| v.parse::<f64>().ok()).filter(|v| v.is_finite());
-        let text = |n: &str| get(n).map(str::to_owned);
-        let (Some(start), Some(end)) = (int("start_tick"), int("end_tick")) else { continue };
-        out.push(serde_json::json!({
-            "start_tick": start,
-            "end_tick": end,
-            "start_s": num("start_s"),
-            "duration_s": num("duration_s"),
-            "kind": text("kind").unwrap_or_default(),
-            "cause_role": text("cause_role"),
-            "cause_stage": text("cause_stage"),
-            "evidence": text("evidence"),
-            "flags": text("flags").unwrap_or_default(),
-            "misses": int("misses").unwrap_or_default(),
-            "peak_deviation_deg": num("peak_deviation_deg"),
-            "recovery_s": num("recovery_s"),
-            "analysed": true,
-        }));
+/// One row of `incidents.csv` as its [`topics::INCIDENTS`] message, if it is one.
+fn incident_of(header: &[String], line: &str) -> Option<Value> {
+    let fields = split_csv(line);
+    if fields.len() != header.len() {
+        return None;
     }
-    out
+    let get = |n: &str| header.iter().position(|h| h == n).map(|i| fields[i].as_str());
+    let int = |n: &str| get(n).and_then(|v| v.parse::<u64>().ok());
+    let num = |n: &str| get(n).and_then(|v| v.parse::<f64>().ok()).filter(|v| v.is_finite());
+    let text = |n: &str| get(n).map(str::to_owned);
+    let (start, end) = (int("start_tick")?, int("end_tick")?);
+    Some(serde_json::json!({
+        "start_tick": start,
+        "end_tick": end,
+        "start_s": num("start_s"),
+        "duration_s": num("duration_s"),
+        "kind": text("kind").unwrap_or_default(),
+        "cause_role": text("cause_role"),
+        "cause_stage": text("cause_stage"),
+        "evidence": text("evidence"),
+        "flags": text("flags").unwrap_or_default(),
+        "misses": int("misses").unwrap_or_default(),
+        "peak_deviation_deg": num("peak_deviation_deg"),
+        "recovery_s": num("recovery_s"),
+        "analysed": true,
+    }))
 }
 
 /// A CSV line's fields (`"…"` quoted, `""` a quote inside).

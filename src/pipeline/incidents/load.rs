@@ -23,6 +23,9 @@ pub struct FaultRow {
     pub detail: String,
     /// When (s after the first state's publish).
     pub kill_s: f64,
+    /// The tick the run had reached then.
+    #[serde(default)]
+    pub kill_tick: Option<u64>,
     /// Restarted or continued (s).
     pub restart_s: Option<f64>,
     /// A stop's end (s).
@@ -89,29 +92,31 @@ pub struct RunRecord {
     pub faults: Vec<FaultRow>,
     /// The `--fault` schedule.
     pub schedule: Vec<Scheduled>,
-    /// The scheduler samples near the incidents (empty without `sched.csv`, and until
-    /// [`RunRecord::keep_sched`] names the windows: the file has a row per role per
-    /// millisecond of the run, which is not held whole).
+    /// The scheduler samples near the incident being explained (empty without
+    /// `sched.csv`, and until [`RunRecord::sched_for`] names it: the file has a row per
+    /// role per millisecond of the run, which is not held whole).
     pub sched: Vec<SchedRow>,
     /// Whether `sched.csv` has any row.
     pub kernel_view: bool,
     /// The kernel's scheduler trace near the incidents (empty without `--trace-sched`, and
-    /// until [`RunRecord::keep_sched`] names the windows, as for `sched`).
+    /// until [`RunRecord::keep_trace`] names the windows).
     pub trace: Vec<super::trace::Traced>,
     /// Whether the run has a scheduler trace with any event (`--trace-sched`).
     pub traced: bool,
-    /// `sched-trace.txt`, read by [`RunRecord::keep_sched`].
+    /// `sched-trace.txt`, read by [`RunRecord::keep_trace`].
     trace_path: std::path::PathBuf,
     /// The first state's publish (ns): the origin of the faults' times.
     pub t0_ns: u64,
     /// Whether any state carries a grid time (a real-time run).
     realtime: bool,
-    /// `sched.csv`, read by [`RunRecord::keep_sched`].
+    /// `sched.csv`, read by [`RunRecord::sched_for`].
     sched_path: std::path::PathBuf,
     /// The grid time of every [`GRID_STRIDE`]-th tick (the largest of the states' up to
     /// it: ticks without a state take the one before), ns; the ticks between are read
     /// from the records when asked for.
     grid_marks: Vec<u64>,
+    /// The rows of `sched.csv` not read yet ([`RunRecord::sched_for`]).
+    sched_left: SchedLeft,
     /// The last [`RunRecord::next_answer`] found: `(k, j)`, no answer in `k + 1 .. j`
     /// and one for `j`. The ticks of an incident ask in order, so a window in which the
     /// controller was silent reads its records once, not once per tick.
@@ -201,6 +206,7 @@ impl RunRecord {
             trace_path: dir.join("sched-trace.txt"),
             t0_ns,
             next_found: Default::default(),
+            sched_left: SchedLeft::default(),
         })
     }
 
@@ -225,6 +231,7 @@ impl RunRecord {
             last: (states.len() as u64).saturating_sub(1),
             t0_ns: states.first().map_or(0, |s| s.publish_ns),
             next_found: Default::default(),
+            sched_left: SchedLeft::default(),
             realtime: false,
             grid_marks,
             states: FlightLog::of(states),
@@ -303,7 +310,7 @@ impl RunRecord {
 
 /// `sched.csv`'s rows, a line at a time (none where it is missing; a row that does not
 /// parse is skipped).
-pub fn sched_rows(path: &Path) -> impl Iterator<Item = SchedRow> {
+pub fn sched_rows(path: &Path) -> impl Iterator<Item = SchedRow> + use<> {
     use std::io::BufRead;
     let lines = std::fs::File::open(path).ok().map(|f| std::io::BufReader::new(f).lines());
     lines.into_iter().flatten().skip(1).map_while(Result::ok).filter_map(|l| {
@@ -321,17 +328,57 @@ pub fn sched_rows(path: &Path) -> impl Iterator<Item = SchedRow> {
     })
 }
 
+/// The rows of `sched.csv` after those read so far, opened at the first
+/// [`RunRecord::sched_for`].
+#[derive(Default)]
+struct SchedLeft(Option<std::iter::Peekable<Box<dyn Iterator<Item = SchedRow>>>>);
+
+impl std::fmt::Debug for SchedLeft {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(if self.0.is_some() { "SchedLeft(open)" } else { "SchedLeft" })
+    }
+}
+
 impl RunRecord {
-    /// Reads the scheduler samples of `sched.csv` and the events of `sched-trace.txt`
-    /// within a second of any of `windows` (tick ranges; a row per role per millisecond,
-    /// and every context switch of the machine, are kept only where an incident needs
-    /// them), each file in one pass a line at a time.
-    pub fn keep_sched(&mut self, windows: &[[u64; 2]]) {
+    /// The span of grid time (ns) whose kernel figures the incident `w` may need: a second
+    /// either side of it.
+    fn near_ns(&self, w: [u64; 2]) -> [u64; 2] {
         let slack = 1_000_000_000 + (self.dt * 1e9) as u64;
-        let mut spans: Vec<[u64; 2]> = windows
-            .iter()
-            .map(|w| [self.grid_ns(w[0]).saturating_sub(slack), self.grid_ns(w[1] + 1) + slack])
-            .collect();
+        [self.grid_ns(w[0]).saturating_sub(slack), self.grid_ns(w[1] + 1) + slack]
+    }
+
+    /// Keeps the scheduler samples of `sched.csv` within a second of the incident `w`
+    /// ([`RunRecord::sched`]), read forward from where the last call stopped: the
+    /// incidents ask in the order of their first ticks, so the file is read once, a line
+    /// at a time, and what is held is the rows near one incident (a row per role per
+    /// millisecond: a soak's 80 549 incidents held most of its 105 MB `sched.csv`).
+    pub fn sched_for(&mut self, w: [u64; 2]) {
+        let [from, to] = self.near_ns(w);
+        let gone = self.sched.partition_point(|r| r.t_ns < from);
+        self.sched.drain(..gone);
+        let path = &self.sched_path;
+        let left = self.sched_left.0.get_or_insert_with(|| {
+            let rows: Box<dyn Iterator<Item = SchedRow>> = Box::new(sched_rows(path));
+            rows.peekable()
+        });
+        let mut sorted = true;
+        while let Some(r) = left.next_if(|r| r.t_ns <= to) {
+            if r.t_ns >= from {
+                sorted &= self.sched.last().is_none_or(|l| l.t_ns <= r.t_ns);
+                self.sched.push(r);
+            }
+        }
+        // In time order (the file is; a stable sort keeps it so), for the bisection.
+        if !sorted {
+            self.sched.sort_by_key(|r| r.t_ns);
+        }
+    }
+
+    /// Reads the events of `sched-trace.txt` (`--trace-sched`) within a second of any of
+    /// `windows` (tick ranges) in one pass, a line at a time; the context switches far from
+    /// every incident are not kept.
+    pub fn keep_trace(&mut self, windows: &[[u64; 2]]) {
+        let mut spans: Vec<[u64; 2]> = windows.iter().map(|w| self.near_ns(*w)).collect();
         spans.sort_unstable();
         let mut merged: Vec<[u64; 2]> = Vec::new();
         for s in spans {
@@ -344,9 +391,61 @@ impl RunRecord {
             let i = merged.partition_point(|s| s[0] <= t);
             i.checked_sub(1).is_some_and(|i| t <= merged[i][1])
         };
-        self.sched = sched_rows(&self.sched_path).filter(|r| near(r.t_ns)).collect();
-        // In time order (the file is; a stable sort keeps it so), for the incidents' bisection.
-        self.sched.sort_by_key(|r| r.t_ns);
         (self.traced, self.trace) = super::trace::read_near(&self.trace_path, near);
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Read forward incident by incident, `sched.csv` gives each incident every row within
+    /// a second of it, in time order, and holds no row from before that second: what is
+    /// held is bounded by one incident's neighbourhood, not by the run's incidents.
+    #[test]
+    fn the_kernel_rows_are_read_forward_incident_by_incident() {
+        let scenario = Scenario::load("paper-zero").expect("built-in");
+        let ticks = 20_000u64;
+        let states = (0..ticks)
+            .map(|k| {
+                let mut s = StateSample::of(k, k as f64 * scenario.dt(), &scenario.plant_init);
+                s.publish_ns = 1_000_000 * (k + 1);
+                s
+            })
+            .collect();
+        let mut run = RunRecord::of(scenario, states, Vec::new());
+        let dir = tempfile::tempdir().expect("tempdir");
+        let mut csv = String::from("t_ns,role,pid,state,cpu,on_cpu_ns,wait_ns,steal_ns\n");
+        let mut all = Vec::new();
+        for ms in 0..ticks + 100 {
+            for (i, role) in ["plant", "controller"].iter().enumerate() {
+                let t = ms * 1_000_000 + i as u64;
+                csv += &format!("{t},{role},{},R,0,{ms},0,0\n", 10 + i);
+                all.push((t, *role));
+            }
+        }
+        run.sched_path = dir.path().join("sched.csv");
+        std::fs::write(&run.sched_path, csv).expect("write");
+        let windows =
+            [[5, 5], [900, 1200], [1300, 1301], [4000, 9000], [9100, 9100], [19_990, 19_999]];
+        let mut held_most = 0;
+        for w in windows {
+            run.sched_for(w);
+            let [from, to] = run.near_ns(w);
+            let want: Vec<(u64, &str)> =
+                all.iter().filter(|(t, _)| (from..=to).contains(t)).copied().collect();
+            let held: Vec<(u64, &str)> =
+                run.sched.iter().map(|r| (r.t_ns, r.role.as_str())).collect();
+            assert!(held.is_sorted(), "{w:?}: out of time order");
+            assert!(
+                held.first().is_some_and(|(t, _)| *t >= from),
+                "{w:?}: a row before its second"
+            );
+            assert_eq!(&held[..want.len()], &want[..], "{w:?}: the rows near it");
+            held_most = held_most.max(held.len());
+        }
+        // The longest incident (5001 ticks) and a second and a tick either side: 7003 ms
+        // of two roles' rows, both ends included.
+        assert!(held_most <= 2 * 7_004, "held {held_most} rows at once");
     }
 }

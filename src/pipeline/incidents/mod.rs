@@ -91,11 +91,39 @@ impl Incident {
     }
 }
 
-/// A run's incidents and what was checked on the way.
+/// The most incidents kept in memory (the costliest): `incidents.md` words these, and the
+/// figure draws the five costliest of them.
+pub const KEPT: usize = 20;
+
+/// The incident that holds one of the launcher's faults: its row of `incidents.csv`
+/// (from 0) and its cost.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct FaultIncident {
+    /// Its row of `incidents.csv`, from 0.
+    pub row: usize,
+    /// Its peak deviation (deg), if costed.
+    pub peak_deviation_deg: Option<f64>,
+    /// Its recovery (s), if costed and within the run.
+    pub recovery_s: Option<f64>,
+}
+
+/// A run's incidents and what was checked on the way. Every incident is a row of
+/// `incidents.csv`, written as it is found; this keeps only their count, the costliest
+/// [`KEPT`] and the ones that hold the launcher's faults, so its memory is the same for
+/// a run with a million incidents as for one with ten.
 #[derive(Debug, Clone, Serialize)]
 pub struct Explained {
-    /// Every incident, in time order.
-    pub incidents: Vec<Incident>,
+    /// How many incidents the run had.
+    pub count: usize,
+    /// The costliest [`KEPT`] incidents, the worst first, each with its row of
+    /// `incidents.csv` (from 0).
+    pub costliest: Vec<(usize, Incident)>,
+    /// The costliest of all; of several equally costly, the last.
+    #[serde(skip)]
+    worst: Option<Incident>,
+    /// For each of the launcher's faults (`summary.json`'s `faults`, in order), the
+    /// incident it caused, else one that holds the tick it came at.
+    pub faults: Vec<Option<FaultIncident>>,
     /// The threshold of lateness (s).
     pub threshold_s: f64,
     /// The run's median actuation delay (s): the counterfactual's.
@@ -113,7 +141,20 @@ pub struct Explained {
 impl Explained {
     /// The incident of the largest peak deviation (then the longest).
     pub fn worst(&self) -> Option<&Incident> {
-        self.incidents.iter().max_by(|a, b| Incident::by_cost(a, b))
+        self.worst.as_ref()
+    }
+
+    /// Takes the incident of `row` into the costliest, if it is one of them.
+    fn keep(&mut self, row: usize, incident: Incident) {
+        if self.worst.as_ref().is_none_or(|w| Incident::by_cost(&incident, w).is_ge()) {
+            self.worst = Some(incident.clone());
+        }
+        // After the equally costly ones found before it, as a stable sort has it.
+        let at = self.costliest.partition_point(|(_, i)| Incident::by_cost(i, &incident).is_ge());
+        if at < KEPT {
+            self.costliest.insert(at, (row, incident));
+            self.costliest.truncate(KEPT);
+        }
     }
 
     /// One line for the console and the paper's report.
@@ -123,7 +164,7 @@ impl Explained {
             Some(i) => format!(
                 "{} incident(s); worst: {} at {:.3} s for {:.1} ms, caused by {} ({}), peak \
                  deviation {}, recovered {}",
-                self.incidents.len(),
+                self.count,
                 i.kind,
                 i.start_s,
                 i.duration_s * 1e3,
@@ -136,8 +177,50 @@ impl Explained {
     }
 }
 
-/// Finds, explains and costs the incidents of the run in `dir`.
-pub fn find(dir: &Path, options: Options) -> anyhow::Result<Explained> {
+/// For each of the launcher's faults, the first incident it caused and the first that
+/// holds the tick it came at (`kill_ticks`), as they are found.
+struct FaultsHeld {
+    kill_ticks: Vec<Option<u64>>,
+    caused: Vec<Option<FaultIncident>>,
+    holding: Vec<Option<FaultIncident>>,
+}
+
+impl FaultsHeld {
+    fn new(faults: &[load::FaultRow]) -> Self {
+        let kill_ticks: Vec<Option<u64>> = faults.iter().map(|f| f.kill_tick).collect();
+        Self { caused: vec![None; faults.len()], holding: vec![None; faults.len()], kill_ticks }
+    }
+
+    fn see(&mut self, row: usize, i: &Incident) {
+        let held = FaultIncident {
+            row,
+            peak_deviation_deg: i.peak_deviation_deg,
+            recovery_s: i.recovery_s,
+        };
+        let holds = |k: u64| i.start_tick <= k + 1 && k <= i.end_tick + 1;
+        for (j, k) in self.kill_ticks.iter().enumerate() {
+            if i.fault == Some(j) {
+                self.caused[j].get_or_insert(held);
+            }
+            if k.is_some_and(holds) {
+                self.holding[j].get_or_insert(held);
+            }
+        }
+    }
+
+    /// Each fault's incident: the one it caused, else one that holds its tick.
+    fn held(self) -> Vec<Option<FaultIncident>> {
+        self.caused.into_iter().zip(self.holding).map(|(c, h)| c.or(h)).collect()
+    }
+}
+
+/// Finds, explains and costs the incidents of the run in `dir`, handing each to `row` as
+/// it is found, in time order.
+pub fn find(
+    dir: &Path,
+    options: Options,
+    row: &mut dyn FnMut(&Incident) -> anyhow::Result<()>,
+) -> anyhow::Result<Explained> {
     let mut run = RunRecord::read(dir)?;
     let flags = ticks::flag(&run, options.threshold_ticks);
     // The loop's windows, then each fault outside the loop as an incident of its own.
@@ -147,7 +230,7 @@ pub fn find(dir: &Path, options: Options) -> anyhow::Result<Explained> {
         windows.push((ticks::fault_ticks(&run, f), Some(i)));
     }
     windows.sort_by_key(|(w, _)| w[0]);
-    run.keep_sched(&windows.iter().map(|(w, _)| *w).collect::<Vec<_>>());
+    run.keep_trace(&windows.iter().map(|(w, _)| *w).collect::<Vec<_>>());
     let medians = cause::stage_medians(&run, &flags);
     // The longest windows are costed.
     let mut by_length: Vec<usize> = (0..windows.len()).collect();
@@ -156,10 +239,25 @@ pub fn find(dir: &Path, options: Options) -> anyhow::Result<Explained> {
     for i in by_length.into_iter().take(MAX_COSTED) {
         costed[i] = true;
     }
-    let starts: Vec<u64> = windows.iter().map(|(w, _)| w[0]).collect();
+    let starts: Vec<u64> =
+        (windows.iter().zip(&costed)).filter(|(_, c)| **c).map(|(w, _)| w.0[0]).collect();
     let pass = cost::law_pass(&run, &starts)?;
-    let mut incidents = Vec::with_capacity(windows.len());
+    let mut befores = pass.before.iter();
+    let mut held = FaultsHeld::new(&run.faults);
+    let mut found = Explained {
+        count: windows.len(),
+        costliest: Vec::new(),
+        worst: None,
+        faults: vec![None; run.faults.len()],
+        threshold_s: flags.threshold_s,
+        median_delay_s: flags.median_delay_s,
+        law_reproduced: [pass.same, pass.computed],
+        realtime: run.realtime(),
+        kernel_view: run.kernel_view,
+        traced: run.traced,
+    };
     for (i, (w, outside)) in windows.iter().enumerate() {
+        run.sched_for(*w);
         let fault = outside.or_else(|| cause::fault_of(&run, *w));
         let (c, all, misses) = match outside {
             Some(f) => {
@@ -173,12 +271,10 @@ pub fn find(dir: &Path, options: Options) -> anyhow::Result<Explained> {
                 (cause::cause(&run, &flags, &medians, *w), all, misses as u64)
             }
         };
-        let cost = costed[i]
-            .then(|| {
-                cost::cost(&run, &flags, *w, pass.before[i], &pass.propagated, outside.is_none())
-            })
-            .flatten();
-        incidents.push(Incident {
+        let law = if costed[i] { befores.next().copied() } else { None };
+        let cost = law
+            .and_then(|law| cost::cost(&run, &flags, *w, law, &pass.propagated, outside.is_none()));
+        let incident = Incident {
             start_tick: w[0],
             end_tick: w[1],
             start_s: run.t_s(w[0]),
@@ -193,17 +289,13 @@ pub fn find(dir: &Path, options: Options) -> anyhow::Result<Explained> {
             recovery_s: cost.as_ref().and_then(|c| c.recovery_s),
             curve: cost.map(|c| c.curve).unwrap_or_default(),
             fault,
-        });
+        };
+        row(&incident)?;
+        held.see(i, &incident);
+        found.keep(i, incident);
     }
-    Ok(Explained {
-        incidents,
-        threshold_s: flags.threshold_s,
-        median_delay_s: flags.median_delay_s,
-        law_reproduced: [pass.same, pass.computed],
-        realtime: run.realtime(),
-        kernel_view: run.kernel_view,
-        traced: run.traced,
-    })
+    found.faults = held.held();
+    Ok(found)
 }
 
 /// [`explain`] on a thread of its own at nice 10, as `rotorloop run` calls it after a run:
@@ -229,7 +321,103 @@ pub fn explain_yielding(dir: &Path, options: Options) -> anyhow::Result<Explaine
 /// `incidents.png` there, the worst one into `summary.json` (`incidents`) and each fault's
 /// cost into its row of `faults`.
 pub fn explain(dir: &Path, options: Options) -> anyhow::Result<Explained> {
-    let found = find(dir, options)?;
+    let mut rows = report::Rows::create(dir)?;
+    let found = find(dir, options, &mut |i| rows.add(i))?;
+    rows.finish()?;
     report::write(dir, &found)?;
     Ok(found)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn incident(start: u64, peak: Option<f64>, ticks: u64, fault: Option<usize>) -> Incident {
+        Incident {
+            start_tick: start,
+            end_tick: start + ticks - 1,
+            start_s: start as f64 * 1e-3,
+            duration_s: ticks as f64 * 1e-3,
+            kind: "miss",
+            cause_role: String::new(),
+            cause_stage: String::new(),
+            evidence: String::new(),
+            flags: String::new(),
+            misses: 0,
+            peak_deviation_deg: peak,
+            recovery_s: None,
+            curve: Vec::new(),
+            fault,
+        }
+    }
+
+    /// Of incidents seen one at a time, the kept ones are the first [`KEPT`] of a stable
+    /// sort of all by cost (ties in time order), and the worst is the one `max_by` picks
+    /// of all (of equals, the last), as when every incident was held: ties and uncosted
+    /// incidents included.
+    #[test]
+    fn the_costliest_kept_one_at_a_time_are_those_of_all() {
+        let mut seed = 0x2545_f491_4f6c_dd1d_u64;
+        let mut next = |n: u64| {
+            seed ^= seed << 13;
+            seed ^= seed >> 7;
+            seed ^= seed << 17;
+            seed % n
+        };
+        let all: Vec<Incident> = (0..5000)
+            .map(|k| {
+                let peak = (next(3) > 0).then(|| next(8) as f64 * 0.5);
+                incident(10 * k, peak, 1 + next(4), None)
+            })
+            .collect();
+        let mut found = Explained {
+            count: all.len(),
+            costliest: Vec::new(),
+            worst: None,
+            faults: Vec::new(),
+            threshold_s: 0.0,
+            median_delay_s: 0.0,
+            law_reproduced: [0, 0],
+            realtime: false,
+            kernel_view: false,
+            traced: false,
+        };
+        for (row, i) in all.iter().enumerate() {
+            found.keep(row, i.clone());
+        }
+        let mut ranked: Vec<usize> = (0..all.len()).collect();
+        ranked.sort_by(|a, b| Incident::by_cost(&all[*b], &all[*a]));
+        let kept: Vec<usize> = found.costliest.iter().map(|(row, _)| *row).collect();
+        assert_eq!(kept, ranked[..KEPT]);
+        let worst = all.iter().max_by(|a, b| Incident::by_cost(a, b)).expect("one");
+        assert_eq!(found.worst().map(|w| w.start_tick), Some(worst.start_tick));
+    }
+
+    /// A fault's incident is the first it caused, else the first that holds its tick,
+    /// whichever of the two comes first in time.
+    #[test]
+    fn a_faults_incident_is_the_one_it_caused_else_one_that_holds_its_tick() {
+        let f = |kill_tick| load::FaultRow {
+            role: "controller".into(),
+            kind: "kill".into(),
+            detail: String::new(),
+            kill_s: 0.0,
+            kill_tick,
+            restart_s: None,
+            ended_s: None,
+            signal: None,
+        };
+        let mut held = FaultsHeld::new(&[f(Some(100)), f(Some(500)), f(None)]);
+        let seen = [
+            incident(99, Some(1.0), 5, None),
+            incident(400, Some(2.0), 50, Some(1)),
+            incident(498, Some(3.0), 10, None),
+            incident(600, None, 1, Some(2)),
+        ];
+        for (row, i) in seen.iter().enumerate() {
+            held.see(row, i);
+        }
+        let rows: Vec<Option<usize>> = held.held().iter().map(|h| h.map(|h| h.row)).collect();
+        assert_eq!(rows, [Some(0), Some(1), Some(3)]);
+    }
 }

@@ -3,6 +3,7 @@
 //! that had no incident), and their figures in `summary.json`.
 
 use std::fmt::Write as _;
+use std::io::Write as _;
 use std::path::Path;
 
 use anyhow::Context;
@@ -22,11 +23,35 @@ fn opt(v: Option<f64>) -> String {
     v.map(|v| format!("{v}")).unwrap_or_default()
 }
 
-fn csv(found: &Explained) -> String {
-    let mut out = format!("{HEADER}\n");
-    for i in &found.incidents {
-        let _ = writeln!(
-            out,
+/// `incidents.csv`, a row at a time as the incidents are found: written to
+/// `incidents.csv.part` and renamed when complete, so a reader never takes a partial file
+/// for the run's incidents.
+pub struct Rows {
+    out: std::io::BufWriter<std::fs::File>,
+    part: std::path::PathBuf,
+    path: std::path::PathBuf,
+}
+
+impl Rows {
+    /// Starts `DIR/incidents.csv` with its header.
+    pub fn create(dir: &Path) -> anyhow::Result<Self> {
+        let path = dir.join("incidents.csv");
+        let part = dir.join("incidents.csv.part");
+        let file = std::fs::File::create(&part)
+            .with_context(|| format!("cannot write {}", part.display()))?;
+        let mut rows = Self { out: std::io::BufWriter::new(file), part, path };
+        writeln!(rows.out, "{HEADER}").with_context(|| rows.failed())?;
+        Ok(rows)
+    }
+
+    fn failed(&self) -> String {
+        format!("cannot write {}", self.part.display())
+    }
+
+    /// One incident's row.
+    pub fn add(&mut self, i: &Incident) -> anyhow::Result<()> {
+        writeln!(
+            self.out,
             "{},{},{:.6},{:.6},{},{},{},{},{},{},{},{}",
             i.start_tick,
             i.end_tick,
@@ -40,16 +65,17 @@ fn csv(found: &Explained) -> String {
             i.misses,
             opt(i.peak_deviation_deg),
             opt(i.recovery_s),
-        );
+        )
+        .with_context(|| self.failed())
     }
-    out
-}
 
-/// The incidents, the worst (largest peak deviation) first.
-fn ranked(found: &Explained) -> Vec<(usize, &Incident)> {
-    let mut v: Vec<(usize, &Incident)> = found.incidents.iter().enumerate().collect();
-    v.sort_by(|a, b| Incident::by_cost(b.1, a.1));
-    v
+    /// Completes the file.
+    pub fn finish(mut self) -> anyhow::Result<()> {
+        self.out.flush().with_context(|| self.failed())?;
+        std::fs::rename(&self.part, &self.path).with_context(|| {
+            format!("cannot rename {} to {}", self.part.display(), self.path.display())
+        })
+    }
 }
 
 fn markdown(dir: &Path, found: &Explained) -> String {
@@ -62,7 +88,7 @@ fn markdown(dir: &Path, found: &Explained) -> String {
          (the same plant, law state and references from its first tick, its abnormal ticks \
          undisturbed at the run's median actuation delay of {:.3} ms), and the time until \
          that deviation is below 10 % of its peak.\n",
-        found.incidents.len(),
+        found.count,
         found.threshold_s * 1e3,
         found.median_delay_s * 1e3,
     );
@@ -85,7 +111,7 @@ fn markdown(dir: &Path, found: &Explained) -> String {
     if !found.kernel_view {
         md += "No `sched.csv`: the kernel's view of the processes is missing.\n\n";
     }
-    for (n, (i, inc)) in ranked(found).into_iter().enumerate().take(20) {
+    for (n, (i, inc)) in found.costliest.iter().enumerate() {
         let _ = writeln!(
             md,
             "## {}. {} at {:.3} s ({:.1} ms, ticks {}–{}, row {} of incidents.csv)\n",
@@ -114,19 +140,20 @@ fn markdown(dir: &Path, found: &Explained) -> String {
         };
         let _ = writeln!(md, "- **Cost:** {cost}.\n");
     }
-    if found.incidents.len() > 20 {
-        let _ = writeln!(md, "… and {} more in incidents.csv.", found.incidents.len() - 20);
+    if found.count > found.costliest.len() {
+        let _ =
+            writeln!(md, "… and {} more in incidents.csv.", found.count - found.costliest.len());
     }
     md
 }
 
 fn figure(dir: &Path, found: &Explained) -> anyhow::Result<()> {
-    let worst: Vec<(usize, &Incident)> =
-        ranked(found).into_iter().filter(|(_, i)| !i.curve.is_empty()).take(5).collect();
+    let worst: Vec<&(usize, Incident)> =
+        found.costliest.iter().filter(|(_, i)| !i.curve.is_empty()).take(5).collect();
     let dt = found
-        .incidents
+        .costliest
         .first()
-        .map_or(1e-3, |i| i.duration_s / (i.end_tick + 1 - i.start_tick) as f64);
+        .map_or(1e-3, |(_, i)| i.duration_s / (i.end_tick + 1 - i.start_tick) as f64);
     let points: Vec<Vec<(f64, f64)>> = worst
         .iter()
         .map(|(_, i)| i.curve.iter().enumerate().map(|(j, d)| (j as f64 * dt, *d)).collect())
@@ -151,20 +178,17 @@ fn figure(dir: &Path, found: &Explained) -> anyhow::Result<()> {
     Ok(())
 }
 
-/// Writes the files and patches `summary.json`.
+/// Writes `incidents.md` and `incidents.png` (`incidents.csv` is [`Rows`]') and patches
+/// `summary.json`.
 pub fn write(dir: &Path, found: &Explained) -> anyhow::Result<()> {
-    let path = dir.join("incidents.csv");
-    std::fs::write(&path, csv(found))
-        .with_context(|| format!("cannot write {}", path.display()))?;
     let path = dir.join("incidents.md");
     std::fs::write(&path, markdown(dir, found))
         .with_context(|| format!("cannot write {}", path.display()))?;
     figure(dir, found)?;
     let worst = found.worst().cloned();
-    let incidents = &found.incidents;
     rotorloop_common::output::patch_summary(dir, |j| {
         j["incidents"] = serde_json::json!({
-            "count": incidents.len(),
+            "count": found.count,
             "worst": worst,
             "threshold_s": found.threshold_s,
             "median_delay_s": found.median_delay_s,
@@ -173,18 +197,10 @@ pub fn write(dir: &Path, found: &Explained) -> anyhow::Result<()> {
             "files": ["incidents.csv", "incidents.md", "incidents.png"],
         });
         let Some(faults) = j.get_mut("faults").and_then(|f| f.as_array_mut()) else { return };
-        for (j, f) in faults.iter_mut().enumerate() {
-            let kill = f["kill_tick"].as_u64();
-            let holds = |i: &Incident, k: u64| i.start_tick <= k + 1 && k <= i.end_tick + 1;
-            // The incident the fault caused, else any that holds its start.
-            let held = incidents
-                .iter()
-                .position(|i| i.fault == Some(j))
-                .or_else(|| kill.and_then(|k| incidents.iter().position(|i| holds(i, k))));
-            let i = held.map(|n| &incidents[n]);
-            f["incident"] = serde_json::json!(held.map(|n| n + 1));
-            f["peak_deviation_deg"] = serde_json::json!(i.and_then(|i| i.peak_deviation_deg));
-            f["recovery_s"] = serde_json::json!(i.and_then(|i| i.recovery_s));
+        for (f, held) in faults.iter_mut().zip(&found.faults) {
+            f["incident"] = serde_json::json!(held.map(|h| h.row + 1));
+            f["peak_deviation_deg"] = serde_json::json!(held.and_then(|h| h.peak_deviation_deg));
+            f["recovery_s"] = serde_json::json!(held.and_then(|h| h.recovery_s));
         }
     })
 }
@@ -198,7 +214,10 @@ mod tests {
     #[test]
     fn a_run_without_the_controllers_answers_says_why_nothing_is_costed() {
         let mut found = Explained {
-            incidents: Vec::new(),
+            count: 0,
+            costliest: Vec::new(),
+            worst: None,
+            faults: Vec::new(),
             threshold_s: 2.5e-4,
             median_delay_s: 1e-4,
             law_reproduced: [0, 0],
