@@ -526,13 +526,7 @@ mod tests {
     #[test]
     fn the_searches_that_stop_early_find_what_a_scan_finds() {
         let scenario = Scenario::load("paper-zero").expect("built-in");
-        let mut seed = 0x9e37_79b9_7f4a_7c15_u64;
-        let mut next = |n: u64| {
-            seed ^= seed << 13;
-            seed ^= seed >> 7;
-            seed ^= seed << 17;
-            seed % n
-        };
+        let mut next = super::super::test_random(0x9e37_79b9_7f4a_7c15_u64);
         let n = 3000;
         let (mut newest, mut states, mut torques) = (NO_TICK, Vec::new(), Vec::new());
         let mut effects: Vec<(u64, f64)> = Vec::new();
@@ -609,13 +603,7 @@ mod tests {
             let last = rows.iter().position(|r| r.t_ns >= to).unwrap_or(len);
             rows[first..=last.max(first)].to_vec()
         }
-        let mut seed = 0x2545_f491_4f6c_dd1d_u64;
-        let mut next = |n: u64| {
-            seed ^= seed << 13;
-            seed ^= seed >> 7;
-            seed ^= seed << 17;
-            seed % n
-        };
+        let mut next = super::super::test_random(0x2545_f491_4f6c_dd1d_u64);
         let roles = ["plant", "controller", "monitor"];
         let mut t = 0;
         let sched: Vec<SchedRow> = (0..400)

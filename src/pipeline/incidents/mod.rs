@@ -328,6 +328,17 @@ pub fn explain(dir: &Path, options: Options) -> anyhow::Result<Explained> {
     Ok(found)
 }
 
+/// A small deterministic generator for the incidents' tests: `next(n)` is in `0..n`.
+#[cfg(test)]
+pub(crate) fn test_random(mut seed: u64) -> impl FnMut(u64) -> u64 {
+    move |n| {
+        seed ^= seed << 13;
+        seed ^= seed >> 7;
+        seed ^= seed << 17;
+        seed % n
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -357,13 +368,7 @@ mod tests {
     /// incidents included.
     #[test]
     fn the_costliest_kept_one_at_a_time_are_those_of_all() {
-        let mut seed = 0x2545_f491_4f6c_dd1d_u64;
-        let mut next = |n: u64| {
-            seed ^= seed << 13;
-            seed ^= seed >> 7;
-            seed ^= seed << 17;
-            seed % n
-        };
+        let mut next = super::test_random(0x2545_f491_4f6c_dd1d_u64);
         let all: Vec<Incident> = (0..5000)
             .map(|k| {
                 let peak = (next(3) > 0).then(|| next(8) as f64 * 0.5);
