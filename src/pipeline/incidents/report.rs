@@ -25,11 +25,12 @@ fn opt(v: Option<f64>) -> String {
 
 /// `incidents.csv`, a row at a time as the incidents are found: written to
 /// `incidents.csv.part` and renamed when complete, so a reader never takes a partial file
-/// for the run's incidents.
+/// for the run's incidents (and an analysis that fails leaves no `.part` behind).
 pub struct Rows {
     out: std::io::BufWriter<std::fs::File>,
     part: std::path::PathBuf,
     path: std::path::PathBuf,
+    done: bool,
 }
 
 impl Rows {
@@ -39,7 +40,7 @@ impl Rows {
         let part = dir.join("incidents.csv.part");
         let file = std::fs::File::create(&part)
             .with_context(|| format!("cannot write {}", part.display()))?;
-        let mut rows = Self { out: std::io::BufWriter::new(file), part, path };
+        let mut rows = Self { out: std::io::BufWriter::new(file), part, path, done: false };
         writeln!(rows.out, "{HEADER}").with_context(|| rows.failed())?;
         Ok(rows)
     }
@@ -74,7 +75,17 @@ impl Rows {
         self.out.flush().with_context(|| self.failed())?;
         std::fs::rename(&self.part, &self.path).with_context(|| {
             format!("cannot rename {} to {}", self.part.display(), self.path.display())
-        })
+        })?;
+        self.done = true;
+        Ok(())
+    }
+}
+
+impl Drop for Rows {
+    fn drop(&mut self) {
+        if !self.done {
+            let _ = std::fs::remove_file(&self.part);
+        }
     }
 }
 
@@ -208,6 +219,43 @@ pub fn write(dir: &Path, found: &Explained) -> anyhow::Result<()> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// `incidents.csv` appears only whole: its rows go to a `.part` file renamed at the
+    /// end, and an analysis that stops before the end leaves neither file.
+    #[test]
+    fn incidents_csv_appears_whole_or_not_at_all() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let (csv, part) = (dir.path().join("incidents.csv"), dir.path().join("incidents.csv.part"));
+        let one = Incident {
+            start_tick: 7,
+            end_tick: 9,
+            start_s: 0.007,
+            duration_s: 0.003,
+            kind: "miss",
+            cause_role: "controller".into(),
+            cause_stage: "controller compute".into(),
+            evidence: "a \"quoted\" word".into(),
+            flags: "miss".into(),
+            misses: 3,
+            peak_deviation_deg: Some(0.5),
+            recovery_s: None,
+            curve: Vec::new(),
+            fault: None,
+        };
+        let mut rows = Rows::create(dir.path()).expect("create");
+        rows.add(&one).expect("add");
+        assert!(part.exists() && !csv.exists());
+        drop(rows);
+        assert!(!part.exists() && !csv.exists(), "an unfinished analysis left a file");
+        let mut rows = Rows::create(dir.path()).expect("create");
+        rows.add(&one).expect("add");
+        rows.finish().expect("finish");
+        assert!(!part.exists());
+        let text = std::fs::read_to_string(&csv).expect("incidents.csv");
+        let want = "7,9,0.007000,0.003000,miss,controller,\"controller compute\",\
+                    \"a \"\"quoted\"\" word\",\"miss\",3,0.5,\n";
+        assert_eq!(text, format!("{HEADER}\n{want}"));
+    }
 
     /// With no answer of the controller on record the report says why nothing is costed,
     /// in words, instead of "reproduced 0 of 0".
