@@ -341,6 +341,12 @@ fn write_messages(sink: &mut FileSink, run: &Run, dir: &Path) -> anyhow::Result<
         })?;
     }
     let mut incidents = Incidents::open(&dir.join("incidents.csv"));
+    // An incident's message is at its first tick's state, else at its start after `t0`.
+    let incident_time = |i: &Value| {
+        let at_s = i["start_s"].as_f64().unwrap_or_default();
+        let start = i["start_tick"].as_u64().unwrap_or_default();
+        run.states.get(start).map_or(t0 + (at_s * 1e9) as u64, |s| time(s.publish_ns, s.t_s))
+    };
     let columns = &run.trace_columns;
     let mut safe = false;
     for s in run.states.iter() {
@@ -349,13 +355,7 @@ fn write_messages(sink: &mut FileSink, run: &Run, dir: &Path) -> anyhow::Result<
         let ns = time(s.publish_ns, s.t_s);
         // The incidents that start by this tick, each at its start's time.
         while let Some(i) = incidents.starting_by(k) {
-            let at_s = i["start_s"].as_f64().unwrap_or_default();
-            let start = i["start_tick"].as_u64().unwrap_or_default();
-            let at = run
-                .states
-                .get(start)
-                .map_or(t0 + (at_s * 1e9) as u64, |s| time(s.publish_ns, s.t_s));
-            sink.json(topics::INCIDENTS.topic, &i, at)?;
+            sink.json(topics::INCIDENTS.topic, &i, incident_time(&i))?;
         }
         sink.json(topics::STATE.topic, &topics::state_json(s), ns)?;
         let t = run.torque(k);
@@ -385,8 +385,7 @@ fn write_messages(sink: &mut FileSink, run: &Run, dir: &Path) -> anyhow::Result<
     }
     // Those that start after the last state (a fault outside the loop at its end).
     while let Some(i) = incidents.starting_by(u64::MAX) {
-        let at_s = i["start_s"].as_f64().unwrap_or_default();
-        sink.json(topics::INCIDENTS.topic, &i, t0 + (at_s * 1e9) as u64)?;
+        sink.json(topics::INCIDENTS.topic, &i, incident_time(&i))?;
     }
     for (ns, level, name, message) in events(run, t0) {
         sink.encoded(topics::LOG, &log_message(ns, level, &name, message), ns)?;

@@ -165,11 +165,12 @@ fn start_split_run(h: &mut Harness, out: &Path) -> (usize, Vec<String>) {
 /// A split run's link admits only the run's own gateways: a second OS user's gateway,
 /// connected to the run's loopback port from a `/dev/shm` of its own, gets no state of
 /// the loop (and says that no peer accepted its credentials), and the run completes with
-/// nothing in it but its own samples ([`nothing_but_the_runs_own`]). The same probe with the run's credentials
-/// (copied to the second user by the test) receives states, so the test would notice a
-/// probe that cannot receive at all. Before issue 42 the gateways listened without
-/// authentication and the first probe received the state. Skipped, with the reason,
-/// where the test is not root or a user namespace with its own `/dev/shm` is not allowed.
+/// nothing in it but its own samples ([`nothing_but_the_runs_own`]). The same probe with
+/// the run's credentials (copied to the second user by the test) receives states, so the
+/// test would notice a probe that cannot receive at all. Before issue 42 the gateways
+/// listened without authentication and the first probe received the state. Skipped, with
+/// the reason, where the test is not root or a user namespace with its own `/dev/shm` is
+/// not allowed.
 #[test]
 fn another_os_users_gateway_gets_nothing_from_a_split_run() {
     let Some(user) = TempUser::for_test("another_os_users_gateway_…") else { return };

@@ -248,7 +248,7 @@ pub fn find(
         count: windows.len(),
         costliest: Vec::new(),
         worst: None,
-        faults: vec![None; run.faults.len()],
+        faults: Vec::new(), // each fault's incident, once all are seen
         threshold_s: flags.threshold_s,
         median_delay_s: flags.median_delay_s,
         law_reproduced: [pass.same, pass.computed],
