@@ -259,7 +259,8 @@ impl Row {
             lateness_p99_9: num(18),
             index: 0,
             repeat: f.get(19).and_then(|v| v.parse().ok()).unwrap_or(0),
-            ci: match f.len() == full && !f[20].is_empty() {
+            // The first ratios are empty where their baseline was not measured.
+            ci: match f.len() == full && f[20..].iter().any(|v| !v.is_empty()) {
                 true => f[20..].iter().map(|v| v.to_string()).collect(),
                 false => Vec::new(),
             },
@@ -420,4 +421,25 @@ pub(super) fn cells(a: &BenchArgs) -> Vec<(f64, Wait, String, String)> {
         }
     }
     cells
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A loop row's intervals survive bench.csv when the first ratios (`atomic`, not
+    /// measured) are empty: `--replot` and `compare` lost them all before.
+    #[test]
+    fn a_rows_intervals_survive_bench_csv_when_the_first_baseline_was_not_measured() {
+        let mut ci = vec![String::new(); ci_columns().len()];
+        let at = |c: &str| ci_columns().iter().position(|x| x == c).unwrap();
+        ci[at("loop_over_iceoryx2_p50_median")] = "0.9828".into();
+        ci[at("repetitions")] = "6".into();
+        let row = Row { cell: "c".into(), kind: "loop".into(), repeat: 2, ci, ..Row::default() };
+        let back = Row::parse(&row.csv()).expect("a bench.csv row");
+        assert_eq!(back.ci, row.ci);
+        assert_eq!(back.repeat, 2);
+        let none = Row { ci: Vec::new(), ..row };
+        assert!(Row::parse(&none.csv()).expect("a bench.csv row").ci.is_empty());
+    }
 }

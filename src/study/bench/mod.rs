@@ -38,7 +38,12 @@ pub fn run(a: &BenchArgs) -> anyhow::Result<()> {
         let text = std::fs::read_to_string(a.out.join("bench.csv"))
             .with_context(|| format!("no bench.csv in {}", a.out.display()))?;
         let rows: Vec<Row> = text.lines().skip(1).filter_map(Row::parse).collect();
-        write_markdown(a, &rows, "")?;
+        // The machine the figures were taken on, from the invocation's own doctor.json.
+        let note = match a.out.join("doctor.json") {
+            d if d.is_file() => machine_note(a, &d, String::new()),
+            _ => String::new(),
+        };
+        write_markdown(a, &rows, &note)?;
         plots(a, &rows)?;
         println!("bench: {} measurements re-plotted in {}", rows.len(), a.out.display());
         return Ok(());

@@ -585,14 +585,21 @@ pub(super) fn timer_md(rows: &[Row]) -> String {
          | cell | kind | plant p50 / p99 / p99.9 | timer p50 / p99 / p99.9 | ratio p50 | ratio p99 | ratio p99.9 |\n\
          |---|---|---|---|---|---|---|\n",
     );
+    // With `--repeat`, each loop beside the timer of its own repetition.
+    let repeated = rows.iter().any(|r| r.repeat > 0);
     for t in timers {
-        let loops = rows.iter().filter(measured).filter(|r| r.cell == t.cell);
+        let loops =
+            rows.iter().filter(measured).filter(|r| r.cell == t.cell && r.repeat == t.repeat);
         for l in loops.filter(|r| r.kind.starts_with("loop") && r.lateness_p50.is_finite()) {
+            let kind = match repeated {
+                true => format!("{}, repetition {}", l.kind, l.repeat + 1),
+                false => l.kind.clone(),
+            };
             let _ = writeln!(
                 md,
                 "| {} | {} | {:.1} / {:.1} / {:.1} | {:.1} / {:.1} / {:.1} | {:.2} | {:.2} | {:.2} |",
                 t.cell,
-                l.kind,
+                kind,
                 l.lateness_p50,
                 l.lateness_p99,
                 l.lateness_p99_9,
@@ -660,4 +667,43 @@ pub(super) fn controllers_md(rows: &[Row], a: &BenchArgs) -> String {
         );
     }
     md
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// With `--repeat`, each loop row stands beside the timer of its own repetition: one
+    /// row per repetition, its ratio that repetition's (it was every loop against every
+    /// timer, N² rows, on the 16-core machine's first `--repeat 6`).
+    #[test]
+    fn each_repetitions_loop_is_set_beside_its_own_timer() {
+        let row = |kind: &str, repeat: usize, p50: f64, lateness_p50: f64| Row {
+            cell: "c".into(),
+            kind: kind.into(),
+            p50,
+            p99: 1.0,
+            p99_9: 1.0,
+            lateness_p50,
+            lateness_p99: 1.0,
+            lateness_p99_9: 1.0,
+            repeat,
+            ..Row::default()
+        };
+        let rows: Vec<Row> = (0..3)
+            .flat_map(|r| {
+                let t = 10.0 * (r + 1) as f64;
+                [row("loop", r, f64::NAN, 2.0 * t), row("timer", r, t, f64::NAN)]
+            })
+            .collect();
+        let md = timer_md(&rows);
+        let lines: Vec<&str> = md.lines().filter(|l| l.starts_with("| c |")).collect();
+        assert_eq!(lines.len(), 3, "{md}");
+        for (r, line) in lines.iter().enumerate() {
+            assert!(line.contains(&format!("loop, repetition {}", r + 1)), "{line}");
+            assert!(line.contains("| 2.00 |"), "every ratio 2: {line}");
+        }
+        let once = timer_md(&rows[..2]);
+        assert!(once.contains("| c | loop | 20.0"), "{once}");
+    }
 }
