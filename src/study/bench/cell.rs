@@ -432,7 +432,7 @@ mod tests {
     #[test]
     fn a_rows_intervals_survive_bench_csv_when_the_first_baseline_was_not_measured() {
         let mut ci = vec![String::new(); ci_columns().len()];
-        let at = |c: &str| ci_columns().iter().position(|x| x == c).unwrap();
+        let at = |c: &str| ci_columns().iter().position(|x| x == c).expect("a column of bench.csv");
         ci[at("loop_over_iceoryx2_p50_median")] = "0.9828".into();
         ci[at("repetitions")] = "6".into();
         let row = Row { cell: "c".into(), kind: "loop".into(), repeat: 2, ci, ..Row::default() };
