@@ -404,6 +404,29 @@ fn median_misses(rows: &[&Row]) -> Option<u64> {
     m.get(m.len() / 2).copied()
 }
 
+/// A scale section's heading: the bare pair's misses (the median where it was measured
+/// more than once) and the table's head.
+fn scale_heading(cell: &str, bare: &[&Row], alone: &[&Row]) -> String {
+    let said = match bare.len() {
+        0 => "not measured".to_owned(),
+        1 => format!("{} (one pair)", bare[0].misses),
+        n => format!(
+            "{} (the median of {n} repetitions: {})",
+            median_misses(bare).unwrap_or_default(),
+            bare.iter().map(|r| r.misses.to_string()).collect::<Vec<_>>().join(", ")
+        ),
+    };
+    format!(
+        "\n## Scale: {cell} (loops at once)\n\nBare iceoryx2 misses: {said}.{}\n\n\
+         | loops | p50 of each loop (µs) | worst p99 | misses of each loop | all ≤ bare | all ≤ alone |\n\
+         |---|---|---|---|---|---|\n",
+        match alone.len() {
+            0 | 1 => "",
+            _ => " The loop alone, measured more than once, counts with the median of its misses.",
+        }
+    )
+}
+
 pub(super) fn scale_md(rows: &[Row], out: &Path) -> String {
     let mut md = String::new();
     let mut seen: Vec<&str> = Vec::new();
@@ -431,27 +454,7 @@ pub(super) fn scale_md(rows: &[Row], out: &Path) -> String {
         };
         let (bare, alone) = (of("iceoryx2"), of("loop"));
         let limit = median_misses(&bare);
-        let said = match bare.len() {
-            0 => "not measured".to_owned(),
-            1 => format!("{} (one pair)", bare[0].misses),
-            n => format!(
-                "{} (the median of {n} repetitions: {})",
-                limit.unwrap_or_default(),
-                bare.iter().map(|r| r.misses.to_string()).collect::<Vec<_>>().join(", ")
-            ),
-        };
-        let _ = write!(
-            md,
-            "\n## Scale: {} (loops at once)\n\nBare iceoryx2 misses: {said}.{}\n\n\
-             | loops | p50 of each loop (µs) | worst p99 | misses of each loop | all ≤ bare | all ≤ alone |\n\
-             |---|---|---|---|---|---|\n",
-            base.cell,
-            match alone.len() {
-                0 | 1 => "",
-                _ =>
-                    " The loop alone, measured more than once, counts with the median of its misses.",
-            }
-        );
+        md.push_str(&scale_heading(&base.cell, &bare, &alone));
         // Beside the bare pair, the loop alone: whether more loops make each one worse
         // than one loop on an otherwise idle machine (its most misses over repetitions).
         let alone_most = alone.iter().map(|r| r.misses).max();
