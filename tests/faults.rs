@@ -930,3 +930,57 @@ fn lockstep_waits_for_a_slow_record_mover_and_loses_nothing() {
     assert_same_trace("slow mover", &trace, &sim);
     h.assert_no_leftovers();
 }
+
+/// The state letter of a process (`/proc/PID/stat`'s third field): `T` when stopped.
+fn proc_state(pid: u32) -> Option<char> {
+    let stat = std::fs::read_to_string(format!("/proc/{pid}/stat")).ok()?;
+    stat.rsplit_once(')')?.1.trim_start().chars().next()
+}
+
+/// The race behind a rare failure of the slow-mover test above (the plant's record of the
+/// last torque missing from `summary.json`): the controller records a torque right after
+/// its send, the plant only after its wake-up, and the monitor, seeing the last torque and
+/// the controller's record of it, wrote its report before the plant's record existed. In
+/// lockstep the plant takes every answer it waits for, so the monitor now waits for the
+/// plant's record too. Made certain here: the controller stops itself before sending the
+/// last torque, the plant is stopped while it waits for it, the controller goes on, and
+/// the plant is held for 0.5 s before it may record (the monitor waits up to 2 s).
+#[test]
+fn a_lockstep_report_waits_for_the_plants_record_of_the_last_torque() {
+    let h = Harness::new("lastrec");
+    let out = h.path("run");
+    let mut cmd = std::process::Command::new(crate::common::harness::ROTORLOOP);
+    crate::common::harness::group(&mut cmd);
+    cmd.args(["run", "--scenario", "paper-zero", "--duration", "1", "--mode", "lockstep"])
+        .args(["--test-stop-before-send-at", "1000", "--domain", &h.domain, "--out"])
+        .arg(&out)
+        .stdin(std::process::Stdio::null())
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped());
+    let child = cmd.spawn().expect("spawn");
+    let until = std::time::Instant::now() + LIMIT;
+    let controller = loop {
+        let c = pid_of_role(&h.domain, "controller");
+        if let Some(c) = c.filter(|c| proc_state(*c) == Some('T')) {
+            break c;
+        }
+        assert!(std::time::Instant::now() < until, "the controller never stopped itself");
+        std::thread::sleep(Duration::from_millis(5));
+    };
+    let plant = pid_of_role(&h.domain, "plant").expect("the plant runs");
+    // SAFETY: signals to processes of this test's own run.
+    unsafe {
+        libc::kill(plant as libc::pid_t, libc::SIGSTOP);
+        libc::kill(controller as libc::pid_t, libc::SIGCONT);
+    }
+    std::thread::sleep(Duration::from_millis(500));
+    // SAFETY: as above.
+    unsafe { libc::kill(plant as libc::pid_t, libc::SIGCONT) };
+    let said = ok(&crate::common::harness::wait_output(child, LIMIT));
+    let s = json(&out.join("summary.json"));
+    for stream in s["flight"]["streams"].as_array().expect("streams") {
+        assert_eq!(stream["missing"], serde_json::json!([]), "{stream} {said}");
+        assert_eq!(stream["records"], 1_001, "{stream} {said}");
+    }
+    h.assert_no_leftovers();
+}

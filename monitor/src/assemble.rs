@@ -198,7 +198,7 @@ pub fn final_report(
     mut rec: Recording,
 ) -> RunSummary {
     if let Some(dir) = record {
-        wait_for_records(dir, joiner);
+        wait_for_records(dir, joiner, role.mode == rotorloop_common::role::args::Mode::Lockstep);
     }
     let records = record.map(|d| (d, FlightRecords::read(d, scenario.ticks())));
     if let Some((dir, Ok(records))) = &records {
@@ -220,18 +220,28 @@ pub fn final_report(
 /// monitor saw: a role records a sample just after publishing it, and a writer preempted
 /// between the two would otherwise miss the report by microseconds (seen: a paper run's
 /// last state). A writer killed in between never writes it; the bound covers that.
-fn wait_for_records(dir: &Path, joiner: &RowJoiner) {
+fn wait_for_records(dir: &Path, joiner: &RowJoiner, lockstep: bool) {
     use rotorloop_common::clock::now_ns;
     use rotorloop_common::flight::has_record;
     let until = now_ns() + 2_000_000_000;
     let state = joiner.last_state().map(|s| s.tick);
     let torque = joiner.last_torque().map(|t| t.tick);
+    // The controller records a torque after its send, the plant after its wake-up and
+    // drain: the monitor can see it before either. In lockstep the plant takes every
+    // answer it waits for, so both records come (the controller's where it keeps one);
+    // in real time a last torque after the plant's deadline is never in the plant's.
+    let has_controller = Stream::ControllerTorque.path(dir).exists();
+    let torque_recorded = |k| {
+        let plant = has_record::<TorqueSample>(dir, Stream::PlantTorque, k);
+        let controller = has_record::<TorqueSample>(dir, Stream::ControllerTorque, k);
+        match lockstep {
+            true => plant && (controller || !has_controller),
+            false => plant || controller,
+        }
+    };
     let recorded = || {
         state.is_none_or(|k| has_record::<StateSample>(dir, Stream::PlantState, k))
-            && torque.is_none_or(|k| {
-                has_record::<TorqueSample>(dir, Stream::ControllerTorque, k)
-                    || has_record::<TorqueSample>(dir, Stream::PlantTorque, k)
-            })
+            && torque.is_none_or(torque_recorded)
     };
     while !recorded() && now_ns() < until {
         std::thread::sleep(std::time::Duration::from_millis(1));
