@@ -513,9 +513,11 @@ mod tests {
     fn cause_at(run: &RunRecord, k: u64) -> Cause {
         let flags = ticks::flag(run, 0.25);
         let medians = stage_medians(run, &flags);
-        let windows = flags.windows(run, super::super::GAP);
-        let w = windows.iter().find(|w| w[0] <= k && k <= w[1]).expect("an incident at k");
-        cause(run, &flags, &medians, *w)
+        let mut scan = ticks::WindowScan::default();
+        let w = std::iter::from_fn(|| flags.next_window(run, &mut scan, super::super::GAP))
+            .find(|w| w[0] <= k && k <= w[1])
+            .expect("an incident at k");
+        cause(run, &flags, &medians, w)
     }
 
     /// The searches that end early (an answer's effect ends where a newer one is in force;

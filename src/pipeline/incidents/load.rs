@@ -342,7 +342,7 @@ impl std::fmt::Debug for SchedLeft {
 impl RunRecord {
     /// The span of grid time (ns) whose kernel figures the incident `w` may need: a second
     /// either side of it.
-    fn near_ns(&self, w: [u64; 2]) -> [u64; 2] {
+    pub(super) fn near_ns(&self, w: [u64; 2]) -> [u64; 2] {
         let slack = 1_000_000_000 + (self.dt * 1e9) as u64;
         [self.grid_ns(w[0]).saturating_sub(slack), self.grid_ns(w[1] + 1) + slack]
     }
@@ -374,19 +374,11 @@ impl RunRecord {
         }
     }
 
-    /// Reads the events of `sched-trace.txt` (`--trace-sched`) within a second of any of
-    /// `windows` (tick ranges) in one pass, a line at a time; the context switches far from
+    /// Reads the events of `sched-trace.txt` (`--trace-sched`) within a second of any
+    /// incident (`near`) in one pass, a line at a time; the context switches far from
     /// every incident are not kept.
-    pub fn keep_trace(&mut self, windows: &[[u64; 2]]) {
-        let mut spans: Vec<[u64; 2]> = windows.iter().map(|w| self.near_ns(*w)).collect();
-        spans.sort_unstable();
-        let mut merged: Vec<[u64; 2]> = Vec::new();
-        for s in spans {
-            match merged.last_mut() {
-                Some(m) if s[0] <= m[1] => m[1] = m[1].max(s[1]),
-                _ => merged.push(s),
-            }
-        }
+    pub fn keep_trace(&mut self, near: NearSpans) {
+        let merged = near.merged;
         let near = |t: u64| {
             let i = merged.partition_point(|s| s[0] <= t);
             i.checked_sub(1).is_some_and(|i| t <= merged[i][1])
@@ -395,9 +387,73 @@ impl RunRecord {
     }
 }
 
+/// The times within a second of the incidents (ns), merged where they overlap: what of
+/// the kernel's scheduler trace [`RunRecord::keep_trace`] keeps. Incidents added in the
+/// order of their first ticks are merged as they come (near incidents make one span).
+#[derive(Debug, Default)]
+pub struct NearSpans {
+    merged: Vec<[u64; 2]>,
+}
+
+impl NearSpans {
+    /// Adds the span near the incident `w` of `run`.
+    pub fn add(&mut self, run: &RunRecord, w: [u64; 2]) {
+        self.add_span(run.near_ns(w));
+    }
+
+    fn add_span(&mut self, s: [u64; 2]) {
+        match self.merged.last_mut() {
+            Some(m) if s[0] <= m[1] && s[0] >= m[0] => m[1] = m[1].max(s[1]),
+            Some(m) if s[0] < m[0] => {
+                // Out of order (not as `find` adds them): merged again from scratch.
+                self.merged.push(s);
+                self.merged.sort_unstable();
+                let spans = std::mem::take(&mut self.merged);
+                for s in spans {
+                    match self.merged.last_mut() {
+                        Some(m) if s[0] <= m[1] => m[1] = m[1].max(s[1]),
+                        _ => self.merged.push(s),
+                    }
+                }
+            }
+            _ => self.merged.push(s),
+        }
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// Spans added one at a time, in order of their starts or not, merge as a sort and
+    /// merge of all of them does; in order, what is held is the merged spans alone.
+    #[test]
+    fn near_spans_merge_as_they_come_as_a_sort_of_all_does() {
+        let mut next = super::super::test_random(0x6a09_e667_f3bc_c908_u64);
+        for round in 0..100 {
+            let mut spans: Vec<[u64; 2]> = (0..next(60))
+                .map(|_| {
+                    let a = next(1000);
+                    [a, a + next(40)]
+                })
+                .collect();
+            if round % 2 == 0 {
+                spans.sort_unstable();
+            }
+            let mut near = NearSpans::default();
+            spans.iter().for_each(|s| near.add_span(*s));
+            let mut all = spans.clone();
+            all.sort_unstable();
+            let mut want: Vec<[u64; 2]> = Vec::new();
+            for s in all {
+                match want.last_mut() {
+                    Some(m) if s[0] <= m[1] => m[1] = m[1].max(s[1]),
+                    _ => want.push(s),
+                }
+            }
+            assert_eq!(near.merged, want, "round {round}: {spans:?}");
+        }
+    }
 
     /// Read forward incident by incident, `sched.csv` gives each incident every row within
     /// a second of it, in time order, and holds no row from before that second: what is

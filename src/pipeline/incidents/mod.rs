@@ -214,6 +214,100 @@ impl FaultsHeld {
     }
 }
 
+/// The run's incident windows in the order of their first ticks: the loop's windows of
+/// abnormal ticks, and each fault outside the loop as a window of its own (after a loop
+/// window with the same first tick). Found as they are asked for, from the run passed to
+/// each call: what is held is the faults outside the loop, not the windows.
+struct Windows {
+    scan: ticks::WindowScan,
+    /// The loop's next window, once looked for (`Some(None)`: there is none).
+    next_loop: Option<Option<[u64; 2]>>,
+    /// The faults outside the loop with their windows, by first tick.
+    outside: std::collections::VecDeque<([u64; 2], usize)>,
+}
+
+impl Windows {
+    fn new(run: &RunRecord) -> Self {
+        let mut outside: Vec<([u64; 2], usize)> = (run.faults.iter().enumerate())
+            .filter(|(_, f)| !ticks::in_loop(&f.role))
+            .map(|(i, f)| (ticks::fault_ticks(run, f), i))
+            .collect();
+        outside.sort_by_key(|(w, _)| w[0]);
+        Self { scan: ticks::WindowScan::default(), next_loop: None, outside: outside.into() }
+    }
+
+    fn next(
+        &mut self,
+        run: &RunRecord,
+        flags: &ticks::TickFlags,
+    ) -> Option<([u64; 2], Option<usize>)> {
+        self.next_with(|scan| flags.next_window(run, scan, GAP))
+    }
+
+    /// The next window, the loop's next found by `next_loop`.
+    fn next_with(
+        &mut self,
+        next_loop: impl FnOnce(&mut ticks::WindowScan) -> Option<[u64; 2]>,
+    ) -> Option<([u64; 2], Option<usize>)> {
+        let scan = &mut self.scan;
+        let next_loop = *self.next_loop.get_or_insert_with(|| next_loop(scan));
+        match (next_loop, self.outside.front()) {
+            (Some(l), Some((o, _))) if o[0] < l[0] => {
+                self.outside.pop_front().map(|(w, i)| (w, Some(i)))
+            }
+            (Some(l), _) => {
+                self.next_loop = None;
+                Some((l, None))
+            }
+            (None, _) => self.outside.pop_front().map(|(w, i)| (w, Some(i))),
+        }
+    }
+}
+
+/// The first pass over the run's windows: how many there are, the [`MAX_COSTED`] longest
+/// ([`Longest`]), and the times near them.
+fn first_pass(
+    run: &RunRecord,
+    flags: &ticks::TickFlags,
+) -> (usize, Vec<(usize, u64)>, load::NearSpans) {
+    let (mut count, mut near, mut longest) = (0, load::NearSpans::default(), Longest::default());
+    let mut windows = Windows::new(run);
+    while let Some((w, _)) = windows.next(run, flags) {
+        near.add(run, w);
+        longest.see(count, w);
+        count += 1;
+    }
+    (count, longest.kept(), near)
+}
+
+/// The [`MAX_COSTED`] longest windows of those seen one at a time, as a stable sort by
+/// length (longest first) would pick them: of two as long, the earlier.
+#[derive(Debug, Default)]
+struct Longest {
+    /// A min-heap of those kept: the shortest, and of two as long the later, on top.
+    heap: std::collections::BinaryHeap<std::cmp::Reverse<(u64, std::cmp::Reverse<usize>, u64)>>,
+}
+
+impl Longest {
+    /// Sees the window `w`, the `i`-th.
+    fn see(&mut self, i: usize, w: [u64; 2]) {
+        use std::cmp::Reverse;
+        self.heap.push(Reverse((w[1] - w[0], Reverse(i), w[0])));
+        if self.heap.len() > MAX_COSTED {
+            self.heap.pop();
+        }
+    }
+
+    /// Those kept: each one's index and first tick, in the order of the windows.
+    fn kept(self) -> Vec<(usize, u64)> {
+        use std::cmp::Reverse;
+        let mut kept: Vec<(usize, u64)> =
+            self.heap.into_iter().map(|Reverse((_, Reverse(i), start))| (i, start)).collect();
+        kept.sort_unstable();
+        kept
+    }
+}
+
 /// Finds, explains and costs the incidents of the run in `dir`, handing each to `row` as
 /// it is found, in time order.
 pub fn find(
@@ -223,29 +317,17 @@ pub fn find(
 ) -> anyhow::Result<Explained> {
     let mut run = RunRecord::read(dir)?;
     let flags = ticks::flag(&run, options.threshold_ticks);
-    // The loop's windows, then each fault outside the loop as an incident of its own.
-    let mut windows: Vec<([u64; 2], Option<usize>)> =
-        flags.windows(&run, GAP).into_iter().map(|w| (w, None)).collect();
-    for (i, f) in run.faults.iter().enumerate().filter(|(_, f)| !ticks::in_loop(&f.role)) {
-        windows.push((ticks::fault_ticks(&run, f), Some(i)));
-    }
-    windows.sort_by_key(|(w, _)| w[0]);
-    run.keep_trace(&windows.iter().map(|(w, _)| *w).collect::<Vec<_>>());
+    // A first pass over the windows counts them and picks the longest to cost; the second
+    // explains them. Neither holds the run's windows: a day's run can have millions.
+    let (count, costed, near) = first_pass(&run, &flags);
+    run.keep_trace(near);
     let medians = cause::stage_medians(&run, &flags);
-    // The longest windows are costed.
-    let mut by_length: Vec<usize> = (0..windows.len()).collect();
-    by_length.sort_by_key(|i| std::cmp::Reverse(windows[*i].0[1] - windows[*i].0[0]));
-    let mut costed = vec![false; windows.len()];
-    for i in by_length.into_iter().take(MAX_COSTED) {
-        costed[i] = true;
-    }
-    let starts: Vec<u64> =
-        (windows.iter().zip(&costed)).filter(|(_, c)| **c).map(|(w, _)| w.0[0]).collect();
+    let starts: Vec<u64> = costed.iter().map(|(_, start)| *start).collect();
     let pass = cost::law_pass(&run, &starts)?;
     let mut befores = pass.before.iter();
     let mut held = FaultsHeld::new(&run.faults);
     let mut found = Explained {
-        count: windows.len(),
+        count,
         costliest: Vec::new(),
         worst: None,
         faults: Vec::new(), // each fault's incident, once all are seen
@@ -256,24 +338,29 @@ pub fn find(
         kernel_view: run.kernel_view,
         traced: run.traced,
     };
-    for (i, (w, outside)) in windows.iter().enumerate() {
-        run.sched_for(*w);
-        let fault = outside.or_else(|| cause::fault_of(&run, *w));
+    let mut costed = costed.into_iter().map(|(i, _)| i).peekable();
+    let (mut windows, mut i) = (Windows::new(&run), 0);
+    while let Some((w, outside)) = windows.next(&run, &flags) {
+        run.sched_for(w);
+        let fault = outside.or_else(|| cause::fault_of(&run, w));
         let (c, all, misses) = match outside {
             Some(f) => {
-                let c = cause::with_kernel(&run, cause::fault_cause(&run, &run.faults[*f]), *w);
+                let c = cause::with_kernel(&run, cause::fault_cause(&run, &run.faults[f]), w);
                 (c, ticks::FAULT, 0)
             }
             None => {
-                let all = flags.all(&run, *w);
+                let all = flags.all(&run, w);
                 let misses =
                     (w[0]..=w[1]).filter(|k| flags.get(&run, *k) & ticks::MISS != 0).count();
-                (cause::cause(&run, &flags, &medians, *w), all, misses as u64)
+                (cause::cause(&run, &flags, &medians, w), all, misses as u64)
             }
         };
-        let law = if costed[i] { befores.next().copied() } else { None };
+        let law = match costed.next_if_eq(&i) {
+            Some(_) => befores.next().copied(),
+            None => None,
+        };
         let cost = law
-            .and_then(|law| cost::cost(&run, &flags, *w, law, &pass.propagated, outside.is_none()));
+            .and_then(|law| cost::cost(&run, &flags, w, law, &pass.propagated, outside.is_none()));
         let incident = Incident {
             start_tick: w[0],
             end_tick: w[1],
@@ -293,6 +380,7 @@ pub fn find(
         row(&incident)?;
         held.see(i, &incident);
         found.keep(i, incident);
+        i += 1;
     }
     found.faults = held.held();
     Ok(found)
@@ -366,6 +454,67 @@ mod tests {
     /// sort of all by cost (ties in time order), and the worst is the one `max_by` picks
     /// of all (of equals, the last), as when every incident was held: ties and uncosted
     /// incidents included.
+    /// The longest windows kept one at a time are those a stable sort by length of all of
+    /// them picks (what `find` did while it held every window), ties included.
+    #[test]
+    fn the_longest_kept_one_at_a_time_are_those_a_sort_of_all_picks() {
+        let mut next = super::test_random(0x853c_49e6_748f_ea9b_u64);
+        for n in [0, 1, MAX_COSTED, MAX_COSTED + 1, 5_000] {
+            let windows: Vec<[u64; 2]> = (0..n as u64)
+                .map(|i| {
+                    let len = next(4) * next(50); // many ties
+                    [10 * i, 10 * i + len]
+                })
+                .collect();
+            let mut longest = Longest::default();
+            windows.iter().enumerate().for_each(|(i, w)| longest.see(i, *w));
+            let mut by_length: Vec<usize> = (0..windows.len()).collect();
+            by_length.sort_by_key(|i| std::cmp::Reverse(windows[*i][1] - windows[*i][0]));
+            let mut want: Vec<(usize, u64)> =
+                by_length.into_iter().take(MAX_COSTED).map(|i| (i, windows[i][0])).collect();
+            want.sort_unstable();
+            assert_eq!(longest.kept(), want, "{n} windows");
+        }
+    }
+
+    /// The windows found a tick at a time, faults outside the loop merged in by first tick,
+    /// are those of one scan of every tick with the faults appended and a stable sort (what
+    /// `find` did while it held every window).
+    #[test]
+    fn windows_found_as_asked_are_those_of_a_whole_scan() {
+        let mut next = super::test_random(0xda94_2042_e4dd_58b5_u64);
+        for round in 0..50 {
+            let n = 1 + next(400);
+            let flags: Vec<u16> = (0..n).map(|_| u16::from(next(4) == 0)).collect();
+            let outside: Vec<[u64; 2]> = (0..next(5))
+                .map(|_| {
+                    let a = next(n + 1);
+                    [a, a + next(20)]
+                })
+                .collect();
+            let mut want: Vec<([u64; 2], Option<usize>)> =
+                ticks::windows_of(flags.iter().copied(), GAP)
+                    .into_iter()
+                    .map(|w| (w, None))
+                    .collect();
+            want.extend(outside.iter().enumerate().map(|(i, w)| (*w, Some(i))));
+            want.sort_by_key(|(w, _)| w[0]);
+            let mut sorted: Vec<([u64; 2], usize)> =
+                outside.iter().enumerate().map(|(i, w)| (*w, i)).collect();
+            sorted.sort_by_key(|(w, _)| w[0]);
+            let mut windows = Windows {
+                scan: ticks::WindowScan::default(),
+                next_loop: None,
+                outside: sorted.into(),
+            };
+            let got: Vec<([u64; 2], Option<usize>)> = std::iter::from_fn(|| {
+                windows.next_with(|scan| scan.next(n, GAP, |k| flags[k as usize]))
+            })
+            .collect();
+            assert_eq!(got, want, "round {round}");
+        }
+    }
+
     #[test]
     fn the_costliest_kept_one_at_a_time_are_those_of_all() {
         let mut next = super::test_random(0x2545_f491_4f6c_dd1d_u64);

@@ -260,10 +260,53 @@ impl TickFlags {
         (from..=to).fold(0, |a, k| a | self.get(run, k))
     }
 
-    /// Maximal windows of abnormal ticks `[start, end]` of the run, two windows with at
-    /// most `gap` normal ticks between them being one (one pass over the ticks).
-    pub fn windows(&self, run: &RunRecord, gap: u64) -> Vec<[u64; 2]> {
-        windows_of((0..self.last).map(|k| self.get(run, k)), gap)
+    /// The run's next maximal window of abnormal ticks `[start, end]` after those `scan`
+    /// gave, two windows with at most `gap` normal ticks between them being one; `None`
+    /// once the ticks are done. The run is passed to each call, not held, so the caller
+    /// may change what it keeps between windows.
+    pub fn next_window(
+        &self,
+        run: &RunRecord,
+        scan: &mut WindowScan,
+        gap: u64,
+    ) -> Option<[u64; 2]> {
+        scan.next(self.last, gap, |k| self.get(run, k))
+    }
+}
+
+/// Where a search for windows of abnormal ticks stands: the next tick to look at and the
+/// window still open. What it holds does not grow with the run.
+#[derive(Debug, Default, Clone)]
+pub struct WindowScan {
+    k: u64,
+    open: Option<[u64; 2]>,
+}
+
+impl WindowScan {
+    /// The next maximal window among ticks `..end` whose flags are `flag(k)`, two windows
+    /// with at most `gap` normal ticks between them being one.
+    pub fn next(
+        &mut self,
+        end: u64,
+        gap: u64,
+        mut flag: impl FnMut(u64) -> u16,
+    ) -> Option<[u64; 2]> {
+        while self.k < end {
+            let k = self.k;
+            self.k += 1;
+            if flag(k) == 0 {
+                continue;
+            }
+            match &mut self.open {
+                Some(w) if k <= w[1] + gap + 1 => w[1] = k,
+                open => {
+                    if let Some(done) = open.replace([k, k]) {
+                        return Some(done);
+                    }
+                }
+            }
+        }
+        self.open.take()
     }
 }
 
@@ -299,18 +342,9 @@ pub fn windows(run: &RunRecord) -> Vec<(u64, u64, u16)> {
 /// Maximal windows of abnormal ticks `[start, end]`, two windows with at most `gap`
 /// normal ticks between them being one.
 pub fn windows_of(flags: impl IntoIterator<Item = u16>, gap: u64) -> Vec<[u64; 2]> {
-    let mut out: Vec<[u64; 2]> = Vec::new();
-    for (k, f) in flags.into_iter().enumerate() {
-        if f == 0 {
-            continue;
-        }
-        let k = k as u64;
-        match out.last_mut() {
-            Some(w) if k <= w[1] + gap + 1 => w[1] = k,
-            _ => out.push([k, k]),
-        }
-    }
-    out
+    let flags: Vec<u16> = flags.into_iter().collect();
+    let mut scan = WindowScan::default();
+    std::iter::from_fn(|| scan.next(flags.len() as u64, gap, |k| flags[k as usize])).collect()
 }
 
 /// The words of `flags`, joined.
