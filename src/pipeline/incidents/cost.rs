@@ -81,11 +81,25 @@ pub struct LawPass {
     pub computed: u64,
 }
 
-/// Runs the law over the run's answers, and keeps its state before each of `starts`
-/// (ascending ticks). Where an answer differs from the law's with its own tick's
-/// reference, the earlier references propagated to it (as the controller does when a
-/// reference is late) are tried, and the one that gives the answer bit for bit is taken.
-pub fn law_pass(run: &RunRecord, starts: &[u64]) -> anyhow::Result<LawPass> {
+/// Runs the law over the run's answers, and keeps its state before the start of each of
+/// `costed` (the windows to be costed, by ascending first tick). Where an answer differs
+/// from the law's with its own tick's reference, the earlier references propagated to it
+/// (as the controller does when a reference is late) are tried, and the one that gives the
+/// answer bit for bit is taken; which one is kept only for the ticks a counterfactual of
+/// `costed` can reach ([`cost`] goes at most [`HORIZON_S`] past its window), so what is
+/// held does not grow with the run's late references.
+pub fn law_pass(run: &RunRecord, costed: &[[u64; 2]]) -> anyhow::Result<LawPass> {
+    let horizon = (HORIZON_S / run.dt).ceil() as u64 + 1;
+    let mut reach: Vec<[u64; 2]> = Vec::with_capacity(costed.len());
+    for w in costed {
+        let r = [w[0], w[1].saturating_add(horizon)];
+        match reach.last_mut() {
+            Some(m) if r[0] <= m[1] => m[1] = m[1].max(r[1]),
+            _ => reach.push(r),
+        }
+    }
+    let mut reach = reach.into_iter().peekable();
+    let starts: Vec<u64> = costed.iter().map(|w| w[0]).collect();
     let actuation = run.scenario.actuation();
     let mut law = AnyLaw::for_scenario(&run.scenario, actuation)?;
     let mut pass = LawPass {
@@ -126,7 +140,12 @@ pub fn law_pass(run: &RunRecord, starts: &[u64]) -> anyhow::Result<LawPass> {
                 law = l;
                 pass.same += 1;
                 match from {
-                    Some(j) => drop(pass.propagated.insert(k, j)),
+                    Some(j) => {
+                        while reach.next_if(|r| r[1] < k).is_some() {}
+                        if reach.peek().is_some_and(|r| r[0] <= k) {
+                            pass.propagated.insert(k, j);
+                        }
+                    }
                     None => paired.push(k),
                 }
             }

@@ -269,7 +269,7 @@ impl Windows {
 fn first_pass(
     run: &RunRecord,
     flags: &ticks::TickFlags,
-) -> (usize, Vec<(usize, u64)>, load::NearSpans) {
+) -> (usize, Vec<(usize, [u64; 2])>, load::NearSpans) {
     let (mut count, mut near, mut longest) = (0, load::NearSpans::default(), Longest::default());
     let mut windows = Windows::new(run);
     while let Some((w, _)) = windows.next(run, flags) {
@@ -285,24 +285,28 @@ fn first_pass(
 #[derive(Debug, Default)]
 struct Longest {
     /// A min-heap of those kept: the shortest, and of two as long the later, on top.
-    heap: std::collections::BinaryHeap<std::cmp::Reverse<(u64, std::cmp::Reverse<usize>, u64)>>,
+    heap: std::collections::BinaryHeap<std::cmp::Reverse<ByLength>>,
 }
+
+/// A window's length, its index (reversed: of two as long, the earlier is the greater),
+/// and the window.
+type ByLength = (u64, std::cmp::Reverse<usize>, [u64; 2]);
 
 impl Longest {
     /// Sees the window `w`, the `i`-th.
     fn see(&mut self, i: usize, w: [u64; 2]) {
         use std::cmp::Reverse;
-        self.heap.push(Reverse((w[1] - w[0], Reverse(i), w[0])));
+        self.heap.push(Reverse((w[1] - w[0], Reverse(i), w)));
         if self.heap.len() > MAX_COSTED {
             self.heap.pop();
         }
     }
 
-    /// Those kept: each one's index and first tick, in the order of the windows.
-    fn kept(self) -> Vec<(usize, u64)> {
+    /// Those kept: each one's index and window, in the order of the windows.
+    fn kept(self) -> Vec<(usize, [u64; 2])> {
         use std::cmp::Reverse;
-        let mut kept: Vec<(usize, u64)> =
-            self.heap.into_iter().map(|Reverse((_, Reverse(i), start))| (i, start)).collect();
+        let mut kept: Vec<(usize, [u64; 2])> =
+            self.heap.into_iter().map(|Reverse((_, Reverse(i), w))| (i, w)).collect();
         kept.sort_unstable();
         kept
     }
@@ -322,8 +326,8 @@ pub fn find(
     let (count, costed, near) = first_pass(&run, &flags);
     run.keep_trace(near);
     let medians = cause::stage_medians(&run, &flags);
-    let starts: Vec<u64> = costed.iter().map(|(_, start)| *start).collect();
-    let pass = cost::law_pass(&run, &starts)?;
+    let windows: Vec<[u64; 2]> = costed.iter().map(|(_, w)| *w).collect();
+    let pass = cost::law_pass(&run, &windows)?;
     let mut befores = pass.before.iter();
     let mut held = FaultsHeld::new(&run.faults);
     let mut found = Explained {
@@ -470,8 +474,8 @@ mod tests {
             windows.iter().enumerate().for_each(|(i, w)| longest.see(i, *w));
             let mut by_length: Vec<usize> = (0..windows.len()).collect();
             by_length.sort_by_key(|i| std::cmp::Reverse(windows[*i][1] - windows[*i][0]));
-            let mut want: Vec<(usize, u64)> =
-                by_length.into_iter().take(MAX_COSTED).map(|i| (i, windows[i][0])).collect();
+            let mut want: Vec<(usize, [u64; 2])> =
+                by_length.into_iter().take(MAX_COSTED).map(|i| (i, windows[i])).collect();
             want.sort_unstable();
             assert_eq!(longest.kept(), want, "{n} windows");
         }
