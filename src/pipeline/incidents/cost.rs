@@ -86,7 +86,7 @@ pub struct LawPass {
 /// from the law's with its own tick's reference, the earlier references propagated to it
 /// (as the controller does when a reference is late) are tried, and the one that gives the
 /// answer bit for bit is taken; which one is kept only for the ticks a counterfactual of
-/// `costed` can reach ([`cost`] goes at most [`HORIZON_S`] past its window), so what is
+/// `costed` can reach ([`cost`] goes at most 60 s past its window), so what is
 /// held does not grow with the run's late references.
 pub fn law_pass(run: &RunRecord, costed: &[[u64; 2]]) -> anyhow::Result<LawPass> {
     let horizon = (HORIZON_S / run.dt).ceil() as u64 + 1;
