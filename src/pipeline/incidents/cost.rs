@@ -29,7 +29,7 @@ use rotorloop_controller::policy::propagate;
 use rotorloop_plant::actuator::{ActuationDelay, DelayLine, integrate_tick};
 use rotorloop_plant::{Body, BodyInput};
 
-use super::load::RunRecord;
+use super::load::{RunRecord, Spans};
 use super::ticks::{LOOP, TickFlags};
 
 /// How long a recovered deviation is watched before the counterfactual stops (s).
@@ -90,15 +90,8 @@ pub struct LawPass {
 /// held does not grow with the run's late references.
 pub fn law_pass(run: &RunRecord, costed: &[[u64; 2]]) -> anyhow::Result<LawPass> {
     let horizon = (HORIZON_S / run.dt).ceil() as u64 + 1;
-    let mut reach: Vec<[u64; 2]> = Vec::with_capacity(costed.len());
-    for w in costed {
-        let r = [w[0], w[1].saturating_add(horizon)];
-        match reach.last_mut() {
-            Some(m) if r[0] <= m[1] => m[1] = m[1].max(r[1]),
-            _ => reach.push(r),
-        }
-    }
-    let mut reach = reach.into_iter().peekable();
+    let mut reach = Spans::default();
+    costed.iter().for_each(|w| reach.add([w[0], w[1].saturating_add(horizon)]));
     let starts: Vec<u64> = costed.iter().map(|w| w[0]).collect();
     let actuation = run.scenario.actuation();
     let mut law = AnyLaw::for_scenario(&run.scenario, actuation)?;
@@ -140,12 +133,8 @@ pub fn law_pass(run: &RunRecord, costed: &[[u64; 2]]) -> anyhow::Result<LawPass>
                 law = l;
                 pass.same += 1;
                 match from {
-                    Some(j) => {
-                        while reach.next_if(|r| r[1] < k).is_some() {}
-                        if reach.peek().is_some_and(|r| r[0] <= k) {
-                            pass.propagated.insert(k, j);
-                        }
-                    }
+                    Some(j) if reach.contains(k) => drop(pass.propagated.insert(k, j)),
+                    Some(_) => {}
                     None => paired.push(k),
                 }
             }

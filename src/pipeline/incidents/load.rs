@@ -377,47 +377,48 @@ impl RunRecord {
     /// Reads the events of `sched-trace.txt` (`--trace-sched`) within a second of any
     /// incident (`near`) in one pass, a line at a time; the context switches far from
     /// every incident are not kept.
-    pub fn keep_trace(&mut self, near: NearSpans) {
-        let merged = near.merged;
-        let near = |t: u64| {
-            let i = merged.partition_point(|s| s[0] <= t);
-            i.checked_sub(1).is_some_and(|i| t <= merged[i][1])
-        };
+    pub fn keep_trace(&mut self, near: &Spans) {
+        let near = |t: u64| near.contains(t);
         (self.traced, self.trace) = super::trace::read_near(&self.trace_path, near);
     }
 }
 
-/// The times within a second of the incidents (ns), merged where they overlap: what of
-/// the kernel's scheduler trace [`RunRecord::keep_trace`] keeps. Incidents added in the
-/// order of their first ticks are merged as they come (near incidents make one span).
+/// Closed spans `[from, to]`, merged where they overlap: the times within a second of the
+/// incidents (ns) that [`RunRecord::keep_trace`] keeps of the scheduler trace, or the
+/// ticks a costed incident's counterfactual can reach ([`super::cost::law_pass`]). Spans
+/// added in the order of their starts merge as they come, so what is held is the merged
+/// spans alone.
 #[derive(Debug, Default)]
-pub struct NearSpans {
+pub struct Spans {
     merged: Vec<[u64; 2]>,
 }
 
-impl NearSpans {
-    /// Adds the span near the incident `w` of `run`.
-    pub fn add(&mut self, run: &RunRecord, w: [u64; 2]) {
-        self.add_span(run.near_ns(w));
+impl Spans {
+    /// Adds the span `s`.
+    pub fn add(&mut self, s: [u64; 2]) {
+        if self.merged.last().is_some_and(|m| s[0] < m[0]) {
+            // Out of order (not as the incidents add them): merged again from scratch.
+            let mut all = std::mem::take(&mut self.merged);
+            all.push(s);
+            all.sort_unstable();
+            all.into_iter().for_each(|s| self.extend(s));
+        } else {
+            self.extend(s);
+        }
     }
 
-    fn add_span(&mut self, s: [u64; 2]) {
+    /// Adds `s`, which starts at or after every span held.
+    fn extend(&mut self, s: [u64; 2]) {
         match self.merged.last_mut() {
-            Some(m) if s[0] <= m[1] && s[0] >= m[0] => m[1] = m[1].max(s[1]),
-            Some(m) if s[0] < m[0] => {
-                // Out of order (not as `find` adds them): merged again from scratch.
-                self.merged.push(s);
-                self.merged.sort_unstable();
-                let spans = std::mem::take(&mut self.merged);
-                for s in spans {
-                    match self.merged.last_mut() {
-                        Some(m) if s[0] <= m[1] => m[1] = m[1].max(s[1]),
-                        _ => self.merged.push(s),
-                    }
-                }
-            }
+            Some(m) if s[0] <= m[1] => m[1] = m[1].max(s[1]),
             _ => self.merged.push(s),
         }
+    }
+
+    /// Whether a span holds `t`.
+    pub fn contains(&self, t: u64) -> bool {
+        let i = self.merged.partition_point(|s| s[0] <= t);
+        i.checked_sub(1).is_some_and(|i| t <= self.merged[i][1])
     }
 }
 
@@ -428,7 +429,7 @@ mod tests {
     /// Spans added one at a time, in order of their starts or not, merge as a sort and
     /// merge of all of them does; in order, what is held is the merged spans alone.
     #[test]
-    fn near_spans_merge_as_they_come_as_a_sort_of_all_does() {
+    fn spans_merge_as_they_come_as_a_sort_of_all_does() {
         let mut next = super::super::test_random(0x6a09_e667_f3bc_c908_u64);
         for round in 0..100 {
             let mut spans: Vec<[u64; 2]> = (0..next(60))
@@ -440,8 +441,8 @@ mod tests {
             if round % 2 == 0 {
                 spans.sort_unstable();
             }
-            let mut near = NearSpans::default();
-            spans.iter().for_each(|s| near.add_span(*s));
+            let mut near = Spans::default();
+            spans.iter().for_each(|s| near.add(*s));
             let mut all = spans.clone();
             all.sort_unstable();
             let mut want: Vec<[u64; 2]> = Vec::new();
@@ -452,6 +453,10 @@ mod tests {
                 }
             }
             assert_eq!(near.merged, want, "round {round}: {spans:?}");
+            for t in 0..1050 {
+                let held = want.iter().any(|w| w[0] <= t && t <= w[1]);
+                assert_eq!(near.contains(t), held, "round {round}, {t}");
+            }
         }
     }
 

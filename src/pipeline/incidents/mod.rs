@@ -269,11 +269,11 @@ impl Windows {
 fn first_pass(
     run: &RunRecord,
     flags: &ticks::TickFlags,
-) -> (usize, Vec<(usize, [u64; 2])>, load::NearSpans) {
-    let (mut count, mut near, mut longest) = (0, load::NearSpans::default(), Longest::default());
+) -> (usize, Vec<(usize, [u64; 2])>, load::Spans) {
+    let (mut count, mut near, mut longest) = (0, load::Spans::default(), Longest::default());
     let mut windows = Windows::new(run);
     while let Some((w, _)) = windows.next(run, flags) {
-        near.add(run, w);
+        near.add(run.near_ns(w));
         longest.see(count, w);
         count += 1;
     }
@@ -324,7 +324,7 @@ pub fn find(
     // A first pass over the windows counts them and picks the longest to cost; the second
     // explains them. Neither holds the run's windows: a day's run can have millions.
     let (count, costed, near) = first_pass(&run, &flags);
-    run.keep_trace(near);
+    run.keep_trace(&near);
     let medians = cause::stage_medians(&run, &flags);
     let windows: Vec<[u64; 2]> = costed.iter().map(|(_, w)| *w).collect();
     let pass = cost::law_pass(&run, &windows)?;

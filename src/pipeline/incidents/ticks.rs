@@ -340,7 +340,8 @@ pub fn windows(run: &RunRecord) -> Vec<(u64, u64, u16)> {
 }
 
 /// Maximal windows of abnormal ticks `[start, end]`, two windows with at most `gap`
-/// normal ticks between them being one.
+/// normal ticks between them being one (the tests' whole scan).
+#[cfg(test)]
 pub fn windows_of(flags: impl IntoIterator<Item = u16>, gap: u64) -> Vec<[u64; 2]> {
     let flags: Vec<u16> = flags.into_iter().collect();
     let mut scan = WindowScan::default();

@@ -394,9 +394,6 @@ fn placement_md(out: &Path, cell: &str) -> Option<String> {
     Some(line + ".\n")
 }
 
-/// The scale cells: per loop count, the loops' p50s, worst p99 and misses, against the
-/// bare baseline's misses; the largest count at which no loop missed more; where each
-/// count's loops ran.
 /// The median of the rows' misses (the upper one of an even count); `None` without rows.
 fn median_misses(rows: &[&Row]) -> Option<u64> {
     let mut m: Vec<u64> = rows.iter().map(|r| r.misses).collect();
@@ -427,6 +424,9 @@ fn scale_heading(cell: &str, bare: &[&Row], alone: &[&Row]) -> String {
     )
 }
 
+/// The scale cells: per loop count, the loops' p50s, worst p99 and misses, against the
+/// bare baseline's misses and the loop alone's; the largest count at which no loop missed
+/// more than each; where each count's loops ran.
 pub(super) fn scale_md(rows: &[Row], out: &Path) -> String {
     let mut md = String::new();
     let mut seen: Vec<&str> = Vec::new();
