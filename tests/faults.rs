@@ -931,12 +931,6 @@ fn lockstep_waits_for_a_slow_record_mover_and_loses_nothing() {
     h.assert_no_leftovers();
 }
 
-/// The state letter of a process (`/proc/PID/stat`'s third field): `T` when stopped.
-fn proc_state(pid: u32) -> Option<char> {
-    let stat = std::fs::read_to_string(format!("/proc/{pid}/stat")).ok()?;
-    stat.rsplit_once(')')?.1.trim_start().chars().next()
-}
-
 /// The race behind a rare failure of the slow-mover test above (the plant's record of the
 /// last torque missing from `summary.json`): the controller records a torque right after
 /// its send, the plant only after its wake-up, and the monitor, seeing the last torque and
@@ -961,7 +955,7 @@ fn a_lockstep_report_waits_for_the_plants_record_of_the_last_torque() {
     let until = std::time::Instant::now() + LIMIT;
     let controller = loop {
         let c = pid_of_role(&h.domain, "controller");
-        if let Some(c) = c.filter(|c| proc_state(*c) == Some('T')) {
+        if let Some(c) = c.filter(|c| crate::common::harness::proc_state(*c) == Some('T')) {
             break c;
         }
         assert!(std::time::Instant::now() < until, "the controller never stopped itself");

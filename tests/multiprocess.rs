@@ -3,7 +3,9 @@
 
 use std::time::Duration;
 
-use crate::common::harness::{Harness, ROTORLOOP, assert_same_trace, json, ok, sim_trace};
+use crate::common::harness::{
+    Harness, ROTORLOOP, assert_same_trace, json, ok, proc_state, sim_trace,
+};
 
 const LIMIT: Duration = Duration::from_secs(120);
 
@@ -223,6 +225,52 @@ fn processes_started_by_hand_in_every_order_connect_and_run() {
         ok(&h.rotorloop(&["clean", "--domain", &h.domain], LIMIT));
         h.assert_no_leftovers();
     }
+}
+
+/// The race behind a rare failure of the test above (the monitor's last row without its
+/// torque): the plant marks its end before it publishes its last state, and a monitor
+/// slow to start (the plant runs once it connects) found the run over and wrote its last
+/// row at once, before the controller's last answer came. Made certain here: the
+/// controller stops itself before its last send, the monitor waits 0.5 s after it
+/// connects, and the controller goes on 0.8 s after it stopped.
+#[test]
+fn a_monitor_started_after_the_plants_end_waits_for_the_last_answer() {
+    let sim = {
+        let h = Harness::new("late-mon-sim");
+        sim_trace(&h, "paper-zero", "0.1", &[])
+    };
+    let mut h = Harness::new("late-mon");
+    let (out, domain) = (h.path("mon"), h.domain.clone());
+    let args = |extra: &[&str]| -> Vec<String> {
+        ["--domain", &domain, "--scenario", "paper-zero", "--duration", "0.1"]
+            .iter()
+            .chain(extra)
+            .map(|s| s.to_string())
+            .collect()
+    };
+    let (plant, reference, controller) =
+        (args(&["--subscribers", "3"]), args(&[]), args(&["--test-stop-before-send-at", "100"]));
+    h.spawn(env!("CARGO_BIN_EXE_plant"), &plant);
+    h.spawn(env!("CARGO_BIN_EXE_reference"), &reference);
+    let c = h.spawn(env!("CARGO_BIN_EXE_controller"), &controller);
+    let monitor = ["--test-start-stall-ms", "500", "--out", out.to_str().expect("utf8")];
+    h.spawn(env!("CARGO_BIN_EXE_monitor"), &args(&monitor));
+    let pid = h.child(c).id();
+    let until = std::time::Instant::now() + LIMIT;
+    while proc_state(pid) != Some('T') {
+        assert!(std::time::Instant::now() < until, "the controller never stopped itself");
+        std::thread::sleep(Duration::from_millis(5));
+    }
+    std::thread::sleep(Duration::from_millis(800));
+    // SAFETY: a signal to this test's own child.
+    unsafe { libc::kill(pid as libc::pid_t, libc::SIGCONT) };
+    for (i, st) in h.wait_all(LIMIT).into_iter().enumerate() {
+        assert!(st.success(), "child {i} exited with {st}: {}", h.stderr_of(i));
+    }
+    let trace = std::fs::read(out.join("trace.csv")).expect("trace");
+    assert_same_trace("a monitor started after the end", &trace, &sim);
+    ok(&h.rotorloop(&["clean", "--domain", &h.domain], LIMIT));
+    h.assert_no_leftovers();
 }
 
 fn permute<'a>(v: &mut Vec<&'a str>, k: usize, out: &mut Vec<Vec<&'a str>>) {

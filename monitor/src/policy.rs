@@ -21,7 +21,8 @@
 //! - A row whose state or reference never comes is **lost**: newer states exist and the
 //!   ring (half of [`RING`]) moved on, or the run ended with newer states seen.
 //! - After the plant's last state (seen, or in its resume slot), [`END_QUIET_NS`] without
-//!   any new sample settles everything still open: what is missing now never comes.
+//!   any new sample ([`END_QUIET_AFTER_END_NS`] for a monitor started after that state)
+//!   settles everything still open: what is missing now never comes.
 //! - A restarted monitor continues the counts of its predecessor; the first state it
 //!   sees tells how many ticks it missed: that is a **gap**, its rows are lost.
 
@@ -49,6 +50,9 @@ pub const TORQUE_PATIENCE: u64 = 1024;
 /// After the plant's last state, this long without any new sample settles the rows still
 /// open: their missing samples are not coming.
 pub const END_QUIET_NS: u64 = 5_000_000_000;
+/// The same for a monitor that started after the plant's last state: what was published
+/// is in its buffers at once, but the controller's last answer may still be coming.
+pub const END_QUIET_AFTER_END_NS: u64 = 1_000_000_000;
 
 /// What a restarted monitor needs to continue the same report.
 #[derive(Debug, Clone, Copy, ZeroCopySend)]

@@ -363,3 +363,9 @@ pub fn pid_of_role(domain: &str, role: &str) -> Option<u32> {
     }
     newest
 }
+
+/// The state letter of a process (`/proc/PID/stat`'s third field): `T` when stopped.
+pub fn proc_state(pid: u32) -> Option<char> {
+    let stat = std::fs::read_to_string(format!("/proc/{pid}/stat")).ok()?;
+    stat.rsplit_once(')')?.1.trim_start().chars().next()
+}

@@ -27,6 +27,10 @@ pub struct TestHooks {
     /// its first rows: a stand-in for a `write(2)` held up by disk writeback.
     #[arg(long, hide = true, value_name = "MS")]
     pub test_files_stall_ms: Option<u64>,
+    /// A first monitor (not a restart) waits this many ms after it connects, before it
+    /// looks whether the plant has ended: a stand-in for a slow start on a loaded machine.
+    #[arg(long, hide = true, value_name = "MS")]
+    pub test_start_stall_ms: Option<u64>,
     /// The launcher's flight record mover waits this many ms before its first pass: a
     /// stand-in for a copy held up by disk writeback.
     #[arg(long, hide = true, value_name = "MS")]
@@ -58,6 +62,7 @@ impl TestHooks {
             ("--test-stall-with-loan-at", self.test_stall_with_loan_at),
             ("--test-reference-late-ms", self.test_reference_late_ms),
             ("--test-files-stall-ms", self.test_files_stall_ms),
+            ("--test-start-stall-ms", self.test_start_stall_ms),
             ("--test-stop-before-send-at", self.test_stop_before_send_at),
             ("--test-mover-stall-ms", self.test_mover_stall_ms),
         ]

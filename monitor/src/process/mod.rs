@@ -14,7 +14,7 @@ use rotorloop_common::signals::shutdown_requested;
 
 use crate::ROLE;
 use crate::assemble::final_report;
-use crate::policy::{END_QUIET_NS, RowJoiner};
+use crate::policy::{END_QUIET_AFTER_END_NS, END_QUIET_NS, RowJoiner};
 use crate::recording::{Recording, fallback_dir};
 use crate::report::{console_summary, write_summary};
 use ports::Ports;
@@ -36,15 +36,20 @@ pub fn run(args: &args::MonitorArgs) -> anyhow::Result<()> {
     }
     rec.begin(&joiner);
     let status = args.status && std::io::stderr().is_terminal();
-    // Started after the plant's last tick (a restart after the end): what is still in
-    // the buffers is all there is; no need to wait for a quiet period.
-    let ended_before = ports.plant_end.ended();
+    if let Some(ms) = role.hooks.test_start_stall_ms.filter(|_| resumed.is_none()) {
+        std::thread::sleep(std::time::Duration::from_millis(ms));
+    }
+    // Started after the plant's last state (a restart after the end, or a monitor started
+    // by hand after the others): little more is coming, so a shorter quiet period settles
+    // the rest. Not none: the plant marks its end before it publishes its last state, so
+    // the controller's last answer may still be on its way.
+    let quiet_limit = if ports.plant_end.ended() { END_QUIET_AFTER_END_NS } else { END_QUIET_NS };
     loop {
         ports.drain(&mut joiner)?;
         // The plant has ended (seen here, or in its resume slot by a monitor restarted
         // after the end) and nothing has arrived for a while: what is missing now never
         // comes (a role killed at the very end, say), so settle the rest.
-        let quiet = ended_before || joiner.quiet_ns(now_ns()) > END_QUIET_NS;
+        let quiet = joiner.quiet_ns(now_ns()) > quiet_limit;
         let drained = quiet && (joiner.plant_ended() || ports.plant_end.ended());
         let stopping = shutdown_requested() || drained;
         while let Some(row) = joiner.next_row(stopping) {
