@@ -40,10 +40,13 @@ use iceoryx2::prelude::ZeroCopySend;
 
 use crate::wire::{LAYOUT_VERSION, ReferenceSample, StateSample, TorqueSample};
 
+mod pack;
 mod read;
 pub use read::{FlightLog, StreamCount};
 
 const MAGIC: u64 = 0x7468_6769_6c66_6c72; // "rlflight"
+/// A packed segment's magic ([`pack`]): "rlflpack".
+const PACKED_MAGIC: u64 = 0x6b63_6170_6c66_6c72;
 const HEADER: usize = 64;
 /// Slots beyond the run's last tick (the reference publishes ahead of the plant).
 pub const SPARE_SLOTS: u64 = 64;
@@ -606,12 +609,21 @@ impl Mover {
         Ok(Half::Read(bytes))
     }
 
-    /// Writes half `j` of `stream` into its segment file (whole or not at all).
+    /// Writes half `j` of `stream` into its segment file (whole or not at all), packed
+    /// ([`pack`]).
     fn write_segment(&self, stream: Stream, j: u64, bytes: &[u8]) -> std::io::Result<()> {
         std::fs::create_dir_all(&self.kept)?;
         let path = segment_path(&self.kept, stream, j);
         let part = path.with_extension("part");
-        std::fs::write(&part, bytes)?;
+        let (header, body) = bytes.split_at(HEADER);
+        let size = u64::from_ne_bytes(
+            header[8 * word::SIZE..8 * word::SIZE + 8].try_into().unwrap_or_default(),
+        );
+        let mut header = header.to_vec();
+        header[8 * word::MAGIC..8 * word::MAGIC + 8].copy_from_slice(&PACKED_MAGIC.to_ne_bytes());
+        // A segment that cannot be packed (never seen) is kept raw: readers take both.
+        let packed = pack::pack(&header, body, 8 + (size as usize).next_multiple_of(8));
+        std::fs::write(&part, packed.as_deref().unwrap_or(bytes))?;
         std::fs::rename(&part, &path)
     }
 }

@@ -18,7 +18,10 @@ use std::cell::RefCell;
 use std::os::unix::fs::FileExt;
 use std::path::{Path, PathBuf};
 
-use super::{FlightError, HEADER, MAGIC, Record, SPARE_SLOTS, Stream, segments, slot_len, word};
+use super::pack::{CHUNK_SLOTS, chunk_table, unpack};
+use super::{
+    FlightError, HEADER, MAGIC, PACKED_MAGIC, Record, SPARE_SLOTS, Stream, segments, slot_len, word,
+};
 use crate::wire::LAYOUT_VERSION;
 
 /// Slots read from a file at once.
@@ -34,6 +37,15 @@ const MAX_PROBLEMS: usize = 16;
 struct Source {
     path: PathBuf,
     capacity: u64,
+    /// A packed segment's chunks (offset and length in the file; [`super::pack`]).
+    chunks: Option<Vec<(u64, u64)>>,
+}
+
+impl Source {
+    /// Slots read at once: a block of a raw file, a chunk of a packed one.
+    fn block_slots(&self) -> u64 {
+        if self.chunks.is_some() { CHUNK_SLOTS } else { BLOCK_SLOTS }
+    }
 }
 
 /// Slots of one source read at once.
@@ -89,8 +101,9 @@ pub struct StreamCount {
 }
 
 /// A file's header words, checked against its length for samples of type `T`: its
-/// capacity, or why it is not a record of this build.
-fn check_header<T>(path: &Path) -> Result<([u64; 8], u64), FlightError> {
+/// capacity and, for a packed segment (where `packed` allows one), its chunks; or why it
+/// is not a record of this build.
+fn check_header<T>(path: &Path, packed: bool) -> Result<([u64; 8], Source), FlightError> {
     let shown = path.display().to_string();
     let file = std::fs::File::open(path)
         .map_err(|e| FlightError::Missing { path: shown.clone(), why: e.to_string() })?;
@@ -104,7 +117,8 @@ fn check_header<T>(path: &Path) -> Result<([u64; 8], u64), FlightError> {
     for (i, c) in header.chunks_exact(8).enumerate() {
         w[i] = u64::from_ne_bytes(c.try_into().unwrap_or_default());
     }
-    if w[word::MAGIC] != MAGIC {
+    let is_packed = packed && w[word::MAGIC] == PACKED_MAGIC;
+    if w[word::MAGIC] != MAGIC && !is_packed {
         return Err(foreign("not a flight record (or never written)".into()));
     }
     if w[word::VERSION] != u64::from(LAYOUT_VERSION) || w[word::SIZE] != size_of::<T>() as u64 {
@@ -118,13 +132,27 @@ fn check_header<T>(path: &Path) -> Result<([u64; 8], u64), FlightError> {
         )));
     }
     let capacity = w[word::CAPACITY];
+    let source = |chunks| Source { path: path.to_owned(), capacity, chunks };
+    if is_packed {
+        // The table's length is checked against the file's before it is read.
+        let table = 16 * u128::from(capacity.div_ceil(CHUNK_SLOTS));
+        let mut bytes =
+            vec![0u8; if capacity > 0 && table <= u128::from(len) { table as usize } else { 0 }];
+        let chunks = (!bytes.is_empty())
+            .then(|| file.read_exact_at(&mut bytes, HEADER as u64).ok())
+            .flatten()
+            .ok_or_else(|| format!("{len} bytes, too short for the chunks of {capacity} slots"))
+            .and_then(|()| chunk_table(&bytes, capacity, len))
+            .map_err(|e| foreign(format!("a packed segment: {e} (torn or damaged)")))?;
+        return Ok((w, source(Some(chunks))));
+    }
     let expected = (capacity as u128) * slot_len::<T>() as u128 + HEADER as u128;
     if capacity == 0 || expected != u128::from(len) {
         return Err(foreign(format!(
             "{len} bytes, not a file of {capacity} slots (torn or damaged)"
         )));
     }
-    Ok((w, capacity))
+    Ok((w, source(None)))
 }
 
 impl<T: Record> FlightLog<T> {
@@ -133,10 +161,10 @@ impl<T: Record> FlightLog<T> {
     /// tick and the spare slots: a later tick is not the run's). The ring must be sound;
     /// a segment that is not is skipped and named in [`Self::problems`].
     pub fn read(dir: &Path, stream: Stream, limit: u64) -> Result<Self, FlightError> {
-        let ring_path = stream.path(dir);
-        let (w, capacity) = check_header::<T>(&ring_path)?;
+        let (w, ring) = check_header::<T>(&stream.path(dir), false)?;
+        let capacity = ring.capacity;
         let mut log = Self {
-            ring: Some(Source { path: ring_path, capacity }),
+            ring: Some(ring),
             opens: w[word::OPENS],
             beyond: w[word::BEYOND],
             ..Self::empty()
@@ -197,13 +225,14 @@ impl<T: Record> FlightLog<T> {
             }) else {
                 continue;
             };
-            let capacity = match check_header::<T>(&path) {
-                Ok((_, c)) => c,
+            let source = match check_header::<T>(&path, true) {
+                Ok((_, source)) => source,
                 Err(e) => {
                     self.problem(format!("{e}: skipped, its ticks read as missing"));
                     continue;
                 }
             };
+            let capacity = source.capacity;
             if self.half == 0 {
                 self.half = capacity;
             }
@@ -226,7 +255,7 @@ impl<T: Record> FlightLog<T> {
             if self.segments.last().is_some_and(|(i, _)| *i == j) {
                 continue; // the same half in the staging directory and the run directory
             }
-            self.segments.push((j, Source { path, capacity }));
+            self.segments.push((j, source));
         }
     }
 
@@ -297,7 +326,8 @@ impl<T: Record> FlightLog<T> {
     /// The sample in `slot` of `source` if it is tick `k`'s.
     fn lookup(&self, id: usize, source: &Source, slot: u64, k: u64) -> Option<T> {
         let mut cache = self.cache.borrow_mut();
-        let index = slot / BLOCK_SLOTS;
+        let block_slots = source.block_slots();
+        let index = slot / block_slots;
         cache.clock += 1;
         let clock = cache.clock;
         let at = match cache.blocks.iter().position(|b| b.source == id && b.index == index) {
@@ -319,7 +349,7 @@ impl<T: Record> FlightLog<T> {
         let block = &mut cache.blocks[at];
         block.used = clock;
         let len = slot_len::<T>();
-        let off = (slot - index * BLOCK_SLOTS) as usize * len;
+        let off = (slot - index * block_slots) as usize * len;
         let bytes = block.bytes.get(off..off + len)?;
         let tag = u64::from_ne_bytes(bytes[..8].try_into().unwrap_or_default());
         if tag != k.wrapping_add(1) {
@@ -373,13 +403,21 @@ impl<T: Record> FlightLog<T> {
 }
 
 /// Block `index` of `source`'s slots, as read (shorter, or empty, where the file was cut
-/// since it was checked: those slots read as missing).
+/// since it was checked or a packed chunk does not unpack: those slots read as missing).
 fn read_block<T>(source: &Source, index: u64) -> Vec<u8> {
+    let len = slot_len::<T>();
+    let Ok(f) = std::fs::File::open(&source.path) else { return Vec::new() };
+    if let Some(chunks) = &source.chunks {
+        let Some(&(at, l)) = chunks.get(index as usize) else { return Vec::new() };
+        let mut bytes = vec![0u8; l as usize]; // within the file's length: checked
+        return match f.read_exact_at(&mut bytes, at) {
+            Ok(()) => unpack(&bytes, index, source.capacity, len).unwrap_or_default(),
+            Err(_) => Vec::new(),
+        };
+    }
     let first = index * BLOCK_SLOTS;
     let n = BLOCK_SLOTS.min(source.capacity.saturating_sub(first));
-    let len = slot_len::<T>();
     let mut bytes = vec![0u8; n as usize * len];
-    let Ok(f) = std::fs::File::open(&source.path) else { return Vec::new() };
     let at = HEADER as u64 + first * len as u64;
     match f.read_exact_at(&mut bytes, at) {
         Ok(()) => bytes,
@@ -391,7 +429,8 @@ fn read_block<T>(source: &Source, index: u64) -> Vec<u8> {
 /// a tick (one block in memory at a time).
 fn scan<T: Record>(source: &Source, mut f: impl FnMut(u64, u64, &T)) {
     let len = slot_len::<T>();
-    for index in 0..source.capacity.div_ceil(BLOCK_SLOTS) {
+    let block_slots = source.block_slots();
+    for index in 0..source.capacity.div_ceil(block_slots) {
         let bytes = read_block::<T>(source, index);
         for (i, s) in bytes.chunks_exact(len).enumerate() {
             let tag = u64::from_ne_bytes(s[..8].try_into().unwrap_or_default());
@@ -399,7 +438,7 @@ fn scan<T: Record>(source: &Source, mut f: impl FnMut(u64, u64, &T)) {
             // SAFETY: as in `lookup`.
             let sample = unsafe { std::ptr::read_unaligned(s[8..].as_ptr() as *const T) };
             if sample.tick() == k {
-                f(index * BLOCK_SLOTS + i as u64, k, &sample);
+                f(index * block_slots + i as u64, k, &sample);
             }
         }
     }
@@ -484,14 +523,35 @@ mod tests {
         let _ = std::fs::remove_dir_all(dir.parent().expect("base"));
     }
 
+    /// The segments are packed (a fraction of a raw half's bytes), and a packed chunk
+    /// damaged inside (a flipped byte in its frame) reads as missing ticks, not as wrong
+    /// samples: every other tick is read.
+    #[test]
+    fn segments_are_packed_and_a_damaged_chunk_reads_as_missing() {
+        let dir = recorded("packed", 3_000);
+        let raw = HEADER as u64 + 256 * slot_len::<TorqueSample>() as u64;
+        let seg = segment_path(&dir, Stream::PlantTorque, 3); // ticks 768–1023
+        let mut bytes = std::fs::read(&seg).expect("segment");
+        assert!((bytes.len() as u64) < raw / 4, "{} bytes of {raw}", bytes.len());
+        let end = bytes.len();
+        bytes[end - 12] ^= 0x5a;
+        std::fs::write(&seg, &bytes).expect("damage");
+        let log = read(&dir, 3_063);
+        let c = log.count(2_999);
+        assert_eq!(c.missing, vec![[768, 1023]]);
+        assert_eq!(c.records, 3_000 - 256);
+        assert_eq!(log.get(1_024), Some(torque(1_024)));
+        let _ = std::fs::remove_dir_all(dir.parent().expect("base"));
+    }
+
     /// A tick far beyond the run written into the ring (tag and sample agreeing, as a
     /// fuzzer wrote it: capacity × 2⁴⁰) allocates nothing and is not the run's.
     #[test]
     fn a_far_future_tick_is_counted_and_ignored_not_allocated() {
         let dir = recorded("far", 300);
         let ring = Stream::PlantTorque.path(&dir);
-        let (_, cap) = check_header::<TorqueSample>(&ring).expect("ring");
-        let k = cap << 40;
+        let (_, cap) = check_header::<TorqueSample>(&ring, false).expect("ring");
+        let k = cap.capacity << 40;
         let f = std::fs::OpenOptions::new().write(true).open(&ring).expect("open");
         let mut slot = (k + 1).to_ne_bytes().to_vec();
         slot.extend_from_slice(&k.to_ne_bytes());

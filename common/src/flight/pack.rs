@@ -1,0 +1,368 @@
+//! Packed segments: how the mover writes a half of a ring to disk in about a quarter of
+//! its bytes, losslessly, and how a reader gets a chunk of its slots back.
+//!
+//! A record's slots are words (a tag and the sample's `u64` and `f64` fields), and a word
+//! changes little from one tick to the next: a tick counts up, a stamp moves by about a
+//! period, a float of a smooth trajectory follows its last few values. So each **column**
+//! (the same word of every slot) of a chunk of [`CHUNK_SLOTS`] slots is replaced by its
+//! residual against a prediction, with the predictor that leaves the smallest residuals
+//! for that column of that chunk ([`Transform`]: none, the last value, the last two, the
+//! word to its left, or an extrapolation in `f64` of the last two to four). Then the bytes
+//! are shuffled (every column's byte 0, then its byte 1, …: the zero high bytes of small
+//! residuals come together) and the chunk is compressed with zstd.
+//!
+//! **The file.** The segment's 64-byte header as a raw segment has it, but with
+//! [`super::PACKED_MAGIC`], then a table of `(offset, length)` pairs, one per chunk, then
+//! the chunks: each its columns' transforms (a byte each) and one zstd frame. A chunk
+//! unpacks to exactly its slots or not at all: a table, a frame or a transform that does
+//! not fit is an error, and the reader reads that chunk's ticks as missing.
+//!
+//! **Lossless by construction.** Decoding repeats the predictions on the values already
+//! decoded with the same `f64` operations in the same order (no fused multiply-add), and
+//! adds the residual to the prediction's bits with wrapping integer arithmetic: the bits
+//! come back whatever they are, NaN and infinities included (a prediction that is not
+//! finite is taken as 0). The unit tests round-trip words of every kind.
+
+/// Slots per chunk (the unit a reader decodes: 2.2 MB of plant states).
+pub const CHUNK_SLOTS: u64 = 4096;
+/// The zstd level: level 1 leaves about 1.5 % more bytes at twice the speed; higher
+/// levels gain under 1 %.
+const LEVEL: i32 = 3;
+
+/// A column's predictor (module docs). The residual is `zigzag(word − prediction)` for
+/// the integer ones and `zigzag(bits(x) − bits(prediction))` for the float ones.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[repr(u8)]
+enum Transform {
+    Raw = 0,
+    /// The previous slot's word.
+    Delta = 1,
+    /// The previous slot's word plus its change from the one before.
+    Delta2 = 2,
+    /// The word to the left in the same slot (a stamp after a stamp).
+    Left = 3,
+    /// `2x₁ − x₂` in `f64`.
+    Float2 = 4,
+    /// `3x₁ − 3x₂ + x₃` in `f64`.
+    Float3 = 5,
+    /// `4x₁ − 6x₂ + 4x₃ − x₄` in `f64`.
+    Float4 = 6,
+}
+
+const TRANSFORMS: [Transform; 7] = [
+    Transform::Raw,
+    Transform::Delta,
+    Transform::Delta2,
+    Transform::Left,
+    Transform::Float2,
+    Transform::Float3,
+    Transform::Float4,
+];
+
+impl Transform {
+    fn from_u8(b: u8) -> Option<Self> {
+        TRANSFORMS.get(usize::from(b)).copied()
+    }
+
+    /// The prediction of row `r`'s word from the column's earlier words `col[..r]` and
+    /// the row's word to the left (`left`).
+    #[inline]
+    fn predict(self, col: &[u64], r: usize, left: u64) -> u64 {
+        let at = |back: usize| if r >= back { col[r - back] } else { 0 };
+        let f = |back: usize| f64::from_bits(at(back));
+        let float = |p: f64| if p.is_finite() { p.to_bits() } else { 0 };
+        match self {
+            Self::Raw => 0,
+            Self::Delta => at(1),
+            Self::Delta2 => at(1).wrapping_add(at(1).wrapping_sub(at(2))),
+            Self::Left => left,
+            Self::Float2 => float(2.0 * f(1) - f(2)),
+            Self::Float3 => float(3.0 * f(1) - 3.0 * f(2) + f(3)),
+            Self::Float4 => float(4.0 * f(1) - 6.0 * f(2) + 4.0 * f(3) - f(4)),
+        }
+    }
+}
+
+#[inline]
+fn zigzag(d: u64) -> u64 {
+    (d << 1) ^ ((d as i64 >> 63) as u64)
+}
+
+#[inline]
+fn unzigzag(z: u64) -> u64 {
+    (z >> 1) ^ (z & 1).wrapping_neg()
+}
+
+/// Bytes a residual needs beyond its leading zero bytes: the cost the choice of
+/// transform minimises (a cheap stand-in for its compressed size).
+#[inline]
+fn significant_bytes(z: u64) -> u64 {
+    u64::from(8 - z.leading_zeros() / 8)
+}
+
+/// Packs the slots `slots` (whole slots of `words` words each) into one chunk.
+fn pack_chunk(slots: &[u8], words: usize) -> std::io::Result<Vec<u8>> {
+    let rows = slots.len() / (8 * words);
+    let word = |r: usize, c: usize| {
+        let at = (r * words + c) * 8;
+        u64::from_ne_bytes(slots[at..at + 8].try_into().unwrap_or_default())
+    };
+    let mut codes = Vec::with_capacity(words);
+    let mut residuals = vec![0u64; rows * words];
+    let (mut col, mut left, mut best) = (vec![0u64; rows], vec![0u64; rows], vec![0u64; rows]);
+    let mut trial = vec![0u64; rows];
+    for c in 0..words {
+        for r in 0..rows {
+            col[r] = word(r, c);
+            left[r] = if c > 0 { word(r, c - 1) } else { 0 };
+        }
+        let mut best_cost = u64::MAX;
+        let mut chosen = Transform::Raw;
+        for t in TRANSFORMS {
+            let mut cost = 0;
+            for r in 0..rows {
+                trial[r] = zigzag(col[r].wrapping_sub(t.predict(&col, r, left[r])));
+                cost += significant_bytes(trial[r]);
+            }
+            if cost < best_cost {
+                (best_cost, chosen) = (cost, t);
+                std::mem::swap(&mut best, &mut trial);
+            }
+        }
+        codes.push(chosen as u8);
+        residuals[c * rows..(c + 1) * rows].copy_from_slice(&best);
+    }
+    // Byte planes: each column's byte 0 of every row, then its byte 1, …
+    let mut shuffled = vec![0u8; rows * words * 8];
+    for c in 0..words {
+        for b in 0..8 {
+            let plane = &mut shuffled[(c * 8 + b) * rows..(c * 8 + b + 1) * rows];
+            for (r, out) in plane.iter_mut().enumerate() {
+                *out = residuals[c * rows + r].to_le_bytes()[b];
+            }
+        }
+    }
+    // With its checksum: damage inside a frame is an error, not other samples.
+    let mut z = zstd::bulk::Compressor::new(LEVEL)?;
+    z.set_parameter(zstd::zstd_safe::CParameter::ChecksumFlag(true))?;
+    codes.extend_from_slice(&z.compress(&shuffled)?);
+    Ok(codes)
+}
+
+/// Unpacks a chunk of `rows` slots of `words` words each: its slots' bytes, or why not.
+fn unpack_chunk(chunk: &[u8], rows: usize, words: usize) -> Result<Vec<u8>, String> {
+    let (codes, frame) = chunk.split_at_checked(words).ok_or("a chunk shorter than its codes")?;
+    let codes: Vec<Transform> = codes
+        .iter()
+        .map(|b| Transform::from_u8(*b).ok_or(format!("unknown transform {b}")))
+        .collect::<Result<_, _>>()?;
+    let want = rows * words * 8;
+    let shuffled =
+        zstd::bulk::decompress(frame, want).map_err(|e| format!("a damaged frame: {e}"))?;
+    if shuffled.len() != want {
+        return Err(format!("{} bytes where the chunk holds {want}", shuffled.len()));
+    }
+    let mut out = vec![0u8; want];
+    let mut col = vec![0u64; rows];
+    let mut prev = vec![0u64; rows]; // the column to the left, decoded
+    for (c, t) in codes.iter().enumerate() {
+        for r in 0..rows {
+            let mut b = [0u8; 8];
+            for (i, byte) in b.iter_mut().enumerate() {
+                *byte = shuffled[(c * 8 + i) * rows + r];
+            }
+            let p = t.predict(&col, r, prev[r]);
+            col[r] = unzigzag(u64::from_le_bytes(b)).wrapping_add(p);
+            let at = (r * words + c) * 8;
+            out[at..at + 8].copy_from_slice(&col[r].to_ne_bytes());
+        }
+        std::mem::swap(&mut col, &mut prev);
+    }
+    Ok(out)
+}
+
+/// Packs a raw segment's slots (`body`, whole slots of `slot_len` bytes) behind `header`
+/// (the raw segment's header with the packed magic in it): the packed file's bytes.
+pub(super) fn pack(header: &[u8], body: &[u8], slot_len: usize) -> std::io::Result<Vec<u8>> {
+    let chunk_len = CHUNK_SLOTS as usize * slot_len;
+    let chunks: Vec<Vec<u8>> =
+        body.chunks(chunk_len).map(|c| pack_chunk(c, slot_len / 8)).collect::<Result<_, _>>()?;
+    let mut out = Vec::with_capacity(header.len() + 16 * chunks.len());
+    out.extend_from_slice(header);
+    let mut at = (header.len() + 16 * chunks.len()) as u64;
+    for c in &chunks {
+        out.extend_from_slice(&at.to_le_bytes());
+        out.extend_from_slice(&(c.len() as u64).to_le_bytes());
+        at += c.len() as u64;
+    }
+    for c in &chunks {
+        out.extend_from_slice(c);
+    }
+    Ok(out)
+}
+
+/// Where each chunk of a packed segment of `capacity` slots lies in its file of `len`
+/// bytes, from its table (`table`: the bytes after the header), or why the table does
+/// not fit the file.
+pub(super) fn chunk_table(
+    table: &[u8],
+    capacity: u64,
+    len: u64,
+) -> Result<Vec<(u64, u64)>, String> {
+    let n = capacity.div_ceil(CHUNK_SLOTS) as usize;
+    let bytes = table.get(..16 * n).ok_or("a chunk table cut short")?;
+    let start = super::HEADER as u64 + 16 * n as u64;
+    let mut out = Vec::with_capacity(n);
+    for e in bytes.chunks_exact(16) {
+        let at = u64::from_le_bytes(e[..8].try_into().unwrap_or_default());
+        let l = u64::from_le_bytes(e[8..].try_into().unwrap_or_default());
+        if at < start || at.checked_add(l).is_none_or(|end| end > len) {
+            return Err(format!("a chunk at {at} of {l} bytes outside the file's {len}"));
+        }
+        out.push((at, l));
+    }
+    Ok(out)
+}
+
+/// The slots of chunk `i` (of a segment of `capacity` slots of `slot_len` bytes) from its
+/// packed bytes.
+pub(super) fn unpack(
+    chunk: &[u8],
+    i: u64,
+    capacity: u64,
+    slot_len: usize,
+) -> Result<Vec<u8>, String> {
+    let rows = CHUNK_SLOTS.min(capacity.saturating_sub(i * CHUNK_SLOTS)) as usize;
+    unpack_chunk(chunk, rows, slot_len / 8)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Slots of `words` words: a tag counting up, a stamp with jitter, a stamp after it, a
+    /// smooth float, a float of noise, special floats, zeros, a counter that jumps.
+    fn slots(rows: usize, words: usize, seed: u64) -> Vec<u8> {
+        let mut x = seed | 1;
+        let mut rnd = move || {
+            x ^= x << 13;
+            x ^= x >> 7;
+            x ^= x << 17;
+            x
+        };
+        let mut out = Vec::new();
+        for r in 0..rows {
+            let t = r as f64 * 1e-3;
+            let stamp = 1_000_000 * r as u64 + rnd() % 50_000;
+            let row: [u64; 8] = [
+                r as u64 + 1,
+                stamp,
+                stamp + rnd() % 9_000,
+                (t.sin() * 0.3).to_bits(),
+                f64::from_bits((rnd() >> 12) | 0x3ff0_0000_0000_0000).to_bits(),
+                [f64::NAN, f64::INFINITY, -0.0, f64::MIN_POSITIVE][r % 4].to_bits(),
+                0,
+                if r % 1000 == 0 { rnd() } else { r as u64 / 100 },
+            ];
+            (0..words).for_each(|c| out.extend_from_slice(&row[c % 8].to_ne_bytes()));
+        }
+        out
+    }
+
+    #[test]
+    fn every_kind_of_word_comes_back_bit_for_bit() {
+        for (rows, words, seed) in [(4096, 8, 1), (4096, 66, 2), (100, 25, 3), (1, 8, 4)] {
+            let raw = slots(rows, words, seed);
+            let packed = pack_chunk(&raw, words).expect("packs");
+            assert_eq!(unpack_chunk(&packed, rows, words).expect("unpacks"), raw, "{rows}x{words}");
+        }
+        // Random words of any pattern, NaN payloads included.
+        let raw: Vec<u8> =
+            (0..4096 * 8 * 8).map(|i| ((i as u64 * 0x9e37_79b9) >> 13) as u8).collect();
+        assert_eq!(
+            unpack_chunk(&pack_chunk(&raw, 8).expect("packs"), 4096, 8).expect("unpacks"),
+            raw
+        );
+    }
+
+    #[test]
+    fn smooth_columns_pack_small() {
+        let raw = slots(4096, 8, 5);
+        let packed = pack_chunk(&raw, 8).expect("packs");
+        // The noise column (about 6.5 bytes a slot) dominates; the rest nearly vanish.
+        assert!(packed.len() < raw.len() / 3, "{} of {}", packed.len(), raw.len());
+    }
+
+    #[test]
+    fn a_segment_round_trips_through_its_table_and_damage_is_an_error() {
+        let words = 25;
+        let rows = 2 * CHUNK_SLOTS as usize + 100;
+        let raw = slots(rows, words, 6);
+        let header = [7u8; super::super::HEADER];
+        let file = pack(&header, &raw, words * 8).expect("packs");
+        let len = file.len() as u64;
+        let table = chunk_table(&file[header.len()..], rows as u64, len).expect("table");
+        assert_eq!(table.len(), 3);
+        let mut back = Vec::new();
+        for (i, (at, l)) in table.iter().enumerate() {
+            let chunk = &file[*at as usize..(*at + *l) as usize];
+            back.extend(unpack(chunk, i as u64, rows as u64, words * 8).expect("chunk"));
+        }
+        assert_eq!(back, raw);
+        // A table cut short, a chunk beyond the file, a damaged frame, an unknown code.
+        assert!(chunk_table(&file[header.len()..header.len() + 20], rows as u64, len).is_err());
+        assert!(chunk_table(&file[header.len()..], rows as u64, len - 1).is_err());
+        let (at, l) = table[1];
+        let mut chunk = file[at as usize..(at + l) as usize].to_vec();
+        let mid = chunk.len() / 2;
+        chunk[mid] ^= 0xff;
+        chunk.truncate(chunk.len() - 3);
+        assert!(unpack(&chunk, 1, rows as u64, words * 8).is_err());
+        let mut chunk = file[at as usize..(at + l) as usize].to_vec();
+        chunk[0] = 200;
+        assert!(unpack(&chunk, 1, rows as u64, words * 8).is_err());
+    }
+
+    /// What packing costs and saves on a run's raw segments: `ROTORLOOP_PACK_DIR=DIR cargo
+    /// test --release -p rotorloop-common pack::tests::cost -- --ignored --nocapture`
+    /// packs and unpacks the first raw segment of each stream in `DIR` (a run directory's
+    /// `flight/` written before segments were packed) and prints bytes a tick and speed.
+    #[test]
+    #[ignore = "a measurement on a run's files"]
+    fn cost() {
+        let Some(dir) = std::env::var_os("ROTORLOOP_PACK_DIR") else {
+            eprintln!("set ROTORLOOP_PACK_DIR to a flight/ directory of raw segments");
+            return;
+        };
+        let dir = std::path::PathBuf::from(dir);
+        let seg = std::env::var("ROTORLOOP_PACK_SEGMENT").unwrap_or_else(|_| "000050".into());
+        for stream in ["plant-state", "plant-torque", "controller-torque", "reference"] {
+            let raw = std::fs::read(dir.join(format!("{stream}.{seg}.flight"))).expect("segment");
+            let (header, body) = raw.split_at(super::super::HEADER);
+            let size = u64::from_ne_bytes(header[16..24].try_into().expect("size")) as usize;
+            let slot = 8 + size.next_multiple_of(8);
+            let slots = (body.len() / slot) as u64;
+            let t0 = std::time::Instant::now();
+            let file = pack(header, body, slot).expect("packs");
+            let packed_s = t0.elapsed().as_secs_f64();
+            let table =
+                chunk_table(&file[header.len()..], slots, file.len() as u64).expect("table");
+            let t1 = std::time::Instant::now();
+            let mut back = Vec::with_capacity(body.len());
+            for (i, (at, l)) in table.iter().enumerate() {
+                let chunk = &file[*at as usize..(*at + *l) as usize];
+                back.extend(unpack(chunk, i as u64, slots, slot).expect("unpacks"));
+            }
+            let unpacked_s = t1.elapsed().as_secs_f64();
+            assert!(back == body, "{stream}: not bit for bit");
+            println!(
+                "{stream}: {slot} B a slot raw, {:.1} B a tick packed ({:.2}x); pack {:.0} MB/s, \
+                 unpack {:.0} MB/s (of raw)",
+                file.len() as f64 / slots as f64,
+                raw.len() as f64 / file.len() as f64,
+                body.len() as f64 / packed_s / 1e6,
+                body.len() as f64 / unpacked_s / 1e6,
+            );
+        }
+    }
+}
