@@ -15,17 +15,23 @@ fn main() -> std::process::ExitCode {
 
 /// `ROTORLOOP_PEAK_RSS=FILE`: each `rotorloop` process (the launcher, every role, every
 /// command) appends one line to FILE as it ends normally: its arguments after the
-/// program's name, a tab, and its peak resident memory in KiB (`getrusage`'s `ru_maxrss`).
-/// How the memory of every phase of a run is measured (docs/measurements.md,
-/// `tests/memory.rs`); a process killed by a signal writes nothing.
+/// program's name, a tab, and its peak resident memory in KiB (`VmHWM` of
+/// `/proc/self/status`). How the memory of every phase of a run is measured
+/// (docs/measurements.md, `tests/memory.rs`); a process killed by a signal writes nothing.
+///
+/// Not `getrusage`'s `ru_maxrss`: Linux keeps that across `execve`, so a process started
+/// by a `fork` (a `Command` with a `pre_exec` hook) reports at least its parent's memory
+/// at the fork: a command spawned by a test process holding 23 MB of traces said 23 MB.
 fn peak_rss_report() {
     use std::io::Write;
     let Some(path) = std::env::var_os("ROTORLOOP_PEAK_RSS") else { return };
-    // SAFETY: getrusage fills the struct it is given.
-    let peak_kib = unsafe {
-        let mut u: libc::rusage = std::mem::zeroed();
-        libc::getrusage(libc::RUSAGE_SELF, &mut u);
-        u.ru_maxrss
+    let status = std::fs::read_to_string("/proc/self/status").unwrap_or_default();
+    let Some(peak_kib) = status
+        .lines()
+        .find_map(|l| l.strip_prefix("VmHWM:"))
+        .and_then(|v| v.trim().trim_end_matches("kB").trim().parse::<u64>().ok())
+    else {
+        return;
     };
     let args: Vec<String> = std::env::args().skip(1).collect();
     let line = format!("{}\t{peak_kib}\n", args.join(" "));

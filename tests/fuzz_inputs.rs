@@ -535,6 +535,7 @@ fn damaged_launch_json_is_refused_naming_the_file_and_the_key() {
         scenario: rotorloop_common::scenario::ScenarioFile::load("paper-zero").expect("built-in"),
         staging: None,
         moved: false,
+        csv: true,
         launcher_pid: 1,
     };
     let sound = serde_json::to_value(&record).expect("json");

@@ -77,8 +77,42 @@ impl FlightRecords {
         self.states.last().and_then(|k| self.states.get(k))
     }
 
+    /// Hands tick `k`'s samples to `joiner` in the order the live monitor takes them:
+    /// the reference, the torque (the controller's record, else the plant's: then it
+    /// returns true), the state.
+    pub(crate) fn feed(&self, k: u64, joiner: &mut RowJoiner) -> bool {
+        // The records hold each tick's sample in that tick's slot, so none is beyond the
+        // run; no later state says more than the run's last tick (the tick rule's
+        // stand-in).
+        let published = || None;
+        if let Some(r) = self.references.get(k) {
+            joiner.take_reference(r, published);
+        }
+        let torque = self.torques.as_ref().and_then(|t| t.get(k));
+        let from_plant = match (torque, self.received.get(k)) {
+            (Some(t), _) => {
+                joiner.take_torque(t, published);
+                false
+            }
+            (None, Some(t)) => {
+                joiner.take_torque(t, published);
+                true
+            }
+            (None, None) => false,
+        };
+        if let Some(s) = self.states.get(k) {
+            joiner.take_state(s);
+        }
+        from_plant
+    }
+
+    /// The first state's wake-up: where the report's clocks start.
+    pub(crate) fn start_ns(&self) -> u64 {
+        self.states.get(0).map_or(0, |s| s.wake_ns)
+    }
+
     /// The newest tick any stream recorded (no later tick holds anything).
-    fn last_tick(&self) -> u64 {
+    pub(crate) fn last_tick(&self) -> u64 {
         let torques = self.torques.as_ref().and_then(FlightLog::last);
         [self.states.last(), self.received.last(), torques, self.references.last()]
             .into_iter()
@@ -107,45 +141,28 @@ impl FlightRecords {
     }
 }
 
-/// Writes the run's files into `out` from `records` (module docs) and returns the
-/// summary, with the live view's part (receive counts, gaps, restarts) taken from the
-/// live monitor's joiner `live` when there was a monitor.
+/// Writes the run's files into `out` from `records` (module docs; `trace.csv` and
+/// `timing.csv` only with `csv`) and returns the summary, with the live view's part
+/// (receive counts, gaps, restarts) taken from the live monitor's joiner `live` when
+/// there was a monitor.
 pub fn report(
     out: &Path,
     dir: &Path,
     records: &FlightRecords,
-    scenario: &Scenario,
-    role: &RoleArgs,
+    (scenario, role, csv): (&Scenario, &RoleArgs, bool),
     hosts: &Hosts,
     live: Option<&RowJoiner>,
 ) -> RunSummary {
     let ticks = scenario.ticks();
-    let start = records.states.get(0).map_or(0, |s| s.wake_ns);
-    let (mut rec, _) = Recording::open(out, scenario, None, (start, None));
+    let start = records.start_ns();
+    let (mut rec, _) = Recording::open(out, scenario, None, (start, None), csv);
     rec.hosts = hosts.clone();
     let mut joiner = RowJoiner::for_scenario(scenario, start);
     let mut flight = records.summary(dir, ticks);
-    // The records hold each tick's sample in that tick's slot, so none is beyond the run;
-    // no later state says more than the run's last tick (the tick rule's stand-in).
-    let published = || None;
     // Ticks past the newest record hold nothing: a run whose files claim more ticks than
     // were recorded is read as far as it goes, not looped over to its claim.
     for k in 0..=records.last_tick() {
-        if let Some(r) = records.references.get(k) {
-            joiner.take_reference(r, published);
-        }
-        let torque = records.torques.as_ref().and_then(|t| t.get(k));
-        match (torque, records.received.get(k)) {
-            (Some(t), _) => joiner.take_torque(t, published),
-            (None, Some(t)) => {
-                flight.torques_from_plant += 1;
-                joiner.take_torque(t, published);
-            }
-            (None, None) => {}
-        }
-        if let Some(s) = records.states.get(k) {
-            joiner.take_state(s);
-        }
+        flight.torques_from_plant += u64::from(records.feed(k, &mut joiner));
         while let Some(row) = joiner.next_row(false) {
             rec.write(&row);
         }
@@ -193,7 +210,7 @@ pub fn final_report(
     out: &Path,
     record: Option<&Path>,
     fallback: &Path,
-    (scenario, role): (&Scenario, &RoleArgs),
+    (scenario, role, csv): (&Scenario, &RoleArgs, bool),
     joiner: &RowJoiner,
     mut rec: Recording,
 ) -> RunSummary {
@@ -204,7 +221,7 @@ pub fn final_report(
     if let Some((dir, Ok(records))) = &records {
         let hosts = rec.hosts.clone();
         drop(rec); // its buffered rows go to disk before the files are rewritten
-        return report(out, dir, records, scenario, role, &hosts, Some(joiner));
+        return report(out, dir, records, (scenario, role, csv), &hosts, Some(joiner));
     }
     let (files, dir) = rec.finish(&scenario.file.name, fallback);
     let mut s = summary(scenario, role, joiner, &rec, files);

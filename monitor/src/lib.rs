@@ -8,6 +8,7 @@
 //! process around them.
 
 pub mod assemble;
+pub mod derive;
 pub mod figures;
 pub mod filer;
 pub mod hosts;

@@ -23,7 +23,7 @@ use crate::figures::Recorder;
 use crate::figures::tracking_figures;
 use crate::filer::{Filer, Written};
 use crate::latency::{Hop, Latency};
-use crate::metrics::Metrics;
+use crate::metrics::{Metrics, TraceRow};
 use crate::policy::{JoinedRow, MonitorResume, RowJoiner};
 use crate::stages::Stages;
 use crate::trace::TraceWriter;
@@ -131,32 +131,40 @@ impl Recording {
     /// the predecessor's, appended to (a restart); then it also returns that slot content.
     /// Files that cannot be opened are a [`StorageLoss`] from the first row, not an error.
     /// `stall`: the tests' hold-up of a first monitor's first write ([`Filer::start`]).
+    /// Without `csv` it writes no `trace.csv` or `timing.csv` (a long run's output: they
+    /// are derived from the flight records on demand, [`crate::derive`]), and removes those
+    /// of an earlier run in `out`.
     pub fn open(
         out: &Path,
         scenario: &Scenario,
         slot: Option<MonitorResume>,
         (now_ns, stall): (u64, Option<std::time::Duration>),
+        csv: bool,
     ) -> (Self, Option<MonitorResume>) {
         let _ = std::fs::create_dir_all(out);
         let _ = std::fs::remove_file(out.join("summary.json"));
-        let resumed =
-            slot.filter(|r| r.next_row <= scenario.ticks() && out.join("trace.csv").exists());
+        let resumed = slot
+            .filter(|r| r.next_row <= scenario.ticks() && (!csv || out.join("trace.csv").exists()));
         let first_row = resumed.map_or(0, |r| r.next_row);
         let stall = stall.filter(|_| resumed.is_none());
-        let (files, lengths_at_open, loss) = match open_files(out, resumed.as_ref(), stall) {
-            Ok((f, lengths)) => (Some(f), lengths, None),
-            Err(e) => {
+        if !csv {
+            for f in ["trace.csv", "timing.csv"] {
+                let _ = std::fs::remove_file(out.join(f));
+            }
+        }
+        let opened = if csv { Some(open_files(out, resumed.as_ref(), stall)) } else { None };
+        let (files, lengths_at_open, loss) = match opened {
+            None => (None, [0, 0], None),
+            Some(Ok((f, lengths))) => (Some(f), lengths, None),
+            Some(Err(e)) => {
                 let loss = StorageLoss { from_tick: first_row, reason: format!("{e:#}") };
                 (None, [0, 0], Some(loss))
             }
         };
-        let actuation = scenario.actuation();
-        let params = scenario.plant_params(actuation);
-        // The initial state exactly as the plant's integrator holds it.
-        let init = rotorloop_plant::Body::new(params, scenario.plant_init).state();
+        let (metrics, actuation) = new_metrics(scenario);
         let metrics = match &resumed {
-            Some(r) => Metrics::restore(params, &r.metrics),
-            None => Metrics::new(params, &init).with_disturbance(scenario.disturbance),
+            Some(r) => Metrics::restore(scenario.plant_params(actuation), &r.metrics),
+            None => metrics,
         };
         let latency = Latency::new(out, now_ns, resumed.is_some()).unwrap_or_else(|_| {
             unreachable!("Latency::new keeps its histograms when its logs cannot be opened")
@@ -208,22 +216,7 @@ impl Recording {
     /// figures' data and its latencies.
     pub fn write(&mut self, j: &JoinedRow) {
         let (s, k) = (&j.state, j.tick);
-        let nan = DVec3::splat(f64::NAN);
-        let (u, tau) = match j.torque {
-            Some(t) if t.computed() => (
-                if self.actuation == Actuation::Internal {
-                    DVec3::from_array(t.rotor_torque_nm)
-                } else {
-                    DVec3::ZERO
-                },
-                DVec3::from_array(t.body_torque_nm),
-            ),
-            _ => (nan, nan),
-        };
-        let rd = j.reference.reference_state();
-        let mut row =
-            self.metrics.observe_work(k, s.t_s, &s.body_state(), &rd, u, tau, s.rotor_work_j);
-        row.delay_s = j.following.map_or(f64::NAN, |f| f.first_effect_delay_s(self.dt));
+        let row = trace_row(&mut self.metrics, self.actuation, self.dt, j);
         self.first_unflushed.get_or_insert(k);
         if self.files.is_some() {
             // Formatted here, written by the files' thread (`crate::filer`); a write into
@@ -416,6 +409,43 @@ impl Recording {
         }
         (files, dir)
     }
+}
+
+/// The trace row of the joined row `j`: its tracking metrics and invariants (`metrics`
+/// goes on from it) and the actuation delay in force.
+pub(crate) fn trace_row(
+    metrics: &mut Metrics,
+    actuation: Actuation,
+    dt: f64,
+    j: &JoinedRow,
+) -> TraceRow {
+    let s = &j.state;
+    let nan = DVec3::splat(f64::NAN);
+    let (u, tau) = match j.torque {
+        Some(t) if t.computed() => (
+            if actuation == Actuation::Internal {
+                DVec3::from_array(t.rotor_torque_nm)
+            } else {
+                DVec3::ZERO
+            },
+            DVec3::from_array(t.body_torque_nm),
+        ),
+        _ => (nan, nan),
+    };
+    let rd = j.reference.reference_state();
+    let mut row = metrics.observe_work(j.tick, s.t_s, &s.body_state(), &rd, u, tau, s.rotor_work_j);
+    row.delay_s = j.following.map_or(f64::NAN, |f| f.first_effect_delay_s(dt));
+    row
+}
+
+/// The metrics of a new report of `scenario`, from the plant's initial state, and the
+/// run's actuation.
+pub(crate) fn new_metrics(scenario: &Scenario) -> (Metrics, Actuation) {
+    let actuation = scenario.actuation();
+    let params = scenario.plant_params(actuation);
+    // The initial state exactly as the plant's integrator holds it.
+    let init = rotorloop_plant::Body::new(params, scenario.plant_init).state();
+    (Metrics::new(params, &init).with_disturbance(scenario.disturbance), actuation)
 }
 
 /// Where a run of `domain` writes what its output directory cannot take.

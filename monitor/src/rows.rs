@@ -1,17 +1,48 @@
 //! A report's CSV files (`trace.csv`, `timing.csv`) read a row at a time, in tick order,
 //! in bounded memory: the readers of a finished run (the replay, the export, the fault
 //! report) walk the ticks in order and ask for each tick's row, so one row is held, never
-//! the file.
+//! the file. A run that wrote no CSV files (`run --no-csv`) has its rows derived from its
+//! flight records instead ([`TickRows::of_run`], [`crate::derive`]).
 
 use std::io::{BufRead, BufReader};
-use std::path::Path;
+use std::path::{Path, PathBuf};
 
 use anyhow::Context;
 
+use crate::derive::DerivedRows;
+
+/// One of a run's two CSV files.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Csv {
+    /// `trace.csv`.
+    Trace,
+    /// `timing.csv`.
+    Timing,
+}
+
+impl Csv {
+    /// The file's name.
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::Trace => "trace.csv",
+            Self::Timing => "timing.csv",
+        }
+    }
+
+    /// The file's header line.
+    pub fn header(self) -> String {
+        match self {
+            Self::Trace => crate::trace::HEADER.to_owned(),
+            Self::Timing => crate::timing::header(),
+        }
+    }
+}
+
+type Lines = Box<dyn Iterator<Item = std::io::Result<String>>>;
+
 /// The rows of a CSV file with a `tick` column, in file order (module docs).
-#[derive(Debug)]
 pub struct TickRows {
-    lines: std::io::Lines<BufReader<std::fs::File>>,
+    lines: Lines,
     header: String,
     tick: usize,
     /// The next row not yet handed out: its tick and line.
@@ -20,6 +51,16 @@ pub struct TickRows {
     /// repeated) or did not parse.
     pub skipped: u64,
     last: Option<u64>,
+}
+
+impl std::fmt::Debug for TickRows {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("TickRows")
+            .field("header", &self.header)
+            .field("last", &self.last)
+            .field("skipped", &self.skipped)
+            .finish_non_exhaustive()
+    }
 }
 
 impl TickRows {
@@ -33,10 +74,33 @@ impl TickRows {
             .transpose()
             .with_context(|| format!("cannot read {}", path.display()))?
             .unwrap_or_default();
+        Self::of_lines(Box::new(lines), header, &path.display().to_string())
+    }
+
+    /// The rows of `csv` of the run in `dir`: its file, or, where the run wrote none
+    /// (`run --no-csv`), the rows derived from its flight records ([`records_dir`]) for
+    /// the scenario its `summary.json` says it ran.
+    pub fn of_run(dir: &Path, csv: Csv) -> anyhow::Result<Self> {
+        let path = dir.join(csv.name());
+        if path.exists() {
+            return Self::open(&path);
+        }
+        let mut derived = DerivedRows::of_run(dir)
+            .with_context(|| format!("no {} in {}", csv.name(), dir.display()))?;
+        let lines = std::iter::from_fn(move || {
+            derived.next_row().map(|(trace, timing)| match csv {
+                Csv::Trace => Ok(trace),
+                Csv::Timing => Ok(timing),
+            })
+        });
+        Self::of_lines(Box::new(lines), csv.header(), &format!("{} (derived)", path.display()))
+    }
+
+    fn of_lines(lines: Lines, header: String, what: &str) -> anyhow::Result<Self> {
         let tick = header
             .split(',')
             .position(|c| c == "tick")
-            .with_context(|| format!("{} has no tick column", path.display()))?;
+            .with_context(|| format!("{what} has no tick column"))?;
         let mut rows = Self { lines, header, tick, ahead: None, skipped: 0, last: None };
         rows.advance();
         Ok(rows)
@@ -101,6 +165,21 @@ impl TickRows {
         }
         if self.peek_tick() == Some(k) { self.next_row().map(|(_, l)| l) } else { None }
     }
+}
+
+/// Where the flight records of the run in `dir` are: `dir/flight`, or where its summary
+/// says they were left (`run --record DIR`).
+pub fn records_dir(dir: &Path, summary: Option<&serde_json::Value>) -> PathBuf {
+    use rotorloop_common::flight::Stream;
+    let kept = dir.join("flight");
+    if Stream::PlantState.path(&kept).exists() {
+        return kept;
+    }
+    summary
+        .and_then(|s| s["flight"]["dir"].as_str())
+        .map(PathBuf::from)
+        .filter(|d| Stream::PlantState.path(d).exists())
+        .unwrap_or(kept)
 }
 
 #[cfg(test)]

@@ -26,7 +26,7 @@
 //! time: `clock`, and the wall time of the first state's publish where the run recorded it.
 
 use std::collections::BTreeMap;
-use std::path::{Path, PathBuf};
+use std::path::Path;
 
 use anyhow::Context as _;
 use foxglove::messages::{FrameTransform, Log, Quaternion, Timestamp, Vector3};
@@ -35,7 +35,7 @@ use rotorloop_common::flight::{FlightLog, SPARE_SLOTS, Stream};
 use rotorloop_common::wire::{
     FLAG_REALTIME, FLAG_SAFE_MODE, NO_TICK, ReferenceSample, StateSample, TorqueSample,
 };
-use rotorloop_monitor::rows::TickRows;
+use rotorloop_monitor::rows::{Csv, TickRows, records_dir};
 use serde::Serialize;
 use serde_json::Value;
 
@@ -64,20 +64,6 @@ struct Run {
     summary: Option<Value>,
 }
 
-/// Where a run directory's flight records are: `DIR/flight`, or where its summary says
-/// they stayed (a run whose records could not be moved).
-fn records_dir(dir: &Path, summary: Option<&Value>) -> PathBuf {
-    let kept = dir.join("flight");
-    if Stream::PlantState.path(&kept).exists() {
-        return kept;
-    }
-    summary
-        .and_then(|s| s["flight"]["dir"].as_str())
-        .map(PathBuf::from)
-        .filter(|d| Stream::PlantState.path(d).exists())
-        .unwrap_or(kept)
-}
-
 impl Run {
     fn read(dir: &Path) -> anyhow::Result<Self> {
         let summary = std::fs::read_to_string(dir.join("summary.json"))
@@ -100,7 +86,7 @@ impl Run {
         let torques = FlightLog::read(&flight, Stream::ControllerTorque, limit).ok();
         let references =
             FlightLog::read(&flight, Stream::Reference, limit).with_context(missing)?;
-        let trace = open_trace(&dir.join("trace.csv"))?;
+        let trace = open_trace(dir)?;
         let trace_columns = trace.columns();
         let trace = trace.into();
         Ok(Self { states, torques, received, references, trace, trace_columns, summary })
@@ -117,9 +103,11 @@ impl Run {
 }
 
 /// Opens `trace.csv` to be read a row at a time.
-fn open_trace(path: &Path) -> anyhow::Result<TickRows> {
-    TickRows::open(path)
-        .with_context(|| format!("cannot read {} (the run's report)", path.display()))
+/// The run's trace rows: its `trace.csv`, or derived from its records (`run --no-csv`).
+fn open_trace(dir: &Path) -> anyhow::Result<TickRows> {
+    TickRows::of_run(dir, Csv::Trace).with_context(|| {
+        format!("cannot read {} (the run's report)", dir.join("trace.csv").display())
+    })
 }
 
 /// A trace row's values (NaN where one is not a number).
@@ -512,7 +500,7 @@ fn split_csv(line: &str) -> Vec<String> {
 /// A run without flight records, from its `trace.csv` (and `summary.json`, attached):
 /// `/tf` and `/rotorloop/tracking` at the simulated time of each row.
 fn write_trace_messages(sink: &mut FileSink, dir: &Path) -> anyhow::Result<()> {
-    let mut rows = open_trace(&dir.join("trace.csv"))?;
+    let mut rows = open_trace(dir)?;
     let columns = rows.columns();
     let col = |n: &str| {
         columns.iter().position(|c| c == n).with_context(|| format!("trace.csv has no {n} column"))

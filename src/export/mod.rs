@@ -18,21 +18,73 @@ pub struct ExportArgs {
     /// Write `DIR/run.mcap` (Foxglove, Lichtblick: docs/foxglove.md).
     #[arg(long)]
     pub mcap: bool,
+    /// Write `DIR/trace.csv` and `DIR/timing.csv` from the flight records (a run made
+    /// with `run --no-csv`): the rows its report would have written, byte for byte.
+    #[arg(long)]
+    pub csv: bool,
 }
 
 /// Runs `rotorloop export`.
 pub fn run(a: &ExportArgs) -> anyhow::Result<()> {
-    if !a.mcap {
+    if !a.mcap && !a.csv {
         return Err(rotorloop_common::role::UsageError(
-            "export: name a format: --mcap (the only one so far)".into(),
+            "export: name a format: --mcap or --csv (or both)".into(),
         )
         .into());
+    }
+    if a.csv {
+        csv(&a.dir)?;
+    }
+    if !a.mcap {
+        return Ok(());
     }
     let counts = mcap::write(&a.dir)?;
     let n: u64 = counts.messages.values().sum();
     println!("{}: {n} messages", counts.path);
     for (topic, c) in &counts.messages {
         println!("  {topic:24} {c}");
+    }
+    Ok(())
+}
+
+/// Writes `DIR/trace.csv` and `DIR/timing.csv` from the run's records, a row at a time,
+/// each through a `.part` file renamed when complete; refuses where either exists.
+fn csv(dir: &std::path::Path) -> anyhow::Result<()> {
+    use anyhow::Context;
+    use rotorloop_monitor::rows::Csv;
+    use std::io::Write;
+    for c in [Csv::Trace, Csv::Timing] {
+        if dir.join(c.name()).exists() {
+            return Err(rotorloop_common::role::UsageError(format!(
+                "export --csv: {} exists (the run wrote it); remove it to derive it again from \
+                 the records",
+                dir.join(c.name()).display()
+            ))
+            .into());
+        }
+    }
+    let mut rows = rotorloop_monitor::derive::DerivedRows::of_run(dir)
+        .with_context(|| format!("cannot derive the CSV files of {}", dir.display()))?;
+    let create = |c: Csv| -> anyhow::Result<_> {
+        let part = dir.join(format!("{}.part", c.name()));
+        let f = std::fs::File::create(&part)
+            .with_context(|| format!("cannot write {}", part.display()))?;
+        let mut w = std::io::BufWriter::new(f);
+        writeln!(w, "{}", c.header())?;
+        Ok((w, part, dir.join(c.name())))
+    };
+    let (mut trace, mut timing) = (create(Csv::Trace)?, create(Csv::Timing)?);
+    let mut n = 0u64;
+    while let Some((t, m)) = rows.next_row() {
+        writeln!(trace.0, "{t}")?;
+        writeln!(timing.0, "{m}")?;
+        n += 1;
+    }
+    for (mut w, part, path) in [trace, timing] {
+        w.flush().with_context(|| format!("cannot write {}", part.display()))?;
+        std::fs::rename(&part, &path)
+            .with_context(|| format!("cannot write {}", path.display()))?;
+        println!("{}: {n} rows", path.display());
     }
     Ok(())
 }

@@ -56,6 +56,12 @@ pub struct RunArgs {
     /// later from the records).
     #[arg(long)]
     pub no_mcap: bool,
+    /// Write no `OUT/trace.csv` or `OUT/timing.csv`: for a long run, whose whole output
+    /// is then its packed flight records (about 0.3 MB a second at 1 kHz). `rotorloop
+    /// export OUT --csv` derives them from the records when wanted; `sim --replay` and
+    /// `export --mcap` read the records directly.
+    #[arg(long)]
+    pub no_csv: bool,
     /// Do not sample each role's scheduling (`/proc/PID/schedstat`, its state, the steal
     /// time) into `OUT/sched.csv`: the incidents then lack the kernel's view. For
     /// measuring what the sampling costs (`bench --before-after sched`).
@@ -208,6 +214,7 @@ impl RunArgs {
             quiet: false,
             no_record: false,
             no_mcap: false,
+            no_csv: false,
             force: false,
             no_sched_sample: false,
             trace_sched: false,
@@ -241,6 +248,13 @@ pub(crate) fn check_role_flags(a: &RunArgs) -> Result<(), UsageError> {
             "--core {core} is not allowed with `rotorloop run`: it pins each role with --pin \
              ROLE=CORE,… (--core is for a role started by hand)"
         )));
+    }
+    if a.no_csv && a.no_record {
+        return Err(UsageError(
+            "--no-csv is not allowed with --no-record: the trace would be written nowhere \
+             (--no-csv derives it from the flight records)"
+                .into(),
+        ));
     }
     if let Some(host) = &a.role.host {
         return Err(UsageError(format!(

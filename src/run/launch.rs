@@ -202,6 +202,7 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
         scenario: scenario.file.clone(),
         staging: launch.role_args.record.clone(),
         moved: args.role.record.is_none(),
+        csv: !args.no_csv,
         launcher_pid: std::process::id(),
     };
     record.write(&args.out)?;

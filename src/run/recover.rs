@@ -49,8 +49,15 @@ pub struct LaunchRecord {
     /// Whether the launcher moves the records into `RUN_DIR/flight` at the end (its own
     /// staging directory), or leaves them where the user's `--record` put them.
     pub moved: bool,
+    /// Whether the report writes `trace.csv` and `timing.csv` (not with `--no-csv`).
+    #[serde(default = "yes")]
+    pub csv: bool,
     /// The launcher's pid.
     pub launcher_pid: u32,
+}
+
+fn yes() -> bool {
+    true
 }
 
 impl LaunchRecord {
@@ -165,8 +172,8 @@ pub fn run(dir: &Path) -> anyhow::Result<()> {
     }
     let records = rotorloop_monitor::assemble::FlightRecords::read(&kept, scenario.ticks())
         .with_context(|| format!("cannot read the flight records in {}", kept.display()))?;
-    let summary =
-        rotorloop_monitor::assemble::report(dir, &kept, &records, &scenario, &role, &hosts, None);
+    let how = (&scenario, &role, launch.csv);
+    let summary = rotorloop_monitor::assemble::report(dir, &kept, &records, how, &hosts, None);
     let fallback = rotorloop_monitor::recording::fallback_dir(role.domain());
     rotorloop_monitor::report::write_summary(dir, &fallback, &summary)?;
     rotorloop_common::output::patch_summary(dir, |j| {

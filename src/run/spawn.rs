@@ -131,6 +131,9 @@ impl Launch<'_> {
         match role.parse::<Role>() {
             Ok(Role::Monitor) => {
                 cmd.arg("--out").arg(&args.out);
+                if args.no_csv {
+                    cmd.arg("--no-csv");
+                }
                 if let Some(hosts) = self.monitor_hosts() {
                     cmd.arg("--hosts").arg(hosts);
                 }
@@ -193,8 +196,7 @@ impl Launch<'_> {
             out,
             dir,
             &records,
-            scenario,
-            &self.role_args,
+            (scenario, &self.role_args, !self.args.no_csv),
             &hosts,
             None,
         );

@@ -23,7 +23,7 @@ use glam::DVec3;
 use rotorloop_common::scenario::{Actuation, Scenario};
 use rotorloop_common::wire::FLAG_SAFE_MODE;
 use rotorloop_monitor::metrics::Metrics;
-use rotorloop_monitor::rows::TickRows;
+use rotorloop_monitor::rows::{Csv, TickRows};
 use rotorloop_monitor::timing::TimingRows;
 use rotorloop_monitor::trace::TraceWriter;
 use rotorloop_plant::actuator::{ActuationDelay, DelayLine, integrate_tick};
@@ -130,9 +130,9 @@ impl Trace {
 /// Compares the replayed trace with the run's, a row at a time: the first tick whose row
 /// differs (0 for the header), and the rows of each.
 fn compare(dir: &Path, out: &Path) -> anyhow::Result<(Option<u64>, u64, u64)> {
-    let open =
-        |d: &Path| TickRows::open(&d.join("trace.csv")).map_err(|e| bad(dir, &format!("{e:#}")));
-    let (mut run, mut replayed) = (open(dir)?, open(out)?);
+    let open = |rows: anyhow::Result<TickRows>| rows.map_err(|e| bad(dir, &format!("{e:#}")));
+    let run = open(TickRows::of_run(dir, Csv::Trace))?;
+    let (mut run, mut replayed) = (run, open(TickRows::open(&out.join("trace.csv")))?);
     let mut first = (run.header() != replayed.header()).then_some(0);
     let (mut rows, mut replayed_rows) = (0u64, 0u64);
     while let Some((k, line)) = run.next_row() {
@@ -166,9 +166,9 @@ pub fn run(dir: &Path, out: &Path) -> anyhow::Result<ReplaySummary> {
         .map_err(|e| bad(dir, &format!("summary.json has no scenario as run: {e}")))?;
     let scenario = Scenario::from_file(file).map_err(UsageError::from)?;
     let timing_err = |e: anyhow::Error| -> anyhow::Error { bad(dir, &format!("{e:#}")).into() };
-    let mut timing = TimingRows::open(&dir.join("timing.csv")).map_err(timing_err)?;
-    let rows = TickRows::open(&dir.join("trace.csv"))
-        .map_err(|e| bad(dir, &format!("trace.csv: {e:#}")))?;
+    let mut timing = TimingRows::of_run(dir).map_err(timing_err)?;
+    let rows =
+        TickRows::of_run(dir, Csv::Trace).map_err(|e| bad(dir, &format!("trace.csv: {e:#}")))?;
     let columns = torque_columns(dir, rows.header())?;
     let mut run_trace = Trace { rows, columns, recent: BTreeMap::new() };
     let (actuation, dt, ticks) = (scenario.actuation(), scenario.dt(), scenario.ticks());

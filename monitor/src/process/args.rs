@@ -14,6 +14,11 @@ pub struct MonitorArgs {
     /// Output directory for trace, histograms, logs, plots and summary.
     #[arg(long)]
     pub out: PathBuf,
+    /// Write no `trace.csv` or `timing.csv`: a long run's output (`rotorloop export OUT
+    /// --csv` derives them from the flight records, which `sim --replay` and `export
+    /// --mcap` read directly). Needs the flight records (`--record`).
+    #[arg(long)]
+    pub no_csv: bool,
     /// Print a live status line on stderr.
     #[arg(long)]
     pub status: bool,

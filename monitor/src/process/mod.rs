@@ -22,12 +22,18 @@ use ports::Ports;
 /// Runs the monitor until it has the last row, or a termination signal.
 pub fn run(args: &args::MonitorArgs) -> anyhow::Result<()> {
     let (role, scenario) = (&args.role, args.role.scenario()?);
+    if args.no_csv && role.record.is_none() {
+        let why = "--no-csv needs the flight records (--record DIR): without them the trace \
+                   would be lost";
+        return Err(rotorloop_common::role::UsageError(why.into()).into());
+    }
     role.setup(ROLE);
     let ports = Ports::open(role, &args.out)?;
     // A restart continues the report in the same directory.
     let stall = role.hooks.test_files_stall_ms.map(std::time::Duration::from_millis);
     let resumed = ports.slot.load_for(ROLE, scenario.ticks());
-    let (mut rec, resumed) = Recording::open(&args.out, &scenario, resumed, (now_ns(), stall));
+    let (mut rec, resumed) =
+        Recording::open(&args.out, &scenario, resumed, (now_ns(), stall), !args.no_csv);
     rec.hosts = args.hosts.clone().unwrap_or_default();
     let mut joiner = RowJoiner::for_scenario(&scenario, now_ns());
     if let Some(r) = &resumed {
@@ -74,7 +80,8 @@ pub fn run(args: &args::MonitorArgs) -> anyhow::Result<()> {
     }
     let fallback = fallback_dir(&ports.domain);
     let record = args.role.record.as_deref();
-    let summary = final_report(&args.out, record, &fallback, (&scenario, role), &joiner, rec);
+    let summary =
+        final_report(&args.out, record, &fallback, (&scenario, role, !args.no_csv), &joiner, rec);
     println!("{}", console_summary(&summary));
     write_summary(&args.out, &fallback, &summary)
 }

@@ -65,8 +65,10 @@ type ErrorCurve = (Vec<(f64, f64)>, BTreeMap<u64, f64>);
 
 /// The run's attitude error from `trace.csv`, a row at a time: every `every`-th row as
 /// `(t, err_deg)`, and the time of each tick of `at`.
-fn read_errors(path: &Path, every: u64, at: &[u64]) -> anyhow::Result<ErrorCurve> {
-    let mut rows = rotorloop_monitor::rows::TickRows::open(path)?;
+fn read_errors(out: &Path, every: u64, at: &[u64]) -> anyhow::Result<ErrorCurve> {
+    use rotorloop_monitor::rows::{Csv, TickRows};
+    let mut rows = TickRows::of_run(out, Csv::Trace)?;
+    let path = out.join(Csv::Trace.name());
     let header = rows.columns();
     let col = |n: &str| header.iter().position(|h| *h == n);
     let (Some(ct), Some(ce)) = (col("t"), col("err_deg")) else {
@@ -89,7 +91,7 @@ fn read_errors(path: &Path, every: u64, at: &[u64]) -> anyhow::Result<ErrorCurve
 
 /// `timing.csv`'s rows in tick order, as far as they read (none without the file).
 fn timing_rows(out: &Path) -> impl Iterator<Item = TimingRow> {
-    let mut rows = TimingRows::open(&out.join("timing.csv")).ok();
+    let mut rows = TimingRows::of_run(out).ok();
     std::iter::from_fn(move || rows.as_mut()?.next_row().ok().flatten())
 }
 
@@ -197,7 +199,7 @@ fn draw(out: &Path, scenario: &Scenario, reports: &[FaultReport]) -> anyhow::Res
         .flat_map(|r| [r.kill_tick, r.kill_tick.map(|k| k + r.ticks_without_fresh_torque)])
         .flatten()
         .collect();
-    let Ok((run, times)) = read_errors(&out.join("trace.csv"), every, &marked) else {
+    let Ok((run, times)) = read_errors(out, every, &marked) else {
         return Ok(());
     };
     if run.is_empty() {

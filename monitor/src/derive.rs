@@ -1,0 +1,96 @@
+//! A run's `trace.csv` and `timing.csv` derived from its flight records, a row at a time:
+//! the rows the monitor's report would have written ([`crate::assemble::report`]: the same
+//! joining, metrics and formatting), for a run that wrote none (`rotorloop run --no-csv`,
+//! a long run's output). `sim --replay`, `export --mcap` and the fault report read them so
+//! ([`crate::rows::TickRows::of_run`]); `rotorloop export OUT --csv` writes them out.
+//! Memory: the records' few blocks and the joiner's ring, whatever the run's length.
+
+use std::path::Path;
+
+use anyhow::Context;
+
+use rotorloop_common::flight::FlightError;
+use rotorloop_common::scenario::{Actuation, Scenario};
+
+use crate::assemble::FlightRecords;
+use crate::metrics::Metrics;
+use crate::policy::RowJoiner;
+use crate::recording::{new_metrics, trace_row};
+use crate::timing::TimingRow;
+use crate::trace::TraceWriter;
+
+/// The rows of a run's trace and timing files from its records (module docs).
+#[derive(Debug)]
+pub struct DerivedRows {
+    records: FlightRecords,
+    joiner: RowJoiner,
+    metrics: Metrics,
+    actuation: Actuation,
+    dt: f64,
+    /// The next tick to hand to the joiner.
+    next: u64,
+    /// The newest tick recorded.
+    last: u64,
+    /// Every tick handed over: what is still open is settled.
+    fed: bool,
+    line: Vec<u8>,
+}
+
+impl DerivedRows {
+    /// The rows of the run of `scenario` whose records are in `dir`.
+    pub fn open(dir: &Path, scenario: &Scenario) -> Result<Self, FlightError> {
+        let records = FlightRecords::read(dir, scenario.ticks())?;
+        let start = records.start_ns();
+        let last = records.last_tick();
+        let (metrics, actuation) = new_metrics(scenario);
+        Ok(Self {
+            joiner: RowJoiner::for_scenario(scenario, start),
+            records,
+            metrics,
+            actuation,
+            dt: scenario.dt(),
+            next: 0,
+            last,
+            fed: false,
+            line: Vec::with_capacity(1024),
+        })
+    }
+
+    /// The rows of the run in `dir`: its records ([`crate::rows::records_dir`]) for the
+    /// scenario its `summary.json` says it ran.
+    pub fn of_run(dir: &Path) -> anyhow::Result<Self> {
+        let summary = std::fs::read_to_string(dir.join("summary.json"))
+            .ok()
+            .and_then(|t| serde_json::from_str::<serde_json::Value>(&t).ok())
+            .context("no summary.json to say what the run's records are of")?;
+        let scenario = serde_json::from_value(summary["scenario"].clone())
+            .map_err(anyhow::Error::from)
+            .and_then(|f| Ok(Scenario::from_file(f)?))
+            .context("no scenario in its summary.json")?;
+        let records = crate::rows::records_dir(dir, Some(&summary));
+        Self::open(&records, &scenario).context("its flight records cannot be read")
+    }
+
+    /// The next row: its `trace.csv` line and its `timing.csv` line (without their line
+    /// ends), in tick order; `None` after the last.
+    pub fn next_row(&mut self) -> Option<(String, String)> {
+        loop {
+            if let Some(j) = self.joiner.next_row(self.fed) {
+                let row = trace_row(&mut self.metrics, self.actuation, self.dt, &j);
+                self.line.clear();
+                let _ = TraceWriter::append(&mut self.line).write(&row);
+                let trace = String::from_utf8_lossy(&self.line).trim_end().to_owned();
+                self.line.clear();
+                let _ = TimingRow::of(&j.state).write(&mut self.line);
+                let timing = String::from_utf8_lossy(&self.line).trim_end().to_owned();
+                return Some((trace, timing));
+            }
+            if self.fed {
+                return None;
+            }
+            self.records.feed(self.next, &mut self.joiner);
+            self.fed = self.next >= self.last;
+            self.next += 1;
+        }
+    }
+}
