@@ -2,7 +2,7 @@
 //! the rows the monitor's report would have written ([`crate::assemble::report`]: the same
 //! joining, metrics and formatting), for a run that wrote none (`rotorloop run --no-csv`,
 //! a long run's output). `sim --replay`, `export --mcap` and the fault report read them so
-//! ([`crate::rows::TickRows::of_run`]); `rotorloop export OUT --csv` writes them out.
+//! ([`run_rows`], [`timing_rows`]); `rotorloop export OUT --csv` writes them out.
 //! Memory: the records' few blocks and the joiner's ring, whatever the run's length.
 
 use std::path::Path;
@@ -16,8 +16,36 @@ use crate::assemble::FlightRecords;
 use crate::metrics::Metrics;
 use crate::policy::RowJoiner;
 use crate::recording::{new_metrics, trace_row};
-use crate::timing::TimingRow;
+use crate::rows::TickRows;
+use crate::timing::{TimingRow, TimingRows};
 use crate::trace::TraceWriter;
+
+/// One of a run's two CSV files.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Csv {
+    /// `trace.csv`.
+    Trace,
+    /// `timing.csv`.
+    Timing,
+}
+
+impl Csv {
+    /// The file's name.
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::Trace => "trace.csv",
+            Self::Timing => "timing.csv",
+        }
+    }
+
+    /// The file's header line.
+    pub fn header(self) -> String {
+        match self {
+            Self::Trace => crate::trace::HEADER.to_owned(),
+            Self::Timing => crate::timing::header(),
+        }
+    }
+}
 
 /// The rows of a run's trace and timing files from its records (module docs).
 #[derive(Debug)]
@@ -93,4 +121,28 @@ impl DerivedRows {
             self.next += 1;
         }
     }
+}
+
+/// The rows of `csv` of the run in `dir`: its file, or, where the run wrote none
+/// (`run --no-csv`), the rows derived from its records ([`DerivedRows::of_run`]).
+pub fn run_rows(dir: &Path, csv: Csv) -> anyhow::Result<TickRows> {
+    let path = dir.join(csv.name());
+    if path.exists() {
+        return TickRows::open(&path);
+    }
+    let mut derived = DerivedRows::of_run(dir)
+        .with_context(|| format!("no {} in {}", csv.name(), dir.display()))?;
+    let lines = std::iter::from_fn(move || {
+        derived.next_row().map(|(trace, timing)| match csv {
+            Csv::Trace => Ok(trace),
+            Csv::Timing => Ok(timing),
+        })
+    });
+    TickRows::of_lines(Box::new(lines), csv.header(), &format!("{} (derived)", path.display()))
+}
+
+/// The timing rows of the run in `dir`, from its file or its records ([`run_rows`]).
+pub fn timing_rows(dir: &Path) -> anyhow::Result<TimingRows> {
+    let csv = Csv::Timing;
+    TimingRows::of_rows(run_rows(dir, csv)?, &dir.join(csv.name()))
 }

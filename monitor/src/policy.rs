@@ -50,8 +50,10 @@ pub const TORQUE_PATIENCE: u64 = 1024;
 /// After the plant's last state, this long without any new sample settles the rows still
 /// open: their missing samples are not coming.
 pub const END_QUIET_NS: u64 = 5_000_000_000;
-/// The same for a monitor that started after the plant's last state: what was published
-/// is in its buffers at once, but the controller's last answer may still be coming.
+/// The same for a monitor that started after the plant's last state (a restart after the
+/// end, or one started by hand after the others): what was published is in its buffers at
+/// once, but the plant marks its end before it publishes its last state, so the
+/// controller's last answer may still be coming.
 pub const END_QUIET_AFTER_END_NS: u64 = 1_000_000_000;
 
 /// What a restarted monitor needs to continue the same report.

@@ -2,43 +2,15 @@
 //! in bounded memory: the readers of a finished run (the replay, the export, the fault
 //! report) walk the ticks in order and ask for each tick's row, so one row is held, never
 //! the file. A run that wrote no CSV files (`run --no-csv`) has its rows derived from its
-//! flight records instead ([`TickRows::of_run`], [`crate::derive`]).
+//! flight records instead ([`crate::derive::run_rows`]).
 
 use std::io::{BufRead, BufReader};
 use std::path::{Path, PathBuf};
 
 use anyhow::Context;
 
-use crate::derive::DerivedRows;
-
-/// One of a run's two CSV files.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum Csv {
-    /// `trace.csv`.
-    Trace,
-    /// `timing.csv`.
-    Timing,
-}
-
-impl Csv {
-    /// The file's name.
-    pub fn name(self) -> &'static str {
-        match self {
-            Self::Trace => "trace.csv",
-            Self::Timing => "timing.csv",
-        }
-    }
-
-    /// The file's header line.
-    pub fn header(self) -> String {
-        match self {
-            Self::Trace => crate::trace::HEADER.to_owned(),
-            Self::Timing => crate::timing::header(),
-        }
-    }
-}
-
-type Lines = Box<dyn Iterator<Item = std::io::Result<String>>>;
+/// A CSV file's lines after its header.
+pub type Lines = Box<dyn Iterator<Item = std::io::Result<String>>>;
 
 /// The rows of a CSV file with a `tick` column, in file order (module docs).
 pub struct TickRows {
@@ -77,26 +49,9 @@ impl TickRows {
         Self::of_lines(Box::new(lines), header, &path.display().to_string())
     }
 
-    /// The rows of `csv` of the run in `dir`: its file, or, where the run wrote none
-    /// (`run --no-csv`), the rows derived from its flight records ([`records_dir`]) for
-    /// the scenario its `summary.json` says it ran.
-    pub fn of_run(dir: &Path, csv: Csv) -> anyhow::Result<Self> {
-        let path = dir.join(csv.name());
-        if path.exists() {
-            return Self::open(&path);
-        }
-        let mut derived = DerivedRows::of_run(dir)
-            .with_context(|| format!("no {} in {}", csv.name(), dir.display()))?;
-        let lines = std::iter::from_fn(move || {
-            derived.next_row().map(|(trace, timing)| match csv {
-                Csv::Trace => Ok(trace),
-                Csv::Timing => Ok(timing),
-            })
-        });
-        Self::of_lines(Box::new(lines), csv.header(), &format!("{} (derived)", path.display()))
-    }
-
-    fn of_lines(lines: Lines, header: String, what: &str) -> anyhow::Result<Self> {
+    /// The rows of the lines `lines` under `header` (`what`: the file they stand for, as
+    /// errors name it).
+    pub fn of_lines(lines: Lines, header: String, what: &str) -> anyhow::Result<Self> {
         let tick = header
             .split(',')
             .position(|c| c == "tick")

@@ -122,17 +122,11 @@ pub struct TimingRows {
 impl TimingRows {
     /// Opens `path` and checks its header.
     pub fn open(path: &Path) -> anyhow::Result<Self> {
-        Self::checked(crate::rows::TickRows::open(path)?, path)
+        Self::of_rows(crate::rows::TickRows::open(path)?, path)
     }
 
-    /// The timing rows of the run in `dir`: its file, or derived from its records
-    /// ([`crate::rows::TickRows::of_run`]).
-    pub fn of_run(dir: &Path) -> anyhow::Result<Self> {
-        let csv = crate::rows::Csv::Timing;
-        Self::checked(crate::rows::TickRows::of_run(dir, csv)?, &dir.join(csv.name()))
-    }
-
-    fn checked(rows: crate::rows::TickRows, path: &Path) -> anyhow::Result<Self> {
+    /// The rows `rows` of a timing file (at `path`, as errors name it), its header checked.
+    pub fn of_rows(rows: crate::rows::TickRows, path: &Path) -> anyhow::Result<Self> {
         anyhow::ensure!(
             rows.header() == header(),
             "{}: not a timing.csv of this version (header `{}`, expected `{}`)",

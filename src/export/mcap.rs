@@ -35,7 +35,8 @@ use rotorloop_common::flight::{FlightLog, SPARE_SLOTS, Stream};
 use rotorloop_common::wire::{
     FLAG_REALTIME, FLAG_SAFE_MODE, NO_TICK, ReferenceSample, StateSample, TorqueSample,
 };
-use rotorloop_monitor::rows::{Csv, TickRows, records_dir};
+use rotorloop_monitor::derive::Csv;
+use rotorloop_monitor::rows::{TickRows, records_dir};
 use serde::Serialize;
 use serde_json::Value;
 
@@ -105,7 +106,7 @@ impl Run {
 /// Opens `trace.csv` to be read a row at a time.
 /// The run's trace rows: its `trace.csv`, or derived from its records (`run --no-csv`).
 fn open_trace(dir: &Path) -> anyhow::Result<TickRows> {
-    TickRows::of_run(dir, Csv::Trace).with_context(|| {
+    rotorloop_monitor::derive::run_rows(dir, Csv::Trace).with_context(|| {
         format!("cannot read {} (the run's report)", dir.join("trace.csv").display())
     })
 }

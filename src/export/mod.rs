@@ -51,7 +51,7 @@ pub fn run(a: &ExportArgs) -> anyhow::Result<()> {
 /// each through a `.part` file renamed when complete; refuses where either exists.
 fn csv(dir: &std::path::Path) -> anyhow::Result<()> {
     use anyhow::Context;
-    use rotorloop_monitor::rows::Csv;
+    use rotorloop_monitor::derive::Csv;
     use std::io::Write;
     for c in [Csv::Trace, Csv::Timing] {
         if dir.join(c.name()).exists() {

@@ -22,9 +22,9 @@ use anyhow::Context;
 use glam::DVec3;
 use rotorloop_common::scenario::{Actuation, Scenario};
 use rotorloop_common::wire::FLAG_SAFE_MODE;
+use rotorloop_monitor::derive::Csv;
 use rotorloop_monitor::metrics::Metrics;
-use rotorloop_monitor::rows::{Csv, TickRows};
-use rotorloop_monitor::timing::TimingRows;
+use rotorloop_monitor::rows::TickRows;
 use rotorloop_monitor::trace::TraceWriter;
 use rotorloop_plant::actuator::{ActuationDelay, DelayLine, integrate_tick};
 use rotorloop_plant::{Body, BodyInput};
@@ -131,7 +131,7 @@ impl Trace {
 /// differs (0 for the header), and the rows of each.
 fn compare(dir: &Path, out: &Path) -> anyhow::Result<(Option<u64>, u64, u64)> {
     let open = |rows: anyhow::Result<TickRows>| rows.map_err(|e| bad(dir, &format!("{e:#}")));
-    let run = open(TickRows::of_run(dir, Csv::Trace))?;
+    let run = open(rotorloop_monitor::derive::run_rows(dir, Csv::Trace))?;
     let (mut run, mut replayed) = (run, open(TickRows::open(&out.join("trace.csv")))?);
     let mut first = (run.header() != replayed.header()).then_some(0);
     let (mut rows, mut replayed_rows) = (0u64, 0u64);
@@ -166,9 +166,9 @@ pub fn run(dir: &Path, out: &Path) -> anyhow::Result<ReplaySummary> {
         .map_err(|e| bad(dir, &format!("summary.json has no scenario as run: {e}")))?;
     let scenario = Scenario::from_file(file).map_err(UsageError::from)?;
     let timing_err = |e: anyhow::Error| -> anyhow::Error { bad(dir, &format!("{e:#}")).into() };
-    let mut timing = TimingRows::of_run(dir).map_err(timing_err)?;
-    let rows =
-        TickRows::of_run(dir, Csv::Trace).map_err(|e| bad(dir, &format!("trace.csv: {e:#}")))?;
+    let mut timing = rotorloop_monitor::derive::timing_rows(dir).map_err(timing_err)?;
+    let rows = rotorloop_monitor::derive::run_rows(dir, Csv::Trace)
+        .map_err(|e| bad(dir, &format!("trace.csv: {e:#}")))?;
     let columns = torque_columns(dir, rows.header())?;
     let mut run_trace = Trace { rows, columns, recent: BTreeMap::new() };
     let (actuation, dt, ticks) = (scenario.actuation(), scenario.dt(), scenario.ticks());

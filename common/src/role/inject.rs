@@ -47,6 +47,13 @@ impl TestHooks {
         self
     }
 
+    /// With `--test-start-stall-ms MS`, in a `first` run (not a restart): waits so long.
+    pub fn start_stall(&self, first: bool) {
+        if let Some(ms) = self.test_start_stall_ms.filter(|_| first) {
+            std::thread::sleep(std::time::Duration::from_millis(ms));
+        }
+    }
+
     /// With `--test-stop-before-send-at K`: stops this process (SIGSTOP) at tick `k == K`.
     #[inline]
     pub fn stop_before_send(&self, k: u64) {

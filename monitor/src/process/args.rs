@@ -5,6 +5,20 @@ use std::path::PathBuf;
 use clap::Args;
 use rotorloop_common::role::args::RoleArgs;
 
+impl MonitorArgs {
+    /// Refuses what cannot be honoured: `--no-csv` without the flight records.
+    pub fn check(&self) -> Result<(), rotorloop_common::role::UsageError> {
+        if self.no_csv && self.role.record.is_none() {
+            return Err(rotorloop_common::role::UsageError(
+                "--no-csv needs the flight records (--record DIR): without them the trace \
+                 would be lost"
+                    .into(),
+            ));
+        }
+        Ok(())
+    }
+}
+
 /// `monitor` arguments.
 #[derive(Debug, Clone, Args)]
 pub struct MonitorArgs {

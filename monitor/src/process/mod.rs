@@ -22,11 +22,7 @@ use ports::Ports;
 /// Runs the monitor until it has the last row, or a termination signal.
 pub fn run(args: &args::MonitorArgs) -> anyhow::Result<()> {
     let (role, scenario) = (&args.role, args.role.scenario()?);
-    if args.no_csv && role.record.is_none() {
-        let why = "--no-csv needs the flight records (--record DIR): without them the trace \
-                   would be lost";
-        return Err(rotorloop_common::role::UsageError(why.into()).into());
-    }
+    args.check()?;
     role.setup(ROLE);
     let ports = Ports::open(role, &args.out)?;
     // A restart continues the report in the same directory.
@@ -42,13 +38,9 @@ pub fn run(args: &args::MonitorArgs) -> anyhow::Result<()> {
     }
     rec.begin(&joiner);
     let status = args.status && std::io::stderr().is_terminal();
-    if let Some(ms) = role.hooks.test_start_stall_ms.filter(|_| resumed.is_none()) {
-        std::thread::sleep(std::time::Duration::from_millis(ms));
-    }
-    // Started after the plant's last state (a restart after the end, or a monitor started
-    // by hand after the others): little more is coming, so a shorter quiet period settles
-    // the rest. Not none: the plant marks its end before it publishes its last state, so
-    // the controller's last answer may still be on its way.
+    role.hooks.start_stall(resumed.is_none());
+    // Started after the plant's last state: a shorter quiet period settles the rest (not
+    // none: the controller's last answer may still be coming, policy::END_QUIET_AFTER_END_NS).
     let quiet_limit = if ports.plant_end.ended() { END_QUIET_AFTER_END_NS } else { END_QUIET_NS };
     loop {
         ports.drain(&mut joiner)?;

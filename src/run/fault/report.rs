@@ -12,7 +12,7 @@ use serde::Serialize;
 
 use crate::run::fault::FaultEvent;
 use crate::sim::closed_loop::ClosedLoop;
-use rotorloop_monitor::timing::{TimingRow, TimingRows};
+use rotorloop_monitor::timing::TimingRow;
 
 /// One fault's cost.
 #[derive(Debug, Clone, Serialize)]
@@ -66,8 +66,8 @@ type ErrorCurve = (Vec<(f64, f64)>, BTreeMap<u64, f64>);
 /// The run's attitude error from `trace.csv`, a row at a time: every `every`-th row as
 /// `(t, err_deg)`, and the time of each tick of `at`.
 fn read_errors(out: &Path, every: u64, at: &[u64]) -> anyhow::Result<ErrorCurve> {
-    use rotorloop_monitor::rows::{Csv, TickRows};
-    let mut rows = TickRows::of_run(out, Csv::Trace)?;
+    use rotorloop_monitor::derive::Csv;
+    let mut rows = rotorloop_monitor::derive::run_rows(out, Csv::Trace)?;
     let path = out.join(Csv::Trace.name());
     let header = rows.columns();
     let col = |n: &str| header.iter().position(|h| *h == n);
@@ -91,7 +91,7 @@ fn read_errors(out: &Path, every: u64, at: &[u64]) -> anyhow::Result<ErrorCurve>
 
 /// `timing.csv`'s rows in tick order, as far as they read (none without the file).
 fn timing_rows(out: &Path) -> impl Iterator<Item = TimingRow> {
-    let mut rows = TimingRows::of_run(out).ok();
+    let mut rows = rotorloop_monitor::derive::timing_rows(out).ok();
     std::iter::from_fn(move || rows.as_mut()?.next_row().ok().flatten())
 }
 
