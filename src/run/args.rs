@@ -62,6 +62,10 @@ pub struct RunArgs {
     /// `export --mcap` read the records directly.
     #[arg(long)]
     pub no_csv: bool,
+    /// The moved flight segments raw, not packed: to measure what packing costs the loop
+    /// (`bench --before-after pack`).
+    #[arg(long, hide = true)]
+    pub raw_segments: bool,
     /// Do not sample each role's scheduling (`/proc/PID/schedstat`, its state, the steal
     /// time) into `OUT/sched.csv`: the incidents then lack the kernel's view. For
     /// measuring what the sampling costs (`bench --before-after sched`).
@@ -215,6 +219,7 @@ impl RunArgs {
             no_record: false,
             no_mcap: false,
             no_csv: false,
+            raw_segments: false,
             force: false,
             no_sched_sample: false,
             trace_sched: false,

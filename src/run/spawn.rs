@@ -239,6 +239,7 @@ impl Launch<'_> {
         let ring = ring_capacity(self.ticks, self.role_args.flight_ring_ticks);
         (ring_wraps(self.ticks, ring) && self.args.role.record.is_none())
             .then(|| Mover::new(staged, &self.args.out.join("flight")).with_half(ring / 2))
+            .map(|m| if self.args.raw_segments { m.raw() } else { m })
     }
 
     /// The domain as `role`'s host sees it.

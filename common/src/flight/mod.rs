@@ -482,6 +482,8 @@ pub struct Mover {
     moved: Option<MovedWord>,
     /// The ticks in a half of the rings, once read.
     pub half: Option<u64>,
+    /// Whether segments are packed ([`pack`]; raw only to measure what packing costs).
+    packed: bool,
 }
 
 impl Mover {
@@ -498,7 +500,14 @@ impl Mover {
             due_at: 0,
             moved: None,
             half: None,
+            packed: true,
         }
+    }
+
+    /// The mover that writes raw segments instead of packed ones (`run --raw-segments`:
+    /// for `bench --before-after pack`, what packing costs the loop).
+    pub fn raw(self) -> Self {
+        Self { packed: false, ..self }
     }
 
     /// The mover of rings whose halves hold `half` ticks, known before their files exist
@@ -622,7 +631,10 @@ impl Mover {
         let mut header = header.to_vec();
         header[8 * word::MAGIC..8 * word::MAGIC + 8].copy_from_slice(&PACKED_MAGIC.to_ne_bytes());
         // A segment that cannot be packed (never seen) is kept raw: readers take both.
-        let packed = pack::pack(&header, body, 8 + (size as usize).next_multiple_of(8));
+        let packed = match self.packed {
+            true => pack::pack(&header, body, 8 + (size as usize).next_multiple_of(8)).ok(),
+            false => None,
+        };
         std::fs::write(&part, packed.as_deref().unwrap_or(bytes))?;
         std::fs::rename(&part, &path)
     }

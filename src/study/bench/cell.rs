@@ -26,6 +26,9 @@ pub enum BeforeAfter {
     /// before: the reference woken by every state, the reference topic read every tick,
     /// the samples loaned and the plant's state made after the wake).
     HotPath,
+    /// Raw and packed flight segments (`run --raw-segments` before), both sides with
+    /// rings of 4096 ticks so that the launcher moves (and packs) a half every 2048 ticks.
+    Pack,
 }
 
 /// `rotorloop bench` arguments.
@@ -87,7 +90,9 @@ pub struct BenchArgs {
     /// rows; `rotorloop run --no-record`); `foxglove` without and with the live Foxglove
     /// server (`run --foxglove`) and a viewer subscribed to every topic
     /// (`loop-foxglove` rows); `sched`, `trace-sched`; `hot-path` the hot path before
-    /// its overhead was cut (`run --plain-hot-path`, `loop-plain` rows) and after.
+    /// its overhead was cut (`run --plain-hot-path`, `loop-plain` rows) and after; `pack`
+    /// rings of 4096 ticks moved raw (`run --raw-segments`, `loop-raw` rows) and packed
+    /// (`loop-packed` rows).
     #[arg(long, num_args = 0..=1, default_missing_value = "record", value_name = "CHANGE")]
     pub before_after: Option<BeforeAfter>,
     /// With `--before-after`: measure before and after this many times each, alternating

@@ -56,14 +56,17 @@ pub(super) fn before_after(
         BeforeAfter::Sched => (Variant::NoSched, Variant::Loop),
         BeforeAfter::TraceSched => (Variant::Loop, Variant::TraceSched),
         BeforeAfter::HotPath => (Variant::PlainHotPath, Variant::Loop),
+        BeforeAfter::Pack => (Variant::RawSegments, Variant::Packed),
     };
-    // The plain loop already measured is the first run of its side.
+    // The plain loop already measured is the first run of its side (of neither for
+    // `pack`: both sides run small rings).
     let plain_after =
         matches!(change, BeforeAfter::Record | BeforeAfter::Sched | BeforeAfter::HotPath);
     let (mut before, mut after) = (Vec::new(), Vec::new());
-    match plain_after {
-        true => after.push(first),
-        false => before.push(first),
+    match (change, plain_after) {
+        (BeforeAfter::Pack, _) => {}
+        (_, true) => after.push(first),
+        (_, false) => before.push(first),
     }
     for i in 0..a.pairs as usize {
         let d = if i == 0 { dir.to_owned() } else { dir.join(format!("pair{i}")) };
@@ -112,6 +115,9 @@ pub(super) fn median_p50(mut rows: Vec<Row>) -> Row {
     rows.swap_remove(n / 2)
 }
 
+/// The rings of `--before-after pack` (a half moved every 2048 ticks).
+const PACK_RING: u64 = 4096;
+
 /// Which loop a measurement runs.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub(super) enum Variant {
@@ -129,6 +135,10 @@ pub(super) enum Variant {
     TraceSched,
     /// With `--plain-hot-path`: the hot path before its overhead was cut.
     PlainHotPath,
+    /// With rings of [`PACK_RING`] ticks, the segments packed.
+    Packed,
+    /// The same with `--raw-segments`.
+    RawSegments,
     /// With the second law (`--controllers mrp-pid`).
     MrpPid,
     /// With the Python example controller (`--controllers python`).
@@ -147,6 +157,8 @@ impl Variant {
             Variant::NoSched => "loop-nosched",
             Variant::TraceSched => "loop-tracesched",
             Variant::PlainHotPath => "loop-plain",
+            Variant::Packed => "loop-packed",
+            Variant::RawSegments => "loop-raw",
             Variant::MrpPid => "loop-mrp-pid",
             Variant::Python => "loop-python",
             Variant::C => "loop-c",
@@ -234,6 +246,8 @@ pub(super) fn measure_loop(
         Variant::NoSched => "s",
         Variant::TraceSched => "t",
         Variant::PlainHotPath => "h",
+        Variant::Packed => "k",
+        Variant::RawSegments => "r",
         Variant::MrpPid => "m",
         Variant::Python => "p",
         Variant::C => "c",
@@ -246,6 +260,10 @@ pub(super) fn measure_loop(
     run.no_sched_sample = variant == Variant::NoSched;
     run.trace_sched = variant == Variant::TraceSched;
     run.role.plain_hot_path = variant == Variant::PlainHotPath;
+    if matches!(variant, Variant::Packed | Variant::RawSegments) {
+        run.role.flight_ring_ticks = PACK_RING;
+        run.raw_segments = variant == Variant::RawSegments;
+    }
     match variant {
         Variant::MrpPid => run.role.scenario = mrp_scenario(a, &out)?,
         Variant::Python | Variant::C => {

@@ -288,6 +288,12 @@ pub(super) fn before_after_md(rows: &[Row], a: &BenchArgs) -> String {
              every tick, each sample loaned and the plant's state made between its wake-up and \
              its publish); after: as it is.",
         ),
+        BeforeAfter::Pack => (
+            "loop-raw",
+            "loop-packed",
+            "Before: rings of 4096 ticks, the launcher moving each finished half raw (`run \
+             --raw-segments`); after: the same, each half packed (the default).",
+        ),
     };
     let mut md = String::new();
     let ok = |cell: &str, kind: &str| {
