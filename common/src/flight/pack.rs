@@ -201,23 +201,27 @@ pub(super) fn pack(header: &[u8], body: &[u8], slot_len: usize) -> std::io::Resu
     Ok(out)
 }
 
-/// Where each chunk of a packed segment of `capacity` slots lies in its file of `len`
-/// bytes, from its table (`table`: the bytes after the header), or why the table does
-/// not fit the file.
+/// Where each chunk of a packed segment of `capacity` slots of `slot_len` bytes lies in its
+/// file of `len` bytes, from its table (`table`: the bytes after the header), or why the
+/// table does not fit the file (a chunk outside it, or longer than any chunk packs to: a
+/// reader never allocates what a damaged table claims).
 pub(super) fn chunk_table(
     table: &[u8],
-    capacity: u64,
+    (capacity, slot_len): (u64, usize),
     len: u64,
 ) -> Result<Vec<(u64, u64)>, String> {
     let n = capacity.div_ceil(CHUNK_SLOTS) as usize;
+    let most = slot_len / 8 + zstd::zstd_safe::compress_bound(CHUNK_SLOTS as usize * slot_len);
     let bytes = table.get(..16 * n).ok_or("a chunk table cut short")?;
     let start = super::HEADER as u64 + 16 * n as u64;
     let mut out = Vec::with_capacity(n);
     for e in bytes.chunks_exact(16) {
         let at = u64::from_le_bytes(e[..8].try_into().unwrap_or_default());
         let l = u64::from_le_bytes(e[8..].try_into().unwrap_or_default());
-        if at < start || at.checked_add(l).is_none_or(|end| end > len) {
-            return Err(format!("a chunk at {at} of {l} bytes outside the file's {len}"));
+        if at < start || l > most as u64 || at.checked_add(l).is_none_or(|end| end > len) {
+            return Err(format!(
+                "a chunk at {at} of {l} bytes: outside the file's {len}, or longer than {most}"
+            ));
         }
         out.push((at, l));
     }
@@ -301,7 +305,8 @@ mod tests {
         let header = [7u8; super::super::HEADER];
         let file = pack(&header, &raw, words * 8).expect("packs");
         let len = file.len() as u64;
-        let table = chunk_table(&file[header.len()..], rows as u64, len).expect("table");
+        let table =
+            chunk_table(&file[header.len()..], (rows as u64, words * 8), len).expect("table");
         assert_eq!(table.len(), 3);
         let mut back = Vec::new();
         for (i, (at, l)) in table.iter().enumerate() {
@@ -310,8 +315,16 @@ mod tests {
         }
         assert_eq!(back, raw);
         // A table cut short, a chunk beyond the file, a damaged frame, an unknown code.
-        assert!(chunk_table(&file[header.len()..header.len() + 20], rows as u64, len).is_err());
-        assert!(chunk_table(&file[header.len()..], rows as u64, len - 1).is_err());
+        assert!(
+            chunk_table(&file[header.len()..header.len() + 20], (rows as u64, words * 8), len)
+                .is_err()
+        );
+        assert!(chunk_table(&file[header.len()..], (rows as u64, words * 8), len - 1).is_err());
+        // A chunk claiming more than any chunk packs to, in a file that long (sparse, say).
+        let mut lying = file[header.len()..].to_vec();
+        lying[8..16].copy_from_slice(&(1u64 << 40).to_le_bytes());
+        let err = chunk_table(&lying, (rows as u64, words * 8), 1 << 50).expect_err("refused");
+        assert!(err.contains("outside"), "{err}");
         let (at, l) = table[1];
         let mut chunk = file[at as usize..(at + l) as usize].to_vec();
         let mid = chunk.len() / 2;
@@ -345,8 +358,8 @@ mod tests {
             let t0 = std::time::Instant::now();
             let file = pack(header, body, slot).expect("packs");
             let packed_s = t0.elapsed().as_secs_f64();
-            let table =
-                chunk_table(&file[header.len()..], slots, file.len() as u64).expect("table");
+            let table = chunk_table(&file[header.len()..], (slots, slot), file.len() as u64)
+                .expect("table");
             let t1 = std::time::Instant::now();
             let mut back = Vec::with_capacity(body.len());
             for (i, (at, l)) in table.iter().enumerate() {

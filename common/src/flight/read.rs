@@ -142,7 +142,7 @@ fn check_header<T>(path: &Path, packed: bool) -> Result<([u64; 8], Source), Flig
             .then(|| file.read_exact_at(&mut bytes, HEADER as u64).ok())
             .flatten()
             .ok_or_else(|| format!("{len} bytes, too short for the chunks of {capacity} slots"))
-            .and_then(|()| chunk_table(&bytes, capacity, len))
+            .and_then(|()| chunk_table(&bytes, (capacity, slot_len::<T>()), len))
             .map_err(|e| foreign(format!("a packed segment: {e} (torn or damaged)")))?;
         return Ok((w, source(Some(chunks))));
     }
