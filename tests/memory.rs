@@ -135,6 +135,8 @@ fn a_run_too_large_for_its_disk_is_refused_before_it_starts_and_others_say_their
     assert_eq!(o.status.code(), Some(2), "{err}");
     assert!(err.contains("its output needs about") && err.contains("--force"), "{err}");
     assert!(err.contains("free there"), "{err}");
+    // A long run is told what a long run's output would take.
+    assert!(err.contains("with --no-csv --no-mcap it would write about"), "{err}");
     assert!(!out.exists(), "nothing of the refused run was made");
     let small = h.path("small");
     let o = h.rotorloop(
