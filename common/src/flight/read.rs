@@ -2,17 +2,20 @@
 //!
 //! A [`FlightLog`] holds no samples: it knows the stream's files (the ring and the
 //! segments moved out of it, module docs of [`super`]) and reads a block of slots at a time
-//! with `pread`, keeping the last [`BLOCKS`] blocks of [`BLOCK_SLOTS`]. Reading ticks in order (the report,
-//! the export, the replay) reads each block once; looking back a few thousand ticks (the
-//! incidents) stays in the kept blocks. Its memory is a few MB, the same for a minute's run
-//! as for a day's.
+//! with `pread`, keeping the last [`BLOCKS`] blocks: [`BLOCK_SLOTS`] slots of a raw file,
+//! or a chunk of a packed segment unpacked whole ([`CHUNK_SLOTS`], [`super::pack`]).
+//! Reading ticks in order (the report, the export, the replay) reads each block once;
+//! looking back a few thousand ticks (the incidents) stays in the kept blocks. Its memory
+//! is a few MB (13 MB of plant states in chunks), the same for a minute's run as for a
+//! day's.
 //!
 //! **It trusts nothing in the files.** Every header is checked against its file's length
 //! before anything is read, a tick is only ever looked up, never used as an index of
 //! memory, and ticks beyond the run's last (`limit`) are not the run's: a far-future tick
 //! written into a record (damage, or a writer that went wrong) is counted and ignored. A
 //! segment that is torn, foreign or of another size is skipped, named in
-//! [`FlightLog::problems`], and its ticks read as missing: the rest of the stream is read.
+//! [`FlightLog::problems`], and its ticks read as missing: the rest of the stream is read;
+//! a packed chunk that does not unpack (its checksum, its table) reads as missing ticks.
 
 use std::cell::RefCell;
 use std::os::unix::fs::FileExt;
@@ -26,7 +29,7 @@ use crate::wire::LAYOUT_VERSION;
 
 /// Slots read from a file at once.
 const BLOCK_SLOTS: u64 = 512;
-/// Blocks kept (about 1.6 MB of state samples).
+/// Blocks kept (about 1.6 MB of state samples; 13 MB in chunks of a packed segment).
 const BLOCKS: usize = 6;
 /// Problems kept in words; the rest are counted.
 const MAX_PROBLEMS: usize = 16;
