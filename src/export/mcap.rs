@@ -103,7 +103,6 @@ impl Run {
     }
 }
 
-/// Opens `trace.csv` to be read a row at a time.
 /// The run's trace rows: its `trace.csv`, or derived from its records (`run --no-csv`).
 fn open_trace(dir: &Path) -> anyhow::Result<TickRows> {
     rotorloop_monitor::derive::run_rows(dir, Csv::Trace).with_context(|| {

@@ -137,16 +137,17 @@ fn check_header<T>(path: &Path, packed: bool) -> Result<([u64; 8], Source), Flig
     let capacity = w[word::CAPACITY];
     let source = |chunks| Source { path: path.to_owned(), capacity, chunks };
     if is_packed {
+        let damaged = |e: String| foreign(format!("a packed segment: {e} (torn or damaged)"));
+        let short =
+            || damaged(format!("{len} bytes, too short for the chunks of {capacity} slots"));
         // The table's length is checked against the file's before it is read.
         let table = 16 * u128::from(capacity.div_ceil(CHUNK_SLOTS));
-        let mut bytes =
-            vec![0u8; if capacity > 0 && table <= u128::from(len) { table as usize } else { 0 }];
-        let chunks = (!bytes.is_empty())
-            .then(|| file.read_exact_at(&mut bytes, HEADER as u64).ok())
-            .flatten()
-            .ok_or_else(|| format!("{len} bytes, too short for the chunks of {capacity} slots"))
-            .and_then(|()| chunk_table(&bytes, (capacity, slot_len::<T>()), len))
-            .map_err(|e| foreign(format!("a packed segment: {e} (torn or damaged)")))?;
+        if capacity == 0 || table > u128::from(len) {
+            return Err(short());
+        }
+        let mut bytes = vec![0u8; table as usize];
+        file.read_exact_at(&mut bytes, HEADER as u64).map_err(|_| short())?;
+        let chunks = chunk_table(&bytes, (capacity, slot_len::<T>()), len).map_err(damaged)?;
         return Ok((w, source(Some(chunks))));
     }
     let expected = (capacity as u128) * slot_len::<T>() as u128 + HEADER as u128;
