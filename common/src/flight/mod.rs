@@ -47,6 +47,10 @@ pub use read::{FlightLog, StreamCount};
 const MAGIC: u64 = 0x7468_6769_6c66_6c72; // "rlflight"
 /// A packed segment's magic ([`pack`]): "rlflpack".
 const PACKED_MAGIC: u64 = 0x6b63_6170_6c66_6c72;
+/// The magic of a segment whose slots are another stream's segment's, byte for byte
+/// ([`Mover`]: the controller's torques as the plant received them): "rlflsame". The
+/// file is its 64-byte header alone, [`word::BASE`] naming the other stream.
+const SAME_MAGIC: u64 = 0x656d_6173_6c66_6c72;
 const HEADER: usize = 64;
 /// Slots beyond the run's last tick (the reference publishes ahead of the plant).
 pub const SPARE_SLOTS: u64 = 64;
@@ -197,6 +201,9 @@ mod word {
     pub const BEYOND: usize = 5;
     /// In a plant state ring: the halves of every stream the launcher's mover has copied.
     pub const MOVED: usize = 6;
+    /// In a segment that is another's ([`super::SAME_MAGIC`]): that stream's index in
+    /// [`super::Stream::ALL`].
+    pub const BASE: usize = 7;
 }
 
 /// One role's recorder of one stream (module docs).
@@ -557,13 +564,26 @@ impl Mover {
                 }
             }
         }
-        for (stream, j, bytes) in read {
-            match self.write_segment(stream, j, &bytes) {
-                Ok(()) => self.segments += 1,
-                Err(e) => {
-                    errors.push(format!("{}: {e}", segment_path(&self.kept, stream, j).display()))
-                }
+        let mut written = Vec::with_capacity(read.len());
+        for (stream, j, bytes) in &read {
+            // The controller's half is the plant's, byte for byte, unless a sample went
+            // missing on the way or a restart answered again: then it is packed on its own.
+            let same = (*stream == Stream::ControllerTorque && self.packed)
+                .then(|| {
+                    read.iter().zip(&written).find(|((s, i, b), ok)| {
+                        **ok && *s == Stream::PlantTorque
+                            && i == j
+                            && b[HEADER..] == bytes[HEADER..]
+                    })
+                })
+                .flatten()
+                .map(|((s, ..), _)| *s);
+            let done = self.write_segment(*stream, *j, bytes, same);
+            if let Err(e) = &done {
+                errors.push(format!("{}: {e}", segment_path(&self.kept, *stream, *j).display()));
             }
+            self.segments += u64::from(done.is_ok());
+            written.push(done.is_ok());
         }
         // Nothing is due before the lowest next half is (a ring's size is known once read).
         if let Some(h) = self.half {
@@ -619,8 +639,14 @@ impl Mover {
     }
 
     /// Writes half `j` of `stream` into its segment file (whole or not at all), packed
-    /// ([`pack`]).
-    fn write_segment(&self, stream: Stream, j: u64, bytes: &[u8]) -> std::io::Result<()> {
+    /// ([`pack`]), or as the header of a segment that is `same`'s segment `j`.
+    fn write_segment(
+        &self,
+        stream: Stream,
+        j: u64,
+        bytes: &[u8],
+        same: Option<Stream>,
+    ) -> std::io::Result<()> {
         std::fs::create_dir_all(&self.kept)?;
         let path = segment_path(&self.kept, stream, j);
         let part = path.with_extension("part");
@@ -629,11 +655,22 @@ impl Mover {
             header[8 * word::SIZE..8 * word::SIZE + 8].try_into().unwrap_or_default(),
         );
         let mut header = header.to_vec();
-        header[8 * word::MAGIC..8 * word::MAGIC + 8].copy_from_slice(&PACKED_MAGIC.to_ne_bytes());
-        // A segment that cannot be packed (never seen) is kept raw: readers take both.
-        let packed = match self.packed {
-            true => pack::pack(&header, body, 8 + (size as usize).next_multiple_of(8)).ok(),
-            false => None,
+        let set = |header: &mut [u8], w: usize, v: u64| {
+            header[8 * w..8 * w + 8].copy_from_slice(&v.to_ne_bytes());
+        };
+        let packed = match (same, self.packed) {
+            (Some(base), _) => {
+                let index = Stream::ALL.iter().position(|s| *s == base).unwrap_or(0);
+                set(&mut header, word::MAGIC, SAME_MAGIC);
+                set(&mut header, word::BASE, index as u64);
+                Some(header)
+            }
+            (None, true) => {
+                set(&mut header, word::MAGIC, PACKED_MAGIC);
+                // A segment that cannot be packed (never seen) is kept raw: readers take both.
+                pack::pack(&header, body, 8 + (size as usize).next_multiple_of(8)).ok()
+            }
+            (None, false) => None,
         };
         std::fs::write(&part, packed.as_deref().unwrap_or(bytes))?;
         std::fs::rename(&part, &path)

@@ -149,36 +149,113 @@ fn pack_chunk(slots: &[u8], words: usize) -> std::io::Result<Vec<u8>> {
     Ok(codes)
 }
 
-/// Unpacks a chunk of `rows` slots of `words` words each: its slots' bytes, or why not.
-fn unpack_chunk(chunk: &[u8], rows: usize, words: usize) -> Result<Vec<u8>, String> {
+/// Turns a column's residuals (`col`, unzigzagged) into its words, in place, as
+/// [`Transform::predict`] predicts them from the words before and the column to the left
+/// (`left`, none for the first: zeros): the same operations in the same order, a loop per
+/// transform.
+fn decode_column(t: Transform, col: &mut [u64], left: Option<&[u64]>) {
+    let float = |p: f64| if p.is_finite() { p.to_bits() } else { 0 };
+    let f = f64::from_bits;
+    // The words before, newest first (0 before the first row, as `predict` has it).
+    let run = |col: &mut [u64], predict: &dyn Fn([u64; 4]) -> u64| {
+        let mut x = [0u64; 4];
+        for w in col.iter_mut() {
+            *w = w.wrapping_add(predict(x));
+            x = [*w, x[0], x[1], x[2]];
+        }
+    };
+    match t {
+        Transform::Raw => {}
+        Transform::Delta => {
+            let mut x1 = 0u64;
+            for w in col.iter_mut() {
+                *w = w.wrapping_add(x1);
+                x1 = *w;
+            }
+        }
+        Transform::Delta2 => run(col, &|x| x[0].wrapping_add(x[0].wrapping_sub(x[1]))),
+        Transform::Left => {
+            let left = left.unwrap_or_default().iter();
+            col.iter_mut().zip(left).for_each(|(w, l)| *w = w.wrapping_add(*l));
+        }
+        Transform::Float2 => run(col, &|x| float(2.0 * f(x[0]) - f(x[1]))),
+        Transform::Float3 => run(col, &|x| float(3.0 * f(x[0]) - 3.0 * f(x[1]) + f(x[2]))),
+        Transform::Float4 => {
+            run(col, &|x| float(4.0 * f(x[0]) - 6.0 * f(x[1]) + 4.0 * f(x[2]) - f(x[3])))
+        }
+    }
+}
+
+/// What unpacking a chunk needs besides its bytes, kept from one chunk to the next (a
+/// reader unpacks thousands: fresh buffers of megabytes each time cost page faults).
+struct Scratch {
+    zstd: zstd::bulk::Decompressor<'static>,
+    shuffled: Vec<u8>,
+    /// The chunk's words, column-major.
+    cols: Vec<u64>,
+}
+
+thread_local! {
+    static SCRATCH: std::cell::RefCell<Option<Scratch>> = const { std::cell::RefCell::new(None) };
+}
+
+/// Unpacks a chunk of `rows` slots of `words` words each into `out` (its slots' bytes), or
+/// says why not.
+fn unpack_chunk(chunk: &[u8], rows: usize, words: usize, out: &mut Vec<u8>) -> Result<(), String> {
     let (codes, frame) = chunk.split_at_checked(words).ok_or("a chunk shorter than its codes")?;
     let codes: Vec<Transform> = codes
         .iter()
         .map(|b| Transform::from_u8(*b).ok_or(format!("unknown transform {b}")))
         .collect::<Result<_, _>>()?;
     let want = rows * words * 8;
-    let shuffled =
-        zstd::bulk::decompress(frame, want).map_err(|e| format!("a damaged frame: {e}"))?;
-    if shuffled.len() != want {
-        return Err(format!("{} bytes where the chunk holds {want}", shuffled.len()));
-    }
-    let mut out = vec![0u8; want];
-    let mut col = vec![0u64; rows];
-    let mut prev = vec![0u64; rows]; // the column to the left, decoded
-    for (c, t) in codes.iter().enumerate() {
-        for r in 0..rows {
-            let mut b = [0u8; 8];
-            for (i, byte) in b.iter_mut().enumerate() {
-                *byte = shuffled[(c * 8 + i) * rows + r];
-            }
-            let p = t.predict(&col, r, prev[r]);
-            col[r] = unzigzag(u64::from_le_bytes(b)).wrapping_add(p);
-            let at = (r * words + c) * 8;
-            out[at..at + 8].copy_from_slice(&col[r].to_ne_bytes());
+    SCRATCH.with_borrow_mut(|scratch| {
+        let s = match scratch {
+            Some(s) => s,
+            None => scratch.insert(Scratch {
+                zstd: zstd::bulk::Decompressor::new().map_err(|e| format!("zstd: {e}"))?,
+                shuffled: Vec::new(),
+                cols: Vec::new(),
+            }),
+        };
+        s.shuffled.clear();
+        s.shuffled.reserve(want);
+        let n = s
+            .zstd
+            .decompress_to_buffer(frame, &mut s.shuffled)
+            .map_err(|e| format!("a damaged frame: {e}"))?;
+        if n != want {
+            return Err(format!("{n} bytes where the chunk holds {want}"));
         }
-        std::mem::swap(&mut col, &mut prev);
-    }
-    Ok(out)
+        // Column by column into `cols` (column-major), then into slots a tile of rows at
+        // a time (a column at a time would touch a cache line per word of the output).
+        s.cols.clear();
+        s.cols.resize(rows * words, 0);
+        for (c, t) in codes.iter().enumerate() {
+            let planes = &s.shuffled[c * 8 * rows..(c + 1) * 8 * rows];
+            let (before, this) = s.cols.split_at_mut(c * rows);
+            let col = &mut this[..rows];
+            for (i, plane) in planes.chunks_exact(rows).enumerate() {
+                for (w, b) in col.iter_mut().zip(plane) {
+                    *w |= u64::from(*b) << (8 * i);
+                }
+            }
+            col.iter_mut().for_each(|w| *w = unzigzag(*w));
+            decode_column(*t, col, before.get(before.len().saturating_sub(rows)..));
+        }
+        out.clear();
+        out.resize(want, 0);
+        const TILE: usize = 64;
+        for r0 in (0..rows).step_by(TILE) {
+            let r1 = (r0 + TILE).min(rows);
+            for (c, col) in s.cols.chunks_exact(rows).enumerate() {
+                for (r, w) in col[r0..r1].iter().enumerate() {
+                    let at = ((r0 + r) * words + c) * 8;
+                    out[at..at + 8].copy_from_slice(&w.to_ne_bytes());
+                }
+            }
+        }
+        Ok(())
+    })
 }
 
 /// Packs a raw segment's slots (`body`, whole slots of `slot_len` bytes) behind `header`
@@ -229,15 +306,14 @@ pub(super) fn chunk_table(
 }
 
 /// The slots of chunk `i` (of a segment of `capacity` slots of `slot_len` bytes) from its
-/// packed bytes.
+/// packed bytes, into `out` (its allocation reused).
 pub(super) fn unpack(
     chunk: &[u8],
-    i: u64,
-    capacity: u64,
-    slot_len: usize,
-) -> Result<Vec<u8>, String> {
+    (i, capacity, slot_len): (u64, u64, usize),
+    out: &mut Vec<u8>,
+) -> Result<(), String> {
     let rows = CHUNK_SLOTS.min(capacity.saturating_sub(i * CHUNK_SLOTS)) as usize;
-    unpack_chunk(chunk, rows, slot_len / 8)
+    unpack_chunk(chunk, rows, slot_len / 8, out)
 }
 
 #[cfg(test)]
@@ -273,20 +349,44 @@ mod tests {
         out
     }
 
+    fn unpacked(chunk: &[u8], rows: usize, words: usize) -> Vec<u8> {
+        let mut out = vec![7u8; 3]; // whatever a reused buffer held
+        unpack_chunk(chunk, rows, words, &mut out).expect("unpacks");
+        out
+    }
+
     #[test]
     fn every_kind_of_word_comes_back_bit_for_bit() {
         for (rows, words, seed) in [(4096, 8, 1), (4096, 66, 2), (100, 25, 3), (1, 8, 4)] {
             let raw = slots(rows, words, seed);
             let packed = pack_chunk(&raw, words).expect("packs");
-            assert_eq!(unpack_chunk(&packed, rows, words).expect("unpacks"), raw, "{rows}x{words}");
+            assert_eq!(unpacked(&packed, rows, words), raw, "{rows}x{words}");
         }
         // Random words of any pattern, NaN payloads included.
         let raw: Vec<u8> =
             (0..4096 * 8 * 8).map(|i| ((i as u64 * 0x9e37_79b9) >> 13) as u8).collect();
-        assert_eq!(
-            unpack_chunk(&pack_chunk(&raw, 8).expect("packs"), 4096, 8).expect("unpacks"),
-            raw
-        );
+        assert_eq!(unpacked(&pack_chunk(&raw, 8).expect("packs"), 4096, 8), raw);
+    }
+
+    /// The decoder's loop per transform undoes exactly what the packer's predictions did,
+    /// for every transform (the packer picks one per column; this forces each), on words
+    /// of every kind: a smooth float, noise, NaN, infinities, a counter.
+    #[test]
+    fn each_transform_decodes_what_its_prediction_encoded() {
+        let raw = slots(300, 8, 9);
+        let word = |r: usize, c: usize| {
+            u64::from_ne_bytes(raw[(r * 8 + c) * 8..(r * 8 + c) * 8 + 8].try_into().expect("8"))
+        };
+        for c in 1..8 {
+            let col: Vec<u64> = (0..300).map(|r| word(r, c)).collect();
+            let left: Vec<u64> = (0..300).map(|r| word(r, c - 1)).collect();
+            for t in TRANSFORMS {
+                let mut res: Vec<u64> =
+                    (0..300).map(|r| col[r].wrapping_sub(t.predict(&col, r, left[r]))).collect();
+                decode_column(t, &mut res, Some(&left));
+                assert_eq!(res, col, "column {c}, {t:?}");
+            }
+        }
     }
 
     #[test]
@@ -311,7 +411,9 @@ mod tests {
         let mut back = Vec::new();
         for (i, (at, l)) in table.iter().enumerate() {
             let chunk = &file[*at as usize..(*at + *l) as usize];
-            back.extend(unpack(chunk, i as u64, rows as u64, words * 8).expect("chunk"));
+            let mut out = Vec::new();
+            unpack(chunk, (i as u64, rows as u64, words * 8), &mut out).expect("chunk");
+            back.extend(out);
         }
         assert_eq!(back, raw);
         // A table cut short, a chunk beyond the file, a damaged frame, an unknown code.
@@ -330,10 +432,10 @@ mod tests {
         let mid = chunk.len() / 2;
         chunk[mid] ^= 0xff;
         chunk.truncate(chunk.len() - 3);
-        assert!(unpack(&chunk, 1, rows as u64, words * 8).is_err());
+        assert!(unpack(&chunk, (1, rows as u64, words * 8), &mut Vec::new()).is_err());
         let mut chunk = file[at as usize..(at + l) as usize].to_vec();
         chunk[0] = 200;
-        assert!(unpack(&chunk, 1, rows as u64, words * 8).is_err());
+        assert!(unpack(&chunk, (1, rows as u64, words * 8), &mut Vec::new()).is_err());
     }
 
     /// What packing costs and saves on a run's raw segments: `ROTORLOOP_PACK_DIR=DIR cargo
@@ -361,10 +463,11 @@ mod tests {
             let table = chunk_table(&file[header.len()..], (slots, slot), file.len() as u64)
                 .expect("table");
             let t1 = std::time::Instant::now();
-            let mut back = Vec::with_capacity(body.len());
+            let (mut back, mut out) = (Vec::with_capacity(body.len()), Vec::new());
             for (i, (at, l)) in table.iter().enumerate() {
                 let chunk = &file[*at as usize..(*at + *l) as usize];
-                back.extend(unpack(chunk, i as u64, slots, slot).expect("unpacks"));
+                unpack(chunk, (i as u64, slots, slot), &mut out).expect("unpacks");
+                back.extend_from_slice(&out);
             }
             let unpacked_s = t1.elapsed().as_secs_f64();
             assert!(back == body, "{stream}: not bit for bit");

@@ -23,7 +23,8 @@ use std::path::{Path, PathBuf};
 
 use super::pack::{CHUNK_SLOTS, chunk_table, unpack};
 use super::{
-    FlightError, HEADER, MAGIC, PACKED_MAGIC, Record, SPARE_SLOTS, Stream, segments, slot_len, word,
+    FlightError, HEADER, MAGIC, PACKED_MAGIC, Record, SAME_MAGIC, SPARE_SLOTS, Stream,
+    segment_path, segments, slot_len, word,
 };
 use crate::wire::LAYOUT_VERSION;
 
@@ -42,6 +43,8 @@ struct Source {
     capacity: u64,
     /// A packed segment's chunks (offset and length in the file; [`super::pack`]).
     chunks: Option<Vec<(u64, u64)>>,
+    /// A segment whose slots are this stream's segment of the same half (`rlflsame`).
+    same_as: Option<Stream>,
 }
 
 impl Source {
@@ -81,6 +84,9 @@ pub struct FlightLog<T: Record> {
     /// The last tick the run could hold; later ones are not the run's.
     limit: u64,
     last: Option<u64>,
+    /// The oldest tick of the run in the ring (an older one is looked up in its segment
+    /// alone).
+    ring_first: u64,
     /// How often the ring was opened for writing (1 + the writer's restarts).
     pub opens: u64,
     /// Samples whose tick lay beyond the ring's capacity (not recorded).
@@ -121,7 +127,8 @@ fn check_header<T>(path: &Path, packed: bool) -> Result<([u64; 8], Source), Flig
         w[i] = u64::from_ne_bytes(c.try_into().unwrap_or_default());
     }
     let is_packed = packed && w[word::MAGIC] == PACKED_MAGIC;
-    if w[word::MAGIC] != MAGIC && !is_packed {
+    let is_same = packed && w[word::MAGIC] == SAME_MAGIC;
+    if w[word::MAGIC] != MAGIC && !is_packed && !is_same {
         return Err(foreign("not a flight record (or never written)".into()));
     }
     if w[word::VERSION] != u64::from(LAYOUT_VERSION) || w[word::SIZE] != size_of::<T>() as u64 {
@@ -135,7 +142,19 @@ fn check_header<T>(path: &Path, packed: bool) -> Result<([u64; 8], Source), Flig
         )));
     }
     let capacity = w[word::CAPACITY];
-    let source = |chunks| Source { path: path.to_owned(), capacity, chunks };
+    let source = |chunks| Source { path: path.to_owned(), capacity, chunks, same_as: None };
+    if is_same {
+        let base = usize::try_from(w[word::BASE]).ok().and_then(|i| Stream::ALL.get(i));
+        return match base {
+            Some(&base) if len == HEADER as u64 && capacity > 0 => {
+                Ok((w, Source { same_as: Some(base), ..source(None) }))
+            }
+            _ => Err(foreign(format!(
+                "{len} bytes, naming stream {}: not a segment that is another's (damaged)",
+                w[word::BASE]
+            ))),
+        };
+    }
     if is_packed {
         let damaged = |e: String| foreign(format!("a packed segment: {e} (torn or damaged)"));
         let short =
@@ -195,6 +214,7 @@ impl<T: Record> FlightLog<T> {
             memory: Vec::new(),
             limit: u64::MAX,
             last: None,
+            ring_first: 0,
             opens: 0,
             beyond: 0,
             problems: Vec::new(),
@@ -229,8 +249,8 @@ impl<T: Record> FlightLog<T> {
             }) else {
                 continue;
             };
-            let source = match check_header::<T>(&path, true) {
-                Ok((_, source)) => source,
+            let source = match check_header::<T>(&path, true).and_then(|(_, s)| same::<T>(s, j)) {
+                Ok(source) => source,
                 Err(e) => {
                     self.problem(format!("{e}: skipped, its ticks read as missing"));
                     continue;
@@ -268,6 +288,7 @@ impl<T: Record> FlightLog<T> {
     fn find_last(&mut self) -> Option<u64> {
         let mut last = None;
         let mut beyond_run = 0u64;
+        let mut first = u64::MAX;
         if let Some(ring) = &self.ring {
             scan::<T>(ring, |slot, k, _| {
                 if k % ring.capacity != slot {
@@ -277,9 +298,11 @@ impl<T: Record> FlightLog<T> {
                     beyond_run += 1;
                 } else {
                     last = last.max(Some(k));
+                    first = first.min(k);
                 }
             });
         }
+        self.ring_first = first;
         if beyond_run > 0 {
             self.problem(format!(
                 "{}: {beyond_run} samples for ticks beyond the run's last tick {}: ignored",
@@ -316,7 +339,9 @@ impl<T: Record> FlightLog<T> {
             return self.memory.get(usize::try_from(k).ok()?).copied().flatten();
         }
         let ring = self.ring.as_ref()?;
-        if let Some(s) = self.lookup(0, ring, k % ring.capacity, k) {
+        if k >= self.ring_first
+            && let Some(s) = self.lookup(0, ring, k % ring.capacity, k)
+        {
             return Some(s);
         }
         if self.half == 0 {
@@ -336,18 +361,20 @@ impl<T: Record> FlightLog<T> {
         let clock = cache.clock;
         let at = match cache.blocks.iter().position(|b| b.source == id && b.index == index) {
             Some(at) => at,
+            None if cache.blocks.len() < BLOCKS => {
+                let mut bytes = Vec::new();
+                read_block::<T>(source, index, &mut bytes);
+                cache.blocks.push(Block { source: id, index, bytes, used: clock });
+                cache.blocks.len() - 1
+            }
             None => {
-                let bytes = read_block::<T>(source, index);
-                let block = Block { source: id, index, bytes, used: clock };
-                if cache.blocks.len() < BLOCKS {
-                    cache.blocks.push(block);
-                    cache.blocks.len() - 1
-                } else {
-                    let oldest =
-                        (0..cache.blocks.len()).min_by_key(|i| cache.blocks[*i].used).unwrap_or(0);
-                    cache.blocks[oldest] = block;
-                    oldest
-                }
+                // The oldest block's buffer takes the new one (no fresh pages to fault in).
+                let oldest =
+                    (0..cache.blocks.len()).min_by_key(|i| cache.blocks[*i].used).unwrap_or(0);
+                let block = &mut cache.blocks[oldest];
+                read_block::<T>(source, index, &mut block.bytes);
+                (block.source, block.index) = (id, index);
+                oldest
             }
         };
         let block = &mut cache.blocks[at];
@@ -406,26 +433,52 @@ impl<T: Record> FlightLog<T> {
     }
 }
 
-/// Block `index` of `source`'s slots, as read (shorter, or empty, where the file was cut
-/// since it was checked or a packed chunk does not unpack: those slots read as missing).
-fn read_block<T>(source: &Source, index: u64) -> Vec<u8> {
+/// The source of segment `j` whose header is `source`: itself, or the segment of the
+/// same half of the stream it names when it is another's (which must be a segment of its
+/// own, of as many slots).
+fn same<T>(source: Source, j: u64) -> Result<Source, FlightError> {
+    let Some(base) = source.same_as else { return Ok(source) };
+    let dir = source.path.parent().unwrap_or(Path::new(""));
+    let (_, of) =
+        check_header::<T>(&segment_path(dir, base, j), true).map_err(|e| FlightError::Foreign {
+            path: source.path.display().to_string(),
+            why: format!("the same as {}, which cannot be read: {e}", base.name()),
+        })?;
+    if of.same_as.is_some() || of.capacity != source.capacity {
+        return Err(FlightError::Foreign {
+            path: source.path.display().to_string(),
+            why: format!(
+                "the same as {}, which is not a segment of {} slots of its own",
+                of.path.display(),
+                source.capacity
+            ),
+        });
+    }
+    Ok(of)
+}
+
+/// Block `index` of `source`'s slots, as read into `bytes` (its allocation reused; left
+/// shorter, or empty, where the file was cut since it was checked or a packed chunk does
+/// not unpack: those slots read as missing).
+fn read_block<T>(source: &Source, index: u64, bytes: &mut Vec<u8>) {
     let len = slot_len::<T>();
-    let Ok(f) = std::fs::File::open(&source.path) else { return Vec::new() };
+    bytes.clear();
+    let Ok(f) = std::fs::File::open(&source.path) else { return };
     if let Some(chunks) = &source.chunks {
-        let Some(&(at, l)) = chunks.get(index as usize) else { return Vec::new() };
-        let mut bytes = vec![0u8; l as usize]; // within the file's length: checked
-        return match f.read_exact_at(&mut bytes, at) {
-            Ok(()) => unpack(&bytes, index, source.capacity, len).unwrap_or_default(),
-            Err(_) => Vec::new(),
-        };
+        let Some(&(at, l)) = chunks.get(index as usize) else { return };
+        let mut packed = vec![0u8; l as usize]; // within the file's length: checked
+        if f.read_exact_at(&mut packed, at).is_err()
+            || unpack(&packed, (index, source.capacity, len), bytes).is_err()
+        {
+            bytes.clear();
+        }
+        return;
     }
     let first = index * BLOCK_SLOTS;
     let n = BLOCK_SLOTS.min(source.capacity.saturating_sub(first));
-    let mut bytes = vec![0u8; n as usize * len];
-    let at = HEADER as u64 + first * len as u64;
-    match f.read_exact_at(&mut bytes, at) {
-        Ok(()) => bytes,
-        Err(_) => Vec::new(),
+    bytes.resize(n as usize * len, 0);
+    if f.read_exact_at(bytes, HEADER as u64 + first * len as u64).is_err() {
+        bytes.clear();
     }
 }
 
@@ -434,8 +487,9 @@ fn read_block<T>(source: &Source, index: u64) -> Vec<u8> {
 fn scan<T: Record>(source: &Source, mut f: impl FnMut(u64, u64, &T)) {
     let len = slot_len::<T>();
     let block_slots = source.block_slots();
+    let mut bytes = Vec::new();
     for index in 0..source.capacity.div_ceil(block_slots) {
-        let bytes = read_block::<T>(source, index);
+        read_block::<T>(source, index, &mut bytes);
         for (i, s) in bytes.chunks_exact(len).enumerate() {
             let tag = u64::from_ne_bytes(s[..8].try_into().unwrap_or_default());
             let Some(k) = tag.checked_sub(1) else { continue };
@@ -548,6 +602,66 @@ mod tests {
         let _ = std::fs::remove_dir_all(dir.parent().expect("base"));
     }
 
+    /// The controller's torques and the plant's, recorded over 3000 ticks, where the plant
+    /// did not receive tick 1100: each half the plant has byte for byte is a header naming
+    /// the plant's segment, the half that differs is packed on its own, and both streams
+    /// read every tick they hold. A header whose segment is gone, or that names one of
+    /// another size, reads as missing, named.
+    #[test]
+    fn a_controller_half_the_plant_has_byte_for_byte_is_kept_once() {
+        let base = std::env::temp_dir().join(format!("rotorloop-read-{}-same", std::process::id()));
+        let _ = std::fs::remove_dir_all(&base);
+        let (staged, kept) = (base.join("staged"), base.join("kept"));
+        let cap = ring_capacity(3_000, 512);
+        let open = |s| FlightRecorder::<TorqueSample>::open(Some(&staged), s, cap, "t");
+        let (plant, controller) = (open(Stream::PlantTorque), open(Stream::ControllerTorque));
+        let mut mover = Mover::new(&staged, &kept);
+        for k in 0..3_000 {
+            controller.record(&torque(k));
+            if k != 1_100 {
+                plant.record(&torque(k));
+            }
+            assert!(mover.pass(k).is_empty());
+        }
+        for s in [Stream::PlantTorque, Stream::ControllerTorque] {
+            std::fs::copy(s.path(&staged), s.path(&kept)).expect("the ring beside its segments");
+        }
+        let len = |j| {
+            std::fs::metadata(segment_path(&kept, Stream::ControllerTorque, j)).map(|m| m.len())
+        };
+        assert_eq!(len(0).expect("segment 0"), HEADER as u64);
+        assert!(len(4).expect("segment 4") > HEADER as u64, "ticks 1024–1279 differ");
+        assert_eq!(len(5).expect("segment 5"), HEADER as u64);
+        let controller =
+            FlightLog::<TorqueSample>::read(&kept, Stream::ControllerTorque, 3_063).expect("read");
+        assert!(controller.problems.is_empty(), "{:?}", controller.problems);
+        assert_eq!(controller.count(2_999).records, 3_000);
+        assert_eq!(controller.get(1_100), Some(torque(1_100)));
+        assert_eq!(read(&kept, 3_063).count(2_999).missing, vec![[1_100, 1_100]]);
+        std::fs::remove_file(segment_path(&kept, Stream::PlantTorque, 1)).expect("rm");
+        let plant3 = segment_path(&kept, Stream::PlantTorque, 3);
+        std::fs::write(
+            &plant3,
+            &std::fs::read(segment_path(&kept, Stream::ControllerTorque, 3)).expect("header")[..],
+        )
+        .expect("a header naming itself");
+        let controller =
+            FlightLog::<TorqueSample>::read(&kept, Stream::ControllerTorque, 3_063).expect("read");
+        assert_eq!(controller.count(2_999).missing, vec![[256, 511], [768, 1023]]);
+        assert_eq!(controller.problems.len(), 2, "{:?}", controller.problems);
+        assert!(
+            controller.problems[0].contains("the same as plant-torque, which cannot be read"),
+            "{:?}",
+            controller.problems
+        );
+        assert!(
+            controller.problems[1].contains("not a segment of 256 slots of its own"),
+            "{:?}",
+            controller.problems
+        );
+        let _ = std::fs::remove_dir_all(&base);
+    }
+
     /// A tick far beyond the run written into the ring (tag and sample agreeing, as a
     /// fuzzer wrote it: capacity × 2⁴⁰) allocates nothing and is not the run's.
     #[test]
@@ -566,6 +680,38 @@ mod tests {
         assert!(log.problems[0].contains("beyond the run's last tick 363"), "{:?}", log.problems);
         assert_eq!(log.count(299).missing, vec![[0, 0]]);
         let _ = std::fs::remove_dir_all(dir.parent().expect("base"));
+    }
+
+    /// `ROTORLOOP_READ_DIR=DIR cargo test --release -p rotorloop-common read::tests::speed --
+    /// --ignored --nocapture` reads every tick of each stream of the run directory `DIR`'s
+    /// `flight/` in order, as a pass of the readers does, and prints ticks a second.
+    #[test]
+    #[ignore = "a measurement on a run's files"]
+    fn speed() {
+        let Some(dir) = std::env::var_os("ROTORLOOP_READ_DIR") else {
+            eprintln!("set ROTORLOOP_READ_DIR to a run directory with flight records");
+            return;
+        };
+        let flight = PathBuf::from(dir).join("flight");
+        fn pass<T: Record>(flight: &Path, stream: Stream) {
+            let t0 = std::time::Instant::now();
+            let log = FlightLog::<T>::read(flight, stream, u64::MAX).expect("read");
+            let opened_s = t0.elapsed().as_secs_f64();
+            let t1 = std::time::Instant::now();
+            let n = log.iter().count();
+            let s = t1.elapsed().as_secs_f64();
+            println!(
+                "{}: opened in {opened_s:.2} s; {n} ticks in {s:.2} s, {:.2} M ticks/s, {:.0} MB/s \
+                 of slots",
+                stream.name(),
+                n as f64 / s / 1e6,
+                (n * slot_len::<T>()) as f64 / s / 1e6
+            );
+        }
+        pass::<crate::wire::StateSample>(&flight, Stream::PlantState);
+        pass::<TorqueSample>(&flight, Stream::PlantTorque);
+        pass::<TorqueSample>(&flight, Stream::ControllerTorque);
+        pass::<crate::wire::ReferenceSample>(&flight, Stream::Reference);
     }
 
     /// A ring whose header claims more slots than its file holds is refused before
