@@ -732,8 +732,9 @@ fn finished_run(h: &Harness, args: &[&str]) -> (std::path::PathBuf, String) {
 #[test]
 fn damaged_records_and_claims_are_read_as_far_as_they_are_sound() {
     let h = Harness::new("damaged-records");
-    let (dir, d) =
-        finished_run(&h, &["--duration", "2", "--mode", "lockstep", "--flight-ring-ticks", "512"]);
+    // Raw records (a run of an earlier build): a far tick is written into a ring's slot.
+    let args = ["--duration", "2", "--mode", "lockstep", "--flight-ring-ticks", "512"];
+    let (dir, d) = finished_run(&h, &[&args[..], &["--raw-segments"]].concat());
     let flight = dir.join("flight");
     for stream in ["plant-state", "plant-torque", "controller-torque", "reference"] {
         use std::os::unix::fs::FileExt;

@@ -159,7 +159,7 @@ fn a_run_too_large_for_its_disk_is_refused_before_it_starts_and_others_say_their
 }
 
 /// A long run's output (`run --no-csv --no-mcap`): no `trace.csv`, `timing.csv` or
-/// `run.mcap`, its segments packed (well under a third of a raw slot's bytes a tick); yet
+/// `run.mcap`, the scheduler samples compressed (`sched.csv.zst`), its segments packed (well under a third of a raw slot's bytes a tick); yet
 /// `sim --replay` reads the records directly and finds the run byte for byte, `export
 /// --csv` derives the trace the simulator writes, byte for byte (lockstep), and `export
 /// --mcap` writes `run.mcap` from the records.
@@ -189,11 +189,14 @@ fn a_run_without_csv_files_replays_and_derives_them_from_its_packed_records() {
         ],
         Duration::from_secs(300),
     ));
-    for f in ["trace.csv", "timing.csv", "run.mcap"] {
+    for f in ["trace.csv", "timing.csv", "run.mcap", "sched.csv"] {
         assert!(!out.join(f).exists(), "{f} written: {said}");
     }
     let s = crate::common::harness::json(&out.join("summary.json"));
     assert_eq!(s["completed"], true, "{s}");
+    // The kernel's view compressed, and read by the incidents.
+    assert!(out.join("sched.csv.zst").exists(), "{said}");
+    assert_eq!(s["incidents"]["kernel_view"], true, "{s}");
     assert_eq!(s["trace_rows"], 10_001, "{s}");
     // The segments: 9 halves of 512 ticks of each stream, packed.
     let (mut bytes, mut ticks) = (0u64, 0u64);

@@ -22,6 +22,18 @@ pub mod sched_csv {
 
     /// The header of `sched.csv`.
     pub const HEADER: &str = "t_ns,role,pid,state,cpu,on_cpu_ns,wait_ns,steal_ns";
+
+    /// The file's name.
+    pub const FILE: &str = "sched.csv";
+    /// Its name compressed with zstd (`run --no-csv`).
+    pub const ZST: &str = "sched.csv.zst";
+
+    /// The run directory `dir`'s scheduler samples: `sched.csv`, else `sched.csv.zst`
+    /// (the plain one where neither is there).
+    pub fn path(dir: &std::path::Path) -> std::path::PathBuf {
+        let zst = dir.join(ZST);
+        if !dir.join(FILE).exists() && zst.exists() { zst } else { dir.join(FILE) }
+    }
 }
 
 /// Which steps [`finish`] takes.

@@ -62,8 +62,9 @@ pub struct RunArgs {
     /// `export --mcap` read the records directly.
     #[arg(long)]
     pub no_csv: bool,
-    /// The moved flight segments raw, not packed: to measure what packing costs the loop
-    /// (`bench --before-after pack`).
+    /// The flight records raw, not packed (the segments moved during the run, the rings
+    /// at its end): to measure what packing costs the loop (`bench --before-after pack`),
+    /// and for tests that write into a record's slots.
     #[arg(long, hide = true)]
     pub raw_segments: bool,
     /// Do not sample each role's scheduling (`/proc/PID/schedstat`, its state, the steal

@@ -4,11 +4,12 @@
 //! `--force` is given (a disk that fills up mid-run stops the files, never the loop).
 //!
 //! The estimate is per tick of the run: the flight records (the ring moved in beside its
-//! segments exactly, a slot of each stream a tick, [`flight::bytes_per_tick`]; the packed
+//! segments at its raw size, an upper bound: it is packed as it is moved where it was
+//! staged on tmpfs, a slot of each stream a tick, [`flight::bytes_per_tick`]; the packed
 //! segments at [`PACKED_PERCENT`] of that), the report's files by what they measured on
 //! runs of this build (docs/measurements.md, "A run's disk and memory"), rounded up:
 //! `trace.csv` 800 B, `run.mcap` 1000 B, `timing.csv` 60 B a tick, `sched.csv` 100 kB a
-//! second of wall time.
+//! second of wall time (30 kB compressed, `--no-csv`).
 
 use std::path::Path;
 
@@ -32,6 +33,8 @@ pub const PACKED_PERCENT: u64 = 30;
 /// sampled every millisecond: at most about 280 kB if every role changed every
 /// millisecond; measured 26–29 kB in the one-hour real-time soaks, 2.8 kB in lockstep).
 const SCHED_PER_S: u64 = 100_000;
+/// `sched.csv.zst`'s (`--no-csv`): zstd left 26 % of the one-hour soak's 128.5 MB.
+const SCHED_ZST_PER_S: u64 = 30_000;
 
 /// From this many seconds on, `run` says what `--no-csv --no-mcap` would write instead.
 const LONG_RUN_S: f64 = 600.0;
@@ -54,7 +57,8 @@ pub fn estimate(args: &RunArgs, scenario: &Scenario) -> Estimate {
     let ring = flight::ring_capacity(ticks, args.role.flight_ring_ticks.max(1));
     let (flight, staging) = match args.no_record {
         true => (0, 0),
-        // Every tick in a segment, and the ring moved in beside them at the end.
+        // Every tick in a segment, and the ring moved in beside them at the end (at most
+        // its raw size).
         false if flight::ring_wraps(ticks, ring) => {
             (ticks * per_tick / 100 * PACKED_PERCENT + ring * per_tick, ring * per_tick)
         }
@@ -66,7 +70,11 @@ pub fn estimate(args: &RunArgs, scenario: &Scenario) -> Estimate {
     };
     let mcap = if args.no_mcap || args.no_monitor { 0 } else { ticks * MCAP_PER_TICK };
     let seconds = (ticks as f64 * scenario.dt()).ceil() as u64;
-    let sched = if args.no_sched_sample { 0 } else { seconds * SCHED_PER_S };
+    let sched = match (args.no_sched_sample, args.no_csv) {
+        (true, _) => 0,
+        (false, true) => seconds * SCHED_ZST_PER_S,
+        (false, false) => seconds * SCHED_PER_S,
+    };
     let out = flight.saturating_add(report).saturating_add(mcap).saturating_add(sched);
     Estimate { out, flight, staging }
 }

@@ -268,7 +268,7 @@ fn observers(
     args: &RunArgs,
     domain: &str,
 ) -> anyhow::Result<(RssLog, Option<crate::run::tracesched::TraceSched>)> {
-    let rss = RssLog::create(&args.out, !args.no_sched_sample);
+    let rss = RssLog::create(&args.out, !args.no_sched_sample, args.no_csv);
     let traced = match args.trace_sched {
         true => Some(crate::run::tracesched::TraceSched::start(&args.out, domain)?),
         false => None,

@@ -155,9 +155,14 @@ pub fn run(dir: &Path) -> anyhow::Result<()> {
     match &launch.staging {
         Some(staged) if !launch.moved => kept = staged.clone(),
         Some(staged) if staged.is_dir() && *staged != kept => {
-            let n = rotorloop_common::flight::move_records(staged, &kept).with_context(|| {
-                format!("cannot move the records of {} into {}", staged.display(), kept.display())
-            })?;
+            let n =
+                rotorloop_common::flight::move_records(staged, &kept, true).with_context(|| {
+                    format!(
+                        "cannot move the records of {} into {}",
+                        staged.display(),
+                        kept.display()
+                    )
+                })?;
             eprintln!(
                 "recover: moved {n} record file(s) from {} into {}",
                 staged.display(),

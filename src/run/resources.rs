@@ -86,8 +86,9 @@ pub(crate) struct RssLog {
 }
 
 impl RssLog {
-    /// The log of `out`, with the roles' scheduling sampled too where `sched` says so.
-    pub(crate) fn create(out: &std::path::Path, sched: bool) -> Self {
+    /// The log of `out`, with the roles' scheduling sampled too where `sched` says so
+    /// (into `sched.csv.zst` where `compressed`).
+    pub(crate) fn create(out: &std::path::Path, sched: bool, compressed: bool) -> Self {
         use std::io::Write;
         let path = out.join("rss.csv");
         let csv = std::fs::File::create(&path).map(std::io::BufWriter::new).and_then(|mut f| {
@@ -95,7 +96,8 @@ impl RssLog {
             Ok(f)
         });
         let csv = csv.map_err(|e| eprintln!("warning: cannot write {}: {e}", path.display())).ok();
-        let sched = sched.then(|| crate::run::sched::SchedSampler::start(out)).flatten();
+        let sched =
+            sched.then(|| crate::run::sched::SchedSampler::start(out, compressed)).flatten();
         Self { tracks: BTreeMap::new(), csv, t0: now_ns(), next_ns: now_ns(), sched }
     }
 

@@ -218,7 +218,9 @@ impl Launch<'_> {
         if self.args.role.record.is_some() || staged == kept {
             return Some(staged); // recorded where the user asked
         }
-        if let Err(e) = rotorloop_common::flight::move_records(&staged, &kept) {
+        if let Err(e) =
+            rotorloop_common::flight::move_records(&staged, &kept, !self.args.raw_segments)
+        {
             let (s, k) = (staged.display(), kept.display());
             eprintln!("warning: the flight records stay in {s}: cannot move them into {k}: {e}");
             return Some(staged);

@@ -99,8 +99,10 @@ pub const RUN_DIR_FILE: &str = "run-dir";
 /// Moves every record file (`*.flight`) of `from` into `to` (created if need be; a rename
 /// where both lie on one filesystem, else a copy then a removal, one file at a time, so a
 /// move cut short leaves each record whole in one of the two), then removes `from` with
-/// its [`RUN_DIR_FILE`]. Returns how many files it moved.
-pub fn move_records(from: &Path, to: &Path) -> std::io::Result<usize> {
+/// its [`RUN_DIR_FILE`]. Returns how many files it moved. Where `packed`, each ring
+/// (`STREAM.flight`) is packed as it is moved, as the segments are ([`pack`]: a quarter of
+/// its bytes); one that cannot be is moved raw.
+pub fn move_records(from: &Path, to: &Path, packed: bool) -> std::io::Result<usize> {
     std::fs::create_dir_all(to)?;
     let mut moved = 0;
     for entry in std::fs::read_dir(from)? {
@@ -110,7 +112,10 @@ pub fn move_records(from: &Path, to: &Path) -> std::io::Result<usize> {
         }
         let Some(name) = path.file_name() else { continue };
         let dest = to.join(name);
-        if std::fs::rename(&path, &dest).is_err() {
+        let ring = Stream::ALL.iter().any(|s| s.path(from) == path);
+        if packed && ring && pack::pack_file(&path, &dest).is_ok() {
+            std::fs::remove_file(&path)?;
+        } else if std::fs::rename(&path, &dest).is_err() {
             let part = to.join(format!(".{}.part", name.to_string_lossy()));
             std::fs::copy(&path, &part)?;
             std::fs::rename(&part, &dest)?;
@@ -423,9 +428,12 @@ pub enum FlightError {
 pub fn has_record<T: Record>(dir: &Path, stream: Stream, k: u64) -> bool {
     use std::os::unix::fs::FileExt;
     let Ok(f) = std::fs::File::open(stream.path(dir)) else { return false };
-    let (mut tag, mut capacity) = ([0u8; 8], [0u8; 8]);
-    if f.read_exact_at(&mut capacity, 8 * word::CAPACITY as u64).is_err() {
-        return false;
+    let (mut tag, mut capacity, mut magic) = ([0u8; 8], [0u8; 8], [0u8; 8]);
+    if f.read_exact_at(&mut magic, 0).is_err()
+        || u64::from_ne_bytes(magic) != MAGIC
+        || f.read_exact_at(&mut capacity, 8 * word::CAPACITY as u64).is_err()
+    {
+        return false; // no ring being written (a packed one is a finished run's)
     }
     let capacity = u64::from_ne_bytes(capacity).max(1);
     let at = HEADER as u64 + (k % capacity) * slot_len::<T>() as u64;

@@ -264,18 +264,56 @@ pub(super) fn pack(header: &[u8], body: &[u8], slot_len: usize) -> std::io::Resu
     let chunk_len = CHUNK_SLOTS as usize * slot_len;
     let chunks: Vec<Vec<u8>> =
         body.chunks(chunk_len).map(|c| pack_chunk(c, slot_len / 8)).collect::<Result<_, _>>()?;
+    Ok(assemble(header, &chunks))
+}
+
+/// Packs the raw record file `from` (a ring: its header and its slots, as
+/// [`super::FlightRecorder`] leaves it) into `to`, written whole or not at all (a `.part`
+/// renamed), reading a chunk of slots at a time. Its header words stay as they are, but
+/// for the magic. A file that is not a whole raw record is an error (and left as it is).
+pub(super) fn pack_file(from: &std::path::Path, to: &std::path::Path) -> std::io::Result<()> {
+    use std::os::unix::fs::FileExt;
+    let f = std::fs::File::open(from)?;
+    let mut header = [0u8; super::HEADER];
+    f.read_exact_at(&mut header, 0)?;
+    let w = |i: usize| u64::from_ne_bytes(header[8 * i..8 * i + 8].try_into().unwrap_or_default());
+    let slot_len = 8 + usize::try_from(w(super::word::SIZE)).unwrap_or(0).next_multiple_of(8);
+    let capacity = w(super::word::CAPACITY);
+    let whole = super::HEADER as u128 + u128::from(capacity) * slot_len as u128;
+    if w(super::word::MAGIC) != super::MAGIC || u128::from(f.metadata()?.len()) != whole {
+        return Err(std::io::Error::other("not a whole raw flight record"));
+    }
+    let mut chunks = Vec::new();
+    let mut slots = Vec::new();
+    for i in 0..capacity.div_ceil(CHUNK_SLOTS) {
+        let rows = CHUNK_SLOTS.min(capacity - i * CHUNK_SLOTS) as usize;
+        slots.resize(rows * slot_len, 0);
+        f.read_exact_at(
+            &mut slots,
+            (super::HEADER + i as usize * CHUNK_SLOTS as usize * slot_len) as u64,
+        )?;
+        chunks.push(pack_chunk(&slots, slot_len / 8)?);
+    }
+    header[..8].copy_from_slice(&super::PACKED_MAGIC.to_ne_bytes());
+    let part = to.with_extension("part");
+    std::fs::write(&part, assemble(&header, &chunks))?;
+    std::fs::rename(&part, to)
+}
+
+/// A packed file: `header`, the table of the chunks, the chunks.
+fn assemble(header: &[u8], chunks: &[Vec<u8>]) -> Vec<u8> {
     let mut out = Vec::with_capacity(header.len() + 16 * chunks.len());
     out.extend_from_slice(header);
     let mut at = (header.len() + 16 * chunks.len()) as u64;
-    for c in &chunks {
+    for c in chunks {
         out.extend_from_slice(&at.to_le_bytes());
         out.extend_from_slice(&(c.len() as u64).to_le_bytes());
         at += c.len() as u64;
     }
-    for c in &chunks {
+    for c in chunks {
         out.extend_from_slice(c);
     }
-    Ok(out)
+    out
 }
 
 /// Where each chunk of a packed segment of `capacity` slots of `slot_len` bytes lies in its

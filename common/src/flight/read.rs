@@ -110,9 +110,9 @@ pub struct StreamCount {
 }
 
 /// A file's header words, checked against its length for samples of type `T`: its
-/// capacity and, for a packed segment (where `packed` allows one), its chunks; or why it
-/// is not a record of this build.
-fn check_header<T>(path: &Path, packed: bool) -> Result<([u64; 8], Source), FlightError> {
+/// capacity and, for a packed file, its chunks, or the stream whose segment it is; or why
+/// it is not a record of this build.
+fn check_header<T>(path: &Path) -> Result<([u64; 8], Source), FlightError> {
     let shown = path.display().to_string();
     let file = std::fs::File::open(path)
         .map_err(|e| FlightError::Missing { path: shown.clone(), why: e.to_string() })?;
@@ -126,8 +126,8 @@ fn check_header<T>(path: &Path, packed: bool) -> Result<([u64; 8], Source), Flig
     for (i, c) in header.chunks_exact(8).enumerate() {
         w[i] = u64::from_ne_bytes(c.try_into().unwrap_or_default());
     }
-    let is_packed = packed && w[word::MAGIC] == PACKED_MAGIC;
-    let is_same = packed && w[word::MAGIC] == SAME_MAGIC;
+    let is_packed = w[word::MAGIC] == PACKED_MAGIC;
+    let is_same = w[word::MAGIC] == SAME_MAGIC;
     if w[word::MAGIC] != MAGIC && !is_packed && !is_same {
         return Err(foreign("not a flight record (or never written)".into()));
     }
@@ -184,7 +184,13 @@ impl<T: Record> FlightLog<T> {
     /// tick and the spare slots: a later tick is not the run's). The ring must be sound;
     /// a segment that is not is skipped and named in [`Self::problems`].
     pub fn read(dir: &Path, stream: Stream, limit: u64) -> Result<Self, FlightError> {
-        let (w, ring) = check_header::<T>(&stream.path(dir), false)?;
+        let (w, ring) = check_header::<T>(&stream.path(dir))?;
+        if ring.same_as.is_some() {
+            return Err(FlightError::Foreign {
+                path: ring.path.display().to_string(),
+                why: "a ring naming another stream's segment (damaged)".into(),
+            });
+        }
         let capacity = ring.capacity;
         let mut log = Self {
             ring: Some(ring),
@@ -249,7 +255,7 @@ impl<T: Record> FlightLog<T> {
             }) else {
                 continue;
             };
-            let source = match check_header::<T>(&path, true).and_then(|(_, s)| same::<T>(s, j)) {
+            let source = match check_header::<T>(&path).and_then(|(_, s)| same::<T>(s, j)) {
                 Ok(source) => source,
                 Err(e) => {
                     self.problem(format!("{e}: skipped, its ticks read as missing"));
@@ -440,7 +446,7 @@ fn same<T>(source: Source, j: u64) -> Result<Source, FlightError> {
     let Some(base) = source.same_as else { return Ok(source) };
     let dir = source.path.parent().unwrap_or(Path::new(""));
     let (_, of) =
-        check_header::<T>(&segment_path(dir, base, j), true).map_err(|e| FlightError::Foreign {
+        check_header::<T>(&segment_path(dir, base, j)).map_err(|e| FlightError::Foreign {
             path: source.path.display().to_string(),
             why: format!("the same as {}, which cannot be read: {e}", base.name()),
         })?;
@@ -602,6 +608,37 @@ mod tests {
         let _ = std::fs::remove_dir_all(dir.parent().expect("base"));
     }
 
+    /// The rings moved into the run directory at the end are packed (a fraction of their
+    /// bytes, their header words kept) and read as the raw ones, every tick; moved raw
+    /// where asked. A file that is not a whole raw record is moved as it is.
+    #[test]
+    fn a_ring_moved_at_the_end_is_packed_and_reads_as_the_raw_one() {
+        for packed in [true, false] {
+            let dir = recorded(&format!("ring-{packed}"), 3_000); // the ring copied in raw
+            let raw = read(&dir, 3_063);
+            let (opens, raw): (u64, Vec<TorqueSample>) = (raw.opens, raw.iter().collect());
+            let staged = dir.parent().expect("base").join("staged");
+            std::fs::write(staged.join("reference.flight"), b"not a record").expect("foreign");
+            std::fs::remove_file(Stream::PlantTorque.path(&dir)).expect("the copy");
+            assert_eq!(super::super::move_records(&staged, &dir, packed).expect("moved"), 2);
+            let ring = Stream::PlantTorque.path(&dir);
+            let (w, _) = check_header::<TorqueSample>(&ring).expect("a sound ring");
+            assert_eq!(w[word::MAGIC], if packed { PACKED_MAGIC } else { MAGIC });
+            let len = std::fs::metadata(&ring).expect("ring").len();
+            let whole = HEADER as u64 + 512 * slot_len::<TorqueSample>() as u64;
+            assert!(if packed { len < whole / 3 } else { len == whole }, "{len} of {whole}");
+            assert_eq!(
+                std::fs::read(Stream::Reference.path(&dir)).expect("as it was"),
+                b"not a record"
+            );
+            let log = read(&dir, 3_063);
+            assert!(log.problems.is_empty(), "{:?}", log.problems);
+            assert_eq!((log.opens, log.last()), (opens, Some(2_999)));
+            assert!(log.iter().eq(raw), "every tick as the raw ring had it");
+            let _ = std::fs::remove_dir_all(dir.parent().expect("base"));
+        }
+    }
+
     /// The controller's torques and the plant's, recorded over 3000 ticks, where the plant
     /// did not receive tick 1100: each half the plant has byte for byte is a header naming
     /// the plant's segment, the half that differs is packed on its own, and both streams
@@ -668,7 +705,7 @@ mod tests {
     fn a_far_future_tick_is_counted_and_ignored_not_allocated() {
         let dir = recorded("far", 300);
         let ring = Stream::PlantTorque.path(&dir);
-        let (_, cap) = check_header::<TorqueSample>(&ring, false).expect("ring");
+        let (_, cap) = check_header::<TorqueSample>(&ring).expect("ring");
         let k = cap.capacity << 40;
         let f = std::fs::OpenOptions::new().write(true).open(&ring).expect("open");
         let mut slot = (k + 1).to_ne_bytes().to_vec();

@@ -185,8 +185,8 @@ impl RunRecord {
             }
         }
         let t0_ns = if t0_ns == u64::MAX { 0 } else { t0_ns };
-        let kernel_view = sched_rows(&dir.join("sched.csv")).next().is_some();
-        let sched_path = dir.join("sched.csv");
+        let sched_path = crate::pipeline::sched_csv::path(dir);
+        let kernel_view = sched_rows(&sched_path).next().is_some();
         Ok(Self {
             grid_marks,
             realtime,
@@ -309,10 +309,17 @@ impl RunRecord {
 }
 
 /// `sched.csv`'s rows, a line at a time (none where it is missing; a row that does not
-/// parse is skipped).
+/// parse is skipped), from `sched.csv.zst` too (to where a frame cut short ends).
 pub fn sched_rows(path: &Path) -> impl Iterator<Item = SchedRow> + use<> {
     use std::io::BufRead;
-    let lines = std::fs::File::open(path).ok().map(|f| std::io::BufReader::new(f).lines());
+    let zst = path.extension().is_some_and(|e| e == "zst");
+    let lines = std::fs::File::open(path).ok().and_then(|f| {
+        let read: Box<dyn std::io::Read> = match zst {
+            true => Box::new(zstd::stream::read::Decoder::new(f).ok()?),
+            false => Box::new(f),
+        };
+        Some(std::io::BufReader::new(read).lines())
+    });
     lines.into_iter().flatten().skip(1).map_while(Result::ok).filter_map(|l| {
         let f: Vec<&str> = l.split(',').collect();
         Some(SchedRow {
@@ -508,5 +515,34 @@ mod tests {
         // The longest incident (5001 ticks) and a second and a tick either side: 7003 ms
         // of two roles' rows, both ends included.
         assert!(held_most <= 2 * 7_004, "held {held_most} rows at once");
+    }
+
+    /// `sched.csv.zst` (`run --no-csv`) gives the rows `sched.csv` would, and one cut short
+    /// by a launcher killed mid-run gives those before the cut: never a row that is not
+    /// the file's, never an error.
+    #[test]
+    fn compressed_kernel_rows_read_as_the_plain_ones_and_as_far_as_a_cut_frame_goes() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let mut csv = String::from("t_ns,role,pid,state,cpu,on_cpu_ns,wait_ns,steal_ns\n");
+        for ms in 0..50_000u64 {
+            let wait = (ms * 7919) % 1_000_003;
+            csv += &format!("{},plant,10,R,{},{ms},{wait},0\n", ms * 1_000_000, ms % 2);
+        }
+        std::fs::write(dir.path().join("sched.csv"), &csv).expect("plain");
+        let zst = zstd::encode_all(csv.as_bytes(), 3).expect("zstd");
+        std::fs::write(dir.path().join("sched.csv.zst"), &zst).expect("compressed");
+        let row = |r: SchedRow| (r.t_ns, r.cpu, r.on_cpu_ns, r.wait_ns);
+        let plain: Vec<_> = sched_rows(&dir.path().join("sched.csv")).map(row).collect();
+        let packed: Vec<_> = sched_rows(&dir.path().join("sched.csv.zst")).map(row).collect();
+        assert_eq!(plain.len(), 50_000);
+        assert_eq!(packed, plain);
+        // Where both are there the plain one is read; the compressed one alone otherwise.
+        assert_eq!(crate::pipeline::sched_csv::path(dir.path()), dir.path().join("sched.csv"));
+        std::fs::remove_file(dir.path().join("sched.csv")).expect("rm");
+        assert_eq!(crate::pipeline::sched_csv::path(dir.path()), dir.path().join("sched.csv.zst"));
+        std::fs::write(dir.path().join("sched.csv.zst"), &zst[..zst.len() * 2 / 3]).expect("cut");
+        let cut: Vec<_> = sched_rows(&dir.path().join("sched.csv.zst")).map(row).collect();
+        assert!(!cut.is_empty() && cut.len() < plain.len(), "{} rows", cut.len());
+        assert_eq!(cut[..], plain[..cut.len()]);
     }
 }
