@@ -43,6 +43,10 @@ const HORIZON_S: f64 = 60.0;
 const PROPAGATED_TRIES: u64 = 16;
 /// The ticks of a deviation kept for the figure.
 const CURVE_TICKS: usize = 10_000;
+/// This loop's answers kept, the newest (an answer takes effect within its delay; one
+/// older than this takes effect as the run's own answer did: what is held does not grow
+/// with an incident's length).
+const ANSWERS_KEPT: usize = 65_536;
 
 /// An incident's cost.
 #[derive(Debug, Clone, PartialEq)]
@@ -190,8 +194,9 @@ pub fn cost(
         body_torque: DVec3::from_array(s0.applied_body_torque_nm),
     };
     line.resume(held, s0.applied_torque_tick, 0);
-    // This loop's answers by the state tick they answer; before `start`, the run's.
-    let mut answers: BTreeMap<u64, BodyInput> = BTreeMap::new();
+    // This loop's answers by the state tick they answer, in tick order, the newest
+    // [`ANSWERS_KEPT`]; before `start`, the run's.
+    let mut answers: std::collections::VecDeque<(u64, BodyInput)> = Default::default();
     let recorded = |j: u64| {
         run.torque(j).map(|t| {
             input_of(
@@ -235,7 +240,10 @@ pub fn cost(
             let from = if replaced { None } else { propagated.get(&k).copied() };
             let rd = reference(run, k, from)?;
             let o = law.step(&body.state(), &rd, dt);
-            answers.insert(k, input_of(actuation, &o));
+            if answers.len() == ANSWERS_KEPT {
+                answers.pop_front();
+            }
+            answers.push_back((k, input_of(actuation, &o)));
         }
         let mut due: Vec<(f64, u64)> = Vec::new();
         if replaced {
@@ -256,7 +264,8 @@ pub fn cost(
         });
         due.sort_by(|a, b| a.0.total_cmp(&b.0));
         for (offset, source) in due {
-            let input = answers.get(&source).copied().or_else(|| recorded(source))?;
+            let ours = answers.binary_search_by_key(&source, |(j, _)| *j).ok();
+            let input = ours.map(|i| answers[i].1).or_else(|| recorded(source))?;
             line.schedule(k, offset, source, input);
         }
         integrate_tick(&mut body, &mut line, k, &limits, run.scenario.disturbance);

@@ -98,13 +98,15 @@ pub struct RunRecord {
     pub sched: Vec<SchedRow>,
     /// Whether `sched.csv` has any row.
     pub kernel_view: bool,
-    /// The kernel's scheduler trace near the incidents (empty without `--trace-sched`, and
-    /// until [`RunRecord::keep_trace`] names the windows).
+    /// The kernel's scheduler trace near the incident being explained, in time order
+    /// (empty without `--trace-sched`, and until [`RunRecord::trace_for`] names it).
     pub trace: Vec<super::trace::Traced>,
     /// Whether the run has a scheduler trace with any event (`--trace-sched`).
     pub traced: bool,
-    /// `sched-trace.txt`, read by [`RunRecord::keep_trace`].
+    /// `sched-trace.txt`, read by [`RunRecord::trace_for`].
     trace_path: std::path::PathBuf,
+    /// The events of `sched-trace.txt` not read yet ([`RunRecord::trace_for`]).
+    trace_left: TraceLeft,
     /// The first state's publish (ns): the origin of the faults' times.
     pub t0_ns: u64,
     /// Whether any state carries a grid time (a real-time run).
@@ -202,8 +204,9 @@ impl RunRecord {
             kernel_view,
             sched_path,
             trace: Vec::new(),
-            traced: false,
+            traced: super::trace::events(&dir.join("sched-trace.txt")).next().is_some(),
             trace_path: dir.join("sched-trace.txt"),
+            trace_left: TraceLeft::default(),
             t0_ns,
             next_found: Default::default(),
             sched_left: SchedLeft::default(),
@@ -245,6 +248,7 @@ impl RunRecord {
             trace: Vec::new(),
             traced: false,
             trace_path: Default::default(),
+            trace_left: TraceLeft::default(),
         }
     }
 
@@ -340,6 +344,21 @@ pub fn sched_rows(path: &Path) -> impl Iterator<Item = SchedRow> + use<> {
 #[derive(Default)]
 struct SchedLeft(Option<std::iter::Peekable<Box<dyn Iterator<Item = SchedRow>>>>);
 
+/// The events of `sched-trace.txt` after those read so far, opened at the first
+/// [`RunRecord::trace_for`].
+#[derive(Default)]
+struct TraceLeft(Option<std::iter::Peekable<Box<dyn Iterator<Item = super::trace::Traced>>>>);
+
+impl std::fmt::Debug for TraceLeft {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(if self.0.is_some() { "TraceLeft(open)" } else { "TraceLeft" })
+    }
+}
+
+/// How far out of time order `sched-trace.txt` is read ahead (ns): an event of one CPU
+/// committed late comes after later ones of another, by far less than this.
+const TRACE_REORDER_NS: u64 = 1_000_000_000;
+
 impl std::fmt::Debug for SchedLeft {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         f.write_str(if self.0.is_some() { "SchedLeft(open)" } else { "SchedLeft" })
@@ -381,18 +400,34 @@ impl RunRecord {
         }
     }
 
-    /// Reads the events of `sched-trace.txt` (`--trace-sched`) within a second of any
-    /// incident (`near`) in one pass, a line at a time; the context switches far from
-    /// every incident are not kept.
-    pub fn keep_trace(&mut self, near: &Spans) {
-        let near = |t: u64| near.contains(t);
-        (self.traced, self.trace) = super::trace::read_near(&self.trace_path, near);
+    /// Keeps the events of `sched-trace.txt` (`--trace-sched`) within a second of the
+    /// incident `w` ([`RunRecord::trace`], in time order), read forward from where the last
+    /// call stopped, as [`RunRecord::sched_for`] reads `sched.csv`: the file is read once,
+    /// and what is held is the events near one incident (and up to a second read ahead),
+    /// not those near every incident of the run.
+    pub fn trace_for(&mut self, w: [u64; 2]) {
+        if !self.traced {
+            return;
+        }
+        let [from, to] = self.near_ns(w);
+        self.trace.retain(|e| e.t_ns >= from);
+        let path = &self.trace_path;
+        let left = self.trace_left.0.get_or_insert_with(|| {
+            let events: Box<dyn Iterator<Item = super::trace::Traced>> =
+                Box::new(super::trace::events(path));
+            events.peekable()
+        });
+        while let Some(e) = left.next_if(|e| e.t_ns <= to.saturating_add(TRACE_REORDER_NS)) {
+            if e.t_ns >= from {
+                self.trace.push(e);
+            }
+        }
+        self.trace.sort_by_key(|e| e.t_ns);
     }
 }
 
-/// Closed spans `[from, to]`, merged where they overlap: the times within a second of the
-/// incidents (ns) that [`RunRecord::keep_trace`] keeps of the scheduler trace, or the
-/// ticks a costed incident's counterfactual can reach ([`super::cost::law_pass`]). Spans
+/// Closed spans `[from, to]`, merged where they overlap: the ticks a costed incident's
+/// counterfactual can reach ([`super::cost::law_pass`]). Spans
 /// added in the order of their starts merge as they come, so what is held is the merged
 /// spans alone.
 #[derive(Debug, Default)]
@@ -515,6 +550,62 @@ mod tests {
         // The longest incident (5001 ticks) and a second and a tick either side: 7003 ms
         // of two roles' rows, both ends included.
         assert!(held_most <= 2 * 7_004, "held {held_most} rows at once");
+    }
+
+    /// Read forward incident by incident, `sched-trace.txt` gives each incident every
+    /// event within a second of it, in time order, though the file has pairs out of order
+    /// (per-CPU buffers); what is held is one incident's neighbourhood and the second read
+    /// ahead, not the events near every incident.
+    #[test]
+    fn the_trace_events_are_read_forward_incident_by_incident() {
+        let scenario = Scenario::load("paper-zero").expect("built-in");
+        let ticks = 20_000u64;
+        let states = (0..ticks)
+            .map(|k| {
+                let mut s = StateSample::of(k, k as f64 * scenario.dt(), &scenario.plant_init);
+                s.publish_ns = 1_000_000 * (k + 1);
+                s
+            })
+            .collect();
+        let mut run = RunRecord::of(scenario, states, Vec::new());
+        let dir = tempfile::tempdir().expect("tempdir");
+        let mut text = String::from("# tracer: nop\n");
+        let mut all = Vec::new();
+        for ms in 0..ticks + 100 {
+            // Every other pair of events out of order, as a late commit on another CPU.
+            let t = if ms % 4 == 1 {
+                ms + 1
+            } else if ms % 4 == 2 {
+                ms - 1
+            } else {
+                ms
+            } * 1_000_000;
+            text += &format!(
+                "  yes-9 [001] d..2. {}.{:09}: sched_switch: prev_comm=a prev_pid=1 \
+                 prev_prio=120 prev_state=R ==> next_comm=b next_pid=2 next_prio=120\n",
+                t / 1_000_000_000,
+                t % 1_000_000_000
+            );
+            all.push(t);
+        }
+        all.sort_unstable();
+        run.trace_path = dir.path().join("sched-trace.txt");
+        std::fs::write(&run.trace_path, text).expect("write");
+        run.traced = true;
+        let windows = [[5, 5], [900, 1200], [1300, 1301], [4000, 9000], [19_990, 19_999]];
+        let mut held_most = 0;
+        for w in windows {
+            run.trace_for(w);
+            let [from, to] = run.near_ns(w);
+            let want: Vec<u64> = all.iter().filter(|t| (from..=to).contains(*t)).copied().collect();
+            let held: Vec<u64> = run.trace.iter().map(|e| e.t_ns).collect();
+            assert!(held.is_sorted(), "{w:?}: out of time order");
+            assert!(held.first().is_some_and(|t| *t >= from), "{w:?}: an event before its second");
+            assert_eq!(&held[..want.len()], &want[..], "{w:?}: the events near it");
+            held_most = held_most.max(held.len());
+        }
+        // The longest incident (5001 ticks), a second either side and a second read ahead.
+        assert!(held_most <= 8_004, "held {held_most} events at once");
     }
 
     /// `sched.csv.zst` (`run --no-csv`) gives the rows `sched.csv` would, and one cut short

@@ -264,20 +264,16 @@ impl Windows {
     }
 }
 
-/// The first pass over the run's windows: how many there are, the [`MAX_COSTED`] longest
-/// ([`Longest`]), and the times near them.
-fn first_pass(
-    run: &RunRecord,
-    flags: &ticks::TickFlags,
-) -> (usize, Vec<(usize, [u64; 2])>, load::Spans) {
-    let (mut count, mut near, mut longest) = (0, load::Spans::default(), Longest::default());
+/// The first pass over the run's windows: how many there are, and the [`MAX_COSTED`]
+/// longest ([`Longest`]).
+fn first_pass(run: &RunRecord, flags: &ticks::TickFlags) -> (usize, Vec<(usize, [u64; 2])>) {
+    let (mut count, mut longest) = (0, Longest::default());
     let mut windows = Windows::new(run);
     while let Some((w, _)) = windows.next(run, flags) {
-        near.add(run.near_ns(w));
         longest.see(count, w);
         count += 1;
     }
-    (count, longest.kept(), near)
+    (count, longest.kept())
 }
 
 /// The [`MAX_COSTED`] longest windows of those seen one at a time, as a stable sort by
@@ -323,8 +319,7 @@ pub fn find(
     let flags = ticks::flag(&run, options.threshold_ticks);
     // A first pass over the windows counts them and picks the longest to cost; the second
     // explains them. Neither holds the run's windows: a day's run can have millions.
-    let (count, costed, near) = first_pass(&run, &flags);
-    run.keep_trace(&near);
+    let (count, costed) = first_pass(&run, &flags);
     let medians = cause::stage_medians(&run, &flags);
     let windows: Vec<[u64; 2]> = costed.iter().map(|(_, w)| *w).collect();
     let pass = cost::law_pass(&run, &windows)?;
@@ -346,6 +341,7 @@ pub fn find(
     let (mut windows, mut i) = (Windows::new(&run), 0);
     while let Some((w, outside)) = windows.next(&run, &flags) {
         run.sched_for(w);
+        run.trace_for(w);
         let fault = outside.or_else(|| cause::fault_of(&run, w));
         let (c, all, misses) = match outside {
             Some(f) => {

@@ -83,22 +83,13 @@ pub fn parse(line: &str) -> Option<Traced> {
     Some(Traced { t_ns, cpu, event })
 }
 
-/// The events of the trace at `path` whose time `near` accepts, in time order, read a line
-/// at a time (a day's trace is not held whole: only what the incidents look at), with
-/// whether the file held any event at all.
-pub fn read_near(path: &Path, near: impl Fn(u64) -> bool) -> (bool, Vec<Traced>) {
+/// The events of the trace at `path` in the file's order, read a line at a time (none
+/// where it is missing; a line that is not an event is skipped). The file is in time order
+/// but for events of one CPU committed late (per-CPU buffers), a few at most.
+pub fn events(path: &Path) -> impl Iterator<Item = Traced> + use<> {
     use std::io::BufRead;
-    let Ok(file) = std::fs::File::open(path) else { return (false, Vec::new()) };
-    let mut any = false;
-    let mut v: Vec<Traced> = std::io::BufReader::new(file)
-        .lines()
-        .map_while(Result::ok)
-        .filter_map(|l| parse(&l))
-        .inspect(|_| any = true)
-        .filter(|e| near(e.t_ns))
-        .collect();
-    v.sort_by_key(|e| e.t_ns);
-    (any, v)
+    let lines = std::fs::File::open(path).ok().map(|f| std::io::BufReader::new(f).lines());
+    lines.into_iter().flatten().map_while(Result::ok).filter_map(|l| parse(&l))
 }
 
 /// What ran on `cpu` over `[from, to]` (ns): each task's time on it, and the IRQ
@@ -175,7 +166,7 @@ mod tests {
     }
 
     #[test]
-    fn only_the_events_near_an_incident_are_kept_and_a_trace_is_known_without_them() {
+    fn the_events_are_read_in_the_files_order_skipping_what_is_not_one() {
         let dir = std::env::temp_dir().join(format!("rotorloop-trace-{}", std::process::id()));
         std::fs::create_dir_all(&dir).expect("a temporary folder");
         let path = dir.join("sched-trace.txt");
@@ -183,12 +174,9 @@ mod tests {
         // Out of order across CPUs, as per-CPU buffers can be; a header line; a bad line.
         let text = ["# tracer: nop".to_owned(), line("7.0"), line("2.5"), line("3.0"), line("x")];
         std::fs::write(&path, text.join("\n")).expect("write");
-        let (any, kept) = read_near(&path, |t| (2_000_000_000..=3_000_000_000).contains(&t));
-        assert!(any);
-        assert_eq!(kept.iter().map(|e| e.t_ns).collect::<Vec<_>>(), [2_500_000_000, 3_000_000_000]);
-        let (any, kept) = read_near(&path, |_| false);
-        assert!(any && kept.is_empty(), "a trace with no event near an incident is still a trace");
-        assert_eq!(read_near(&dir.join("none.txt"), |_| true), (false, Vec::new()));
+        let t: Vec<u64> = events(&path).map(|e| e.t_ns).collect();
+        assert_eq!(t, [7_000_000_000, 2_500_000_000, 3_000_000_000]);
+        assert_eq!(events(&dir.join("none.txt")).count(), 0);
         std::fs::remove_dir_all(&dir).expect("remove");
     }
 }
