@@ -54,7 +54,7 @@ def processes(domain):
 def kind(name):
     if name.startswith("flight/") or name.startswith("flight"):
         return "flight records"
-    for k in ("trace.csv", "timing.csv", "run.mcap", "sched.csv", "incidents.csv"):
+    for k in ("trace.csv", "timing.csv", "run.mcap", "sched.csv", "sched.csv.zst", "incidents.csv"):
         if name == k:
             return k
     if name.endswith(".hlog") or name.endswith(".hgrm"):

@@ -184,6 +184,12 @@ impl Record for ReferenceSample {
     }
 }
 
+// A reader that looks only at a slot's first two words (`FlightLog::count`) takes the
+// second for the sample's tick.
+const _: () = assert!(std::mem::offset_of!(StateSample, tick) == 0);
+const _: () = assert!(std::mem::offset_of!(TorqueSample, tick) == 0);
+const _: () = assert!(std::mem::offset_of!(ReferenceSample, tick) == 0);
+
 /// Bytes a tick takes in the records of the four streams (a slot of each).
 pub fn bytes_per_tick() -> u64 {
     (slot_len::<StateSample>() + 2 * slot_len::<TorqueSample>() + slot_len::<ReferenceSample>())

@@ -200,8 +200,14 @@ thread_local! {
 }
 
 /// Unpacks a chunk of `rows` slots of `words` words each into `out` (its slots' bytes), or
-/// says why not.
-fn unpack_chunk(chunk: &[u8], rows: usize, words: usize, out: &mut Vec<u8>) -> Result<(), String> {
+/// says why not; only the first `columns` words of each slot where that is fewer (the
+/// decoding of a column needs only those before it).
+fn unpack_chunk(
+    chunk: &[u8],
+    rows: usize,
+    (words, columns): (usize, usize),
+    out: &mut Vec<u8>,
+) -> Result<(), String> {
     let (codes, frame) = chunk.split_at_checked(words).ok_or("a chunk shorter than its codes")?;
     let codes: Vec<Transform> = codes
         .iter()
@@ -228,9 +234,10 @@ fn unpack_chunk(chunk: &[u8], rows: usize, words: usize, out: &mut Vec<u8>) -> R
         }
         // Column by column into `cols` (column-major), then into slots a tile of rows at
         // a time (a column at a time would touch a cache line per word of the output).
+        let columns = columns.min(words);
         s.cols.clear();
-        s.cols.resize(rows * words, 0);
-        for (c, t) in codes.iter().enumerate() {
+        s.cols.resize(rows * columns, 0);
+        for (c, t) in codes.iter().enumerate().take(columns) {
             let planes = &s.shuffled[c * 8 * rows..(c + 1) * 8 * rows];
             let (before, this) = s.cols.split_at_mut(c * rows);
             let col = &mut this[..rows];
@@ -243,13 +250,13 @@ fn unpack_chunk(chunk: &[u8], rows: usize, words: usize, out: &mut Vec<u8>) -> R
             decode_column(*t, col, before.get(before.len().saturating_sub(rows)..));
         }
         out.clear();
-        out.resize(want, 0);
+        out.resize(rows * columns * 8, 0);
         const TILE: usize = 64;
         for r0 in (0..rows).step_by(TILE) {
             let r1 = (r0 + TILE).min(rows);
             for (c, col) in s.cols.chunks_exact(rows).enumerate() {
                 for (r, w) in col[r0..r1].iter().enumerate() {
-                    let at = ((r0 + r) * words + c) * 8;
+                    let at = ((r0 + r) * columns + c) * 8;
                     out[at..at + 8].copy_from_slice(&w.to_ne_bytes());
                 }
             }
@@ -351,7 +358,18 @@ pub(super) fn unpack(
     out: &mut Vec<u8>,
 ) -> Result<(), String> {
     let rows = CHUNK_SLOTS.min(capacity.saturating_sub(i * CHUNK_SLOTS)) as usize;
-    unpack_chunk(chunk, rows, slot_len / 8, out)
+    unpack_chunk(chunk, rows, (slot_len / 8, slot_len / 8), out)
+}
+
+/// The first two words of each slot of chunk `i` (its tag and its sample's tick), as
+/// [`unpack`] would give them, into `out`: a few columns decoded of a slot's dozens.
+pub(super) fn unpack_ticks(
+    chunk: &[u8],
+    (i, capacity, slot_len): (u64, u64, usize),
+    out: &mut Vec<u8>,
+) -> Result<(), String> {
+    let rows = CHUNK_SLOTS.min(capacity.saturating_sub(i * CHUNK_SLOTS)) as usize;
+    unpack_chunk(chunk, rows, (slot_len / 8, 2), out)
 }
 
 #[cfg(test)]
@@ -389,7 +407,7 @@ mod tests {
 
     fn unpacked(chunk: &[u8], rows: usize, words: usize) -> Vec<u8> {
         let mut out = vec![7u8; 3]; // whatever a reused buffer held
-        unpack_chunk(chunk, rows, words, &mut out).expect("unpacks");
+        unpack_chunk(chunk, rows, (words, words), &mut out).expect("unpacks");
         out
     }
 

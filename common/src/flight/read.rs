@@ -21,7 +21,7 @@ use std::cell::RefCell;
 use std::os::unix::fs::FileExt;
 use std::path::{Path, PathBuf};
 
-use super::pack::{CHUNK_SLOTS, chunk_table, unpack};
+use super::pack::{CHUNK_SLOTS, chunk_table, unpack, unpack_ticks};
 use super::{
     FlightError, HEADER, MAGIC, PACKED_MAGIC, Record, SAME_MAGIC, SPARE_SLOTS, Stream,
     segment_path, segments, slot_len, word,
@@ -60,6 +60,8 @@ struct Block {
     /// 0: the ring; `i + 1`: segment `i` of the list.
     source: usize,
     index: u64,
+    /// Whether it holds the slots' first two words only ([`FlightLog::has`]).
+    ticks: bool,
     bytes: Vec<u8>,
     used: u64,
 }
@@ -360,17 +362,56 @@ impl<T: Record> FlightLog<T> {
 
     /// The sample in `slot` of `source` if it is tick `k`'s.
     fn lookup(&self, id: usize, source: &Source, slot: u64, k: u64) -> Option<T> {
+        let len = slot_len::<T>();
+        self.with_slot(id, source, (slot, len), |bytes| {
+            let tag = u64::from_ne_bytes(bytes[..8].try_into().unwrap_or_default());
+            if tag != k.wrapping_add(1) {
+                return None;
+            }
+            // SAFETY: the slot holds `size_of::<T>()` bytes after its tag; T is plain old
+            // data (f64/u64 fields), valid for any bit pattern.
+            let sample = unsafe { std::ptr::read_unaligned(bytes[8..].as_ptr() as *const T) };
+            (sample.tick() == k).then_some(sample)
+        })
+        .flatten()
+    }
+
+    /// Whether the slot in `source` holds tick `k`'s sample, as [`Self::lookup`] finds it,
+    /// from the slot's first two words alone (its tag and its sample's tick: every
+    /// [`Record`]'s first field).
+    fn holds(&self, id: usize, source: &Source, slot: u64, k: u64) -> bool {
+        self.with_slot(id, source, (slot, 16), |bytes| {
+            let word = |i: usize| {
+                u64::from_ne_bytes(bytes[8 * i..8 * i + 8].try_into().unwrap_or_default())
+            };
+            word(0) == k.wrapping_add(1) && word(1) == k
+        })
+        .unwrap_or(false)
+    }
+
+    /// `f` of the bytes of `slot` of `source` (its first `len` bytes: a whole slot, or its
+    /// two words where `len` is 16), from the kept blocks or a block read now.
+    fn with_slot<R>(
+        &self,
+        id: usize,
+        source: &Source,
+        (slot, len): (u64, usize),
+        f: impl FnOnce(&[u8]) -> R,
+    ) -> Option<R> {
         let mut cache = self.cache.borrow_mut();
         let block_slots = source.block_slots();
         let index = slot / block_slots;
+        let ticks = len < slot_len::<T>();
         cache.clock += 1;
         let clock = cache.clock;
-        let at = match cache.blocks.iter().position(|b| b.source == id && b.index == index) {
+        let found =
+            cache.blocks.iter().position(|b| (b.source, b.index, b.ticks) == (id, index, ticks));
+        let at = match found {
             Some(at) => at,
             None if cache.blocks.len() < BLOCKS => {
                 let mut bytes = Vec::new();
-                read_block::<T>(source, index, &mut bytes);
-                cache.blocks.push(Block { source: id, index, bytes, used: clock });
+                read_block::<T>(source, (index, ticks), &mut bytes);
+                cache.blocks.push(Block { source: id, index, ticks, bytes, used: clock });
                 cache.blocks.len() - 1
             }
             None => {
@@ -378,24 +419,38 @@ impl<T: Record> FlightLog<T> {
                 let oldest =
                     (0..cache.blocks.len()).min_by_key(|i| cache.blocks[*i].used).unwrap_or(0);
                 let block = &mut cache.blocks[oldest];
-                read_block::<T>(source, index, &mut block.bytes);
-                (block.source, block.index) = (id, index);
+                read_block::<T>(source, (index, ticks), &mut block.bytes);
+                (block.source, block.index, block.ticks) = (id, index, ticks);
                 oldest
             }
         };
         let block = &mut cache.blocks[at];
         block.used = clock;
-        let len = slot_len::<T>();
         let off = (slot - index * block_slots) as usize * len;
-        let bytes = block.bytes.get(off..off + len)?;
-        let tag = u64::from_ne_bytes(bytes[..8].try_into().unwrap_or_default());
-        if tag != k.wrapping_add(1) {
-            return None;
+        block.bytes.get(off..off + len).map(f)
+    }
+
+    /// Whether tick `k` has a record: as `get(k).is_some()`, reading the slots' first two
+    /// words only (a chunk's other columns are not decoded).
+    fn has(&self, k: u64) -> bool {
+        if k > self.limit || self.last.is_none_or(|l| k > l) {
+            return false;
         }
-        // SAFETY: the slot holds `size_of::<T>()` bytes after its tag; T is plain old data
-        // (f64/u64 fields), valid for any bit pattern.
-        let sample = unsafe { std::ptr::read_unaligned(bytes[8..].as_ptr() as *const T) };
-        (sample.tick() == k).then_some(sample)
+        let Some(ring) = self.ring.as_ref() else {
+            return usize::try_from(k)
+                .ok()
+                .and_then(|k| self.memory.get(k))
+                .is_some_and(Option::is_some);
+        };
+        if k >= self.ring_first && self.holds(0, ring, k % ring.capacity, k) {
+            return true;
+        }
+        if self.half == 0 {
+            return false;
+        }
+        let j = k / self.half;
+        let Ok(i) = self.segments.binary_search_by_key(&j, |(j, _)| *j) else { return false };
+        self.holds(i + 1, &self.segments[i].1, k % self.half, k)
     }
 
     /// Every sample recorded, in tick order.
@@ -415,7 +470,7 @@ impl<T: Record> FlightLog<T> {
             }
         };
         for k in 0..=last {
-            if self.get(k).is_some() {
+            if self.has(k) {
                 c.records += 1;
                 if let Some(r) = open.take() {
                     close(&mut c, r);
@@ -466,13 +521,14 @@ fn same<T>(source: Source, j: u64) -> Result<Source, FlightError> {
 /// Block `index` of `source`'s slots, as read into `bytes` (its allocation reused; left
 /// shorter, or empty, where the file was cut since it was checked or a packed chunk does
 /// not unpack: those slots read as missing).
-fn read_block<T>(source: &Source, index: u64, bytes: &mut Vec<u8>) {
+fn read_block<T>(source: &Source, (index, ticks): (u64, bool), bytes: &mut Vec<u8>) {
     let len = slot_len::<T>();
     bytes.clear();
     let Ok(f) = std::fs::File::open(&source.path) else { return };
     if let Some(chunks) = &source.chunks {
         let Some(&(at, l)) = chunks.get(index as usize) else { return };
         let mut packed = vec![0u8; l as usize]; // within the file's length: checked
+        let unpack = if ticks { unpack_ticks } else { unpack };
         if f.read_exact_at(&mut packed, at).is_err()
             || unpack(&packed, (index, source.capacity, len), bytes).is_err()
         {
@@ -486,6 +542,14 @@ fn read_block<T>(source: &Source, index: u64, bytes: &mut Vec<u8>) {
     if f.read_exact_at(bytes, HEADER as u64 + first * len as u64).is_err() {
         bytes.clear();
     }
+    if ticks {
+        // The first two words of each slot, as a packed chunk's are given.
+        let slots = bytes.len() / len;
+        for i in 0..slots {
+            bytes.copy_within(i * len..i * len + 16, i * 16);
+        }
+        bytes.truncate(slots * 16);
+    }
 }
 
 /// Calls `f(slot, tick, sample)` for each slot of `source` whose tag and sample agree on
@@ -495,7 +559,7 @@ fn scan<T: Record>(source: &Source, mut f: impl FnMut(u64, u64, &T)) {
     let block_slots = source.block_slots();
     let mut bytes = Vec::new();
     for index in 0..source.capacity.div_ceil(block_slots) {
-        read_block::<T>(source, index, &mut bytes);
+        read_block::<T>(source, (index, false), &mut bytes);
         for (i, s) in bytes.chunks_exact(len).enumerate() {
             let tag = u64::from_ne_bytes(s[..8].try_into().unwrap_or_default());
             let Some(k) = tag.checked_sub(1) else { continue };
@@ -737,6 +801,11 @@ mod tests {
             let t1 = std::time::Instant::now();
             let n = log.iter().count();
             let s = t1.elapsed().as_secs_f64();
+            let t2 = std::time::Instant::now();
+            let counted = log.count(log.last().unwrap_or(0));
+            let count_s = t2.elapsed().as_secs_f64();
+            assert_eq!(counted.records, n as u64, "a count reads every sample the reader reads");
+            println!("{}: counted in {count_s:.2} s", stream.name());
             println!(
                 "{}: opened in {opened_s:.2} s; {n} ticks in {s:.2} s, {:.2} M ticks/s, {:.0} MB/s \
                  of slots",
