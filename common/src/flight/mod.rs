@@ -100,7 +100,7 @@ pub const RUN_DIR_FILE: &str = "run-dir";
 /// where both lie on one filesystem, else a copy then a removal, one file at a time, so a
 /// move cut short leaves each record whole in one of the two), then removes `from` with
 /// its [`RUN_DIR_FILE`]. Returns how many files it moved. Where `packed`, each ring
-/// (`STREAM.flight`) is packed as it is moved, as the segments are ([`pack`]: a quarter of
+/// (`STREAM.flight`) is packed as it is moved, as the segments are (`pack.rs`: a quarter of
 /// its bytes); one that cannot be is moved raw.
 pub fn move_records(from: &Path, to: &Path, packed: bool) -> std::io::Result<usize> {
     std::fs::create_dir_all(to)?;
