@@ -56,10 +56,11 @@ pub struct RunArgs {
     /// later from the records).
     #[arg(long)]
     pub no_mcap: bool,
-    /// Write no `OUT/trace.csv` or `OUT/timing.csv`: for a long run, whose whole output
-    /// is then its packed flight records (about 0.3 MB a second at 1 kHz). `rotorloop
-    /// export OUT --csv` derives them from the records when wanted; `sim --replay` and
-    /// `export --mcap` read the records directly.
+    /// Write no `OUT/trace.csv` or `OUT/timing.csv`, and the scheduler samples compressed
+    /// (`OUT/sched.csv.zst`): for a long run, whose whole output is then mostly its packed
+    /// flight records (measured: 0.26 MB a second at 1 kHz in real time). `rotorloop
+    /// export OUT --csv` derives the two files from the records when wanted; `sim
+    /// --replay` and `export --mcap` read the records directly.
     #[arg(long)]
     pub no_csv: bool,
     /// The flight records raw, not packed (the segments moved during the run, the rings
