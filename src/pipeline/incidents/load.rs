@@ -502,13 +502,9 @@ mod tests {
         }
     }
 
-    /// Read forward incident by incident, `sched.csv` gives each incident every row within
-    /// a second of it, in time order, and holds no row from before that second: what is
-    /// held is bounded by one incident's neighbourhood, not by the run's incidents.
-    #[test]
-    fn the_kernel_rows_are_read_forward_incident_by_incident() {
+    /// A run of `ticks` states of `paper-zero`, tick `k` published at `(k + 1)` ms.
+    fn run_of(ticks: u64) -> RunRecord {
         let scenario = Scenario::load("paper-zero").expect("built-in");
-        let ticks = 20_000u64;
         let states = (0..ticks)
             .map(|k| {
                 let mut s = StateSample::of(k, k as f64 * scenario.dt(), &scenario.plant_init);
@@ -516,7 +512,16 @@ mod tests {
                 s
             })
             .collect();
-        let mut run = RunRecord::of(scenario, states, Vec::new());
+        RunRecord::of(scenario, states, Vec::new())
+    }
+
+    /// Read forward incident by incident, `sched.csv` gives each incident every row within
+    /// a second of it, in time order, and holds no row from before that second: what is
+    /// held is bounded by one incident's neighbourhood, not by the run's incidents.
+    #[test]
+    fn the_kernel_rows_are_read_forward_incident_by_incident() {
+        let ticks = 20_000u64;
+        let mut run = run_of(ticks);
         let dir = tempfile::tempdir().expect("tempdir");
         let mut csv = String::from("t_ns,role,pid,state,cpu,on_cpu_ns,wait_ns,steal_ns\n");
         let mut all = Vec::new();
@@ -558,16 +563,8 @@ mod tests {
     /// ahead, not the events near every incident.
     #[test]
     fn the_trace_events_are_read_forward_incident_by_incident() {
-        let scenario = Scenario::load("paper-zero").expect("built-in");
         let ticks = 20_000u64;
-        let states = (0..ticks)
-            .map(|k| {
-                let mut s = StateSample::of(k, k as f64 * scenario.dt(), &scenario.plant_init);
-                s.publish_ns = 1_000_000 * (k + 1);
-                s
-            })
-            .collect();
-        let mut run = RunRecord::of(scenario, states, Vec::new());
+        let mut run = run_of(ticks);
         let dir = tempfile::tempdir().expect("tempdir");
         let mut text = String::from("# tracer: nop\n");
         let mut all = Vec::new();
