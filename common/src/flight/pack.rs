@@ -303,7 +303,11 @@ pub(super) fn pack_file(from: &std::path::Path, to: &std::path::Path) -> std::io
     }
     header[..8].copy_from_slice(&super::PACKED_MAGIC.to_ne_bytes());
     let part = to.with_extension("part");
-    std::fs::write(&part, assemble(&header, &chunks))?;
+    let written = std::fs::write(&part, assemble(&header, &chunks));
+    if written.is_err() {
+        let _ = std::fs::remove_file(&part); // a full disk: the ring is moved raw instead
+    }
+    written?;
     std::fs::rename(&part, to)
 }
 
