@@ -106,7 +106,7 @@ pub struct RunRecord {
     /// `sched-trace.txt`, read by [`RunRecord::trace_for`].
     trace_path: std::path::PathBuf,
     /// The events of `sched-trace.txt` not read yet ([`RunRecord::trace_for`]).
-    trace_left: TraceLeft,
+    trace_left: Left<super::trace::Traced>,
     /// The first state's publish (ns): the origin of the faults' times.
     pub t0_ns: u64,
     /// Whether any state carries a grid time (a real-time run).
@@ -118,7 +118,7 @@ pub struct RunRecord {
     /// from the records when asked for.
     grid_marks: Vec<u64>,
     /// The rows of `sched.csv` not read yet ([`RunRecord::sched_for`]).
-    sched_left: SchedLeft,
+    sched_left: Left<SchedRow>,
     /// The last [`RunRecord::next_answer`] found: `(k, j)`, no answer in `k + 1 .. j`
     /// and one for `j`. The ticks of an incident ask in order, so a window in which the
     /// controller was silent reads its records once, not once per tick.
@@ -189,6 +189,7 @@ impl RunRecord {
         let t0_ns = if t0_ns == u64::MAX { 0 } else { t0_ns };
         let sched_path = crate::pipeline::sched_csv::path(dir);
         let kernel_view = sched_rows(&sched_path).next().is_some();
+        let trace_path = dir.join("sched-trace.txt");
         Ok(Self {
             grid_marks,
             realtime,
@@ -204,12 +205,12 @@ impl RunRecord {
             kernel_view,
             sched_path,
             trace: Vec::new(),
-            traced: super::trace::events(&dir.join("sched-trace.txt")).next().is_some(),
-            trace_path: dir.join("sched-trace.txt"),
-            trace_left: TraceLeft::default(),
+            traced: super::trace::events(&trace_path).next().is_some(),
+            trace_path,
+            trace_left: Left::default(),
             t0_ns,
             next_found: Default::default(),
-            sched_left: SchedLeft::default(),
+            sched_left: Left::default(),
         })
     }
 
@@ -234,7 +235,7 @@ impl RunRecord {
             last: (states.len() as u64).saturating_sub(1),
             t0_ns: states.first().map_or(0, |s| s.publish_ns),
             next_found: Default::default(),
-            sched_left: SchedLeft::default(),
+            sched_left: Left::default(),
             realtime: false,
             grid_marks,
             states: FlightLog::of(states),
@@ -248,7 +249,7 @@ impl RunRecord {
             trace: Vec::new(),
             traced: false,
             trace_path: Default::default(),
-            trace_left: TraceLeft::default(),
+            trace_left: Left::default(),
         }
     }
 
@@ -339,31 +340,26 @@ pub fn sched_rows(path: &Path) -> impl Iterator<Item = SchedRow> + use<> {
     })
 }
 
-/// The rows of `sched.csv` after those read so far, opened at the first
-/// [`RunRecord::sched_for`].
-#[derive(Default)]
-struct SchedLeft(Option<std::iter::Peekable<Box<dyn Iterator<Item = SchedRow>>>>);
+/// The rows of a file read forward (`sched.csv` by [`RunRecord::sched_for`],
+/// `sched-trace.txt` by [`RunRecord::trace_for`]) after those read so far, opened at the
+/// first call.
+struct Left<T>(Option<std::iter::Peekable<Box<dyn Iterator<Item = T>>>>);
 
-/// The events of `sched-trace.txt` after those read so far, opened at the first
-/// [`RunRecord::trace_for`].
-#[derive(Default)]
-struct TraceLeft(Option<std::iter::Peekable<Box<dyn Iterator<Item = super::trace::Traced>>>>);
+impl<T> Default for Left<T> {
+    fn default() -> Self {
+        Self(None)
+    }
+}
 
-impl std::fmt::Debug for TraceLeft {
+impl<T> std::fmt::Debug for Left<T> {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.write_str(if self.0.is_some() { "TraceLeft(open)" } else { "TraceLeft" })
+        f.write_str(if self.0.is_some() { "Left(open)" } else { "Left" })
     }
 }
 
 /// How far out of time order `sched-trace.txt` is read ahead (ns): an event of one CPU
 /// committed late comes after later ones of another, by far less than this.
 const TRACE_REORDER_NS: u64 = 1_000_000_000;
-
-impl std::fmt::Debug for SchedLeft {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.write_str(if self.0.is_some() { "SchedLeft(open)" } else { "SchedLeft" })
-    }
-}
 
 impl RunRecord {
     /// The span of grid time (ns) whose kernel figures the incident `w` may need: a second
