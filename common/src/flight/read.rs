@@ -2,14 +2,14 @@
 //!
 //! A [`FlightLog`] holds no samples: it knows the stream's files (the ring and the
 //! segments moved out of it, module docs of [`super`]) and reads a block of slots at a time
-//! with `pread`, keeping the last [`BLOCKS`] blocks: [`BLOCK_SLOTS`] slots of a raw file,
+//! with `pread`, keeping the last [`BLOCKS`] blocks within [`BYTES_KEPT`]: [`BLOCK_SLOTS`] slots of a raw file,
 //! or a chunk of a packed file (a segment, or a ring packed as it was moved in at the end)
 //! unpacked whole ([`CHUNK_SLOTS`], [`super::pack`]); a segment that is another stream's
 //! (`rlflsame`) is read from that one. A count of the records unpacks each slot's first
 //! two words alone. Reading ticks in order (the report, the export, the replay) reads each
 //! block once;
 //! looking back a few thousand ticks (the incidents) stays in the kept blocks. Its memory
-//! is a few MB (13 MB of plant states in chunks), the same for a minute's run as for a
+//! is a few MB (6.4 MB of plant states in chunks), the same for a minute's run as for a
 //! day's.
 //!
 //! **It trusts nothing in the files.** Every header is checked against its file's length
@@ -33,8 +33,11 @@ use crate::wire::LAYOUT_VERSION;
 
 /// Slots read from a file at once.
 const BLOCK_SLOTS: u64 = 512;
-/// Blocks kept (about 1.6 MB of state samples; 13 MB in chunks of a packed segment).
+/// Blocks kept at most (about 1.6 MB of raw state samples).
 const BLOCKS: usize = 6;
+/// Bytes the kept blocks may hold, beyond the newest two: a packed chunk of plant states is
+/// 2.1 MB unpacked, so three of them, where six would be 13 MB a reader.
+const BYTES_KEPT: usize = 8 << 20;
 /// Problems kept in words; the rest are counted.
 const MAX_PROBLEMS: usize = 16;
 
@@ -73,6 +76,13 @@ struct Block {
 struct Cache {
     blocks: Vec<Block>,
     clock: u64,
+}
+
+impl Cache {
+    /// The bytes the kept blocks hold (their buffers' capacity).
+    fn held(&self) -> usize {
+        self.blocks.iter().map(|b| b.bytes.capacity()).sum()
+    }
 }
 
 /// What a stream's record holds, read after the run (module docs). Memory: a few blocks,
@@ -411,20 +421,21 @@ impl<T: Record> FlightLog<T> {
             cache.blocks.iter().position(|b| (b.source, b.index, b.ticks) == (id, index, ticks));
         let at = match found {
             Some(at) => at,
-            None if cache.blocks.len() < BLOCKS => {
+            None => {
+                // The least recently used blocks go until the new one fits; the last to go
+                // lends its buffer (no fresh pages to fault in).
+                let want = block_slots as usize * len;
                 let mut bytes = Vec::new();
+                while cache.blocks.len() >= BLOCKS
+                    || (cache.blocks.len() >= 2 && cache.held() + want > BYTES_KEPT)
+                {
+                    let oldest =
+                        (0..cache.blocks.len()).min_by_key(|i| cache.blocks[*i].used).unwrap_or(0);
+                    bytes = cache.blocks.swap_remove(oldest).bytes;
+                }
                 read_block::<T>(source, (index, ticks), &mut bytes);
                 cache.blocks.push(Block { source: id, index, ticks, bytes, used: clock });
                 cache.blocks.len() - 1
-            }
-            None => {
-                // The oldest block's buffer takes the new one (no fresh pages to fault in).
-                let oldest =
-                    (0..cache.blocks.len()).min_by_key(|i| cache.blocks[*i].used).unwrap_or(0);
-                let block = &mut cache.blocks[oldest];
-                read_block::<T>(source, (index, ticks), &mut block.bytes);
-                (block.source, block.index, block.ticks) = (id, index, ticks);
-                oldest
             }
         };
         let block = &mut cache.blocks[at];
@@ -624,7 +635,10 @@ mod tests {
         for k in [9_000, 17, 5_000, 9_999, 0] {
             assert_eq!(log.get(k), Some(torque(k)));
         }
-        assert!(log.cache.borrow().blocks.len() <= BLOCKS);
+        let cache = log.cache.borrow();
+        assert!(cache.blocks.len() <= BLOCKS);
+        assert!(cache.held() <= BYTES_KEPT.max(2 * 4096 * slot_len::<TorqueSample>()));
+        drop(cache);
         let _ = std::fs::remove_dir_all(dir.parent().expect("base"));
     }
 
