@@ -52,6 +52,18 @@ const PACKED_MAGIC: u64 = 0x6b63_6170_6c66_6c72;
 /// file is its 64-byte header alone, [`word::BASE`] naming the other stream.
 const SAME_MAGIC: u64 = 0x656d_6173_6c66_6c72;
 const HEADER: usize = 64;
+
+/// A record file's header: its bytes and its eight words ([`word`]), or the error of a
+/// file shorter than a header.
+fn read_header(file: &std::fs::File) -> std::io::Result<([u8; HEADER], [u64; 8])> {
+    use std::os::unix::fs::FileExt;
+    let mut header = [0u8; HEADER];
+    file.read_exact_at(&mut header, 0)?;
+    let words = std::array::from_fn(|i| {
+        u64::from_ne_bytes(header[8 * i..8 * i + 8].try_into().unwrap_or_default())
+    });
+    Ok((header, words))
+}
 /// Slots beyond the run's last tick (the reference publishes ahead of the plant).
 pub const SPARE_SLOTS: u64 = 64;
 /// The ring's slots per stream unless `--flight-ring-ticks` says otherwise: 65.5 s at
@@ -618,14 +630,9 @@ impl Mover {
         use std::os::unix::fs::FileExt;
         let ring = stream.path(&self.staged);
         let Ok(f) = std::fs::File::open(&ring) else { return Ok(Half::NoRing) };
-        let mut header = [0u8; HEADER];
-        if f.read_exact_at(&mut header, 0).is_err() {
-            return Ok(Half::NoRing);
-        }
-        let w =
-            |i: usize| u64::from_ne_bytes(header[8 * i..8 * i + 8].try_into().unwrap_or_default());
-        let (capacity, size) = (w(word::CAPACITY), w(word::SIZE) as usize);
-        if w(word::MAGIC) != MAGIC || capacity < MIN_RING_TICKS || capacity % 2 != 0 {
+        let Ok((header, w)) = read_header(&f) else { return Ok(Half::NoRing) };
+        let (capacity, size) = (w[word::CAPACITY], w[word::SIZE] as usize);
+        if w[word::MAGIC] != MAGIC || capacity < MIN_RING_TICKS || capacity % 2 != 0 {
             return Ok(Half::NoRing);
         }
         let half = capacity / 2;

@@ -281,13 +281,11 @@ pub(super) fn pack(header: &[u8], body: &[u8], slot_len: usize) -> std::io::Resu
 pub(super) fn pack_file(from: &std::path::Path, to: &std::path::Path) -> std::io::Result<()> {
     use std::os::unix::fs::FileExt;
     let f = std::fs::File::open(from)?;
-    let mut header = [0u8; super::HEADER];
-    f.read_exact_at(&mut header, 0)?;
-    let w = |i: usize| u64::from_ne_bytes(header[8 * i..8 * i + 8].try_into().unwrap_or_default());
-    let slot_len = 8 + usize::try_from(w(super::word::SIZE)).unwrap_or(0).next_multiple_of(8);
-    let capacity = w(super::word::CAPACITY);
+    let (mut header, w) = super::read_header(&f)?;
+    let slot_len = 8 + usize::try_from(w[super::word::SIZE]).unwrap_or(0).next_multiple_of(8);
+    let capacity = w[super::word::CAPACITY];
     let whole = super::HEADER as u128 + u128::from(capacity) * slot_len as u128;
-    if w(super::word::MAGIC) != super::MAGIC || u128::from(f.metadata()?.len()) != whole {
+    if w[super::word::MAGIC] != super::MAGIC || u128::from(f.metadata()?.len()) != whole {
         return Err(std::io::Error::other("not a whole raw flight record"));
     }
     let mut chunks = Vec::new();

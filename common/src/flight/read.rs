@@ -26,7 +26,7 @@ use std::path::{Path, PathBuf};
 
 use super::pack::{CHUNK_SLOTS, chunk_table, unpack, unpack_ticks};
 use super::{
-    FlightError, HEADER, MAGIC, PACKED_MAGIC, Record, SAME_MAGIC, SPARE_SLOTS, Stream,
+    FlightError, HEADER, MAGIC, PACKED_MAGIC, Record, SAME_MAGIC, SPARE_SLOTS, Stream, read_header,
     segment_path, segments, slot_len, word,
 };
 use crate::wire::LAYOUT_VERSION;
@@ -133,14 +133,10 @@ fn check_header<T>(path: &Path) -> Result<([u64; 8], Source), FlightError> {
         .map_err(|e| FlightError::Missing { path: shown.clone(), why: e.to_string() })?;
     let foreign = |why: String| FlightError::Foreign { path: shown.clone(), why };
     let len = file.metadata().map_err(|e| foreign(e.to_string()))?.len();
-    let mut header = [0u8; HEADER];
-    if len < HEADER as u64 || file.read_exact_at(&mut header, 0).is_err() {
-        return Err(foreign(format!("{len} bytes: not a flight record (or never written)")));
-    }
-    let mut w = [0u64; 8];
-    for (i, c) in header.chunks_exact(8).enumerate() {
-        w[i] = u64::from_ne_bytes(c.try_into().unwrap_or_default());
-    }
+    let w = match read_header(&file) {
+        Ok((_, w)) if len >= HEADER as u64 => w,
+        _ => return Err(foreign(format!("{len} bytes: not a flight record (or never written)"))),
+    };
     let is_packed = w[word::MAGIC] == PACKED_MAGIC;
     let is_same = w[word::MAGIC] == SAME_MAGIC;
     if w[word::MAGIC] != MAGIC && !is_packed && !is_same {
@@ -353,24 +349,35 @@ impl<T: Record> FlightLog<T> {
     /// The sample of tick `k`, if recorded: the ring's copy (the newer), else its
     /// segment's.
     pub fn get(&self, k: u64) -> Option<T> {
+        self.find(k, |s| s, |id, source, slot| self.lookup(id, source, slot, k))
+    }
+
+    /// Tick `k`'s slot looked for where it can be: `in_memory` of the sample kept in
+    /// memory ([`FlightLog::of`]), else `probe` of the ring's slot (the newer copy), then,
+    /// where that finds nothing, of its segment's.
+    fn find<R>(
+        &self,
+        k: u64,
+        in_memory: impl FnOnce(Option<T>) -> Option<R>,
+        probe: impl Fn(usize, &Source, u64) -> Option<R>,
+    ) -> Option<R> {
         if k > self.limit || self.last.is_none_or(|l| k > l) {
             return None;
         }
-        if self.ring.is_none() {
-            return self.memory.get(usize::try_from(k).ok()?).copied().flatten();
-        }
-        let ring = self.ring.as_ref()?;
+        let Some(ring) = self.ring.as_ref() else {
+            return in_memory(self.memory.get(usize::try_from(k).ok()?).copied().flatten());
+        };
         if k >= self.ring_first
-            && let Some(s) = self.lookup(0, ring, k % ring.capacity, k)
+            && let Some(r) = probe(0, ring, k % ring.capacity)
         {
-            return Some(s);
+            return Some(r);
         }
         if self.half == 0 {
             return None;
         }
         let j = k / self.half;
         let i = self.segments.binary_search_by_key(&j, |(j, _)| *j).ok()?;
-        self.lookup(i + 1, &self.segments[i].1, k % self.half, k)
+        probe(i + 1, &self.segments[i].1, k % self.half)
     }
 
     /// The sample in `slot` of `source` if it is tick `k`'s.
@@ -447,24 +454,8 @@ impl<T: Record> FlightLog<T> {
     /// Whether tick `k` has a record: as `get(k).is_some()`, reading the slots' first two
     /// words only (a chunk's other columns are not decoded).
     fn has(&self, k: u64) -> bool {
-        if k > self.limit || self.last.is_none_or(|l| k > l) {
-            return false;
-        }
-        let Some(ring) = self.ring.as_ref() else {
-            return usize::try_from(k)
-                .ok()
-                .and_then(|k| self.memory.get(k))
-                .is_some_and(Option::is_some);
-        };
-        if k >= self.ring_first && self.holds(0, ring, k % ring.capacity, k) {
-            return true;
-        }
-        if self.half == 0 {
-            return false;
-        }
-        let j = k / self.half;
-        let Ok(i) = self.segments.binary_search_by_key(&j, |(j, _)| *j) else { return false };
-        self.holds(i + 1, &self.segments[i].1, k % self.half, k)
+        let probe = |id, source: &Source, slot| self.holds(id, source, slot, k).then_some(());
+        self.find(k, |s| s.map(|_| ()), probe).is_some()
     }
 
     /// Every sample recorded, in tick order.
