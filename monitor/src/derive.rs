@@ -91,9 +91,8 @@ impl DerivedRows {
             .ok()
             .and_then(|t| serde_json::from_str::<serde_json::Value>(&t).ok())
             .context("no summary.json to say what the run's records are of")?;
-        let scenario = serde_json::from_value(summary["scenario"].clone())
-            .map_err(anyhow::Error::from)
-            .and_then(|f| Ok(Scenario::from_file(f)?))
+        let scenario = Scenario::of_summary(&summary)
+            .map_err(anyhow::Error::msg)
             .context("no scenario in its summary.json")?;
         let records = crate::rows::records_dir(dir, Some(&summary));
         Self::open(&records, &scenario).context("its flight records cannot be read")

@@ -162,9 +162,7 @@ pub fn run(dir: &Path, out: &Path) -> anyhow::Result<ReplaySummary> {
             .map_err(|e| bad(dir, &format!("summary.json: {e}")))?,
     )
     .map_err(|e| bad(dir, &format!("summary.json: {e}")))?;
-    let file = serde_json::from_value(summary["scenario"].clone())
-        .map_err(|e| bad(dir, &format!("summary.json has no scenario as run: {e}")))?;
-    let scenario = Scenario::from_file(file).map_err(UsageError::from)?;
+    let scenario = Scenario::of_summary(&summary).map_err(|e| bad(dir, &e))?;
     let timing_err = |e: anyhow::Error| -> anyhow::Error { bad(dir, &format!("{e:#}")).into() };
     let mut timing = rotorloop_monitor::derive::timing_rows(dir).map_err(timing_err)?;
     let rows = rotorloop_monitor::derive::run_rows(dir, Csv::Trace)

@@ -147,9 +147,7 @@ impl RunRecord {
             .map_err(|e| bad(dir, format!("summary.json: {e} (is this a run directory?)")))?;
         let summary: serde_json::Value =
             serde_json::from_str(&text).map_err(|e| bad(dir, format!("summary.json: {e}")))?;
-        let file = serde_json::from_value(summary["scenario"].clone())
-            .map_err(|e| bad(dir, format!("summary.json has no scenario as run: {e}")))?;
-        let scenario = Scenario::from_file(file).map_err(UsageError::from)?;
+        let scenario = Scenario::of_summary(&summary).map_err(|e| bad(dir, e))?;
         let list = |key: &str| summary.get(key).cloned().unwrap_or(serde_json::json!([]));
         let faults: Vec<FaultRow> = serde_json::from_value(list("faults"))
             .map_err(|e| bad(dir, format!("summary.json faults: {e}")))?;
