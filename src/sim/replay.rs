@@ -92,10 +92,15 @@ fn torques_of(line: &str, (u1, tau1): (usize, usize)) -> Torques {
 /// `trace.csv` read once, in tick order: each tick's torques for the replay's row, and the
 /// torques of the last [`SOURCES_KEPT`] rows passed, where the tick whose torque took
 /// effect is looked up (an effect's source is at or before the tick it takes effect in).
+/// It is also what the replayed rows are compared with, as they are written.
 struct Trace {
     rows: TickRows,
     columns: (usize, usize),
     recent: BTreeMap<u64, Torques>,
+    /// The newest row passed: its tick and line.
+    newest: Option<(u64, String)>,
+    /// Rows passed.
+    taken: u64,
 }
 
 /// Trace rows a [`Trace`] keeps behind its position.
@@ -111,8 +116,15 @@ impl Trace {
             if self.recent.len() > SOURCES_KEPT {
                 self.recent.pop_first();
             }
+            self.newest = Some((t, line));
+            self.taken += 1;
         }
         self.recent.get(&k).copied()
+    }
+
+    /// The run's line of tick `k`, the last asked for with [`Self::row`], if it has one.
+    fn line(&self, k: u64) -> Option<&str> {
+        self.newest.as_ref().filter(|(t, _)| *t == k).map(|(_, l)| l.as_str())
     }
 
     /// What the torque of tick `j` (at or before the last row asked for) put on the body.
@@ -127,32 +139,31 @@ impl Trace {
     }
 }
 
-/// Compares the replayed trace with the run's, a row at a time: the first tick whose row
-/// differs (0 for the header), and the rows of each.
-fn compare(dir: &Path, out: &Path) -> anyhow::Result<(Option<u64>, u64, u64)> {
-    let open = |rows: anyhow::Result<TickRows>| rows.map_err(|e| bad(dir, &format!("{e:#}")));
-    let run = open(rotorloop_monitor::derive::run_rows(dir, Csv::Trace))?;
-    let (mut run, mut replayed) = (run, open(TickRows::open(&out.join("trace.csv")))?);
-    let mut first = (run.header() != replayed.header()).then_some(0);
-    let (mut rows, mut replayed_rows) = (0u64, 0u64);
-    while let Some((k, line)) = run.next_row() {
-        rows += 1;
-        while replayed.peek_tick().is_some_and(|t| t < k) {
-            replayed.next_row();
-            replayed_rows += 1;
-        }
-        let same = replayed.row(k).is_some_and(|l| {
-            replayed_rows += 1;
-            l == line
-        });
-        if !same && first.is_none() {
-            first = Some(k);
+/// The replayed trace against the run's, a row at a time as the replay writes it.
+#[derive(Debug)]
+struct Comparison {
+    /// The first tick whose row is not the run's (0: the headers differ).
+    first: Option<u64>,
+}
+
+impl Comparison {
+    /// Replayed row `k` (`line`, with its line end) against the run's.
+    fn row(&mut self, k: u64, line: &[u8], run: &Trace) {
+        let ours = line.strip_suffix(b"\n").unwrap_or(line);
+        if run.line(k).is_some_and(|l| l.as_bytes() != ours) && self.first.is_none() {
+            self.first = Some(k);
         }
     }
-    while replayed.next_row().is_some() {
-        replayed_rows += 1;
+
+    /// The run's rows after the replay's last: each is a row the replay does not have.
+    /// Gives the run's rows in all (those skipped as out of order included).
+    fn finish(&mut self, mut run: Trace) -> u64 {
+        while let Some((t, _)) = run.rows.next_row() {
+            run.taken += 1;
+            self.first.get_or_insert(t);
+        }
+        run.taken + run.rows.skipped
     }
-    Ok((first, rows + run.skipped, replayed_rows))
 }
 
 /// Replays the real-time run in `dir` into `out` (module docs).
@@ -168,7 +179,9 @@ pub fn run(dir: &Path, out: &Path) -> anyhow::Result<ReplaySummary> {
     let rows = rotorloop_monitor::derive::run_rows(dir, Csv::Trace)
         .map_err(|e| bad(dir, &format!("trace.csv: {e:#}")))?;
     let columns = torque_columns(dir, rows.header())?;
-    let mut run_trace = Trace { rows, columns, recent: BTreeMap::new() };
+    let mut compared =
+        Comparison { first: (rows.header() != rotorloop_monitor::trace::HEADER).then_some(0) };
+    let mut run_trace = Trace { rows, columns, recent: BTreeMap::new(), newest: None, taken: 0 };
     let (actuation, dt, ticks) = (scenario.actuation(), scenario.dt(), scenario.ticks());
     let params = scenario.plant_params(actuation);
     let mut body = Body::new(params, scenario.plant_init);
@@ -177,10 +190,12 @@ pub fn run(dir: &Path, out: &Path) -> anyhow::Result<ReplaySummary> {
     let limits = scenario.limits_for(actuation);
     let mut line = DelayLine::new(ActuationDelay::Instant, dt);
     std::fs::create_dir_all(out).with_context(|| format!("cannot create {}", out.display()))?;
-    let mut trace = TraceWriter::new(std::io::BufWriter::new(
+    let mut file = std::io::BufWriter::new(
         std::fs::File::create(out.join("trace.csv"))
             .with_context(|| format!("cannot write {}", out.join("trace.csv").display()))?,
-    ))?;
+    );
+    writeln!(file, "{}", rotorloop_monitor::trace::HEADER)?;
+    let mut written = Vec::new();
     let mut result = ReplaySummary {
         run: dir.display().to_string(),
         rows: 0,
@@ -221,22 +236,20 @@ pub fn run(dir: &Path, out: &Path) -> anyhow::Result<ReplaySummary> {
             row.delay_s = step.effects.first_delay_s(k, dt);
         }
         reference.step(t, dt);
-        trace.write(&row)?;
+        written.clear();
+        TraceWriter::append(&mut written).write(&row)?;
+        compared.row(k, &written, &run_trace);
+        file.write_all(&written)?;
         result.rows += 1;
         if last {
             break;
         }
     }
-    let mut file = trace.finish()?;
     file.flush()?;
-    drop(file);
-    // The run's rows read so far are done with: their readers go before the comparison
-    // opens its own (three sets of readers at once made the replay's peak).
-    drop((timing, run_trace));
-    // Compare with the run's trace, row by row.
-    let (first, rows, replayed) = compare(dir, out)?;
-    result.first_difference = first;
-    result.identical = first.is_none() && replayed == rows;
+    drop((file, timing));
+    let rows = compared.finish(run_trace);
+    result.first_difference = compared.first;
+    result.identical = compared.first.is_none() && result.rows == rows;
     let text = serde_json::to_string_pretty(&result)?;
     std::fs::write(out.join("replay.json"), text + "\n")
         .with_context(|| format!("cannot write {}", out.display()))?;
