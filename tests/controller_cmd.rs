@@ -168,8 +168,15 @@ fn the_python_controller_completes_a_real_time_run() {
     let s = json(&out.join("summary.json"));
     assert_eq!(s["completed"], true, "{s}");
     assert_eq!(s["faults"].as_array().map(Vec::len), Some(0));
+    // How many states the slow controller answers is the machine's business (under a busy
+    // loop per core, 2 557 of 4 001 once): every tick with a fresh torque had an answer,
+    // and no state was both answered and skipped.
     let compute = &s["hops"]["controller_compute"];
-    assert!(compute["count"].as_u64().is_some_and(|n| n > 3000), "{compute}");
+    let n = |v: &serde_json::Value| v.as_u64().unwrap_or_else(|| panic!("a count: {s}"));
+    let (answers, ticks) = (n(&compute["count"]), n(&s["ticks"]));
+    let (misses, skipped) = (n(&s["misses"]), n(&s["states_skipped_by_controller"]));
+    assert!(answers > 0 && answers >= ticks - misses, "{answers} answers, {misses} misses: {s}");
+    assert!(answers + skipped <= ticks + 1, "{answers} answers, {skipped} skipped: {s}");
     let law =
         s["stages"].as_array().and_then(|st| st.iter().find(|x| x["stage"] == "controller_law"));
     assert!(law.is_some_and(|l| l["p50"].as_f64().is_some_and(|p| p > 0.0)), "{law:?}");
