@@ -64,6 +64,7 @@ fn read_header(file: &std::fs::File) -> std::io::Result<([u8; HEADER], [u64; 8])
     });
     Ok((header, words))
 }
+
 /// Slots beyond the run's last tick (the reference publishes ahead of the plant).
 pub const SPARE_SLOTS: u64 = 64;
 /// The ring's slots per stream unless `--flight-ring-ticks` says otherwise: 65.5 s at

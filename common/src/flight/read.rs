@@ -2,13 +2,13 @@
 //!
 //! A [`FlightLog`] holds no samples: it knows the stream's files (the ring and the
 //! segments moved out of it, module docs of [`super`]) and reads a block of slots at a time
-//! with `pread`, keeping the last [`BLOCKS`] blocks within [`BYTES_KEPT`]: [`BLOCK_SLOTS`] slots of a raw file,
-//! or a chunk of a packed file (a segment, or a ring packed as it was moved in at the end)
-//! unpacked whole ([`CHUNK_SLOTS`], [`super::pack`]); a segment that is another stream's
-//! (`rlflsame`) is read from that one. A count of the records unpacks each slot's first
-//! two words alone. Reading ticks in order (the report, the export, the replay) reads each
-//! block once;
-//! looking back a few thousand ticks (the incidents) stays in the kept blocks. Its memory
+//! with `pread`, keeping the last [`BLOCKS`] blocks within [`BYTES_KEPT`]: [`BLOCK_SLOTS`]
+//! slots of a raw file, or a chunk of a packed file (a segment, or a ring packed as it was
+//! moved in at the end) unpacked whole ([`CHUNK_SLOTS`], [`super::pack`]); a segment that
+//! is another stream's (`rlflsame`) is read from that one. A count of the records unpacks
+//! each slot's first two words alone. Reading ticks in order (the report, the export, the
+//! replay) reads each block once; looking back a few thousand ticks (the incidents) stays
+//! in the kept blocks. Its memory
 //! is a few MB (6.4 MB of plant states in chunks), the same for a minute's run as for a
 //! day's.
 //!
