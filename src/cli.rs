@@ -187,6 +187,11 @@ struct SimArgs {
     /// same `trace.csv` and says whether it is identical.
     #[arg(long, conflicts_with_all = ["scenario", "open_loop", "delay_from"])]
     replay: Option<PathBuf>,
+    /// With `--replay`: compare each replayed row with the run's and write only
+    /// `replay.json`, no `trace.csv` or `run.mcap` (a long run's replay would write about
+    /// 1 MB per second of run).
+    #[arg(long, requires = "replay")]
+    compare_only: bool,
     /// Output directory.
     #[arg(long)]
     out: PathBuf,
@@ -448,9 +453,11 @@ fn explain_command(dir: &std::path::Path, threshold_ticks: f64) -> anyhow::Resul
 /// `rotorloop sim`: a replay, or an in-process run of a scenario.
 fn sim_command(a: &SimArgs) -> anyhow::Result<()> {
     if let Some(dir) = &a.replay {
-        let r = crate::sim::replay::run(dir, &a.out)?;
+        let r = crate::sim::replay::run(dir, &a.out, !a.compare_only)?;
         println!("{}", r.describe());
-        crate::export::mcap_after_run(&a.out, false);
+        if !a.compare_only {
+            crate::export::mcap_after_run(&a.out, false);
+        }
         return Ok(());
     }
     let name = a.scenario.as_deref().unwrap_or_default();

@@ -128,14 +128,25 @@ fn a_real_time_run_with_misses_and_a_kill_replays_byte_for_byte() {
     let k = fields[tick].clone();
     fields[err] = "12.5".to_owned();
     changed[row] = fields.join(",");
-    let replay_of = |text: String, name: &str| {
+    let replay_of = |text: String, name: &str, only: &[&str]| {
         std::fs::write(out.join("trace.csv"), text).expect("tampered trace");
         let to = h.path(name);
-        ok(&h.rotorloop(&["sim", "--replay", o, "--out", to.to_str().expect("utf8")], LIMIT))
+        let mut args = vec!["sim", "--replay", o, "--out", to.to_str().expect("utf8")];
+        args.extend(only);
+        ok(&h.rotorloop(&args, LIMIT))
     };
-    let text = replay_of(changed.join("\n") + "\n", "replay-changed");
+    let text = replay_of(changed.join("\n") + "\n", "replay-changed", &[]);
     assert!(text.contains(&format!("first difference at tick {k}")), "tick {k}: {text}");
-    let text = replay_of(lines[..lines.len() - 1].join("\n") + "\n", "replay-short");
+    // `--compare-only` compares the same and writes the verdict alone.
+    let text = replay_of(changed.join("\n") + "\n", "replay-compared", &["--compare-only"]);
+    assert!(text.contains(&format!("first difference at tick {k}")), "tick {k}: {text}");
+    let compared = h.path("replay-compared");
+    assert_eq!(
+        json(&compared.join("replay.json"))["first_difference"],
+        k.parse::<u64>().expect("k")
+    );
+    assert!(!compared.join("trace.csv").exists() && !compared.join("run.mcap").exists());
+    let text = replay_of(lines[..lines.len() - 1].join("\n") + "\n", "replay-short", &[]);
     assert!(text.contains("not the same length"), "{text}");
     h.assert_no_leftovers();
 }

@@ -166,8 +166,9 @@ impl Comparison {
     }
 }
 
-/// Replays the real-time run in `dir` into `out` (module docs).
-pub fn run(dir: &Path, out: &Path) -> anyhow::Result<ReplaySummary> {
+/// Replays the real-time run in `dir` into `out` (module docs): its `trace.csv` where
+/// `write_trace`, and `replay.json`.
+pub fn run(dir: &Path, out: &Path, write_trace: bool) -> anyhow::Result<ReplaySummary> {
     let summary: serde_json::Value = serde_json::from_str(
         &std::fs::read_to_string(dir.join("summary.json"))
             .map_err(|e| bad(dir, &format!("summary.json: {e}")))?,
@@ -190,10 +191,14 @@ pub fn run(dir: &Path, out: &Path) -> anyhow::Result<ReplaySummary> {
     let limits = scenario.limits_for(actuation);
     let mut line = DelayLine::new(ActuationDelay::Instant, dt);
     std::fs::create_dir_all(out).with_context(|| format!("cannot create {}", out.display()))?;
-    let mut file = std::io::BufWriter::new(
-        std::fs::File::create(out.join("trace.csv"))
-            .with_context(|| format!("cannot write {}", out.join("trace.csv").display()))?,
-    );
+    let mut file: std::io::BufWriter<Box<dyn Write>> = std::io::BufWriter::new(if write_trace {
+        Box::new(
+            std::fs::File::create(out.join("trace.csv"))
+                .with_context(|| format!("cannot write {}", out.join("trace.csv").display()))?,
+        )
+    } else {
+        Box::new(std::io::sink())
+    });
     writeln!(file, "{}", rotorloop_monitor::trace::HEADER)?;
     let mut written = Vec::new();
     let mut result = ReplaySummary {
