@@ -124,7 +124,8 @@ struct FileSink {
 }
 
 impl FileSink {
-    fn create(part: &Path) -> anyhow::Result<Self> {
+    /// A sink writing `part` in chunks of `chunk` bytes of messages.
+    fn create(part: &Path, chunk: u64) -> anyhow::Result<Self> {
         let file = std::fs::File::create(part)
             .with_context(|| format!("cannot write {}", part.display()))?;
         // zstd at level 1: with the writer's default, compression was over 40 % of the
@@ -132,7 +133,7 @@ impl FileSink {
         let options = mcap::WriteOptions::new()
             .compression(Some(mcap::Compression::Zstd))
             .compression_level(MCAP_ZSTD_LEVEL)
-            .chunk_size(Some(MCAP_CHUNK_BYTES))
+            .chunk_size(Some(chunk))
             .library(format!("rotorloop {}", env!("CARGO_PKG_VERSION")));
         let mut sink = Self {
             writer: options.create(std::io::BufWriter::new(file))?,
@@ -286,7 +287,13 @@ pub fn write(dir: &Path) -> anyhow::Result<McapCounts> {
     let run = if records { Some(Run::read(dir)?) } else { None };
     let path = dir.join("run.mcap");
     let part = dir.join("run.mcap.part");
-    let written = FileSink::create(&part).and_then(|mut sink| {
+    let long = match &run {
+        Some(run) => run.summary.as_ref().and_then(|s| s["ticks"].as_u64()),
+        None => std::fs::metadata(dir.join("trace.csv")).ok().map(|m| m.len() / TRACE_ROW_BYTES),
+    }
+    .is_some_and(|ticks| ticks >= LONG_RUN_TICKS);
+    let chunk = if long { MCAP_LONG_CHUNK_BYTES } else { MCAP_CHUNK_BYTES };
+    let written = FileSink::create(&part, chunk).and_then(|mut sink| {
         match &run {
             Some(run) => write_messages(&mut sink, run, dir)?,
             None => write_trace_messages(&mut sink, dir)?,
@@ -309,11 +316,17 @@ pub fn write(dir: &Path) -> anyhow::Result<McapCounts> {
 /// The zstd level of `run.mcap`'s chunks.
 const MCAP_ZSTD_LEVEL: u32 = 1;
 
-/// Bytes of messages per MCAP chunk. The writer keeps an index entry per chunk until the
-/// file's summary is written (about 0.5 kB each): with the crate's default of 1 MiB, a
-/// 6 000 s export held 8 MB more than a 600 s one, a day's would hold over 100 MB more;
-/// at 8 MiB, a day's index is about 15 MB.
-const MCAP_CHUNK_BYTES: u64 = 8 << 20;
+/// Bytes of messages per MCAP chunk (the crate's default). The writer keeps an index entry
+/// per chunk until the file's summary is written (about 0.5 kB each): a 6 000 s export
+/// held 8 MB more than a 600 s one, an hour's about 5 MB.
+const MCAP_CHUNK_BYTES: u64 = 1 << 20;
+/// Bytes of messages per chunk from [`LONG_RUN_TICKS`] on: a day's index about 15 MB, for
+/// 9 MB more of chunk buffers (docs/measurements.md).
+const MCAP_LONG_CHUNK_BYTES: u64 = 8 << 20;
+/// Ticks from which a run is written in the longer chunks: an hour at 1 kHz.
+const LONG_RUN_TICKS: u64 = 3_600_000;
+/// About the bytes of a `trace.csv` row: what a run in process (no summary) is counted by.
+const TRACE_ROW_BYTES: u64 = 600;
 
 fn write_messages(sink: &mut FileSink, run: &Run, dir: &Path) -> anyhow::Result<()> {
     let first = run.states.iter().next();
