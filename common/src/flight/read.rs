@@ -8,9 +8,8 @@
 //! is another stream's (`rlflsame`) is read from that one. A count of the records unpacks
 //! each slot's first two words alone. Reading ticks in order (the report, the export, the
 //! replay) reads each block once; looking back a few thousand ticks (the incidents) stays
-//! in the kept blocks. Its memory
-//! is a few MB (6.4 MB of plant states in chunks), the same for a minute's run as for a
-//! day's.
+//! in the kept blocks. Its memory is a few MB (6.4 MB of plant states in chunks), the same
+//! for a minute's run as for a day's.
 //!
 //! **It trusts nothing in the files.** Every header is checked against its file's length
 //! before anything is read, a tick is only ever looked up, never used as an index of
