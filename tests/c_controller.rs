@@ -107,10 +107,13 @@ fn a_killed_c_controller_is_restarted_and_resumes_bumplessly() {
     let Some(c) = c_controller() else { return };
     let cmd = c.to_str().expect("utf8");
     let h = Harness::new("cckill");
-    let calm = run(&h, "calm", "paper-sinusoid", "lockstep", "30", &["--controller-cmd", cmd]);
-    let fault = "controller:kill@1:restart@1.3";
+    // A fault's times are wall-clock seconds after tick 0, and an idle machine ran 30
+    // simulated seconds of lockstep in under a second (the kill at 1 s never came): the
+    // kill comes early in a run of 60.
+    let calm = run(&h, "calm", "paper-sinusoid", "lockstep", "60", &["--controller-cmd", cmd]);
+    let fault = "controller:kill@0.2:restart@0.4";
     let extra = ["--controller-cmd", cmd, "--fault", fault];
-    let killed = run(&h, "kill", "paper-sinusoid", "lockstep", "30", &extra);
+    let killed = run(&h, "kill", "paper-sinusoid", "lockstep", "60", &extra);
     let s = json(&killed.join("summary.json"));
     assert_eq!(s["faults"].as_array().map(Vec::len), Some(1), "{}", s["faults"]);
     assert!(read(&calm) == read(&killed), "the trace after the restart differs");
