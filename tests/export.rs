@@ -299,3 +299,117 @@ fn a_sim_run_is_an_mcap_file_of_its_trace() {
     assert!(worst(&body, &mut trace.values().copied()) < 1e-12, "body");
     assert!(worst(&reference, &mut desired.into_iter()) < 1e-12, "reference");
 }
+
+/// Each message of `bytes` on the per-tick JSON topics by (topic, tick), and the
+/// `/rotorloop/window` messages in order.
+type ByTick = BTreeMap<(String, u64), Vec<u8>>;
+
+fn per_tick(bytes: &[u8]) -> (ByTick, Vec<serde_json::Value>) {
+    let (mut ticks, mut windows) = (BTreeMap::new(), Vec::new());
+    for m in mcap::MessageStream::new(bytes).expect("an MCAP file") {
+        let m = m.expect("a message");
+        let topic = m.channel.topic.clone();
+        if m.channel.message_encoding != "json" || topic == "/rotorloop/incidents" {
+            continue;
+        }
+        let v: serde_json::Value = serde_json::from_slice(&m.data).expect("json");
+        if topic == "/rotorloop/window" {
+            windows.push(v);
+            continue;
+        }
+        let k = v["tick"].as_u64().unwrap_or_else(|| panic!("{topic}: no tick in {v}"));
+        assert!(ticks.insert((topic.clone(), k), m.data.to_vec()).is_none(), "{topic} {k} twice");
+    }
+    (ticks, windows)
+}
+
+/// An overview (`export --mcap --detail overview`, what a run of an hour or more gets) of
+/// a real-time run with a kill: its `/rotorloop/window` messages are the full file's, and
+/// each one's extremes are those of the full file's ticks in it (the largest of each hop,
+/// attitude and rate error, the misses in it); its per-tick messages are the full file's
+/// for the ticks it keeps, and it keeps exactly one tick a window (ticks 0, 100, …) and
+/// every tick from 100 before each incident to a second after it. The incidents are
+/// written for the test (`incidents.csv`, whose rows the export reads), so that what is
+/// kept does not depend on how loaded the machine was.
+#[test]
+fn an_overview_keeps_a_tick_a_window_every_windows_extremes_and_the_incidents_in_full() {
+    let h = Harness::new("mcapov");
+    let out = h.path("rt");
+    let dir = out.to_str().expect("utf8");
+    let args = ["run", "--scenario", "paper-zero", "--duration", "4", "--mode", "realtime"];
+    let mut args = args.to_vec();
+    args.extend(["--fault", "controller:kill@1:restart@1.2", "--domain", &h.domain]);
+    args.extend(["--out", dir]);
+    ok(&h.rotorloop(&args, LIMIT));
+    // Three incidents: two whose windows overlap, one near the end.
+    let csv = std::fs::read_to_string(out.join("incidents.csv")).expect("incidents.csv");
+    let header: Vec<&str> = csv.lines().next().expect("header").split(',').collect();
+    let incidents: [(u64, u64); 3] = [(1500, 1510), (1520, 1600), (3950, 3990)];
+    let mut rows = vec![header.join(",")];
+    for (a, b) in incidents {
+        let field = |n: &&str| match *n {
+            "start_tick" => a.to_string(),
+            "end_tick" => b.to_string(),
+            "kind" => "test".into(),
+            _ => String::new(),
+        };
+        rows.push(header.iter().map(field).collect::<Vec<_>>().join(","));
+    }
+    std::fs::write(out.join("incidents.csv"), rows.join("\n") + "\n").expect("incidents.csv");
+    ok(&h.rotorloop(&["export", dir, "--mcap", "--detail", "full"], LIMIT));
+    let full = std::fs::read(out.join("run.mcap")).expect("run.mcap");
+    let said = ok(&h.rotorloop(&["export", dir, "--mcap", "--detail", "overview"], LIMIT));
+    assert!(said.contains("an overview: "), "{said}");
+    let overview = std::fs::read(out.join("run.mcap")).expect("the overview");
+    assert!(overview.len() * 2 < full.len(), "{} of {} bytes", overview.len(), full.len());
+    let (all, windows) = per_tick(&full);
+    let (kept, overview_windows) = per_tick(&overview);
+    assert_eq!(windows, overview_windows, "the same windows");
+
+    // Each window's extremes, from the full file's ticks.
+    let value = |topic: &str, k: u64| -> Option<serde_json::Value> {
+        let m = all.get(&(format!("/rotorloop/{topic}"), k))?;
+        Some(serde_json::from_slice(m).expect("json"))
+    };
+    let hops = ["state_transport_ns", "controller_compute_ns", "law_ns", "tick_lateness_ns"];
+    let mut misses_before = 0;
+    assert_eq!(windows.len(), 41, "4 001 ticks in windows of 100");
+    for w in &windows {
+        let (a, b) =
+            (w["first_tick"].as_u64().expect("first"), w["last_tick"].as_u64().expect("b"));
+        assert_eq!((a % 100, b - a), (0, if a == 4000 { 0 } else { 99 }), "{w}");
+        let lat: Vec<serde_json::Value> = (a..=b).filter_map(|k| value("latency", k)).collect();
+        assert_eq!(w["ticks"].as_u64(), Some(lat.len() as u64), "{w}");
+        for hop in hops {
+            let max = lat.iter().filter_map(|l| l[hop].as_u64()).max();
+            assert_eq!(w[format!("{hop}_max")].as_u64(), max, "{hop} in {w}");
+        }
+        let err = (a..=b).filter_map(|k| value("tracking", k)?["err_deg"].as_f64());
+        let err = err.fold(f64::NAN, f64::max);
+        assert_eq!(w["err_deg_max"].as_f64().map(f64::to_bits), Some(err.to_bits()), "{w}");
+        let misses = lat.iter().filter_map(|l| l["misses"].as_u64()).max().expect("misses");
+        assert_eq!(w["misses"].as_u64(), Some(misses - misses_before), "{w}");
+        misses_before = misses;
+    }
+    assert!(misses_before > 0, "the kill left ticks without a torque");
+
+    // The ticks kept: one a window, and each incident's from a window before to a second
+    // after; each kept message is the full file's.
+    let in_full =
+        |k: u64| incidents.iter().any(|(a, b)| a.saturating_sub(100) <= k && k <= b + 1000);
+    let states = |m: &ByTick| -> Vec<u64> {
+        m.keys().filter(|(t, _)| t == "/rotorloop/state").map(|(_, k)| *k).collect()
+    };
+    let want: Vec<u64> = states(&all).into_iter().filter(|k| k % 100 == 0 || in_full(*k)).collect();
+    // 41 of the windows; 1 400–2 600 but its 13 hundreds; 3 850–4 000 but 3 900, 4 000.
+    assert_eq!(want.len(), 41 + (1201 - 13) + (151 - 2), "the ticks to keep");
+    assert_eq!(states(&kept), want, "the ticks kept");
+    for (key, data) in &kept {
+        assert_eq!(all.get(key), Some(data), "{key:?}: not the full file's message");
+    }
+    for topic in ["/rotorloop/latency", "/rotorloop/tracking", "/rotorloop/reference"] {
+        let n = kept.keys().filter(|(t, _)| t == topic).count();
+        assert_eq!(n, want.len(), "{topic}");
+    }
+    h.assert_no_leftovers();
+}

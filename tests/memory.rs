@@ -135,8 +135,9 @@ fn a_run_too_large_for_its_disk_is_refused_before_it_starts_and_others_say_their
     assert_eq!(o.status.code(), Some(2), "{err}");
     assert!(err.contains("its output needs about") && err.contains("--force"), "{err}");
     assert!(err.contains("free there"), "{err}");
-    // A long run is told what a long run's output would take.
-    assert!(err.contains("with --no-csv --no-mcap it would write about"), "{err}");
+    // A long run is told what a long run's output would take (from an hour of ticks on,
+    // with its `run.mcap`, an overview).
+    assert!(err.contains("with --no-csv it would write about"), "{err}");
     assert!(!out.exists(), "nothing of the refused run was made");
     let small = h.path("small");
     let o = h.rotorloop(
@@ -162,7 +163,7 @@ fn a_run_too_large_for_its_disk_is_refused_before_it_starts_and_others_say_their
 /// `run.mcap`, the scheduler samples compressed (`sched.csv.zst`), its segments packed (well under a third of a raw slot's bytes a tick); yet
 /// `sim --replay` reads the records directly and finds the run byte for byte, `export
 /// --csv` derives the trace the simulator writes, byte for byte (lockstep), and `export
-/// --mcap` writes `run.mcap` from the records.
+/// --mcap` writes `run.mcap` from the records, the same file as from the derived CSV.
 #[test]
 fn a_run_without_csv_files_replays_and_derives_them_from_its_packed_records() {
     let h = Harness::new("nocsv");
@@ -225,6 +226,15 @@ fn a_run_without_csv_files_replays_and_derives_them_from_its_packed_records() {
     crate::common::harness::ok(
         &h.rotorloop(&["export", &out_s, "--csv"], Duration::from_secs(300)),
     );
+    // The tracking rows taken from the records unformatted are those of the trace's text:
+    // the file from the derived `trace.csv` is the same, byte for byte.
+    let from_records = std::fs::read(out.join("run.mcap")).expect("run.mcap");
+    std::fs::remove_file(out.join("run.mcap")).expect("rm");
+    crate::common::harness::ok(
+        &h.rotorloop(&["export", &out_s, "--mcap"], Duration::from_secs(300)),
+    );
+    let from_csv = std::fs::read(out.join("run.mcap")).expect("run.mcap again");
+    assert!(from_records == from_csv, "run.mcap from the records differs from the CSV's");
     let derived = std::fs::read(out.join("trace.csv")).expect("derived trace");
     let sim = crate::common::harness::sim_trace(&h, "paper-sinusoid", "10", &[]);
     crate::common::harness::assert_same_trace("derived from the records", &derived, &sim);

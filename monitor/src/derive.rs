@@ -13,8 +13,8 @@ use rotorloop_common::flight::FlightError;
 use rotorloop_common::scenario::{Actuation, Scenario};
 
 use crate::assemble::FlightRecords;
-use crate::metrics::Metrics;
-use crate::policy::RowJoiner;
+use crate::metrics::{Metrics, TraceRow};
+use crate::policy::{JoinedRow, RowJoiner};
 use crate::recording::{new_metrics, trace_row};
 use crate::rows::TickRows;
 use crate::timing::{TimingRow, TimingRows};
@@ -101,16 +101,30 @@ impl DerivedRows {
     /// The next row: its `trace.csv` line and its `timing.csv` line (without their line
     /// ends), in tick order; `None` after the last.
     pub fn next_row(&mut self) -> Option<(String, String)> {
+        let j = self.next_joined()?;
+        let row = trace_row(&mut self.metrics, self.actuation, self.dt, &j);
+        self.line.clear();
+        let _ = TraceWriter::append(&mut self.line).write(&row);
+        let trace = String::from_utf8_lossy(&self.line).trim_end().to_owned();
+        self.line.clear();
+        let _ = TimingRow::of(&j.state).write(&mut self.line);
+        let timing = String::from_utf8_lossy(&self.line).trim_end().to_owned();
+        Some((trace, timing))
+    }
+
+    /// The next `trace.csv` row as its values, unformatted (the same bits as the line of
+    /// [`DerivedRows::next_row`] parsed back: its floats are written round-trip exact), in
+    /// tick order; `None` after the last. For a reader of every row that keeps few of
+    /// them as text (`export --mcap`).
+    pub fn next_trace(&mut self) -> Option<TraceRow> {
+        let j = self.next_joined()?;
+        Some(trace_row(&mut self.metrics, self.actuation, self.dt, &j))
+    }
+
+    fn next_joined(&mut self) -> Option<JoinedRow> {
         loop {
             if let Some(j) = self.joiner.next_row(self.fed) {
-                let row = trace_row(&mut self.metrics, self.actuation, self.dt, &j);
-                self.line.clear();
-                let _ = TraceWriter::append(&mut self.line).write(&row);
-                let trace = String::from_utf8_lossy(&self.line).trim_end().to_owned();
-                self.line.clear();
-                let _ = TimingRow::of(&j.state).write(&mut self.line);
-                let timing = String::from_utf8_lossy(&self.line).trim_end().to_owned();
-                return Some((trace, timing));
+                return Some(j);
             }
             if self.fed {
                 return None;

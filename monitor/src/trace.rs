@@ -12,6 +12,23 @@ pub const HEADER: &str = "t,R11,R12,R13,R21,R22,R23,R31,R32,R33,\
 Rd11,Rd12,Rd13,Rd21,Rd22,Rd23,Rd31,Rd32,Rd33,W1,W2,W3,Wd1,Wd2,Wd3,Wr1,Wr2,Wr3,\
 u1,u2,u3,tau1,tau2,tau3,err_deg,werr,h1,h2,h3,h_drift_rel,energy_residual,tick,delay_s";
 
+/// A row's values in [`HEADER`]'s order, as [`TraceWriter::write`] writes them (the tick
+/// as a float): the line parsed back, without formatting it.
+pub fn values(row: &TraceRow) -> Vec<f64> {
+    let mut v = Vec::with_capacity(43);
+    v.push(row.t);
+    for a in [&row.r, &row.r_d] {
+        v.extend_from_slice(a);
+    }
+    for a in [&row.omega, &row.omega_d, &row.omega_r, &row.u, &row.tau] {
+        v.extend_from_slice(a);
+    }
+    v.extend([row.err_deg, row.werr]);
+    v.extend_from_slice(&row.h);
+    v.extend([row.h_drift_rel, row.energy_residual, row.tick as f64, row.delay_s]);
+    v
+}
+
 /// Writes trace rows as CSV.
 #[derive(Debug)]
 pub struct TraceWriter<W: Write> {
@@ -90,6 +107,13 @@ mod tests {
         ] {
             let got: f64 = col(name).parse().expect("float");
             assert_eq!(got.to_bits(), want.to_bits(), "{name}");
+        }
+        // The values unformatted are the line parsed back, column by column.
+        let parsed: Vec<f64> = values.iter().map(|v| v.parse().expect("float")).collect();
+        let direct = super::values(&row);
+        assert_eq!(direct.len(), header.len());
+        for (i, (a, b)) in parsed.iter().zip(&direct).enumerate() {
+            assert_eq!(a.to_bits(), b.to_bits(), "{}", header[i]);
         }
     }
 }

@@ -35,7 +35,8 @@ use rotorloop_common::flight::{FlightLog, SPARE_SLOTS, Stream};
 use rotorloop_common::wire::{
     FLAG_REALTIME, FLAG_SAFE_MODE, NO_TICK, ReferenceSample, StateSample, TorqueSample,
 };
-use rotorloop_monitor::derive::Csv;
+use rotorloop_monitor::derive::{Csv, DerivedRows};
+use rotorloop_monitor::metrics::TraceRow;
 use rotorloop_monitor::rows::{TickRows, records_dir};
 use serde::Serialize;
 use serde_json::Value;
@@ -49,6 +50,42 @@ pub struct McapCounts {
     pub path: String,
     /// Messages per topic.
     pub messages: BTreeMap<String, u64>,
+    /// `full` (every tick) or `overview` ([`Detail::Overview`]).
+    pub detail: String,
+    /// Ticks a `/rotorloop/window` message.
+    pub window_ticks: u64,
+    /// The ticks whose messages it holds (every one: `full`), and of those the ticks of
+    /// the incidents' windows kept at full rate beside the overview's one a window.
+    pub ticks_kept: Kept,
+}
+
+impl McapCounts {
+    /// What of the run it holds, in words.
+    pub fn said(&self) -> String {
+        let k = &self.ticks_kept;
+        match self.detail.as_str() {
+            "overview" => format!(
+                "an overview: {} ticks of the run's, one a window of {} ticks with the \
+                 window's extremes, and {} ticks of {} of its {} incidents at full rate \
+                 (`export --mcap --detail full` for every tick)",
+                k.ticks, self.window_ticks, k.incident_ticks, k.incidents_at_full_rate, k.incidents
+            ),
+            _ => format!("every tick ({})", k.ticks),
+        }
+    }
+}
+
+/// The ticks a file holds the messages of.
+#[derive(Debug, Clone, Copy, Default, Serialize, PartialEq)]
+pub struct Kept {
+    /// Ticks with their messages.
+    pub ticks: u64,
+    /// Of those, kept only for an incident's window (overview).
+    pub incident_ticks: u64,
+    /// The incidents whose windows were kept at full rate, wholly or in part.
+    pub incidents_at_full_rate: u64,
+    /// The run's incidents.
+    pub incidents: u64,
 }
 
 /// The records and files of one run directory.
@@ -59,10 +96,51 @@ struct Run {
     /// lacks it (a controller killed between its publish and its record).
     received: FlightLog<TorqueSample>,
     references: FlightLog<ReferenceSample>,
-    /// `trace.csv`, a row at a time in tick order.
-    trace: std::cell::RefCell<TickRows>,
+    /// The trace rows, a row at a time in tick order.
+    trace: std::cell::RefCell<TraceSource>,
     trace_columns: Vec<String>,
     summary: Option<Value>,
+}
+
+/// A run's trace rows in tick order, as values in `trace.csv`'s columns.
+enum TraceSource {
+    /// Its `trace.csv`.
+    File(TickRows),
+    /// Derived from its records (`run --no-csv`), unformatted, with the row read ahead.
+    Derived(Box<(DerivedRows, Option<TraceRow>)>),
+}
+
+impl TraceSource {
+    /// The file, else the rows derived from the records (as [`open_trace`]).
+    fn open(dir: &Path) -> anyhow::Result<(Self, Vec<String>)> {
+        if dir.join(Csv::Trace.name()).exists() {
+            let rows = open_trace(dir)?;
+            let columns = rows.columns();
+            return Ok((Self::File(rows), columns));
+        }
+        let rows = DerivedRows::of_run(dir).with_context(|| {
+            format!("cannot read {} (the run's report)", dir.join("trace.csv").display())
+        })?;
+        let columns = rotorloop_monitor::trace::HEADER.split(',').map(str::to_owned).collect();
+        Ok((Self::Derived(Box::new((rows, None))), columns))
+    }
+
+    /// The row of tick `k` (asked for in increasing order), every value a float.
+    fn row(&mut self, k: u64) -> Option<Vec<f64>> {
+        match self {
+            Self::File(rows) => rows.row(k).map(|l| parse_row(&l)),
+            Self::Derived(derived) => loop {
+                let (rows, ahead) = &mut **derived;
+                match ahead {
+                    Some(r) if r.tick > k => return None,
+                    Some(r) if r.tick == k => {
+                        return ahead.take().map(|r| rotorloop_monitor::trace::values(&r));
+                    }
+                    _ => *ahead = Some(rows.next_trace()?),
+                }
+            },
+        }
+    }
 }
 
 impl Run {
@@ -87,8 +165,7 @@ impl Run {
         let torques = FlightLog::read(&flight, Stream::ControllerTorque, limit).ok();
         let references =
             FlightLog::read(&flight, Stream::Reference, limit).with_context(missing)?;
-        let trace = open_trace(dir)?;
-        let trace_columns = trace.columns();
+        let (trace, trace_columns) = TraceSource::open(dir)?;
         let trace = trace.into();
         Ok(Self { states, torques, received, references, trace, trace_columns, summary })
     }
@@ -99,7 +176,7 @@ impl Run {
 
     /// The trace row of tick `k` (asked for in increasing order), every value a float.
     fn trace_row(&self, k: u64) -> Option<Vec<f64>> {
-        self.trace.borrow_mut().row(k).map(|l| parse_row(&l))
+        self.trace.borrow_mut().row(k)
     }
 }
 
@@ -247,6 +324,29 @@ pub(crate) fn log_message(
     }
 }
 
+/// The per-tick hops and stages of state `s` answered by `t` ([`topics::LATENCY_HOPS`],
+/// in its order; `None` where a stamp is missing).
+pub(crate) fn hops(
+    s: &StateSample,
+    t: Option<&TorqueSample>,
+    r: Option<&ReferenceSample>,
+) -> [Option<u64>; 9] {
+    let d = |a: u64, b: u64| (a != 0 && b != 0 && a >= b).then(|| a - b);
+    let answered = t.filter(|t| t.tick == s.tick);
+    let realtime = s.flags & FLAG_REALTIME != 0;
+    [
+        answered.and_then(|t| d(t.state_recv_ns, s.publish_ns)),
+        answered.and_then(|t| d(t.publish_ns, t.state_recv_ns)),
+        answered.and_then(|t| d(t.validated_ns, t.state_recv_ns)),
+        answered.and_then(|t| d(t.paired_ns, t.validated_ns)),
+        answered.and_then(|t| d(t.computed_ns, t.paired_ns)),
+        answered.and_then(|t| d(t.publish_ns, t.computed_ns)),
+        realtime.then(|| d(s.wake_ns, s.deadline_ns)).flatten(),
+        realtime.then(|| d(s.publish_ns, s.wake_ns)).flatten(),
+        r.and_then(|r| d(s.publish_ns, r.publish_ns)),
+    ]
+}
+
 /// The per-tick latency of state `s` answered by `t` (ns; `null` where a stamp is
 /// missing), the stages of the controller, and the state of the loop ([`topics::LATENCY`]).
 pub(crate) fn latency(
@@ -254,32 +354,99 @@ pub(crate) fn latency(
     t: Option<&TorqueSample>,
     r: Option<&ReferenceSample>,
 ) -> Value {
-    let d = |a: u64, b: u64| (a != 0 && b != 0 && a >= b).then(|| a - b);
-    let answered = t.filter(|t| t.tick == s.tick);
-    serde_json::json!({
-        "tick": s.tick,
-        "t_s": s.t_s,
-        "state_transport_ns": answered.and_then(|t| d(t.state_recv_ns, s.publish_ns)),
-        "controller_compute_ns": answered.and_then(|t| d(t.publish_ns, t.state_recv_ns)),
-        "validate_ns": answered.and_then(|t| d(t.validated_ns, t.state_recv_ns)),
-        "pair_ns": answered.and_then(|t| d(t.paired_ns, t.validated_ns)),
-        "law_ns": answered.and_then(|t| d(t.computed_ns, t.paired_ns)),
-        "publish_prep_ns": answered.and_then(|t| d(t.publish_ns, t.computed_ns)),
-        "tick_lateness_ns": (s.flags & FLAG_REALTIME != 0).then(|| d(s.wake_ns, s.deadline_ns)).flatten(),
-        "state_prep_ns": (s.flags & FLAG_REALTIME != 0).then(|| d(s.publish_ns, s.wake_ns)).flatten(),
-        "reference_lead_ns": r.and_then(|r| d(s.publish_ns, r.publish_ns)),
-        "state_send_ns": s.prev_publish.send_ns,
-        "misses": s.misses,
-        "safe_mode": s.flags & FLAG_SAFE_MODE != 0,
-        "torque_in_force_tick": (s.applied_torque_tick != NO_TICK).then_some(s.applied_torque_tick),
-        "torque_in_force_recv_ns": s.applied_torque_recv_ns,
-    })
+    latency_of(s, &hops(s, t, r))
 }
 
+fn latency_of(s: &StateSample, hops: &[Option<u64>; 9]) -> Value {
+    let mut m = serde_json::Map::new();
+    m.insert("tick".into(), s.tick.into());
+    m.insert("t_s".into(), serde_json::json!(s.t_s));
+    for (name, v) in topics::LATENCY_HOPS.iter().zip(hops) {
+        m.insert((*name).into(), serde_json::json!(v));
+    }
+    m.insert("state_send_ns".into(), s.prev_publish.send_ns.into());
+    m.insert("misses".into(), s.misses.into());
+    m.insert("safe_mode".into(), (s.flags & FLAG_SAFE_MODE != 0).into());
+    let in_force = (s.applied_torque_tick != NO_TICK).then_some(s.applied_torque_tick);
+    m.insert("torque_in_force_tick".into(), serde_json::json!(in_force));
+    m.insert("torque_in_force_recv_ns".into(), s.applied_torque_recv_ns.into());
+    Value::Object(m)
+}
+
+/// How much of its run's ticks `run.mcap` holds (`export --mcap --detail`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, clap::ValueEnum, Serialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Detail {
+    /// `overview` for a run of [`LONG_RUN_TICKS`] or more (an hour at 1 kHz), `full`
+    /// below.
+    #[default]
+    Auto,
+    /// Every tick's messages.
+    Full,
+    /// The messages of one tick a window (a tenth of a second of the loop's time), one
+    /// `/rotorloop/window` message with the extremes of every window, and every tick of
+    /// the incidents' windows (from a window before each to a second after it), up to a
+    /// hundredth of the run's ticks or ten seconds' worth, the more.
+    Overview,
+}
+
+/// What a file holds of its run, decided from the run's length and rate.
+#[derive(Debug, Clone, Copy)]
+struct Plan {
+    overview: bool,
+    /// Ticks a window (of [`topics::WINDOW`], and of the overview's kept ticks).
+    window: u64,
+    /// Ticks kept at full rate before an incident (a window's) and after it (a second).
+    before: u64,
+    after: u64,
+    /// Ticks the overview may keep at full rate in the incidents' windows.
+    full_rate_ticks: u64,
+}
+
+impl Plan {
+    fn of(detail: Detail, ticks: Option<u64>, rate_hz: Option<f64>) -> Self {
+        let rate = rate_hz.filter(|r| r.is_finite() && *r > 0.0).unwrap_or(1000.0);
+        let overview = match detail {
+            Detail::Full => false,
+            Detail::Overview => true,
+            Detail::Auto => ticks.is_some_and(|t| t >= LONG_RUN_TICKS),
+        };
+        let window = ((rate / WINDOWS_A_SECOND).round() as u64).max(1);
+        let second = rate.round() as u64;
+        let share = ticks.unwrap_or(0) / FULL_RATE_SHARE;
+        Self {
+            overview,
+            window,
+            before: window,
+            after: second,
+            full_rate_ticks: share.max(FULL_RATE_SECONDS * second),
+        }
+    }
+
+    fn name(&self) -> &'static str {
+        if self.overview { "overview" } else { "full" }
+    }
+}
+
+/// Windows of [`topics::WINDOW`] a second of the loop's time (and the overview's kept
+/// ticks a second).
+const WINDOWS_A_SECOND: f64 = 10.0;
+/// The overview keeps at most one tick in this many at full rate in the incidents'
+/// windows (or [`FULL_RATE_SECONDS`], the more): the first incidents' windows, in the order
+/// of their first ticks, each from its start on.
+const FULL_RATE_SHARE: u64 = 100;
+/// Seconds of the loop's ticks the overview may keep at full rate, whatever its length.
+const FULL_RATE_SECONDS: u64 = 10;
+
 /// Writes `DIR/run.mcap` from the run in `dir` (records, `trace.csv`, `summary.json`,
-/// `incidents.csv`): through a `.part` file renamed when complete, so a reader never sees
-/// half a file.
+/// `incidents.csv`), with [`Detail::Auto`]: see [`write_with`].
 pub fn write(dir: &Path) -> anyhow::Result<McapCounts> {
+    write_with(dir, Detail::Auto)
+}
+
+/// Writes `DIR/run.mcap` from the run in `dir` with `detail`: through a `.part` file
+/// renamed when complete, so a reader never sees half a file.
+pub fn write_with(dir: &Path, detail: Detail) -> anyhow::Result<McapCounts> {
     // A run in process (`sim`, `sim --replay`, `paper`'s in-process runs) has no flight
     // records: its trace alone (attitudes, tracking) in simulated time.
     let records = Stream::PlantState.path(&records_dir(dir, None)).exists()
@@ -287,22 +454,32 @@ pub fn write(dir: &Path) -> anyhow::Result<McapCounts> {
     let run = if records { Some(Run::read(dir)?) } else { None };
     let path = dir.join("run.mcap");
     let part = dir.join("run.mcap.part");
-    let long = match &run {
+    let summary = match &run {
+        Some(run) => run.summary.clone(),
+        None => std::fs::read_to_string(dir.join("summary.json"))
+            .ok()
+            .and_then(|t| serde_json::from_str::<Value>(&t).ok()),
+    };
+    let ticks = match &run {
         Some(run) => run.summary.as_ref().and_then(|s| s["ticks"].as_u64()),
         None => std::fs::metadata(dir.join("trace.csv")).ok().map(|m| m.len() / TRACE_ROW_BYTES),
-    }
-    .is_some_and(|ticks| ticks >= LONG_RUN_TICKS);
+    };
+    let rate = summary
+        .as_ref()
+        .and_then(|s| s["rate_hz"].as_f64().or_else(|| s["dt"].as_f64().map(|dt| 1.0 / dt)));
+    let plan = Plan::of(detail, ticks, rate);
+    let long = ticks.is_some_and(|t| t >= LONG_RUN_TICKS);
     let chunk = if long { MCAP_LONG_CHUNK_BYTES } else { MCAP_CHUNK_BYTES };
     let written = FileSink::create(&part, chunk).and_then(|mut sink| {
-        match &run {
-            Some(run) => write_messages(&mut sink, run, dir)?,
-            None => write_trace_messages(&mut sink, dir)?,
-        }
+        let kept = match &run {
+            Some(run) => write_messages(&mut sink, run, dir, plan)?,
+            None => write_trace_messages(&mut sink, dir, plan)?,
+        };
         let counts = sink.counts();
         sink.finish()?;
-        Ok(counts)
+        Ok((counts, kept))
     });
-    let counts = match written {
+    let (counts, kept) = match written {
         Ok(c) => c,
         Err(e) => {
             let _ = std::fs::remove_file(&part);
@@ -310,7 +487,13 @@ pub fn write(dir: &Path) -> anyhow::Result<McapCounts> {
         }
     };
     std::fs::rename(&part, &path).with_context(|| format!("cannot write {}", path.display()))?;
-    Ok(McapCounts { path: path.display().to_string(), messages: counts })
+    Ok(McapCounts {
+        path: path.display().to_string(),
+        messages: counts,
+        detail: plan.name().into(),
+        window_ticks: plan.window,
+        ticks_kept: kept,
+    })
 }
 
 /// The zstd level of `run.mcap`'s chunks.
@@ -323,22 +506,123 @@ const MCAP_CHUNK_BYTES: u64 = 1 << 20;
 /// Bytes of messages per chunk from [`LONG_RUN_TICKS`] on: a day's index about 15 MB, for
 /// 9 MB more of chunk buffers (docs/measurements.md).
 const MCAP_LONG_CHUNK_BYTES: u64 = 8 << 20;
-/// Ticks from which a run is written in the longer chunks: an hour at 1 kHz.
-const LONG_RUN_TICKS: u64 = 3_600_000;
+/// Ticks from which a run is written in the longer chunks, and as an overview
+/// ([`Detail::Auto`]): an hour at 1 kHz.
+pub const LONG_RUN_TICKS: u64 = 3_600_000;
 /// About the bytes of a `trace.csv` row: what a run in process (no summary) is counted by
 /// (measured: 796 a row in a 4 s real-time `paper-sinusoid` trace).
 const TRACE_ROW_BYTES: u64 = 800;
 
-fn write_messages(sink: &mut FileSink, run: &Run, dir: &Path) -> anyhow::Result<()> {
+fn write_messages(sink: &mut FileSink, run: &Run, dir: &Path, plan: Plan) -> anyhow::Result<Kept> {
     let first = run.states.iter().next();
     let first = first.as_ref();
     let realtime = first.is_some_and(|s| s.publish_ns != 0);
     // Without stamps (a run in process) the log time is the simulated time.
     let time = |stamp: u64, t_s: f64| if realtime { stamp } else { (t_s * 1e9) as u64 };
     let t0 = first.map_or(0, |s| time(s.publish_ns, s.t_s));
+    write_head(sink, run, first, plan, t0)?;
+    let incidents_csv = dir.join("incidents.csv");
+    let mut incidents = Incidents::open(&incidents_csv);
+    let mut full_rate = FullRate::new(&incidents_csv, plan);
+    // An incident's message is at its first tick's state, else at its start after `t0`.
+    let incident_time = |i: &Value| {
+        let at_s = i["start_s"].as_f64().unwrap_or_default();
+        let start = i["start_tick"].as_u64().unwrap_or_default();
+        run.states.get(start).map_or(t0 + (at_s * 1e9) as u64, |s| time(s.publish_ns, s.t_s))
+    };
+    let columns = &run.trace_columns;
+    let tracked = topics::WINDOW_TRACKING.map(|c| columns.iter().position(|n| n == c));
+    let mut window = Window::default();
+    let mut kept = Kept::default();
+    let mut safe = false;
+    for s in run.states.iter() {
+        let s = &s;
+        let k = s.tick;
+        let ns = time(s.publish_ns, s.t_s);
+        // The incidents that start by this tick, each at its start's time.
+        while let Some(i) = incidents.starting_by(k) {
+            sink.json(topics::INCIDENTS.topic, &i, incident_time(&i))?;
+        }
+        let in_incident = incidents.holds(k);
+        let t = run.torque(k);
+        let t = t.as_ref();
+        let r = run.references.get(k);
+        let r = r.as_ref();
+        let hops = hops(s, t, r);
+        let row = run.trace_row(k);
+        if window.first.is_some_and(|f| f / plan.window != k / plan.window) {
+            let (at, message) = window.take();
+            sink.json(topics::WINDOW.topic, &message, at)?;
+        }
+        let value = |i: Option<usize>| i.and_then(|i| row.as_ref()?.get(i).copied());
+        let tracking = tracked.map(|i| value(i).unwrap_or(f64::NAN));
+        window.add(s, ns, t.is_some_and(|t| t.tick == k), &hops, &tracking, in_incident);
+        let now_safe = s.flags & FLAG_SAFE_MODE != 0;
+        if now_safe != safe {
+            let m = safe_mode_message(now_safe, k);
+            sink.encoded(topics::LOG, &log_message(ns, m.0, "plant", m.1), ns)?;
+            safe = now_safe;
+        }
+        let sampled = !plan.overview || k % plan.window == 0;
+        let for_incident = plan.overview && full_rate.holds(k);
+        if !(sampled || for_incident) {
+            continue;
+        }
+        kept.ticks += 1;
+        kept.incident_ticks += u64::from(!sampled);
+        sink.json(topics::STATE.topic, &topics::state_json(s), ns)?;
+        if let Some(t) = t {
+            sink.json(topics::TORQUE.topic, &topics::torque_json(t), time(t.publish_ns, s.t_s))?;
+        }
+        if let Some(r) = r {
+            let at = time(r.publish_ns, r.t_s);
+            sink.json(topics::REFERENCE.topic, &topics::reference_json(r), at)?;
+            sink.encoded(topics::TF, &transform("world", "reference", &r.r_d_row_major, ns), ns)?;
+        }
+        sink.encoded(topics::TF, &transform("world", "body", &s.r_row_major, ns), ns)?;
+        sink.json(topics::LATENCY.topic, &latency_of(s, &hops), ns)?;
+        if let Some(row) = row {
+            let row = tracking_row(columns, &row, Some(in_incident));
+            sink.json(topics::TRACKING.topic, &row, ns)?;
+        }
+    }
+    if window.first.is_some() {
+        let (at, message) = window.take();
+        sink.json(topics::WINDOW.topic, &message, at)?;
+    }
+    // Those that start after the last state (a fault outside the loop at its end).
+    while let Some(i) = incidents.starting_by(u64::MAX) {
+        sink.json(topics::INCIDENTS.topic, &i, incident_time(&i))?;
+    }
+    for (ns, level, name, message) in events(run, t0) {
+        sink.encoded(topics::LOG, &log_message(ns, level, &name, message), ns)?;
+    }
+    kept.incidents = full_rate.incidents;
+    kept.incidents_at_full_rate = full_rate.windows;
+    if plan.overview {
+        let m = BTreeMap::from([
+            ("ticks".to_owned(), kept.ticks.to_string()),
+            ("incident_ticks".to_owned(), kept.incident_ticks.to_string()),
+            ("incidents".to_owned(), kept.incidents.to_string()),
+            ("incidents_at_full_rate".to_owned(), kept.incidents_at_full_rate.to_string()),
+        ]);
+        let name = "rotorloop.kept".into();
+        sink.writer.write_metadata(&mcap::records::Metadata { name, metadata: m })?;
+    }
+    Ok(kept)
+}
+
+/// The file's metadata record and the run's `summary.json` attached (at `t0`).
+fn write_head(
+    sink: &mut FileSink,
+    run: &Run,
+    first: Option<&StateSample>,
+    plan: Plan,
+    t0: u64,
+) -> anyhow::Result<()> {
     sink.writer.write_metadata(&mcap::records::Metadata {
         name: "rotorloop".into(),
-        metadata: metadata(run, first),
+        metadata: metadata(run, first, plan),
     })?;
     if let Some(s) = &run.summary {
         sink.writer.attach(&mcap::Attachment {
@@ -349,57 +633,150 @@ fn write_messages(sink: &mut FileSink, run: &Run, dir: &Path) -> anyhow::Result<
             data: serde_json::to_vec_pretty(s)?.into(),
         })?;
     }
-    let mut incidents = Incidents::open(&dir.join("incidents.csv"));
-    // An incident's message is at its first tick's state, else at its start after `t0`.
-    let incident_time = |i: &Value| {
-        let at_s = i["start_s"].as_f64().unwrap_or_default();
-        let start = i["start_tick"].as_u64().unwrap_or_default();
-        run.states.get(start).map_or(t0 + (at_s * 1e9) as u64, |s| time(s.publish_ns, s.t_s))
-    };
-    let columns = &run.trace_columns;
-    let mut safe = false;
-    for s in run.states.iter() {
-        let s = &s;
-        let k = s.tick;
-        let ns = time(s.publish_ns, s.t_s);
-        // The incidents that start by this tick, each at its start's time.
-        while let Some(i) = incidents.starting_by(k) {
-            sink.json(topics::INCIDENTS.topic, &i, incident_time(&i))?;
-        }
-        sink.json(topics::STATE.topic, &topics::state_json(s), ns)?;
-        let t = run.torque(k);
-        let t = t.as_ref();
-        if let Some(t) = t {
-            sink.json(topics::TORQUE.topic, &topics::torque_json(t), time(t.publish_ns, s.t_s))?;
-        }
-        let r = run.references.get(k);
-        let r = r.as_ref();
-        if let Some(r) = r {
-            let at = time(r.publish_ns, r.t_s);
-            sink.json(topics::REFERENCE.topic, &topics::reference_json(r), at)?;
-            sink.encoded(topics::TF, &transform("world", "reference", &r.r_d_row_major, ns), ns)?;
-        }
-        sink.encoded(topics::TF, &transform("world", "body", &s.r_row_major, ns), ns)?;
-        sink.json(topics::LATENCY.topic, &latency(s, t, r), ns)?;
-        if let Some(row) = run.trace_row(k) {
-            let row = tracking_row(columns, &row, Some(incidents.holds(k)));
-            sink.json(topics::TRACKING.topic, &row, ns)?;
-        }
-        let now_safe = s.flags & FLAG_SAFE_MODE != 0;
-        if now_safe != safe {
-            let m = safe_mode_message(now_safe, k);
-            sink.encoded(topics::LOG, &log_message(ns, m.0, "plant", m.1), ns)?;
-            safe = now_safe;
-        }
-    }
-    // Those that start after the last state (a fault outside the loop at its end).
-    while let Some(i) = incidents.starting_by(u64::MAX) {
-        sink.json(topics::INCIDENTS.topic, &i, incident_time(&i))?;
-    }
-    for (ns, level, name, message) in events(run, t0) {
-        sink.encoded(topics::LOG, &log_message(ns, level, &name, message), ns)?;
-    }
     Ok(())
+}
+
+/// One window of ticks ([`topics::WINDOW`]): what its ticks were at their worst.
+#[derive(Debug)]
+struct Window {
+    first: Option<u64>,
+    last: u64,
+    t_s: f64,
+    ns: u64,
+    ticks: u64,
+    answered: u64,
+    /// The cumulative misses before the window, and at its newest tick.
+    misses_before: u64,
+    misses: u64,
+    safe_mode: u64,
+    in_incident: u64,
+    tracking: [f64; 2],
+    hops: [Option<u64>; 9],
+}
+
+impl Default for Window {
+    fn default() -> Self {
+        Self {
+            first: None,
+            last: 0,
+            t_s: 0.0,
+            ns: 0,
+            ticks: 0,
+            answered: 0,
+            misses_before: 0,
+            misses: 0,
+            safe_mode: 0,
+            in_incident: 0,
+            tracking: [f64::NAN; 2],
+            hops: [None; 9],
+        }
+    }
+}
+
+impl Window {
+    fn add(
+        &mut self,
+        s: &StateSample,
+        ns: u64,
+        answered: bool,
+        hops: &[Option<u64>; 9],
+        tracking: &[f64; 2],
+        in_incident: bool,
+    ) {
+        self.first.get_or_insert(s.tick);
+        (self.last, self.t_s, self.ns) = (s.tick, s.t_s, ns);
+        self.ticks += 1;
+        self.answered += u64::from(answered);
+        self.misses = self.misses.max(s.misses);
+        self.safe_mode += u64::from(s.flags & FLAG_SAFE_MODE != 0);
+        self.in_incident += u64::from(in_incident);
+        for (m, v) in self.tracking.iter_mut().zip(tracking) {
+            // `f64::max` keeps the number where one of the two is NaN.
+            *m = m.max(*v);
+        }
+        for (m, v) in self.hops.iter_mut().zip(hops) {
+            *m = (*m).max(*v);
+        }
+    }
+
+    /// Its message and log time (its newest tick's); the window after it starts empty.
+    fn take(&mut self) -> (u64, Value) {
+        let mut m = serde_json::Map::new();
+        m.insert("first_tick".into(), self.first.unwrap_or(self.last).into());
+        m.insert("last_tick".into(), self.last.into());
+        m.insert("t_s".into(), serde_json::json!(self.t_s));
+        m.insert("ticks".into(), self.ticks.into());
+        m.insert("answered".into(), self.answered.into());
+        m.insert("misses".into(), self.misses.saturating_sub(self.misses_before).into());
+        m.insert("safe_mode_ticks".into(), self.safe_mode.into());
+        m.insert("in_incident_ticks".into(), self.in_incident.into());
+        for (c, v) in topics::WINDOW_TRACKING.iter().zip(&self.tracking) {
+            m.insert(format!("{c}_max"), serde_json::json!(v.is_finite().then_some(*v)));
+        }
+        for (h, v) in topics::LATENCY_HOPS.iter().zip(&self.hops) {
+            m.insert(format!("{h}_max"), serde_json::json!(v));
+        }
+        let at = self.ns;
+        *self = Self { misses_before: self.misses, misses: self.misses, ..Self::default() };
+        (at, Value::Object(m))
+    }
+}
+
+/// The ticks an overview keeps at full rate: the incidents' windows with a lead-in and a
+/// tail, within a budget of ticks for the run ([`Plan`]), read ahead of the ticks written.
+struct FullRate {
+    ahead: Incidents,
+    before: u64,
+    after: u64,
+    left: u64,
+    /// The windows begun and not yet passed, and the newest tick any of them covers.
+    open: Vec<[u64; 2]>,
+    covered_to: Option<u64>,
+    /// The incidents seen, and those with ticks kept.
+    incidents: u64,
+    windows: u64,
+}
+
+impl FullRate {
+    fn new(incidents_csv: &Path, plan: Plan) -> Self {
+        Self {
+            ahead: Incidents::open(incidents_csv),
+            before: plan.before,
+            after: plan.after,
+            left: plan.full_rate_ticks,
+            open: Vec::new(),
+            covered_to: None,
+            incidents: 0,
+            windows: 0,
+        }
+    }
+
+    /// Whether tick `k` (asked for in increasing order) is kept at full rate.
+    fn holds(&mut self, k: u64) -> bool {
+        while let Some(i) = self.ahead.starting_by(k.saturating_add(self.before)) {
+            // The reader's own windows are not used here: what it holds stays small.
+            self.ahead.open.clear();
+            self.incidents += 1;
+            let start = i["start_tick"].as_u64().unwrap_or_default();
+            let end = i["end_tick"].as_u64().unwrap_or(start).saturating_add(self.after);
+            let from = start.saturating_sub(self.before).max(self.covered_to.map_or(0, |c| c + 1));
+            if from > end {
+                // Within the window before it.
+                self.windows += 1;
+                continue;
+            }
+            if self.left == 0 {
+                continue;
+            }
+            let to = end.min(from + self.left - 1);
+            self.left -= to - from + 1;
+            self.open.push([from, to]);
+            self.covered_to = Some(to);
+            self.windows += 1;
+        }
+        self.open.retain(|w| w[1] >= k);
+        self.open.iter().any(|w| w[0] <= k)
+    }
 }
 
 /// The log line of safe mode entered (`true`) or left at tick `k`: the same words and
@@ -520,13 +897,13 @@ fn split_csv(line: &str) -> Vec<String> {
 
 /// A run without flight records, from its `trace.csv` (and `summary.json`, attached):
 /// `/tf` and `/rotorloop/tracking` at the simulated time of each row.
-fn write_trace_messages(sink: &mut FileSink, dir: &Path) -> anyhow::Result<()> {
+fn write_trace_messages(sink: &mut FileSink, dir: &Path, plan: Plan) -> anyhow::Result<Kept> {
     let mut rows = open_trace(dir)?;
     let columns = rows.columns();
     let col = |n: &str| {
         columns.iter().position(|c| c == n).with_context(|| format!("trace.csv has no {n} column"))
     };
-    let (t, r11, rd11) = (col("t")?, col("R11")?, col("Rd11")?);
+    let (t, r11, rd11, tick) = (col("t")?, col("R11")?, col("Rd11")?, col("tick")?);
     let nine = |row: &[f64], at: usize| -> [f64; 9] {
         let mut m = [0.0; 9];
         m.copy_from_slice(&row[at..at + 9]);
@@ -534,6 +911,8 @@ fn write_trace_messages(sink: &mut FileSink, dir: &Path) -> anyhow::Result<()> {
     };
     let mut meta = BTreeMap::from([("clock".to_owned(), "simulated time (ns)".to_owned())]);
     meta.insert("rotorloop_version".into(), env!("CARGO_PKG_VERSION").into());
+    meta.insert("detail".into(), plan.name().into());
+    meta.insert("window_ticks".into(), plan.window.to_string());
     let summary = std::fs::read(dir.join("summary.json")).ok();
     if let Some(v) = summary.as_deref().and_then(|b| serde_json::from_slice::<Value>(b).ok()) {
         for key in ["name", "ticks", "dt", "actuation"] {
@@ -551,18 +930,23 @@ fn write_trace_messages(sink: &mut FileSink, dir: &Path) -> anyhow::Result<()> {
             mcap::Attachment { log_time: 0, create_time: 0, name, media_type, data: data.into() };
         sink.writer.attach(&a)?;
     }
+    let mut kept = Kept::default();
     while let Some((_, line)) = rows.next_row() {
         let row = parse_row(&line);
         if row.len() != columns.len() {
             continue;
         }
+        if plan.overview && (row[tick].max(0.0) as u64) % plan.window != 0 {
+            continue;
+        }
+        kept.ticks += 1;
         let ns = (row[t] * 1e9).round() as u64;
         sink.encoded(topics::TF, &transform("world", "body", &nine(&row[..], r11), ns), ns)?;
         sink.encoded(topics::TF, &transform("world", "reference", &nine(&row[..], rd11), ns), ns)?;
         // A run in process has no incidents (nothing of it is late).
         sink.json(topics::TRACKING.topic, &tracking_row(&columns, &row, None), ns)?;
     }
-    Ok(())
+    Ok(kept)
 }
 
 /// A `trace.csv` row as its [`topics::TRACKING`] message: the tick, the
@@ -615,7 +999,7 @@ fn events(run: &Run, t0: u64) -> Vec<(u64, foxglove::messages::log::Level, Strin
 }
 
 /// The metadata record: the run, its clock, and where to find its wall time.
-fn metadata(run: &Run, first: Option<&StateSample>) -> BTreeMap<String, String> {
+fn metadata(run: &Run, first: Option<&StateSample>, plan: Plan) -> BTreeMap<String, String> {
     let mut m = BTreeMap::new();
     let realtime = first.is_some_and(|s| s.publish_ns != 0);
     m.insert(
@@ -635,6 +1019,8 @@ fn metadata(run: &Run, first: Option<&StateSample>) -> BTreeMap<String, String> 
         m.insert("first_state_publish_ns".into(), s.publish_ns.to_string());
     }
     m.insert("rotorloop_version".into(), env!("CARGO_PKG_VERSION").into());
+    m.insert("detail".into(), plan.name().into());
+    m.insert("window_ticks".into(), plan.window.to_string());
     m
 }
 

@@ -18,6 +18,12 @@ pub struct ExportArgs {
     /// Write `DIR/run.mcap` (Foxglove, Lichtblick: docs/foxglove.md).
     #[arg(long)]
     pub mcap: bool,
+    /// How much of the run `run.mcap` holds: `full` every tick's messages (about 1 MB a
+    /// second of run at 1 kHz), `overview` one tick a tenth of a second, the extremes of
+    /// every tenth of a second (`/rotorloop/window`) and the incidents' ticks at full rate
+    /// (docs/foxglove.md); `auto` an overview for a run of an hour or more.
+    #[arg(long, value_enum, default_value_t = mcap::Detail::Auto, requires = "mcap")]
+    pub detail: mcap::Detail,
     /// Write `DIR/trace.csv` and `DIR/timing.csv` from the flight records (a run made
     /// with `run --no-csv`): the rows its report would have written, byte for byte.
     #[arg(long)]
@@ -38,9 +44,9 @@ pub fn run(a: &ExportArgs) -> anyhow::Result<()> {
     if !a.mcap {
         return Ok(());
     }
-    let counts = mcap::write(&a.dir)?;
+    let counts = mcap::write_with(&a.dir, a.detail)?;
     let n: u64 = counts.messages.values().sum();
-    println!("{}: {n} messages", counts.path);
+    println!("{}: {n} messages, {}", counts.path, counts.said());
     for (topic, c) in &counts.messages {
         println!("  {topic:24} {c}");
     }
@@ -94,7 +100,8 @@ fn csv(dir: &std::path::Path) -> anyhow::Result<()> {
 pub fn mcap_after_run(out: &std::path::Path, quiet: bool) {
     match mcap::write(out) {
         Ok(c) if !quiet => {
-            println!("mcap: {} ({} messages)", c.path, c.messages.values().sum::<u64>());
+            let n = c.messages.values().sum::<u64>();
+            println!("mcap: {} ({n} messages, {})", c.path, c.said());
         }
         Ok(_) => {}
         Err(e) => eprintln!("warning: no run.mcap: {e:#}"),

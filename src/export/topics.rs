@@ -58,8 +58,30 @@ pub const INCIDENTS: JsonTopic = JsonTopic {
     schema_name: "rotorloop.Incident",
     schema: incident,
 };
+/// One message per window of ticks (a tenth of a second of the loop's time): the
+/// extremes of its ticks, in `run.mcap` only (the live view has every tick).
+pub const WINDOW: JsonTopic =
+    JsonTopic { topic: "/rotorloop/window", schema_name: "rotorloop.Window", schema: window };
 /// Every JSON topic.
-pub const JSON_TOPICS: [JsonTopic; 6] = [STATE, TORQUE, REFERENCE, TRACKING, LATENCY, INCIDENTS];
+pub const JSON_TOPICS: [JsonTopic; 7] =
+    [STATE, TORQUE, REFERENCE, TRACKING, LATENCY, INCIDENTS, WINDOW];
+
+/// The per-tick hops and stages of [`LATENCY`] (ns, `null` where a stamp is missing), in
+/// its order; [`WINDOW`] has each one's largest as `NAME_max`.
+pub const LATENCY_HOPS: [&str; 9] = [
+    "state_transport_ns",
+    "controller_compute_ns",
+    "validate_ns",
+    "pair_ns",
+    "law_ns",
+    "publish_prep_ns",
+    "tick_lateness_ns",
+    "state_prep_ns",
+    "reference_lead_ns",
+];
+
+/// The tracking columns whose largest [`WINDOW`] has, as `NAME_max`.
+pub const WINDOW_TRACKING: [&str; 2] = ["err_deg", "werr"];
 
 /// The log (`foxglove.Log`, protobuf).
 pub const LOG: &str = "/rotorloop/log";
@@ -151,17 +173,7 @@ fn latency() -> Value {
     let mut p = serde_json::Map::new();
     p.insert("tick".into(), json!({"type": "integer", "minimum": 0}));
     p.insert("t_s".into(), number());
-    for h in [
-        "state_transport_ns",
-        "controller_compute_ns",
-        "validate_ns",
-        "pair_ns",
-        "law_ns",
-        "publish_prep_ns",
-        "tick_lateness_ns",
-        "state_prep_ns",
-        "reference_lead_ns",
-    ] {
+    for h in LATENCY_HOPS {
         p.insert(h.into(), hop());
     }
     for n in ["state_send_ns", "misses", "torque_in_force_recv_ns"] {
@@ -169,6 +181,29 @@ fn latency() -> Value {
     }
     p.insert("safe_mode".into(), json!({"type": "boolean"}));
     p.insert("torque_in_force_tick".into(), integer_or_null("null: no torque in force"));
+    object(p)
+}
+
+fn window() -> Value {
+    let count = |d: &str| json!({"type": "integer", "minimum": 0, "description": d});
+    let mut p = serde_json::Map::new();
+    p.insert("first_tick".into(), count("the window's first tick"));
+    p.insert("last_tick".into(), count("its last tick"));
+    p.insert("t_s".into(), number());
+    p.insert("ticks".into(), count("the ticks of it with a state recorded"));
+    p.insert("answered".into(), count("those the controller answered"));
+    p.insert("misses".into(), count("ticks without a fresh torque in time, in the window"));
+    p.insert("safe_mode_ticks".into(), count("ticks in safe mode"));
+    p.insert("in_incident_ticks".into(), count("ticks in an incident's window"));
+    for c in WINDOW_TRACKING {
+        let mut n = number();
+        n["description"] = Value::String(format!("the largest {c} (trace.csv's column)"));
+        p.insert(format!("{c}_max"), n);
+    }
+    for h in LATENCY_HOPS {
+        let d = format!("the largest {h} of the window; null: none had both stamps");
+        p.insert(format!("{h}_max"), integer_or_null(&d));
+    }
     object(p)
 }
 

@@ -8,8 +8,9 @@
 //! staged on tmpfs, a slot of each stream a tick, [`flight::bytes_per_tick`]; the packed
 //! segments at [`PACKED_PERCENT`] of that), the report's files by what they measured on
 //! runs of this build (docs/measurements.md, "A run's disk and memory"), rounded up:
-//! `trace.csv` 800 B, `run.mcap` 1000 B, `timing.csv` 60 B a tick, `sched.csv` 100 kB a
-//! second of wall time (30 kB compressed, `--no-csv`).
+//! `trace.csv` 800 B, `run.mcap` 1000 B (its overview, for a run of an hour of ticks or
+//! more, 25 B), `timing.csv` 60 B a tick, `sched.csv` 100 kB a second of wall time (30 kB
+//! compressed, `--no-csv`).
 
 use std::path::Path;
 
@@ -17,12 +18,17 @@ use rotorloop_common::flight::{self, DEFAULT_RING_TICKS};
 use rotorloop_common::role::UsageError;
 use rotorloop_common::scenario::Scenario;
 
+use crate::export::mcap::LONG_RUN_TICKS;
 use crate::run::args::RunArgs;
 
 /// `trace.csv`'s bytes per tick (measured: 783 on `paper-sinusoid`, rounded up).
 const TRACE_PER_TICK: u64 = 800;
 /// `run.mcap`'s bytes per tick (measured: 983).
 const MCAP_PER_TICK: u64 = 1000;
+/// An overview `run.mcap`'s bytes per tick (from [`LONG_RUN_TICKS`] on): measured 11.0 on
+/// a 6 000 s lockstep run without incidents, and the incidents' ticks at full rate, at
+/// most a hundredth of the run's, add at most 10.
+const MCAP_OVERVIEW_PER_TICK: u64 = 25;
 /// `timing.csv`'s bytes per tick (measured: 51).
 const TIMING_PER_TICK: u64 = 60;
 /// A packed segment's bytes, in percent of its raw slots (measured: 24 on the one-hour
@@ -68,7 +74,11 @@ pub fn estimate(args: &RunArgs, scenario: &Scenario) -> Estimate {
         true => 0,
         false => ticks * (TRACE_PER_TICK + TIMING_PER_TICK),
     };
-    let mcap = if args.no_mcap || args.no_monitor { 0 } else { ticks * MCAP_PER_TICK };
+    let mcap = match (args.no_mcap || args.no_monitor, ticks >= LONG_RUN_TICKS) {
+        (true, _) => 0,
+        (false, true) => ticks * MCAP_OVERVIEW_PER_TICK,
+        (false, false) => ticks * MCAP_PER_TICK,
+    };
     let seconds = (ticks as f64 * scenario.dt()).ceil() as u64;
     let sched = match (args.no_sched_sample, args.no_csv) {
         (true, _) => 0,
@@ -101,13 +111,17 @@ pub fn check(args: &RunArgs, scenario: &Scenario) -> anyhow::Result<()> {
             size(e.flight),
             size(e.staging)
         );
-        // A long run with the short run's files: say what the long run's output takes.
-        let long = RunArgs { no_csv: !args.no_record, no_mcap: true, ..args.clone() };
+        // A long run with the short run's files: say what the long run's output takes
+        // (from an hour of ticks on, `run.mcap` is an overview, and kept).
+        let overview = scenario.ticks() >= LONG_RUN_TICKS;
+        let no_mcap = args.no_mcap || !overview;
+        let long = RunArgs { no_csv: !args.no_record, no_mcap, ..args.clone() };
         let lean = estimate(&long, scenario);
         if seconds >= LONG_RUN_S && lean.out < e.out / 2 {
+            let flags = if no_mcap { "--no-csv --no-mcap" } else { "--no-csv" };
             eprintln!(
-                "run: with --no-csv --no-mcap it would write about {} (trace.csv, timing.csv \
-                 and run.mcap derived from the records when wanted: docs/running.md)",
+                "run: with {flags} it would write about {} (trace.csv, timing.csv and a full \
+                 run.mcap derived from the records when wanted: docs/running.md)",
                 size(lean.out)
             );
         }
