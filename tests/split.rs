@@ -9,8 +9,12 @@ use crate::common::harness::{Harness, assert_same_trace, json, ok, sim_trace};
 const LIMIT: Duration = Duration::from_secs(180);
 const SPLIT: &str = "plant,reference,monitor@a controller@b";
 
+/// Runs a split run to its successful end; gives what the launcher and the gateways said
+/// (stdout, then stderr), for a failure's message.
 fn run_split(h: &Harness, out: &std::path::Path, extra: &[&str]) -> String {
-    ok(&run_split_output(h, out, extra))
+    let o = run_split_output(h, out, extra);
+    ok(&o);
+    format!("{}{}", String::from_utf8_lossy(&o.stdout), String::from_utf8_lossy(&o.stderr))
 }
 
 fn run_split_output(h: &Harness, out: &std::path::Path, extra: &[&str]) -> Output {
@@ -21,10 +25,12 @@ fn run_split_output(h: &Harness, out: &std::path::Path, extra: &[&str]) -> Outpu
 }
 
 /// The report's fault of `role`, after which control resumed.
-fn recovered_fault<'a>(s: &'a serde_json::Value, role: &str) -> &'a serde_json::Value {
+/// The report's fault of `role`, after which control resumed (`said`: the run's output).
+fn recovered_fault<'a>(s: &'a serde_json::Value, role: &str, said: &str) -> &'a serde_json::Value {
     let f = s["faults"].as_array().expect("faults").iter().find(|f| f["role"] == role);
     let f = f.unwrap_or_else(|| panic!("the {role} kill is not in the report: {}", s["faults"]));
-    assert!(f["ticks_to_first_fresh_torque"].as_u64().is_some(), "control never resumed: {f}");
+    let resumed = f["ticks_to_first_fresh_torque"].as_u64().is_some();
+    assert!(resumed, "control never resumed: {f}; the run said:\n{said}");
     f
 }
 
@@ -62,13 +68,14 @@ fn a_lockstep_split_over_two_hosts_equals_sim_byte_for_byte() {
 fn a_realtime_split_completes_with_its_histograms() {
     let h = Harness::new("split-rt");
     let out = h.path("run");
-    run_split(&h, &out, &["--duration", "2", "--mode", "realtime"]);
+    let said = run_split(&h, &out, &["--duration", "2", "--mode", "realtime"]);
     let s = json(&out.join("summary.json"));
     assert_eq!(s["completed"], true);
     assert_eq!(s["trace_rows"], 2001, "the plant kept its grid");
     let hops = &s["hops"];
     for hop in ["sense_to_actuate", "controller_compute", "tick_lateness", "reference_lead"] {
-        assert!(hops[hop]["count"].as_u64().unwrap_or(0) > 0, "{hop}: {}", hops[hop]);
+        let n = hops[hop]["count"].as_u64().unwrap_or(0);
+        assert!(n > 0, "{hop}: {}; the run said:\n{said}", hops[hop]);
     }
     for hop in ["state_transport", "torque_transport"] {
         assert_eq!(hops[hop]["count"], 0, "{hop} needs two hosts' clocks: {}", hops[hop]);
@@ -88,11 +95,11 @@ fn a_killed_gateway_holds_then_safe_mode_then_recovers() {
     // Six seconds: on a loaded machine a restarted gateway takes over a second to carry
     // the loop again (seen: control never back within the 2 s a 4 s run left).
     let extra = ["--duration", "6", "--mode", "realtime", "--hold-ticks", "40", "--fault", fault];
-    run_split(&h, &out, &extra);
+    let said = run_split(&h, &out, &extra);
     let s = json(&out.join("summary.json"));
     assert_eq!(s["completed"], true);
     assert_eq!(s["trace_rows"], 6001);
-    let f = recovered_fault(&s, "link-b");
+    let f = recovered_fault(&s, "link-b", &said);
     assert!(f["ticks_without_fresh_torque"].as_u64().expect("ticks") > 40, "{f}");
     assert!(s["safe_mode_ticks"].as_u64().expect("safe") > 0);
     assert_nothing_left(&h);
@@ -125,7 +132,7 @@ fn a_controller_killed_on_the_far_host_is_restarted_and_control_resumes() {
     let s = json(&out.join("summary.json"));
     assert_eq!(s["completed"], true);
     assert_eq!(s["trace_rows"], 6001);
-    let f = recovered_fault(&s, "controller");
+    let f = recovered_fault(&s, "controller", &err);
     assert!(f["ticks_without_fresh_torque"].as_u64().expect("ticks") > 0, "{f}");
     assert_nothing_left(&h);
 }
@@ -226,7 +233,7 @@ fn a_split_run_whose_output_nobody_reads_still_ends_and_recovers_a_far_host_rest
     let s = json(&out.join("summary.json"));
     assert_eq!(s["completed"], true);
     assert_eq!(s["trace_rows"], 6001);
-    recovered_fault(&s, "controller");
+    recovered_fault(&s, "controller", "(not kept)");
     assert_nothing_left(&h);
 }
 

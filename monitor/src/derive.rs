@@ -121,6 +121,13 @@ impl DerivedRows {
         Some(trace_row(&mut self.metrics, self.actuation, self.dt, &j))
     }
 
+    /// The next row unformatted: its `trace.csv` values and its `timing.csv` row (as
+    /// [`DerivedRows::next_row`]'s lines parse back), in tick order; `None` after the last.
+    pub fn next_pair(&mut self) -> Option<(TraceRow, TimingRow)> {
+        let j = self.next_joined()?;
+        Some((trace_row(&mut self.metrics, self.actuation, self.dt, &j), TimingRow::of(&j.state)))
+    }
+
     fn next_joined(&mut self) -> Option<JoinedRow> {
         loop {
             if let Some(j) = self.joiner.next_row(self.fed) {

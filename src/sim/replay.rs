@@ -14,17 +14,20 @@
 //! was held across the kill. Such a run replays up to it, and says at which tick it first
 //! differs; a run without a row the replay needs is refused naming the tick.
 
-use std::collections::BTreeMap;
+use std::cell::RefCell;
+use std::collections::{BTreeMap, VecDeque};
 use std::io::Write;
 use std::path::Path;
+use std::rc::Rc;
 
 use anyhow::Context;
 use glam::DVec3;
 use rotorloop_common::scenario::{Actuation, Scenario};
 use rotorloop_common::wire::FLAG_SAFE_MODE;
-use rotorloop_monitor::derive::Csv;
-use rotorloop_monitor::metrics::Metrics;
+use rotorloop_monitor::derive::{Csv, DerivedRows};
+use rotorloop_monitor::metrics::{Metrics, TraceRow};
 use rotorloop_monitor::rows::TickRows;
+use rotorloop_monitor::timing::{TimingRow, TimingRows};
 use rotorloop_monitor::trace::TraceWriter;
 use rotorloop_plant::actuator::{ActuationDelay, DelayLine, integrate_tick};
 use rotorloop_plant::{Body, BodyInput};
@@ -89,16 +92,146 @@ fn torques_of(line: &str, (u1, tau1): (usize, usize)) -> Torques {
     (DVec3::new(v(u1), v(u1 + 1), v(u1 + 2)), DVec3::new(v(tau1), v(tau1 + 1), v(tau1 + 2)))
 }
 
-/// `trace.csv` read once, in tick order: each tick's torques for the replay's row, and the
-/// torques of the last [`SOURCES_KEPT`] rows passed, where the tick whose torque took
+/// A run's rows derived from its records once for both readers, the trace's and the
+/// timing's (a run made with `--no-csv`, neither file written): each row waits in its
+/// reader's queue until taken, so what is held is the one row the timing reads ahead.
+struct Joint {
+    rows: DerivedRows,
+    trace: VecDeque<TraceRow>,
+    timing: VecDeque<TimingRow>,
+}
+
+impl Joint {
+    /// Derives the next row into both queues; false after the last.
+    fn pull(&mut self) -> bool {
+        let Some((t, m)) = self.rows.next_pair() else { return false };
+        self.trace.push_back(t);
+        self.timing.push_back(m);
+        true
+    }
+
+    fn peek_trace(&mut self) -> Option<u64> {
+        if self.trace.is_empty() && !self.pull() {
+            return None;
+        }
+        self.trace.front().map(|r| r.tick)
+    }
+
+    fn peek_timing(&mut self) -> Option<u64> {
+        if self.timing.is_empty() && !self.pull() {
+            return None;
+        }
+        self.timing.front().map(|r| r.tick)
+    }
+}
+
+type Shared = Rc<RefCell<Joint>>;
+
+/// A row of the run's trace: its line in `trace.csv`, or its values derived.
+enum RunRow {
+    Line(String),
+    Derived(Box<TraceRow>),
+}
+
+/// The run's trace rows in tick order: `trace.csv`'s (or derived and formatted, where
+/// only that file is missing), or derived with the timing's ([`Joint`]).
+enum RunTrace {
+    Lines(TickRows),
+    Derived(Shared),
+}
+
+impl RunTrace {
+    fn peek_tick(&mut self) -> Option<u64> {
+        match self {
+            Self::Lines(rows) => rows.peek_tick(),
+            Self::Derived(j) => j.borrow_mut().peek_trace(),
+        }
+    }
+
+    fn next_row(&mut self) -> Option<(u64, RunRow)> {
+        match self {
+            Self::Lines(rows) => rows.next_row().map(|(t, l)| (t, RunRow::Line(l))),
+            Self::Derived(j) => {
+                let mut j = j.borrow_mut();
+                j.peek_trace()?;
+                j.trace.pop_front().map(|r| (r.tick, RunRow::Derived(Box::new(r))))
+            }
+        }
+    }
+
+    /// Rows passed over as out of order (a file's).
+    fn skipped(&self) -> u64 {
+        match self {
+            Self::Lines(rows) => rows.skipped,
+            Self::Derived(_) => 0,
+        }
+    }
+}
+
+/// The run's timing rows in tick order: `timing.csv`'s (or derived and formatted, where
+/// only that file is missing), or derived with the trace's ([`Joint`]).
+enum RunTiming {
+    File(TimingRows),
+    Derived(Shared),
+}
+
+impl RunTiming {
+    fn is_empty(&mut self) -> bool {
+        match self {
+            Self::File(t) => t.is_empty(),
+            Self::Derived(j) => j.borrow_mut().peek_timing().is_none(),
+        }
+    }
+
+    /// Whether a row of a tick after `k` follows (rows up to `k` are passed over).
+    fn more_after(&mut self, k: u64) -> bool {
+        match self {
+            Self::File(t) => t.more_after(k),
+            Self::Derived(j) => {
+                let mut j = j.borrow_mut();
+                while j.peek_timing().is_some_and(|t| t <= k) {
+                    j.timing.pop_front();
+                }
+                j.peek_timing().is_some()
+            }
+        }
+    }
+
+    /// The row of tick `k` (ticks asked for in increasing order); a derived row is held to
+    /// what its line would have to be to parse (its effects' offsets numbers).
+    fn row(&mut self, k: u64) -> anyhow::Result<Option<TimingRow>> {
+        let j = match self {
+            Self::File(t) => return t.row(k),
+            Self::Derived(j) => j,
+        };
+        let mut j = j.borrow_mut();
+        while j.peek_timing().is_some_and(|t| t < k) {
+            j.timing.pop_front();
+        }
+        if j.peek_timing() != Some(k) {
+            return Ok(None);
+        }
+        let row = j.timing.pop_front();
+        if let Some(i) = row.iter().flat_map(|r| r.recorded()).position(|(_, o)| !o.is_finite()) {
+            anyhow::bail!(
+                "timing.csv (derived) tick {k}: effect{}_offset_s is not a number",
+                i + 1
+            );
+        }
+        Ok(row)
+    }
+}
+
+/// The run's trace read once, in tick order: each tick's torques for the replay's row, and
+/// the torques of the last [`SOURCES_KEPT`] rows passed, where the tick whose torque took
 /// effect is looked up (an effect's source is at or before the tick it takes effect in).
 /// It is also what the replayed rows are compared with, as they are written.
 struct Trace {
-    rows: TickRows,
+    rows: RunTrace,
     columns: (usize, usize),
     recent: BTreeMap<u64, Torques>,
-    /// The newest row passed: its tick and line.
-    newest: Option<(u64, String)>,
+    /// The newest row passed: its tick and row.
+    newest: Option<(u64, RunRow)>,
     /// Rows passed.
     taken: u64,
 }
@@ -111,20 +244,29 @@ impl Trace {
     /// the rows up to it are kept as sources.
     fn row(&mut self, k: u64) -> Option<Torques> {
         while self.rows.peek_tick().is_some_and(|t| t <= k) {
-            let Some((t, line)) = self.rows.next_row() else { break };
-            self.recent.insert(t, torques_of(&line, self.columns));
+            let Some((t, row)) = self.rows.next_row() else { break };
+            let torques = match &row {
+                RunRow::Line(line) => torques_of(line, self.columns),
+                RunRow::Derived(r) => (DVec3::from_array(r.u), DVec3::from_array(r.tau)),
+            };
+            self.recent.insert(t, torques);
             if self.recent.len() > SOURCES_KEPT {
                 self.recent.pop_first();
             }
-            self.newest = Some((t, line));
+            self.newest = Some((t, row));
             self.taken += 1;
         }
         self.recent.get(&k).copied()
     }
 
-    /// The run's line of tick `k`, the last asked for with [`Self::row`], if it has one.
-    fn line(&self, k: u64) -> Option<&str> {
-        self.newest.as_ref().filter(|(t, _)| *t == k).map(|(_, l)| l.as_str())
+    /// The run's row of tick `k`, the last asked for with [`Self::row`], if it has one.
+    fn newest(&self, k: u64) -> Option<&RunRow> {
+        self.newest.as_ref().filter(|(t, _)| *t == k).map(|(_, r)| r)
+    }
+
+    /// Whether its rows are lines (compared as text) rather than values.
+    fn is_text(&self) -> bool {
+        matches!(self.rows, RunTrace::Lines(_))
     }
 
     /// What the torque of tick `j` (at or before the last row asked for) put on the body.
@@ -147,10 +289,17 @@ struct Comparison {
 }
 
 impl Comparison {
-    /// Replayed row `k` (`line`, with its line end) against the run's.
-    fn row(&mut self, k: u64, line: &[u8], run: &Trace) {
-        let ours = line.strip_suffix(b"\n").unwrap_or(line);
-        if run.line(k).is_some_and(|l| l.as_bytes() != ours) && self.first.is_none() {
+    /// Replayed row `k` against the run's: as text (`line`, with its line end, written
+    /// where the run's rows are lines), or as values, every float the same bits (or both
+    /// NaN), which is the same as their lines being the same (each float is written in its
+    /// shortest round-trip form, and every NaN as `NaN`).
+    fn row(&mut self, k: u64, row: &TraceRow, line: &[u8], run: &Trace) {
+        let same = match run.newest(k) {
+            None => true,
+            Some(RunRow::Line(l)) => l.as_bytes() == line.strip_suffix(b"\n").unwrap_or(line),
+            Some(RunRow::Derived(r)) => same_values(r, row),
+        };
+        if !same && self.first.is_none() {
             self.first = Some(k);
         }
     }
@@ -162,8 +311,33 @@ impl Comparison {
             run.taken += 1;
             self.first.get_or_insert(t);
         }
-        run.taken + run.rows.skipped
+        run.taken + run.rows.skipped()
     }
+}
+
+/// Whether two trace rows would be written as the same line.
+fn same_values(a: &TraceRow, b: &TraceRow) -> bool {
+    let (a, b) = (rotorloop_monitor::trace::values(a), rotorloop_monitor::trace::values(b));
+    a.iter().zip(&b).all(|(x, y)| x.to_bits() == y.to_bits() || (x.is_nan() && y.is_nan()))
+}
+
+/// The run's trace and timing rows and the trace's header: its files, each derived from
+/// the records where it is missing, and both derived once together where neither is
+/// there (a run made with `--no-csv`).
+fn run_rows(dir: &Path) -> anyhow::Result<(RunTrace, RunTiming, String)> {
+    let missing = |c: Csv| !dir.join(c.name()).exists();
+    if missing(Csv::Trace) && missing(Csv::Timing) {
+        let rows = DerivedRows::of_run(dir).context("trace.csv and timing.csv")?;
+        let joint =
+            Rc::new(RefCell::new(Joint { rows, trace: VecDeque::new(), timing: VecDeque::new() }));
+        let header = rotorloop_monitor::trace::HEADER.to_owned();
+        return Ok((RunTrace::Derived(joint.clone()), RunTiming::Derived(joint), header));
+    }
+    let timing = rotorloop_monitor::derive::timing_rows(dir)?;
+    let rows = rotorloop_monitor::derive::run_rows(dir, Csv::Trace)
+        .map_err(|e| anyhow::anyhow!("trace.csv: {e:#}"))?;
+    let header = rows.header().to_owned();
+    Ok((RunTrace::Lines(rows), RunTiming::File(timing), header))
 }
 
 /// Replays the real-time run in `dir` into `out` (module docs): its `trace.csv` where
@@ -176,12 +350,10 @@ pub fn run(dir: &Path, out: &Path, write_trace: bool) -> anyhow::Result<ReplaySu
     .map_err(|e| bad(dir, &format!("summary.json: {e}")))?;
     let scenario = Scenario::of_summary(&summary).map_err(|e| bad(dir, &e))?;
     let timing_err = |e: anyhow::Error| -> anyhow::Error { bad(dir, &format!("{e:#}")).into() };
-    let mut timing = rotorloop_monitor::derive::timing_rows(dir).map_err(timing_err)?;
-    let rows = rotorloop_monitor::derive::run_rows(dir, Csv::Trace)
-        .map_err(|e| bad(dir, &format!("trace.csv: {e:#}")))?;
-    let columns = torque_columns(dir, rows.header())?;
+    let (rows, mut timing, header) = run_rows(dir).map_err(timing_err)?;
+    let columns = torque_columns(dir, &header)?;
     let mut compared =
-        Comparison { first: (rows.header() != rotorloop_monitor::trace::HEADER).then_some(0) };
+        Comparison { first: (header != rotorloop_monitor::trace::HEADER).then_some(0) };
     let mut run_trace = Trace { rows, columns, recent: BTreeMap::new(), newest: None, taken: 0 };
     let (actuation, dt, ticks) = (scenario.actuation(), scenario.dt(), scenario.ticks());
     let params = scenario.plant_params(actuation);
@@ -242,8 +414,11 @@ pub fn run(dir: &Path, out: &Path, write_trace: bool) -> anyhow::Result<ReplaySu
         }
         reference.step(t, dt);
         written.clear();
-        TraceWriter::append(&mut written).write(&row)?;
-        compared.row(k, &written, &run_trace);
+        // Formatting is most of a replay's time: only for a file, or a run's lines.
+        if write_trace || run_trace.is_text() {
+            TraceWriter::append(&mut written).write(&row)?;
+        }
+        compared.row(k, &row, &written, &run_trace);
         file.write_all(&written)?;
         result.rows += 1;
         if last {
@@ -259,4 +434,52 @@ pub fn run(dir: &Path, out: &Path, write_trace: bool) -> anyhow::Result<ReplaySu
     std::fs::write(out.join("replay.json"), text + "\n")
         .with_context(|| format!("cannot write {}", out.display()))?;
     Ok(result)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A run's trace whose newest row is `row` (derived) at tick `k`.
+    fn run_at(k: u64, row: TraceRow) -> Trace {
+        let header = rotorloop_monitor::trace::HEADER.to_owned();
+        let lines = TickRows::of_lines(Box::new(std::iter::empty()), header, "test").expect("rows");
+        Trace {
+            rows: RunTrace::Lines(lines),
+            columns: (0, 0),
+            recent: BTreeMap::new(),
+            newest: Some((k, RunRow::Derived(Box::new(row)))),
+            taken: 0,
+        }
+    }
+
+    /// Compared as values, a replayed row is the run's where it would be written as the same
+    /// line: the same bits, or NaN against any NaN; a float one ulp apart, or 0 against −0,
+    /// is the first difference.
+    #[test]
+    fn derived_rows_compare_as_their_lines_would() {
+        let row =
+            TraceRow { tick: 7, t: 0.007, err_deg: 1.5, delay_s: f64::NAN, ..TraceRow::default() };
+        let text = |r: &TraceRow| {
+            let mut l = Vec::new();
+            TraceWriter::append(&mut l).write(r).expect("vec");
+            l
+        };
+        let mut other_nan = row;
+        other_nan.delay_s = -f64::NAN;
+        let mut ulp = row;
+        ulp.err_deg = f64::from_bits(row.err_deg.to_bits() + 1);
+        let mut zero = row;
+        zero.werr = -0.0;
+        for (replayed, same) in [(row, true), (other_nan, true), (ulp, false), (zero, false)] {
+            assert_eq!(text(&replayed) == text(&row), same, "the lines");
+            let mut c = Comparison { first: None };
+            c.row(7, &replayed, &[], &run_at(7, row));
+            assert_eq!(c.first.is_none(), same, "{replayed:?}");
+            // A tick the run has no row of is not compared.
+            let mut c = Comparison { first: None };
+            c.row(8, &replayed, &[], &run_at(7, row));
+            assert_eq!(c.first, None);
+        }
+    }
 }
