@@ -343,8 +343,9 @@ where
 /// Every sample that crosses the link wakes its receiver. A ping-pong between a plant on
 /// host `a` and a controller on host `b`, each blocked on its listener (`Wait::Event`):
 /// no receiver may find its sample only after a whole 10 ms bound passed without a
-/// notification (`Inbox::unnotified`). Without the gateway's re-wake, a notification
-/// that overtook its sample on the link left 3-8 % of round trips waiting out the bound.
+/// notification (`Inbox::unnotified`), but for one in 200 (a gateway not scheduled for
+/// 10 ms on a loaded machine). Without the gateway's re-wake, a notification that
+/// overtook its sample on the link left 3-8 % of round trips waiting out the bound.
 #[test]
 fn every_sample_that_crosses_the_link_wakes_its_receiver() {
     let Pair { _dir, domain, a, b, gateways: (_a, _b) } = connected_pair("wake");
@@ -372,10 +373,14 @@ fn every_sample_that_crosses_the_link_wakes_its_receiver() {
         std::thread::sleep(Duration::from_micros(500));
     }
     let lost = (state_in.unnotified() - before.0, torque_in.unnotified() - before.1);
-    assert_eq!(
-        lost,
-        (0, 0),
-        "(states, torques) of {TRIPS} round trips found only after a 10 ms wait with no wake-up"
+    // A gateway that is not scheduled for 10 ms between a sample's landing and its wake-up
+    // (a loaded machine: seen once in 1000, 1 state, with a lockstep day and the test
+    // suite on 2 vCPUs) looks the same from here; the defect this guards against left
+    // 30 to 80 of 1000.
+    assert!(
+        lost.0 + lost.1 <= TRIPS / 200,
+        "(states, torques) {lost:?} of {TRIPS} round trips found only after a 10 ms wait with \
+         no wake-up"
     );
     drop((state_out, torque_in, state_in, torque_out, na, nb, _a, _b));
     cleanup(&domain);
