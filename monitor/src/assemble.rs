@@ -24,6 +24,14 @@ use crate::policy::RowJoiner;
 use crate::recording::{Recording, fallback_dir};
 use crate::report::{FlightSummary, RunSummary, StreamSummary, summary};
 
+/// Readers of a run's four records ([`FlightRecords::shared`]).
+pub type SharedRecords = (
+    FlightLog<StateSample>,
+    Option<FlightLog<TorqueSample>>,
+    FlightLog<TorqueSample>,
+    FlightLog<ReferenceSample>,
+);
+
 /// The four records of a run.
 #[derive(Debug)]
 pub struct FlightRecords {
@@ -70,6 +78,18 @@ impl FlightRecords {
             references: FlightLog::read(dir, Stream::Reference, limit)?,
             limit,
         })
+    }
+
+    /// Readers of the same four records sharing these readers' kept blocks
+    /// ([`FlightLog::shared`]): the plant's states, the controller's torques (if
+    /// recorded), the plant's record of the torques it received, the references.
+    pub fn shared(&self) -> SharedRecords {
+        (
+            self.states.shared(),
+            self.torques.as_ref().map(FlightLog::shared),
+            self.received.shared(),
+            self.references.shared(),
+        )
     }
 
     /// The newest state recorded.

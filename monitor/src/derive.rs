@@ -98,6 +98,11 @@ impl DerivedRows {
         Self::open(&records, &scenario).context("its flight records cannot be read")
     }
 
+    /// The records it reads: [`FlightRecords::shared`] gives readers that share its blocks.
+    pub fn records(&self) -> &FlightRecords {
+        &self.records
+    }
+
     /// The next row: its `trace.csv` line and its `timing.csv` line (without their line
     /// ends), in tick order; `None` after the last.
     pub fn next_row(&mut self) -> Option<(String, String)> {

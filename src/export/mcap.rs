@@ -160,12 +160,22 @@ impl Run {
         let ticks = summary.as_ref().and_then(|s| s["ticks"].as_u64()).unwrap_or(u64::MAX);
         let limit = ticks.saturating_add(SPARE_SLOTS);
         let states = FlightLog::read(&flight, Stream::PlantState, limit).with_context(missing)?;
-        let received =
-            FlightLog::read(&flight, Stream::PlantTorque, limit).with_context(missing)?;
-        let torques = FlightLog::read(&flight, Stream::ControllerTorque, limit).ok();
-        let references =
-            FlightLog::read(&flight, Stream::Reference, limit).with_context(missing)?;
         let (trace, trace_columns) = TraceSource::open(dir)?;
+        // Rows derived from the records read them as the export goes: its readers share
+        // their blocks, so each is unpacked once (it was most of an overview's time).
+        let shared = match &trace {
+            TraceSource::Derived(d) => Some(d.0.records().shared()),
+            TraceSource::File(_) => None,
+        };
+        let (states, torques, received, references) = match shared {
+            Some(records) => records,
+            None => (
+                states,
+                FlightLog::read(&flight, Stream::ControllerTorque, limit).ok(),
+                FlightLog::read(&flight, Stream::PlantTorque, limit).with_context(missing)?,
+                FlightLog::read(&flight, Stream::Reference, limit).with_context(missing)?,
+            ),
+        };
         let trace = trace.into();
         Ok(Self { states, torques, received, references, trace, trace_columns, summary })
     }

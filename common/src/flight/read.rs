@@ -22,6 +22,7 @@
 use std::cell::RefCell;
 use std::os::unix::fs::FileExt;
 use std::path::{Path, PathBuf};
+use std::rc::Rc;
 
 use super::pack::{CHUNK_SLOTS, chunk_table, unpack, unpack_ticks};
 use super::{
@@ -42,7 +43,7 @@ const MAX_PROBLEMS: usize = 16;
 
 /// One file of a stream: the ring (slot `k mod capacity`) or a segment (half `j`: ticks
 /// `j·H … (j+1)·H − 1`, slot `k − j·H`).
-#[derive(Debug)]
+#[derive(Debug, Clone)]
 struct Source {
     path: PathBuf,
     capacity: u64,
@@ -109,7 +110,8 @@ pub struct FlightLog<T: Record> {
     pub problems: Vec<String>,
     /// Problems beyond those.
     pub more_problems: u64,
-    cache: RefCell<Cache>,
+    /// The blocks kept: shared with the readers made by [`FlightLog::shared`].
+    cache: Rc<RefCell<Cache>>,
 }
 
 /// A stream's records counted over ticks `0..=last`.
@@ -189,6 +191,26 @@ fn check_header<T>(path: &Path) -> Result<([u64; 8], Source), FlightError> {
 }
 
 impl<T: Record> FlightLog<T> {
+    /// A second reader of the same record that shares this one's kept blocks: two readers
+    /// of one stream going through it together (a derivation of the rows, and an export
+    /// beside it) unpack each block once, within one reader's memory.
+    pub fn shared(&self) -> Self {
+        Self {
+            ring: self.ring.clone(),
+            segments: self.segments.clone(),
+            half: self.half,
+            memory: self.memory.clone(),
+            limit: self.limit,
+            last: self.last,
+            ring_first: self.ring_first,
+            opens: self.opens,
+            beyond: self.beyond,
+            problems: self.problems.clone(),
+            more_problems: self.more_problems,
+            cache: Rc::clone(&self.cache),
+        }
+    }
+
     /// Opens `stream`'s record in `dir` (the ring and the segments the launcher moved
     /// there during the run) for a run whose ticks end at `limit` (the scenario's last
     /// tick and the spare slots: a later tick is not the run's). The ring must be sound;
@@ -235,7 +257,7 @@ impl<T: Record> FlightLog<T> {
             beyond: 0,
             problems: Vec::new(),
             more_problems: 0,
-            cache: RefCell::default(),
+            cache: Rc::default(),
         }
     }
 
