@@ -1038,6 +1038,25 @@ fn metadata(run: &Run, first: Option<&StateSample>, plan: Plan) -> BTreeMap<Stri
 mod tests {
     use super::*;
 
+    /// The ticks an overview keeps at full rate: each incident's window from `before`
+    /// ticks ahead of it to `after` past its end, overlapping windows once, the first
+    /// incidents' first, until the budget is spent (the last window cut short, the
+    /// incidents after it not kept, but counted).
+    #[test]
+    fn full_rate_windows_follow_the_incidents_within_their_budget() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let csv = dir.path().join("incidents.csv");
+        let rows = ["start_tick,end_tick", "100,110", "115,130", "500,520", "900,950"];
+        std::fs::write(&csv, rows.join("\n") + "\n").expect("write");
+        let plan = Plan { overview: true, window: 10, before: 10, after: 20, full_rate_ticks: 100 };
+        let mut f = FullRate::new(&csv, plan);
+        let kept: Vec<u64> = (0..1000).filter(|k| f.holds(*k)).collect();
+        // 90–150 (61 ticks: the first two windows as one), then 490–528 (39: the budget).
+        let want: Vec<u64> = (90..=150).chain(490..=528).collect();
+        assert_eq!(kept, want);
+        assert_eq!((f.incidents, f.windows, f.left), (4, 3, 0));
+    }
+
     /// The quaternion of an attitude gives back the attitude (to rounding), for rotations
     /// near 0 and near π, where a careless conversion loses the axis.
     #[test]
