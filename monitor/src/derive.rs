@@ -106,13 +106,12 @@ impl DerivedRows {
     /// The next row: its `trace.csv` line and its `timing.csv` line (without their line
     /// ends), in tick order; `None` after the last.
     pub fn next_row(&mut self) -> Option<(String, String)> {
-        let j = self.next_joined()?;
-        let row = trace_row(&mut self.metrics, self.actuation, self.dt, &j);
+        let (row, timing) = self.next_pair()?;
         self.line.clear();
         let _ = TraceWriter::append(&mut self.line).write(&row);
         let trace = String::from_utf8_lossy(&self.line).trim_end().to_owned();
         self.line.clear();
-        let _ = TimingRow::of(&j.state).write(&mut self.line);
+        let _ = timing.write(&mut self.line);
         let timing = String::from_utf8_lossy(&self.line).trim_end().to_owned();
         Some((trace, timing))
     }
@@ -122,8 +121,7 @@ impl DerivedRows {
     /// tick order; `None` after the last. For a reader of every row that keeps few of
     /// them as text (`export --mcap`).
     pub fn next_trace(&mut self) -> Option<TraceRow> {
-        let j = self.next_joined()?;
-        Some(trace_row(&mut self.metrics, self.actuation, self.dt, &j))
+        self.next_pair().map(|(row, _)| row)
     }
 
     /// The next row unformatted: its `trace.csv` values and its `timing.csv` row (as

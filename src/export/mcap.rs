@@ -763,9 +763,7 @@ impl FullRate {
 
     /// Whether tick `k` (asked for in increasing order) is kept at full rate.
     fn holds(&mut self, k: u64) -> bool {
-        while let Some(i) = self.ahead.starting_by(k.saturating_add(self.before)) {
-            // The reader's own windows are not used here: what it holds stays small.
-            self.ahead.open.clear();
+        while let Some(i) = self.ahead.read_by(k.saturating_add(self.before)) {
             self.incidents += 1;
             let start = i["start_tick"].as_u64().unwrap_or_default();
             let end = i["end_tick"].as_u64().unwrap_or(start).saturating_add(self.after);
@@ -828,6 +826,15 @@ impl Incidents {
     /// The next incident whose first tick is at most `k`, as its [`topics::INCIDENTS`]
     /// message; its window counts for [`Incidents::holds`] from then on.
     fn starting_by(&mut self, k: u64) -> Option<Value> {
+        let i = self.read_by(k)?;
+        let start = i["start_tick"].as_u64().unwrap_or_default();
+        self.open.push([start, i["end_tick"].as_u64().unwrap_or(start)]);
+        Some(i)
+    }
+
+    /// The next incident whose first tick is at most `k`, its window not counted (a
+    /// reader ahead of the ticks, as [`FullRate`]'s).
+    fn read_by(&mut self, k: u64) -> Option<Value> {
         if self.next.is_none() {
             self.next = self.read();
         }
@@ -835,9 +842,7 @@ impl Incidents {
         if start > k {
             return None;
         }
-        let i = self.next.take()?;
-        self.open.push([start, i["end_tick"].as_u64().unwrap_or(start)]);
-        Some(i)
+        self.next.take()
     }
 
     /// Whether tick `k` (asked for in increasing order, after [`Incidents::starting_by`]
