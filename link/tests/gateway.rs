@@ -18,7 +18,7 @@ use rotorloop_common::ipc::IpcError;
 use rotorloop_common::ipc::domain::Domain;
 use rotorloop_common::ipc::ports::Inbox;
 use rotorloop_common::ipc::wait::Wait;
-use rotorloop_common::wire::{LAYOUT_VERSION, StateSample, TorqueSample};
+use rotorloop_common::wire::{LAYOUT_VERSION, ReferenceSample, StateSample, TorqueSample};
 
 const LINK: &str = env!("CARGO_BIN_EXE_rotorloop-link");
 
@@ -383,5 +383,52 @@ fn every_sample_that_crosses_the_link_wakes_its_receiver() {
          no wake-up"
     );
     drop((state_out, torque_in, state_in, torque_out, na, nb, _a, _b));
+    cleanup(&domain);
+}
+
+/// A gateway's resident memory, from `/proc` (KiB).
+fn rss_kib(g: &Gateway) -> u64 {
+    let status = std::fs::read_to_string(format!("/proc/{}/status", g.0.id())).expect("status");
+    let line = status.lines().find(|l| l.starts_with("VmRSS:")).expect("VmRSS");
+    line.split_whitespace().nth(1).and_then(|v| v.parse().ok()).expect("a number")
+}
+
+/// A gateway that bridges the loop's three topics holds little memory. With iceoryx2-link
+/// 0.10 as published, the link's publisher of each bridged service prepared all 255
+/// segments it could ever grow to: 67 MB of reference counters per service at a
+/// 4096-sample subscriber buffer, so 260 MiB per gateway, touched while it discovered
+/// (on a loaded machine up to half a second in which nothing crossed, and the plant went
+/// into safe mode at the start of split runs). The vendored link allocates the publishers
+/// of fixed-size samples statically (`vendor/iceoryx2-link/PATCH.md`): 26 MiB.
+#[test]
+fn a_gateway_that_bridges_the_loop_holds_little_memory() {
+    let Pair { _dir, domain, a, b, gateways: (ga, gb) } = connected_pair("rss");
+    let (na, nb) = (a.node("plant").expect("node a"), b.node("controller").expect("node b"));
+    let state_out = a.outbox::<StateSample>(&na, Topic::State).expect("state publisher");
+    let refs_out = a.outbox::<ReferenceSample>(&na, Topic::Reference).expect("reference");
+    let torque_in = a.inbox::<TorqueSample>(&na, Topic::Torque, 8, true).expect("torque inbox");
+    let state_in = b.inbox::<StateSample>(&nb, Topic::State, 8, true).expect("state inbox");
+    let refs_in = b.inbox::<ReferenceSample>(&nb, Topic::Reference, 128, true).expect("refs");
+    let torque_out = b.outbox::<TorqueSample>(&nb, Topic::Torque).expect("torque publisher");
+    let init =
+        rotorloop_common::scenario::Scenario::load("paper-zero").expect("builtin").plant_init;
+    // Until each topic has crossed: every service is bridged by both gateways.
+    let crossed = (1..=500).find(|&k| {
+        state_out.send(StateSample::of(k, 0.0, &init), |_| {}).expect("send");
+        refs_out.send(ReferenceSample::zeroed(k), |_| {}).expect("send");
+        arrives(&state_in, 20_000_000, |s| s.tick == k)
+            && arrives(&refs_in, 20_000_000, |r| r.tick == k)
+            && {
+                torque_out.send(torque(k), |_| {}).expect("send");
+                arrives(&torque_in, 20_000_000, |t| t.tick == k)
+            }
+    });
+    crossed.expect("the three topics did not cross in 500 tries");
+    const BOUND_KIB: u64 = 96 * 1024;
+    for (host, g) in [("a", &ga), ("b", &gb)] {
+        let rss = rss_kib(g);
+        assert!(rss < BOUND_KIB, "the gateway of {host} holds {rss} KiB (bound {BOUND_KIB})");
+    }
+    drop((state_out, refs_out, torque_in, state_in, refs_in, torque_out, na, nb, ga, gb));
     cleanup(&domain);
 }
