@@ -184,7 +184,7 @@ struct SimArgs {
     seed: u64,
     /// Re-run a finished real-time run DIR (its `summary.json`, `trace.csv`, `timing.csv`)
     /// in process, with each torque taking effect where and when it did there; writes the
-    /// same `trace.csv` and says whether it is identical.
+    /// same `trace.csv` and says whether it is identical (exit 1 when it is not).
     #[arg(long, conflicts_with_all = ["scenario", "open_loop", "delay_from"])]
     replay: Option<PathBuf>,
     /// With `--replay`: compare each replayed row with the run's and write only
@@ -458,6 +458,13 @@ fn sim_command(a: &SimArgs) -> anyhow::Result<()> {
         if !a.compare_only {
             crate::export::mcap_after_run(&a.out, false);
         }
+        // Like `cmp`: a script sees a replay that differs by its exit code (1), with the
+        // files written all the same.
+        anyhow::ensure!(
+            r.identical,
+            "the replay is not the run's trace; {} says where",
+            a.out.join("replay.json").display()
+        );
         return Ok(());
     }
     let name = a.scenario.as_deref().unwrap_or_default();

@@ -128,12 +128,17 @@ fn a_real_time_run_with_misses_and_a_kill_replays_byte_for_byte() {
     let k = fields[tick].clone();
     fields[err] = "12.5".to_owned();
     changed[row] = fields.join(",");
+    // A replay that differs exits 1 (as `cmp` does), naming its verdict file.
     let replay_of = |text: String, name: &str, only: &[&str]| {
         std::fs::write(out.join("trace.csv"), text).expect("tampered trace");
         let to = h.path(name);
         let mut args = vec!["sim", "--replay", o, "--out", to.to_str().expect("utf8")];
         args.extend(only);
-        ok(&h.rotorloop(&args, LIMIT))
+        let run = h.rotorloop(&args, LIMIT);
+        let (said, err) = (String::from_utf8_lossy(&run.stdout), String::from_utf8_lossy(&run.stderr));
+        assert_eq!(run.status.code(), Some(1), "{said}{err}");
+        assert!(err.contains("replay.json") && to.join("replay.json").exists(), "{err}");
+        said.into_owned()
     };
     let text = replay_of(changed.join("\n") + "\n", "replay-changed", &[]);
     assert!(text.contains(&format!("first difference at tick {k}")), "tick {k}: {text}");

@@ -834,6 +834,9 @@ fn a_damaged_summary_is_refused_by_name_or_read_around() {
             let err = String::from_utf8_lossy(&o.stderr);
             match o.status.code() {
                 Some(0) => {}
+                Some(1) if args[0] == "sim" => {
+                    assert!(err.contains("replay.json"), "{what}: {args:?}: {err}")
+                }
                 Some(2) => assert!(err.contains("summary.json"), "{what}: {args:?}: {err}"),
                 c => panic!("{what}: {args:?}: exit {c:?}: {err}"),
             }
