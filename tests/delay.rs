@@ -135,7 +135,8 @@ fn a_real_time_run_with_misses_and_a_kill_replays_byte_for_byte() {
         let mut args = vec!["sim", "--replay", o, "--out", to.to_str().expect("utf8")];
         args.extend(only);
         let run = h.rotorloop(&args, LIMIT);
-        let (said, err) = (String::from_utf8_lossy(&run.stdout), String::from_utf8_lossy(&run.stderr));
+        let (said, err) =
+            (String::from_utf8_lossy(&run.stdout), String::from_utf8_lossy(&run.stderr));
         assert_eq!(run.status.code(), Some(1), "{said}{err}");
         assert!(err.contains("replay.json") && to.join("replay.json").exists(), "{err}");
         said.into_owned()

@@ -132,8 +132,11 @@ fn ps_lists_the_roles_of_a_running_loop_and_creates_nothing() {
 fn watch_shows_a_running_loop_and_a_restart_as_it_happens() {
     let h = Harness::new("watch");
     // The watcher's window is wall time: long enough that a slow `ps` on a loaded machine
-    // (seen: the kill 1.8 s into a 2.5 s window) still leaves it the restart to see.
-    let (child, out) = start(&h, "9");
+    // (seen: the kill 1.8 s into a 2.5 s window) still leaves it the restart to see. The
+    // run is longer than what it must outlast (the first watch, the watcher's start, a
+    // `ps`): with 9 s, under `repeat-tests --load`, `ps` once found the domain empty.
+    let started = Instant::now();
+    let (mut child, out) = start(&h, "20");
     let first = json_of(&h, &["watch", "--domain", &h.domain, "--once", "--seconds", "1"]);
     assert!(first["rate_hz"].as_f64().expect("rate") > 500.0, "{first}");
     assert!(first["tick_lateness_1s"]["count"].as_u64().expect("count") > 50, "{first}");
@@ -150,7 +153,11 @@ fn watch_shows_a_running_loop_and_a_restart_as_it_happens() {
     let ps = json_of(&h, &["ps", "--domain", &h.domain, "--json", "--sample-ms", "10"]);
     // While watched: still only the loop's four nodes on its services, no port of the
     // watcher's.
-    assert_eq!(ps[0]["roles"].as_array().expect("roles").len(), 4, "{ps}");
+    let roles = ps[0]["roles"].as_array().expect("roles").len();
+    if roles != 4 {
+        let (ago, ended) = (started.elapsed(), child.ended());
+        panic!("{roles} roles, not 4, {ago:?} after the run's start (ended: {ended:?}): {ps}");
+    }
     for svc in ps[0]["services"].as_array().expect("services") {
         assert!(svc["nodes"].as_array().expect("nodes").len() <= 4, "{svc}");
     }
@@ -181,10 +188,10 @@ fn watch_shows_a_running_loop_and_a_restart_as_it_happens() {
     h.assert_no_leftovers();
 }
 
-/// `watch` in a terminal draws its charts: in a tmux window of 160×50, its screen captured
-/// (`tmux capture-pane`) 5 s after it started shows the three charts (attitude error,
-/// actuation delay p50/p99, misses per second) with points drawn in them (braille cells).
-/// Skipped with a message where tmux is not installed.
+/// `watch` in a terminal draws its charts: in a tmux window of 160×50, its screen
+/// (`tmux capture-pane`, looked at every 250 ms for up to 15 s) shows the three charts
+/// (attitude error, actuation delay p50/p99, misses per second) with points drawn in them
+/// (braille cells). Skipped with a message where tmux is not installed.
 #[test]
 fn watch_in_a_terminal_draws_its_charts() {
     if Command::new("tmux").arg("-V").output().is_err() {
@@ -192,7 +199,9 @@ fn watch_in_a_terminal_draws_its_charts() {
         return;
     }
     let h = Harness::new("wtmux");
-    let (child, _out) = start(&h, "9");
+    // 20 s, and the screen looked at until it shows the charts: with 9 s and one look
+    // after 5 s, under `repeat-tests --load`, the pane was once empty.
+    let (child, _out) = start(&h, "20");
     let socket = h.path("tmux");
     let tmux = |args: &[&str]| {
         Command::new("tmux").arg("-S").arg(&socket).args(args).stdin(Stdio::null()).output()
@@ -200,15 +209,27 @@ fn watch_in_a_terminal_draws_its_charts() {
     let watch = format!("{} watch --domain {}", crate::common::harness::ROTORLOOP, h.domain);
     let started = tmux(&["new-session", "-d", "-s", "w", "-x", "160", "-y", "50", &watch]);
     assert!(started.as_ref().is_ok_and(|o| o.status.success()), "{started:?}");
-    std::thread::sleep(Duration::from_secs(5));
-    let shown = tmux(&["capture-pane", "-p", "-t", "w"]).expect("capture-pane");
-    let _ = tmux(&["kill-server"]);
-    let screen = String::from_utf8_lossy(&shown.stdout).into_owned();
-    for title in ["attitude error", "actuation delay", "misses per second", "controlling"] {
-        assert!(screen.contains(title), "no {title}:\n{screen}");
+    let titles = ["attitude error", "actuation delay", "misses per second", "controlling"];
+    let drawn =
+        |screen: &str| screen.chars().filter(|c| ('\u{2801}'..='\u{28ff}').contains(c)).count();
+    let since = Instant::now();
+    let (mut screen, mut capture_err) = (String::new(), String::new());
+    while since.elapsed() < Duration::from_secs(15) {
+        std::thread::sleep(Duration::from_millis(250));
+        let shown = tmux(&["capture-pane", "-p", "-t", "w"]).expect("capture-pane");
+        screen = String::from_utf8_lossy(&shown.stdout).into_owned();
+        capture_err = String::from_utf8_lossy(&shown.stderr).into_owned();
+        if titles.iter().all(|t| screen.contains(t)) && drawn(&screen) > 10 {
+            break;
+        }
     }
-    let drawn = screen.chars().filter(|c| ('\u{2801}'..='\u{28ff}').contains(c)).count();
-    assert!(drawn > 10, "{drawn} braille cells drawn:\n{screen}");
+    let _ = tmux(&["kill-server"]);
+    let looked = since.elapsed();
+    for title in titles {
+        assert!(screen.contains(title), "no {title} after {looked:?} ({capture_err}):\n{screen}");
+    }
+    let cells = drawn(&screen);
+    assert!(cells > 10, "{cells} braille cells drawn after {looked:?}:\n{screen}");
     ok(&wait_output(child, LIMIT));
     h.assert_no_leftovers();
 }

@@ -181,6 +181,11 @@ impl Running {
         self.child.id()
     }
 
+    /// Whether the child has ended, for a failure's message (it is reaped if it has).
+    pub fn ended(&mut self) -> Option<std::process::ExitStatus> {
+        self.child.try_wait().ok().flatten()
+    }
+
     /// Kills the child's whole process group (see [`group`]).
     fn kill_group(&mut self) {
         // SAFETY: plain syscall; the group is the child's own (see `group`).
