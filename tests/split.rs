@@ -61,17 +61,20 @@ fn a_lockstep_split_over_two_hosts_equals_sim_byte_for_byte() {
     assert_nothing_left(&h);
 }
 
-/// Real time at 1 kHz over the link: the run completes on its grid, the histograms the
-/// monitor can compute across hosts are there, and the ones that would subtract two
-/// hosts' clocks are not (and the summary says why).
+/// Real time over the link: the run completes on its grid, the histograms the monitor can
+/// compute across hosts are there, and the ones that would subtract two hosts' clocks are
+/// not (and the summary says why). At 250 Hz: sense-to-actuate counts only torques that
+/// came within their tick, and at 1 kHz, under `repeat-tests --load` beside a real-time
+/// soak, all 2000 round trips through two gateways took longer than 1 ms (an empty
+/// histogram, the machine's speed and not the histogram's absence).
 #[test]
 fn a_realtime_split_completes_with_its_histograms() {
     let h = Harness::new("split-rt");
     let out = h.path("run");
-    let said = run_split(&h, &out, &["--duration", "2", "--mode", "realtime"]);
+    let said = run_split(&h, &out, &["--duration", "2", "--rate", "250", "--mode", "realtime"]);
     let s = json(&out.join("summary.json"));
     assert_eq!(s["completed"], true);
-    assert_eq!(s["trace_rows"], 2001, "the plant kept its grid");
+    assert_eq!(s["trace_rows"], 501, "the plant kept its grid");
     let hops = &s["hops"];
     for hop in ["sense_to_actuate", "controller_compute", "tick_lateness", "reference_lead"] {
         let n = hops[hop]["count"].as_u64().unwrap_or(0);
