@@ -64,9 +64,9 @@ fn a_lockstep_split_over_two_hosts_equals_sim_byte_for_byte() {
 /// Real time over the link: the run completes on its grid, the histograms the monitor can
 /// compute across hosts are there, and the ones that would subtract two hosts' clocks are
 /// not (and the summary says why). At 250 Hz: sense-to-actuate counts only torques that
-/// came within their tick, and at 1 kHz, under `repeat-tests --load` beside a real-time
-/// soak, all 2000 round trips through two gateways took longer than 1 ms (an empty
-/// histogram, the machine's speed and not the histogram's absence).
+/// came within their tick, and at 1 kHz, on 2 vCPUs with five busy loops and a real-time
+/// soak beside it, all 2000 round trips through two gateways took longer than 1 ms (an
+/// empty histogram: the machine's speed, not the histogram's absence).
 #[test]
 fn a_realtime_split_completes_with_its_histograms() {
     let h = Harness::new("split-rt");
