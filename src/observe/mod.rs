@@ -27,6 +27,7 @@ use std::fmt::Write as _;
 use std::io::IsTerminal;
 use std::time::Duration;
 
+use hdrhistogram::Histogram;
 use iceoryx2::prelude::*;
 use rotorloop_common::clock::now_ns;
 use rotorloop_common::ipc::domain::Domain;
@@ -444,6 +445,47 @@ impl Spread {
     }
 }
 
+/// The spread of every value since watching began, in memory that does not grow with the
+/// watch: an HdrHistogram of nanoseconds (3 significant digits, 1 ns to an hour; a longer
+/// value counts as an hour), its largest value exact. A day of watching at 2000 samples a
+/// second is 173 M values; a list of them would be 1.4 GB, and sorting it four times a
+/// second would stall the screen long before.
+struct SinceStart {
+    ns: Histogram<u64>,
+    max_us: f64,
+}
+
+impl SinceStart {
+    const MAX_NS: u64 = 3_600_000_000_000;
+
+    fn new() -> Self {
+        let ns = Histogram::new_with_bounds(1, Self::MAX_NS, 3).expect("1 ns to an hour, 3 digits");
+        Self { ns, max_us: f64::NEG_INFINITY }
+    }
+
+    /// One value (µs); NaN (no value this tick) is not counted, as in [`Spread::of`].
+    fn record(&mut self, us: f64) {
+        if !us.is_finite() {
+            return;
+        }
+        self.max_us = self.max_us.max(us);
+        // Below 0 (`as` saturates) counts as 0, above an hour as an hour.
+        self.ns.saturating_record((us * 1e3).round() as u64);
+    }
+
+    fn spread(&self) -> Spread {
+        if self.ns.is_empty() {
+            return Spread::default();
+        }
+        // A bucket's highest value can lie above the largest value recorded in it.
+        let q = |p: f64| (self.ns.value_at_quantile(p) as f64 / 1e3).min(self.max_us);
+        Spread { count: self.ns.len() as usize, p50: q(0.5), p99: q(0.99), max: self.max_us }
+    }
+}
+
+/// The events `watch` shows (the newest); older ones are let go.
+const EVENTS_SHOWN: usize = 12;
+
 /// One sampled tick.
 #[derive(Debug, Clone, Copy)]
 struct Seen {
@@ -499,13 +541,13 @@ struct Watcher {
     domain: Domain,
     slots: Slots,
     seen: VecDeque<Seen>,
-    all_lateness: Vec<f64>,
-    all_delay: Vec<f64>,
+    all_lateness: SinceStart,
+    all_delay: SinceStart,
     last_tick: Option<u64>,
     misses_at: VecDeque<(u64, u64, u64)>,
     pids: BTreeMap<String, (u32, String)>,
     safe: bool,
-    events: Vec<String>,
+    events: VecDeque<String>,
     started_ns: u64,
     dt: f64,
     history: charts::History,
@@ -520,13 +562,13 @@ impl Watcher {
             domain,
             slots,
             seen: VecDeque::new(),
-            all_lateness: Vec::new(),
-            all_delay: Vec::new(),
+            all_lateness: SinceStart::new(),
+            all_delay: SinceStart::new(),
             last_tick: None,
             misses_at: VecDeque::new(),
             pids: BTreeMap::new(),
             safe: false,
-            events: Vec::new(),
+            events: VecDeque::new(),
             started_ns: now_ns(),
             dt: 1e-3,
             history: Default::default(),
@@ -535,7 +577,10 @@ impl Watcher {
 
     fn event(&mut self, what: String) {
         let at = (now_ns() - self.started_ns) as f64 / 1e9;
-        self.events.push(format!("{at:7.2} s  {what}"));
+        if self.events.len() == EVENTS_SHOWN {
+            self.events.pop_front();
+        }
+        self.events.push_back(format!("{at:7.2} s  {what}"));
     }
 
     /// One look at the plant's slot (and the reference's, for the error).
@@ -567,8 +612,8 @@ impl Watcher {
         };
         let err_deg = self.error(&s);
         self.seen.push_back(Seen { at_ns: now_ns(), tick: s.tick, lateness_us, delay_us, err_deg });
-        self.all_lateness.push(lateness_us);
-        self.all_delay.push(delay_us);
+        self.all_lateness.record(lateness_us);
+        self.all_delay.record(delay_us);
         self.misses_at.push_back((now_ns(), s.misses, s.safe_mode_ticks));
         let safe = s.flags & FLAG_SAFE_MODE != 0;
         if safe != self.safe {
@@ -646,9 +691,9 @@ impl Watcher {
             tick: s.map_or(0, |s| s.tick),
             rate_hz,
             tick_lateness_1s: Spread::of(last_s.iter().map(|x| x.lateness_us)),
-            tick_lateness_all: Spread::of(self.all_lateness.iter().copied()),
+            tick_lateness_all: self.all_lateness.spread(),
             actuation_delay_1s: Spread::of(last_s.iter().map(|x| x.delay_us)),
-            actuation_delay_all: Spread::of(self.all_delay.iter().copied()),
+            actuation_delay_all: self.all_delay.spread(),
             misses: s.map_or(0, |s| s.misses),
             misses_1s: match (first_1s, s) {
                 (Some(f), Some(s)) => s.misses.saturating_sub(f.1),
@@ -659,7 +704,7 @@ impl Watcher {
             err_deg: last_s.last().map(|x| x.err_deg).filter(|e| e.is_finite()),
             err_deg_1s_ago: ago.filter(|e| e.is_finite()),
             roles,
-            events: self.events.iter().rev().take(12).rev().cloned().collect(),
+            events: self.events.iter().cloned().collect(),
             history: Vec::new(),
         };
         self.history.push_if_due(now, &v);
@@ -782,4 +827,61 @@ pub fn watch(a: &WatchArgs) -> anyhow::Result<()> {
     })();
     ratatui::restore();
     result
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Deterministic values from 0.5 µs to about 5 ms, skewed like lateness (many small,
+    /// a long tail), with NaNs (ticks without a value) among them.
+    fn values(n: usize, seed: u64) -> Vec<f64> {
+        let mut x = seed;
+        (0..n)
+            .map(|i| {
+                x = x
+                    .wrapping_mul(6_364_136_223_846_793_005)
+                    .wrapping_add(1_442_695_040_888_963_407);
+                let u = (x >> 11) as f64 / (1u64 << 53) as f64;
+                if i % 97 == 0 { f64::NAN } else { 0.5 + 5000.0 * u.powi(6) }
+            })
+            .collect()
+    }
+
+    #[test]
+    fn the_spread_since_start_follows_the_values_in_memory_that_does_not_grow() {
+        let mut since = SinceStart::new();
+        assert_eq!(since.spread(), Spread::default());
+        let first = values(100_000, 1);
+        first.iter().for_each(|&v| since.record(v));
+        let (exact, kept) = (Spread::of(first.iter().copied()), since.spread());
+        assert_eq!(kept.count, exact.count);
+        assert_eq!(kept.max, exact.max);
+        for (k, e) in [(kept.p50, exact.p50), (kept.p99, exact.p99)] {
+            // 3 significant digits, and a rank apart at most.
+            assert!((k - e).abs() <= 2e-3 * e + 1e-3, "{k} against {e}");
+        }
+        let buckets = since.ns.distinct_values();
+        // Ten times as many values, the same memory.
+        values(1_000_000, 2).iter().for_each(|&v| since.record(v));
+        assert_eq!(since.ns.distinct_values(), buckets);
+        assert_eq!(since.spread().count, exact.count + 1_000_000 - 1_000_000 / 97 - 1);
+        // Out of range: counted at the ends, the max still exact.
+        since.record(-3.0);
+        since.record(7.2e9);
+        assert_eq!(since.spread().max, 7.2e9);
+        assert_eq!(since.ns.distinct_values(), buckets);
+    }
+
+    #[test]
+    fn watch_keeps_only_the_events_it_shows() {
+        let mut events = VecDeque::new();
+        let mut w = Watcher::new("events-test").expect("a domain name");
+        for i in 0..100 {
+            w.event(format!("event {i}"));
+        }
+        events.extend((88..100).map(|i| format!("event {i}")));
+        assert_eq!(w.events.len(), EVENTS_SHOWN);
+        assert!(w.events.iter().zip(&events).all(|(kept, e)| kept.ends_with(e.as_str())));
+    }
 }
