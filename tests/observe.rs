@@ -47,13 +47,12 @@ const RUN_S: &str = "300";
 
 /// Stops a run of [`start`] as Ctrl-C does: exit 3 (stopped before its last tick), a
 /// partial report, nothing left behind.
-fn stop(h: &Harness, child: Running) -> std::path::PathBuf {
+fn stop(h: &Harness, child: Running) {
     // SAFETY: signals this test's own child.
     unsafe { libc::kill(child.id() as libc::pid_t, libc::SIGTERM) };
     let o = wait_output(child, LIMIT);
     assert_eq!(o.status.code(), Some(3), "{}", String::from_utf8_lossy(&o.stderr));
     h.assert_no_leftovers();
-    h.path("run")
 }
 
 /// A child's stdout, line by line, as it writes them.
