@@ -353,9 +353,7 @@ fn sigterm_stops_the_run_cleanly_with_a_partial_report() {
         assert!(std::time::Instant::now() < until, "run did not start");
         std::thread::sleep(Duration::from_millis(50));
     }
-    // SAFETY: signals our own child.
-    unsafe { libc::kill(child.id() as libc::pid_t, libc::SIGTERM) };
-    let o = crate::common::harness::wait_output(child, LIMIT);
+    let o = child.terminate(LIMIT);
     assert_eq!(o.status.code(), Some(3), "{}", String::from_utf8_lossy(&o.stderr));
     let s = json(&out.join("summary.json"));
     assert_eq!(s["completed"], false);

@@ -5,7 +5,7 @@
 use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
-use crate::common::harness::{Harness, Running, group, ok, wait_output};
+use crate::common::harness::{Harness, Running, group, ok};
 const LIMIT: Duration = Duration::from_secs(240);
 
 fn start(h: &Harness, seconds: &str) -> (Running, std::path::PathBuf) {
@@ -48,9 +48,7 @@ const RUN_S: &str = "300";
 /// Stops a run of [`start`] as Ctrl-C does: exit 3 (stopped before its last tick), a
 /// partial report, nothing left behind.
 fn stop(h: &Harness, child: Running) {
-    // SAFETY: signals this test's own child.
-    unsafe { libc::kill(child.id() as libc::pid_t, libc::SIGTERM) };
-    let o = wait_output(child, LIMIT);
+    let o = child.terminate(LIMIT);
     assert_eq!(o.status.code(), Some(3), "{}", String::from_utf8_lossy(&o.stderr));
     h.assert_no_leftovers();
 }
@@ -209,9 +207,7 @@ fn watch_shows_a_running_loop_and_a_restart_as_it_happens() {
             Err(e) => panic!("no restart seen ({e}):\n{}", shown.join("\n")),
         }
     }
-    // SAFETY: signals this test's own child.
-    unsafe { libc::kill(watcher.id() as libc::pid_t, libc::SIGTERM) };
-    ok(&wait_output(watcher, LIMIT));
+    ok(&watcher.terminate(LIMIT));
     stop(&h, child);
     let s: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(out.join("summary.json")).expect("summary"))

@@ -181,6 +181,14 @@ impl Running {
         self.child.id()
     }
 
+    /// Sends the child SIGTERM (as Ctrl-C does) and waits for it and its output, as
+    /// [`wait_output`] does.
+    pub fn terminate(self, limit: Duration) -> Output {
+        // SAFETY: signals this test's own child, not yet waited for.
+        unsafe { libc::kill(self.child.id() as libc::pid_t, libc::SIGTERM) };
+        wait_output(self, limit)
+    }
+
     /// Whether the child has ended, for a failure's message (it is reaped if it has).
     pub fn ended(&mut self) -> Option<std::process::ExitStatus> {
         self.child.try_wait().ok().flatten()
