@@ -82,22 +82,49 @@ fn stages(run: &RunRecord, k: u64) -> [Option<u64>; 5] {
 
 /// Each stage's median over the run's fresh ticks (ns).
 pub fn stage_medians(run: &RunRecord, flags: &TickFlags) -> [f64; 5] {
-    // Two passes over the fresh ticks, in bounded memory (`ticks::Medians`); the stages
-    // are in ns, the medians' keys in s.
-    let mut m = ticks::Medians::<5>::default();
-    for pass in 0..2 {
-        for k in (0..run.last).filter(|k| flags.get(run, *k) == 0) {
-            for (i, x) in stages(run, k).iter().enumerate() {
-                if let Some(x) = x {
-                    m.add(i, *x as f64 / 1e9);
-                }
+    let mut m = StageMedians::default();
+    for _ in 0..2 {
+        (0..run.last).for_each(|k| m.see(run, k, flags.get(run, k)));
+        m.next_pass();
+    }
+    m.medians()
+}
+
+/// [`stage_medians`] a tick at a time, for passes over the ticks made for something else:
+/// every tick `0..last` is seen ([`StageMedians::see`]) in each of two passes, with
+/// [`StageMedians::next_pass`] after each. In bounded memory (`ticks::Medians`); the
+/// stages are in ns, the medians' keys in s.
+#[derive(Debug, Default)]
+pub struct StageMedians {
+    medians: ticks::Medians<5>,
+    passes: u8,
+}
+
+impl StageMedians {
+    /// Sees tick `k`, whose flags are `flags` (only a fresh tick's stages count).
+    pub fn see(&mut self, run: &RunRecord, k: u64, flags: u16) {
+        if flags != 0 {
+            return;
+        }
+        for (i, x) in stages(run, k).iter().enumerate() {
+            if let Some(x) = x {
+                self.medians.add(i, *x as f64 / 1e9);
             }
         }
-        if pass == 0 {
-            m.second_pass();
-        }
     }
-    m.medians().map(|s| (s * 1e9).round())
+
+    /// Ends a pass.
+    pub fn next_pass(&mut self) {
+        if self.passes == 0 {
+            self.medians.second_pass();
+        }
+        self.passes += 1;
+    }
+
+    /// The medians (ns), after the two passes.
+    pub fn medians(&self) -> [f64; 5] {
+        self.medians.medians().map(|s| (s * 1e9).round())
+    }
 }
 
 fn ms(ns: f64) -> String {

@@ -92,7 +92,14 @@ pub struct LawPass {
 /// answer bit for bit is taken; which one is kept only for the ticks a counterfactual of
 /// `costed` can reach ([`cost`] goes at most 60 s past its window), so what is
 /// held does not grow with the run's late references.
-pub fn law_pass(run: &RunRecord, costed: &[[u64; 2]]) -> anyhow::Result<LawPass> {
+///
+/// Each tick `0..=last` is handed to `visit` first, as the pass comes to it (for what
+/// else is computed a tick at a time: one pass over a day of records, not two).
+pub fn law_pass(
+    run: &RunRecord,
+    costed: &[[u64; 2]],
+    visit: &mut dyn FnMut(u64),
+) -> anyhow::Result<LawPass> {
     let horizon = (HORIZON_S / run.dt).ceil() as u64 + 1;
     let mut reach = Spans::default();
     costed.iter().for_each(|w| reach.add([w[0], w[1].saturating_add(horizon)]));
@@ -108,6 +115,7 @@ pub fn law_pass(run: &RunRecord, costed: &[[u64; 2]]) -> anyhow::Result<LawPass>
     let mut next = starts.iter().peekable();
     let mut paired: Vec<u64> = Vec::new();
     for k in 0..=run.last {
+        visit(k);
         while next.next_if(|s| **s <= k).is_some() {
             pass.before.push(law);
         }

@@ -143,6 +143,16 @@ fn bad(dir: &Path, what: impl std::fmt::Display) -> UsageError {
 impl RunRecord {
     /// Reads the run in `dir`; an error names the file that is missing or foreign.
     pub fn read(dir: &Path) -> anyhow::Result<Self> {
+        Self::read_visiting(dir, &mut |_, _| {})
+    }
+
+    /// [`RunRecord::read`], handing each state `0..=last` that is there to `visit` (with
+    /// its tick) on the one pass over the states it makes: what the incidents' first
+    /// figures need of the states alone, without another pass over a day of records.
+    pub fn read_visiting(
+        dir: &Path,
+        visit: &mut dyn FnMut(u64, &StateSample),
+    ) -> anyhow::Result<Self> {
         let text = std::fs::read_to_string(dir.join("summary.json"))
             .map_err(|e| bad(dir, format!("summary.json: {e} (is this a run directory?)")))?;
         let summary: serde_json::Value =
@@ -179,6 +189,7 @@ impl RunRecord {
                 t0_ns = t0_ns.min(s.publish_ns);
                 realtime |= s.deadline_ns > 0;
                 grid = grid.max(grid_of(&s));
+                visit(k, &s);
             }
             if k % GRID_STRIDE == 0 {
                 grid_marks.push(grid);

@@ -264,16 +264,37 @@ impl Windows {
     }
 }
 
-/// The first pass over the run's windows: how many there are, and the [`MAX_COSTED`]
-/// longest ([`Longest`]).
-fn first_pass(run: &RunRecord, flags: &ticks::TickFlags) -> (usize, Vec<(usize, [u64; 2])>) {
-    let (mut count, mut longest) = (0, Longest::default());
+/// The first pass over the run's windows: how many there are, the [`MAX_COSTED`]
+/// longest ([`Longest`]) and the first tick of the loop's first window (`None`: the loop
+/// had none). Each tick it flags is also seen by `stages` (the first of its two passes).
+struct FirstPass {
+    count: usize,
+    longest: Vec<(usize, [u64; 2])>,
+    first_loop_tick: Option<u64>,
+}
+
+fn first_pass(
+    run: &RunRecord,
+    flags: &ticks::TickFlags,
+    stages: &mut cause::StageMedians,
+) -> FirstPass {
+    let (mut count, mut longest, mut first_loop_tick) = (0, Longest::default(), None);
     let mut windows = Windows::new(run);
-    while let Some((w, _)) = windows.next(run, flags) {
+    let mut flag = |k| {
+        let f = flags.get(run, k);
+        stages.see(run, k, f);
+        f
+    };
+    while let Some((w, outside)) = windows.next_with(|scan| scan.next(flags.last(), GAP, &mut flag))
+    {
+        if outside.is_none() {
+            first_loop_tick.get_or_insert(w[0]);
+        }
         longest.see(count, w);
         count += 1;
     }
-    (count, longest.kept())
+    stages.next_pass();
+    FirstPass { count, longest: longest.kept(), first_loop_tick }
 }
 
 /// The [`MAX_COSTED`] longest windows of those seen one at a time, as a stable sort by
@@ -315,18 +336,32 @@ pub fn find(
     options: Options,
     row: &mut dyn FnMut(&Incident) -> anyhow::Result<()>,
 ) -> anyhow::Result<Explained> {
-    let mut run = RunRecord::read(dir)?;
-    let flags = ticks::flag(&run, options.threshold_ticks);
-    // A first pass over the windows counts them and picks the longest to cost; the second
-    // explains them. Neither holds the run's windows: a day's run can have millions.
-    let (count, costed) = first_pass(&run, &flags);
-    let medians = cause::stage_medians(&run, &flags);
-    let windows: Vec<[u64; 2]> = costed.iter().map(|(_, w)| *w).collect();
-    let pass = cost::law_pass(&run, &windows)?;
+    // Five passes over the records at most, each doing what can be done at that point: a
+    // day's run is 86.4 M ticks, and the passes are most of the time after its last tick.
+    // 1. Reading the run: the first pass of the median delay, from the states alone.
+    let mut delays = ticks::Delays::default();
+    let mut run = RunRecord::read_visiting(dir, &mut |k, s| delays.see(k, s))?;
+    // 2. The median delay's second pass, which the flags need.
+    let flags = ticks::flag_seen(&run, options.threshold_ticks, delays);
+    // 3. The windows: how many, the longest to cost (none of them held: a day's run can
+    // have millions), and the stages' medians' first pass.
+    let mut stages = cause::StageMedians::default();
+    let first = first_pass(&run, &flags, &mut stages);
+    // 4. The law over every answer, and the stages' medians' second pass.
+    let windows: Vec<[u64; 2]> = first.longest.iter().map(|(_, w)| *w).collect();
+    let pass = cost::law_pass(&run, &windows, &mut |k| {
+        if k < run.last {
+            stages.see(&run, k, flags.get(&run, k));
+        }
+    })?;
+    stages.next_pass();
+    let medians = stages.medians();
+    // 5. The windows again, each explained and costed, from the loop's first (the ticks
+    // before it are normal).
     let mut befores = pass.before.iter();
     let mut held = FaultsHeld::new(&run.faults);
     let mut found = Explained {
-        count,
+        count: first.count,
         costliest: Vec::new(),
         worst: None,
         faults: Vec::new(), // each fault's incident, once all are seen
@@ -337,8 +372,9 @@ pub fn find(
         kernel_view: run.kernel_view,
         traced: run.traced,
     };
-    let mut costed = costed.into_iter().map(|(i, _)| i).peekable();
+    let mut costed = first.longest.into_iter().map(|(i, _)| i).peekable();
     let (mut windows, mut i) = (Windows::new(&run), 0);
+    windows.scan = ticks::WindowScan::starting_at(first.first_loop_tick.unwrap_or(flags.last()));
     while let Some((w, outside)) = windows.next(&run, &flags) {
         run.sched_for(w);
         run.trace_for(w);

@@ -194,20 +194,38 @@ pub fn median(v: &mut [f64]) -> f64 {
 /// The figures by which the ticks of `run` are flagged, lateness measured against
 /// `threshold_ticks` of a tick.
 pub fn flag(run: &RunRecord, threshold_ticks: f64) -> TickFlags {
+    let mut delays = Delays::default();
+    (1..=run.last).for_each(|k| run.state(k).iter().for_each(|s| delays.see(k, s)));
+    flag_seen(run, threshold_ticks, delays)
+}
+
+/// [`flag`] once the states `1..=last` have been seen by `delays` (on a pass over the
+/// states made for something else: [`super::load::RunRecord::read_visiting`]).
+pub fn flag_seen(run: &RunRecord, threshold_ticks: f64, mut delays: Delays) -> TickFlags {
     let threshold_s = threshold_ticks * run.dt;
-    let mut offsets = Medians::<1>::default();
-    for pass in 0..2 {
-        for k in 0..run.last {
-            if let Some(o) = run.state(k + 1).and_then(|n| fresh_offset(&n, k)) {
-                offsets.add(0, o);
-            }
-        }
-        if pass == 0 {
-            offsets.second_pass();
+    let offsets = &mut delays.0;
+    offsets.second_pass();
+    for k in 0..run.last {
+        if let Some(o) = run.state(k + 1).and_then(|n| fresh_offset(&n, k)) {
+            offsets.add(0, o);
         }
     }
     let [median_delay_s] = offsets.medians();
     TickFlags { median_delay_s, threshold_s, windows: windows(run), last: run.last }
+}
+
+/// The first pass of the median delay of [`flag`]: each fresh answer's offset, from the
+/// state that ends its tick.
+#[derive(Debug, Default)]
+pub struct Delays(Medians<1>);
+
+impl Delays {
+    /// Sees state `k` (`k ≥ 1`: the state that ends tick `k − 1`).
+    pub fn see(&mut self, k: u64, s: &StateSample) {
+        if let Some(o) = k.checked_sub(1).and_then(|j| fresh_offset(s, j)) {
+            self.0.add(0, o);
+        }
+    }
 }
 
 impl TickFlags {
@@ -255,6 +273,11 @@ impl TickFlags {
         f
     }
 
+    /// Ticks `0..last` have flags.
+    pub fn last(&self) -> u64 {
+        self.last
+    }
+
     /// The flags of ticks `from..=to`, or-ed together.
     pub fn all(&self, run: &RunRecord, [from, to]: [u64; 2]) -> u16 {
         (from..=to).fold(0, |a, k| a | self.get(run, k))
@@ -283,6 +306,11 @@ pub struct WindowScan {
 }
 
 impl WindowScan {
+    /// A search from tick `k` on, where the ticks before it are known to be normal.
+    pub fn starting_at(k: u64) -> Self {
+        Self { k, open: None }
+    }
+
     /// The next maximal window among ticks `..end` whose flags are `flag(k)`, two windows
     /// with at most `gap` normal ticks between them being one.
     pub fn next(
