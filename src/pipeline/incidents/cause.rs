@@ -62,7 +62,7 @@ fn took_effect(run: &RunRecord, k: u64) -> Option<(u64, f64)> {
 /// The five stages of tick `k` (ns), each where its stamps allow (the wake in real time
 /// only; the torque's delivery only where the plant took that answer as the one in
 /// force).
-fn stages(run: &RunRecord, k: u64) -> [Option<u64>; 5] {
+pub(super) fn stages(run: &RunRecord, k: u64) -> [Option<u64>; 5] {
     let (s, t) = (run.state(k), run.torque(k));
     let n = took_effect(run, k)
         .and_then(|(j, _)| run.state(j + 1))

@@ -329,6 +329,37 @@ impl Longest {
     }
 }
 
+/// What [`find`] needs before it explains the first incident.
+struct Figures {
+    flags: ticks::TickFlags,
+    first: FirstPass,
+    pass: cost::LawPass,
+    /// The stages' medians (ns).
+    medians: [f64; 5],
+}
+
+/// [`find`]'s passes over the records before the explaining one, each doing what can be
+/// done at that point (a day's run is 86.4 M ticks, and these passes are most of the time
+/// after its last tick): the first, reading the run, has fed `delays` the states
+/// `1..=last`.
+fn figures(run: &RunRecord, delays: ticks::Delays, options: Options) -> anyhow::Result<Figures> {
+    // 2. The median delay's second pass, which the flags need.
+    let flags = ticks::flag_seen(run, options.threshold_ticks, delays);
+    // 3. The windows: how many, the longest to cost (none of them held: a day's run can
+    // have millions), and the first pass of the stages' medians.
+    let mut stages = cause::StageMedians::default();
+    let first = first_pass(run, &flags, &mut stages);
+    // 4. The law over every answer, and the second pass of the stages' medians.
+    let windows: Vec<[u64; 2]> = first.longest.iter().map(|(_, w)| *w).collect();
+    let pass = cost::law_pass(run, &windows, &mut |k| {
+        if k < run.last {
+            stages.see(run, k, flags.get(run, k));
+        }
+    })?;
+    stages.next_pass();
+    Ok(Figures { flags, first, pass, medians: stages.medians() })
+}
+
 /// Finds, explains and costs the incidents of the run in `dir`, handing each to `row` as
 /// it is found, in time order.
 pub fn find(
@@ -336,26 +367,10 @@ pub fn find(
     options: Options,
     row: &mut dyn FnMut(&Incident) -> anyhow::Result<()>,
 ) -> anyhow::Result<Explained> {
-    // Five passes over the records at most, each doing what can be done at that point: a
-    // day's run is 86.4 M ticks, and the passes are most of the time after its last tick.
     // 1. Reading the run: the first pass of the median delay, from the states alone.
     let mut delays = ticks::Delays::default();
     let mut run = RunRecord::read_visiting(dir, &mut |k, s| delays.see(k, s))?;
-    // 2. The median delay's second pass, which the flags need.
-    let flags = ticks::flag_seen(&run, options.threshold_ticks, delays);
-    // 3. The windows: how many, the longest to cost (none of them held: a day's run can
-    // have millions), and the stages' medians' first pass.
-    let mut stages = cause::StageMedians::default();
-    let first = first_pass(&run, &flags, &mut stages);
-    // 4. The law over every answer, and the stages' medians' second pass.
-    let windows: Vec<[u64; 2]> = first.longest.iter().map(|(_, w)| *w).collect();
-    let pass = cost::law_pass(&run, &windows, &mut |k| {
-        if k < run.last {
-            stages.see(&run, k, flags.get(&run, k));
-        }
-    })?;
-    stages.next_pass();
-    let medians = stages.medians();
+    let Figures { flags, first, pass, medians } = figures(&run, delays, options)?;
     // 5. The windows again, each explained and costed, from the loop's first (the ticks
     // before it are normal).
     let mut befores = pass.before.iter();
@@ -549,6 +564,82 @@ mod tests {
             .collect();
             assert_eq!(got, want, "round {round}");
         }
+    }
+
+    /// The passes that do two things at once find what the passes of one thing each find:
+    /// the median delay, the windows, the longest of them, the stages' medians, on a run
+    /// of misses, late and missing answers, and stamps of every size.
+    #[test]
+    fn the_shared_passes_find_what_passes_of_their_own_find() {
+        use rotorloop_common::scenario::Scenario;
+        use rotorloop_common::wire::{StateSample, TorqueSample};
+        let scenario = Scenario::load("paper-zero").expect("built-in");
+        let mut next = super::test_random(0x6a09_e667_f3bc_c908_u64);
+        let (n, mut misses) = (5000, 0);
+        let (mut states, mut torques) = (Vec::<StateSample>::new(), Vec::<TorqueSample>::new());
+        for k in 0..n {
+            let mut s = StateSample::of(k, k as f64 * scenario.dt(), &scenario.plant_init);
+            s.deadline_ns = 1_000_000 * (k + 1);
+            let late = next(3) * 200_000 + 1;
+            s.wake_ns = s.deadline_ns + next(late);
+            s.publish_ns = s.wake_ns + 1_000 + next(3_000);
+            misses += u64::from(next(50) == 0);
+            s.misses = misses;
+            // What took effect: the answer to the tick before, at an offset, mostly.
+            if let Some(t) = torques.last().filter(|_| next(30) > 0) {
+                s.effects = 1;
+                s.effect_ticks[0] = t.tick;
+                let spread = next(4) * 40_000 + 1;
+                s.effect_offsets_s[0] = (10_000 + next(spread)) as f64 * 1e-9;
+                s.applied_torque_tick = t.tick;
+                s.applied_torque_recv_ns = t.publish_ns + 1_000 + next(5_000);
+            }
+            // The answer (a record per tick: a test stream is indexed by position).
+            let recv = s.publish_ns + 2_000 + next(20_000);
+            let publish_ns = recv + 500 + next(2_000);
+            torques.push(TorqueSample {
+                tick: k,
+                state_recv_ns: recv,
+                publish_ns,
+                ..Default::default()
+            });
+            states.push(s);
+        }
+        let run = RunRecord::of(scenario, states, torques);
+        let mut delays = ticks::Delays::default();
+        (0..=run.last).for_each(|k| run.state(k).iter().for_each(|s| delays.see(k, s)));
+        let got = figures(&run, delays, Options::default()).expect("figures");
+        let flags = ticks::flag(&run, Options::default().threshold_ticks);
+        let mut offsets: Vec<f64> = (0..run.last)
+            .filter_map(|k| run.state(k + 1).and_then(|s| ticks::fresh_offset(&s, k)))
+            .collect();
+        let median = ticks::median(&mut offsets);
+        assert!(median > 0.0, "{median}");
+        assert_eq!(got.flags.median_delay_s.to_bits(), median.to_bits());
+        assert_eq!(flags.median_delay_s.to_bits(), median.to_bits());
+        let (count, longest) = {
+            let (mut count, mut longest, mut windows) = (0, Longest::default(), Windows::new(&run));
+            while let Some((w, _)) = windows.next(&run, &flags) {
+                longest.see(count, w);
+                count += 1;
+            }
+            (count, longest.kept())
+        };
+        assert!(count > 20, "{count} windows: the run tests too little");
+        assert_eq!((got.first.count, &got.first.longest), (count, &longest));
+        let mut scan = ticks::WindowScan::default();
+        let first_window = flags.next_window(&run, &mut scan, GAP).map(|w| w[0]);
+        assert_eq!(got.first.first_loop_tick, first_window);
+        let want = cause::stage_medians(&run, &flags);
+        assert_eq!(got.medians.map(f64::to_bits), want.map(f64::to_bits), "{want:?}");
+        let mut each: [Vec<f64>; 5] = Default::default();
+        for k in (0..run.last).filter(|k| flags.get(&run, *k) == 0) {
+            for (i, x) in cause::stages(&run, k).iter().enumerate() {
+                each[i].extend(x.map(|x| x as f64));
+            }
+        }
+        assert_eq!(want, each.map(|mut v| ticks::median(&mut v)));
+        assert!(want.iter().all(|m| m.is_finite()), "{want:?}");
     }
 
     #[test]
