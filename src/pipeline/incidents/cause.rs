@@ -83,22 +83,21 @@ pub(super) fn stages(run: &RunRecord, k: u64) -> [Option<u64>; 5] {
 /// Each stage's median over the run's fresh ticks (ns).
 pub fn stage_medians(run: &RunRecord, flags: &TickFlags) -> [f64; 5] {
     let mut m = StageMedians::default();
-    for _ in 0..2 {
+    for pass in 0..2 {
         (0..run.last).for_each(|k| m.see(run, k, flags.get(run, k)));
-        m.next_pass();
+        if pass == 0 {
+            m.second_pass();
+        }
     }
     m.medians()
 }
 
 /// [`stage_medians`] a tick at a time, for passes over the ticks made for something else:
 /// every tick `0..last` is seen ([`StageMedians::see`]) in each of two passes, with
-/// [`StageMedians::next_pass`] after each. In bounded memory (`ticks::Medians`); the
+/// [`StageMedians::second_pass`] between them. In bounded memory (`ticks::Medians`); the
 /// stages are in ns, the medians' keys in s.
 #[derive(Debug, Default)]
-pub struct StageMedians {
-    medians: ticks::Medians<5>,
-    passes: u8,
-}
+pub struct StageMedians(ticks::Medians<5>);
 
 impl StageMedians {
     /// Sees tick `k`, whose flags are `flags` (only a fresh tick's stages count).
@@ -108,22 +107,19 @@ impl StageMedians {
         }
         for (i, x) in stages(run, k).iter().enumerate() {
             if let Some(x) = x {
-                self.medians.add(i, *x as f64 / 1e9);
+                self.0.add(i, *x as f64 / 1e9);
             }
         }
     }
 
-    /// Ends a pass.
-    pub fn next_pass(&mut self) {
-        if self.passes == 0 {
-            self.medians.second_pass();
-        }
-        self.passes += 1;
+    /// Ends the first pass.
+    pub fn second_pass(&mut self) {
+        self.0.second_pass();
     }
 
-    /// The medians (ns), after the two passes.
+    /// The medians (ns), after the second pass.
     pub fn medians(&self) -> [f64; 5] {
-        self.medians.medians().map(|s| (s * 1e9).round())
+        self.0.medians().map(|s| (s * 1e9).round())
     }
 }
 

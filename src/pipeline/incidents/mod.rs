@@ -264,15 +264,18 @@ impl Windows {
     }
 }
 
-/// The first pass over the run's windows: how many there are, the [`MAX_COSTED`]
-/// longest ([`Longest`]) and the first tick of the loop's first window (`None`: the loop
-/// had none). Each tick it flags is also seen by `stages` (the first of its two passes).
+/// What the first pass over the run's windows finds.
 struct FirstPass {
+    /// How many windows there are.
     count: usize,
+    /// The [`MAX_COSTED`] longest ([`Longest`]).
     longest: Vec<(usize, [u64; 2])>,
+    /// The first tick of the loop's first window (`None`: the loop had none).
     first_loop_tick: Option<u64>,
 }
 
+/// The first pass over the run's windows; each tick it flags is also seen by `stages`
+/// (the first of their two passes, which it ends).
 fn first_pass(
     run: &RunRecord,
     flags: &ticks::TickFlags,
@@ -285,15 +288,14 @@ fn first_pass(
         stages.see(run, k, f);
         f
     };
-    while let Some((w, outside)) = windows.next_with(|scan| scan.next(flags.last(), GAP, &mut flag))
-    {
+    while let Some((w, outside)) = windows.next_with(|scan| scan.next(run.last, GAP, &mut flag)) {
         if outside.is_none() {
             first_loop_tick.get_or_insert(w[0]);
         }
         longest.see(count, w);
         count += 1;
     }
-    stages.next_pass();
+    stages.second_pass();
     FirstPass { count, longest: longest.kept(), first_loop_tick }
 }
 
@@ -356,7 +358,6 @@ fn figures(run: &RunRecord, delays: ticks::Delays, options: Options) -> anyhow::
             stages.see(run, k, flags.get(run, k));
         }
     })?;
-    stages.next_pass();
     Ok(Figures { flags, first, pass, medians: stages.medians() })
 }
 
@@ -389,7 +390,7 @@ pub fn find(
     };
     let mut costed = first.longest.into_iter().map(|(i, _)| i).peekable();
     let (mut windows, mut i) = (Windows::new(&run), 0);
-    windows.scan = ticks::WindowScan::starting_at(first.first_loop_tick.unwrap_or(flags.last()));
+    windows.scan = ticks::WindowScan::starting_at(first.first_loop_tick.unwrap_or(run.last));
     while let Some((w, outside)) = windows.next(&run, &flags) {
         run.sched_for(w);
         run.trace_for(w);

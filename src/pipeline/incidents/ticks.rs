@@ -273,11 +273,6 @@ impl TickFlags {
         f
     }
 
-    /// Ticks `0..last` have flags.
-    pub fn last(&self) -> u64 {
-        self.last
-    }
-
     /// The flags of ticks `from..=to`, or-ed together.
     pub fn all(&self, run: &RunRecord, [from, to]: [u64; 2]) -> u16 {
         (from..=to).fold(0, |a, k| a | self.get(run, k))
