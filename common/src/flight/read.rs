@@ -268,6 +268,20 @@ impl<T: Record> FlightLog<T> {
         Self { memory: records.into_iter().map(Some).collect(), last, opens: 1, ..Self::empty() }
     }
 
+    /// A stream of the samples `records`, each at its own tick (ticks without one have
+    /// none), held in memory (tests of streams with gaps).
+    pub fn of_ticks(records: Vec<T>) -> Self {
+        let len = records.iter().map(|r| r.tick().saturating_add(1)).max().unwrap_or(0);
+        let mut memory = vec![None; usize::try_from(len).unwrap_or(0)];
+        for r in records {
+            if let Some(slot) = usize::try_from(r.tick()).ok().and_then(|k| memory.get_mut(k)) {
+                *slot = Some(r);
+            }
+        }
+        let last = memory.len().checked_sub(1).map(|l| l as u64);
+        Self { memory, last, opens: 1, ..Self::empty() }
+    }
+
     fn problem(&mut self, what: String) {
         if self.problems.len() < MAX_PROBLEMS {
             self.problems.push(what);

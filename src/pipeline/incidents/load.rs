@@ -224,7 +224,8 @@ impl RunRecord {
     }
 
     /// A lockstep run of these records alone (no faults, schedule or kernel figures),
-    /// each tick's grid time its state's publish: for the incidents' unit tests.
+    /// each tick's grid time its state's publish, each torque at its own tick: for the
+    /// incidents' unit tests.
     #[cfg(test)]
     pub(crate) fn of(
         scenario: Scenario,
@@ -248,7 +249,7 @@ impl RunRecord {
             realtime: false,
             grid_marks,
             states: FlightLog::of(states),
-            torques: FlightLog::of(torques),
+            torques: FlightLog::of_ticks(torques),
             references: FlightLog::empty(),
             faults: Vec::new(),
             schedule: Vec::new(),

@@ -227,13 +227,19 @@ struct Windows {
 }
 
 impl Windows {
-    fn new(run: &RunRecord) -> Self {
+    /// The windows of `run`, the loop's looked for from tick `from` on (the ticks before
+    /// it known to be normal).
+    fn new(run: &RunRecord, from: u64) -> Self {
         let mut outside: Vec<([u64; 2], usize)> = (run.faults.iter().enumerate())
             .filter(|(_, f)| !ticks::in_loop(&f.role))
             .map(|(i, f)| (ticks::fault_ticks(run, f), i))
             .collect();
         outside.sort_by_key(|(w, _)| w[0]);
-        Self { scan: ticks::WindowScan::default(), next_loop: None, outside: outside.into() }
+        Self {
+            scan: ticks::WindowScan::starting_at(from),
+            next_loop: None,
+            outside: outside.into(),
+        }
     }
 
     fn next(
@@ -282,7 +288,7 @@ fn first_pass(
     stages: &mut cause::StageMedians,
 ) -> FirstPass {
     let (mut count, mut longest, mut first_loop_tick) = (0, Longest::default(), None);
-    let mut windows = Windows::new(run);
+    let mut windows = Windows::new(run, 0);
     let mut flag = |k| {
         let f = flags.get(run, k);
         stages.see(run, k, f);
@@ -389,8 +395,8 @@ pub fn find(
         traced: run.traced,
     };
     let mut costed = first.longest.into_iter().map(|(i, _)| i).peekable();
-    let (mut windows, mut i) = (Windows::new(&run), 0);
-    windows.scan = ticks::WindowScan::starting_at(first.first_loop_tick.unwrap_or(run.last));
+    let from = first.first_loop_tick.unwrap_or(run.last);
+    let (mut windows, mut i) = (Windows::new(&run, from), 0);
     while let Some((w, outside)) = windows.next(&run, &flags) {
         run.sched_for(w);
         run.trace_for(w);
@@ -595,7 +601,7 @@ mod tests {
                 s.applied_torque_tick = t.tick;
                 s.applied_torque_recv_ns = t.publish_ns + 1_000 + next(5_000);
             }
-            // The answer (a record per tick: a test stream is indexed by position).
+            // The answer, one a tick.
             let recv = s.publish_ns + 2_000 + next(20_000);
             let publish_ns = recv + 500 + next(2_000);
             torques.push(TorqueSample {
@@ -619,7 +625,8 @@ mod tests {
         assert_eq!(got.flags.median_delay_s.to_bits(), median.to_bits());
         assert_eq!(flags.median_delay_s.to_bits(), median.to_bits());
         let (count, longest) = {
-            let (mut count, mut longest, mut windows) = (0, Longest::default(), Windows::new(&run));
+            let (mut count, mut longest, mut windows) =
+                (0, Longest::default(), Windows::new(&run, 0));
             while let Some((w, _)) = windows.next(&run, &flags) {
                 longest.see(count, w);
                 count += 1;
