@@ -187,15 +187,21 @@ fn delays_drawn_from_a_measured_distribution_are_reproducible_by_seed() {
 
 /// `--fault controller:delay@T=S:until@T2` in real time: the controller sends each answer
 /// 5 ms late; the plant applies each late torque when it arrives (`delay_s` ≈ 5 ms), so
-/// there is no safe mode though every tick of the window misses its deadline, and the
-/// report lists the injected delay.
+/// the delay (a tenth of the 50-tick hold) brings no safe mode though every tick of the
+/// window misses its deadline, and the report lists the injected delay.
+///
+/// A machine so loaded that the controller is not scheduled for the hold's 50 ms
+/// (`scripts/repeat-tests --load`: 12 ticks once in 18 runs) holds for a stall of its
+/// own; had the delay itself brought safe mode, the whole 2 s window (about 1 950 ticks)
+/// would be in it.
 #[test]
 fn an_injected_controller_delay_is_felt_and_reported() {
     let h = Harness::new("inject");
     let out = realtime_run(&h, &["--fault", "controller:delay@1=0.005:until@3"]);
     let s = json(&out.join("summary.json"));
     assert_eq!(s["faults"][0]["kind"], "delay", "{}", s["faults"]);
-    assert_eq!(s["safe_mode_ticks"], 0);
+    let safe = s["safe_mode_ticks"].as_u64().expect("safe_mode_ticks");
+    assert!(safe < 500, "{safe} ticks in safe mode: the delay alone must bring none");
     assert!(s["misses"].as_u64().expect("misses") > 1500, "misses {}", s["misses"]);
     let trace = std::fs::read_to_string(out.join("trace.csv")).expect("trace");
     let delays = column(&trace, "delay_s");

@@ -269,7 +269,8 @@ impl<T: Record> FlightLog<T> {
     }
 
     /// A stream of the samples `records`, each at its own tick (ticks without one have
-    /// none), held in memory (tests of streams with gaps).
+    /// none), held in memory (tests of streams with gaps): a slot for every tick up to the
+    /// highest.
     pub fn of_ticks(records: Vec<T>) -> Self {
         let len = records.iter().map(|r| r.tick().saturating_add(1)).max().unwrap_or(0);
         let mut memory = vec![None; usize::try_from(len).unwrap_or(0)];
