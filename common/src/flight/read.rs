@@ -264,8 +264,7 @@ impl<T: Record> FlightLog<T> {
     /// A stream of the samples `records`, tick `k` at index `k`, held in memory (tests;
     /// in-process runs).
     pub fn of(records: Vec<T>) -> Self {
-        let last = records.len().checked_sub(1).map(|l| l as u64);
-        Self { memory: records.into_iter().map(Some).collect(), last, opens: 1, ..Self::empty() }
+        Self::in_memory(records.into_iter().map(Some).collect())
     }
 
     /// A stream of the samples `records`, each at its own tick (ticks without one have
@@ -279,6 +278,11 @@ impl<T: Record> FlightLog<T> {
                 *slot = Some(r);
             }
         }
+        Self::in_memory(memory)
+    }
+
+    /// A stream held in memory, tick `k`'s sample (or none) at index `k`.
+    fn in_memory(memory: Vec<Option<T>>) -> Self {
         let last = memory.len().checked_sub(1).map(|l| l as u64);
         Self { memory, last, opens: 1, ..Self::empty() }
     }
