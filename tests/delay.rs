@@ -7,6 +7,8 @@ use std::time::Duration;
 use crate::common::harness::{Harness, assert_same_trace, json, ok};
 
 const LIMIT: Duration = Duration::from_secs(240);
+/// The plant's `--hold-ticks` default: ticks in a row without a torque before safe mode.
+const HOLD_TICKS: usize = 50;
 
 fn column(trace: &str, name: &str) -> Vec<f64> {
     let mut lines = trace.lines();
@@ -192,19 +194,29 @@ fn delays_drawn_from_a_measured_distribution_are_reproducible_by_seed() {
 ///
 /// A machine so loaded that the controller is not scheduled for the hold's 50 ms
 /// (`scripts/repeat-tests --load`: 12 ticks once in 18 runs) holds for a stall of its
-/// own; had the delay itself brought safe mode, the whole 2 s window (about 1 950 ticks)
-/// would be in it.
+/// own: the test accepts safe mode only in the ticks of such a stall past the hold.
 #[test]
 fn an_injected_controller_delay_is_felt_and_reported() {
     let h = Harness::new("inject");
     let out = realtime_run(&h, &["--fault", "controller:delay@1=0.005:until@3"]);
     let s = json(&out.join("summary.json"));
     assert_eq!(s["faults"][0]["kind"], "delay", "{}", s["faults"]);
-    let safe = s["safe_mode_ticks"].as_u64().expect("safe_mode_ticks");
-    assert!(safe < 500, "{safe} ticks in safe mode: the delay alone must bring none");
     assert!(s["misses"].as_u64().expect("misses") > 1500, "misses {}", s["misses"]);
     let trace = std::fs::read_to_string(out.join("trace.csv")).expect("trace");
     let delays = column(&trace, "delay_s");
+    // The delay alone brings no safe mode: the plant enters it only after 50 (`--hold-ticks`)
+    // ticks in a row in which no torque took effect (`delay_s` NaN), which a 5 ms delay
+    // never makes. A controller starved on a loaded machine can (once in 18 runs under
+    // `repeat-tests --load`: 12 ticks): every safe-mode tick must lie past the 50th tick
+    // of such a gap, one tick given for where a torque at a tick's edge is counted.
+    let safe = s["safe_mode_ticks"].as_u64().expect("safe_mode_ticks");
+    let rows = &delays[..delays.len() - 1];
+    let past_hold: usize =
+        rows.split(|d| d.is_finite()).map(|gap| gap.len().saturating_sub(HOLD_TICKS - 1)).sum();
+    assert!(
+        safe as usize <= past_hold,
+        "{safe} ticks in safe mode, {past_hold} past the hold in gaps without a torque"
+    );
     let window: Vec<f64> = delays[1500..2500].iter().copied().filter(|d| d.is_finite()).collect();
     assert!(window.len() > 500, "torques took effect in {} of 1000 ticks", window.len());
     let mut sorted = window.clone();
