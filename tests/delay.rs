@@ -208,7 +208,9 @@ fn an_injected_controller_delay_is_felt_and_reported() {
     // ticks in a row in which no torque took effect (`delay_s` NaN), which a 5 ms delay
     // never makes. A controller starved on a loaded machine can (once in 18 runs under
     // `repeat-tests --load`: 12 ticks): every safe-mode tick must lie past the 50th tick
-    // of such a gap, one tick given for where a torque at a tick's edge is counted.
+    // of such a gap, one tick given for where a torque at a tick's edge is counted. A plant
+    // that dropped the late torques would pass this (its gaps would be the window) and fail
+    // the count of torques that took effect below.
     let safe = s["safe_mode_ticks"].as_u64().expect("safe_mode_ticks");
     let rows = &delays[..delays.len() - 1];
     let past_hold: usize =
