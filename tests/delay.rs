@@ -7,7 +7,8 @@ use std::time::Duration;
 use crate::common::harness::{Harness, assert_same_trace, json, ok};
 
 const LIMIT: Duration = Duration::from_secs(240);
-/// The plant's `--hold-ticks` default: ticks in a row without a torque before safe mode.
+/// `--hold-ticks` of the injected-delay run: ticks in a row without a torque before safe
+/// mode (the default, given so that the test's rule is the run's).
 const HOLD_TICKS: usize = 50;
 
 fn column(trace: &str, name: &str) -> Vec<f64> {
@@ -198,19 +199,18 @@ fn delays_drawn_from_a_measured_distribution_are_reproducible_by_seed() {
 #[test]
 fn an_injected_controller_delay_is_felt_and_reported() {
     let h = Harness::new("inject");
-    let out = realtime_run(&h, &["--fault", "controller:delay@1=0.005:until@3"]);
+    let hold = HOLD_TICKS.to_string();
+    let fault = ["--fault", "controller:delay@1=0.005:until@3", "--hold-ticks", &hold];
+    let out = realtime_run(&h, &fault);
     let s = json(&out.join("summary.json"));
     assert_eq!(s["faults"][0]["kind"], "delay", "{}", s["faults"]);
     assert!(s["misses"].as_u64().expect("misses") > 1500, "misses {}", s["misses"]);
     let trace = std::fs::read_to_string(out.join("trace.csv")).expect("trace");
     let delays = column(&trace, "delay_s");
-    // The delay alone brings no safe mode: the plant enters it only after 50 (`--hold-ticks`)
-    // ticks in a row in which no torque took effect (`delay_s` NaN), which a 5 ms delay
-    // never makes. A controller starved on a loaded machine can (once in 18 runs under
-    // `repeat-tests --load`: 12 ticks): every safe-mode tick must lie past the 50th tick
-    // of such a gap, one tick given for where a torque at a tick's edge is counted. A plant
-    // that dropped the late torques would pass this (its gaps would be the window) and fail
-    // the count of torques that took effect below.
+    // Safe mode only past the hold of a gap in which no torque took effect (`delay_s` NaN),
+    // which a 5 ms delay never makes; one tick given per gap for where a torque at a
+    // tick's edge is counted. A plant that dropped the late torques would pass this (its
+    // gap would be the window) and fail the count of torques that took effect below.
     let safe = s["safe_mode_ticks"].as_u64().expect("safe_mode_ticks");
     let rows = &delays[..delays.len() - 1];
     let past_hold: usize =
