@@ -414,7 +414,7 @@ fn a_running_domains_files_are_owner_only() {
 }
 
 /// `sh -c script` as `user`, to completion.
-fn as_user(user: &TempUser, script: &str) -> Output {
+pub(crate) fn as_user(user: &TempUser, script: &str) -> Output {
     let mut cmd = Command::new("sh");
     crate::common::harness::group(&mut cmd);
     cmd.args(["-c", script])
@@ -693,4 +693,308 @@ fn lockstep_run(h: &Harness, out: &Path) -> Output {
         ],
         LIMIT,
     )
+}
+
+/// A directory like `/tmp` (mode 1777, root's) where the second user can make things: the
+/// test's to remove.
+fn public_dir() -> tempfile::TempDir {
+    let searchable = |p: &Path| {
+        p.ancestors().all(|d| std::fs::metadata(d).is_ok_and(|m| m.permissions().mode() & 1 != 0))
+    };
+    let tmp = std::env::temp_dir();
+    let base = if searchable(&tmp) { tmp } else { PathBuf::from("/var/tmp") };
+    let dir = tempfile::tempdir_in(base).expect("tempdir");
+    std::fs::set_permissions(dir.path(), std::fs::Permissions::from_mode(0o1777)).expect("chmod");
+    dir
+}
+
+/// Every name a run writes into OUT (issue 62 found 32 of 38 written through links).
+const OUT_NAMES: &[&str] = &[
+    "trace.csv",
+    "timing.csv",
+    "sched.csv",
+    "rss.csv",
+    "doctor.json",
+    "cpus.json",
+    "summary.json",
+    "launch.json",
+    "summary.json.partial",
+    "launch.json.partial",
+    "run.mcap",
+    "run.mcap.part",
+    "incidents.md",
+    "incidents.csv",
+    "incidents.png",
+    "sense_to_actuate.hgrm",
+    "sense_to_actuate.hlog",
+    "state_transport.hgrm",
+    "controller_compute.hgrm",
+    "tracking.png",
+    "latency_percentiles.png",
+];
+
+/// Issue 62, point 2: a run's OUT in a place another user controls. The second user makes
+/// OUT (0777) with a link per output name (and `config/iceoryx2.toml`, and `flight` to a
+/// root-only directory): the run is refused (exit 2, naming OUT, its owner, its mode) and
+/// writes nothing through any link. The same for an OUT that is the other user's link to a
+/// root-only directory, and for an OUT below the other user's directory (on the way). A
+/// root-owned OUT in the same public place runs (the control). Before, root overwrote 32
+/// of 38 linked files and wrote the whole run through the OUT link. Skipped where a second
+/// user cannot be created.
+#[test]
+fn an_out_another_user_controls_is_refused_and_nothing_is_written_through_it() {
+    let Some(user) = TempUser::for_test("an_out_another_user_controls_…") else { return };
+    let h = Harness::new("outlinks");
+    let secret = Secret::new(&h);
+    let root_only = h.path("root-only");
+    std::fs::create_dir(&root_only).expect("dir");
+    std::fs::set_permissions(&root_only, std::fs::Permissions::from_mode(0o700)).expect("chmod");
+    let public = public_dir();
+    let o = public.path().join("o");
+    let link = public.path().join("link");
+    let links: Vec<String> = OUT_NAMES
+        .iter()
+        .map(|n| format!("ln -s {} {}/{n}", secret.0.display(), o.display()))
+        .collect();
+    let script = format!(
+        "mkdir -m 0777 {o} {o}/config && {links} && ln -s {s} {o}/config/iceoryx2.toml && \
+         ln -s {r} {o}/flight && ln -s {r} {l}",
+        o = o.display(),
+        links = links.join(" && "),
+        s = secret.0.display(),
+        r = root_only.display(),
+        l = link.display(),
+    );
+    let made = as_user(&user, &script);
+    assert!(made.status.success(), "{}", String::from_utf8_lossy(&made.stderr));
+    let nothing_in_root_only = || std::fs::read_dir(&root_only).expect("dir").next().is_none();
+
+    for (what, out, named) in [
+        ("the other user's OUT", o.clone(), "0777"),
+        ("the other user's link as OUT", link.clone(), "symbolic link"),
+        ("an OUT below the other user's directory", o.join("run"), "on the way"),
+    ] {
+        let r = lockstep_run(&h, &out);
+        let err = String::from_utf8_lossy(&r.stderr);
+        assert_eq!(r.status.code(), Some(2), "{what} was not refused:\n{err}");
+        let shown =
+            if named == "on the way" { o.display().to_string() } else { out.display().to_string() };
+        assert!(err.contains(&shown) && err.contains(&user.name), "{what}: {err}");
+        assert!(err.contains(named), "{what}: {err}");
+        assert!(secret.untouched(), "{what}: the root-only file was written through a link");
+        assert!(nothing_in_root_only(), "{what}: the run wrote into the root-only directory");
+        assert!(!o.join("run").exists(), "{what}: made a directory in the other user's");
+    }
+    // The control: an OUT of root's own in the same public place runs.
+    let mine = public.path().join("mine");
+    ok(&lockstep_run(&h, &mine));
+    assert_eq!(json(&mine.join("summary.json"))["completed"], true);
+    assert!(secret.untouched());
+    h.assert_no_leftovers();
+}
+
+/// Issue 62, point 6: the flight records moved into `OUT/flight` keep 0600 (the packer
+/// wrote them with a plain open: 0644 under the usual umask), in a directory of 0700.
+#[test]
+fn the_flight_records_in_out_keep_0600() {
+    let h = Harness::new("flightmodes");
+    let out = h.path("run");
+    // SAFETY: plain setter; the usual 022 whatever the test runner's.
+    let old = unsafe { libc::umask(0o022) };
+    let o = lockstep_run(&h, &out);
+    unsafe { libc::umask(old) };
+    ok(&o);
+    let flight = out.join("flight");
+    let mode = |p: &Path| std::fs::symlink_metadata(p).expect("meta").permissions().mode() & 0o777;
+    assert_eq!(mode(&flight), 0o700, "{}", flight.display());
+    let mut n = 0;
+    for e in std::fs::read_dir(&flight).expect("flight").flatten() {
+        assert_eq!(mode(&e.path()), 0o600, "{}", e.path().display());
+        n += 1;
+    }
+    assert!(n >= 5, "only {n} records in {}", flight.display());
+    h.assert_no_leftovers();
+}
+
+/// `sh -c script` as root in a mount namespace of its own with a private `/dev/shm`
+/// (`size` of tmpfs), so that nothing of other tests' (or other users') runs is in it.
+fn in_private_shm(size: &str, script: &str) -> Result<Output, String> {
+    let mut cmd = Command::new("unshare");
+    crate::common::harness::group(&mut cmd);
+    let setup = format!(
+        "mount --make-rprivate / && mount -t tmpfs -o size={size},mode=1777 none /dev/shm || \
+         {{ echo 'setup: no private /dev/shm' >&2; exit 97; }}\n{script}"
+    );
+    cmd.args(["-m", "sh", "-c", &setup])
+        .stdin(Stdio::null())
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped());
+    let o = wait_output(cmd.spawn().map_err(|e| format!("unshare: {e}"))?, 3 * LIMIT);
+    match o.status.code() {
+        Some(97) => Err(String::from_utf8_lossy(&o.stderr).into_owned()),
+        _ => Ok(o),
+    }
+}
+
+/// Issue 62, point 4: the default domain planted from its first file. In a `/dev/shm` of
+/// its own, the second user watches for the staging directory of a `run-…` domain and, as
+/// soon as it appears, makes every resume slot of that domain (`rl_<D>_resume_*`). The
+/// plain `rotorloop run` (no `--domain`) is never refused: it draws another name where it
+/// found the other user's files, completes, and leaves nothing of its own in `/dev/shm`
+/// (the other user's files stay). Before, the run was refused (exit 2) and left its
+/// segments behind. Skipped where a second user or a mount namespace is missing.
+#[test]
+fn a_planted_default_domain_is_never_a_refusal() {
+    let Some(user) = TempUser::for_test("a_planted_default_domain_…") else { return };
+    let h = Harness::new("planted-default");
+    std::fs::set_permissions(h.dir.path(), std::fs::Permissions::from_mode(0o755)).expect("chmod");
+    let out = h.path("run");
+    let planted = h.path("planted");
+    std::fs::write(&planted, "").expect("log");
+    std::os::unix::fs::chown(&planted, Some(user.uid), None).expect("chown");
+    // The watcher: a busy loop of shell built-ins (no fork between seeing and planting).
+    let watcher = format!(
+        r#"while :; do for d in /dev/shm/rotorloop-flight-run-*; do [ -e "$d" ] || continue
+  D=${{d#/dev/shm/rotorloop-flight-}}
+  [ -e /dev/shm/rl_${{D}}_resume_plant ] && continue
+  for r in plant reference controller monitor plant-refusals; do : > /dev/shm/rl_${{D}}_resume_$r; done
+  echo "$D" >> {planted}
+done; done"#,
+        planted = planted.display()
+    );
+    let script = format!(
+        "setpriv --reuid={uid} --regid={uid} --clear-groups sh -c '{watcher}' &\nw=$!\n\
+         sleep 0.5\n{bin} run --scenario paper-zero --duration 0.5 --mode lockstep --quiet \
+         --out {out}\nrc=$?\nkill $w\nwait $w 2>/dev/null\necho rc=$rc\n\
+         ls -la /dev/shm\nfor f in /dev/shm/* /dev/shm/.rl_*; do [ -e \"$f\" ] && stat -c '%U %n' \"$f\"; done\n\
+         exit $rc",
+        uid = user.uid,
+        bin = ROTORLOOP,
+        out = out.display(),
+    );
+    let o = match in_private_shm("256m", &script) {
+        Ok(o) => o,
+        Err(why) => {
+            eprintln!("SKIPPED a_planted_default_domain_…: {why}");
+            return;
+        }
+    };
+    let (said, err) = (String::from_utf8_lossy(&o.stdout), String::from_utf8_lossy(&o.stderr));
+    let planted = std::fs::read_to_string(&planted).expect("log");
+    assert!(!planted.trim().is_empty(), "the watcher never saw the run's domain:\n{said}\n{err}");
+    assert_eq!(
+        o.status.code(),
+        Some(0),
+        "a planted default domain refused the run:\n{said}\n{err}"
+    );
+    assert_eq!(json(&out.join("summary.json"))["completed"], true);
+    let domain = json(&out.join("launch.json"))["domain"].as_str().expect("domain").to_owned();
+    // Whatever the watcher planted, the run's own domain is not one of them (it was
+    // planted too late, or the name was drawn again), and nothing of root's is left.
+    let roots: Vec<&str> = said.lines().filter(|l| l.starts_with("root /dev/shm/")).collect();
+    assert!(roots.is_empty(), "left in /dev/shm by the run: {roots:?}\n{said}");
+    // The other user's files are never removed (5 slots of each domain it planted).
+    let others = said.lines().filter(|l| l.starts_with(&format!("{} /dev/shm/", user.name)));
+    assert!(others.count() >= 5, "{said}");
+    assert!(domain.starts_with("run-"), "{domain}");
+}
+
+/// Issue 62, point 3: the monitor's fallback report directory (where the report goes when
+/// OUT's filesystem is full) cannot be planted. The second user makes the old predictable
+/// `$TMPDIR/rotorloop-report-<D>` (0777) with a `.hgrm` link to a root-only file: the run
+/// (its OUT a full 2 MiB tmpfs) never writes into it nor through the link, and its report
+/// lands in a directory of root's alone (0700, a random name). Before, root chmodded the
+/// planted directory 0700, the other user still read the summary, and the link was written
+/// through. Needs root with `mount` and a second user; skipped with a message elsewhere.
+#[test]
+fn the_fallback_report_directory_cannot_be_planted() {
+    let Some(user) = TempUser::for_test("the_fallback_report_directory_…") else { return };
+    let mut h = Harness::new("fallback");
+    let secret = Secret::new(&h);
+    let out = h.path("full");
+    std::fs::create_dir_all(&out).expect("dir");
+    let mounted = Command::new("mount")
+        .args(["-t", "tmpfs", "-o", "size=2m,mode=0755", "tmpfs"])
+        .arg(&out)
+        .output()
+        .is_ok_and(|o| o.status.success());
+    if !mounted {
+        eprintln!("SKIPPED the_fallback_report_directory_…: cannot mount a tmpfs here");
+        return;
+    }
+    struct Unmount(PathBuf);
+    impl Drop for Unmount {
+        fn drop(&mut self) {
+            let _ = Command::new("umount").arg(&self.0).status();
+        }
+    }
+    let _unmount = Unmount(out.clone());
+    let old = std::env::temp_dir().join(format!("rotorloop-report-{}", h.domain));
+    let made = as_user(
+        &user,
+        &format!(
+            "mkdir -m 0777 {o} && ln -s {s} {o}/sense_to_actuate.hgrm",
+            o = old.display(),
+            s = secret.0.display()
+        ),
+    );
+    assert!(made.status.success(), "{}", String::from_utf8_lossy(&made.stderr));
+    let args: Vec<String> = [
+        "run",
+        "--scenario",
+        "paper-sinusoid",
+        "--duration",
+        "6",
+        "--mode",
+        "realtime",
+        "--force",
+        "--domain",
+        &h.domain,
+        "--out",
+        out.to_str().expect("utf8"),
+    ]
+    .into_iter()
+    .map(str::to_owned)
+    .collect();
+    let run = h.spawn(ROTORLOOP, &args);
+    let status = h.wait_all(3 * LIMIT);
+    let err = h.stderr_of(run);
+    let planted: Vec<String> = std::fs::read_dir(&old)
+        .expect("the planted directory stays")
+        .flatten()
+        .map(|e| e.file_name().to_string_lossy().into_owned())
+        .collect();
+    let old_mode = std::fs::symlink_metadata(&old).expect("meta").permissions().mode() & 0o777;
+    let _ = std::fs::remove_dir_all(&old);
+    assert!(status[run].success(), "{err}");
+    assert!(secret.untouched(), "the root-only file was written through the planted link");
+    assert_eq!(planted, ["sense_to_actuate.hgrm"], "the run wrote into the planted directory");
+    assert_eq!(old_mode, 0o777, "the run changed the planted directory");
+    let prefix = rotorloop_monitor::recording::fallback_prefix(&h.domain);
+    let fallbacks: Vec<PathBuf> = std::fs::read_dir(std::env::temp_dir())
+        .expect("tmp")
+        .flatten()
+        .filter(|e| e.file_name().to_string_lossy().starts_with(&prefix))
+        .map(|e| e.path())
+        .collect();
+    let summary = std::iter::once(out.join("summary.json"))
+        .chain(fallbacks.iter().map(|f| f.join("summary.json")))
+        .find(|p| p.exists());
+    for f in &fallbacks {
+        let m = std::fs::symlink_metadata(f).expect("meta");
+        assert_eq!(m.permissions().mode() & 0o777, 0o700, "{}", f.display());
+        assert_eq!(std::os::unix::fs::MetadataExt::uid(&m), 0, "{}", f.display());
+    }
+    assert!(!fallbacks.is_empty(), "OUT never filled, no fallback was used: {err}");
+    let summary = summary.unwrap_or_else(|| panic!("no summary.json anywhere: {err}"));
+    let s = json(&summary);
+    assert_eq!(s["completed"], true);
+    // The records could not be moved onto the full disk: they stay on /dev/shm.
+    if let Some(flight) = s["flight"]["dir"].as_str() {
+        let _ = std::fs::remove_dir_all(flight);
+    }
+    for f in &fallbacks {
+        let _ = std::fs::remove_dir_all(f);
+    }
+    h.assert_no_leftovers();
 }

@@ -273,7 +273,9 @@ fn a_full_disk_never_stops_the_loop() {
     let out = h.path("full");
     std::fs::create_dir_all(&out).expect("dir");
     let mounted = Command::new("mount")
-        .args(["-t", "tmpfs", "-o", "size=2m", "tmpfs"])
+        // mode=0755: a tmpfs's root is 1777 otherwise, an OUT every user could write in
+        // (refused: docs/security.md).
+        .args(["-t", "tmpfs", "-o", "size=2m,mode=0755", "tmpfs"])
         .arg(&out)
         .output()
         .is_ok_and(|o| o.status.success());
@@ -288,15 +290,21 @@ fn a_full_disk_never_stops_the_loop() {
         }
     }
     let _unmount = Unmount(out.clone());
-    let fallback = rotorloop_monitor::recording::fallback_dir(&h.domain);
-    let _ = std::fs::remove_dir_all(&fallback);
     // --force: the launcher's estimate (about 19 MB) says the 2 MiB disk cannot hold the
     // run, and refuses it without.
     let args = ["--scenario", "paper-sinusoid", "--duration", "6", "--mode", "realtime", "--force"];
     let o = wait_output(launcher(&h, &out, &args), LIMIT);
     assert!(o.status.success(), "exit {}: {}", o.status, stderr(&o));
-    let summary = [out.join("summary.json"), fallback.join("summary.json")]
-        .into_iter()
+    // The fallback's name is random (`$TMPDIR/rotorloop-report-DOMAIN-…`): found by its prefix.
+    let prefix = rotorloop_monitor::recording::fallback_prefix(&h.domain);
+    let fallbacks: Vec<PathBuf> = std::fs::read_dir(std::env::temp_dir())
+        .expect("tmp")
+        .flatten()
+        .filter(|e| e.file_name().to_string_lossy().starts_with(&prefix))
+        .map(|e| e.path())
+        .collect();
+    let summary = std::iter::once(out.join("summary.json"))
+        .chain(fallbacks.iter().map(|f| f.join("summary.json")))
         .find(|p| p.exists())
         .unwrap_or_else(|| panic!("no summary.json anywhere: {}", stderr(&o)));
     let s = json(&summary);
@@ -321,6 +329,8 @@ fn a_full_disk_never_stops_the_loop() {
         "histograms in {}",
         hgrm_dir.display()
     );
-    let _ = std::fs::remove_dir_all(&fallback);
+    for f in &fallbacks {
+        let _ = std::fs::remove_dir_all(f);
+    }
     h.assert_no_leftovers();
 }

@@ -39,12 +39,10 @@ pub fn write_percentile_distribution(h: &Histogram<u64>, out: &mut impl Write) -
 
 /// Writes `h` as a `.hgrm` file at `path`.
 pub fn write_hgrm_file(path: &std::path::Path, h: &Histogram<u64>) -> io::Result<()> {
-    let mut f =
-        io::BufWriter::new(std::fs::File::create(path).map_err(|e| {
-            io::Error::new(e.kind(), format!("cannot write {}: {e}", path.display()))
-        })?);
-    write_percentile_distribution(h, &mut f)?;
-    f.flush()
+    let mut text = Vec::new();
+    write_percentile_distribution(h, &mut text)?;
+    crate::outdir::write_file(path, text)
+        .map_err(|e| io::Error::new(e.kind(), format!("cannot write {}: {e}", path.display())))
 }
 
 /// The largest `.hgrm` file read (bytes): a distribution is a few hundred lines.

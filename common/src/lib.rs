@@ -26,6 +26,7 @@ pub mod graph;
 pub mod hgrm;
 pub mod input;
 pub mod ipc;
+pub mod outdir;
 pub mod output;
 pub mod params;
 pub mod private;

@@ -7,16 +7,13 @@ use anyhow::Context;
 use serde::Serialize;
 
 /// Writes `value` as pretty JSON (a summary), with a trailing newline. All or nothing: it
-/// is written beside `path` and renamed into place, so a full disk never leaves a
+/// is written to an exclusive temporary beside `path` and renamed into place
+/// ([`crate::outdir::OutDir`]: never through a link), so a full disk never leaves a
 /// truncated file where a reader expects a whole one.
 pub fn write_json(path: &Path, value: &impl Serialize) -> anyhow::Result<()> {
     let text = serde_json::to_string_pretty(value).context("cannot serialise summary")?;
-    let tmp = path.with_extension("json.partial");
-    let written = std::fs::write(&tmp, text + "\n").and_then(|()| std::fs::rename(&tmp, path));
-    if written.is_err() {
-        let _ = std::fs::remove_file(&tmp);
-    }
-    written.with_context(|| format!("cannot write {}", path.display()))
+    crate::outdir::write_file(path, text + "\n")
+        .with_context(|| format!("cannot write {}", path.display()))
 }
 
 /// Changes `out/summary.json` with `change`; nothing when there is no summary (the

@@ -207,6 +207,38 @@ pub fn write_new(path: &Path, bytes: &[u8]) -> Result<(), PrivateError> {
     f.write_all(bytes).map_err(|e| PrivateError::io(path, e))
 }
 
+/// Below this many free bytes `/dev/shm` counts as full for [`shm_full`] when the space a
+/// run needs there is not known: less than one iceoryx2 node's files and a resume slot.
+pub const SHM_NEARLY_FULL: u64 = 1 << 20;
+
+/// What to say when `/dev/shm` cannot hold what a run needs there (`need` bytes, its
+/// flight rings while it runs, when known): `None` while it has room. A full `/dev/shm`
+/// (another user may have filled it) makes a role die of SIGBUS on a page of a mapped
+/// file, and iceoryx2 refuse a node with an `InternalError` that names nothing.
+pub fn shm_full(need: Option<u64>) -> Option<String> {
+    let c = c"/dev/shm";
+    // SAFETY: statvfs fills the struct from a NUL-terminated path; checked for failure.
+    let st = unsafe {
+        let mut st: libc::statvfs = std::mem::zeroed();
+        (libc::statvfs(c.as_ptr(), &mut st) == 0).then_some(st)
+    }?;
+    let free = st.f_bavail.saturating_mul(st.f_frsize);
+    let total = st.f_blocks.saturating_mul(st.f_frsize);
+    let mib = |b: u64| b as f64 / (1u64 << 20) as f64;
+    let needed = need.map_or(SHM_NEARLY_FULL, |n| n.max(SHM_NEARLY_FULL));
+    (free < needed).then(|| {
+        let what = match need {
+            Some(n) => format!("the run needs about {:.1} MiB there (its flight rings) and iceoryx2's segments", mib(n)),
+            None => format!("a role needs at least {:.1} MiB there for its shared memory", mib(SHM_NEARLY_FULL)),
+        };
+        format!(
+            "/dev/shm is full: {:.1} MiB free of {:.1} MiB; {what}. Free space there (`df -h              /dev/shm`; `ls -la /dev/shm` shows whose files take it)",
+            mib(free),
+            mib(total)
+        )
+    })
+}
+
 /// `N` bytes from the kernel's randomness (`getrandom(2)`, which blocks only until the
 /// kernel's pool was first seeded at boot).
 pub fn random_bytes<const N: usize>() -> std::io::Result<[u8; N]> {

@@ -272,7 +272,7 @@ impl Gateway {
             }
             if self.peers == 0 {
                 if let Some(f) = args.ready_file.as_ref().filter(|_| peers > 0) {
-                    std::fs::write(f, b"connected\n")
+                    rotorloop_common::outdir::write_file(f, b"connected\n")
                         .with_context(|| format!("cannot write {}", f.display()))?;
                 }
             }

@@ -220,12 +220,10 @@ impl Latency {
     fn open_log(dir: &Path, hop: Hop, append: bool) -> io::Result<BufWriter<File>> {
         let path = dir.join(format!("{}.hlog", hop.name()));
         let fresh = !append || !path.exists();
-        let file = std::fs::OpenOptions::new()
-            .create(true)
-            .append(append)
-            .write(true)
-            .truncate(!append)
-            .open(&path)?;
+        let name = format!("{}.hlog", hop.name());
+        let out =
+            rotorloop_common::outdir::OutDir::open(dir).map_err(rotorloop_common::outdir::to_io)?;
+        let file = if append { out.append(&name)? } else { out.create(&name)? };
         let mut log = BufWriter::new(file);
         if fresh {
             let mut ser = V2DeflateSerializer::new();
@@ -313,11 +311,13 @@ impl Latency {
     pub fn finish(&mut self, dir: &Path) -> io::Result<Vec<String>> {
         self.rotate();
         let mut files = Vec::new();
+        let od =
+            rotorloop_common::outdir::OutDir::open(dir).map_err(rotorloop_common::outdir::to_io)?;
         for hop in Hop::ALL {
             let name = format!("{}.hgrm", hop.name());
-            let mut out = BufWriter::new(File::create(dir.join(&name))?);
+            let mut out = BufWriter::new(od.atomic(&name)?);
             rotorloop_common::hgrm::write_percentile_distribution(self.histogram(hop), &mut out)?;
-            out.flush()?;
+            out.into_inner().map_err(|e| e.into_error())?.commit()?;
             files.push(name);
         }
         Ok(files)

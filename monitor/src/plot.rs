@@ -44,6 +44,23 @@ pub enum YScale {
 /// Chart size in pixels.
 pub const SIZE: (u32, u32) = (1000, 600);
 
+/// A figure of `size` drawn into memory by `draw`, then encoded as PNG and written to `path`
+/// whole, never through a link ([`rotorloop_common::outdir`]).
+fn render(
+    path: &Path,
+    size: (u32, u32),
+    draw: impl FnOnce(DrawingArea<BitMapBackend<'_>, plotters::coord::Shift>) -> Result<(), PlotError>,
+) -> Result<(), PlotError> {
+    use image::ImageEncoder;
+    let mut rgb = vec![0u8; size.0 as usize * size.1 as usize * 3];
+    draw(BitMapBackend::with_buffer(&mut rgb, size).into_drawing_area())?;
+    let mut png = Vec::new();
+    image::codecs::png::PngEncoder::new(&mut png)
+        .write_image(&rgb, size.0, size.1, image::ColorType::Rgb8)
+        .map_err(|e| err(path, e))?;
+    rotorloop_common::outdir::write_file(path, png).map_err(|e| err(path, e))
+}
+
 const PALETTE: [RGBColor; 6] = [
     RGBColor(31, 119, 180),
     RGBColor(214, 39, 40),
@@ -118,10 +135,11 @@ pub fn line_chart(
     scale: YScale,
 ) -> Result<(), PlotError> {
     register_font();
-    let root = BitMapBackend::new(path, SIZE).into_drawing_area();
-    root.fill(&WHITE).map_err(|e| err(path, e))?;
-    draw_lines(&root, path, title, x_label, y_label, series, scale)?;
-    root.present().map_err(|e| err(path, e))
+    render(path, SIZE, |root| {
+        root.fill(&WHITE).map_err(|e| err(path, e))?;
+        draw_lines(&root, path, title, x_label, y_label, series, scale)?;
+        root.present().map_err(|e| err(path, e))
+    })
 }
 
 fn draw_lines<DB: DrawingBackend>(
@@ -202,14 +220,16 @@ pub fn panel_grid(
     panels: &[(&str, &str, &[Series<'_>])],
 ) -> Result<(), PlotError> {
     register_font();
-    let root = BitMapBackend::new(path, (1200, 900)).into_drawing_area();
-    root.fill(&WHITE).map_err(|e| err(path, e))?;
-    let root = root.titled(title, ("sans-serif", 26)).map_err(|e| err(path, e))?;
-    for (area, (panel_title, y_label, series)) in root.split_evenly((rows, cols)).iter().zip(panels)
-    {
-        draw_lines(area, path, panel_title, "t (s)", y_label, series, YScale::Linear)?;
-    }
-    root.present().map_err(|e| err(path, e))
+    render(path, (1200, 900), |root| {
+        root.fill(&WHITE).map_err(|e| err(path, e))?;
+        let root = root.titled(title, ("sans-serif", 26)).map_err(|e| err(path, e))?;
+        for (area, (panel_title, y_label, series)) in
+            root.split_evenly((rows, cols)).iter().zip(panels)
+        {
+            draw_lines(area, path, panel_title, "t (s)", y_label, series, YScale::Linear)?;
+        }
+        root.present().map_err(|e| err(path, e))
+    })
 }
 
 /// A histogram of `values` in `bins` equal bins over their range.
@@ -234,27 +254,28 @@ pub fn histogram(
         counts[i] += 1;
     }
     let top = counts.iter().copied().max().unwrap_or(1).max(1);
-    let root = BitMapBackend::new(path, SIZE).into_drawing_area();
-    root.fill(&WHITE).map_err(|e| err(path, e))?;
-    let mut chart = ChartBuilder::on(&root)
-        .caption(title, ("sans-serif", 22))
-        .margin(12)
-        .x_label_area_size(40)
-        .y_label_area_size(60)
-        .build_cartesian_2d(lo..hi, 0u32..top + top / 10 + 1)
-        .map_err(|e| err(path, e))?;
-    chart
-        .configure_mesh()
-        .x_desc(x_label)
-        .y_desc("runs")
-        .label_style(("sans-serif", 15))
-        .draw()
-        .map_err(|e| err(path, e))?;
-    chart
-        .draw_series(counts.iter().enumerate().map(|(i, &c)| {
-            let x0 = lo + i as f64 * width;
-            Rectangle::new([(x0, 0), (x0 + width, c)], PALETTE[0].filled())
-        }))
-        .map_err(|e| err(path, e))?;
-    root.present().map_err(|e| err(path, e))
+    render(path, SIZE, |root| {
+        root.fill(&WHITE).map_err(|e| err(path, e))?;
+        let mut chart = ChartBuilder::on(&root)
+            .caption(title, ("sans-serif", 22))
+            .margin(12)
+            .x_label_area_size(40)
+            .y_label_area_size(60)
+            .build_cartesian_2d(lo..hi, 0u32..top + top / 10 + 1)
+            .map_err(|e| err(path, e))?;
+        chart
+            .configure_mesh()
+            .x_desc(x_label)
+            .y_desc("runs")
+            .label_style(("sans-serif", 15))
+            .draw()
+            .map_err(|e| err(path, e))?;
+        chart
+            .draw_series(counts.iter().enumerate().map(|(i, &c)| {
+                let x0 = lo + i as f64 * width;
+                Rectangle::new([(x0, 0), (x0 + width, c)], PALETTE[0].filled())
+            }))
+            .map_err(|e| err(path, e))?;
+        root.present().map_err(|e| err(path, e))
+    })
 }

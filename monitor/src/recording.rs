@@ -95,13 +95,14 @@ fn open_files(
 ) -> anyhow::Result<(Filer, [u64; 2])> {
     let open = |name: &str, claimed: Option<u64>, header: &str| {
         let path = out.join(name);
-        let mut f = std::fs::OpenOptions::new()
-            .create(true)
-            .append(resumed.is_some())
-            .write(true)
-            .truncate(resumed.is_none())
-            .open(&path)
-            .with_context(|| format!("cannot open {}", path.display()))?;
+        let dir = rotorloop_common::outdir::OutDir::open(out)?;
+        // A restart appends to its predecessor's file; a new report replaces the name (never
+        // writing through a link).
+        let f = match resumed {
+            Some(_) => dir.append(name),
+            None => dir.create(name),
+        };
+        let mut f = f.with_context(|| format!("cannot open {}", path.display()))?;
         let len = f.metadata().with_context(|| format!("cannot read {}", path.display()))?.len();
         let len = match claimed {
             // Rows the predecessor wrote after its slot's last word: taken again now.
@@ -141,15 +142,19 @@ impl Recording {
         (now_ns, stall): (u64, Option<std::time::Duration>),
         csv: bool,
     ) -> (Self, Option<MonitorResume>) {
-        let _ = std::fs::create_dir_all(out);
-        let _ = std::fs::remove_file(out.join("summary.json"));
+        let made = rotorloop_common::outdir::OutDir::make(out);
+        if let Ok(dir) = &made {
+            let _ = dir.remove("summary.json");
+        }
         let resumed = slot
             .filter(|r| r.next_row <= scenario.ticks() && (!csv || out.join("trace.csv").exists()));
         let first_row = resumed.map_or(0, |r| r.next_row);
         let stall = stall.filter(|_| resumed.is_none());
         if !csv {
             for f in ["trace.csv", "timing.csv"] {
-                let _ = std::fs::remove_file(out.join(f));
+                if let Ok(dir) = &made {
+                    let _ = dir.remove(f);
+                }
             }
         }
         let opened = if csv { Some(open_files(out, resumed.as_ref(), stall)) } else { None };
@@ -448,12 +453,22 @@ pub(crate) fn new_metrics(scenario: &Scenario) -> (Metrics, Actuation) {
     (Metrics::new(params, &init).with_disturbance(scenario.disturbance), actuation)
 }
 
-/// Where a run of `domain` writes what its output directory cannot take.
+/// Where a run of `domain` writes what its output directory cannot take:
+/// `$TMPDIR/rotorloop-report-DOMAIN-XXXXXXXXXX`, the tail random (from the kernel), drawn
+/// anew by each process; made only when needed ([`with_fallback`]: `mkdir` mode 0700, used
+/// only while it is this user's own private directory), and named in the report. Another
+/// user can neither guess it ahead of the run nor plant anything in it.
 pub fn fallback_dir(domain: &str) -> PathBuf {
-    std::env::temp_dir().join(format!("rotorloop-report-{domain}"))
+    let tail = rotorloop_common::private::random_name(10);
+    std::env::temp_dir().join(format!("{}{tail}", fallback_prefix(domain)))
 }
 
-/// Runs `write` on `out`, again on `out` after 100 ms, then on `fallback` (created);
+/// The beginning of the names of `domain`'s fallback directories in `$TMPDIR`.
+pub fn fallback_prefix(domain: &str) -> String {
+    format!("rotorloop-report-{domain}-")
+}
+
+/// Runs `write` on `out`, again on `out` after 100 ms, then on `fallback` (made privately);
 /// returns its result and the directory it succeeded in.
 pub fn with_fallback<T>(
     out: &Path,
@@ -468,11 +483,9 @@ pub fn with_fallback<T>(
     if let Ok(v) = write(out) {
         return Ok((v, out.to_owned()));
     }
-    std::fs::create_dir_all(fallback)
-        .and_then(|()| {
-            use std::os::unix::fs::PermissionsExt;
-            std::fs::set_permissions(fallback, std::fs::Permissions::from_mode(0o700))
-        })
+    // Made exclusively and privately; one already there is used only if it is this user's
+    // own private directory (this process's, made by an earlier write).
+    rotorloop_common::private::dir(fallback)
         .with_context(|| format!("{first:#}; fallback {} not usable either", fallback.display()))?;
     let v = write(fallback).with_context(|| format!("{first:#}; and in {}", fallback.display()))?;
     Ok((v, fallback.to_owned()))

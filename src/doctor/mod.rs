@@ -102,7 +102,7 @@ pub fn write_into(out: &Path, rate_hz: f64, seconds: f64, cpus: Option<&[usize]>
     let path = out.join("doctor.json");
     let report = examine(rate_hz, seconds, cpus);
     let text = serde_json::to_string_pretty(&report).unwrap_or_default() + "\n";
-    if let Err(e) = std::fs::write(&path, text) {
+    if let Err(e) = rotorloop_common::outdir::write_file(&path, text) {
         eprintln!("warning: cannot write {}: {e}", path.display());
     }
     path

@@ -206,15 +206,18 @@ fn parse_row(line: &str) -> Vec<f64> {
 /// message (the log of a run without an event, the incidents of a clean run) is in every
 /// file: the schemas are [`super::topics`]', the same as the live view's.
 struct FileSink {
-    writer: mcap::Writer<std::io::BufWriter<std::fs::File>>,
+    writer: mcap::Writer<std::io::BufWriter<rotorloop_common::outdir::Atomic>>,
     channels: BTreeMap<&'static str, (u16, u32, u64)>,
 }
 
 impl FileSink {
-    /// A sink writing `part` in chunks of `chunk` bytes of messages.
-    fn create(part: &Path, chunk: u64) -> anyhow::Result<Self> {
-        let file = std::fs::File::create(part)
-            .with_context(|| format!("cannot write {}", part.display()))?;
+    /// A sink writing `path` (through an exclusive temporary beside it, renamed by
+    /// [`FileSink::finish`]) in chunks of `chunk` bytes of messages.
+    fn create(path: &Path, chunk: u64) -> anyhow::Result<Self> {
+        let file = rotorloop_common::outdir::split(path)
+            .map_err(anyhow::Error::from)
+            .and_then(|(dir, name)| Ok(rotorloop_common::outdir::OutDir::open(dir)?.atomic(name)?))
+            .with_context(|| format!("cannot write {}", path.display()))?;
         // zstd at level 1: with the writer's default, compression was over 40 % of the
         // export's time (perf), and the file was 10 % larger (docs/measurements.md).
         let options = mcap::WriteOptions::new()
@@ -293,7 +296,9 @@ impl FileSink {
     fn finish(mut self) -> anyhow::Result<()> {
         use std::io::Write;
         self.writer.finish()?;
-        self.writer.into_inner().flush()?;
+        let mut file = self.writer.into_inner().into_inner().map_err(|e| e.into_error())?;
+        file.flush()?;
+        file.commit()?;
         Ok(())
     }
 }
@@ -454,8 +459,9 @@ pub fn write(dir: &Path) -> anyhow::Result<McapCounts> {
     write_with(dir, Detail::Auto)
 }
 
-/// Writes `DIR/run.mcap` from the run in `dir` with `detail`: through a `.part` file
-/// renamed when complete, so a reader never sees half a file.
+/// Writes `DIR/run.mcap` from the run in `dir` with `detail`: through an exclusive
+/// temporary renamed when complete (removed on failure), so a reader never sees half a
+/// file.
 pub fn write_with(dir: &Path, detail: Detail) -> anyhow::Result<McapCounts> {
     // A run in process (`sim`, `sim --replay`, `paper`'s in-process runs) has no flight
     // records: its trace alone (attitudes, tracking) in simulated time.
@@ -463,7 +469,6 @@ pub fn write_with(dir: &Path, detail: Detail) -> anyhow::Result<McapCounts> {
         || !dir.join("trace.csv").exists();
     let run = if records { Some(Run::read(dir)?) } else { None };
     let path = dir.join("run.mcap");
-    let part = dir.join("run.mcap.part");
     let summary = match &run {
         Some(run) => run.summary.clone(),
         None => std::fs::read_to_string(dir.join("summary.json"))
@@ -480,7 +485,7 @@ pub fn write_with(dir: &Path, detail: Detail) -> anyhow::Result<McapCounts> {
     let plan = Plan::of(detail, ticks, rate);
     let long = ticks.is_some_and(|t| t >= LONG_RUN_TICKS);
     let chunk = if long { MCAP_LONG_CHUNK_BYTES } else { MCAP_CHUNK_BYTES };
-    let written = FileSink::create(&part, chunk).and_then(|mut sink| {
+    let written = FileSink::create(&path, chunk).and_then(|mut sink| {
         let kept = match &run {
             Some(run) => write_messages(&mut sink, run, dir, plan)?,
             None => write_trace_messages(&mut sink, dir, plan)?,
@@ -491,12 +496,8 @@ pub fn write_with(dir: &Path, detail: Detail) -> anyhow::Result<McapCounts> {
     });
     let (counts, kept) = match written {
         Ok(c) => c,
-        Err(e) => {
-            let _ = std::fs::remove_file(&part);
-            return Err(e.context(format!("cannot write {}", path.display())));
-        }
+        Err(e) => return Err(e.context(format!("cannot write {}", path.display()))),
     };
-    std::fs::rename(&part, &path).with_context(|| format!("cannot write {}", path.display()))?;
     Ok(McapCounts {
         path: path.display().to_string(),
         messages: counts,

@@ -54,7 +54,7 @@ pub fn run(a: &ExportArgs) -> anyhow::Result<()> {
 }
 
 /// Writes `DIR/trace.csv` and `DIR/timing.csv` from the run's records, a row at a time,
-/// each through a `.part` file renamed when complete; refuses where either exists.
+/// each through an exclusive temporary renamed when complete; refuses where either exists.
 fn csv(dir: &std::path::Path) -> anyhow::Result<()> {
     use anyhow::Context;
     use rotorloop_monitor::derive::Csv;
@@ -71,13 +71,13 @@ fn csv(dir: &std::path::Path) -> anyhow::Result<()> {
     }
     let mut rows = rotorloop_monitor::derive::DerivedRows::of_run(dir)
         .with_context(|| format!("cannot derive the CSV files of {}", dir.display()))?;
+    let out = rotorloop_common::outdir::OutDir::open(dir)?;
     let create = |c: Csv| -> anyhow::Result<_> {
-        let part = dir.join(format!("{}.part", c.name()));
-        let f = std::fs::File::create(&part)
-            .with_context(|| format!("cannot write {}", part.display()))?;
+        let path = dir.join(c.name());
+        let f = out.atomic(c.name()).with_context(|| format!("cannot write {}", path.display()))?;
         let mut w = std::io::BufWriter::new(f);
         writeln!(w, "{}", c.header())?;
-        Ok((w, part, dir.join(c.name())))
+        Ok((w, path))
     };
     let (mut trace, mut timing) = (create(Csv::Trace)?, create(Csv::Timing)?);
     let mut n = 0u64;
@@ -86,9 +86,9 @@ fn csv(dir: &std::path::Path) -> anyhow::Result<()> {
         writeln!(timing.0, "{m}")?;
         n += 1;
     }
-    for (mut w, part, path) in [trace, timing] {
-        w.flush().with_context(|| format!("cannot write {}", part.display()))?;
-        std::fs::rename(&part, &path)
+    for (w, path) in [trace, timing] {
+        let file = w.into_inner().map_err(|e| e.into_error());
+        file.and_then(|f| f.commit())
             .with_context(|| format!("cannot write {}", path.display()))?;
         println!("{}: {n} rows", path.display());
     }

@@ -507,10 +507,7 @@ pub fn run(a: &FoxgloveArgs) -> anyhow::Result<()> {
     let bound = SocketAddr::new(addr.ip(), port);
     if let Some(f) = &a.addr_file {
         // Renamed into place: whoever waits for the file never reads half of it.
-        let mut part = f.clone().into_os_string();
-        part.push(".part");
-        std::fs::write(&part, format!("{bound}\n"))
-            .and_then(|()| std::fs::rename(&part, f))
+        rotorloop_common::outdir::write_file(f, format!("{bound}\n"))
             .with_context(|| format!("cannot write {}", f.display()))?;
     }
     eprintln!(

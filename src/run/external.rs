@@ -191,7 +191,8 @@ pub fn state_dir(out: &Path) -> PathBuf {
 /// needs (gains, `P`, the controller's model, actuation, limits, `dt`, ticks).
 pub fn write_run_files(out: &Path, scenario: &Scenario) -> anyhow::Result<()> {
     use anyhow::Context;
-    std::fs::write(out.join(SCENARIO_FILE), scenario.file.to_toml())
+    let dir = rotorloop_common::outdir::OutDir::open(out)?;
+    dir.write(SCENARIO_FILE, scenario.file.to_toml().as_bytes())
         .with_context(|| format!("cannot write {}", out.join(SCENARIO_FILE).display()))?;
     let actuation = scenario.actuation();
     let model = scenario.controller_params(actuation);
@@ -222,19 +223,20 @@ pub fn write_run_files(out: &Path, scenario: &Scenario) -> anyhow::Result<()> {
         law_params,
     };
     let path = out.join(CONTROLLER_FILE);
-    std::fs::write(&path, serde_json::to_string_pretty(&j)? + "\n")
+    dir.write(CONTROLLER_FILE, (serde_json::to_string_pretty(&j)? + "\n").as_bytes())
         .with_context(|| format!("cannot write {}", path.display()))?;
     // A new run starts with an empty state directory: a controller must never resume
     // the state of an earlier run written into the same `--out` (its restarts within
     // this run keep it: this runs once, before the first start).
-    let dir = state_dir(out);
-    match std::fs::remove_dir_all(&dir) {
+    // (`remove_dir_all` never follows a link: it works relative to each directory.)
+    let state = state_dir(out);
+    match std::fs::remove_dir_all(&state) {
         Err(e) if e.kind() != std::io::ErrorKind::NotFound => {
-            return Err(e).with_context(|| format!("cannot clear {}", dir.display()));
+            return Err(e).with_context(|| format!("cannot clear {}", state.display()));
         }
         _ => {}
     }
-    std::fs::create_dir_all(state_dir(out))?;
+    dir.subdir("controller-state")?;
     Ok(())
 }
 

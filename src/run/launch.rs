@@ -85,9 +85,34 @@ fn claim(
     domains: &[Domain],
 ) -> anyhow::Result<()> {
     prepare_domains(domains, &args.out)?;
+    let held = hold(args, record, domains);
+    if held.is_err() {
+        // A refused start leaves nothing of its own behind (another user's is never
+        // touched), and nothing of a live run: the domain was free (above).
+        release(args, record, domains);
+    }
+    held
+}
+
+/// The resume slots every role opens (`rl_<D>_resume_<role>`): made by the launcher,
+/// privately, before any role starts, so that no name a role will open is left for
+/// another user to make once the domain's name is public.
+const SLOTS: [&str; 5] = ["plant", "reference", "controller", "monitor", "plant-refusals"];
+
+/// [`claim`]'s part that makes things: the staging directory first (the domain's private
+/// directory), then each domain's directory, global segment and resume slots; then
+/// whether anything of the domain is another user's (made in the meantime).
+fn hold(
+    args: &RunArgs,
+    record: Option<&std::path::Path>,
+    domains: &[Domain],
+) -> anyhow::Result<()> {
     if let Some(dir) = record {
         if args.role.record.is_none() {
             make_staging(dir)?;
+            // Where the records are moved: a directory of OUT's own (never a link), 0700
+            // when new, as the records are the run's user's alone.
+            rotorloop_common::outdir::OutDir::open(&args.out)?.subdir_mode("flight", 0o700)?;
         }
         // An earlier run's records in the same directory are not this run's to continue.
         clear_flight_records(dir)?;
@@ -95,8 +120,93 @@ fn claim(
     }
     for domain in domains {
         domain.make_private()?;
+        for role in SLOTS {
+            let path = format!("/dev/shm/{}resume_{role}", domain.prefix());
+            rotorloop_common::private::open_or_create_file(std::path::Path::new(&path))?;
+        }
+        if let Some(f) = domain.foreign_files().into_iter().next() {
+            return Err(rotorloop_common::private::PrivateError::from(f).into());
+        }
     }
     Ok(())
+}
+
+/// Removes what this launcher made of `domains` and of its staging directory `record`,
+/// after a refused start: only this user's own (another user's is never followed or
+/// removed). Nothing of the domain runs (the launcher checked before making anything).
+fn release(args: &RunArgs, record: Option<&std::path::Path>, domains: &[Domain]) {
+    use std::os::unix::fs::MetadataExt;
+    let me = rotorloop_common::private::euid();
+    let mine = |p: &std::path::Path| std::fs::symlink_metadata(p).is_ok_and(|m| m.uid() == me);
+    if let Some(dir) = record.filter(|_| args.role.record.is_none()) {
+        let in_shm = dir.parent().is_some_and(|p| p == std::path::Path::new("/dev/shm"));
+        if in_shm && mine(dir) && std::fs::symlink_metadata(dir).is_ok_and(|m| m.is_dir()) {
+            let _ = std::fs::remove_dir_all(dir);
+        }
+    }
+    for domain in domains {
+        release_domain(domain);
+    }
+}
+
+/// Removes this user's own files of `domain` (its directory, its `/dev/shm` files), none
+/// of another user's; for a domain none of whose processes runs.
+fn release_domain(domain: &Domain) {
+    use std::os::unix::fs::MetadataExt;
+    let me = rotorloop_common::private::euid();
+    let mine = |p: &std::path::Path| std::fs::symlink_metadata(p).is_ok_and(|m| m.uid() == me);
+    let root = domain.root_dir();
+    if mine(&root) && std::fs::symlink_metadata(&root).is_ok_and(|m| m.is_dir()) {
+        let _ = std::fs::remove_dir_all(&root);
+    }
+    for e in std::fs::read_dir("/dev/shm").into_iter().flatten().flatten() {
+        let named = e.file_name().to_string_lossy().starts_with(domain.prefix());
+        if named && mine(&e.path()) && e.file_type().is_ok_and(|t| !t.is_dir()) {
+            let _ = std::fs::remove_file(e.path());
+        }
+    }
+}
+
+/// [`claim`], and for a run without `--domain` (`defaulted`), a name of which another
+/// user made anything (seen as soon as the staging directory appears) is given up (what
+/// this launcher made of it removed) and another drawn: a planted default domain is
+/// never a refusal. Returns the domains held; `role_args` names the one drawn.
+fn claim_drawing(
+    args: &RunArgs,
+    role_args: &mut RoleArgs,
+    split: Option<&Split>,
+    defaulted: bool,
+) -> anyhow::Result<Vec<Domain>> {
+    const DRAWS: usize = 64;
+    let mut draw = 0;
+    loop {
+        let domains = domains_of(split, role_args)?;
+        let claimed = claim(args, role_args.record.as_deref(), &domains);
+        match claimed {
+            Ok(()) => return Ok(domains),
+            Err(e) if defaulted && draw < DRAWS && foreign(&e) => {
+                draw += 1;
+                eprintln!(
+                    "launcher: another user made files of domain `{}` ({e:#}); drawing another \
+                     name",
+                    role_args.domain()
+                );
+                role_args.domain = Some(default_domain());
+                if args.role.record.is_none() && !args.no_record {
+                    role_args.record = Some(staging_dir(role_args, &args.out));
+                }
+            }
+            Err(e) => return Err(e),
+        }
+    }
+}
+
+/// Whether `e` refuses something another user made.
+fn foreign(e: &anyhow::Error) -> bool {
+    use rotorloop_common::private::{Foreign, PrivateError};
+    e.downcast_ref::<Foreign>().is_some()
+        || matches!(e.downcast_ref::<PrivateError>(), Some(PrivateError::Foreign(_)))
+        || e.downcast_ref::<rotorloop_common::ipc::IpcError>().is_some_and(|i| i.is_foreign())
 }
 
 /// `--corrupt`'s corruptions and the supervisor of `--restart` and `--restart-limit`.
@@ -143,6 +253,7 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
     crate::run::budget::check(args, &scenario)?;
     let (corrupt, supervisor) = corruptions_and_supervisor(args)?;
     let mut role_args = args.role.clone();
+    let defaulted = role_args.domain.is_none();
     role_args.domain.get_or_insert_with(default_domain);
     role_args.record = match args.no_record {
         true => None,
@@ -157,19 +268,19 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
     if split.is_some() {
         crate::run::split::link_binary()?;
     }
-    let domains = domains_of(split.as_ref(), &role_args)?;
     let topology = crate::cpus::run_topology(args.cpus.as_deref())?;
     let pins = args.pin.as_deref().map(|p| parse_pins(p, &topology.allowed)).transpose()?;
     let pins = pins.unwrap_or_default();
-    std::fs::create_dir_all(&args.out)
-        .with_context(|| format!("cannot create {}", args.out.display()))?;
+    // OUT must be this user's alone (exit 2 naming it, its owner and mode otherwise): made
+    // with the user's umask where missing, before anything is written into it.
+    rotorloop_common::outdir::OutDir::make(&args.out)?;
     // The machine state the run's figures were taken in.
     crate::doctor::write_into(&args.out, 1.0 / scenario.dt(), duration_s, Some(&topology.allowed));
-    claim(args, role_args.record.as_deref(), &domains)?;
+    let domains = claim_drawing(args, &mut role_args, split.as_ref(), defaulted)?;
     if let Some(s) = &split {
         // The link's one-time credentials, before any gateway: a run that cannot make
         // them privately stops here, naming why.
-        s.credentials(&args.out).map_err(anyhow::Error::msg)?;
+        s.credentials(role_args.domain()).map_err(anyhow::Error::msg)?;
     }
     if args.controller_cmd.is_some() {
         crate::run::external::write_run_files(&args.out, &scenario)?;
@@ -179,6 +290,7 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
     let link_port = if split.is_some() { crate::run::split::free_port()? } else { 0 };
     let mut launch = Launch {
         args,
+        shm_need: crate::run::budget::estimate(args, &scenario).staging,
         domains,
         split,
         link_port,
@@ -282,7 +394,10 @@ impl Launch<'_> {
     fn clean_up(&self) {
         for domain in &self.domains {
             if let Err(e) = domain.cleanup() {
+                // Another user's file among them: this user's own are removed all the same
+                // (no process of the run is left), the other user's stay.
                 eprintln!("warning: cleaning up domain {}: {e}", domain.name());
+                release_domain(domain);
             }
         }
         for h in self.split.iter().flat_map(|s| s.hosts()) {

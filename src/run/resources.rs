@@ -91,10 +91,12 @@ impl RssLog {
     pub(crate) fn create(out: &std::path::Path, sched: bool, compressed: bool) -> Self {
         use std::io::Write;
         let path = out.join("rss.csv");
-        let csv = std::fs::File::create(&path).map(std::io::BufWriter::new).and_then(|mut f| {
-            writeln!(f, "t_s,role,pid,rss_kib,anon_kib,file_kib,shmem_kib")?;
-            Ok(f)
-        });
+        let csv = rotorloop_common::outdir::create_file(&path)
+            .map(std::io::BufWriter::new)
+            .and_then(|mut f| {
+                writeln!(f, "t_s,role,pid,rss_kib,anon_kib,file_kib,shmem_kib")?;
+                Ok(f)
+            });
         let csv = csv.map_err(|e| eprintln!("warning: cannot write {}: {e}", path.display())).ok();
         let sched =
             sched.then(|| crate::run::sched::SchedSampler::start(out, compressed)).flatten();

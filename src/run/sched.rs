@@ -58,7 +58,7 @@ impl SchedSampler {
     /// observer's, never a reason to stop the run.
     pub(crate) fn start(out: &Path, compressed: bool) -> Option<Self> {
         let path = out.join(if compressed { sched_csv::ZST } else { sched_csv::FILE });
-        let file = std::fs::File::create(&path)
+        let file = rotorloop_common::outdir::create_file(&path)
             .map_err(|e| eprintln!("warning: cannot write {}: {e}", path.display()))
             .ok()?;
         let file: Box<dyn Write + Send> = match compressed {

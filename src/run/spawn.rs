@@ -63,6 +63,9 @@ fn on_cpus(cmd: &mut Command, set: Option<libc::cpu_set_t>) {
 /// executable they run from (this one, so the four are always the same build).
 pub(crate) struct Launch<'a> {
     pub(crate) args: &'a RunArgs,
+    /// What the run needs on `/dev/shm` while it goes on (bytes: its flight rings), named
+    /// when a role dies where `/dev/shm` is full.
+    pub(crate) shm_need: u64,
     /// The run's domain as each host sees it (one, with no host, unless split).
     pub(crate) domains: Vec<Domain>,
     pub(crate) split: Option<Split>,
@@ -263,7 +266,12 @@ impl Launch<'_> {
 pub(crate) fn prepare_domains(domains: &[Domain], out: &std::path::Path) -> anyhow::Result<()> {
     for domain in domains {
         let dir = match domain.host() {
-            Some(h) => out.join(format!("host-{h}")),
+            Some(h) => {
+                // Made in OUT, never through a link ([`rotorloop_common::outdir`]).
+                let name = format!("host-{h}");
+                rotorloop_common::outdir::OutDir::open(out)?.subdir(&name)?;
+                out.join(name)
+            }
             None => out.to_path_buf(),
         };
         if let Err(e) = domain.write_iox2_config(&dir) {
@@ -412,7 +420,8 @@ pub fn write_record(
         .collect();
     let j =
         serde_json::json!({ "cpus": crate::cpus::format_list(cpus), "pin": pin, "roles": roles });
-    if let Err(e) = std::fs::write(out.join("cpus.json"), format!("{j:#}\n")) {
+    if let Err(e) = rotorloop_common::outdir::write_file(&out.join("cpus.json"), format!("{j:#}\n"))
+    {
         eprintln!("warning: cannot write {}: {e}", out.join("cpus.json").display());
     }
 }

@@ -34,7 +34,7 @@ use rotorloop_common::role::UsageError;
 pub struct Split {
     hosts: Vec<String>,
     role_host: BTreeMap<Role, String>,
-    /// The run's link credentials, made by the first [`gateway_command`] (in its `out`)
+    /// The run's link credentials, made by the first [`gateway_command`] (for its domain)
     /// and shared by every gateway started after it, restarts included; removed when the
     /// last clone of the split drops, after the gateways have stopped.
     credentials: Arc<OnceLock<Result<LinkCredentials, String>>>,
@@ -141,15 +141,12 @@ impl Split {
         self.hosts.iter().all(|h| ready_file(dir, h).exists())
     }
 
-    /// The run's link credentials, made in `out` the first time they are asked for (the
-    /// same ones for every later call, whatever its `out`: one split is one run).
-    pub fn credentials(&self, out: &Path) -> Result<&LinkCredentials, String> {
+    /// The run's link credentials, made for `domain` the first time they are asked for
+    /// (the same ones for every later call: one split is one run).
+    pub fn credentials(&self, domain: &str) -> Result<&LinkCredentials, String> {
         let made = self.credentials.get_or_init(|| {
-            LinkCredentials::create(out).map_err(|e| {
-                format!(
-                    "cannot write the link's credentials in {}: {e}",
-                    credentials_dir(out).display()
-                )
+            LinkCredentials::create(domain).map_err(|e| {
+                format!("cannot write the link's credentials in {CREDENTIALS_PARENT}: {e}")
             })
         });
         made.as_ref().map_err(Clone::clone)
@@ -208,7 +205,7 @@ impl Drop for Gateways {
 /// Where a gateway `name` (`link-HOST`) of a quiet run or of the bench writes its messages:
 /// `DIR/NAME.log`, appended to (a gateway restarted by a fault continues its log).
 pub fn gateway_log(dir: &Path, name: &str) -> std::io::Result<std::fs::File> {
-    std::fs::OpenOptions::new().create(true).append(true).open(dir.join(format!("{name}.log")))
+    rotorloop_common::outdir::append_file(&dir.join(format!("{name}.log")))
 }
 
 /// Stops a gateway: SIGTERM, then SIGKILL after 5 s.
@@ -255,13 +252,13 @@ pub fn free_port() -> anyhow::Result<u16> {
 }
 
 /// The command line of `host`'s gateway: the first host listens on `port`, the second
-/// connects to it, both with the run's credentials ([`LinkCredentials`], made in `out` by
-/// the first call); a host with only the monitor is read-only. (The launcher checked with
+/// connects to it, both with the run's credentials ([`LinkCredentials`], made for `domain`
+/// by the first call); a host with only the monitor is read-only. (The launcher checked with
 /// [`link_binary`] that the binary is there.)
 ///
 /// Credentials that cannot be written fail closed: the launcher says why, and the gateway
 /// is pointed at a path that cannot exist (under `/dev/null`), so it stops (exit 2,
-/// naming it) rather than listen without them, or with files someone else left in `out`.
+/// naming it) rather than listen without them.
 pub fn gateway_command(split: &Split, host: &str, domain: &str, port: u16, out: &Path) -> Command {
     let bin = link_binary().unwrap_or_else(|_| PathBuf::from("rotorloop-link"));
     let mut cmd = Command::new(bin);
@@ -269,7 +266,7 @@ pub fn gateway_command(split: &Split, host: &str, domain: &str, port: u16, out: 
     let listens = split.hosts[0] == host;
     let side = if listens { "--listen" } else { "--connect" };
     cmd.args(["--domain", domain, "--host", host, side, &endpoint]);
-    let dir = match split.credentials(out) {
+    let dir = match split.credentials(domain) {
         Ok(c) => c.dir().to_owned(),
         Err(e) => {
             eprintln!("launcher: error: {e}; the link-{host} gateway will not start without them");
@@ -289,55 +286,62 @@ pub fn gateway_command(split: &Split, host: &str, domain: &str, port: u16, out: 
 
 /// The user name of a split run's gateways (the password is what is secret).
 pub const LINK_USER: &str = "rotorloop";
-/// The credentials' directory in a run's `--out` (0700).
-pub const CREDENTIALS_DIR: &str = "link-credentials";
+/// Where a split run's credentials live: beside the domain's other private files, in a
+/// directory `rotorloop-link-DOMAIN-XXXXXXXX` made exclusively (mode 0700) under a name
+/// another user cannot guess. `/dev/shm` is sticky: no other user can remove or replace it.
+pub const CREDENTIALS_PARENT: &str = "/dev/shm";
 const USERS_FILE: &str = "users";
 const PASSWORD_FILE: &str = "password";
 /// Where a gateway whose credentials could not be written looks for them: under a file,
 /// so nothing can ever be there.
 const NO_CREDENTIALS: &str = "/dev/null/link-credentials-not-written";
 
-/// Where a run whose `--out` is `out` keeps its link credentials.
-pub fn credentials_dir(out: &Path) -> PathBuf {
-    out.join(CREDENTIALS_DIR)
+/// The prefix of the names of `domain`'s credential directories in [`CREDENTIALS_PARENT`].
+pub fn credentials_prefix(domain: &str) -> String {
+    format!("rotorloop-link-{domain}-")
 }
 
 /// One split run's link credentials (module docs): the user [`LINK_USER`] and a password
 /// of 32 bytes from the kernel's randomness (`getrandom`), hex, never on a command line.
-/// They live in `OUT/link-credentials/` (a directory made for this run, mode 0700, owned
-/// by the run's user: a second user can neither list nor enter it) as `users`
-/// (`user:password`, the listening gateway's `--users`) and `password` (the connecting
-/// gateway's `--password-file`), each mode 0600, created with `O_EXCL|O_NOFOLLOW` (a file
-/// or link planted there beforehand makes the creation fail, it is never written
-/// through). Dropping them removes both files and the directory; a launcher killed with
-/// SIGKILL leaves them, and the next run in the same `--out` replaces them (the password
-/// of a run that ended opens nothing).
+/// They live in `/dev/shm/rotorloop-link-DOMAIN-XXXXXXXX/` (never in OUT, which the run's
+/// user may share: made for this run with `mkdir` mode 0700 under a random name, owned by
+/// the run's user: a second user can neither guess, list, enter, remove nor replace it) as
+/// `users` (`user:password`, the listening gateway's `--users`) and `password` (the
+/// connecting gateway's `--password-file`), each mode 0600, created with
+/// `O_EXCL|O_NOFOLLOW`. Dropping them removes both files and the directory; a launcher
+/// killed with SIGKILL leaves them, and the next run of the domain removes them (its
+/// user's own only: the password of a run that ended opens nothing).
 #[derive(Debug)]
 pub struct LinkCredentials {
     dir: PathBuf,
-    /// The directory's device and inode: a drop removes it only while it is still the one
-    /// made here (a later run in the same `--out` may have replaced it).
-    made: (u64, u64),
 }
 
 impl LinkCredentials {
-    /// Makes fresh credentials in `OUT/link-credentials/`, replacing what an earlier run
-    /// left there.
-    pub fn create(out: &Path) -> std::io::Result<Self> {
+    /// Makes fresh credentials for `domain`, removing what an earlier run of this user on
+    /// the domain left.
+    pub fn create(domain: &str) -> std::io::Result<Self> {
         use std::os::unix::fs::{DirBuilderExt, MetadataExt};
-        let dir = credentials_dir(out);
-        match std::fs::symlink_metadata(&dir) {
-            // A killed run's leftovers (a link is removed, never followed).
-            Ok(m) if m.is_dir() => std::fs::remove_dir_all(&dir)?,
-            Ok(_) => std::fs::remove_file(&dir)?,
-            Err(e) if e.kind() == std::io::ErrorKind::NotFound => {}
-            Err(e) => return Err(e),
-        }
-        // Fails if the name was taken again meanwhile: the directory is always this run's.
-        std::fs::DirBuilder::new().mode(0o700).create(&dir)?;
-        let meta = std::fs::symlink_metadata(&dir)?;
-        let made = Self { dir, made: (meta.dev(), meta.ino()) };
+        let prefix = credentials_prefix(domain);
         let me = rotorloop_common::private::euid();
+        for e in std::fs::read_dir(CREDENTIALS_PARENT)?.flatten() {
+            let stale = e.file_name().to_str().is_some_and(|n| n.starts_with(&prefix));
+            // A killed run's leftovers of this user's (another user's are never touched).
+            let ours = e.path().symlink_metadata().is_ok_and(|m| m.is_dir() && m.uid() == me);
+            if stale && ours {
+                let _ = std::fs::remove_dir_all(e.path());
+            }
+        }
+        let dir = loop {
+            let dir = Path::new(CREDENTIALS_PARENT)
+                .join(format!("{prefix}{}", rotorloop_common::private::random_name(8)));
+            match std::fs::DirBuilder::new().mode(0o700).create(&dir) {
+                Ok(()) => break dir,
+                Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => continue,
+                Err(e) => return Err(e),
+            }
+        };
+        let meta = std::fs::symlink_metadata(&dir)?;
+        let made = Self { dir };
         if !meta.is_dir() || meta.uid() != me || meta.mode() & 0o077 != 0 {
             return Err(std::io::Error::other(format!(
                 "{} is not a private directory of this user (mode {:o}, owner {}): its \
@@ -365,12 +369,7 @@ impl LinkCredentials {
 
 impl Drop for LinkCredentials {
     fn drop(&mut self) {
-        use std::os::unix::fs::MetadataExt;
-        let same =
-            std::fs::symlink_metadata(&self.dir).is_ok_and(|m| (m.dev(), m.ino()) == self.made);
-        if !same {
-            return;
-        }
+        // Its name is random and /dev/shm sticky: it is still the one made here.
         for f in [USERS_FILE, PASSWORD_FILE] {
             let _ = std::fs::remove_file(self.dir.join(f));
         }
@@ -430,24 +429,31 @@ mod tests {
     }
 
     /// A split run's credentials are readable by its user only (directory 0700, files
-    /// 0600), fresh for every run (an earlier run's are replaced), agree between the two
-    /// gateways' files, reach both command lines and never as the password itself, and
-    /// are gone once the split that made them is.
+    /// 0600), never in OUT but in a directory of the domain's with a random name, fresh for
+    /// every run (an earlier run's are removed), agree between the two gateways' files,
+    /// reach both command lines and never as the password itself, and are gone once the
+    /// split that made them is.
     #[test]
     fn a_runs_link_credentials_are_private_fresh_and_removed_with_it() {
         use std::os::unix::fs::PermissionsExt;
-        let out = tempfile::tempdir().expect("tempdir");
+        let domain = format!("t-cred-{}", std::process::id());
         let mode = |p: &Path| std::fs::metadata(p).expect("exists").permissions().mode() & 0o777;
         let read = |p: PathBuf| std::fs::read_to_string(p).expect("read");
-        let dir = credentials_dir(out.path());
+        let out = tempfile::tempdir().expect("tempdir");
         let mut passwords = Vec::new();
+        let mut dirs = Vec::new();
         for _ in 0..2 {
             let s = Split::parse("plant,reference,monitor@a controller@b", true).expect("valid");
             let argv = |host| {
-                let cmd = gateway_command(&s, host, "d", 7447, out.path());
+                let cmd = gateway_command(&s, host, &domain, 7447, out.path());
                 cmd.get_args().map(|a| a.to_string_lossy().into_owned()).collect::<Vec<_>>()
             };
             let (a, b) = (argv("a"), argv("b"));
+            let dir = s.credentials(&domain).expect("made").dir().to_owned();
+            let name = dir.file_name().expect("name").to_string_lossy().into_owned();
+            assert!(dir.starts_with(CREDENTIALS_PARENT) && !dir.starts_with(out.path()));
+            let tail = name.strip_prefix(&credentials_prefix(&domain)).expect("prefix");
+            assert_eq!(tail.len(), 8, "{name}: a random tail");
             let users = dir.join(USERS_FILE).display().to_string();
             let pw_file = dir.join(PASSWORD_FILE).display().to_string();
             assert!(a.windows(2).any(|w| w == ["--users", users.as_str()]), "{a:?}");
@@ -461,24 +467,20 @@ mod tests {
             assert_eq!(read(dir.join(USERS_FILE)), format!("{LINK_USER}:{password}\n"));
             assert!(!a.iter().chain(&b).any(|x| x.contains(&password)), "on a command line");
             passwords.push(password);
+            dirs.push(dir);
             // The first run's launcher is killed (its credentials are never dropped): the
-            // second run in the same --out replaces them.
+            // second run of the domain removes them.
             std::mem::forget(s);
         }
         assert_ne!(passwords[0], passwords[1], "each run has its own");
+        assert!(!dirs[0].exists(), "a killed run's credentials were left");
+        let _ = std::fs::remove_dir_all(&dirs[1]);
         let s = Split::parse("plant,reference,monitor@a controller@b", true).expect("valid");
-        s.credentials(out.path()).expect("made");
+        let dir = s.credentials(&domain).expect("made").dir().to_owned();
         let clone = s.clone();
         drop(s);
         assert!(dir.exists(), "a clone of the split (the bench's gateways) still uses them");
         drop(clone);
         assert!(!dir.exists(), "{} left after the run", dir.display());
-        // Where they cannot be written, the gateway is sent where nothing can be: it stops.
-        let file = out.path().join("a-file");
-        std::fs::write(&file, "").expect("write");
-        let s = Split::parse("plant,reference,monitor@a controller@b", true).expect("valid");
-        let cmd = gateway_command(&s, "a", "d", 7447, &file);
-        let users = cmd.get_args().skip_while(|a| *a != "--users").nth(1).expect("--users");
-        assert_eq!(users, Path::new(NO_CREDENTIALS).join(USERS_FILE).as_os_str());
     }
 }

@@ -113,7 +113,7 @@ impl TraceSched {
             write(&me.instance.join("events").join(e).join("enable"), "1")?;
         }
         let path = out.join("sched-trace.txt");
-        let file = std::fs::File::create(&path)
+        let file = rotorloop_common::outdir::create_file(&path)
             .with_context(|| format!("cannot write {}", path.display()))?;
         let pipe = std::fs::File::open(me.instance.join("trace_pipe"))
             .context("--trace-sched: cannot open trace_pipe")?;

@@ -95,6 +95,8 @@ struct Watch {
     mover: Option<MoverThread>,
     /// The plant has published its last tick.
     loop_complete: bool,
+    /// What the run needs on `/dev/shm` (bytes), named where a role died of it full.
+    shm_need: u64,
 }
 
 impl Watch {
@@ -121,6 +123,7 @@ impl Watch {
                     .ok()
             }),
             loop_complete: false,
+            shm_need: launch.shm_need,
         }
     }
 
@@ -648,7 +651,13 @@ fn reap(
                         _ => "",
                     };
                     eprintln!("launcher: {role} {} ({st}) at {now_s:.3} s{early}", how.name());
-                    let detail = st.to_string();
+                    let mut detail = st.to_string();
+                    // A role that died of a full /dev/shm (SIGBUS on a mapped page, or a
+                    // node refused) is told so, with the space the run needs there.
+                    if let Some(full) = rotorloop_common::private::shm_full(Some(w.shm_need)) {
+                        eprintln!("launcher: {full}");
+                        detail = format!("{detail}; {full}");
+                    }
                     let signal = st.signal().map(signal_name);
                     let e =
                         FaultEvent { signal, ..FaultEvent::now(role.as_str(), how.name(), detail) };

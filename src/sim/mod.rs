@@ -7,7 +7,6 @@
 pub mod closed_loop;
 pub mod replay;
 
-use std::fs::File;
 use std::io::{BufWriter, IsTerminal, Write};
 use std::path::{Path, PathBuf};
 use std::time::Instant;
@@ -254,17 +253,15 @@ fn drive(
 /// `summary.json` is written last: a directory without it is an unfinished run.
 pub fn run(opts: &SimOptions) -> anyhow::Result<(SimSummary, Recorder)> {
     let s = &opts.scenario;
-    std::fs::create_dir_all(&opts.out)
-        .with_context(|| format!("cannot create output directory {}", opts.out.display()))?;
+    let out = rotorloop_common::outdir::OutDir::make(&opts.out)?;
     let summary_path = opts.out.join("summary.json");
-    if summary_path.exists() {
-        std::fs::remove_file(&summary_path)
-            .with_context(|| format!("cannot replace {}", summary_path.display()))?;
-    }
+    out.remove("summary.json")
+        .with_context(|| format!("cannot replace {}", summary_path.display()))?;
     let ticks = s.ticks();
     let actuation = s.actuation();
     let trace_path = opts.out.join("trace.csv");
-    let file = File::create(&trace_path)
+    let file = out
+        .create("trace.csv")
         .with_context(|| format!("cannot create {}", trace_path.display()))?;
     let mut trace = TraceWriter::new(BufWriter::with_capacity(1 << 20, file))?;
     let mut rec = Recorder::new(ticks + 1);

@@ -362,10 +362,10 @@ pub fn run(dir: &Path, out: &Path, write_trace: bool) -> anyhow::Result<ReplaySu
     let mut metrics = Metrics::new(params, &body.state()).with_disturbance(scenario.disturbance);
     let limits = scenario.limits_for(actuation);
     let mut line = DelayLine::new(ActuationDelay::Instant, dt);
-    std::fs::create_dir_all(out).with_context(|| format!("cannot create {}", out.display()))?;
+    let made = rotorloop_common::outdir::OutDir::make(out)?;
     let mut file: std::io::BufWriter<Box<dyn Write>> = std::io::BufWriter::new(if write_trace {
         Box::new(
-            std::fs::File::create(out.join("trace.csv"))
+            made.create("trace.csv")
                 .with_context(|| format!("cannot write {}", out.join("trace.csv").display()))?,
         )
     } else {
@@ -431,7 +431,7 @@ pub fn run(dir: &Path, out: &Path, write_trace: bool) -> anyhow::Result<ReplaySu
     result.first_difference = compared.first;
     result.identical = compared.first.is_none() && result.rows == rows;
     let text = serde_json::to_string_pretty(&result)?;
-    std::fs::write(out.join("replay.json"), text + "\n")
+    rotorloop_common::outdir::write_file(&out.join("replay.json"), text + "\n")
         .with_context(|| format!("cannot write {}", out.display()))?;
     Ok(result)
 }

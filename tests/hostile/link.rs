@@ -143,9 +143,14 @@ fn private_shm(uid: u32) -> Result<(), String> {
 /// Starts a 30 s real-time split run (controller on host b) into `out`; returns the
 /// run's child index and, once its loop runs, the listening gateway's arguments.
 fn start_split_run(h: &mut Harness, out: &Path) -> (usize, Vec<String>) {
+    start_split_run_of(h, out, "30")
+}
+
+/// [`start_split_run`] of `seconds`.
+fn start_split_run_of(h: &mut Harness, out: &Path, seconds: &str) -> (usize, Vec<String>) {
     let args: Vec<String> = ["run", "--scenario", "paper-zero", "--split", SPLIT]
         .into_iter()
-        .chain(["--duration", "30", "--mode", "realtime", "--quiet", "--domain", &h.domain])
+        .chain(["--duration", seconds, "--mode", "realtime", "--quiet", "--domain", &h.domain])
         .chain(["--out", out.to_str().expect("utf8")])
         .map(str::to_owned)
         .collect();
@@ -268,4 +273,45 @@ fn nothing_but_the_runs_own(out: &Path, s: &serde_json::Value) {
     let reproduced = &s["incidents"]["law_reproduced"];
     assert!(reproduced[1].as_u64() > Some(0), "the law checked no answer: {reproduced}");
     assert_eq!(reproduced[0], reproduced[1], "answers the law does not reproduce: {reproduced}");
+}
+
+/// Issue 62, point 1: a split run's credentials never live in OUT (where another user who
+/// controlled OUT swapped them for its own and became a full peer of the run). Both
+/// gateways are given files in a directory of the domain's, `/dev/shm/rotorloop-link-D-…`
+/// (a random tail), root's and 0700, that the second user can neither list nor read; OUT
+/// never holds a `link-credentials`; both are gone when the run ends. Before, they were in
+/// `OUT/link-credentials`. Skipped where a second user cannot be created.
+#[test]
+fn a_split_runs_credentials_live_where_no_other_user_reaches_them() {
+    use std::os::unix::fs::MetadataExt;
+    let Some(user) = TempUser::for_test("a_split_runs_credentials_…") else { return };
+    let mut h = Harness::new("link-creds");
+    let out = h.path("run");
+    let (run, listening) = start_split_run_of(&mut h, &out, "3");
+    let connecting = gateway_args(&h.domain, "b").expect("the far host's gateway");
+    let users = PathBuf::from(arg_after(&listening, "--users").expect("--users"));
+    let password = PathBuf::from(arg_after(&connecting, "--password-file").expect("--password"));
+    let dir = users.parent().expect("a directory").to_owned();
+    assert_eq!(password.parent(), Some(dir.as_path()), "both gateways' files in one place");
+    assert!(!dir.starts_with(&out), "the credentials are in OUT: {}", dir.display());
+    let name = dir.file_name().expect("name").to_string_lossy().into_owned();
+    let prefix = format!("rotorloop-link-{}-", h.domain);
+    assert!(dir.starts_with("/dev/shm") && name.starts_with(&prefix), "{}", dir.display());
+    assert!(name.len() >= prefix.len() + 8, "no random tail: {name}");
+    let meta = std::fs::symlink_metadata(&dir).expect("the credentials' directory");
+    assert!(meta.is_dir() && meta.uid() == 0 && meta.mode() & 0o777 == 0o700, "{meta:?}");
+    assert!(!out.join("link-credentials").exists(), "credentials in OUT");
+    let pried = super::as_user(
+        &user,
+        &format!("ls {d} || true; cat {p} || true", d = dir.display(), p = password.display()),
+    );
+    let seen = String::from_utf8_lossy(&pried.stdout);
+    let password_text = std::fs::read_to_string(&password).expect("the run's password");
+    assert!(!seen.contains("password") && !seen.contains(password_text.trim()), "{seen}");
+    let status = h.wait_all(3 * LIMIT);
+    assert!(status[run].success(), "the run failed: {}", h.stderr_of(run));
+    assert!(!dir.exists(), "{} outlived the run", dir.display());
+    h.assert_no_leftovers();
+    h.assert_no_leftovers_on("a");
+    h.assert_no_leftovers_on("b");
 }

@@ -301,7 +301,22 @@ pub(super) fn pack_file(from: &std::path::Path, to: &std::path::Path) -> std::io
     }
     header[..8].copy_from_slice(&super::PACKED_MAGIC.to_ne_bytes());
     let part = to.with_extension("part");
-    let written = std::fs::write(&part, assemble(&header, &chunks));
+    // 0600 whatever the umask, never through a link: the records are the run's user's alone.
+    let written = {
+        use std::io::Write;
+        use std::os::unix::fs::{OpenOptionsExt, PermissionsExt};
+        std::fs::OpenOptions::new()
+            .write(true)
+            .create(true)
+            .truncate(true)
+            .mode(0o600)
+            .custom_flags(libc::O_NOFOLLOW | libc::O_CLOEXEC)
+            .open(&part)
+            .and_then(|mut f| {
+                f.set_permissions(std::fs::Permissions::from_mode(0o600))?;
+                f.write_all(&assemble(&header, &chunks))
+            })
+    };
     if written.is_err() {
         let _ = std::fs::remove_file(&part); // a full disk: the ring is moved raw instead
     }

@@ -154,8 +154,9 @@ impl Domain {
     pub fn write_iox2_config(&self, dir: &std::path::Path) -> std::io::Result<std::path::PathBuf> {
         let text = toml::to_string(&self.config).map_err(std::io::Error::other)?;
         let path = dir.join("config").join("iceoryx2.toml");
-        std::fs::create_dir_all(dir.join("config"))?;
-        std::fs::write(&path, text)?;
+        let out = crate::outdir::OutDir::open(dir).map_err(crate::outdir::to_io)?;
+        let config = out.subdir("config").map_err(crate::outdir::to_io)?;
+        config.write("iceoryx2.toml", text.as_bytes())?;
         Ok(path)
     }
 
@@ -181,7 +182,10 @@ impl Domain {
             .config(&self.config)
             .signal_handling_mode(SignalHandlingMode::Disabled)
             .create::<ipc::Service>()
-            .map_err(|e| iox(format!("cannot create node {name}"))(&e))?;
+            .map_err(|e| {
+                let full = crate::private::shm_full(None).map(|f| format!(" ({f})"));
+                iox(format!("cannot create node {name}{}", full.unwrap_or_default()))(&e)
+            })?;
         // Another live node of the same name: that role is taken. (Dead ones are a killed
         // predecessor: a restart, which is allowed.)
         let mine = node.id().value();

@@ -20,13 +20,15 @@ impl From<crate::scenario::ScenarioError> for UsageError {
 }
 
 /// Whether `e` is the user's to mend (exit code 2): a [`UsageError`], or a refusal of
-/// something another user put where the run makes its own files ([`crate::private`]).
+/// something another user put where the run makes its own files ([`crate::private`]), or
+/// an output directory another user can change ([`crate::outdir`]).
 pub fn is_usage_error(e: &anyhow::Error) -> bool {
     use crate::private::{Foreign, PrivateError};
     e.downcast_ref::<UsageError>().is_some()
         || e.downcast_ref::<Foreign>().is_some()
         || matches!(e.downcast_ref::<PrivateError>(), Some(PrivateError::Foreign(_)))
         || e.downcast_ref::<crate::ipc::IpcError>().is_some_and(|i| i.is_foreign())
+        || e.downcast_ref::<crate::outdir::OutError>().is_some_and(|o| o.is_refusal())
 }
 
 /// The error of a run whose state stopped being finite: a configuration the integrator

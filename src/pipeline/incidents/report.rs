@@ -24,29 +24,28 @@ fn opt(v: Option<f64>) -> String {
 }
 
 /// `incidents.csv`, a row at a time as the incidents are found: written to
-/// `incidents.csv.part` and renamed when complete, so a reader never takes a partial file
-/// for the run's incidents (and an analysis that fails leaves no `.part` behind).
+/// an exclusive temporary ([`rotorloop_common::outdir::Atomic`]) renamed when complete, so a
+/// reader never takes a partial file for the run's incidents (and an analysis that fails
+/// leaves no temporary behind).
 pub struct Rows {
-    out: std::io::BufWriter<std::fs::File>,
-    part: std::path::PathBuf,
+    out: std::io::BufWriter<rotorloop_common::outdir::Atomic>,
     path: std::path::PathBuf,
-    done: bool,
 }
 
 impl Rows {
     /// Starts `DIR/incidents.csv` with its header.
     pub fn create(dir: &Path) -> anyhow::Result<Self> {
         let path = dir.join("incidents.csv");
-        let part = dir.join("incidents.csv.part");
-        let file = std::fs::File::create(&part)
-            .with_context(|| format!("cannot write {}", part.display()))?;
-        let mut rows = Self { out: std::io::BufWriter::new(file), part, path, done: false };
+        let file = rotorloop_common::outdir::OutDir::open(dir)?
+            .atomic("incidents.csv")
+            .with_context(|| format!("cannot write {}", path.display()))?;
+        let mut rows = Self { out: std::io::BufWriter::new(file), path };
         writeln!(rows.out, "{HEADER}").with_context(|| rows.failed())?;
         Ok(rows)
     }
 
     fn failed(&self) -> String {
-        format!("cannot write {}", self.part.display())
+        format!("cannot write {}", self.path.display())
     }
 
     /// One incident's row.
@@ -71,21 +70,10 @@ impl Rows {
     }
 
     /// Completes the file.
-    pub fn finish(mut self) -> anyhow::Result<()> {
-        self.out.flush().with_context(|| self.failed())?;
-        std::fs::rename(&self.part, &self.path).with_context(|| {
-            format!("cannot rename {} to {}", self.part.display(), self.path.display())
-        })?;
-        self.done = true;
-        Ok(())
-    }
-}
-
-impl Drop for Rows {
-    fn drop(&mut self) {
-        if !self.done {
-            let _ = std::fs::remove_file(&self.part);
-        }
+    pub fn finish(self) -> anyhow::Result<()> {
+        let failed = self.failed();
+        let file = self.out.into_inner().map_err(|e| e.into_error()).context(failed.clone())?;
+        file.commit().context(failed)
     }
 }
 
@@ -193,7 +181,7 @@ fn figure(dir: &Path, found: &Explained) -> anyhow::Result<()> {
 /// `summary.json`.
 pub fn write(dir: &Path, found: &Explained) -> anyhow::Result<()> {
     let path = dir.join("incidents.md");
-    std::fs::write(&path, markdown(dir, found))
+    rotorloop_common::outdir::write_file(&path, markdown(dir, found))
         .with_context(|| format!("cannot write {}", path.display()))?;
     figure(dir, found)?;
     let worst = found.worst().cloned();
@@ -225,7 +213,11 @@ mod tests {
     #[test]
     fn incidents_csv_appears_whole_or_not_at_all() {
         let dir = tempfile::tempdir().expect("tempdir");
-        let (csv, part) = (dir.path().join("incidents.csv"), dir.path().join("incidents.csv.part"));
+        let csv = dir.path().join("incidents.csv");
+        let names = || -> Vec<String> {
+            let d = std::fs::read_dir(dir.path()).expect("read");
+            d.flatten().map(|e| e.file_name().to_string_lossy().into_owned()).collect()
+        };
         let one = Incident {
             start_tick: 7,
             end_tick: 9,
@@ -244,13 +236,13 @@ mod tests {
         };
         let mut rows = Rows::create(dir.path()).expect("create");
         rows.add(&one).expect("add");
-        assert!(part.exists() && !csv.exists());
+        assert!(names().len() == 1 && !csv.exists(), "{:?}", names());
         drop(rows);
-        assert!(!part.exists() && !csv.exists(), "an unfinished analysis left a file");
+        assert!(names().is_empty(), "an unfinished analysis left a file: {:?}", names());
         let mut rows = Rows::create(dir.path()).expect("create");
         rows.add(&one).expect("add");
         rows.finish().expect("finish");
-        assert!(!part.exists());
+        assert_eq!(names(), ["incidents.csv"]);
         let text = std::fs::read_to_string(&csv).expect("incidents.csv");
         let want = "7,9,0.007000,0.003000,miss,controller,\"controller compute\",\
                     \"a \"\"quoted\"\" word\",\"miss\",3,0.5,\n";
