@@ -128,6 +128,15 @@ pub struct RunRecord {
 /// Ticks between two of [`RunRecord`]'s grid marks (a day at 1 kHz: 84 000 marks).
 const GRID_STRIDE: u64 = 1024;
 
+/// Blocks each stream's reader keeps for the incidents, within [`KEPT_BYTES`]: a
+/// counterfactual goes up to a minute past its incident ([`super::cost`]: 15 packed
+/// chunks of 4096 ticks at 1 kHz), and the next incident's starts back near its own. With
+/// the readers' default (three chunks of states) each incident unpacked again every chunk
+/// the one before it had walked: 90 % of the analysis of a loaded run was unpacking.
+const KEPT_BLOCKS: usize = 24;
+/// Bytes each stream's reader keeps for the incidents: 22 chunks of plant states.
+const KEPT_BYTES: usize = 48 << 20;
+
 /// A state's grid time: its deadline in real time, its publish in lockstep.
 fn grid_of(s: &StateSample) -> u64 {
     match s.deadline_ns {
@@ -169,7 +178,8 @@ impl RunRecord {
             return Err(bad(dir, format!("no flight record {}", plant_state.display())).into());
         }
         let limit = scenario.ticks().saturating_add(SPARE_SLOTS);
-        let states = FlightLog::<StateSample>::read(&flight, Stream::PlantState, limit)?;
+        let states = FlightLog::<StateSample>::read(&flight, Stream::PlantState, limit)?
+            .keeping(KEPT_BLOCKS, KEPT_BYTES);
         // The controller's answers from its own record; a controller of the user's own
         // (`--controller-cmd`) keeps none, and its answers are then the plant's record of
         // the torques it received (the same samples, less any lost on the way).
@@ -177,9 +187,11 @@ impl RunRecord {
             .ok()
             .filter(|t| t.last().is_some())
             .or_else(|| FlightLog::read(&flight, Stream::PlantTorque, limit).ok())
-            .unwrap_or_else(FlightLog::empty);
+            .unwrap_or_else(FlightLog::empty)
+            .keeping(KEPT_BLOCKS, KEPT_BYTES);
         let references = FlightLog::<ReferenceSample>::read(&flight, Stream::Reference, limit)
-            .unwrap_or_else(|_| FlightLog::empty());
+            .unwrap_or_else(|_| FlightLog::empty())
+            .keeping(KEPT_BLOCKS, KEPT_BYTES);
         let last = states.last().unwrap_or(0).min(scenario.ticks());
         // One pass over the states: the origin, the mode, and the grid marks.
         let (mut t0_ns, mut realtime, mut grid) = (u64::MAX, false, 0u64);
