@@ -22,8 +22,8 @@ use rotorloop_common::wire::{ReferenceSample, StateSample, TorqueSample};
 use rotorloop_controller::policy::{
     ControllerResume, DelayedSends, ReferencePairing, TorqueAnswers,
 };
-use rotorloop_reference::policy::LeadWindow;
 use rotorloop_plant::{Body, BodyInput};
+use rotorloop_reference::policy::LeadWindow;
 
 const BATCH: u64 = 10_000;
 
@@ -131,8 +131,7 @@ fn controller_stages(c: &mut Criterion) {
         );
     });
     let domain = Domain::new(&format!("bench-stages-{}", std::process::id())).expect("domain");
-    let slot: ResumeSlot<ControllerResume> =
-        ResumeSlot::open(&domain, "bench-prep").expect("slot");
+    let slot: ResumeSlot<ControllerResume> = ResumeSlot::open(&domain, "bench-prep").expect("slot");
     let answers = TorqueAnswers::for_scenario(&s).expect("the default law");
     let torques: Vec<TorqueSample> =
         states.iter().map(|st| TorqueSample { tick: st.tick, ..Default::default() }).collect();

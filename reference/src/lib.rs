@@ -181,7 +181,10 @@ mod tests {
             let t = k as f64 * dt;
             let a = r.sample(t);
             let want = body.omega_dot(&input(profile.at(t)));
-            assert_eq!(a.omega_d_dot.to_array().map(f64::to_bits), want.to_array().map(f64::to_bits));
+            assert_eq!(
+                a.omega_d_dot.to_array().map(f64::to_bits),
+                want.to_array().map(f64::to_bits)
+            );
             r.step(t, dt);
             body.step_with(|s| input(profile.at(t + s)), dt);
             let bits = |(r, h, p, th): (DMat3, DVec3, DVec3, DVec3)| {
