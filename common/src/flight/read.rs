@@ -254,7 +254,7 @@ impl<T: Record> FlightLog<T> {
     }
 
     /// The same reader keeping up to `blocks` blocks within `bytes` (at least the
-    /// defaults, [`BLOCKS`] and [`BYTES_KEPT`]): for a reader that walks ahead of where it
+    /// defaults, 6 blocks within 8 MB): for a reader that walks ahead of where it
     /// comes back to, further than the default keeps (the incidents' counterfactuals,
     /// each going up to a minute past its incident: with three chunks of states kept,
     /// each one unpacked again every chunk the one before had unpacked). Still a bound of

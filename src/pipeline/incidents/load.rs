@@ -123,6 +123,9 @@ pub struct RunRecord {
     /// and one for `j`. The ticks of an incident ask in order, so a window in which the
     /// controller was silent reads its records once, not once per tick.
     next_found: std::cell::Cell<Option<(u64, u64)>>,
+    /// Each fault's ticks ([`super::ticks::fault_ticks`]), found once: each takes up to
+    /// three scans of a grid stride of states, and every window of the loop asks for all.
+    fault_spans: std::cell::OnceCell<Vec<[u64; 2]>>,
 }
 
 /// Ticks between two of [`RunRecord`]'s grid marks (a day at 1 kHz: 84 000 marks).
@@ -231,6 +234,7 @@ impl RunRecord {
             trace_left: Left::default(),
             t0_ns,
             next_found: Default::default(),
+            fault_spans: Default::default(),
             sched_left: Left::default(),
         })
     }
@@ -257,6 +261,7 @@ impl RunRecord {
             last: (states.len() as u64).saturating_sub(1),
             t0_ns: states.first().map_or(0, |s| s.publish_ns),
             next_found: Default::default(),
+            fault_spans: Default::default(),
             sched_left: Left::default(),
             realtime: false,
             grid_marks,
@@ -327,6 +332,13 @@ impl RunRecord {
         let k = k.min(self.last);
         let m = (k / GRID_STRIDE) as usize;
         self.grid_from_mark(m).take_while(|(j, _)| *j <= k).last().map_or(0, |(_, t)| t)
+    }
+
+    /// The ticks of each of the launcher's faults, in the order of [`Self::faults`].
+    pub fn fault_spans(&self) -> &[[u64; 2]] {
+        self.fault_spans.get_or_init(|| {
+            self.faults.iter().map(|f| super::ticks::fault_ticks(self, f)).collect()
+        })
     }
 
     /// The time of tick `k` (s after tick 0).
