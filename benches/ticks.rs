@@ -1,6 +1,14 @@
-//! Speed of the in-process loop: open-loop plant steps per second, and closed-loop ticks
-//! per second (plant + reference + controller + metrics, no trace I/O). The target is
-//! 1,000,000 closed-loop ticks/s single-threaded in release mode.
+//! Speed of the in-process loop and of the controller's own work per tick, the figures
+//! docs/measurements.md says they must hold ("In-process speed"):
+//!
+//! - `loop`: open-loop plant steps per second; closed-loop ticks per second (plant +
+//!   reference + law + metrics); and `sim_loop`, the ticks as `rotorloop sim` drives them
+//!   (its statistics, the figures' recorder, the trace's decimation), without the file:
+//!   the simulator's speed, which lost 11 % once without anyone seeing it.
+//! - `controller_stages`: per state, the work of the controller's stages without their
+//!   clock reads and IPC: validation (the answer rule and the state's checks), pairing
+//!   with the reference, the law, and the publish preparation (resume record into its
+//!   slot, the delay queue).
 
 use std::hint::black_box;
 
@@ -10,9 +18,12 @@ use rotorloop::sim::closed_loop::ClosedLoop;
 use rotorloop_common::ipc::domain::Domain;
 use rotorloop_common::resume::ResumeSlot;
 use rotorloop_common::scenario::{Actuation, Scenario};
-use rotorloop_common::wire::TorqueSample;
-use rotorloop_controller::policy::{ControllerResume, TorqueAnswers};
+use rotorloop_common::wire::{ReferenceSample, StateSample, TorqueSample};
+use rotorloop_controller::policy::{
+    ControllerResume, DelayedSends, ReferencePairing, TorqueAnswers,
+};
 use rotorloop_plant::{Body, BodyInput};
+use rotorloop_reference::policy::LeadWindow;
 
 const BATCH: u64 = 10_000;
 
@@ -48,7 +59,93 @@ fn ticks(c: &mut Criterion) {
             });
         });
     }
+    g.bench_function("sim_loop", |b| {
+        b.iter_batched(
+            || ClosedLoop::new(&s, Actuation::Internal, None).expect("the default law"),
+            |mut lp| rotorloop::sim::drive_unwritten(&mut lp, BATCH - 1, 100_000),
+            criterion::BatchSize::LargeInput,
+        );
+    });
     g.finish();
+}
+
+/// The states and references of the first `BATCH` ticks of the paper's run, as the plant
+/// and the reference publish them.
+fn samples(s: &Scenario) -> (Vec<StateSample>, Vec<ReferenceSample>) {
+    let mut lp = ClosedLoop::new(s, s.actuation(), None).expect("the default law");
+    let mut lead = LeadWindow::new(s);
+    let (mut states, mut refs) = (Vec::new(), Vec::new());
+    for k in 0..BATCH {
+        states.push(StateSample::of(k, k as f64 * s.dt(), &lp.plant().state()));
+        lead.saw_state(k);
+        refs.extend(std::iter::from_fn(|| lead.next_due()));
+        lp.tick();
+    }
+    (states, refs)
+}
+
+/// The controller's stages per state, their work alone (no clock read, no IPC): what
+/// `summary.json`'s `controller_validate`, `controller_pair`, `controller_law` and
+/// `controller_publish_prep` measure in a run, less the stamps and the sample's loan.
+fn controller_stages(c: &mut Criterion) {
+    let s = Scenario::load("paper-sinusoid").expect("builtin scenario");
+    let (states, refs) = samples(&s);
+    let dt = s.dt();
+    let mut g = c.benchmark_group("controller_stages");
+    g.throughput(Throughput::Elements(BATCH));
+    g.bench_function("validate", |b| {
+        let mut answers = TorqueAnswers::for_scenario(&s).expect("the default law");
+        b.iter(|| {
+            for st in &states {
+                black_box(answers.decide(black_box(st)));
+            }
+        });
+    });
+    g.bench_function("pair", |b| {
+        b.iter_batched_ref(
+            || ReferencePairing::new(50, dt, BATCH),
+            |pairing| {
+                let mut refs = refs.iter().peekable();
+                for k in 0..BATCH {
+                    while let Some(r) = refs.next_if(|r| r.tick <= k + 4) {
+                        pairing.take(*r, || None);
+                    }
+                    let rd = pairing.pair(k, true, false, |_| Ok(false));
+                    black_box(rd.expect("no wait to fail").expect("the tick's own reference"));
+                }
+            },
+            criterion::BatchSize::SmallInput,
+        );
+    });
+    let rds: Vec<_> = refs.iter().map(|r| r.reference_state()).collect();
+    let pairing = ReferencePairing::new(50, dt, BATCH);
+    g.bench_function("law", |b| {
+        b.iter_batched_ref(
+            || TorqueAnswers::for_scenario(&s).expect("the default law"),
+            |answers| {
+                for (st, rd) in states.iter().zip(&rds) {
+                    black_box(answers.answer(st, 0, Some(rd), &pairing, dt));
+                }
+            },
+            criterion::BatchSize::SmallInput,
+        );
+    });
+    let domain = Domain::new(&format!("bench-stages-{}", std::process::id())).expect("domain");
+    let slot: ResumeSlot<ControllerResume> = ResumeSlot::open(&domain, "bench-prep").expect("slot");
+    let answers = TorqueAnswers::for_scenario(&s).expect("the default law");
+    let torques: Vec<TorqueSample> =
+        states.iter().map(|st| TorqueSample { tick: st.tick, ..Default::default() }).collect();
+    g.bench_function("publish_prep", |b| {
+        let mut sends = DelayedSends::new(Vec::new());
+        b.iter(|| {
+            for (t, st) in torques.iter().zip(&states) {
+                slot.store(&answers.resume_record(black_box(t)));
+                black_box(sends.hold(*t, st.t_s, 0));
+            }
+        });
+    });
+    g.finish();
+    rotorloop_common::resume::remove_slots(&domain);
 }
 
 /// The controller's resume-slot write per tick: its last answer alone (what the slot kept
@@ -82,5 +179,5 @@ fn resume_slot(c: &mut Criterion) {
     rotorloop_common::resume::remove_slots(&domain);
 }
 
-criterion_group!(benches, ticks, resume_slot);
+criterion_group!(benches, ticks, controller_stages, resume_slot);
 criterion_main!(benches);

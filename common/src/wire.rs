@@ -537,12 +537,34 @@ fn check_entries(field: &'static str, v: &[f64], limit: f64) -> Result<(), WireF
     Ok(())
 }
 
+/// Whether [`check_entries`] accepts `v`: every entry finite and within `limit`, one
+/// comparison per entry and no branch (NaN and ±∞ fail `≤` a finite bound). The path of a
+/// good sample; a refused one goes through [`check_entries`] for its fault.
+#[inline]
+fn within(v: &[f64], limit: f64) -> bool {
+    let bound = limit.min(f64::MAX);
+    v.iter().fold(true, |ok, x| ok & (x.abs() <= bound))
+}
+
+/// `R`'s deviation from SO(3): the largest entry of `|RᵀR − I|` and `|det R − 1|`.
+#[inline]
+fn rotation_deviation(m: &[f64; 9]) -> f64 {
+    let r = mat(m);
+    let g = r.transpose() * r - DMat3::IDENTITY;
+    g.to_cols_array().iter().fold((r.determinant() - 1.0).abs(), |a, x| a.max(x.abs()))
+}
+
+/// Whether [`check_rotation`] accepts `m` (entries within 2 and on SO(3)), without a
+/// branch per entry.
+#[inline]
+fn is_rotation(m: &[f64; 9]) -> bool {
+    within(m, 2.0) && rotation_deviation(m) <= WIRE_ORTHONORMAL_TOL
+}
+
 #[inline]
 fn check_rotation(field: &'static str, m: &[f64; 9]) -> Result<(), WireFault> {
     check_entries(field, m, 2.0)?;
-    let r = mat(m);
-    let g = r.transpose() * r - DMat3::IDENTITY;
-    let dev = g.to_cols_array().iter().fold((r.determinant() - 1.0).abs(), |a, x| a.max(x.abs()));
+    let dev = rotation_deviation(m);
     if dev > WIRE_ORTHONORMAL_TOL {
         return Err(WireFault::NotOrthonormal { field, deviation: dev });
     }
@@ -551,8 +573,28 @@ fn check_rotation(field: &'static str, m: &[f64; 9]) -> Result<(), WireFault> {
 
 impl StateSample {
     /// Checks every number a receiver uses: finite, plausible magnitudes, `R` on SO(3).
+    /// A good sample passes every check in one sweep without a branch per number; a
+    /// refused one is checked field by field for the first fault, which names the field.
     #[inline]
     pub fn validate(&self) -> Result<(), WireFault> {
+        let good = within(&[self.t_s], MAX_WIRE_ACCUMULATED)
+            & within(&self.omega_body_rad_s, MAX_WIRE_MAGNITUDE)
+            & within(&self.omega_rotor_rad_s, MAX_WIRE_MAGNITUDE)
+            & within(&self.theta_rotor_rad, MAX_WIRE_ACCUMULATED)
+            & within(&self.applied_rotor_torque_nm, MAX_WIRE_MAGNITUDE)
+            & within(&self.applied_body_torque_nm, MAX_WIRE_MAGNITUDE)
+            & within(&self.internal_h, MAX_WIRE_ACCUMULATED)
+            & within(&self.internal_p, MAX_WIRE_ACCUMULATED);
+        if good && is_rotation(&self.r_row_major) {
+            return Ok(());
+        }
+        self.first_fault()
+    }
+
+    /// The first check [`StateSample::validate`] refuses, field by field in the order of
+    /// the wire contract.
+    #[cold]
+    fn first_fault(&self) -> Result<(), WireFault> {
         check_entries("state.t_s", &[self.t_s], MAX_WIRE_ACCUMULATED)?;
         check_rotation("state.r", &self.r_row_major)?;
         check_entries("state.omega_body", &self.omega_body_rad_s, MAX_WIRE_MAGNITUDE)?;
@@ -575,8 +617,26 @@ impl StateSample {
 
 impl ReferenceSample {
     /// Checks every number a receiver uses: finite, plausible magnitudes, `R_d` on SO(3).
+    /// One sweep for a good sample, field by field for a refused one (as
+    /// [`StateSample::validate`]).
     #[inline]
     pub fn validate(&self) -> Result<(), WireFault> {
+        let good = within(&[self.t_s], MAX_WIRE_ACCUMULATED)
+            & within(&self.omega_d_rad_s, MAX_WIRE_MAGNITUDE)
+            & within(&self.omega_d_dot_rad_s2, MAX_WIRE_MAGNITUDE)
+            & within(&self.omega_rotor_rad_s, MAX_WIRE_MAGNITUDE)
+            & within(&self.theta_rotor_rad, MAX_WIRE_ACCUMULATED)
+            & within(&self.internal_h, MAX_WIRE_ACCUMULATED)
+            & within(&self.internal_p, MAX_WIRE_ACCUMULATED);
+        if good && is_rotation(&self.r_d_row_major) {
+            return Ok(());
+        }
+        self.first_fault()
+    }
+
+    /// The first check [`ReferenceSample::validate`] refuses, field by field.
+    #[cold]
+    fn first_fault(&self) -> Result<(), WireFault> {
         check_entries("reference.t_s", &[self.t_s], MAX_WIRE_ACCUMULATED)?;
         check_rotation("reference.r_d", &self.r_d_row_major)?;
         check_entries("reference.omega_d", &self.omega_d_rad_s, MAX_WIRE_MAGNITUDE)?;
@@ -762,6 +822,43 @@ mod tests {
         let mut s = good_state();
         s.r_row_major[4] *= 1.0 + 1e-12;
         assert_eq!(s.validate(), Ok(()));
+    }
+
+    /// The one-sweep path of a good state gives the same verdict as the field-by-field
+    /// checks for every checked number made NaN, infinite, beyond its bound or just
+    /// within it: no check of the wire contract is given up, and a refusal still names
+    /// the first field that fails.
+    #[test]
+    fn the_sweep_of_a_good_state_refuses_what_the_field_checks_refuse() {
+        type Field = fn(&mut StateSample) -> &mut [f64];
+        let fields: [(Field, f64); 9] = [
+            (|s| std::slice::from_mut(&mut s.t_s), MAX_WIRE_ACCUMULATED),
+            (|s| &mut s.r_row_major, 2.0),
+            (|s| &mut s.omega_body_rad_s, MAX_WIRE_MAGNITUDE),
+            (|s| &mut s.omega_rotor_rad_s, MAX_WIRE_MAGNITUDE),
+            (|s| &mut s.theta_rotor_rad, MAX_WIRE_ACCUMULATED),
+            (|s| &mut s.applied_rotor_torque_nm, MAX_WIRE_MAGNITUDE),
+            (|s| &mut s.applied_body_torque_nm, MAX_WIRE_MAGNITUDE),
+            (|s| &mut s.internal_h, MAX_WIRE_ACCUMULATED),
+            (|s| &mut s.internal_p, MAX_WIRE_ACCUMULATED),
+        ];
+        let (mut refused, mut passed) = (0, 0);
+        for (field, bound) in fields {
+            let n = field(&mut good_state()).len();
+            for i in 0..n {
+                for v in [f64::NAN, f64::INFINITY, -f64::INFINITY, 1.5 * bound, -bound, 0.0] {
+                    let mut s = good_state();
+                    field(&mut s)[i] = v;
+                    assert_eq!(s.validate(), s.first_fault(), "entry {i} of a field = {v}");
+                    match s.validate() {
+                        Ok(()) => passed += 1,
+                        Err(_) => refused += 1,
+                    }
+                }
+            }
+        }
+        // Both verdicts were exercised: NaN, ∞ and beyond the bound refused everywhere.
+        assert_eq!(refused, 4 * 31 + 9 * 2, "{refused} refused, {passed} passed");
     }
 
     #[test]

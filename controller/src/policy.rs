@@ -298,8 +298,9 @@ impl TorqueAnswers {
             self.skipped += 1;
             return Decision::Ignore;
         }
-        match self.last.filter(|t| t.tick >= s.tick) {
-            Some(prev) if prev.tick == s.tick => Decision::AnswerAgain(prev),
+        // By reference: the last answer is copied only when it is sent again.
+        match self.last.as_ref().filter(|t| t.tick >= s.tick) {
+            Some(prev) if prev.tick == s.tick => Decision::AnswerAgain(*prev),
             Some(_) => Decision::Ignore,
             None => {
                 let fault = s.validate().err();

@@ -13,12 +13,42 @@ type Points = Vec<(f64, f64)>;
 /// Most points kept per series for figures.
 pub const MAX_POINTS: u64 = 6000;
 
+/// Whether a tick is a multiple of `every`, as `k % every == 0`, with the division done
+/// only where `k` leaves the stretch known to lie between two multiples: once per `every`
+/// ticks when they come in order. A 64-bit division costs tens of cycles, and the
+/// simulator asks twice a tick (the trace's decimation and the figures').
+#[derive(Debug, Clone, Copy, Default)]
+pub struct EveryNth {
+    every: u64,
+    /// The multiple after the last tick divided (0: none known).
+    next: u64,
+}
+
+impl EveryNth {
+    /// Every `every`-th tick (1 or more).
+    pub fn new(every: u64) -> Self {
+        Self { every: every.max(1), next: 0 }
+    }
+
+    /// Whether `every` divides `k`.
+    #[inline]
+    pub fn holds(&mut self, k: u64) -> bool {
+        // Ticks strictly between the multiples `next − every` and `next` are not ones.
+        if k < self.next && k > self.next - self.every {
+            return false;
+        }
+        let r = k % self.every;
+        self.next = (k - r).checked_add(self.every).unwrap_or(0);
+        r == 0
+    }
+}
+
 /// Trace rows decimated for plotting. Capacity is reserved and faulted in up front, so
 /// recording neither allocates nor grows resident memory during a run of the announced
 /// length.
 #[derive(Debug, Clone, Default)]
 pub struct Recorder {
-    every: u64,
+    every: EveryNth,
     /// Time (s).
     pub t: Vec<f64>,
     /// Entries (1,1), (1,2), (2,1), (2,2) of `R`.
@@ -45,7 +75,7 @@ impl Recorder {
         let every = rows.div_ceil(MAX_POINTS).max(1);
         let n = (rows / every + 2) as usize;
         Self {
-            every,
+            every: EveryNth::new(every),
             t: prefaulted(n),
             r: prefaulted(n),
             r_d: prefaulted(n),
@@ -60,7 +90,7 @@ impl Recorder {
 
     /// Keeps the row if it falls on the decimation grid (or `force`, for the last row).
     pub fn record(&mut self, row: &TraceRow, force: bool) {
-        if row.tick % self.every != 0 && !force {
+        if !self.every.holds(row.tick) && !force {
             return;
         }
         let pick = |m: &[f64; 9]| [m[0], m[1], m[3], m[4]];
@@ -189,4 +219,22 @@ fn attitude_entries(dir: &Path, name: &str, rec: &Recorder) -> Result<String, Pl
     let file = "attitude_entries.png";
     panel_grid(&dir.join(file), &format!("{name}: attitude R(t) against R_d(t)"), (2, 2), &panels)?;
     Ok(file.to_owned())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::EveryNth;
+
+    /// `EveryNth` answers as `k % every == 0` does, for ticks in order, repeated, skipped
+    /// ahead, gone back and at the end of the range.
+    #[test]
+    fn every_nth_answers_as_the_remainder_does() {
+        for every in [1, 2, 7, 1000] {
+            let mut e = EveryNth::new(every);
+            let odd = [5000, 4999, 3, 3, 12_345, 0, u64::MAX - 6, u64::MAX - 1, u64::MAX, 17];
+            for k in (0..3000).chain(odd) {
+                assert_eq!(e.holds(k), k % every == 0, "every {every}, tick {k}");
+            }
+        }
+    }
 }

@@ -247,7 +247,7 @@ pub fn integrate_tick(
         saturated |= sat;
         applied = BodyInput { rotor_torque: u, body_torque: held.body_torque };
         body.step(BodyInput { rotor_torque: u, body_torque: held.body_torque + disturbance }, h);
-        work += u.dot(body.state().theta - x.theta);
+        work += u.dot(body.theta - x.theta);
     });
     TickOutcome { work, saturated, applied, effects }
 }

@@ -179,9 +179,16 @@ impl Body {
     /// within the step. One RKMK4 step (module documentation).
     #[inline]
     pub fn step_with(&mut self, input: impl Fn(f64) -> BodyInput, dt: f64) {
+        let half = 0.5 * dt;
+        self.step_inputs([input(0.0), input(half), input(dt)], dt);
+    }
+
+    /// Advances by `dt` with the inputs at the step's start, middle and end given: one
+    /// RKMK4 step (module documentation), what [`Body::step_with`] does once it has them.
+    #[inline]
+    pub fn step_inputs(&mut self, [in0, in_half, in_end]: [BodyInput; 3], dt: f64) {
         let (r0, h0, p0, th0) = (self.r, self.h, self.p, self.theta);
         let half = 0.5 * dt;
-        let (in0, in_half, in_end) = (input(0.0), input(half), input(dt));
 
         let f1 = self.rates(&r0, h0, p0, &in0);
         let k1 = f1.omega * dt;

@@ -21,10 +21,23 @@ use rotorloop_common::scenario::TorqueProfile;
 use rotorloop_plant::{Body, BodyInput};
 
 /// The dummy body and its torque profile.
-#[derive(Debug, Clone, Copy, PartialEq)]
+#[derive(Debug, Clone, Copy)]
 pub struct Reference {
     body: Body,
     profile: TorqueProfile,
+    /// `u_d` at the end of the last step, with the bits of its time: the next tick's
+    /// sample and the first stage of its step ask for `u_d` at that same time (when
+    /// `t + dt` of one tick is bit for bit the next tick's `t`), and take it from here
+    /// instead of evaluating three sines again. The same argument gives the same bits.
+    end_u: Option<(u64, DVec3)>,
+}
+
+/// Two references are equal when their bodies and profiles are (the kept `u_d` is a
+/// value they would both compute).
+impl PartialEq for Reference {
+    fn eq(&self, other: &Self) -> bool {
+        self.body == other.body && self.profile == other.profile
+    }
 }
 
 /// `Ω_rd(0)` that gives the reference body the spatial momentum `h` (spec).
@@ -59,14 +72,27 @@ impl Reference {
 
     /// A reference continuing from a full dummy-body state (e.g. the last one published).
     pub fn resume(params: BodyParams, state: RotorBodyState, profile: TorqueProfile) -> Self {
-        Self { body: Body::new(params, state), profile }
+        Self::of(Body::new(params, state), profile)
+    }
+
+    fn of(body: Body, profile: TorqueProfile) -> Self {
+        Self { body, profile, end_u: None }
+    }
+
+    /// `u_d(t)`: the one kept if `t` is its time, bit for bit.
+    #[inline]
+    fn u_d(&self, t: f64) -> DVec3 {
+        match self.end_u {
+            Some((bits, u)) if bits == t.to_bits() => u,
+            _ => self.profile.at(t),
+        }
     }
 
     /// The desired attitude at time `t` (the time of the current state).
     #[inline]
     pub fn sample(&self, t: f64) -> ReferenceState {
         let s = self.body.state();
-        let input = BodyInput { rotor_torque: self.profile.at(t), body_torque: DVec3::ZERO };
+        let input = BodyInput { rotor_torque: self.u_d(t), body_torque: DVec3::ZERO };
         ReferenceState { r_d: s.r, omega_d: s.omega, omega_d_dot: self.body.omega_dot(&input) }
     }
 
@@ -81,7 +107,7 @@ impl Reference {
         (r, h, p, theta): (DMat3, DVec3, DVec3, DVec3),
         profile: TorqueProfile,
     ) -> Self {
-        Self { body: Body::from_internal(params, r, h, p, theta), profile }
+        Self::of(Body::from_internal(params, r, h, p, theta), profile)
     }
 
     /// The full dummy-body state (for resuming and for momentum checks).
@@ -97,11 +123,13 @@ impl Reference {
     /// Advances from `t` to `t + dt`, following `u_d` within the step.
     #[inline]
     pub fn step(&mut self, t: f64, dt: f64) {
-        let profile = self.profile;
-        self.body.step_with(
-            |s| BodyInput { rotor_torque: profile.at(t + s), body_torque: DVec3::ZERO },
-            dt,
-        );
+        // The times `step_with` would pass `u_d`: t + 0, t + dt/2, t + dt.
+        let (t0, t_half, t_end) = (t + 0.0, t + 0.5 * dt, t + dt);
+        let u_end = self.u_d(t_end);
+        let input = |u: DVec3| BodyInput { rotor_torque: u, body_torque: DVec3::ZERO };
+        let inputs = [input(self.u_d(t0)), input(self.profile.at(t_half)), input(u_end)];
+        self.body.step_inputs(inputs, dt);
+        self.end_u = Some((t_end.to_bits(), u_end));
     }
 }
 
@@ -135,6 +163,36 @@ mod tests {
                 reference.step(k as f64 * dt, dt);
             }
             assert!((check(&reference) - h).length() <= 1e-11 * h.length(), "{name} at t=5");
+        }
+    }
+
+    /// Keeping `u_d(t + dt)` for the next tick changes no bit: the reference samples and
+    /// steps as the plant's integrator does with every `u_d` evaluated where it is asked.
+    #[test]
+    fn the_kept_end_torque_changes_no_bit_of_the_reference() {
+        let s = Scenario::load("paper-sinusoid").expect("builtin");
+        let mut r = Reference::for_scenario(&s);
+        let (r0, h0, p0, th0) = r.internal();
+        let mut body = Body::from_internal(s.reference, r0, h0, p0, th0);
+        let profile = s.reference_torque;
+        let input = |u: DVec3| BodyInput { rotor_torque: u, body_torque: DVec3::ZERO };
+        let dt = s.dt();
+        for k in 0..20_000 {
+            let t = k as f64 * dt;
+            let a = r.sample(t);
+            let want = body.omega_dot(&input(profile.at(t)));
+            assert_eq!(
+                a.omega_d_dot.to_array().map(f64::to_bits),
+                want.to_array().map(f64::to_bits)
+            );
+            r.step(t, dt);
+            body.step_with(|s| input(profile.at(t + s)), dt);
+            let bits = |(r, h, p, th): (DMat3, DVec3, DVec3, DVec3)| {
+                let mut v = r.to_cols_array().to_vec();
+                v.extend([h, p, th].iter().flat_map(|x| x.to_array()));
+                v.into_iter().map(f64::to_bits).collect::<Vec<_>>()
+            };
+            assert_eq!(bits(r.internal()), bits(body.internal()), "tick {k}");
         }
     }
 

@@ -19,7 +19,7 @@ use rotorloop_common::scenario::{Actuation, Scenario};
 use rotorloop_common::so3::orthonormality_error;
 use rotorloop_monitor::figures::tracking_figures;
 
-use rotorloop_monitor::figures::Recorder;
+use rotorloop_monitor::figures::{EveryNth, Recorder};
 use rotorloop_monitor::metrics::TraceRow;
 use rotorloop_monitor::trace::TraceWriter;
 use serde::Serialize;
@@ -165,8 +165,11 @@ pub struct SimSummary {
 /// Running statistics of one run.
 #[derive(Debug, Clone)]
 struct Stats {
-    first: TraceRow,
-    last: TraceRow,
+    /// The first row's attitude error (deg).
+    first_err_deg: f64,
+    /// The last row's attitude error (deg) and rate error (rad/s): what is kept of it (a
+    /// copy of the whole row each tick cost more than the rest of these statistics).
+    last_err: (f64, f64),
     settle: Option<f64>,
     drift_max: f64,
     energy_max: f64,
@@ -182,10 +185,10 @@ struct Stats {
 }
 
 impl Stats {
-    fn new(first: TraceRow) -> Self {
+    fn new(first: &TraceRow) -> Self {
         Self {
-            first,
-            last: first,
+            first_err_deg: first.err_deg,
+            last_err: (first.err_deg, first.werr),
             settle: None,
             drift_max: 0.0,
             energy_max: 0.0,
@@ -202,7 +205,7 @@ impl Stats {
     }
 
     fn add(&mut self, row: &TraceRow, lp: &ClosedLoop) {
-        self.last = *row;
+        self.last_err = (row.err_deg, row.werr);
         self.rows += 1;
         if row.err_deg < 0.1 {
             self.settle.get_or_insert(row.t);
@@ -238,7 +241,7 @@ fn drive(
         if !lp.plant().is_finite() {
             return Err(diverged(k, row.t).into());
         }
-        let st = stats.get_or_insert_with(|| Stats::new(row));
+        let st = stats.get_or_insert_with(|| Stats::new(&row));
         st.add(&row, lp);
         if k < ticks {
             // The last tick's torque would act beyond the run: not counted (as in the plant).
@@ -247,6 +250,22 @@ fn drive(
         each(&row, k == ticks)?;
     }
     stats.context("a run has at least one row")
+}
+
+/// The traced run's loop as [`run`] drives it (its statistics, the figures' recorder, the
+/// trace's decimation to every `trace_every`-th row) for `ticks` ticks, without writing
+/// the rows it picks: what `sim`'s ticks/s measures, less the trace file. Returns how many
+/// rows it picked. The benchmark that guards the simulator's speed runs this.
+pub fn drive_unwritten(lp: &mut ClosedLoop, ticks: u64, trace_every: u64) -> anyhow::Result<u64> {
+    let mut rec = Recorder::new(ticks + 1);
+    let mut traced = EveryNth::new(trace_every);
+    let mut rows = 0u64;
+    drive(lp, ticks, |row, last| {
+        rows += u64::from(traced.holds(row.tick) || last);
+        rec.record(row, last);
+        Ok(())
+    })?;
+    Ok(rows)
 }
 
 /// Runs `sim` and writes `trace.csv`, `summary.json` and the figures into `opts.out`.
@@ -266,13 +285,13 @@ pub fn run(opts: &SimOptions) -> anyhow::Result<(SimSummary, Recorder)> {
     let mut trace = TraceWriter::new(BufWriter::with_capacity(1 << 20, file))?;
     let mut rec = Recorder::new(ticks + 1);
     let mut progress = Progress::new(opts.progress && ticks >= 200_000, ticks);
-    let every = opts.trace_every.max(1);
+    let mut traced = EveryNth::new(opts.trace_every);
     let mut trace_rows = 0u64;
 
     let mut lp = opts.closed_loop(actuation, opts.open_loop).map_err(UsageError::from)?;
     let start = Instant::now();
     let stats = drive(&mut lp, ticks, |row, last| {
-        if row.tick % every == 0 || last {
+        if traced.holds(row.tick) || last {
             trace.write(row).with_context(|| format!("cannot write {}", trace_path.display()))?;
             trace_rows += 1;
         }
@@ -309,9 +328,9 @@ pub fn run(opts: &SimOptions) -> anyhow::Result<(SimSummary, Recorder)> {
         ticks,
         trace_rows,
         dt: s.dt(),
-        err_deg_initial: stats.first.err_deg,
-        err_deg_final: stats.last.err_deg,
-        werr_final: stats.last.werr,
+        err_deg_initial: stats.first_err_deg,
+        err_deg_final: stats.last_err.0,
+        werr_final: stats.last_err.1,
         settle_time_0p1deg_s: stats.settle,
         momentum_drift_rel_max: stats.drift_max,
         energy_residual_max_abs: has_rotors.then_some(stats.energy_max),

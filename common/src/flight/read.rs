@@ -72,10 +72,20 @@ struct Block {
     used: u64,
 }
 
-#[derive(Debug, Default)]
+#[derive(Debug)]
 struct Cache {
     blocks: Vec<Block>,
     clock: u64,
+    /// At most this many blocks ([`BLOCKS`] unless told, [`FlightLog::keeping`]).
+    most_blocks: usize,
+    /// Within this many bytes beyond the newest two ([`BYTES_KEPT`] unless told).
+    most_bytes: usize,
+}
+
+impl Default for Cache {
+    fn default() -> Self {
+        Self { blocks: Vec::new(), clock: 0, most_blocks: BLOCKS, most_bytes: BYTES_KEPT }
+    }
 }
 
 impl Cache {
@@ -241,6 +251,21 @@ impl<T: Record> FlightLog<T> {
         log.limit = log.limit.min(bound);
         log.last = log.find_last();
         Ok(log)
+    }
+
+    /// The same reader keeping up to `blocks` blocks within `bytes` (at least the
+    /// defaults, 6 blocks within 8 MB): for a reader that walks ahead of where it
+    /// comes back to, further than the default keeps (the incidents' counterfactuals,
+    /// each going up to a minute past its incident: with three chunks of states kept,
+    /// each one unpacked again every chunk the one before had unpacked). Still a bound of
+    /// its own, the same for a day's run as for a minute's.
+    pub fn keeping(self, blocks: usize, bytes: usize) -> Self {
+        {
+            let mut cache = self.cache.borrow_mut();
+            cache.most_blocks = blocks.max(BLOCKS);
+            cache.most_bytes = bytes.max(BYTES_KEPT);
+        }
+        self
     }
 
     /// A stream with no record at all (a role that ran without one).
@@ -473,8 +498,8 @@ impl<T: Record> FlightLog<T> {
                 // lends its buffer (no fresh pages to fault in).
                 let want = block_slots as usize * len;
                 let mut bytes = Vec::new();
-                while cache.blocks.len() >= BLOCKS
-                    || (cache.blocks.len() >= 2 && cache.held() + want > BYTES_KEPT)
+                while cache.blocks.len() >= cache.most_blocks
+                    || (cache.blocks.len() >= 2 && cache.held() + want > cache.most_bytes)
                 {
                     let oldest =
                         (0..cache.blocks.len()).min_by_key(|i| cache.blocks[*i].used).unwrap_or(0);

@@ -176,8 +176,21 @@ impl<T: ZeroCopySend + Debug + Copy + 'static> Outbox<T> {
     #[inline]
     pub fn send_then(
         &self,
-        mut value: T,
+        value: T,
         stamp: impl FnOnce(&mut T),
+        after: impl FnOnce(&T),
+    ) -> Result<SendCost, IpcError> {
+        self.send_stamped(value, |v, _| stamp(v), after)
+    }
+
+    /// [`Outbox::send_then`] with `stamp` given the clock read that starts the send (the
+    /// publish stamp, as [`Outbox::send_prewritten`] gives it): one clock read fewer
+    /// than a stamp that reads the clock again.
+    #[inline]
+    pub fn send_stamped(
+        &self,
+        mut value: T,
+        stamp: impl FnOnce(&mut T, u64),
         after: impl FnOnce(&T),
     ) -> Result<SendCost, IpcError> {
         let (sample, loan_ns) = match self.preloaned.0.take() {
@@ -186,7 +199,7 @@ impl<T: ZeroCopySend + Debug + Copy + 'static> Outbox<T> {
             Some((Held::Written(_), _)) | None => self.loan()?,
         };
         let t1 = now_ns();
-        stamp(&mut value);
+        stamp(&mut value, t1);
         let cost = self.send_and_notify(sample.write_payload(value), loan_ns, t1)?;
         after(&value);
         Ok(cost)

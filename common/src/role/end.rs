@@ -58,9 +58,10 @@ impl PlantWatch {
         Ok(Self { role, end: PlantEnd::open(domain)?, last_state_ns: now_ns(), gone: false })
     }
 
-    /// A state of tick `tick` arrived.
-    pub fn saw_state(&mut self, tick: u64) {
-        self.last_state_ns = now_ns();
+    /// A state of tick `tick` arrived, received at `recv_ns` (the receiver's own clock
+    /// read: no second one on the hot path).
+    pub fn saw_state(&mut self, tick: u64, recv_ns: u64) {
+        self.last_state_ns = recv_ns;
         if std::mem::take(&mut self.gone) {
             eprintln!("{}: plant back at tick {tick}", self.role);
         }

@@ -45,7 +45,7 @@ pub fn run(args: &args::ControllerArgs) -> anyhow::Result<()> {
             continue;
         };
         let k = state.tick;
-        ports.plant.saw_state(k);
+        ports.plant.saw_state(k, recv_ns);
         if hooks.test_stall_with_loan_at == Some(k) {
             ports.out.stall_holding_a_loan()?;
             break;

@@ -100,7 +100,7 @@ impl Ports {
         Ok(match decision {
             Decision::AnswerAgain(prev) => {
                 self.out
-                    .send_then(prev, |s| s.publish_ns = now_ns(), |s| self.flight.record(s))
+                    .send_stamped(prev, |s, t1| s.publish_ns = t1, |s| self.flight.record(s))
                     .context("controller: re-publishing")?;
                 None
             }
@@ -141,8 +141,8 @@ impl Ports {
     /// previous publish cost.
     pub fn publish(&self, mut t: TorqueSample, corrupt: &[Corrupt]) -> anyhow::Result<()> {
         (t.prev_tick, t.prev_publish) = self.last_publish.get();
-        let stamp = |s: &mut TorqueSample| s.publish_ns = now_ns();
-        let sent = self.out.send_then(corrupted(corrupt, t), stamp, |s| self.flight.record(s));
+        let stamp = |s: &mut TorqueSample, t1: u64| s.publish_ns = t1;
+        let sent = self.out.send_stamped(corrupted(corrupt, t), stamp, |s| self.flight.record(s));
         self.last_publish.set((t.tick, sent.context("controller: publishing torque")?));
         if self.cut {
             // The next answer's sample, loaned now (after this one is on its way) rather

@@ -31,7 +31,7 @@ pub fn run(args: &args::ReferenceArgs) -> anyhow::Result<()> {
     let mut lead = LeadWindow::new(&scenario);
     let flight = role.flight(Stream::Reference, scenario.ticks(), ROLE);
     let send =
-        |s: ReferenceSample| out.send_then(s, |s| s.publish_ns = now_ns(), |s| flight.record(s));
+        |s: ReferenceSample| out.send_stamped(s, |s, t1| s.publish_ns = t1, |s| flight.record(s));
     let resumed = slot.load_for(ROLE, scenario.ticks());
     if let Some(r) = resumed.filter(|r| lead.can_resume(r)) {
         for again in lead.resume(&scenario, &r) {
@@ -67,7 +67,7 @@ pub fn run(args: &args::ReferenceArgs) -> anyhow::Result<()> {
             Ok(newest)
         })?;
         match newest {
-            Some(tick) => (lead.saw_state(tick), plant.saw_state(tick)).1,
+            Some(tick) => (lead.saw_state(tick), plant.saw_state(tick, now_ns())).1,
             None if plant.run_over() => break,
             None => {}
         }

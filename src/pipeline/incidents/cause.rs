@@ -137,10 +137,10 @@ fn scheduled(run: &RunRecord, f: &FaultRow) -> bool {
 /// The first fault of a loop role whose ticks overlap `[start, end]` (its index in
 /// `run.faults`).
 pub fn fault_of(run: &RunRecord, [start, end]: [u64; 2]) -> Option<usize> {
-    run.faults.iter().position(|f| {
-        let [from, to] = ticks::fault_ticks(run, f);
-        ticks::in_loop(&f.role) && from <= end && to >= start
-    })
+    run.faults
+        .iter()
+        .zip(run.fault_spans())
+        .position(|(f, [from, to])| ticks::in_loop(&f.role) && *from <= end && *to >= start)
 }
 
 /// The cause of a fault the launcher saw.

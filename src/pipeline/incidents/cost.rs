@@ -220,10 +220,13 @@ pub fn cost(
     let delay = flags.median_delay_s.max(0.0);
     let (late_ticks, late_offset) = ((delay / dt).floor() as u64, delay % dt);
     let mut pending: Vec<(u64, f64, u64)> = Vec::new();
+    // What takes effect in the tick at hand: one buffer for the whole counterfactual.
+    let mut due: Vec<(f64, u64)> = Vec::new();
     let mut curve = Vec::new();
     let (mut peak, mut peak_tick, mut below_since) = (0.0f64, start, None::<u64>);
+    // The run's state of the tick at hand: the previous tick's `next`.
+    let mut real = run.state(start)?;
     for k in start..=run.last {
-        let real = run.state(k)?;
         let d = deviation_deg(&real, &body);
         if curve.len() < CURVE_TICKS {
             curve.push(d);
@@ -253,7 +256,7 @@ pub fn cost(
             }
             answers.push_back((k, input_of(actuation, &o)));
         }
-        let mut due: Vec<(f64, u64)> = Vec::new();
+        due.clear();
         if replaced {
             pending.push((k + late_ticks, late_offset, k));
         } else {
@@ -271,12 +274,13 @@ pub fn cost(
             false => true,
         });
         due.sort_by(|a, b| a.0.total_cmp(&b.0));
-        for (offset, source) in due {
+        for &(offset, source) in &due {
             let ours = answers.binary_search_by_key(&source, |(j, _)| *j).ok();
             let input = ours.map(|i| answers[i].1).or_else(|| recorded(source))?;
             line.schedule(k, offset, source, input);
         }
         integrate_tick(&mut body, &mut line, k, &limits, run.scenario.disturbance);
+        real = next;
     }
     let recovery_s = below_since.filter(|_| peak > 0.0).map(|b| (b - start) as f64 * dt);
     let recovery_s = if peak == 0.0 { Some(0.0) } else { recovery_s };

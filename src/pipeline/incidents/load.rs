@@ -123,10 +123,22 @@ pub struct RunRecord {
     /// and one for `j`. The ticks of an incident ask in order, so a window in which the
     /// controller was silent reads its records once, not once per tick.
     next_found: std::cell::Cell<Option<(u64, u64)>>,
+    /// Each fault's ticks ([`super::ticks::fault_ticks`]), found once: each takes up to
+    /// three scans of a grid stride of states, and every window of the loop asks for all.
+    fault_spans: std::cell::OnceCell<Vec<[u64; 2]>>,
 }
 
 /// Ticks between two of [`RunRecord`]'s grid marks (a day at 1 kHz: 84 000 marks).
 const GRID_STRIDE: u64 = 1024;
+
+/// Blocks each stream's reader keeps for the incidents, within [`KEPT_BYTES`]: a
+/// counterfactual goes up to a minute past its incident ([`super::cost`]: 15 packed
+/// chunks of 4096 ticks at 1 kHz), and the next incident's starts back near its own. With
+/// the readers' default (three chunks of states) each incident unpacked again every chunk
+/// the one before it had walked: 90 % of the analysis of a loaded run was unpacking.
+const KEPT_BLOCKS: usize = 24;
+/// Bytes each stream's reader keeps for the incidents: 22 chunks of plant states.
+const KEPT_BYTES: usize = 48 << 20;
 
 /// A state's grid time: its deadline in real time, its publish in lockstep.
 fn grid_of(s: &StateSample) -> u64 {
@@ -169,7 +181,8 @@ impl RunRecord {
             return Err(bad(dir, format!("no flight record {}", plant_state.display())).into());
         }
         let limit = scenario.ticks().saturating_add(SPARE_SLOTS);
-        let states = FlightLog::<StateSample>::read(&flight, Stream::PlantState, limit)?;
+        let states = FlightLog::<StateSample>::read(&flight, Stream::PlantState, limit)?
+            .keeping(KEPT_BLOCKS, KEPT_BYTES);
         // The controller's answers from its own record; a controller of the user's own
         // (`--controller-cmd`) keeps none, and its answers are then the plant's record of
         // the torques it received (the same samples, less any lost on the way).
@@ -177,9 +190,11 @@ impl RunRecord {
             .ok()
             .filter(|t| t.last().is_some())
             .or_else(|| FlightLog::read(&flight, Stream::PlantTorque, limit).ok())
-            .unwrap_or_else(FlightLog::empty);
+            .unwrap_or_else(FlightLog::empty)
+            .keeping(KEPT_BLOCKS, KEPT_BYTES);
         let references = FlightLog::<ReferenceSample>::read(&flight, Stream::Reference, limit)
-            .unwrap_or_else(|_| FlightLog::empty());
+            .unwrap_or_else(|_| FlightLog::empty())
+            .keeping(KEPT_BLOCKS, KEPT_BYTES);
         let last = states.last().unwrap_or(0).min(scenario.ticks());
         // One pass over the states: the origin, the mode, and the grid marks.
         let (mut t0_ns, mut realtime, mut grid) = (u64::MAX, false, 0u64);
@@ -219,6 +234,7 @@ impl RunRecord {
             trace_left: Left::default(),
             t0_ns,
             next_found: Default::default(),
+            fault_spans: Default::default(),
             sched_left: Left::default(),
         })
     }
@@ -245,6 +261,7 @@ impl RunRecord {
             last: (states.len() as u64).saturating_sub(1),
             t0_ns: states.first().map_or(0, |s| s.publish_ns),
             next_found: Default::default(),
+            fault_spans: Default::default(),
             sched_left: Left::default(),
             realtime: false,
             grid_marks,
@@ -315,6 +332,13 @@ impl RunRecord {
         let k = k.min(self.last);
         let m = (k / GRID_STRIDE) as usize;
         self.grid_from_mark(m).take_while(|(j, _)| *j <= k).last().map_or(0, |(_, t)| t)
+    }
+
+    /// The ticks of each of the launcher's faults, in the order of [`Self::faults`].
+    pub fn fault_spans(&self) -> &[[u64; 2]] {
+        self.fault_spans.get_or_init(|| {
+            self.faults.iter().map(|f| super::ticks::fault_ticks(self, f)).collect()
+        })
     }
 
     /// The time of tick `k` (s after tick 0).
