@@ -77,7 +77,6 @@ macro_rules! hop_stats {
 const HOP: [Key; 9] = hop_stats!("hops.<hop>", "the hop (0 for a hop with none: all its stats are then 0)");
 const STAGE: [Key; 9] = hop_stats!("stages[]", "the stage");
 
-const FAULT: &str = "with --fault, or a role that died, stopped or hung";
 
 const MAIN: &[Key] = &[
     always("layout_version", "integer", "this file's layout version (now 1); raised when a key is renamed, removed or changes meaning or unit"),

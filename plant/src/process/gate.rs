@@ -56,9 +56,9 @@ mod tests {
 
     #[test]
     fn a_resumed_plant_does_not_hold_again_at_the_gate_it_passed() {
-        assert_eq!(Gate::new(&[4000, 0, 4500], 0, false).upcoming(), [0, 4000, 4500, u64::MAX]);
-        assert_eq!(Gate::new(&[4000, 4500], 4000, true).upcoming(), [4500, u64::MAX]);
-        assert_eq!(Gate::new(&[4000, 4500], 3999, true).upcoming(), [4000, 4500, u64::MAX]);
-        assert_eq!(Gate::new(&[], 0, false).upcoming(), [u64::MAX]);
+        assert_eq!(Gate::new(&[4000, 0, 4500], 0, false).upcoming(), [0, 4000, 4500]);
+        assert_eq!(Gate::new(&[4000, 4500], 4000, true).upcoming(), [4500]);
+        assert_eq!(Gate::new(&[4000, 4500], 3999, true).upcoming(), [4000, 4500]);
+        assert_eq!(Gate::new(&[], 0, false).upcoming(), [u64::MAX], "none: never equal");
     }
 }
