@@ -657,7 +657,11 @@ fn a_lockstep_kill_lands_at_its_tick_every_time_and_the_trace_is_the_simulators(
         assert_eq!(f["restart_tick"], 4001, "{f}");
         assert_eq!(f["kill_s"], 4.0, "the run's time, not the wall's: {f}");
         assert_eq!(s["fault_schedule"][0]["at_tick"], 4000, "{s}");
-        assert_same_trace("kill at 4 s", &std::fs::read(out.join("trace.csv")).expect("trace"), &sim);
+        assert_same_trace(
+            "kill at 4 s",
+            &std::fs::read(out.join("trace.csv")).expect("trace"),
+            &sim,
+        );
         ticks.push((f["kill_tick"].clone(), f["restart_tick"].clone()));
         h.assert_no_leftovers();
     }
@@ -1082,7 +1086,11 @@ fn summary_json_has_every_documented_key_and_no_other() {
             "{mode}: summary.json has keys its table (common/src/summary_json.rs) lacks: {:?}",
             c.undocumented
         );
-        assert!(c.missing.is_empty(), "{mode}: keys said always there are missing: {:?}", c.missing);
+        assert!(
+            c.missing.is_empty(),
+            "{mode}: keys said always there are missing: {:?}",
+            c.missing
+        );
         h.assert_no_leftovers();
     }
 }

@@ -236,8 +236,7 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
             &children,
         );
     }
-    let supervised = started
-        .and_then(|()| supervise(&launch, &mut children, &mut rss, schedule));
+    let supervised = started.and_then(|()| supervise(&launch, &mut children, &mut rss, schedule));
     stop_gateways(&mut children, args.quiet);
     drop(children);
     // A live view not served is a warning of the report too (the run still exits 0).
@@ -341,7 +340,8 @@ fn report(
         }
     }
     if !events.is_empty() && !args.no_monitor {
-        if let Err(e) = crate::run::fault::report::report(&args.out, scenario, events, (launched_ns, lockstep))
+        if let Err(e) =
+            crate::run::fault::report::report(&args.out, scenario, events, (launched_ns, lockstep))
         {
             eprintln!("warning: no fault report: {e:#}");
             for e in events {

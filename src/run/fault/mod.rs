@@ -390,9 +390,8 @@ pub fn check_against_run(
     run: RunShape,
 ) -> Result<(), UsageError> {
     let duration_s = run.ticks as f64 / run.rate_hz;
-    let refuse = |spec: &str, why: String| {
-        Err(UsageError(format!("--fault `{spec}` cannot happen: {why}")))
-    };
+    let refuse =
+        |spec: &str, why: String| Err(UsageError(format!("--fault `{spec}` cannot happen: {why}")));
     for (spec, f) in specs.iter().zip(faults) {
         let KindSpec { start, end, .. } = f.kind.spec();
         let after_end = |word: &str, tick: u64| {
@@ -675,7 +674,11 @@ mod tests {
         // In lockstep the controller too (the plant waits for its torque); the monitor is
         // an observer, and a delay is applied by the controller by the states' times.
         let s = schedule(
-            &["controller:kill@1:restart@1.5", "monitor:stop@2:cont@3", "controller:delay@4=0.1:until@5"],
+            &[
+                "controller:kill@1:restart@1.5",
+                "monitor:stop@2:cont@3",
+                "controller:delay@4=0.1:until@5",
+            ],
             true,
         );
         assert_eq!(s.gate_ticks(), [1000, 2000, 3000, 4000, 5000]);
@@ -687,11 +690,18 @@ mod tests {
 
     #[test]
     fn faults_that_cannot_happen_are_refused_before_the_run() {
-        let run = |lockstep, no_watchdog| RunShape { ticks: 10_000, rate_hz: 1000.0, lockstep, no_watchdog };
+        let run = |lockstep, no_watchdog| RunShape {
+            ticks: 10_000,
+            rate_hz: 1000.0,
+            lockstep,
+            no_watchdog,
+        };
         let check = |f: &str, shape: RunShape| {
             check_against_run(&[f.to_owned()], &[fault(f)], shape).map_err(|e| e.0)
         };
-        for f in ["controller:kill@10", "controller:kill@12:restart@13", "monitor:kill@2:restart@10"] {
+        for f in
+            ["controller:kill@10", "controller:kill@12:restart@13", "monitor:kill@2:restart@10"]
+        {
             let e = check(f, run(true, false)).expect_err(f);
             assert!(e.contains(f) && e.contains("after the run's end"), "{e}");
         }
@@ -718,7 +728,8 @@ mod tests {
     fn overlapping_faults_of_one_role_are_refused_naming_both() {
         let check = |specs: &[&str]| {
             let specs: Vec<String> = specs.iter().map(|s| s.to_string()).collect();
-            let faults: Vec<Fault> = specs.iter().map(|s| parse_fault(s, 1000.0).expect("valid")).collect();
+            let faults: Vec<Fault> =
+                specs.iter().map(|s| parse_fault(s, 1000.0).expect("valid")).collect();
             check_overlaps(&specs, &faults)
         };
         let e = check(&["plant:kill@5.47:restart@5.86", "plant:kill@5.83:restart@6.02"])
@@ -737,7 +748,8 @@ mod tests {
     #[test]
     fn a_delay_as_long_as_the_run_is_refused_naming_both() {
         let specs = ["controller:delay@0=60".to_owned(), "controller:kill@1".to_owned()];
-        let faults: Vec<Fault> = specs.iter().map(|s| parse_fault(s, 1000.0).expect("valid")).collect();
+        let faults: Vec<Fault> =
+            specs.iter().map(|s| parse_fault(s, 1000.0).expect("valid")).collect();
         let run = |ticks| RunShape { ticks, rate_hz: 1000.0, lockstep: true, no_watchdog: false };
         let e = check_against_run(&specs, &faults, run(2000)).expect_err("longer than the run");
         assert!(e.0.contains("controller:delay@0=60") && e.0.contains("(2 s)"), "{e}");
@@ -770,7 +782,8 @@ mod tests {
         assert_eq!(s.due(Some(1000), 0), [act("controller", FaultKind::Stop, true)]);
         assert!(!s.awaiting_restart(), "a stopped role is still there");
         assert_eq!(s.due(Some(3000), 0), [act("controller", FaultKind::Stop, false)]);
-        let e = parse_fault("controller:stop@2:cont@1", 1000.0).expect_err("cont first").to_string();
+        let e =
+            parse_fault("controller:stop@2:cont@1", 1000.0).expect_err("cont first").to_string();
         assert!(e.contains("cont must come after the stop"), "{e}");
         assert!(parse_fault("controller:stop@2:restart@3", 1000.0).is_err());
     }
