@@ -253,19 +253,17 @@ pub(crate) fn supervise(
 }
 
 /// Real time: the plant's newest tick surely published. Its resume slot is written just
-/// before the publish, so a tick whose wake is under 200 µs old may still be on its way
-/// (a fault carried out in between would come before the state it is due after).
+/// before the publish, so the slot's own tick may still be on its way (a plant preempted
+/// between the two on a loaded machine: seen, a kill "at" tick 950 landed before its
+/// publication); the tick before it has been published for certain. So a fault lands
+/// within one tick (and a poll) of its tick's publication, never before it.
 fn published_tick(progress: &Progress) -> Option<u64> {
-    let s = progress.0.plant()?;
-    match now_ns() >= s.wake_ns.saturating_add(200_000) {
-        true => Some(s.tick),
-        false => s.tick.checked_sub(1),
-    }
+    progress.0.plant()?.tick.checked_sub(1)
 }
 
 /// How long the supervision loop sleeps: 2 ms, but in real time, as the plant nears the
-/// next tick a fault is due at, no longer than until one tick before it, and then 100 µs,
-/// so that the fault lands within a fraction of a millisecond of that tick's publication.
+/// next tick a fault is due at, no longer than until the tick after it begins, and then
+/// 100 µs, so that the fault lands within about a tick of that tick's publication.
 fn poll_interval(launch: &Launch, schedule: &FaultSchedule, tick: Option<u64>) -> Duration {
     const POLL: Duration = Duration::from_millis(2);
     let (Some(due), Some(tick)) = (schedule.next_tick(), tick) else { return POLL };
@@ -273,7 +271,8 @@ fn poll_interval(launch: &Launch, schedule: &FaultSchedule, tick: Option<u64>) -
         return POLL;
     }
     let dt_s = 1.0 / launch.rate_hz;
-    let ahead_s = due.saturating_sub(tick + 1) as f64 * dt_s;
+    // Due once the slot says `due + 1` (`published_tick`): sleep until about then.
+    let ahead_s = due.saturating_sub(tick) as f64 * dt_s;
     Duration::from_secs_f64(ahead_s).clamp(Duration::from_micros(100), POLL)
 }
 
