@@ -670,7 +670,8 @@ fn a_lockstep_kill_lands_at_its_tick_every_time_and_the_trace_is_the_simulators(
 
 /// A real-time kill at 4 s lands once the plant has published tick 4000 and within 10 ms
 /// (10 ticks at 1 kHz) of it: the newest tick published before the kill, from the run's
-/// own timing, is 4000 to 4010; its restart at 4.5 s likewise after tick 4500.
+/// own timing, is 4000 to 4010. Its restart at 4.5 s comes after tick 4500's publication
+/// (how long starting a process takes is the machine's: no bound on it here).
 #[test]
 fn a_realtime_kill_lands_within_10_ms_of_its_ticks_publication() {
     let h = Harness::new("kill-at-tick-rt");
@@ -689,7 +690,7 @@ fn a_realtime_kill_lands_within_10_ms_of_its_ticks_publication() {
     let kill = f["kill_tick"].as_u64().expect("kill tick");
     assert!((4000..=4010).contains(&kill), "{f}");
     let restart = f["restart_tick"].as_u64().expect("restart tick");
-    assert!((4501..=4511).contains(&restart), "{f}");
+    assert!(restart >= 4501, "{f}");
     h.assert_no_leftovers();
 }
 
