@@ -18,7 +18,7 @@ use crate::run::split::Split;
 use crate::run::supervise::{Children, RestartLimit, Supervisor, parse_restart};
 use crate::run::watch::supervise;
 use rotorloop_common::role::UsageError;
-use rotorloop_common::role::args::RoleArgs;
+use rotorloop_common::role::args::{Mode, RoleArgs};
 use rotorloop_controller::law::AnyLaw;
 /// How a run ended without completing its control loop (mapped to exit codes by the CLI).
 #[derive(Debug, thiserror::Error)]
@@ -29,12 +29,12 @@ pub enum RunEnd {
 }
 
 /// The `--fault`s, checked against each other, against the run (a fault that cannot
-/// happen in it is refused) and against the placement of the roles.
+/// happen in it is refused) and against the placement of the roles, and their schedule.
 fn checked_faults(
     args: &RunArgs,
     split: Option<&Split>,
     scenario: &rotorloop_common::scenario::Scenario,
-) -> anyhow::Result<Vec<Fault>> {
+) -> anyhow::Result<(Vec<Fault>, FaultSchedule)> {
     let rate_hz = scenario.file.run.rate_hz;
     let faults =
         args.fault.iter().map(|f| parse_fault(f, rate_hz)).collect::<Result<Vec<_>, _>>()?;
@@ -42,7 +42,7 @@ fn checked_faults(
     let shape = RunShape {
         ticks: scenario.ticks(),
         rate_hz,
-        lockstep: args.role.mode == rotorloop_common::role::args::Mode::Lockstep,
+        lockstep: args.role.mode == Mode::Lockstep,
         no_watchdog: args.watchdog_ms == 0,
     };
     crate::run::fault::check_against_run(&args.fault, &faults, shape)?;
@@ -59,7 +59,8 @@ fn checked_faults(
             None => {}
         }
     }
-    Ok(faults)
+    let schedule = FaultSchedule::new(faults.clone(), args.role.mode == Mode::Lockstep);
+    Ok((faults, schedule))
 }
 
 /// The domain of a run without `--domain`: `run-` and 7 random characters (36 bits from
@@ -163,9 +164,7 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
     };
     let split = args.split.as_deref().map(|s| Split::parse(s, !args.no_monitor)).transpose()?;
     let duration_s = scenario.ticks() as f64 * scenario.dt();
-    let faults = checked_faults(args, split.as_ref(), &scenario)?;
-    let lockstep = args.role.mode == rotorloop_common::role::args::Mode::Lockstep;
-    let schedule = FaultSchedule::new(faults.clone(), lockstep);
+    let (faults, schedule) = checked_faults(args, split.as_ref(), &scenario)?;
     let external = crate::run::external::check(args, &faults)?.map(|e| (e, scenario.clone()));
     if split.is_some() {
         crate::run::split::link_binary()?;
@@ -204,7 +203,7 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
         exe,
         ticks: scenario.ticks(),
         rate_hz: scenario.file.run.rate_hz,
-        gates: if lockstep { schedule.gate_ticks() } else { Vec::new() },
+        gates: schedule.gate_ticks(),
         external,
     };
     // In lockstep the plant waits for this launcher's mover rather than lose records.
@@ -314,7 +313,7 @@ fn report(
     flight: Option<&std::path::Path>,
 ) -> anyhow::Result<()> {
     let args = launch.args;
-    let lockstep = args.role.mode == rotorloop_common::role::args::Mode::Lockstep;
+    let lockstep = args.role.mode == Mode::Lockstep;
     launch.report_without_monitor(scenario, flight);
     let schedule: Vec<serde_json::Value> = launch.faults.iter().map(|f| f.scheduled()).collect();
     if let Err(e) = rotorloop_common::output::patch_summary(&args.out, |j| {

@@ -503,9 +503,12 @@ impl FaultSchedule {
         actions
     }
 
-    /// The ticks at which a part is due by tick, in order: in lockstep the plant holds at
-    /// each (`--gate-ticks`) until the launcher has carried it out.
+    /// Lockstep: the ticks at which a part is due by tick, in order; the plant holds at
+    /// each (`--gate-ticks`) until the launcher has carried it out. None in real time.
     pub fn gate_ticks(&self) -> Vec<u64> {
+        if !self.lockstep {
+            return Vec::new();
+        }
         let mut ticks: Vec<u64> = self
             .faults
             .iter()
@@ -664,7 +667,7 @@ mod tests {
         // The plant's own kill, in either mode: its tick cannot reach 1500 while it is down.
         for lockstep in [false, true] {
             let mut s = schedule(&["plant:kill@1:restart@1.5"], lockstep);
-            assert_eq!(s.gate_ticks(), [1000]);
+            assert_eq!(s.gate_ticks(), if lockstep { vec![1000] } else { vec![] });
             assert_eq!(s.due(Some(1000), 7 * S), [act("plant", FaultKind::Kill, true)]);
             assert!(s.holding());
             assert!(s.due(Some(1000), 7 * S + S / 2 - 1).is_empty());
