@@ -50,15 +50,15 @@ fn lockstep(h: &Harness, name: &str, extra: &[&str]) -> PathBuf {
 fn every_kind_of_corrupted_sample_is_rejected_counted_and_never_reaches_the_state() {
     let h = Harness::new("corrupt");
     let corrupt = [
-        "controller:nan@100",
-        "controller:inf@150",
-        "controller:huge@200",
-        "plant:nan@300",
-        "plant:skew@350",
-        "plant:huge@400",
-        "reference:inf@500",
-        "reference:skew@550",
-        "reference:huge@600",
+        "controller:nan@100t",
+        "controller:inf@150t",
+        "controller:huge@200t",
+        "plant:nan@300t",
+        "plant:skew@350t",
+        "plant:huge@400t",
+        "reference:inf@500t",
+        "reference:skew@550t",
+        "reference:huge@600t",
     ];
     let extra: Vec<&str> = corrupt.iter().flat_map(|c| ["--corrupt", c]).collect();
     let out = lockstep(&h, "run", &extra);
@@ -144,7 +144,7 @@ fn rejected_torques_beyond_the_hold_put_the_plant_in_safe_mode_until_a_good_one(
     // 100..=110, and the last answer of the run (a rejected row must not stall the
     // monitor at the end).
     for k in (100..=110).chain([999]) {
-        extra.extend(["--corrupt".into(), format!("controller:nan@{k}")]);
+        extra.extend(["--corrupt".into(), format!("controller:nan@{k}t")]);
     }
     let extra: Vec<&str> = extra.iter().map(String::as_str).collect();
     let out = lockstep(&h, "run", &extra);

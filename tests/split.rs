@@ -148,7 +148,7 @@ fn samples_that_crossed_the_link_are_validated_like_local_ones() {
     let h = Harness::new("split-bad");
     let out = h.path("run");
     let mut extra = vec!["--duration", "1", "--mode", "lockstep"];
-    for c in ["controller:nan@100", "plant:skew@300", "reference:huge@500"] {
+    for c in ["controller:nan@100t", "plant:skew@300t", "reference:huge@500t"] {
         extra.extend(["--corrupt", c]);
     }
     run_split(&h, &out, &extra);

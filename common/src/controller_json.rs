@@ -87,7 +87,11 @@ pub const KEYS: &[(&str, &str, &str)] = &[
     ),
     ("dt_s", "number", "the tick `dt = 1/rate_hz` (s): the integral's step"),
     ("rate_hz", "number", "the loop rate (Hz)"),
-    ("ticks", "integer", "ticks in the run (the last has `FLAG_LAST`)"),
+    (
+        "ticks",
+        "integer",
+        "the run's last tick: states are published for ticks 0 to `ticks` inclusive (`ticks` + 1 states), and the one of tick `ticks` has `FLAG_LAST`",
+    ),
     ("gains.kp", "number", "`k_p`"),
     ("gains.kd", "number", "`k_d`"),
     ("gains.ki", "number", "`k_i`"),

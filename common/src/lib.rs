@@ -37,4 +37,5 @@ pub mod rt;
 pub mod scenario;
 pub mod signals;
 pub mod so3;
+pub mod summary_json;
 pub mod wire;

@@ -84,6 +84,8 @@ pub struct Recording {
     pub storage_errors: Vec<String>,
     /// When the live status line was last drawn (`None`: never).
     status_at_ns: Option<u64>,
+    /// The first status line: when (ns) and at what run time (s), for the pace.
+    status_since: Option<(u64, f64)>,
 }
 
 /// Opens `trace.csv` and `timing.csv` in `out` (new, with their headers; or `resumed`'s,
@@ -124,6 +126,25 @@ fn open_files(
     let filer = Filer::start(trace, timing, [t, m], stall)
         .context("cannot start the monitor's file thread")?;
     Ok((filer, [t, m]))
+}
+
+/// The live status line: the run's time out of its length and the share done, the wall
+/// time left where it can be estimated yet (`left_s`), the attitude error, the
+/// sense-to-actuate p99 (µs) and the misses so far.
+pub fn status_text(
+    t: f64,
+    end_s: f64,
+    err_deg: f64,
+    p99_us: f64,
+    misses: u64,
+    left_s: Option<f64>,
+) -> String {
+    let share = 100.0 * t / end_s;
+    let left = left_s.map_or_else(String::new, |l| format!(", {l:.1} s left"));
+    format!(
+        "  t = {t:8.3} of {end_s:.3} s ({share:3.0} %{left})   error {err_deg:.3e}°   \
+         sense-to-actuate p99 {p99_us:9.1} µs   misses {misses}   "
+    )
 }
 
 impl Recording {
@@ -198,6 +219,7 @@ impl Recording {
             loss: None,
             storage_errors: Vec::new(),
             status_at_ns: None,
+            status_since: None,
         };
         if let Some(l) = loss {
             rec.lose(l.from_tick, l.reason);
@@ -347,21 +369,23 @@ impl Recording {
         }
     }
 
-    /// Rewrites the live status line on stderr, at most twice a second: run time, attitude
-    /// error, sense-to-actuate p99, misses (of the newest state `last`).
-    pub fn status_line(&mut self, last: Option<StateSample>, now_ns: u64) {
+    /// Rewrites the live status line on stderr, at most twice a second ([`status_text`]),
+    /// of the newest state `last` in a run of `end_s` seconds: the wall time left is
+    /// estimated from the pace since the first status line (in real time the run's time
+    /// left; in lockstep, many times less).
+    pub fn status_line(&mut self, last: Option<StateSample>, end_s: f64, now_ns: u64) {
         if self.status_at_ns.is_some_and(|t| now_ns - t < 500_000_000) {
             return;
         }
         self.status_at_ns = Some(now_ns);
         let p99 = self.latency.histogram(Hop::SenseToActuate).value_at_quantile(0.99) as f64 / 1e3;
         let (t, misses) = last.map_or((0.0, 0), |s| (s.t_s, s.misses));
-        let err = self.last_err;
+        let (t0_ns, t0) = *self.status_since.get_or_insert((now_ns, t));
+        let pace = (now_ns - t0_ns) as f64 / 1e9 / (t - t0); // wall s per run s
+        let left_s = (pace.is_finite() && pace > 0.0).then(|| (end_s - t).max(0.0) * pace);
+        let text = status_text(t, end_s, self.last_err, p99, misses, left_s);
         let mut e = std::io::stderr().lock();
-        let _ = write!(
-            e,
-            "\r  t = {t:8.3} s   error {err:.3e}°   sense-to-actuate p99 {p99:9.1} µs   misses {misses}   "
-        );
+        let _ = write!(e, "\r{text}");
         let _ = e.flush();
     }
 
@@ -495,6 +519,15 @@ pub fn with_fallback<T>(
 mod tests {
     use super::*;
     use crate::policy::RowJoiner;
+
+    #[test]
+    fn the_status_line_says_the_runs_length_and_the_time_left() {
+        let line = status_text(4.0, 10.0, 3.541, 215.2, 95, Some(0.3));
+        assert!(line.contains("t =    4.000 of 10.000 s ( 40 %, 0.3 s left)"), "{line}");
+        assert!(line.contains("p99     215.2 µs") && line.contains("misses 95"), "{line}");
+        // The first line has no pace yet.
+        assert!(status_text(0.0, 10.0, 1.0, 1.0, 0, None).contains("(  0 %)"));
+    }
 
     /// A restarted monitor cuts its files back to the lengths its slot claims: rows its
     /// predecessor's file thread wrote after the slot's last word (the thread runs ahead

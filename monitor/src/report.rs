@@ -34,6 +34,8 @@ impl From<SeqCounter> for SubscriberCounts {
 /// `summary.json` of a multi-process run.
 #[derive(Debug, Clone, Serialize)]
 pub struct RunSummary {
+    /// `summary.json`'s layout version (`rotorloop_common::summary_json`: its every key).
+    pub layout_version: u32,
     /// Scenario name.
     pub name: String,
     /// The scenario as run.
@@ -183,6 +185,7 @@ pub fn summary(
     let saturated_ticks = last.map_or(0, |s| s.saturated_ticks);
     let rows = j.rows();
     RunSummary {
+        layout_version: rotorloop_common::summary_json::SUMMARY_JSON_VERSION,
         name: scenario.file.name.clone(),
         scenario: scenario.file.clone(),
         mode: if role.mode == Mode::Lockstep { "lockstep" } else { "realtime" }.to_owned(),

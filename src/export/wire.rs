@@ -199,6 +199,17 @@ fn markdown() -> String {
         rotorloop_common::controller_json::CONTROLLER_JSON_VERSION
     );
     md.push_str(&rotorloop_common::controller_json::keys_markdown());
+    let _ = writeln!(
+        md,
+        "\n### `summary.json` (`OUT/summary.json` of `rotorloop run`, `layout_version` {})\n\n\
+         Every key of the report, its type and unit, and whether it is always there. `<name>` \
+         stands for each key of a map, `[]` for each element of an array. Raised like \
+         `controller.json`'s when a key is renamed, removed or changes meaning or unit; \
+         `summary_json::check` holds a real file to this table (a key added is a row of \
+         `common/src/summary_json.rs`).\n",
+        rotorloop_common::summary_json::SUMMARY_JSON_VERSION
+    );
+    md.push_str(&rotorloop_common::summary_json::keys_markdown());
     md
 }
 

@@ -9,7 +9,7 @@ use rotorloop_common::ipc::domain::Domain;
 
 use crate::observe::foxglove::Beside;
 use crate::run::args::{RunArgs, parse_pins, with_preset};
-use crate::run::fault::{Fault, FaultEvent, FaultSchedule, parse_fault};
+use crate::run::fault::{Fault, FaultEvent, FaultSchedule, RunShape, parse_fault};
 use crate::run::resources::{RssLog, add_resources};
 use crate::run::spawn::{
     Launch, clear_flight_records, make_staging, prepare_domains, staging_dir, start, stop_gateways,
@@ -18,7 +18,7 @@ use crate::run::split::Split;
 use crate::run::supervise::{Children, RestartLimit, Supervisor, parse_restart};
 use crate::run::watch::supervise;
 use rotorloop_common::role::UsageError;
-use rotorloop_common::role::args::RoleArgs;
+use rotorloop_common::role::args::{Mode, RoleArgs};
 use rotorloop_controller::law::AnyLaw;
 /// How a run ended without completing its control loop (mapped to exit codes by the CLI).
 #[derive(Debug, thiserror::Error)]
@@ -28,15 +28,24 @@ pub enum RunEnd {
     StoppedBySignal,
 }
 
-/// The `--fault`s, checked against each other and against the placement of the roles.
+/// The `--fault`s, checked against each other, against the run (a fault that cannot
+/// happen in it is refused) and against the placement of the roles, and their schedule.
 fn checked_faults(
     args: &RunArgs,
     split: Option<&Split>,
-    duration_s: f64,
-) -> anyhow::Result<Vec<Fault>> {
-    let faults = args.fault.iter().map(|f| parse_fault(f)).collect::<Result<Vec<_>, _>>()?;
+    scenario: &rotorloop_common::scenario::Scenario,
+) -> anyhow::Result<(Vec<Fault>, FaultSchedule)> {
+    let rate_hz = scenario.file.run.rate_hz;
+    let faults =
+        args.fault.iter().map(|f| parse_fault(f, rate_hz)).collect::<Result<Vec<_>, _>>()?;
     crate::run::fault::check_overlaps(&args.fault, &faults)?;
-    crate::run::fault::check_against_run(&args.fault, &faults, duration_s)?;
+    let shape = RunShape {
+        ticks: scenario.ticks(),
+        rate_hz,
+        lockstep: args.role.mode == Mode::Lockstep,
+        no_watchdog: args.watchdog_ms == 0,
+    };
+    crate::run::fault::check_against_run(&args.fault, &faults, shape)?;
     for f in &faults {
         match split {
             Some(s) => s.check_fault_target(&f.role)?,
@@ -50,7 +59,8 @@ fn checked_faults(
             None => {}
         }
     }
-    Ok(faults)
+    let schedule = FaultSchedule::new(faults.clone(), args.role.mode == Mode::Lockstep);
+    Ok((faults, schedule))
 }
 
 /// The domain of a run without `--domain`: `run-` and 7 random characters (36 bits from
@@ -213,11 +223,13 @@ fn foreign(e: &anyhow::Error) -> bool {
 #[allow(clippy::type_complexity)]
 fn corruptions_and_supervisor(
     args: &RunArgs,
+    scenario: &rotorloop_common::scenario::Scenario,
 ) -> Result<(Vec<(String, rotorloop_common::role::inject::Corrupt)>, Supervisor), UsageError> {
+    let (rate_hz, ticks) = (scenario.file.run.rate_hz, scenario.ticks());
     let corrupt = args
         .corrupt
         .iter()
-        .map(|c| crate::run::fault::parse_corrupt(c))
+        .map(|c| crate::run::fault::parse_corrupt(c, rate_hz, ticks))
         .collect::<Result<Vec<_>, _>>()?;
     let limit: RestartLimit =
         args.restart_limit.parse().map_err(|e| UsageError(format!("--restart-limit {e}")))?;
@@ -251,7 +263,7 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
         eprintln!("warning: {w}");
     }
     crate::run::budget::check(args, &scenario)?;
-    let (corrupt, supervisor) = corruptions_and_supervisor(args)?;
+    let (corrupt, supervisor) = corruptions_and_supervisor(args, &scenario)?;
     let mut role_args = args.role.clone();
     let defaulted = role_args.domain.is_none();
     role_args.domain.get_or_insert_with(default_domain);
@@ -263,7 +275,7 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
     };
     let split = args.split.as_deref().map(|s| Split::parse(s, !args.no_monitor)).transpose()?;
     let duration_s = scenario.ticks() as f64 * scenario.dt();
-    let faults = checked_faults(args, split.as_ref(), duration_s)?;
+    let (faults, schedule) = checked_faults(args, split.as_ref(), &scenario)?;
     let external = crate::run::external::check(args, &faults)?.map(|e| (e, scenario.clone()));
     if split.is_some() {
         crate::run::split::link_binary()?;
@@ -302,6 +314,8 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
         corrupt,
         exe,
         ticks: scenario.ticks(),
+        rate_hz: scenario.file.run.rate_hz,
+        gates: schedule.gate_ticks(),
         external,
     };
     // In lockstep the plant waits for this launcher's mover rather than lose records.
@@ -333,8 +347,7 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
             &children,
         );
     }
-    let supervised = started
-        .and_then(|()| supervise(&launch, &mut children, &mut rss, FaultSchedule::new(faults)));
+    let supervised = started.and_then(|()| supervise(&launch, &mut children, &mut rss, schedule));
     stop_gateways(&mut children, args.quiet);
     drop(children);
     // A live view not served is a warning of the report too (the run still exits 0).
@@ -415,6 +428,7 @@ fn report(
     flight: Option<&std::path::Path>,
 ) -> anyhow::Result<()> {
     let args = launch.args;
+    let lockstep = args.role.mode == Mode::Lockstep;
     launch.report_without_monitor(scenario, flight);
     let schedule: Vec<serde_json::Value> = launch.faults.iter().map(|f| f.scheduled()).collect();
     if let Err(e) = rotorloop_common::output::patch_summary(&args.out, |j| {
@@ -440,7 +454,8 @@ fn report(
         }
     }
     if !events.is_empty() && !args.no_monitor {
-        if let Err(e) = crate::run::fault::report::report(&args.out, scenario, events, launched_ns)
+        if let Err(e) =
+            crate::run::fault::report::report(&args.out, scenario, events, (launched_ns, lockstep))
         {
             eprintln!("warning: no fault report: {e:#}");
             for e in events {

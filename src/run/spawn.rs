@@ -81,6 +81,10 @@ pub(crate) struct Launch<'a> {
     pub(crate) exe: PathBuf,
     /// The run's ticks.
     pub(crate) ticks: u64,
+    /// The run's rate (Hz).
+    pub(crate) rate_hz: f64,
+    /// Lockstep: the ticks the plant holds at for the fault schedule (`--gate-ticks`).
+    pub(crate) gates: Vec<u64>,
     /// `--controller-cmd`: the user's controller, and the scenario as run it is told of.
     pub(crate) external:
         Option<(crate::run::external::ExternalController, rotorloop_common::scenario::Scenario)>,
@@ -159,6 +163,10 @@ impl Launch<'_> {
                 cmd.arg("--latency-out").arg(&args.out);
                 cmd.arg("--actuation-delay").arg(args.actuation_delay.to_string());
                 cmd.arg("--plant-stall").arg(args.plant_stall.to_string());
+                if !self.gates.is_empty() {
+                    let gates: Vec<String> = self.gates.iter().map(u64::to_string).collect();
+                    cmd.arg("--gate-ticks").arg(gates.join(","));
+                }
             }
             Ok(Role::Controller) => {
                 for (flag, value) in self.faults.iter().filter_map(|f| f.role_arg()) {

@@ -97,6 +97,13 @@ struct Watch {
     loop_complete: bool,
     /// What the run needs on `/dev/shm` (bytes), named where a role died of it full.
     shm_need: u64,
+    /// Lockstep: the plant (this pid) stands stopped at its gate after publishing this
+    /// tick (`--gate-ticks`), for the faults due there.
+    gated: Option<(u32, u64)>,
+    /// Lockstep: the newest gate the plant stopped at, the run's clock for the schedule.
+    gate_clock: Option<u64>,
+    /// The plant pid this launcher continued from its gate (its SIGCONT is no fault).
+    gate_released: Option<u32>,
 }
 
 impl Watch {
@@ -124,6 +131,9 @@ impl Watch {
             }),
             loop_complete: false,
             shm_need: launch.shm_need,
+            gated: None,
+            gate_clock: None,
+            gate_released: None,
         }
     }
 
@@ -156,16 +166,20 @@ pub(crate) fn supervise(
     rss: &mut RssLog,
     mut schedule: FaultSchedule,
 ) -> anyhow::Result<(Vec<FaultEvent>, Option<anyhow::Error>)> {
-    // The fault clock starts when the plant has published tick 0 (its resume slot is
-    // written just before each publish).
+    // The fault schedule runs on the plant's ticks: in real time its newest published
+    // tick (its resume slot is written just before each publish), in lockstep the gate it
+    // stands stopped at (`FaultSchedule::gate_ticks`). The launcher's own clock (`now_s`,
+    // from the first tick) times the supervisor, the watchdog and a fault's down time.
     let progress = Progress::open(launch)?;
+    let lockstep = launch.role_args.mode == Mode::Lockstep;
     let (mut run_t0, mut term_sent_at): (Option<u64>, Option<u64>) = (None, None);
     let mut plant_ended_at: Option<u64> = None;
     let mut w = Watch::new(launch);
     let launched_ns = now_ns();
     let mut dead_after_end = 0;
     loop {
-        if run_t0.is_none() && progress.0.plant().is_some() {
+        let plant_tick = progress.0.plant().map(|s| s.tick);
+        if run_t0.is_none() && plant_tick.is_some() {
             run_t0 = Some(now_ns());
         }
         // Seconds since tick 0 (before it: negative, since the launch).
@@ -175,9 +189,17 @@ pub(crate) fn supervise(
             continue_stopped_after_the_end(children, &mut w, now_s);
         }
         let stopping = term_sent_at.is_some();
-        let elapsed = run_t0.map(|_| now_s).filter(|_| !stopping);
-        for action in schedule.due(elapsed) {
-            injected(launch, children, rss, &mut w, action, now_s)?;
+        // In lockstep a slot at tick k also says k − 1 was published and passed: a gate the
+        // plant went by without stopping (a plant killed between its slot and its stop
+        // resumes past it) still has its faults carried out, late, never dropped.
+        let passed = plant_tick.and_then(|k| k.checked_sub(1));
+        let clock = match lockstep {
+            true => w.gate_clock.max(passed),
+            false => published_tick(&progress),
+        };
+        let clock = clock.filter(|_| !stopping);
+        for action in schedule.due(clock, now_ns()) {
+            injected(launch, children, rss, &mut w, action, (now_s, clock))?;
         }
         if !stopping && run_t0.is_some() && !w.loop_complete {
             w.torques_received = progress.0.plant().map_or(0, |s| s.torques_received);
@@ -197,9 +219,10 @@ pub(crate) fn supervise(
             w.restarts.remove(&role);
             restart(launch, children, rss, &mut w, &role, now_s)?;
         }
+        release_the_gate(children, &mut w, &schedule);
         rss.sample_if_due();
         move_due_records(&mut w, &progress);
-        watch_for_stops(children, &mut w, now_s);
+        watch_for_stops(launch, children, &mut w, &progress, now_s);
         let running = reap(children, &mut w, &progress, stopping, now_s);
         remove_dead_ports_after_the_end(launch, &w, &mut dead_after_end);
         if launch.split.is_some() && w.loop_complete && !stopping {
@@ -221,15 +244,61 @@ pub(crate) fn supervise(
         if term_sent_at.is_some_and(|t| now_ns() - t > 10_000_000_000) {
             children.signal_all(libc::SIGKILL);
         }
-        std::thread::sleep(Duration::from_millis(2));
+        std::thread::sleep(poll_interval(launch, &schedule, plant_tick));
     }
     for f in schedule.not_done() {
-        eprintln!("launcher: --fault {f}: not carried out, the run ended first");
+        eprintln!("launcher: --fault {f}: not carried out, the run was stopped first");
     }
     w.finish(&progress);
     let failure = (!w.failures.is_empty())
         .then(|| anyhow::anyhow!("the run was stopped: {}", w.failures.join("; ")));
     Ok((w.events, failure))
+}
+
+/// Real time: the plant's newest tick surely published. Its resume slot is written just
+/// before the publish, so the slot's own tick may still be on its way (a plant preempted
+/// between the two on a loaded machine: seen, a kill "at" tick 950 landed before its
+/// publication); the tick before it has been published for certain. So a fault lands
+/// within one tick (and a poll) of its tick's publication, never before it.
+fn published_tick(progress: &Progress) -> Option<u64> {
+    progress.0.plant()?.tick.checked_sub(1)
+}
+
+/// How long the supervision loop sleeps: 2 ms, but in real time, as the plant nears the
+/// next tick a fault is due at, no longer than until the tick after it begins, and then
+/// 100 µs, so that the fault lands within about a tick of that tick's publication.
+fn poll_interval(launch: &Launch, schedule: &FaultSchedule, tick: Option<u64>) -> Duration {
+    const POLL: Duration = Duration::from_millis(2);
+    let (Some(due), Some(tick)) = (schedule.next_tick(), tick) else { return POLL };
+    if launch.role_args.mode == Mode::Lockstep {
+        return POLL;
+    }
+    let dt_s = 1.0 / launch.rate_hz;
+    // Due once the slot says `due + 1` (`published_tick`): sleep until about then.
+    let ahead_s = due.saturating_sub(tick) as f64 * dt_s;
+    Duration::from_secs_f64(ahead_s).clamp(Duration::from_micros(100), POLL)
+}
+
+/// Lockstep: continues the plant from its gate once the faults due there are carried out
+/// and none that stops the run's clock is still open (the plant stays at the tick of such
+/// a fault's start until its end: a restart lands at the same tick every time), and no
+/// role the plant waits for is still to be started again. A plant killed at its gate (its
+/// pid gone) or stopped there by a `stop` fault is not continued here.
+fn release_the_gate(children: &mut Children, w: &mut Watch, schedule: &FaultSchedule) {
+    let Some((pid, _)) = w.gated else { return };
+    let plant = Role::Plant.name();
+    let Some(c) = children.get_mut(plant).filter(|c| c.id() == pid && !w.planned.contains(&pid))
+    else {
+        w.gated = None;
+        return;
+    };
+    let waited_on = w.restarts.keys().any(|r| r != Role::Monitor.name());
+    if schedule.holding() || waited_on || w.stopped.contains_key(plant) {
+        return;
+    }
+    w.gate_released = Some(pid);
+    w.gated = None;
+    signal(c, libc::SIGCONT);
 }
 
 /// Split: a role on another host than the plant cannot read the plant's resume slot (it
@@ -327,11 +396,32 @@ fn watch_the_link(w: &mut Watch, now_s: f64) {
 /// of its own, listed with its signal, and every stop is ended in the report as continued,
 /// killed, judged hung, or with the run. A stop and its continue both between two looks
 /// (2 ms apart) show only as the continue, and are listed as a stop of under 2 ms.
-fn watch_for_stops(children: &mut Children, w: &mut Watch, now_s: f64) {
+fn watch_for_stops(
+    launch: &Launch,
+    children: &mut Children,
+    w: &mut Watch,
+    progress: &Progress,
+    now_s: f64,
+) {
     for (role, c) in &children.0 {
         let pid = c.id();
         match job_control_event(pid) {
             None => {}
+            Some(JobControl::Stopped(libc::SIGSTOP))
+                if role == Role::Plant.name() && at_a_gate(launch, w, progress) =>
+            {
+                let tick = progress.0.plant().map_or(0, |s| s.tick);
+                w.gated = Some((pid, tick));
+                w.gate_clock = Some(tick);
+            }
+            // The launcher's release of its gate, or the SIGCONT of a stop at the end.
+            Some(JobControl::Continued)
+                if (w.gate_released == Some(pid) || w.gated.is_some_and(|g| g.0 == pid))
+                    && !w.open_stops.contains_key(&pid) =>
+            {
+                w.gate_released = None;
+                w.gated = None;
+            }
             Some(JobControl::Stopped(sig)) => {
                 if let Some(&i) = w.open_stops.get(&pid) {
                     w.events[i].signal.get_or_insert(signal_name(sig));
@@ -358,6 +448,16 @@ fn watch_for_stops(children: &mut Children, w: &mut Watch, now_s: f64) {
             }
         }
     }
+}
+
+/// Whether the plant, just seen stopped, stopped itself at a gate: lockstep, its newest
+/// tick is a gate it has not stopped at before, and no `stop` fault of it is open.
+fn at_a_gate(launch: &Launch, w: &Watch, progress: &Progress) -> bool {
+    let Some(tick) = progress.0.plant().map(|s| s.tick) else { return false };
+    launch.role_args.mode == Mode::Lockstep
+        && launch.gates.binary_search(&tick).is_ok()
+        && w.gate_clock.is_none_or(|g| tick > g)
+        && !w.stopped.contains_key(Role::Plant.name())
 }
 
 /// Ends the open stop of `pid`, if any, `how` and now (a continue is also its restart).
@@ -472,7 +572,8 @@ fn watch_for_hangs(
 ) {
     let lockstep = launch.role_args.mode == Mode::Lockstep;
     let marks = progress.marks();
-    let stopped = holding_the_loop(launch, children, w, lockstep, now_s);
+    let run_s = marks.plant.map(|k| k as f64 / launch.rate_hz);
+    let stopped = holding_the_loop(launch, children, w, lockstep, run_s);
     for r in Role::ALL {
         let role = r.name();
         if marks.of(r) != w.last_marks.of(r) {
@@ -488,7 +589,8 @@ fn watch_for_hangs(
         // round (`common::flight::free_through`): the launcher's own work, not a hang.
         let held = r == Role::Plant
             && lockstep
-            && w.mover.as_ref().zip(marks.plant).is_some_and(|(m, k)| m.holds(k));
+            && (w.gated.is_some()
+                || w.mover.as_ref().zip(marks.plant).is_some_and(|(m, k)| m.holds(k)));
         let pending =
             alive && !held && marks.work_waiting_with_stops(r, lockstep, REFERENCE_LEAD, &stopped);
         if !w.watchdog.check(role, progress.alive(r, &marks, lockstep), pending, now_s) {
@@ -528,15 +630,17 @@ fn holding_the_loop(
     children: &mut Children,
     w: &Watch,
     lockstep: bool,
-    now_s: f64,
+    progress_s: Option<f64>,
 ) -> Vec<Role> {
     let mut stopped: Vec<Role> = Role::ALL
         .into_iter()
         .filter(|r| children.get_mut(r.name()).is_some_and(|c| w.open_stops.contains_key(&c.id())))
         .collect();
+    // The delay runs on the states' times, the run's clock.
+    let run_s = progress_s.unwrap_or(f64::NEG_INFINITY);
     let delaying = launch.faults.iter().any(|f| match f.kind {
         FaultKind::Delay(d) => {
-            now_s >= f.kill_s && f.restart_s.is_none_or(|until| now_s < until + d)
+            run_s >= f.kill_s && f.restart_s.is_none_or(|until| run_s < until + d)
         }
         _ => false,
     });
@@ -799,9 +903,11 @@ fn injected(
     rss: &mut RssLog,
     w: &mut Watch,
     action: Action,
-    at: f64,
+    (at, tick): (f64, Option<u64>),
 ) -> anyhow::Result<()> {
     let (kind, role) = (action.kind.spec().start, action.role.as_str());
+    // The run's clock (the plant's tick) and the launcher's own (s since tick 0).
+    let at_tick = tick.map_or_else(String::new, |k| format!(" (tick {k})"));
     match action.apply() {
         Apply::Signal(sig, name) if sig == libc::SIGCONT => {
             let stopped = w.stopped.remove(role);
@@ -809,7 +915,11 @@ fn injected(
             match children.get_mut(role) {
                 Some(c) if Some(c.id()) == stopped && !w.planned.contains(&c.id()) => {
                     continue_stopped(c, event, &format!("; {name} (--fault)"));
-                    eprintln!("launcher: continued {role} ({name}) at {at:.3} s");
+                    // A plant stopped at its gate: this continue is also the gate's release.
+                    if w.gated.is_some_and(|g| g.0 == c.id()) {
+                        w.gated = None;
+                    }
+                    eprintln!("launcher: continued {role} ({name}) at {at:.3} s{at_tick}");
                 }
                 _ => {
                     eprintln!(
@@ -851,7 +961,7 @@ fn injected(
                 libc::SIGSTOP => "stopped",
                 _ => "signalled",
             };
-            eprintln!("launcher: {verb} {role} ({name}) at {at:.3} s");
+            eprintln!("launcher: {verb} {role} ({name}) at {at:.3} s{at_tick}");
             w.events.push(e);
             if sig == libc::SIGKILL && !action.ends {
                 down_for_good(launch, w, role);

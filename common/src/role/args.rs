@@ -56,7 +56,8 @@ pub enum Mode {
 #[derive(Debug, Clone, Args)]
 pub struct RoleArgs {
     /// Run domain: services and shared memory of different domains never meet
-    /// (default: `default` for a role started by hand, `run-<pid>` for `rotorloop run`).
+    /// (default: `default` for a role started by hand; for `rotorloop run`, `run-` and 7
+    /// random characters, drawn again while anything of that name exists in /dev/shm).
     #[arg(long)]
     pub domain: Option<String>,
     /// The host this process runs on, when a run spans hosts joined by link gateways

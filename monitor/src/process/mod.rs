@@ -60,7 +60,8 @@ pub fn run(args: &args::MonitorArgs) -> anyhow::Result<()> {
             ports.slot.store(&r);
         }
         if status {
-            rec.status_line(joiner.last_state(), now_ns());
+            let end_s = scenario.ticks() as f64 * scenario.dt();
+            rec.status_line(joiner.last_state(), end_s, now_ns());
         }
         if joiner.done() || stopping {
             break;

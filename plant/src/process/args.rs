@@ -62,6 +62,11 @@ pub struct PlantArgs {
     /// `pause` (the world's clock stood still: the grid moves on from the wake).
     #[arg(long, default_value = "hold")]
     pub plant_stall: PlantStall,
+    /// Lockstep: stop (SIGSTOP) right after publishing each of these ticks, until the
+    /// launcher continues the plant, so that the faults due there land at that tick
+    /// (`rotorloop run --fault`; `process::gate`). Comma-separated. Set by the launcher.
+    #[arg(long, hide = true, value_delimiter = ',')]
+    pub gate_ticks: Vec<u64>,
     /// Also record sense-to-actuate in the plant itself and write
     /// `DIR/plant_sense_to_actuate.hgrm` at the end (works without a monitor).
     #[arg(long)]

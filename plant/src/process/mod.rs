@@ -5,6 +5,7 @@
 //! lockstep), hand what arrived to the hold rule, step.
 
 pub mod args;
+mod gate;
 mod wait;
 
 use rotorloop_common::clock::TickGrid;
@@ -43,6 +44,8 @@ pub fn run(args: &args::PlantArgs) -> anyhow::Result<()> {
     let pause = realtime && args.plant_stall == args::PlantStall::Pause;
     let (mut s2a, mut wait) = (SenseToActuate::new()?, TorqueWait::new(realtime));
     let mut cost = SendCost::default(); // what publishing the previous state cost
+    let gates = if realtime { &[][..] } else { &args.gate_ticks[..] };
+    let mut gate = gate::Gate::new(gates, plant.first(), resumed.is_some());
     for k in plant.first()..=plant.last() {
         let mut deadline = if realtime { grid.at(k) } else { 0 };
         let ahead = early.then(|| made(&ports, &plant, k, deadline, &args.corrupt)).transpose()?;
@@ -58,6 +61,7 @@ pub fn run(args: &args::PlantArgs) -> anyhow::Result<()> {
         // Made before the sleep (`wait::made`), or now with `--plain-hot-path`.
         let sample = ahead.map_or_else(|| made(&ports, &plant, k, deadline, &args.corrupt), Ok)?;
         cost = publish(&ports, sample, (deadline, woke, cost), &mut s2a)?;
+        gate.pass(k); // lockstep: held here while the launcher carries out a fault
         let until = if realtime { grid.at(k + 1).saturating_sub(spin_ns) } else { u64::MAX };
         let answer = wait.answer(&ports, &mut plant, role, (k, deadline, until))?;
         if !matches!(answer, Some(Answer::Fresh(..))) && shutdown_requested() {

@@ -28,19 +28,23 @@ pub struct FaultReport {
     pub kind: &'static str,
     /// What happened, in words: the exit status, what the watchdog and the supervisor did.
     pub detail: String,
-    /// Kill time (s after the first tick was published; if none was, after the launch).
+    /// Kill time, s of the run: in lockstep the time of `kill_tick` (the run's clock is
+    /// the plant's ticks, many times faster than the wall's there); in real time the wall
+    /// time since the first tick was published (if none was, since the launch).
     pub kill_s: f64,
-    /// Restart time (s), if restarted; for a stop, when it was continued.
+    /// Restart time (s, as `kill_s`), if restarted; for a stop, when it was continued.
     pub restart_s: Option<f64>,
     /// The signal, where it is known (`SIGKILL`, `SIGSTOP`, `SIGTSTP`, …).
     pub signal: Option<&'static str>,
     /// How a stop ended: `continued`, `killed`, `crash`, `exited`, `hung` (the watchdog
     /// killed it), or `still stopped when the launcher ended`.
     pub ended: Option<&'static str>,
-    /// When a stop ended (s).
+    /// When a stop ended (s, as `kill_s`).
     pub ended_s: Option<f64>,
     /// Newest tick published before the kill.
     pub kill_tick: Option<u64>,
+    /// First tick published after the restart (or the continue), if any.
+    pub restart_tick: Option<u64>,
     /// Ticks after the kill whose preceding torque was not fresh (held or safe mode).
     pub ticks_without_fresh_torque: u64,
     /// Ticks from the restart to the first fresh torque applied.
@@ -102,6 +106,9 @@ fn timing_rows(out: &Path) -> impl Iterator<Item = TimingRow> {
 struct Placed {
     kill_tick: Option<u64>,
     restart_tick: Option<u64>,
+    /// Newest ticks published before the restart and before a stop's end.
+    before_restart: Option<u64>,
+    before_end: Option<u64>,
     without: u64,
     first_fresh: Option<u64>,
 }
@@ -112,12 +119,12 @@ struct Placed {
 ///
 /// A run whose plant never published tick 0 (a controller that failed at once) still lists
 /// its faults, timed from `launched_ns` (when the launcher started the roles), with no
-/// tick and nothing to cost.
+/// tick and nothing to cost. In `lockstep` each time is its tick's (see `kill_s`).
 pub fn report(
     out: &Path,
     scenario: &Scenario,
     events: &[FaultEvent],
-    launched_ns: u64,
+    (launched_ns, lockstep): (u64, bool),
 ) -> anyhow::Result<Vec<FaultReport>> {
     let mut placed = vec![Placed::default(); events.len()];
     let mut t0 = None::<u64>;
@@ -126,6 +133,12 @@ pub fn report(
         for (p, e) in placed.iter_mut().zip(events) {
             if t.state_publish_ns <= e.kill_ns {
                 p.kill_tick = Some(t.tick);
+            }
+            if e.restart_ns.is_some_and(|r| t.state_publish_ns <= r) {
+                p.before_restart = Some(t.tick);
+            }
+            if e.ended.is_some_and(|(_, at)| t.state_publish_ns <= at) {
+                p.before_end = Some(t.tick);
             }
             if p.restart_tick.is_none() && e.restart_ns.is_some_and(|r| t.state_publish_ns >= r) {
                 p.restart_tick = Some(t.tick);
@@ -146,17 +159,24 @@ pub fn report(
         }
     }
     let mut reports = Vec::new();
+    let dt = scenario.dt();
+    // The time of an event: in lockstep its tick's, in real time the wall's since tick 0.
+    let at = |ns: u64, tick: Option<u64>| match (lockstep, tick) {
+        (true, Some(k)) => k as f64 * dt,
+        _ => ns.saturating_sub(t0) as f64 / 1e9,
+    };
     for (e, p) in events.iter().zip(&placed) {
         reports.push(FaultReport {
             role: e.role.clone(),
             kind: e.kind,
             detail: e.detail.clone(),
-            kill_s: e.kill_ns.saturating_sub(t0) as f64 / 1e9,
-            restart_s: e.restart_ns.map(|r| r.saturating_sub(t0) as f64 / 1e9),
+            kill_s: at(e.kill_ns, p.kill_tick),
+            restart_s: e.restart_ns.map(|r| at(r, p.before_restart)),
             signal: e.signal,
             ended: e.ended.map(|(how, _)| how),
-            ended_s: e.ended.map(|(_, at)| at.saturating_sub(t0) as f64 / 1e9),
+            ended_s: e.ended.map(|(_, ns)| at(ns, p.before_end)),
             kill_tick: p.kill_tick,
+            restart_tick: p.restart_tick,
             ticks_without_fresh_torque: p.without,
             ticks_to_first_fresh_torque: match (p.restart_tick, p.first_fresh) {
                 (Some(r), Some(f)) => Some(f.saturating_sub(r)),
