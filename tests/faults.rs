@@ -208,7 +208,10 @@ fn controller_killed_while_holding_a_loan_restarts() {
     let h = Harness::new("kill-loan");
     let out = lockstep_with_faults(
         &h,
-        &["controller:kill@0.8:restart@1.0"],
+        // On the run's clock: carried out once the plant has published tick 500, the
+        // state the controller stalls on (a kill at a later tick would never come: the
+        // lockstep plant waits for that answer, and the watchdog would take it first).
+        &["controller:kill@0.5:restart@0.7"],
         &["--test-stall-with-loan-at", "500"],
     );
     let s = assert_faults_mid_run(&out, 1);

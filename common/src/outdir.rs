@@ -133,11 +133,25 @@ fn group_has_others(gid: u32) -> bool {
     })
 }
 
+/// Whether `uid` is the kernel's overflow uid of a user namespace that maps only some
+/// users (`unshare -r`, a rootless container): an owner outside the namespace, the host's
+/// root among them, shows as it. Such a directory on the way is trusted as root's is (its
+/// mode is still checked); in the initial namespace (the full map) that uid is a real user
+/// (`nobody`) and is not.
+fn outside_this_namespace(uid: u32) -> bool {
+    let read = |p: &str| std::fs::read_to_string(p).unwrap_or_default();
+    let overflow = read("/proc/sys/kernel/overflowuid").trim().parse::<u32>().unwrap_or(65534);
+    let full_map =
+        read("/proc/self/uid_map").split_whitespace().map(str::to_owned).collect::<Vec<_>>()
+            == ["0", "0", "4294967295"];
+    uid == overflow && !full_map
+}
+
 /// What another user could do with a directory of `uid`, `gid`, `mode`, if anything: owned
 /// by `owners` only, not writable by others (unless `sticky_ok` and the sticky bit is set).
 fn directory_risk(uid: u32, gid: u32, mode: u32, mine_only: bool) -> Option<String> {
     let me = euid();
-    let owner_ok = uid == me || (!mine_only && uid == 0);
+    let owner_ok = uid == me || (!mine_only && (uid == 0 || outside_this_namespace(uid)));
     let sticky = mode & 0o1000 != 0;
     if !owner_ok {
         let whose =

@@ -1,5 +1,5 @@
 //! `OUT/summary.json` of `rotorloop run`: every key, its unit and its meaning, as one
-//! table ([`KEYS`]; docs/wire.md's "`summary.json`" section is made from it by `rotorloop
+//! table ([`keys`]; docs/wire.md's "`summary.json`" section is made from it by `rotorloop
 //! wire --format markdown`), and its layout version [`SUMMARY_JSON_VERSION`] (the file's
 //! `layout_version` key), raised when a key is renamed, removed or changes meaning or
 //! unit (a key added keeps it), as `controller.json`'s is.
@@ -437,7 +437,7 @@ const REST: &[Key] = &[
     ),
 ];
 
-/// Every row, in the order of the file: [`MAIN`], the hop statistics, [`REST`] with the
+/// Every row, in the order of the file: `MAIN`, the hop statistics, `REST` with the
 /// stage statistics after `stages[].in_loop`.
 pub fn keys() -> Vec<Key> {
     let mut k = MAIN.to_vec();

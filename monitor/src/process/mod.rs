@@ -60,8 +60,7 @@ pub fn run(args: &args::MonitorArgs) -> anyhow::Result<()> {
             ports.slot.store(&r);
         }
         if status {
-            let end_s = scenario.ticks() as f64 * scenario.dt();
-            rec.status_line(joiner.last_state(), end_s, now_ns());
+            rec.status_line(joiner.last_state(), scenario.ticks() as f64 * scenario.dt(), now_ns());
         }
         if joiner.done() || stopping {
             break;

@@ -8,8 +8,7 @@ pub mod args;
 mod gate;
 mod wait;
 
-use rotorloop_common::clock::TickGrid;
-use rotorloop_common::clock::{now_ns, sleep_until_ns};
+use rotorloop_common::clock::{TickGrid, now_ns, sleep_until_ns};
 use rotorloop_common::role::args::Mode;
 use rotorloop_common::role::end::linger_publisher;
 use rotorloop_common::signals::shutdown_requested;
