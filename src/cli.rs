@@ -354,6 +354,18 @@ fn check_paths(command: &Command) -> Result<(), UsageError> {
     Ok(())
 }
 
+/// A command that reads a run directory named on the command line: a flight record in it
+/// that is damaged or of another build is the input's fault (exit 2, as docs/running.md's
+/// table says), not the command's.
+fn damaged_is_input<T>(r: anyhow::Result<T>) -> anyhow::Result<T> {
+    use rotorloop_common::flight::FlightError;
+    r.map_err(|e| {
+        let damaged =
+            e.chain().any(|c| matches!(c.downcast_ref(), Some(FlightError::Foreign { .. })));
+        if damaged { UsageError(format!("{e:#}")).into() } else { e }
+    })
+}
+
 /// Runs a parsed command line.
 pub fn run(cli: Cli) -> anyhow::Result<()> {
     check_paths(&cli.command)?;
@@ -432,9 +444,11 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
                 );
             }
         }
-        Command::Recover { dir } => crate::run::recover::run(&dir)?,
-        Command::Explain { dir, threshold_ticks } => explain_command(&dir, threshold_ticks)?,
-        Command::Export(a) => crate::export::run(&a)?,
+        Command::Recover { dir } => damaged_is_input(crate::run::recover::run(&dir))?,
+        Command::Explain { dir, threshold_ticks } => {
+            damaged_is_input(explain_command(&dir, threshold_ticks))?
+        }
+        Command::Export(a) => damaged_is_input(crate::export::run(&a))?,
         Command::Wire(a) => crate::export::wire::run(&a)?,
         Command::Montecarlo(a) => montecarlo_command(&a)?,
     }
@@ -453,7 +467,7 @@ fn explain_command(dir: &std::path::Path, threshold_ticks: f64) -> anyhow::Resul
 /// `rotorloop sim`: a replay, or an in-process run of a scenario.
 fn sim_command(a: &SimArgs) -> anyhow::Result<()> {
     if let Some(dir) = &a.replay {
-        let r = crate::sim::replay::run(dir, &a.out, !a.compare_only)?;
+        let r = damaged_is_input(crate::sim::replay::run(dir, &a.out, !a.compare_only))?;
         println!("{}", r.describe());
         if !a.compare_only {
             crate::export::mcap_after_run(&a.out, false);

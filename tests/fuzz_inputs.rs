@@ -798,6 +798,51 @@ fn damaged_records_and_claims_are_read_as_far_as_they_are_sound() {
     assert_eq!(summary["trace_rows"], serde_json::json!(2001 - 256 - 256));
 }
 
+/// A role's `--record` where nothing can be made (a kernel file system, a path under a
+/// file, an existing file) is refused with exit 2 naming the flag, before the role makes
+/// anything in /dev/shm (issue 64: it was exit 1, leaving the domain's files behind).
+#[test]
+fn a_record_directory_that_cannot_be_made_is_refused_before_anything_is_made() {
+    let h = Harness::new("bad-record");
+    let file = h.path("a-file");
+    std::fs::create_dir_all(file.parent().expect("parent")).expect("harness dir");
+    std::fs::write(&file, b"x").expect("a file");
+    let under = file.join("flight");
+    let mut dirs = vec![file.to_str().expect("utf-8"), under.to_str().expect("utf-8")];
+    if Path::new("/proc/self").exists() {
+        dirs.push("/proc/rotorloop-record");
+    }
+    for role in ["plant", "controller", "reference"] {
+        for dir in &dirs {
+            let args = ["role", role, "--scenario", "paper-zero", "--domain", &h.domain];
+            let o = h.rotorloop(&[&args[..], &["--record", dir]].concat(), Duration::from_secs(60));
+            let err = String::from_utf8_lossy(&o.stderr);
+            assert_eq!(o.status.code(), Some(2), "{role} --record {dir}: {err}");
+            assert!(err.contains("'--record <DIR>'"), "{role} --record {dir}: {err}");
+            h.assert_no_leftovers();
+        }
+    }
+}
+
+/// A record whose header names another layout (damaged, or of another build) is the
+/// input's fault: the readers of the run directory exit 2 naming the file, as
+/// docs/running.md's table says (issue 64; it was exit 1).
+#[test]
+fn a_record_of_another_layout_is_refused_with_exit_2_naming_it() {
+    use std::os::unix::fs::FileExt;
+    let h = Harness::new("foreign-record");
+    let (dir, d) = finished_run(&h, &["--duration", "1", "--mode", "lockstep"]);
+    let record = dir.join("flight/plant-state.flight");
+    let f = std::fs::OpenOptions::new().write(true).open(&record).expect("record");
+    f.write_all_at(&[0xff; 16], 8).expect("the layout words");
+    for args in [vec!["explain", &d], vec!["recover", &d]] {
+        let o = h.rotorloop(&args, Duration::from_secs(120));
+        let stderr = String::from_utf8_lossy(&o.stderr);
+        assert_eq!(o.status.code(), Some(2), "{args:?}: {stderr}");
+        assert!(stderr.contains("plant-state.flight: written by layout v"), "{args:?}: {stderr}");
+    }
+}
+
 /// A damaged `summary.json` (not JSON, no scenario, a scenario claiming a day at 100 kHz,
 /// an absurd tick count) fed to the readers of a finished run: each ends at once, with
 /// exit 2 naming `summary.json` where it needs what is damaged, or reads the run from its

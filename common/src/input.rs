@@ -113,7 +113,8 @@ pub fn text(bytes: Vec<u8>) -> Result<String, InputError> {
 
 /// Whether `out` can be the output directory: an existing directory this user may write
 /// into, or a path whose nearest existing ancestor is one (the command makes the rest).
-/// Nothing is made here, so a command refused later leaves nothing behind.
+/// Nothing is left here (a probe directory is made and removed at once), so a command
+/// refused later leaves nothing behind.
 pub fn check_out_dir(out: &Path) -> Result<(), String> {
     let mut at = out;
     loop {
@@ -126,7 +127,10 @@ pub fn check_out_dir(out: &Path) -> Result<(), String> {
                     kind(m.file_type())
                 ));
             }
-            Err(e) if e.kind() == std::io::ErrorKind::NotFound => {}
+            // A missing path, or one under a file (`/etc/passwd/x`): its parent says which.
+            Err(e)
+                if e.kind() == std::io::ErrorKind::NotFound
+                    || e.raw_os_error() == Some(libc::ENOTDIR) => {}
             Err(e) => return Err(format!("{}: {e}", at.display())),
         }
         at = match at.parent() {
@@ -142,7 +146,25 @@ pub fn check_out_dir(out: &Path) -> Result<(), String> {
         let what = if at == out { "it" } else { "its nearest existing directory" };
         return Err(format!("{what}, {}, is not writable by this user: {e}", at.display()));
     }
-    Ok(())
+    // `access` lets root through where nothing can be made (a read-only or kernel file
+    // system such as /proc, an immutable directory): make and remove a directory there.
+    let probe = at.join(format!(".rotorloop-probe-{}", crate::private::random_name(12)));
+    match std::fs::create_dir(&probe) {
+        Ok(()) => {
+            let _ = std::fs::remove_dir(&probe);
+            Ok(())
+        }
+        Err(e) => {
+            let what = if at == out { "it" } else { "its nearest existing directory" };
+            Err(format!("{what}, {}, takes no new directory: {e}", at.display()))
+        }
+    }
+}
+
+/// A clap value parser for a directory a command writes into: [`check_out_dir`]'s.
+pub fn dir_to_write(s: &str) -> Result<std::path::PathBuf, String> {
+    let p = std::path::PathBuf::from(s);
+    check_out_dir(&p).map(|()| p)
 }
 
 /// A clap value parser for an `f64` flag: a finite number from `lo` to `hi` (`unit` says
@@ -210,6 +232,22 @@ mod tests {
         let e = read_bytes(&big, 1024).expect_err("too large");
         assert!(e.to_string().contains("2000 bytes, more than the 1024"), "{e}");
         let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    #[test]
+    fn an_out_where_nothing_can_be_made_is_refused_and_left_as_it_was() {
+        let dir = std::env::temp_dir().join(format!("rl-out-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).expect("temp dir");
+        assert_eq!(check_out_dir(&dir.join("a/b")), Ok(()));
+        assert_eq!(std::fs::read_dir(&dir).expect("read").count(), 0, "the probe is removed");
+        let _ = std::fs::remove_dir_all(&dir);
+        // /proc lets root through `access`, but takes no directory.
+        if Path::new("/proc/self").exists() {
+            let e = check_out_dir(Path::new("/proc/rotorloop-out")).expect_err("/proc");
+            assert!(e.contains("directory, /proc, "), "{e}");
+        } else {
+            eprintln!("skipped the /proc half: no /proc here");
+        }
     }
 
     #[test]

@@ -333,6 +333,11 @@ const REST: &[Key] = &[
         "its incident's row in `incidents.csv` (from 1)",
     ),
     always(
+        "faults[].scheduled",
+        "boolean",
+        "whether the `--fault` schedule asked for it (false: from outside the launcher, or found by its supervisor)",
+    ),
+    always(
         "fault_schedule",
         "array of objects",
         "the `--fault`s as given, on the run's clock; empty: none",

@@ -945,6 +945,7 @@ fn injected(
             // as answers from after the kill (faults::realtime_controller_loss…, 1 of 20).
             let e = FaultEvent {
                 signal: Some(name),
+                scheduled: true,
                 ..FaultEvent::now(role, kind, format!("{name} (--fault)"))
             };
             // A SIGKILLed process is reaped by `reap` once it has exited, not waited for
@@ -976,7 +977,7 @@ fn injected(
             let ms = d * 1e3;
             eprintln!("launcher: {role} answers {ms} ms late from {at:.3} s ({flag})");
             let detail = format!("each answer sent {ms} ms late (--fault {kind})");
-            w.events.push(FaultEvent::now(role, kind, detail));
+            w.events.push(FaultEvent { scheduled: true, ..FaultEvent::now(role, kind, detail) });
         }
         Apply::ByTheRole(_) => {
             eprintln!("launcher: {role}'s {kind} ends at {at:.3} s");

@@ -99,8 +99,10 @@ pub struct RoleArgs {
     #[arg(long, hide = true)]
     pub plain_hot_path: bool,
     /// Flight-record what this role publishes (the plant: also what it receives) into
-    /// `DIR/*.flight` (`common::flight`); `rotorloop run` records into `OUT/flight`.
-    #[arg(long, value_name = "DIR")]
+    /// `DIR/*.flight` (`common::flight`); `rotorloop run` records into `OUT/flight`. A
+    /// directory this user can write into, or a path whose nearest existing directory is
+    /// one (checked before the role makes anything).
+    #[arg(long, value_name = "DIR", value_parser = crate::input::dir_to_write)]
     pub record: Option<std::path::PathBuf>,
     /// Slots of each flight record's ring on tmpfs, 512 to 16777216 (rounded up to a power
     /// of two; 1224 bytes a tick for the four streams, so at most about 20 GB): the RAM the

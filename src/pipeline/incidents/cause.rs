@@ -127,11 +127,15 @@ fn ms(ns: f64) -> String {
     format!("{:.3} ms", ns / 1e6)
 }
 
-/// Whether the fault schedule asked for `f` (same role and kind, within 50 ms).
+/// Whether the fault schedule asked for `f`: as the launcher said, or, in a `summary.json`
+/// that does not say, a fault of the schedule's role and kind within 50 ms of its time (a
+/// guess that a loaded real-time run's drifting grid defeats).
 fn scheduled(run: &RunRecord, f: &FaultRow) -> bool {
-    run.schedule
-        .iter()
-        .any(|s| s.role == f.role && s.kind == f.kind && (s.at_s - f.kill_s).abs() < 0.05)
+    f.scheduled.unwrap_or_else(|| {
+        run.schedule
+            .iter()
+            .any(|s| s.role == f.role && s.kind == f.kind && (s.at_s - f.kill_s).abs() < 0.05)
+    })
 }
 
 /// The first fault of a loop role whose ticks overlap `[start, end]` (its index in

@@ -34,6 +34,10 @@ pub struct FaultRow {
     /// The signal.
     #[serde(default)]
     pub signal: Option<String>,
+    /// Whether the `--fault` schedule asked for it (absent from a `summary.json` written
+    /// before the launcher said so).
+    #[serde(default)]
+    pub scheduled: Option<bool>,
 }
 
 /// A fault of the `--fault` schedule (`summary.json`'s `fault_schedule`): what the launcher

@@ -695,6 +695,7 @@ mod tests {
             restart_s: None,
             ended_s: None,
             signal: None,
+            scheduled: Some(true),
         };
         let mut held = FaultsHeld::new(&[f(Some(100)), f(Some(500)), f(None)]);
         let seen = [

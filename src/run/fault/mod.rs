@@ -584,13 +584,17 @@ pub struct FaultEvent {
     /// A stop's end: how (`continued`, `killed`, `crash`, `exited`, `hung`, or `run ended`
     /// when the launcher continued it after the last tick) and when (ns).
     pub ended: Option<(&'static str, u64)>,
+    /// Whether the `--fault` schedule asked for it (the launcher did it), not something
+    /// from outside the launcher or found by its supervisor.
+    pub scheduled: bool,
 }
 
 impl FaultEvent {
     /// A fault of `role` happening now, not (yet) followed by a restart.
     pub(crate) fn now(role: impl Into<String>, kind: &'static str, detail: String) -> Self {
         let (role, kill_ns) = (role.into(), now_ns());
-        Self { role, kind, detail, kill_ns, restart_ns: None, signal: None, ended: None }
+        let (restart_ns, signal, ended, scheduled) = (None, None, None, false);
+        Self { role, kind, detail, kill_ns, restart_ns, signal, ended, scheduled }
     }
 }
 

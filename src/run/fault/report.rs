@@ -59,6 +59,8 @@ pub struct FaultReport {
     pub recovery_s: Option<f64>,
     /// The incident that holds the fault (its row in `incidents.csv`, from 1).
     pub incident: Option<usize>,
+    /// Whether the `--fault` schedule asked for it.
+    pub scheduled: bool,
 }
 
 /// Most points of each curve in `faults.png` (the run's and the no-fault run's).
@@ -185,6 +187,7 @@ pub fn report(
             peak_deviation_deg: None,
             recovery_s: None,
             incident: None,
+            scheduled: e.scheduled,
         });
     }
 
