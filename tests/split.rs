@@ -40,6 +40,29 @@ fn assert_nothing_left(h: &Harness) {
     h.assert_no_leftovers_on("b");
 }
 
+/// Issue 62, point 5: a port another process holds before the run's listening gateway
+/// binds it is never dialled. The launcher starts the connecting gateway only once the
+/// listener holds the port (its own socket in LISTEN there); here it never does, so the
+/// run stops with exit 1 naming the port, and the squatter was never connected to. Before,
+/// the connecting gateway was started at once and handed its handshake to the squatter.
+#[test]
+fn a_split_port_taken_first_is_never_dialled() {
+    let h = Harness::new("split-squat");
+    let squatter = std::net::TcpListener::bind("127.0.0.1:0").expect("bind");
+    squatter.set_nonblocking(true).expect("nonblocking");
+    let port = squatter.local_addr().expect("addr").port().to_string();
+    let out = h.path("run");
+    let o = run_split_output(&h, &out, &["--duration", "1", "--link-port", &port]);
+    let said = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(1), "{said}");
+    assert!(said.contains(&format!("does not hold 127.0.0.1:{port}")), "{said}");
+    match squatter.accept() {
+        Err(e) if e.kind() == std::io::ErrorKind::WouldBlock => {}
+        other => panic!("the squatter was dialled: {other:?}\n{said}"),
+    }
+    assert_nothing_left(&h);
+}
+
 /// Lockstep with the controller on the other host: the link carries every state,
 /// reference and torque, and the trace equals the in-process simulator's byte for byte.
 #[test]

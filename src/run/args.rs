@@ -164,6 +164,10 @@ pub struct RunArgs {
     /// one (`cargo build --release --workspace`).
     #[arg(long)]
     pub split: Option<String>,
+    /// Split: the loopback port of the listening gateway (default: a free one the
+    /// launcher draws). For the tests of a port another process took first.
+    #[arg(long, hide = true)]
+    pub link_port: Option<u16>,
 }
 
 /// The cores of the `dedicated` preset among the CPUs of `t`: plant, controller,
@@ -240,6 +244,7 @@ impl RunArgs {
             plant_stall: rotorloop_plant::process::args::PlantStall::Hold,
             preset: None,
             split: None,
+            link_port: None,
         }
     }
 }

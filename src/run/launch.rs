@@ -299,7 +299,7 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
     }
     let exe = std::env::current_exe().context("cannot find the rotorloop executable")?;
     install_signal_handlers();
-    let link_port = if split.is_some() { crate::run::split::free_port()? } else { 0 };
+    let link_port = split.as_ref().map_or(Ok(0), |_| crate::run::split::port(args.link_port))?;
     let mut launch = Launch {
         args,
         shm_need: crate::run::budget::estimate(args, &scenario).staging,

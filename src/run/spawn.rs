@@ -354,8 +354,13 @@ pub(crate) fn start(
         }
         return Ok(());
     };
-    for g in split.gateways() {
+    // The listener first, holding its port, then the one that dials it.
+    for (i, g) in split.gateways().into_iter().enumerate() {
         children.0.push((g.clone(), launch.spawn(&g, rss)?));
+        if i == 0 {
+            let (_, listener) = children.0.last_mut().expect("just pushed");
+            crate::run::split::wait_listening(listener, launch.link_port)?;
+        }
     }
     let gone = |c: &mut Children| c.0.iter_mut().any(|(_, c)| !matches!(c.try_wait(), Ok(None)));
     wait_until(Duration::from_secs(30), || split.gateways_ready(&args.out) || gone(children));

@@ -180,12 +180,15 @@ impl Gateways {
         use anyhow::Context;
         let port = free_port()?;
         let mut g = Self(Vec::new());
-        for h in split.hosts() {
+        for (i, h) in split.hosts().iter().enumerate() {
             let name = format!("link-{h}");
             let log = gateway_log(dir, &name)?;
             let mut cmd = gateway_command(split, h, domain, port, dir);
             cmd.stdin(std::process::Stdio::null()).stdout(log.try_clone()?).stderr(log);
             g.0.push((name, cmd.spawn().context("cannot start a link gateway")?));
+            if i == 0 {
+                wait_listening(&mut g.0[0].1, port)?;
+            }
         }
         if !wait_until(Duration::from_secs(30), || split.gateways_ready(dir)) {
             anyhow::bail!("the link gateways did not connect within 30 s ({})", dir.display());
@@ -243,6 +246,57 @@ pub fn exec_link(args: &[String]) -> anyhow::Result<()> {
     let bin = link_binary()?;
     let err = Command::new(&bin).args(args).exec();
     Err(anyhow::anyhow!("cannot start {}: {err}", bin.display()))
+}
+
+/// Whether process `pid` holds a socket listening on TCP port `port` (`/proc/net/tcp` and
+/// `tcp6`: a socket in state LISTEN (`0A`) on the port whose inode is one of `pid`'s open
+/// files). The launcher starts the connecting gateway only once this holds for the
+/// listening one, so it never dials a port that someone else took first.
+pub fn holds_port(pid: u32, port: u16) -> bool {
+    let wanted = format!(":{port:04X}");
+    let inodes: Vec<String> = ["/proc/net/tcp", "/proc/net/tcp6"]
+        .iter()
+        .filter_map(|f| std::fs::read_to_string(f).ok())
+        .flat_map(|t| {
+            t.lines()
+                .skip(1)
+                .filter_map(|l| {
+                    let f: Vec<&str> = l.split_whitespace().collect();
+                    let listening =
+                        f.get(1).is_some_and(|a| a.ends_with(&wanted)) && f.get(3) == Some(&"0A");
+                    listening.then(|| f.get(9).map(|i| format!("socket:[{i}]"))).flatten()
+                })
+                .collect::<Vec<_>>()
+        })
+        .collect();
+    if inodes.is_empty() {
+        return false;
+    }
+    let Ok(fds) = std::fs::read_dir(format!("/proc/{pid}/fd")) else { return false };
+    fds.flatten().any(|e| {
+        std::fs::read_link(e.path())
+            .is_ok_and(|l| inodes.iter().any(|i| l.as_os_str() == i.as_str()))
+    })
+}
+
+/// Waits until the listening gateway `child` holds `port`: `Ok` once it does, or why not
+/// (it exited: the port taken, its messages say; or 30 s passed). What the connecting
+/// gateway is started after.
+pub fn wait_listening(child: &mut std::process::Child, port: u16) -> anyhow::Result<()> {
+    let gone = |c: &mut std::process::Child| !matches!(c.try_wait(), Ok(None));
+    wait_until(Duration::from_secs(30), || holds_port(child.id(), port) || gone(child));
+    if holds_port(child.id(), port) {
+        return Ok(());
+    }
+    anyhow::bail!(
+        "the listening link gateway does not hold 127.0.0.1:{port} (another process may have \
+         taken the port before it; its messages are above): the connecting one was not started"
+    )
+}
+
+/// The listening gateway's port: `--link-port`, or a free one ([`free_port`]).
+pub fn port(asked: Option<u16>) -> anyhow::Result<u16> {
+    asked.map_or_else(free_port, Ok)
 }
 
 /// A free TCP port on loopback (bound, read, released) for the first host's gateway.
