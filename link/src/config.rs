@@ -84,12 +84,6 @@ pub struct LinkArgs {
     /// Connecting side: a file holding the password (its first line).
     #[arg(long)]
     pub password_file: Option<PathBuf>,
-    /// Mutual TLS with the files of DIR: `ca.pem`, the one authority trusted, and this
-    /// side's `cert.pem` and `key.pem` (listening and connecting). Each side accepts only a
-    /// peer whose certificate that CA signed, and checks that the peer it reached holds
-    /// one: the endpoints are `tls/…` (docs/security.md: not yet what `run --split` uses).
-    #[arg(long, value_name = "DIR")]
-    pub tls: Option<PathBuf>,
     /// Import the loop's topics and never put anything into it (a remote monitor's host).
     #[arg(long)]
     pub read_only: bool,
@@ -155,15 +149,6 @@ fn set(config: &mut zenoh::Config, key: &str, json5: &str) -> Result<(), ConfigE
     config.insert_json5(key, json5).map_err(|e| bad(format!("Zenoh configuration `{key}`: {e}")))
 }
 
-/// The Zenoh keys `--tls DIR` sets, and the file of DIR each names.
-pub const TLS_FILES: [(&str, &str); 5] = [
-    ("transport/link/tls/root_ca_certificate", "ca.pem"),
-    ("transport/link/tls/listen_certificate", "cert.pem"),
-    ("transport/link/tls/listen_private_key", "key.pem"),
-    ("transport/link/tls/connect_certificate", "cert.pem"),
-    ("transport/link/tls/connect_private_key", "key.pem"),
-];
-
 /// Whether the session authenticates its peers: a user/password dictionary (listening),
 /// a user and password (connecting), or TLS client certificates.
 fn authenticates(config: &zenoh::Config) -> bool {
@@ -185,9 +170,6 @@ fn secret_files(args: &LinkArgs, config: &zenoh::Config) -> Vec<(&'static str, P
         (Some(users), _) => out.push(("--users", users.clone())),
         (None, Some(d)) if !d.is_empty() => out.push(("the users file", PathBuf::from(d))),
         _ => {}
-    }
-    if let Some(dir) = &args.tls {
-        out.push(("--tls key", dir.join("key.pem")));
     }
     if let Some(file) = &args.password_file {
         out.push(("--password-file", file.clone()));
@@ -281,20 +263,6 @@ pub fn zenoh_config(args: &LinkArgs) -> Result<zenoh::Config, ConfigError> {
         (None, None) => {}
         _ => return Err(bad("--user and --password-file go together")),
     }
-    if let Some(dir) = &args.tls {
-        for (key, file) in TLS_FILES {
-            let path = dir.join(file);
-            std::fs::metadata(&path)
-                .map_err(|e| bad(format!("--tls {}: {file}: {e}", dir.display())))?;
-            set(
-                &mut config,
-                key,
-                &serde_json::Value::from(path.display().to_string()).to_string(),
-            )?;
-        }
-        set(&mut config, "transport/link/tls/enable_mtls", "true")?;
-        set(&mut config, "transport/link/tls/verify_name_on_connect", "true")?;
-    }
     if args.read_only {
         set(&mut config, "access_control", READ_ONLY_ACL)?;
     }
@@ -330,7 +298,6 @@ mod tests {
             users: None,
             user: None,
             password_file: None,
-            tls: None,
             read_only: false,
             ready_file: None,
             wait: GatewayWait::Event,

@@ -150,65 +150,6 @@ fn cleanup(domain: &str) {
     }
 }
 
-/// A CA of the test's own and a certificate for `127.0.0.1` it signed, written into a new
-/// directory of `dir` as `--tls` reads them (`ca.pem`, `cert.pem`, `key.pem`).
-fn tls_dir(dir: &Path, name: &str) -> std::path::PathBuf {
-    use rcgen::{BasicConstraints, CertificateParams, IsCa, Issuer, KeyPair, SanType};
-    let mut ca = CertificateParams::new(Vec::<String>::new()).expect("params");
-    ca.is_ca = IsCa::Ca(BasicConstraints::Unconstrained);
-    let ca_key = KeyPair::generate().expect("key");
-    let ca_pem = ca.self_signed(&ca_key).expect("CA").pem();
-    let issuer = Issuer::new(ca, ca_key);
-    let mut leaf = CertificateParams::new(vec!["localhost".to_owned()]).expect("params");
-    leaf.subject_alt_names.push(SanType::IpAddress(std::net::Ipv4Addr::LOCALHOST.into()));
-    let key = KeyPair::generate().expect("key");
-    let cert = leaf.signed_by(&key, &issuer).expect("signed");
-    let d = dir.join(name);
-    std::fs::create_dir(&d).expect("dir");
-    for (f, text) in
-        [("ca.pem", ca_pem), ("cert.pem", cert.pem()), ("key.pem", key.serialize_pem())]
-    {
-        std::fs::write(d.join(f), text).expect("write");
-    }
-    d
-}
-
-/// Mutual TLS (`--tls`; issue 62, point 5): a listener and
-/// a connecting gateway that hold certificates of one CA connect and carry samples; a
-/// peer whose certificate another CA signed connects to neither side: not as a client of
-/// the run's listener, and not as a listener that took the run's port first (the run's
-/// connecting gateway refuses it: the answer a squatter gave under user/password alone).
-#[test]
-fn only_gateways_holding_the_runs_certificate_connect_either_way() {
-    let dir = tempfile::tempdir().expect("tempdir");
-    let (run, other) = (tls_dir(dir.path(), "run"), tls_dir(dir.path(), "other"));
-    let (run, other) = (run.to_str().expect("utf8"), other.to_str().expect("utf8"));
-    let domain = format!("lk-tls-{}", std::process::id());
-    let listen = format!("tls/127.0.0.1:{}", free_port());
-    let ready = |n: &str| dir.path().join(format!("{n}.ready"));
-    let _a = gateway(&domain, "a", &ready("a"), &["--listen", &listen, "--tls", run]);
-    // A client of another CA: refused by the run's listener, and it refuses the listener.
-    let intruder = gateway(&domain, "x", &ready("x"), &["--connect", &listen, "--tls", other]);
-    assert!(!wait_for(Duration::from_secs(5), || ready("x").exists()), "another CA's peer joined");
-    drop(intruder);
-    // A squatter listening with another CA's certificate: the run's side does not join it.
-    let squatted = format!("tls/127.0.0.1:{}", free_port());
-    let _s = gateway(&domain, "s", &ready("s"), &["--listen", &squatted, "--tls", other]);
-    let dialler = gateway(&domain, "d", &ready("d"), &["--connect", &squatted, "--tls", run]);
-    assert!(!wait_for(Duration::from_secs(5), || ready("d").exists()), "joined a squatter");
-    assert!(!ready("s").exists(), "the squatter had a peer");
-    drop(dialler);
-    // The control: the run's certificate on both sides connects, and samples cross.
-    let _b = gateway(&domain, "b", &ready("b"), &["--connect", &listen, "--tls", run]);
-    assert!(wait_for(Duration::from_secs(15), || ready("b").exists()), "not connected");
-    let (at_a, at_b) = exchange(&domain, 2.0);
-    assert!(at_a > 0 && at_b > 0, "nothing crossed over TLS: {at_a} {at_b}");
-    cleanup(&domain);
-    for h in ["x", "s", "d"] {
-        let _ = Domain::on_host(&domain, Some(h)).map(|d| d.cleanup());
-    }
-}
-
 /// A listening gateway with a user/password dictionary: a peer without the credentials
 /// never connects (and so can inject nothing); the same peer with them does, and samples
 /// cross.

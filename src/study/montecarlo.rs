@@ -192,7 +192,9 @@ pub fn run(opts: &McOptions) -> anyhow::Result<(McSummary, Vec<McRun>)> {
 }
 
 fn write_outputs(dir: &Path, summary: &McSummary, runs: &[McRun]) -> anyhow::Result<()> {
-    std::fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))?;
+    rotorloop_common::outdir::OutDir::make(dir)
+        .map(drop)
+        .with_context(|| format!("cannot create {}", dir.display()))?;
     let mut csv = String::from(
         "run,near_pi,err_deg_initial,omega0_norm,omega_r0_norm,err_deg_final,err_deg_max,converged\n",
     );
@@ -210,7 +212,8 @@ fn write_outputs(dir: &Path, summary: &McSummary, runs: &[McRun]) -> anyhow::Res
         ));
     }
     let path = dir.join("runs.csv");
-    std::fs::write(&path, csv).with_context(|| format!("cannot write {}", path.display()))?;
+    rotorloop_common::outdir::write_file(&path, csv)
+        .with_context(|| format!("cannot write {}", path.display()))?;
     let log_final: Vec<f64> = runs.iter().map(|r| r.err_deg_final.max(1e-16).log10()).collect();
     histogram(
         &dir.join("final_error_histogram.png"),

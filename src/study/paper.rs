@@ -101,7 +101,8 @@ pub fn run(out: &Path, duration: f64, rate: f64, in_process: bool) -> anyhow::Re
         }
     }
     let path = out.join("report.md");
-    std::fs::write(&path, md).with_context(|| format!("cannot write {}", path.display()))?;
+    rotorloop_common::outdir::write_file(&path, md)
+        .with_context(|| format!("cannot write {}", path.display()))?;
     println!("report: {}", path.display());
     Ok(())
 }

@@ -103,7 +103,7 @@ fn write_pair_intervals(dir: &Path, before: &[Row], after: &[Row]) -> anyhow::Re
         };
     }
     let path = dir.join("before-after.json");
-    std::fs::write(&path, format!("{j:#}\n"))
+    rotorloop_common::outdir::write_file(&path, format!("{j:#}\n"))
         .with_context(|| format!("cannot write {}", path.display()))
 }
 
@@ -345,7 +345,7 @@ pub(super) fn measure_loops(
         return Ok((1..=n).map(|i| Row { skipped: why.clone(), ..row(i) }).collect());
     }
     let placed = crate::cpus::place_smt(t, n, Shape::of_placement(&base.placement), a.smt);
-    std::fs::create_dir_all(&dir)?;
+    rotorloop_common::outdir::OutDir::make(&dir).map(drop)?;
     write_placement(&dir.join("placement.json"), &placed)?;
     let results: Vec<anyhow::Result<()>> = std::thread::scope(|scope| {
         let handles: Vec<_> = (1..=n)
@@ -383,7 +383,7 @@ fn write_placement(path: &Path, p: &crate::cpus::Placement) -> anyhow::Result<()
         .map(|l| serde_json::json!({ "cpus": crate::cpus::format_list(&l.cpus), "pin": l.pin() }))
         .collect();
     let j = serde_json::json!({ "loops": loops, "shared": p.shared, "notes": p.notes });
-    std::fs::write(path, format!("{j:#}\n"))
+    rotorloop_common::outdir::write_file(path, format!("{j:#}\n"))
         .with_context(|| format!("cannot write {}", path.display()))
 }
 
@@ -581,7 +581,10 @@ impl Watching {
             Ok(r) => r?,
             Err(_) => anyhow::bail!("the bench's viewer panicked"),
         };
-        std::fs::write(path, serde_json::json!({ "messages": n }).to_string() + "\n")?;
+        rotorloop_common::outdir::write_file(
+            path,
+            serde_json::json!({ "messages": n }).to_string() + "\n",
+        )?;
         Ok(())
     }
 }
@@ -595,9 +598,9 @@ fn mrp_scenario(a: &BenchArgs, out: &Path) -> anyhow::Result<String> {
     file.controller.law = gains.law;
     file.controller.law_params = gains.law_params;
     file.name = format!("{}-mrp-pid", file.name);
-    std::fs::create_dir_all(out)?;
+    rotorloop_common::outdir::OutDir::make(out).map(drop)?;
     let path = out.with_extension("scenario.toml");
-    std::fs::write(&path, file.to_toml())?;
+    rotorloop_common::outdir::write_file(&path, file.to_toml())?;
     Ok(path.display().to_string())
 }
 

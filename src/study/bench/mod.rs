@@ -54,7 +54,8 @@ pub fn run(a: &BenchArgs) -> anyhow::Result<()> {
         Some(a.rates[0]),
         None,
     )?;
-    std::fs::create_dir_all(&a.out)
+    rotorloop_common::outdir::OutDir::make(&a.out)
+        .map(drop)
         .with_context(|| format!("cannot create {}", a.out.display()))?;
     let exe = std::env::current_exe().context("cannot find the rotorloop executable")?;
     let topology = crate::cpus::Topology::this_process();
@@ -67,7 +68,7 @@ pub fn run(a: &BenchArgs) -> anyhow::Result<()> {
     let doctor = crate::doctor::write_into(&a.out, a.rates[0], a.seconds, Some(&topology.allowed));
     let idle_note = machine_note(a, &doctor, idle_note);
     let csv_path = a.out.join("bench.csv");
-    std::fs::write(&csv_path, format!("{}\n", csv_header()))?;
+    rotorloop_common::outdir::write_file(&csv_path, format!("{}\n", csv_header()))?;
     let mut rows: Vec<Row> = Vec::new();
     let cells = cells(a);
     let tty = std::io::stderr().is_terminal();
@@ -95,7 +96,7 @@ pub fn run(a: &BenchArgs) -> anyhow::Result<()> {
             ..Row::default()
         };
         let dir = a.out.join("cells").join(&cell);
-        std::fs::create_dir_all(&dir)?;
+        rotorloop_common::outdir::OutDir::make(&dir).map(drop)?;
         let hog = if load == "other-core"
             && skip_reason("loop", *wait, placement, load, ncores).is_none()
         {
@@ -120,7 +121,7 @@ pub fn run(a: &BenchArgs) -> anyhow::Result<()> {
             unsafe { libc::kill(h.id() as libc::pid_t, libc::SIGTERM) };
             let _ = h.wait();
         }
-        let mut f = std::fs::OpenOptions::new().append(true).open(&csv_path)?;
+        let mut f = rotorloop_common::outdir::append_file(&csv_path)?;
         for r in &measured {
             writeln!(f, "{}", r.csv())?;
         }
@@ -154,7 +155,7 @@ fn measure_repeated(
             0 => dir.to_owned(),
             r => dir.join(format!("rep{r}")),
         };
-        std::fs::create_dir_all(&d)?;
+        rotorloop_common::outdir::OutDir::make(&d).map(drop)?;
         let mut these = match rep {
             0 => measure_loop_variants(a, base, topology, &d)?,
             _ => vec![measure_loop(a, base, topology, &d, Variant::Loop)?],

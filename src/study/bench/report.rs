@@ -92,7 +92,7 @@ pub(super) fn write_markdown(a: &BenchArgs, rows: &[Row], idle_note: &str) -> an
     md.push_str(&before_after_md(rows, a));
     md.push_str(&scale_md(rows, &a.out));
     md.push_str(&cross_host_md(rows));
-    std::fs::write(a.out.join("bench.md"), md)?;
+    rotorloop_common::outdir::write_file(&a.out.join("bench.md"), md)?;
     Ok(())
 }
 

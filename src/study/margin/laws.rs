@@ -104,9 +104,9 @@ pub fn compare(
         }
         md.push('\n');
     }
-    std::fs::write(out.join("laws.md"), &md)
+    rotorloop_common::outdir::write_file(&out.join("laws.md"), &md)
         .with_context(|| format!("cannot write {}", out.display()))?;
-    std::fs::write(out.join("laws.csv"), csv)
+    rotorloop_common::outdir::write_file(&out.join("laws.csv"), csv)
         .with_context(|| format!("cannot write {}", out.display()))?;
     let points: Vec<Vec<(f64, f64)>> = results
         .iter()

@@ -230,12 +230,13 @@ pub fn run(a: &MarginArgs) -> anyhow::Result<(Vec<ModeMargin>, Vec<SweepRun>)> {
     }
     // Read before the sweep: a bad file is refused before minutes of runs, not after.
     let latency = a.latency_from.as_deref().map(read_latency).transpose()?;
-    std::fs::create_dir_all(&a.out)
+    rotorloop_common::outdir::OutDir::make(&a.out)
+        .map(drop)
         .with_context(|| format!("cannot create {}", a.out.display()))?;
     let runs = delays.iter().map(|d| sweep_run(&s, *d)).collect::<Result<Vec<_>, _>>()?;
     write_csv(&a.out.join("margin.csv"), &runs)?;
     let md = report(&s, &modes, &runs, latency.as_ref());
-    std::fs::write(a.out.join("margin.md"), &md)
+    rotorloop_common::outdir::write_file(&a.out.join("margin.md"), &md)
         .with_context(|| format!("cannot write {}", a.out.display()))?;
     plots(&a.out, &s.file.name, &runs, tau_star)?;
     print!("{md}");
@@ -274,7 +275,8 @@ fn write_csv(path: &Path, runs: &[SweepRun]) -> anyhow::Result<()> {
             r.converged()
         );
     }
-    std::fs::write(path, t).with_context(|| format!("cannot write {}", path.display()))
+    rotorloop_common::outdir::write_file(path, t)
+        .with_context(|| format!("cannot write {}", path.display()))
 }
 
 /// Sense-to-actuate p50, p99 and max (s) of a real-time run's `summary.json`, read as any
