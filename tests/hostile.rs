@@ -785,6 +785,23 @@ fn an_out_another_user_controls_is_refused_and_nothing_is_written_through_it() {
         assert!(nothing_in_root_only(), "{what}: the run wrote into the root-only directory");
         assert!(!o.join("run").exists(), "{what}: made a directory in the other user's");
     }
+    // The other commands that write an OUT refuse it the same way (they wrote with plain
+    // paths before).
+    let o_str = o.to_str().expect("utf8");
+    for args in [
+        vec!["margin", "--duration", "1", "--out", o_str],
+        vec!["montecarlo", "--runs", "1", "--duration", "1", "--out", o_str],
+        vec!["paper", "--duration", "1", "--out", o_str],
+        vec!["bench", "--seconds", "1", "--out", o_str],
+        vec!["sim", "--scenario", "paper-zero", "--duration", "1", "--out", o_str],
+    ] {
+        let r = h.rotorloop(&args, LIMIT);
+        let err = String::from_utf8_lossy(&r.stderr);
+        assert_eq!(r.status.code(), Some(2), "{args:?} was not refused:\n{err}");
+        assert!(err.contains(o_str) && err.contains(&user.name), "{args:?}: {err}");
+        assert!(secret.untouched(), "{args:?}: the root-only file was written through a link");
+        assert!(nothing_in_root_only(), "{args:?}: wrote into the root-only directory");
+    }
     // The control: an OUT of root's own in the same public place runs.
     let mine = public.path().join("mine");
     ok(&lockstep_run(&h, &mine));
