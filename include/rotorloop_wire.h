@@ -23,7 +23,7 @@
 #define ROTORLOOP_FLAG_REALTIME UINT64_C(2) /* StateSample.flags: the plant runs on a real-time grid */
 #define ROTORLOOP_FLAG_SAFE_MODE UINT64_C(4) /* StateSample.flags: safe mode (rotors coast) */
 #define ROTORLOOP_FLAG_SATURATED UINT64_C(8) /* StateSample.flags: the held torque was limited */
-#define ROTORLOOP_TORQUE_SKIPPED UINT64_C(1) /* TorqueSample.flags: not computed (an input was rejected) */
+#define ROTORLOOP_TORQUE_SKIPPED UINT64_C(1) /* TorqueSample.flags: not computed (the state was rejected, or no reference to track) */
 
 /* What one publish cost (ns): loaning the sample, from the publish timestamp until `send` returned, and notifying the listeners after it. Carried in the publisher's next sample (a sample cannot carry the cost of its own send). */
 typedef struct SendCost {

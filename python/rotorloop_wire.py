@@ -14,7 +14,7 @@ FLAG_LAST = 1  # StateSample.flags: the run's last tick
 FLAG_REALTIME = 2  # StateSample.flags: the plant runs on a real-time grid
 FLAG_SAFE_MODE = 4  # StateSample.flags: safe mode (rotors coast)
 FLAG_SATURATED = 8  # StateSample.flags: the held torque was limited
-TORQUE_SKIPPED = 1  # TorqueSample.flags: not computed (an input was rejected)
+TORQUE_SKIPPED = 1  # TorqueSample.flags: not computed (the state was rejected, or no reference to track)
 
 
 def service_name(domain: str, topic: str) -> str:

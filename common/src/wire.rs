@@ -97,8 +97,9 @@ pub const FLAG_SAFE_MODE: u64 = 1 << 2;
 /// actuators (torque saturation or the rotor speed limit).
 pub const FLAG_SATURATED: u64 = 1 << 3;
 
-/// [`TorqueSample::flags`]: the controller did not compute this tick because an input
-/// was rejected; the torque fields are zero and the plant must treat the sample as a
+/// [`TorqueSample::flags`]: the controller did not compute this tick: its state was
+/// rejected, or there was no reference to track (none paired yet, or the hold of a
+/// missing or rejected one ran out); the torque fields are zero and the plant must treat the sample as a
 /// missing torque (hold, then safe mode).
 pub const TORQUE_SKIPPED: u64 = 1;
 

@@ -111,7 +111,7 @@ pub fn constants() -> Vec<(&'static str, u64, &'static str)> {
         (
             "TORQUE_SKIPPED",
             TORQUE_SKIPPED,
-            "TorqueSample.flags: not computed (an input was rejected)",
+            "TorqueSample.flags: not computed (the state was rejected, or no reference to track)",
         ),
     ]
 }
