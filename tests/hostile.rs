@@ -948,24 +948,11 @@ fn the_fallback_report_directory_cannot_be_planted() {
     let Some(user) = TempUser::for_test("the_fallback_report_directory_…") else { return };
     let mut h = Harness::new("fallback");
     let secret = Secret::new(&h);
-    let out = h.path("full");
-    std::fs::create_dir_all(&out).expect("dir");
-    let mounted = Command::new("mount")
-        .args(["-t", "tmpfs", "-o", "size=2m,mode=0755", "tmpfs"])
-        .arg(&out)
-        .output()
-        .is_ok_and(|o| o.status.success());
-    if !mounted {
+    let Some(disk) = crate::common::harness::SmallDisk::mount(&h, "full") else {
         eprintln!("SKIPPED the_fallback_report_directory_…: cannot mount a tmpfs here");
         return;
-    }
-    struct Unmount(PathBuf);
-    impl Drop for Unmount {
-        fn drop(&mut self) {
-            let _ = Command::new("umount").arg(&self.0).status();
-        }
-    }
-    let _unmount = Unmount(out.clone());
+    };
+    let out = disk.path().to_owned();
     let old = std::env::temp_dir().join(format!("rotorloop-report-{}", h.domain));
     let made = as_user(
         &user,

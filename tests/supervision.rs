@@ -270,26 +270,11 @@ fn a_controller_stopped_and_continued_in_real_time_recovers_without_the_watchdog
 #[test]
 fn a_full_disk_never_stops_the_loop() {
     let h = Harness::new("sup-full");
-    let out = h.path("full");
-    std::fs::create_dir_all(&out).expect("dir");
-    let mounted = Command::new("mount")
-        // mode=0755: a tmpfs's root is 1777 otherwise, an OUT every user could write in
-        // (refused: docs/security.md).
-        .args(["-t", "tmpfs", "-o", "size=2m,mode=0755", "tmpfs"])
-        .arg(&out)
-        .output()
-        .is_ok_and(|o| o.status.success());
-    if !mounted {
+    let Some(disk) = crate::common::harness::SmallDisk::mount(&h, "full") else {
         eprintln!("skipped: cannot mount a tmpfs here (not root, or no CAP_SYS_ADMIN)");
         return;
-    }
-    struct Unmount(PathBuf);
-    impl Drop for Unmount {
-        fn drop(&mut self) {
-            let _ = Command::new("umount").arg(&self.0).status();
-        }
-    }
-    let _unmount = Unmount(out.clone());
+    };
+    let out = disk.path().to_owned();
     // --force: the launcher's estimate (about 19 MB) says the 2 MiB disk cannot hold the
     // run, and refuses it without.
     let args = ["--scenario", "paper-sinusoid", "--duration", "6", "--mode", "realtime", "--force"];

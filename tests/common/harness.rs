@@ -10,6 +10,36 @@ use std::time::{Duration, Instant};
 pub const ROTORLOOP: &str = env!("CARGO_BIN_EXE_rotorloop");
 
 /// One test's domain, directory and children.
+/// A 2 MiB tmpfs mounted on a new directory of the harness (mode 0755: a tmpfs's root is
+/// 1777 otherwise, an OUT every user could write in, which a run refuses), unmounted when
+/// dropped: a disk that fills up a second into a run.
+pub struct SmallDisk(PathBuf);
+
+impl SmallDisk {
+    /// Mounts it on `h.path(name)`; `None` where `mount` is not allowed (not root, or no
+    /// CAP_SYS_ADMIN): the caller skips with a message.
+    pub fn mount(h: &Harness, name: &str) -> Option<Self> {
+        let dir = h.path(name);
+        std::fs::create_dir_all(&dir).expect("dir");
+        let mounted = Command::new("mount")
+            .args(["-t", "tmpfs", "-o", "size=2m,mode=0755", "tmpfs"])
+            .arg(&dir)
+            .output()
+            .is_ok_and(|o| o.status.success());
+        mounted.then_some(Self(dir))
+    }
+
+    pub fn path(&self) -> &Path {
+        &self.0
+    }
+}
+
+impl Drop for SmallDisk {
+    fn drop(&mut self) {
+        let _ = Command::new("umount").arg(&self.0).status();
+    }
+}
+
 pub struct Harness {
     pub domain: String,
     pub dir: tempfile::TempDir,
