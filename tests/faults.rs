@@ -630,6 +630,21 @@ fn overlapping_faults_and_faults_that_cannot_happen_are_refused_before_the_run()
     refused(&o, &["plant:nan@1"], "after the run's end");
 }
 
+/// A 10 s paper-sinusoid run in `mode` into `out` whose controller is killed at 4 s and
+/// restarted at 4.5 s (`--fault controller:kill@4:restart@4.5`): its `summary.json`.
+fn killed_at_4_s(h: &Harness, out: &std::path::Path, mode: &str) -> serde_json::Value {
+    let o = h.rotorloop(
+        &["run", "--scenario", "paper-sinusoid", "--duration", "10", "--mode", mode]
+            .into_iter()
+            .chain(["--fault", "controller:kill@4:restart@4.5", "--domain", &h.domain])
+            .chain(["--out", out.to_str().expect("utf8")])
+            .collect::<Vec<_>>(),
+        LIMIT,
+    );
+    ok(&o);
+    json(&out.join("summary.json"))
+}
+
 /// A lockstep kill at 4 s of a 10 s run is carried out at tick 4000, where the plant is
 /// held meanwhile (its gate), and its restart 0.5 s of wall time later with the plant still
 /// there: the fault is listed at tick 4000 and restarted at 4001 (the first state published
@@ -641,16 +656,7 @@ fn a_lockstep_kill_lands_at_its_tick_every_time_and_the_trace_is_the_simulators(
     let mut ticks = Vec::new();
     for i in 0..2 {
         let out = h.path(&format!("run{i}"));
-        let o = h.rotorloop(
-            &["run", "--scenario", "paper-sinusoid", "--duration", "10", "--mode", "lockstep"]
-                .into_iter()
-                .chain(["--fault", "controller:kill@4:restart@4.5", "--domain", &h.domain])
-                .chain(["--out", out.to_str().expect("utf8")])
-                .collect::<Vec<_>>(),
-            LIMIT,
-        );
-        ok(&o);
-        let s = json(&out.join("summary.json"));
+        let s = killed_at_4_s(&h, &out, "lockstep");
         assert_eq!(s["completed"], true, "{s}");
         let faults = s["faults"].as_array().expect("faults");
         assert_eq!(faults.len(), 1, "{faults:?}");
@@ -680,17 +686,7 @@ fn a_lockstep_kill_lands_at_its_tick_every_time_and_the_trace_is_the_simulators(
 #[test]
 fn a_realtime_kill_lands_once_its_tick_is_published_and_before_its_restart() {
     let h = Harness::new("kill-at-tick-rt");
-    let out = h.path("run");
-    let o = h.rotorloop(
-        &["run", "--scenario", "paper-sinusoid", "--duration", "10", "--mode", "realtime"]
-            .into_iter()
-            .chain(["--fault", "controller:kill@4:restart@4.5", "--domain", &h.domain])
-            .chain(["--out", out.to_str().expect("utf8")])
-            .collect::<Vec<_>>(),
-        LIMIT,
-    );
-    ok(&o);
-    let s = json(&out.join("summary.json"));
+    let s = killed_at_4_s(&h, &h.path("run"), "realtime");
     let f = &s["faults"][0];
     let kill = f["kill_tick"].as_u64().expect("kill tick");
     assert!((4000..4500).contains(&kill), "{f}");

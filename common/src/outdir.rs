@@ -139,12 +139,17 @@ fn group_has_others(gid: u32) -> bool {
 /// mode is still checked); in the initial namespace (the full map) that uid is a real user
 /// (`nobody`) and is not.
 fn outside_this_namespace(uid: u32) -> bool {
-    let read = |p: &str| std::fs::read_to_string(p).unwrap_or_default();
-    let overflow = read("/proc/sys/kernel/overflowuid").trim().parse::<u32>().unwrap_or(65534);
-    let full_map =
-        read("/proc/self/uid_map").split_whitespace().map(str::to_owned).collect::<Vec<_>>()
-            == ["0", "0", "4294967295"];
-    uid == overflow && !full_map
+    // The namespace is the process's: read once.
+    static OVERFLOW: std::sync::OnceLock<Option<u32>> = std::sync::OnceLock::new();
+    let overflow = OVERFLOW.get_or_init(|| {
+        let read = |p: &str| std::fs::read_to_string(p).unwrap_or_default();
+        let overflow = read("/proc/sys/kernel/overflowuid").trim().parse::<u32>().unwrap_or(65534);
+        let full_map =
+            read("/proc/self/uid_map").split_whitespace().map(str::to_owned).collect::<Vec<_>>()
+                == ["0", "0", "4294967295"];
+        (!full_map).then_some(overflow)
+    });
+    *overflow == Some(uid)
 }
 
 /// What another user could do with a directory of `uid`, `gid`, `mode`, if anything: owned
