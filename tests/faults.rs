@@ -628,6 +628,22 @@ fn overlapping_faults_and_faults_that_cannot_happen_are_refused_before_the_run()
         LIMIT,
     );
     refused(&o, &["plant:nan@1"], "after the run's end");
+    // The tick loop without its gate (for `bench --before-after gate`) cannot hold a
+    // lockstep fault at its tick.
+    let no_gate = run(&["controller:kill@0.1:restart@0.2"], &["--no-gate"]);
+    refused(&no_gate, &["--no-gate", "--fault"], "gate");
+}
+
+/// The plant's tick loop compiled without its gate (`--no-gate`, the "before" of `bench
+/// --before-after gate`) is the same loop: its lockstep trace is the simulator's byte for
+/// byte.
+#[test]
+fn the_tick_loop_without_its_gate_is_the_same_loop() {
+    let h = Harness::new("no-gate");
+    let out = lockstep_with_faults(&h, &[], &["--no-gate"]);
+    let trace = std::fs::read(out.join("trace.csv")).expect("trace");
+    assert_same_trace("--no-gate", &trace, &sim_trace(&h));
+    h.assert_no_leftovers();
 }
 
 /// A 10 s paper-sinusoid run in `mode` into `out` whose controller is killed at 4 s and

@@ -73,6 +73,11 @@ pub struct RunArgs {
     /// measuring what the sampling costs (`bench --before-after sched`).
     #[arg(long)]
     pub no_sched_sample: bool,
+    /// The plant's tick loop without the lockstep fault gate's check (`plant --no-gate`),
+    /// to measure what the gate costs (`bench --before-after gate`). Refused with a
+    /// `--fault` in lockstep, which needs the gate.
+    #[arg(long, hide = true)]
+    pub no_gate: bool,
     /// Record the kernel's scheduler (`sched_switch`, `sched_wakeup`) and IRQ events during
     /// the run into `OUT/sched-trace.txt`, from a tracefs instance of its own (mounted
     /// when needed, torn down at the end), so that an incident names what ran instead of
@@ -228,6 +233,7 @@ impl RunArgs {
             raw_segments: false,
             force: false,
             no_sched_sample: false,
+            no_gate: false,
             trace_sched: false,
             spin_before_tick_us: 0,
             cpu_dma_latency: None,

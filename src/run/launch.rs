@@ -60,6 +60,10 @@ fn checked_faults(
         }
     }
     let schedule = FaultSchedule::new(faults.clone(), args.role.mode == Mode::Lockstep);
+    if args.no_gate && !schedule.gate_ticks().is_empty() {
+        let why = "--no-gate: a lockstep --fault needs the plant's gate to land at its tick";
+        return Err(UsageError(why.into()).into());
+    }
     Ok((faults, schedule))
 }
 

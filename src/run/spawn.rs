@@ -166,6 +166,8 @@ impl Launch<'_> {
                 if !self.gates.is_empty() {
                     let gates: Vec<String> = self.gates.iter().map(u64::to_string).collect();
                     cmd.arg("--gate-ticks").arg(gates.join(","));
+                } else if args.no_gate {
+                    cmd.arg("--no-gate");
                 }
             }
             Ok(Role::Controller) => {

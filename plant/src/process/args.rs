@@ -67,6 +67,10 @@ pub struct PlantArgs {
     /// (`rotorloop run --fault`; `process::gate`). Comma-separated. Set by the launcher.
     #[arg(long, hide = true, value_delimiter = ',')]
     pub gate_ticks: Vec<u64>,
+    /// The tick loop without the gate's check (as before the gate), to measure what the
+    /// gate costs (`rotorloop bench --before-after gate`); refused with `--gate-ticks`.
+    #[arg(long, hide = true, conflicts_with = "gate_ticks")]
+    pub no_gate: bool,
     /// Also record sense-to-actuate in the plant itself and write
     /// `DIR/plant_sense_to_actuate.hgrm` at the end (works without a monitor).
     #[arg(long)]

@@ -5,6 +5,21 @@
 //!
 //! Its cost on a tick without a gate is one comparison of two integers, outside the
 //! physics: the plant steps exactly as without it, and the state it publishes is the same.
+//! [`NoGate`] is the loop before the gate (`--no-gate`), for `rotorloop bench
+//! --before-after gate`, which measures that cost.
+
+/// What the tick loop does right after publishing tick `k` (`process::ticks`).
+pub(super) trait Pass {
+    fn pass(&mut self, k: u64);
+}
+
+/// No gate at all: the tick loop as it was before the gate (`--no-gate`).
+pub(super) struct NoGate;
+
+impl Pass for NoGate {
+    #[inline(always)]
+    fn pass(&mut self, _: u64) {}
+}
 
 /// The ticks at which the plant holds for the launcher, those to come first.
 pub(super) struct Gate {
@@ -26,15 +41,6 @@ impl Gate {
         Self { ahead, next }
     }
 
-    /// After publishing tick `k`: at a gate, stop until the launcher continues this
-    /// process.
-    #[inline]
-    pub(super) fn pass(&mut self, k: u64) {
-        if k == self.next {
-            self.hold(k);
-        }
-    }
-
     #[cold]
     fn hold(&mut self, k: u64) {
         rotorloop_common::signals::stop_self();
@@ -47,6 +53,17 @@ impl Gate {
     #[cfg(test)]
     fn upcoming(&self) -> Vec<u64> {
         std::iter::once(self.next).chain(self.ahead.iter().rev().copied()).collect()
+    }
+}
+
+impl Pass for Gate {
+    /// After publishing tick `k`: at a gate, stop until the launcher continues this
+    /// process.
+    #[inline(always)]
+    fn pass(&mut self, k: u64) {
+        if k == self.next {
+            self.hold(k);
+        }
     }
 }
 

@@ -29,6 +29,9 @@ pub enum BeforeAfter {
     /// Raw and packed flight segments (`run --raw-segments` before), both sides with
     /// rings of 4096 ticks so that the launcher moves (and packs) a half every 2048 ticks.
     Pack,
+    /// The plant's tick loop without and with the lockstep fault gate's check (`run
+    /// --no-gate` before): one comparison of two integers a tick, in real time too.
+    Gate,
 }
 
 /// `rotorloop bench` arguments.
@@ -92,7 +95,8 @@ pub struct BenchArgs {
     /// (`loop-foxglove` rows); `sched`, `trace-sched`; `hot-path` the hot path before
     /// its overhead was cut (`run --plain-hot-path`, `loop-plain` rows) and after; `pack`
     /// rings of 4096 ticks moved raw (`run --raw-segments`, `loop-raw` rows) and packed
-    /// (`loop-packed` rows).
+    /// (`loop-packed` rows); `gate` the plant's tick loop without the lockstep fault
+    /// gate's check (`loop-nogate` rows) and with it.
     #[arg(long, num_args = 0..=1, default_missing_value = "record", value_name = "CHANGE")]
     pub before_after: Option<BeforeAfter>,
     /// With `--before-after`: measure before and after this many times each, alternating

@@ -57,11 +57,14 @@ pub(super) fn before_after(
         BeforeAfter::TraceSched => (Variant::Loop, Variant::TraceSched),
         BeforeAfter::HotPath => (Variant::PlainHotPath, Variant::Loop),
         BeforeAfter::Pack => (Variant::RawSegments, Variant::Packed),
+        BeforeAfter::Gate => (Variant::NoGate, Variant::Loop),
     };
     // The plain loop already measured is the first run of its side (of neither for
     // `pack`: both sides run small rings).
-    let plain_after =
-        matches!(change, BeforeAfter::Record | BeforeAfter::Sched | BeforeAfter::HotPath);
+    let plain_after = matches!(
+        change,
+        BeforeAfter::Record | BeforeAfter::Sched | BeforeAfter::HotPath | BeforeAfter::Gate
+    );
     let (mut before, mut after) = (Vec::new(), Vec::new());
     match (change, plain_after) {
         (BeforeAfter::Pack, _) => {}
@@ -139,6 +142,8 @@ pub(super) enum Variant {
     Packed,
     /// The same with `--raw-segments`.
     RawSegments,
+    /// With `--no-gate`: the plant's tick loop before the lockstep fault gate.
+    NoGate,
     /// With the second law (`--controllers mrp-pid`).
     MrpPid,
     /// With the Python example controller (`--controllers python`).
@@ -159,6 +164,7 @@ impl Variant {
             Variant::PlainHotPath => "loop-plain",
             Variant::Packed => "loop-packed",
             Variant::RawSegments => "loop-raw",
+            Variant::NoGate => "loop-nogate",
             Variant::MrpPid => "loop-mrp-pid",
             Variant::Python => "loop-python",
             Variant::C => "loop-c",
@@ -248,6 +254,7 @@ pub(super) fn measure_loop(
         Variant::PlainHotPath => "h",
         Variant::Packed => "k",
         Variant::RawSegments => "r",
+        Variant::NoGate => "g",
         Variant::MrpPid => "m",
         Variant::Python => "p",
         Variant::C => "c",
@@ -260,6 +267,7 @@ pub(super) fn measure_loop(
     run.no_sched_sample = variant == Variant::NoSched;
     run.trace_sched = variant == Variant::TraceSched;
     run.role.plain_hot_path = variant == Variant::PlainHotPath;
+    run.no_gate = variant == Variant::NoGate;
     if matches!(variant, Variant::Packed | Variant::RawSegments) {
         run.role.flight_ring_ticks = PACK_RING;
         run.raw_segments = variant == Variant::RawSegments;

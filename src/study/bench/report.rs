@@ -294,6 +294,13 @@ pub(super) fn before_after_md(rows: &[Row], a: &BenchArgs) -> String {
             "Before: rings of 4096 ticks, the launcher moving each finished half raw (`run \
              --raw-segments`); after: the same, each half packed (the default).",
         ),
+        BeforeAfter::Gate => (
+            "loop-nogate",
+            "loop",
+            "Before: the plant's tick loop without the lockstep fault gate's check (`run \
+             --no-gate`, compiled without it); after: with it (the default: one comparison of \
+             two integers a tick).",
+        ),
     };
     let mut md = String::new();
     let ok = |cell: &str, kind: &str| {
