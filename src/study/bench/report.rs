@@ -250,11 +250,10 @@ pub(super) fn breakdown_md(a: &BenchArgs, rows: &[Row]) -> String {
     md
 }
 
-/// The loop before and after its overhead was cut, with the bare baseline of the cell.
-pub(super) fn before_after_md(rows: &[Row], a: &BenchArgs) -> String {
+/// The rows `bench --before-after CHANGE` compares (before, after) and what they are.
+fn sides(change: super::cell::BeforeAfter) -> (&'static str, &'static str, &'static str) {
     use super::cell::BeforeAfter;
-    let Some(change) = a.before_after else { return String::new() };
-    let (before_kind, after_kind, what) = match change {
+    match change {
         BeforeAfter::Record => (
             "loop-before",
             "loop",
@@ -301,7 +300,14 @@ pub(super) fn before_after_md(rows: &[Row], a: &BenchArgs) -> String {
              --no-gate`, compiled without it); after: with it (the default: one comparison of \
              two integers a tick).",
         ),
-    };
+    }
+}
+
+/// The loop before and after its overhead was cut, with the bare baseline of the cell.
+pub(super) fn before_after_md(rows: &[Row], a: &BenchArgs) -> String {
+    use super::cell::BeforeAfter;
+    let Some(change) = a.before_after else { return String::new() };
+    let (before_kind, after_kind, what) = sides(change);
     let mut md = String::new();
     let ok = |cell: &str, kind: &str| {
         rows.iter().find(|r| r.cell == cell && r.kind == kind && r.skipped.is_empty())
