@@ -446,6 +446,7 @@ fn flag_values_are_refused(all: bool) {
         (
             vec!["bench", "--out", out],
             &[
+                "--rates",
                 "--seconds",
                 "--loops",
                 "--pairs",

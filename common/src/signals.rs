@@ -29,11 +29,6 @@ pub fn shutdown_requested() -> bool {
     SHUTDOWN.load(Ordering::Relaxed)
 }
 
-/// Requests shutdown from inside the process (as a signal would).
-pub fn request_shutdown() {
-    SHUTDOWN.store(true, Ordering::SeqCst);
-}
-
 /// Stops this process (SIGSTOP) until someone continues or kills it (the tests' hooks).
 pub fn stop_self() {
     // SAFETY: raises a signal in this process.

@@ -38,12 +38,6 @@ pub fn from_rows(rows: [[f64; 3]; 3]) -> DMat3 {
     DMat3::from_cols_array_2d(&rows).transpose()
 }
 
-/// The rows of a matrix, row-major.
-#[inline]
-pub fn to_rows(m: &DMat3) -> [[f64; 3]; 3] {
-    m.transpose().to_cols_array_2d()
-}
-
 /// The rows of a matrix flattened row-major (`m11, m12, m13, m21, …`).
 #[inline]
 pub fn to_row_major(m: &DMat3) -> [f64; 9] {
@@ -126,7 +120,6 @@ mod tests {
         let m = from_rows(rows);
         assert_eq!(entry(&m, 0, 1), 2.0);
         assert_eq!(entry(&m, 2, 0), 7.0);
-        assert_eq!(to_rows(&m), rows);
         assert_eq!(to_row_major(&m), [1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 7.0, 8.0, 9.0]);
     }
 

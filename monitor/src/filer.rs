@@ -192,11 +192,6 @@ impl Filer {
         }
         w
     }
-
-    /// The bytes the kept buffers hold (their capacity).
-    pub fn spare_bytes(&self) -> usize {
-        self.spare.iter().map(Vec::capacity).sum()
-    }
 }
 
 /// Dropped, it waits for the thread to write what it was handed (its answers unread): the
@@ -310,10 +305,10 @@ mod tests {
         answers.extend(f.hand_over(&mut t, &mut m, 12, resume(13)));
         assert!(answers.iter().all(|w| matches!(w, Written::Ok { .. })));
         assert!(f.spare.len() <= SPARE_MAX, "{} buffers kept", f.spare.len());
+        let spare_bytes: usize = f.spare.iter().map(Vec::capacity).sum();
         assert!(
-            f.spare_bytes() <= SPARE_MAX * SPARE_CAPACITY,
-            "{} bytes kept after a 48 MiB backlog",
-            f.spare_bytes()
+            spare_bytes <= SPARE_MAX * SPARE_CAPACITY,
+            "{spare_bytes} bytes kept after a 48 MiB backlog"
         );
         answers.extend(f.close());
         let len = std::fs::metadata(&tp).expect("trace").len();

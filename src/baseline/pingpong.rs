@@ -19,7 +19,6 @@ use hdrhistogram::Histogram;
 use rotorloop_common::clock::{now_ns, sleep_until_ns};
 use rotorloop_common::graph::Topic;
 use rotorloop_common::hgrm::write_percentile_distribution;
-use rotorloop_common::input::whole_in;
 use rotorloop_common::ipc::domain::Domain;
 use rotorloop_common::ipc::wait::Wait;
 use rotorloop_common::role::args::{duration_s, rate_hz};
@@ -72,7 +71,7 @@ pub struct PingPongArgs {
     #[arg(long, default_value = "event")]
     pub wait: Wait,
     /// The core to pin this side to, 0 to 4095.
-    #[arg(long, allow_hyphen_values = true, value_parser = whole_in(0usize, 4095, "cores"))]
+    #[arg(long, allow_hyphen_values = true, value_parser = rotorloop_common::role::args::core())]
     pub core: Option<usize>,
     /// Ping: output stem (`STEM.hgrm`, `STEM.json`).
     #[arg(long)]

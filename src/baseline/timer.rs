@@ -10,8 +10,9 @@ use std::path::PathBuf;
 use anyhow::Context;
 use hdrhistogram::Histogram;
 use rotorloop_common::clock::{TickGrid, now_ns, sleep_until_ns};
-use rotorloop_common::input::whole_in;
-use rotorloop_common::role::args::{dma_latency_us, duration_s, rate_hz, spin_us};
+use rotorloop_common::role::args::{
+    core, dma_latency_us, duration_s, rate_hz, rt_priority, spin_us,
+};
 use rotorloop_common::rt::RtSetup;
 use rotorloop_common::signals::shutdown_requested;
 
@@ -25,10 +26,10 @@ pub struct TimerArgs {
     #[arg(long, allow_hyphen_values = true, value_parser = duration_s())]
     pub seconds: f64,
     /// Pin to this core (the plant's), 0 to 4095.
-    #[arg(long, allow_hyphen_values = true, value_parser = whole_in(0usize, 4095, "cores"))]
+    #[arg(long, allow_hyphen_values = true, value_parser = core())]
     pub core: Option<usize>,
     /// SCHED_FIFO priority (the plant's), 1 to 99.
-    #[arg(long, allow_hyphen_values = true, value_parser = whole_in(1i32, 99, "priority"))]
+    #[arg(long, allow_hyphen_values = true, value_parser = rt_priority())]
     pub rt_priority: Option<i32>,
     /// Sleep until this many µs before each tick and spin the rest (the plant's), 0 to
     /// 1000000.
@@ -70,13 +71,6 @@ pub fn lateness(a: &TimerArgs) -> anyhow::Result<(Histogram<u64>, Option<u32>)> 
 
 /// `rotorloop role timer`: measures and writes `OUT.json` and `OUT.hgrm`.
 pub fn run(a: &TimerArgs) -> anyhow::Result<()> {
-    if !(a.rate.is_finite() && a.rate > 0.0 && a.seconds.is_finite() && a.seconds > 0.0) {
-        return Err(rotorloop_common::role::UsageError(format!(
-            "timer: --rate {} and --seconds {} must be positive",
-            a.rate, a.seconds
-        ))
-        .into());
-    }
     let (h, idle) = lateness(a)?;
     let q = |p: f64| h.value_at_quantile(p);
     let j = serde_json::json!({

@@ -36,6 +36,16 @@ pub fn dma_latency_us() -> impl clap::builder::TypedValueParser<Value = u32> {
     whole_in(0u32, 1_000_000, "µs")
 }
 
+/// `--rt-priority` (of every role, `bench` and the timer baseline): SCHED_FIFO's 1 to 99.
+pub fn rt_priority() -> impl clap::builder::TypedValueParser<Value = i32> {
+    whole_in(1i32, 99, "priority")
+}
+
+/// `--core` (of every role and the baselines): a CPU number, 0 to 4095.
+pub fn core() -> impl clap::builder::TypedValueParser<Value = usize> {
+    whole_in(0usize, 4095, "cores")
+}
+
 /// `--hold-ticks` (of `run` and the plant): 0 to a million ticks.
 pub fn hold_ticks() -> impl clap::builder::TypedValueParser<Value = u64> {
     whole_in(0u64, 1_000_000, "ticks")
@@ -85,10 +95,10 @@ pub struct RoleArgs {
     pub wait: Wait,
     /// Pin the process to this core (a role started by hand; `rotorloop run` pins with
     /// `--pin`).
-    #[arg(long, allow_hyphen_values = true, value_parser = whole_in(0usize, 4095, "cores"))]
+    #[arg(long, allow_hyphen_values = true, value_parser = core())]
     pub core: Option<usize>,
     /// SCHED_FIFO priority, 1 to 99 (a warning and the default policy when not permitted).
-    #[arg(long, allow_hyphen_values = true, value_parser = whole_in(1i32, 99, "priority"))]
+    #[arg(long, allow_hyphen_values = true, value_parser = rt_priority())]
     pub rt_priority: Option<i32>,
     /// Lock the process's memory (mlockall).
     #[arg(long)]
