@@ -239,3 +239,24 @@ fn the_circle_check_finds_a_circle() {
     assert_eq!(import_cycle(&dir), None, "a test module's import is not a circle");
     std::fs::remove_dir_all(&dir).expect("remove");
 }
+
+/// A role's name is written as a string only where it is parsed or written to a file
+/// (docs/architecture.md): inside the code a role is a `Role` (`common::graph`), a
+/// process of a run a `Member` (`run::member`). Counted in every crate's sources, their
+/// tests and comments left out: at most 20, and each listed when over.
+#[test]
+fn role_names_are_strings_only_where_parsed_or_written() {
+    let roles = ["\"plant\"", "\"reference\"", "\"controller\"", "\"monitor\""];
+    let mut found = Vec::new();
+    for krate in [".", "common", "plant", "controller", "reference", "monitor", "link", "capi"] {
+        for (module, text) in modules_of(&root().join(krate).join("src")) {
+            let code = text.split("#[cfg(test)]").next().unwrap_or_default();
+            for line in code.lines().filter(|l| !l.trim_start().starts_with("//")) {
+                for r in roles.iter().filter(|r| line.contains(*r)) {
+                    found.push(format!("{krate}/{}: {r} in {}", module.join("/"), line.trim()));
+                }
+            }
+        }
+    }
+    assert!(found.len() <= 20, "{} role-name literals:\n{}", found.len(), found.join("\n"));
+}

@@ -306,7 +306,7 @@ unsafe fn wait_arg(wait: *const c_char) -> Result<Wait, RotorloopStatus> {
 fn open(name: &str, wait: Wait) -> Result<Box<RotorloopController>, IpcError> {
     rotorloop_common::ipc::quiet_iceoryx_logs();
     let domain = Domain::new(name)?;
-    let node = domain.node("controller")?;
+    let node = domain.node(rotorloop_common::graph::Role::Controller.name())?;
     let out = domain.outbox::<TorqueSample>(&node, Topic::Torque)?;
     let refs = domain.inbox::<ReferenceSample>(&node, Topic::Reference, 128, wait.listens())?;
     let states = domain.inbox::<StateSample>(&node, Topic::State, 8, wait.listens())?;

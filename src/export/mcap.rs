@@ -32,6 +32,7 @@ use anyhow::Context as _;
 use foxglove::messages::{FrameTransform, Log, Quaternion, Timestamp, Vector3};
 use glam::{DMat3, DQuat};
 use rotorloop_common::flight::{FlightLog, SPARE_SLOTS, Stream};
+use rotorloop_common::graph::Role;
 use rotorloop_common::wire::{
     FLAG_REALTIME, FLAG_SAFE_MODE, NO_TICK, ReferenceSample, StateSample, TorqueSample,
 };
@@ -571,7 +572,7 @@ fn write_messages(sink: &mut FileSink, run: &Run, dir: &Path, plan: Plan) -> any
         let now_safe = s.flags & FLAG_SAFE_MODE != 0;
         if now_safe != safe {
             let m = safe_mode_message(now_safe, k);
-            sink.encoded(topics::LOG, &log_message(ns, m.0, "plant", m.1), ns)?;
+            sink.encoded(topics::LOG, &log_message(ns, m.0, Role::Plant.name(), m.1), ns)?;
             safe = now_safe;
         }
         let sampled = !plan.overview || k % plan.window == 0;

@@ -7,6 +7,7 @@
 
 use std::fmt::Write as _;
 
+use rotorloop_common::graph::Topic;
 use rotorloop_common::wire::{
     FLAG_LAST, FLAG_REALTIME, FLAG_SAFE_MODE, FLAG_SATURATED, LAYOUT_VERSION, MAX_EFFECTS, NO_TICK,
     ReferenceSample, SendCost, StateSample, TORQUE_SKIPPED, TorqueSample, WireField,
@@ -70,7 +71,7 @@ pub fn types() -> [WireType; 4] {
         WireType {
             name: "StateSample",
             type_name: Some(type_name::<StateSample>()),
-            topic: Some("state"),
+            topic: Some(Topic::State.name()),
             size: size_of::<StateSample>(),
             doc: StateSample::DOC,
             fields: StateSample::FIELDS,
@@ -78,7 +79,7 @@ pub fn types() -> [WireType; 4] {
         WireType {
             name: "ReferenceSample",
             type_name: Some(type_name::<ReferenceSample>()),
-            topic: Some("reference"),
+            topic: Some(Topic::Reference.name()),
             size: size_of::<ReferenceSample>(),
             doc: ReferenceSample::DOC,
             fields: ReferenceSample::FIELDS,
@@ -86,7 +87,7 @@ pub fn types() -> [WireType; 4] {
         WireType {
             name: "TorqueSample",
             type_name: Some(type_name::<TorqueSample>()),
-            topic: Some("torque"),
+            topic: Some(Topic::Torque.name()),
             size: size_of::<TorqueSample>(),
             doc: TorqueSample::DOC,
             fields: TorqueSample::FIELDS,

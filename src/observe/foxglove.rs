@@ -237,7 +237,8 @@ impl Live {
         }
         if safe != self.safe {
             let (level, what) = safe_mode_message(safe, s.tick);
-            self.log.log_with_time(&log_message(ns, level, "plant", what), ns);
+            let plant = rotorloop_common::graph::Role::Plant.name();
+            self.log.log_with_time(&log_message(ns, level, plant, what), ns);
             self.safe = safe;
         }
         self.ended |= s.flags & FLAG_LAST != 0;

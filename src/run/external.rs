@@ -168,7 +168,10 @@ pub fn check(
     if args.corrupt.iter().any(|c| c.starts_with("controller:")) {
         return Err(refuse("--corrupt controller:…"));
     }
-    if faults.iter().any(|f| f.role == "controller" && f.role_arg().is_some()) {
+    if faults
+        .iter()
+        .any(|f| f.role.is(rotorloop_common::graph::Role::Controller) && f.role_arg().is_some())
+    {
         return Err(refuse("--fault controller:delay…"));
     }
     if args.split.is_some() {

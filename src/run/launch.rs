@@ -17,6 +17,7 @@ use crate::run::spawn::{
 use crate::run::split::Split;
 use crate::run::supervise::{Children, RestartLimit, Supervisor, parse_restart};
 use crate::run::watch::supervise;
+use rotorloop_common::graph::Role;
 use rotorloop_common::role::UsageError;
 use rotorloop_common::role::args::{Mode, RoleArgs};
 use rotorloop_controller::law::AnyLaw;
@@ -49,7 +50,7 @@ fn checked_faults(
     for f in &faults {
         match split {
             Some(s) => s.check_fault_target(&f.role)?,
-            None if f.role.starts_with("link-") => {
+            None if f.role.role().is_none() => {
                 return Err(UsageError(format!(
                     "--fault {}: gateways exist only with --split",
                     f.role
@@ -111,7 +112,13 @@ fn claim(
 /// The resume slots every role opens (`rl_<D>_resume_<role>`): made by the launcher,
 /// privately, before any role starts, so that no name a role will open is left for
 /// another user to make once the domain's name is public.
-const SLOTS: [&str; 5] = ["plant", "reference", "controller", "monitor", "plant-refusals"];
+const SLOTS: [&str; 5] = [
+    Role::ALL[0].name(),
+    Role::ALL[1].name(),
+    Role::ALL[2].name(),
+    Role::ALL[3].name(),
+    rotorloop_common::wire::Refusals::SLOT,
+];
 
 /// [`claim`]'s part that makes things: the staging directory first (the domain's private
 /// directory), then each domain's directory, global segment and resume slots; then

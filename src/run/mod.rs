@@ -13,6 +13,7 @@
 //! - [`fault`]: every fault kind in one table (`--fault`), their schedule, a fault as it
 //!   happened, and the fault report;
 //! - [`resources`]: each role's resident memory, sampled and reported;
+//! - [`member`]: a process of a run (a role, or a split run's gateway), as one type;
 //! - [`split`]: a loop over two hosts joined by link gateways (`--split`);
 //! - [`recover`]: `rotorloop recover`, the report of a run whose launcher was killed.
 
@@ -21,6 +22,7 @@ pub mod budget;
 pub mod external;
 pub mod fault;
 pub mod launch;
+pub mod member;
 pub mod mover;
 pub mod recover;
 pub mod resources;

@@ -115,7 +115,7 @@ impl Launch<'_> {
         let mut r = self.role_args.clone();
         r.core = self.pins.get(role).copied();
         r.host = self.split.as_ref().and_then(|s| s.host_of(role)).map(str::to_owned);
-        if let (Some((ext, scenario)), "controller") = (&self.external, role) {
+        if let (Some((ext, scenario)), Ok(Role::Controller)) = (&self.external, role.parse()) {
             let mut cmd = ext.command(&r, &args.out, scenario);
             cmd.stdin(Stdio::null());
             stop_with_parent(&mut cmd);

@@ -27,6 +27,7 @@ use rotorloop_common::graph::{Role, Topic};
 use rotorloop_common::ipc::domain::Domain;
 use rotorloop_common::signals::shutdown_requested;
 
+use crate::run::member::Member;
 use rotorloop_common::role::UsageError;
 
 /// Where each role runs: two hosts, in the order given (the first one's gateway listens).
@@ -153,14 +154,13 @@ impl Split {
     }
 
     /// A fault's target that is not a role must be one of this split's gateways.
-    pub fn check_fault_target(&self, target: &str) -> Result<(), UsageError> {
-        match target.strip_prefix("link-") {
-            Some(h) if self.hosts.iter().any(|x| x == h) => Ok(()),
-            Some(h) => Err(UsageError(format!(
+    pub fn check_fault_target(&self, target: &Member) -> Result<(), UsageError> {
+        match target {
+            Member::Gateway(h) if !self.hosts.contains(h) => Err(UsageError(format!(
                 "--fault link-{h}: no host `{h}` in --split (hosts: {})",
                 self.hosts.join(", ")
             ))),
-            None => Ok(()),
+            _ => Ok(()),
         }
     }
 }
@@ -479,7 +479,9 @@ mod tests {
             let e = Split::parse(spec, true).expect_err(spec).to_string();
             assert!(e.contains(why), "{spec}: {e}");
         }
-        assert!(s.check_fault_target("link-c").is_err() && s.check_fault_target("link-b").is_ok());
+        let gateway = |h: &str| Member::Gateway(h.into());
+        assert!(s.check_fault_target(&gateway("c")).is_err());
+        assert!(s.check_fault_target(&gateway("b")).is_ok());
     }
 
     /// A split run's credentials are readable by its user only (directory 0700, files

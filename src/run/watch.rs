@@ -869,12 +869,11 @@ fn refused_resume(launch: &Launch, role: &str) -> Option<String> {
         let slot = ResumeSlot::<T>::open_existing(launch.domain_of(role), role).ok()??;
         slot.load_checked(launch.ticks).err()
     }
-    match role {
-        "plant" => check::<rotorloop_common::wire::StateSample>(launch, role),
-        "controller" => check::<rotorloop_controller::policy::ControllerResume>(launch, role),
-        "reference" => check::<rotorloop_reference::policy::ReferenceResume>(launch, role),
-        "monitor" => check::<rotorloop_monitor::policy::MonitorResume>(launch, role),
-        _ => None,
+    match role.parse::<Role>().ok()? {
+        Role::Plant => check::<rotorloop_common::wire::StateSample>(launch, role),
+        Role::Controller => check::<rotorloop_controller::policy::ControllerResume>(launch, role),
+        Role::Reference => check::<rotorloop_reference::policy::ReferenceResume>(launch, role),
+        Role::Monitor => check::<rotorloop_monitor::policy::MonitorResume>(launch, role),
     }
 }
 
@@ -905,7 +904,8 @@ fn injected(
     action: Action,
     (at, tick): (f64, Option<u64>),
 ) -> anyhow::Result<()> {
-    let (kind, role) = (action.kind.spec().start, action.role.as_str());
+    let name = action.role.to_string();
+    let (kind, role) = (action.kind.spec().start, name.as_str());
     // The run's clock (the plant's tick) and the launcher's own (s since tick 0).
     let at_tick = tick.map_or_else(String::new, |k| format!(" (tick {k})"));
     match action.apply() {

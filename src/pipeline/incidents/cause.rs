@@ -4,6 +4,9 @@
 //! stage is), and from the kernel's view of that process (`sched.csv`: time runnable but
 //! not running, stopped, on a CPU; the machine's steal time).
 
+use std::sync::LazyLock;
+
+use rotorloop_common::graph::{Role, Topic};
 use rotorloop_common::wire::{NO_TICK, ReferenceSample, StateSample, TorqueSample};
 
 use super::load::{FaultRow, RunRecord, SchedRow};
@@ -32,13 +35,19 @@ pub const ANOTHER_PUBLISHER: &str = "another publisher";
 /// grid time; its work from its wake to the state's publish; the state's delivery up to
 /// the controller having it (its wake-up); the controller from then to its torque's
 /// publish; the torque's delivery up to the plant having it (its wake-up).
-const STAGES: [(&str, &str); 5] = [
-    ("plant wake", "plant"),
-    ("plant publish", "plant"),
-    ("state delivery (the controller's wake-up)", "controller"),
-    ("controller compute", "controller"),
-    ("torque delivery (the plant's wake-up)", "plant"),
-];
+/// Derived from the loop's graph: the state's publisher (the plant) and the torque's (the
+/// controller), whose answer closes the loop.
+static STAGES: LazyLock<[(String, &str); 5]> = LazyLock::new(|| {
+    let (p, c) = (Topic::State.publisher(), Topic::Torque.publisher());
+    let (state, torque) = (Topic::State.name(), Topic::Torque.name());
+    [
+        (format!("{p} wake"), p.name()),
+        (format!("{p} publish"), p.name()),
+        (format!("{state} delivery (the {c}'s wake-up)"), c.name()),
+        (format!("{c} compute"), c.name()),
+        (format!("{torque} delivery (the {p}'s wake-up)"), p.name()),
+    ]
+});
 
 /// When the answer to state `k` took effect: (tick, offset), if it did within 10 000
 /// ticks. The search ends where a newer answer is in force: the plant accepts only a
@@ -183,7 +192,7 @@ pub fn fault_cause(run: &RunRecord, f: &FaultRow) -> Cause {
     };
     let signal = f.signal.as_deref().map(|s| format!(" ({s})")).unwrap_or_default();
     Cause {
-        kind: if f.role == "plant" { "simulator stall" } else { "fault" },
+        kind: if f.role == Role::Plant.name() { "simulator stall" } else { "fault" },
         role: f.role.clone(),
         stage: format!("{what}{signal}"),
         evidence: format!("{} {what}{signal} {by} at {:.3} s{end}", f.role, f.kill_s),
@@ -206,7 +215,7 @@ pub fn cause(
         let v = d.value_s.unwrap_or(0.0);
         Cause {
             kind: "injected delay",
-            role: "controller".into(),
+            role: Role::Controller.name().into(),
             stage: "injected delay".into(),
             evidence: format!(
                 "--fault controller:delay@{}={v}: each answer sent {:.1} ms late from {:.3} s{}",
@@ -259,16 +268,17 @@ fn rejected(
     let limit = TorqueSample::absurd_limit(limits.rotor_torque);
     // What was rejected, how many, by whom, whose topic it is, and that role's own sample
     // of the tick as validated again.
-    let (what, count, receiver, role, own) = if torques > 0 {
-        ("torque", torques, "plant", "controller", run.torque(k).map(|t| t.validate(limit)))
+    let (topic, count, receiver, own) = if torques > 0 {
+        (Topic::Torque, torques, Role::Plant, run.torque(k).map(|t| t.validate(limit)))
     } else if states > 0 {
-        ("state", states, "controller", "plant", s.as_ref().map(StateSample::validate))
+        (Topic::State, states, Role::Controller, s.as_ref().map(StateSample::validate))
     } else {
         let references =
             answers.map_or(0, |(t, p)| more(p.references_rejected, t.references_rejected));
         let own = run.references.get(k).as_ref().map(ReferenceSample::validate);
-        ("reference", references, "controller", "reference", own)
+        (Topic::Reference, references, Role::Controller, own)
     };
+    let (what, role) = (topic.name(), topic.publisher().name());
     let (role, whose) = match own {
         Some(Err(f)) => (role, format!("its own {what} of tick {k} was invalid: {f}")),
         Some(Ok(())) => (
@@ -306,8 +316,8 @@ fn late_wake(run: &RunRecord, flags: &TickFlags, [start, end]: [u64; 2]) -> Caus
     if ticks::paused_ns(run, worst) > 0 && woke(worst) < ticks::paused_ns(run, worst) {
         return Cause {
             kind: "simulator stall",
-            role: "plant".into(),
-            stage: "plant wake (the world's clock paused)".into(),
+            role: Role::Plant.name().into(),
+            stage: format!("{} (the world's clock paused)", STAGES[0].0),
             evidence: format!(
                 "state {worst} published {} after its tick's time on the grid before it; the \
                  grid moved on from its wake (--plant-stall pause, or a restarted plant's new \
@@ -319,8 +329,8 @@ fn late_wake(run: &RunRecord, flags: &TickFlags, [start, end]: [u64; 2]) -> Caus
     let burst = (worst..=end.min(run.last)).take_while(|k| flags.get(run, *k) & LATE != 0).count();
     Cause {
         kind: "simulator stall",
-        role: "plant".into(),
-        stage: "plant wake".into(),
+        role: Role::Plant.name().into(),
+        stage: STAGES[0].0.clone(),
         evidence: format!(
             "state {worst} published {} after its grid time (the plant did not run); {burst} \
              late state(s) from it",
@@ -360,7 +370,7 @@ fn from_stamps(
         }
         None => "never took effect".into(),
     };
-    let role = if kind == "late reference" { "reference" } else { STAGES[i].1 };
+    let role = if kind == "late reference" { Role::Reference.name() } else { STAGES[i].1 };
     let kind = if i == 1 { "simulator stall" } else { kind };
     Cause {
         kind,
@@ -389,7 +399,8 @@ fn unanswered(run: &RunRecord, [start, end]: [u64; 2], kind: &'static str) -> Ca
             "its answer was not computed (the state or its reference rejected or missing)",
         ),
     };
-    let role = if kind == "late reference" { "reference" } else { "controller" };
+    let late = kind == "late reference";
+    let role = if late { Role::Reference.name() } else { Role::Controller.name() };
     Cause { kind, role: role.into(), stage: stage.into(), evidence: format!("state {k}: {detail}") }
 }
 

@@ -336,7 +336,7 @@ impl WindowScan {
 /// Whether a fault of `role` is one of the loop's: the monitor is outside it (its faults
 /// are incidents of their own, which abnormal ticks of the loop do not join).
 pub fn in_loop(role: &str) -> bool {
-    role != "monitor"
+    role != rotorloop_common::graph::Role::Monitor.name()
 }
 
 /// The ticks `[from, to]` of the launcher's fault `f`: from its start to its end (a role

@@ -23,6 +23,7 @@ pub mod report;
 
 use rotorloop_common::clock::now_ns;
 
+use crate::run::member::Member;
 use rotorloop_common::graph::Role;
 use rotorloop_common::role::UsageError;
 use rotorloop_common::role::inject::Corrupt;
@@ -166,16 +167,16 @@ pub fn parse_run_time(p: &str, rate_hz: f64) -> Result<(f64, u64), String> {
 /// role is down: the plant's own, and in lockstep every role the plant waits for (all but
 /// the monitor, an observer). The end of such a fault cannot wait for a tick: it comes
 /// after T2 − T1 seconds of wall time.
-pub fn stops_the_clock(role: &str, kind: FaultKind, lockstep: bool) -> bool {
+pub fn stops_the_clock(role: &Member, kind: FaultKind, lockstep: bool) -> bool {
     let down = matches!(kind, FaultKind::Kill | FaultKind::Stop);
-    down && (role == Role::Plant.name() || (lockstep && role != Role::Monitor.name()))
+    down && (role.is(Role::Plant) || (lockstep && !role.is(Role::Monitor)))
 }
 
 /// One `--fault`: a row of [`KINDS`] for a role, its start and its optional end.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Fault {
-    /// The role.
-    pub role: String,
+    /// The role (or gateway).
+    pub role: Member,
     /// What it does.
     pub kind: FaultKind,
     /// When it starts: seconds of the run (the time asked, or its tick's time).
@@ -199,7 +200,7 @@ impl Fault {
             _ => None,
         };
         serde_json::json!({
-            "role": self.role,
+            "role": self.role.to_string(),
             "kind": self.kind.spec().start,
             "at_s": self.kill_s,
             "until_s": self.restart_s,
@@ -239,12 +240,9 @@ pub fn parse_fault(s: &str, rate_hz: f64) -> Result<Fault, UsageError> {
     if parts.len() < 2 || parts.len() > 3 {
         return Err(bad("two or three parts"));
     }
-    let gateway = parts[0].strip_prefix("link-").is_some_and(|h| !h.is_empty());
-    if parts[0].parse::<Role>().is_err() && !gateway {
-        return Err(bad(
-            "ROLE is plant, reference, controller, monitor or (with --split) link-HOST",
-        ));
-    }
+    let role: Member = parts[0].parse().map_err(|_| {
+        bad("ROLE is plant, reference, controller, monitor or (with --split) link-HOST")
+    })?;
     let seconds = |p: &str, what: &str| -> Result<f64, UsageError> {
         p.parse::<f64>()
             .ok()
@@ -277,10 +275,10 @@ pub fn parse_fault(s: &str, rate_hz: f64) -> Result<Fault, UsageError> {
             (at, Some(v))
         }
     };
-    if let Targets::Only(role) = spec.targets
-        && parts[0] != role.name()
+    if let Targets::Only(only) = spec.targets
+        && !role.is(only)
     {
-        return Err(bad(&format!("only the {}'s answers can take a {word}", role.name())));
+        return Err(bad(&format!("only the {}'s answers can take a {word}", only.name())));
     }
     let (kill_s, at_tick) = run_time(at, &format!("{word}@"))?;
     let time = |p: &str, key: &str| match p.strip_prefix(key).and_then(|p| p.strip_prefix('@')) {
@@ -293,7 +291,7 @@ pub fn parse_fault(s: &str, rate_hz: f64) -> Result<Fault, UsageError> {
     }
     let kind = FaultKind::of(spec, value);
     let (restart_s, until_tick) = (end.map(|e| e.0), end.map(|e| e.1));
-    let (role, killed, restarted) = (parts[0].to_owned(), None, false);
+    let (killed, restarted) = (None, false);
     Ok(Fault { role, kind, kill_s, restart_s, at_tick, until_tick, killed, restarted })
 }
 
@@ -435,8 +433,8 @@ pub fn check_against_run(
 /// `role`, applied as its row of [`KINDS`] says.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Action {
-    /// The role.
-    pub role: String,
+    /// The role (or gateway).
+    pub role: Member,
     /// The fault's kind.
     pub kind: FaultKind,
     /// Its start (`true`) or its end.
@@ -603,7 +601,7 @@ mod tests {
     use super::*;
 
     fn act(role: &str, kind: FaultKind, starts: bool) -> Action {
-        Action { role: role.to_owned(), kind, starts, ends: true }
+        Action { role: role.parse().expect("a member"), kind, starts, ends: true }
     }
 
     fn fault(s: &str) -> Fault {
