@@ -83,14 +83,7 @@ enum Command {
     Margin(crate::study::margin::MarginArgs),
     /// Remove what dead processes of a domain left in shared memory (and, when none of
     /// its processes is alive, the domain's last iceoryx2 file).
-    Clean {
-        /// The run domain.
-        #[arg(long, default_value = "default")]
-        domain: String,
-        /// The host whose space to clean (`--host` of the roles), if any.
-        #[arg(long)]
-        host: Option<String>,
-    },
+    Clean(crate::run::clean::CleanArgs),
     /// A finished run in the formats other tools read: `--mcap` writes `DIR/run.mcap`
     /// (Foxglove, Lichtblick), also for runs made before `run` wrote it.
     Export(crate::export::ExportArgs),
@@ -410,40 +403,7 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
             println!("output: {}", a.out.display());
         }
         Command::Role(_) => unreachable!("handled in main"),
-        Command::Clean { domain, host } => {
-            let d = rotorloop_common::ipc::domain::Domain::on_host(&domain, host.as_deref())
-                .map_err(|e| UsageError(e.to_string()))?;
-            let (cleaned, alive) = d.cleanup()?;
-            let on = host.map(|h| format!(" on host {h}")).unwrap_or_default();
-            println!("domain {domain}{on}: {cleaned} dead node(s) cleaned, {alive} alive");
-            // A launcher that did not end normally left its run's flight records on
-            // tmpfs: they are the record of that run, so they are kept, and named.
-            let staged = rotorloop_common::flight::staging_dir(&domain);
-            // Only this user's own private directory is a run's record: another user's
-            // (or a link) is named, never trusted for where to recover.
-            let mine = |d: &std::path::Path| {
-                let meta = std::fs::symlink_metadata(d);
-                match meta.map(|m| rotorloop_common::private::check(d, &m, true)) {
-                    Ok(Err(f)) => {
-                        eprintln!("warning: not this user's records, left alone: {f}");
-                        false
-                    }
-                    Ok(Ok(())) => true,
-                    Err(_) => false,
-                }
-            };
-            if let Some(staged) = staged.filter(|d| alive == 0 && mine(d)) {
-                let how = match crate::run::recover::run_dir_of(&staged) {
-                    Some(out) => format!("`rotorloop recover {}` makes its report", out.display()),
-                    None => "move them into OUT/flight by hand".to_owned(),
-                };
-                println!(
-                    "flight records of domain {domain} kept in {} (its launcher did not \
-                     move them into the run directory): {how}",
-                    staged.display()
-                );
-            }
-        }
+        Command::Clean(a) => crate::run::clean::run(&a)?,
         Command::Recover { dir } => damaged_is_input(crate::run::recover::run(&dir))?,
         Command::Explain { dir, threshold_ticks } => {
             damaged_is_input(explain_command(&dir, threshold_ticks))?

@@ -15,10 +15,12 @@
 //! - [`resources`]: each role's resident memory, sampled and reported;
 //! - [`member`]: a process of a run (a role, or a split run's gateway), as one type;
 //! - [`split`]: a loop over two hosts joined by link gateways (`--split`);
+//! - [`clean`]: `rotorloop clean`, a domain's leftovers removed and its records named;
 //! - [`recover`]: `rotorloop recover`, the report of a run whose launcher was killed.
 
 pub mod args;
 pub mod budget;
+pub mod clean;
 pub mod external;
 pub mod fault;
 pub mod launch;
