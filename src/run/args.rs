@@ -196,12 +196,9 @@ pub(crate) fn with_preset(args: &RunArgs, explicit_wait: bool) -> Result<RunArgs
     match args.preset.as_deref() {
         None => {}
         Some("dedicated") => {
-            let t = run_topology(args.cpus.as_deref())?;
-            let [p, c, r, m] =
-                dedicated_cores(&t).map_err(|e| UsageError(format!("--preset {e}")))?;
-            a.pin.get_or_insert_with(|| {
-                format!("plant={p},controller={c},reference={r},monitor={m}")
-            });
+            // Its cores: [`pins`].
+            dedicated_cores(&run_topology(args.cpus.as_deref())?)
+                .map_err(|e| UsageError(format!("--preset {e}")))?;
             if !explicit_wait {
                 a.role.wait = rotorloop_common::ipc::wait::Wait::Spin;
             }
@@ -283,26 +280,52 @@ pub(crate) fn check_role_flags(a: &RunArgs) -> Result<(), UsageError> {
     Ok(())
 }
 
+/// The roles' cores among the run's CPUs `t`: `--pin`, or where it is not given the
+/// `dedicated` preset's ([`dedicated_cores`]), or none.
+pub(crate) fn pins(args: &RunArgs, t: &Topology) -> Result<BTreeMap<Role, usize>, UsageError> {
+    if let Some(p) = &args.pin {
+        return parse_pins(p, &t.allowed);
+    }
+    if args.preset.as_deref() != Some("dedicated") {
+        return Ok(BTreeMap::new());
+    }
+    let cores = dedicated_cores(t).map_err(|e| UsageError(format!("--preset {e}")))?;
+    Ok(DEDICATED_ORDER.into_iter().zip(cores).collect())
+}
+
+/// The roles in the order of [`dedicated_cores`] and of `cpus.json`'s `pin` of a preset.
+const DEDICATED_ORDER: [Role; 4] = [Role::Plant, Role::Controller, Role::Reference, Role::Monitor];
+
+/// The pins as `cpus.json` writes them: `--pin` as given, or the preset's
+/// (`plant=…,controller=…,reference=…,monitor=…`).
+pub(crate) fn pin_text(args: &RunArgs, pins: &BTreeMap<Role, usize>) -> Option<String> {
+    let preset = || {
+        let each = DEDICATED_ORDER.iter().filter_map(|r| pins.get(r).map(|c| format!("{r}={c}")));
+        Some(each.collect::<Vec<_>>().join(",")).filter(|t| !t.is_empty())
+    };
+    args.pin.clone().or_else(preset)
+}
+
 /// Parses `--pin`: `role=core` pairs separated by commas, each role at most once, each
 /// core one of `allowed` (the run's CPUs).
-pub fn parse_pins(s: &str, allowed: &[usize]) -> Result<BTreeMap<String, usize>, UsageError> {
+pub fn parse_pins(s: &str, allowed: &[usize]) -> Result<BTreeMap<Role, usize>, UsageError> {
     let mut pins = BTreeMap::new();
     for part in s.split(',').filter(|p| !p.is_empty()) {
         let (role, core) = part.split_once('=').ok_or_else(|| {
             UsageError(format!("--pin `{part}` is not allowed: role=core, e.g. plant=0"))
         })?;
-        if role.parse::<Role>().is_err() {
+        let Ok(parsed) = role.parse::<Role>() else {
             return Err(UsageError(format!(
                 "--pin role `{role}` is not allowed: plant, reference, controller or monitor"
             )));
-        }
+        };
         let core: usize = core.parse().ok().filter(|c| allowed.contains(c)).ok_or_else(|| {
             UsageError(format!(
                 "--pin {role}=`{core}` is not allowed: a CPU of the run's set ({})",
                 crate::cpus::format_list(allowed)
             ))
         })?;
-        if let Some(first) = pins.insert(role.to_owned(), core) {
+        if let Some(first) = pins.insert(parsed, core) {
             return Err(UsageError(format!(
                 "--pin {role}={core} is not allowed: {role} is already pinned ({role}={first}); \
                  each role at most once"
@@ -323,6 +346,34 @@ mod tests {
         assert!(e.starts_with("--pin plant=0 is not allowed: plant is already pinned"), "{e}");
         let pins = parse_pins("plant=0,controller=0", &[0, 1]).expect("once each");
         assert_eq!(pins.len(), 2);
+    }
+
+    /// `--preset dedicated` pins each role to a core of its own, typed; `cpus.json` writes
+    /// them as the preset's text, and a `--pin` given as it was given.
+    #[test]
+    fn the_dedicated_preset_gives_typed_pins_and_a_given_pin_wins() {
+        use clap::Parser;
+        #[derive(Debug, Parser)]
+        struct Cli {
+            #[command(flatten)]
+            run: RunArgs,
+        }
+        let parse = |extra: &[&str]| {
+            let base = ["x", "--scenario", "paper-zero", "--out", "o", "--preset", "dedicated"];
+            Cli::parse_from(base.iter().chain(extra)).run
+        };
+        let t = Topology { allowed: vec![0, 1, 2, 3], isolated: vec![], siblings: vec![] };
+        let a = parse(&[]);
+        let p = pins(&a, &t).expect("4 cores");
+        assert_eq!(p.len(), 4);
+        assert!(p.values().collect::<std::collections::BTreeSet<_>>().len() == 4, "{p:?}");
+        let text = pin_text(&a, &p).expect("the preset's");
+        assert!(text.starts_with("plant=") && text.contains(",monitor="), "{text}");
+        assert_eq!(parse_pins(&text, &t.allowed).expect("reads back"), p);
+        let given = parse(&["--pin", "controller=1,plant=2"]);
+        let p = pins(&given, &t).expect("given");
+        assert_eq!((p[&Role::Plant], p[&Role::Controller], p.len()), (2, 1, 2));
+        assert_eq!(pin_text(&given, &p).as_deref(), Some("controller=1,plant=2"));
     }
 
     /// With `--cpus 2-3` a pin outside the run's set is refused, naming the set.

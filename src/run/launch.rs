@@ -8,7 +8,7 @@ use rotorloop_common::signals::{install_signal_handlers, shutdown_requested};
 use rotorloop_common::ipc::domain::Domain;
 
 use crate::observe::foxglove::Beside;
-use crate::run::args::{RunArgs, parse_pins, with_preset};
+use crate::run::args::{RunArgs, pin_text, pins, with_preset};
 use crate::run::fault::{Fault, FaultEvent, FaultSchedule, RunShape, parse_fault};
 use crate::run::resources::{RssLog, add_resources};
 use crate::run::spawn::{
@@ -292,8 +292,7 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
         crate::run::split::link_binary()?;
     }
     let topology = crate::cpus::run_topology(args.cpus.as_deref())?;
-    let pins = args.pin.as_deref().map(|p| parse_pins(p, &topology.allowed)).transpose()?;
-    let pins = pins.unwrap_or_default();
+    let pins = pins(args, &topology)?;
     // OUT must be this user's alone (exit 2 naming it, its owner and mode otherwise): made
     // with the user's umask where missing, before anything is written into it.
     rotorloop_common::outdir::OutDir::make(&args.out)?;
@@ -354,7 +353,7 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
         crate::run::spawn::write_record(
             &args.out,
             &topology.allowed,
-            args.pin.as_deref(),
+            pin_text(args, &launch.pins).as_deref(),
             &children,
         );
     }

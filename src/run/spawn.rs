@@ -74,7 +74,7 @@ pub(crate) struct Launch<'a> {
     pub(crate) faults: Vec<Fault>,
     pub(crate) supervisor: Supervisor,
     pub(crate) role_args: RoleArgs,
-    pub(crate) pins: BTreeMap<String, usize>,
+    pub(crate) pins: BTreeMap<Role, usize>,
     /// `--cpus`: every child's affinity, set between fork and exec.
     pub(crate) cpus: Option<libc::cpu_set_t>,
     pub(crate) corrupt: Vec<(String, Corrupt)>,
@@ -113,7 +113,7 @@ impl Launch<'_> {
             return cmd;
         }
         let mut r = self.role_args.clone();
-        r.core = self.pins.get(role).copied();
+        r.core = role.parse::<Role>().ok().and_then(|r| self.pins.get(&r)).copied();
         r.host = self.split.as_ref().and_then(|s| s.host_of(role)).map(str::to_owned);
         if let (Some((ext, scenario)), Ok(Role::Controller)) = (&self.external, role.parse()) {
             let mut cmd = ext.command(&r, &args.out, scenario);
