@@ -71,9 +71,9 @@ enum Command {
     Compare(crate::study::compare::CompareArgs),
     /// The rotorloop domains on this machine: roles with pid, core, policy, state, ticks,
     /// rate, and the services (read-only: no node, no port).
-    Ps(crate::observe::PsArgs),
+    Ps(crate::observe::ps::PsArgs),
     /// A live view of a running loop (passive: reads the roles' resume slots).
-    Watch(crate::observe::WatchArgs),
+    Watch(crate::observe::watch::WatchArgs),
     /// Serve a running loop to Foxglove or Lichtblick (Foxglove WebSocket, default
     /// 127.0.0.1:8765): the state, torque, reference, latency, tracking and the attitudes
     /// in 3D, live (docs/foxglove.md).
@@ -393,10 +393,10 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         }
         Command::Link { args } => crate::run::split::exec_link(&args)?,
         Command::Bench(a) => crate::study::bench::run(&a)?,
-        Command::Ps(a) => crate::observe::ps(&a)?,
+        Command::Ps(a) => crate::observe::ps::ps(&a)?,
         Command::Doctor(a) => crate::doctor::run(&a)?,
         Command::Compare(a) => crate::study::compare::run(&a)?,
-        Command::Watch(a) => crate::observe::watch(&a)?,
+        Command::Watch(a) => crate::observe::watch::watch(&a)?,
         Command::Foxglove(a) => crate::observe::foxglove::run(&a)?,
         Command::Margin(a) => {
             crate::study::margin::run(&a)?;

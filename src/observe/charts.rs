@@ -12,7 +12,7 @@ use ratatui::symbols::Marker;
 use ratatui::widgets::{Axis, Block, Borders, Chart, Dataset, GraphType};
 use serde::Serialize;
 
-use super::WatchView;
+use super::watch::WatchView;
 
 /// Points kept: a minute at one a second.
 pub const SPAN: usize = 60;
