@@ -201,6 +201,17 @@ fn the_rooms_of_the_root_crate_have_no_import_circle() {
 }
 
 #[test]
+fn the_layers_of_common_have_no_import_circle() {
+    // common's top-level modules are layers (docs/architecture.md): the maths and the
+    // scenario below the wire samples, the wire below IPC and the flight records, the role
+    // harness on top. The wire's one import from IPC (the reference's lead) was such a
+    // circle until the constant moved to the wire, where the contract states it.
+    if let Some(cycle) = room_cycle(&root().join("common/src")) {
+        panic!("common: an import circle between modules: {}", cycle.join(" → "));
+    }
+}
+
+#[test]
 fn the_room_check_finds_a_circle_that_no_two_files_make() {
     let dir = std::env::temp_dir().join(format!("rotorloop-rooms-{}", std::process::id()));
     for room in ["run", "study"] {

@@ -12,9 +12,12 @@
 use glam::{DMat3, DVec3};
 use iceoryx2::prelude::ZeroCopySend;
 
-use crate::ipc::REFERENCE_LEAD;
 use crate::params::{ReferenceState, RotorBodyState};
 use crate::so3::{from_rows, to_row_major};
+
+/// How many reference samples the generator may publish ahead of the newest state (the
+/// wire contract: a reference further ahead is refused, [`TickBound`]).
+pub const REFERENCE_LEAD: u64 = 16;
 
 /// One field of a wire sample, as the `wire_struct!` macro of this module lists it: what `rotorloop wire`
 /// publishes (docs/wire.md, the Python module, the C header) and what the layout test

@@ -462,7 +462,7 @@ mod tests {
     use super::*;
     use crate::law::geometric_pid::GeometricPid;
     use glam::DMat3;
-    use rotorloop_common::ipc::REFERENCE_LEAD;
+    use rotorloop_common::wire::REFERENCE_LEAD;
     use rotorloop_common::scenario::Scenario;
     use rotorloop_common::so3::to_row_major;
 

@@ -6,9 +6,9 @@
 
 use glam::DVec3;
 use iceoryx2::prelude::ZeroCopySend;
-use rotorloop_common::ipc::REFERENCE_LEAD;
 use rotorloop_common::scenario::Scenario;
 use rotorloop_common::so3::to_row_major;
+use rotorloop_common::wire::REFERENCE_LEAD;
 use rotorloop_common::wire::ReferenceSample;
 
 use crate::Reference;

@@ -10,9 +10,9 @@ use std::time::Duration;
 
 use anyhow::Context;
 use rotorloop_common::clock::now_ns;
-use rotorloop_common::ipc::REFERENCE_LEAD;
 use rotorloop_common::role::end::LINGER_S;
 use rotorloop_common::signals::shutdown_requested;
+use rotorloop_common::wire::REFERENCE_LEAD;
 
 use rotorloop_common::graph::Role;
 

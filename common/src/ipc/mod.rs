@@ -98,8 +98,6 @@ pub(crate) fn iox(what: impl Into<String>) -> impl FnOnce(&dyn Debug) -> IpcErro
     move |e| IpcError::Iceoryx { what: what.into(), detail: format!("{e:?}") }
 }
 
-/// How many reference samples the generator may publish ahead of the newest state.
-pub const REFERENCE_LEAD: u64 = 16;
 /// Largest subscriber buffer a service allows (the monitor's).
 pub const MAX_BUFFER: usize = 4096;
 

@@ -3,8 +3,9 @@
 
 use iceoryx2::prelude::*;
 
-use super::{MAX_BUFFER, REFERENCE_LEAD};
+use super::MAX_BUFFER;
 use crate::graph::Topic;
+use crate::wire::REFERENCE_LEAD;
 
 /// History kept for late subscribers: the reference keeps its whole lead.
 pub(crate) fn history(topic: Topic) -> usize {

@@ -2,10 +2,10 @@
 //! reference`).
 
 use clap::Args;
-use rotorloop_common::ipc::REFERENCE_LEAD;
 use rotorloop_common::ipc::wait::Wait;
 use rotorloop_common::role::args::{Mode, RoleArgs};
 use rotorloop_common::role::inject::Corrupt;
+use rotorloop_common::wire::REFERENCE_LEAD;
 
 /// `reference` arguments.
 #[derive(Debug, Clone, Args)]
