@@ -462,9 +462,9 @@ mod tests {
     use super::*;
     use crate::law::geometric_pid::GeometricPid;
     use glam::DMat3;
-    use rotorloop_common::wire::REFERENCE_LEAD;
     use rotorloop_common::scenario::Scenario;
     use rotorloop_common::so3::to_row_major;
+    use rotorloop_common::wire::REFERENCE_LEAD;
 
     const DT: f64 = 1e-3;
     /// The run's last tick.

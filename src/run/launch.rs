@@ -10,13 +10,13 @@ use rotorloop_common::ipc::domain::Domain;
 use crate::observe::foxglove::Beside;
 use crate::run::args::{RunArgs, pin_text, pins, with_preset};
 use crate::run::fault::{Fault, FaultEvent, FaultSchedule, RunShape, parse_fault};
+use crate::run::policy::{Children, RestartLimit, Supervisor, parse_restart};
 use crate::run::resources::{RssLog, add_resources};
 use crate::run::spawn::{
     Launch, clear_flight_records, make_staging, prepare_domains, staging_dir, start, stop_gateways,
 };
 use crate::run::split::Split;
-use crate::run::supervise::{Children, RestartLimit, Supervisor, parse_restart};
-use crate::run::watch::supervise;
+use crate::run::supervise::supervise;
 use rotorloop_common::graph::Role;
 use rotorloop_common::role::UsageError;
 use rotorloop_common::role::args::{Mode, RoleArgs};
@@ -389,9 +389,9 @@ fn warn_in_summary(out: &std::path::Path, w: &str) {
 }
 
 /// A run stopped by a role that refused its input or diverged (it exited 2:
-/// [`crate::run::supervise::REFUSED`]) is the user's to mend (exit 2), as in `sim`.
+/// [`crate::run::policy::REFUSED`]) is the user's to mend (exit 2), as in `sim`.
 fn refusal_or(failure: anyhow::Error) -> anyhow::Error {
-    match failure.to_string().contains(crate::run::supervise::REFUSED) {
+    match failure.to_string().contains(crate::run::policy::REFUSED) {
         true => UsageError(format!("{failure:#}")).into(),
         false => failure,
     }

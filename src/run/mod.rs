@@ -5,9 +5,9 @@
 //! - [`args`]: its arguments, `--preset` and `--pin`;
 //! - [`spawn`]: what the launcher starts and how: each role's command line, the domains
 //!   of each host, the gateways of a split run, the flight records' staging;
-//! - [`watch`]: the supervision loop while the roles run: faults applied, restarts, the
-//!   watchdog, stops, the link rule, the clean end;
-//! - [`supervise`]: the launcher's decisions as plain structs with the time passed in:
+//! - [`supervise`]: the supervision loop while the roles run: faults applied, restarts,
+//!   the watchdog, stops, the link rule, the clean end;
+//! - [`policy`]: the launcher's decisions as plain structs with the time passed in:
 //!   restart policy and intensity, the watchdog and its blame rule, the link rule of a
 //!   split run;
 //! - [`fault`]: every fault kind in one table (`--fault`), their schedule, a fault as it
@@ -26,6 +26,7 @@ pub mod fault;
 pub mod launch;
 pub mod member;
 pub mod mover;
+pub mod policy;
 pub mod recover;
 pub mod resources;
 pub mod sched;
@@ -33,4 +34,3 @@ pub mod spawn;
 pub mod split;
 pub mod supervise;
 pub mod tracesched;
-pub mod watch;

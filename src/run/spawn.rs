@@ -16,9 +16,9 @@ use rotorloop_common::ipc::domain::Domain;
 
 use crate::run::args::RunArgs;
 use crate::run::fault::Fault;
+use crate::run::policy::{Children, Supervisor};
 use crate::run::resources::RssLog;
 use crate::run::split::{Split, wait_until};
-use crate::run::supervise::{Children, Supervisor};
 use rotorloop_common::role::UsageError;
 use rotorloop_common::role::args::RoleArgs;
 use rotorloop_common::role::inject::Corrupt;
@@ -405,7 +405,7 @@ pub(crate) fn stop_gateways(children: &mut Children, quiet: bool) {
         eprintln!("launcher: the roles are done; stopping the link gateways");
     }
     for (_, c) in gateways.iter_mut() {
-        crate::run::supervise::signal(c, libc::SIGTERM);
+        crate::run::policy::signal(c, libc::SIGTERM);
     }
     for (name, c) in gateways {
         crate::run::split::stop(name, c);
@@ -423,7 +423,7 @@ pub fn write_record(
     out: &std::path::Path,
     cpus: &[usize],
     pin: Option<&str>,
-    children: &crate::run::supervise::Children,
+    children: &crate::run::policy::Children,
 ) {
     let roles: serde_json::Map<String, serde_json::Value> = children
         .0

@@ -214,7 +214,7 @@ pub fn gateway_log(dir: &Path, name: &str) -> std::io::Result<std::fs::File> {
 /// Stops a gateway: SIGTERM, then SIGKILL after 5 s.
 pub fn stop(name: &str, c: &mut std::process::Child) {
     if let Ok(None) = c.try_wait() {
-        crate::run::supervise::signal(c, libc::SIGTERM);
+        crate::run::policy::signal(c, libc::SIGTERM);
         let stopped = wait_until(Duration::from_secs(5), || !matches!(c.try_wait(), Ok(None)));
         if !stopped {
             eprintln!("launcher: {name} did not stop on SIGTERM within 5 s; killed");

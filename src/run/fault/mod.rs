@@ -7,7 +7,7 @@
 //! `--help` of `--fault` is made from them), how its start and end are applied
 //! ([`Apply`]: a signal, a restart, or an argument the role applies itself) and the word
 //! its events and report rows use. The launcher carries out the due [`Action`]s by that
-//! column in `run::watch`. `--corrupt` ([`parse_corrupt`]) takes the same time syntax
+//! column in `run::supervise`. `--corrupt` ([`parse_corrupt`]) takes the same time syntax
 //! ([`parse_run_time`]): the role corrupts its own sample of that tick
 //! (`rotorloop_common::role::inject`, with the tests' hidden hooks).
 //!
