@@ -1,5 +1,4 @@
-//! Writing a run's output files: JSON written whole or not at all, and the summary patched
-//! after the run.
+//! Writing a run's output files: JSON written whole or not at all.
 
 use std::path::Path;
 
@@ -14,17 +13,4 @@ pub fn write_json(path: &Path, value: &impl Serialize) -> anyhow::Result<()> {
     let text = serde_json::to_string_pretty(value).context("cannot serialise summary")?;
     crate::outdir::write_file(path, text + "\n")
         .with_context(|| format!("cannot write {}", path.display()))
-}
-
-/// Changes `out/summary.json` with `change`; nothing when there is no summary (the
-/// monitor was stopped early: nothing to add to).
-pub fn patch_summary(
-    out: &std::path::Path,
-    change: impl FnOnce(&mut serde_json::Value),
-) -> anyhow::Result<()> {
-    let path = out.join("summary.json");
-    let Ok(text) = std::fs::read_to_string(&path) else { return Ok(()) };
-    let mut j: serde_json::Value = serde_json::from_str(&text)?;
-    change(&mut j);
-    write_json(&path, &j)
 }

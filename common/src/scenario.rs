@@ -435,14 +435,6 @@ impl Scenario {
         Self::from_file(ScenarioFile::parse(text, origin)?)
     }
 
-    /// The scenario a run's `summary.json` (parsed: `summary`) says it ran, validated as
-    /// [`Scenario::from_file`] does, or why there is none, in words.
-    pub fn of_summary(summary: &serde_json::Value) -> Result<Self, String> {
-        let file = serde_json::from_value(summary["scenario"].clone())
-            .map_err(|e| format!("summary.json has no scenario as run: {e}"))?;
-        Self::from_file(file).map_err(|e| e.to_string())
-    }
-
     /// Validates a parsed file.
     pub fn from_file(file: ScenarioFile) -> Result<Self, ScenarioError> {
         let mut warnings = Vec::new();

@@ -87,11 +87,10 @@ impl DerivedRows {
     /// The rows of the run in `dir`: its records ([`crate::rows::records_dir`]) for the
     /// scenario its `summary.json` says it ran.
     pub fn of_run(dir: &Path) -> anyhow::Result<Self> {
-        let summary = std::fs::read_to_string(dir.join("summary.json"))
-            .ok()
-            .and_then(|t| serde_json::from_str::<serde_json::Value>(&t).ok())
+        let summary = crate::summary::Summary::read(dir)
             .context("no summary.json to say what the run's records are of")?;
-        let scenario = Scenario::of_summary(&summary)
+        let scenario = summary
+            .scenario()
             .map_err(anyhow::Error::msg)
             .context("no scenario in its summary.json")?;
         let records = crate::rows::records_dir(dir, Some(&summary));

@@ -4,8 +4,8 @@
 //! are comparable column for column.
 //!
 //! [`policy`] holds what the monitor decides (joining rows, settling, losses, gaps),
-//! [`recording`] what it writes, [`report`] its summary, and [`process`] the `monitor`
-//! process around them.
+//! [`recording`] what it writes, [`report`] its summary ([`summary`] reads it back), and
+//! [`process`] the `monitor` process around them.
 
 pub mod assemble;
 pub mod derive;
@@ -21,6 +21,7 @@ pub mod recording;
 pub mod report;
 pub mod rows;
 pub mod stages;
+pub mod summary;
 pub mod timing;
 pub mod trace;
 

@@ -124,15 +124,15 @@ impl TickRows {
 
 /// Where the flight records of the run in `dir` are: `dir/flight`, or where its summary
 /// says they were left (`run --record DIR`).
-pub fn records_dir(dir: &Path, summary: Option<&serde_json::Value>) -> PathBuf {
+pub fn records_dir(dir: &Path, summary: Option<&crate::summary::Summary>) -> PathBuf {
     use rotorloop_common::flight::Stream;
     let kept = dir.join("flight");
     if Stream::PlantState.path(&kept).exists() {
         return kept;
     }
     summary
-        .and_then(|s| s["flight"]["dir"].as_str())
-        .map(PathBuf::from)
+        .and_then(|s| s.flight.as_ref())
+        .map(|f| f.dir.clone())
         .filter(|d| Stream::PlantState.path(d).exists())
         .unwrap_or(kept)
 }

@@ -39,6 +39,7 @@ use rotorloop_common::wire::{
 use rotorloop_monitor::derive::{Csv, DerivedRows};
 use rotorloop_monitor::metrics::TraceRow;
 use rotorloop_monitor::rows::{TickRows, records_dir};
+use rotorloop_monitor::summary::Summary;
 use serde::Serialize;
 use serde_json::Value;
 
@@ -100,7 +101,7 @@ struct Run {
     /// The trace rows, a row at a time in tick order.
     trace: std::cell::RefCell<TraceSource>,
     trace_columns: Vec<String>,
-    summary: Option<Value>,
+    summary: Option<Summary>,
 }
 
 /// A run's trace rows in tick order, as values in `trace.csv`'s columns.
@@ -146,9 +147,7 @@ impl TraceSource {
 
 impl Run {
     fn read(dir: &Path) -> anyhow::Result<Self> {
-        let summary = std::fs::read_to_string(dir.join("summary.json"))
-            .ok()
-            .and_then(|t| serde_json::from_str::<Value>(&t).ok());
+        let summary = Summary::read(dir).ok();
         let flight = records_dir(dir, summary.as_ref());
         let missing = || {
             format!(
@@ -158,7 +157,7 @@ impl Run {
         };
         // The run's ticks as its summary says (a later tick is not the run's; without a
         // summary the records' own geometry bounds them).
-        let ticks = summary.as_ref().and_then(|s| s["ticks"].as_u64()).unwrap_or(u64::MAX);
+        let ticks = summary.as_ref().and_then(|s| s.ticks).unwrap_or(u64::MAX);
         let limit = ticks.saturating_add(SPARE_SLOTS);
         let states = FlightLog::read(&flight, Stream::PlantState, limit).with_context(missing)?;
         let (trace, trace_columns) = TraceSource::open(dir)?;
@@ -472,17 +471,13 @@ pub fn write_with(dir: &Path, detail: Detail) -> anyhow::Result<McapCounts> {
     let path = dir.join("run.mcap");
     let summary = match &run {
         Some(run) => run.summary.clone(),
-        None => std::fs::read_to_string(dir.join("summary.json"))
-            .ok()
-            .and_then(|t| serde_json::from_str::<Value>(&t).ok()),
+        None => Summary::read(dir).ok(),
     };
     let ticks = match &run {
-        Some(run) => run.summary.as_ref().and_then(|s| s["ticks"].as_u64()),
+        Some(run) => run.summary.as_ref().and_then(|s| s.ticks),
         None => std::fs::metadata(dir.join("trace.csv")).ok().map(|m| m.len() / TRACE_ROW_BYTES),
     };
-    let rate = summary
-        .as_ref()
-        .and_then(|s| s["rate_hz"].as_f64().or_else(|| s["dt"].as_f64().map(|dt| 1.0 / dt)));
+    let rate = summary.and_then(|s| s.rate_hz.or_else(|| s.dt.map(|dt| 1.0 / dt)));
     let plan = Plan::of(detail, ticks, rate);
     let long = ticks.is_some_and(|t| t >= LONG_RUN_TICKS);
     let chunk = if long { MCAP_LONG_CHUNK_BYTES } else { MCAP_CHUNK_BYTES };
@@ -642,7 +637,7 @@ fn write_head(
             create_time: t0,
             name: "summary.json".into(),
             media_type: "application/json".into(),
-            data: serde_json::to_vec_pretty(s)?.into(),
+            data: serde_json::to_vec_pretty(&s.json)?.into(),
         })?;
     }
     Ok(())
@@ -930,12 +925,11 @@ fn write_trace_messages(sink: &mut FileSink, dir: &Path, plan: Plan) -> anyhow::
     meta.insert("rotorloop_version".into(), env!("CARGO_PKG_VERSION").into());
     meta.insert("detail".into(), plan.name().into());
     meta.insert("window_ticks".into(), plan.window.to_string());
+    // The file attached as it is; its keys in the metadata where it reads as a summary.
     let summary = std::fs::read(dir.join("summary.json")).ok();
-    if let Some(v) = summary.as_deref().and_then(|b| serde_json::from_slice::<Value>(b).ok()) {
+    if let Ok(s) = Summary::read(dir) {
         for key in ["name", "ticks", "dt", "actuation"] {
-            if !v[key].is_null() {
-                meta.insert(key.into(), v[key].to_string().trim_matches('"').to_owned());
-            }
+            meta.extend(s.text(key).map(|v| (key.to_owned(), v)));
         }
     }
     let metadata = mcap::records::Metadata { name: "rotorloop".into(), metadata: meta };
@@ -988,28 +982,25 @@ fn events(run: &Run, t0: u64) -> Vec<(u64, foxglove::messages::log::Level, Strin
     let Some(s) = &run.summary else { return Vec::new() };
     let at = |secs: f64| t0 + (secs.max(0.0) * 1e9) as u64;
     let mut out = Vec::new();
-    for f in s["faults"].as_array().into_iter().flatten() {
-        let role = f["role"].as_str().unwrap_or("?").to_owned();
-        let (kind, detail) =
-            (f["kind"].as_str().unwrap_or("?"), f["detail"].as_str().unwrap_or(""));
-        let tick = f["kill_tick"].as_u64().map_or(String::new(), |k| format!(" (after tick {k})"));
-        let at_s = f["kill_s"].as_f64().unwrap_or(0.0);
-        out.push((at(at_s), Level::Error, role.clone(), format!("fault: {kind}{tick}: {detail}")));
-        if let Some(r) = f["restart_s"].as_f64() {
+    for f in &s.faults {
+        let (role, kind, detail, at_s) = (f.role.clone(), &f.kind, &f.detail, at(f.kill_s));
+        let tick = f.kill_tick.map_or(String::new(), |k| format!(" (after tick {k})"));
+        out.push((at_s, Level::Error, role.clone(), format!("fault: {kind}{tick}: {detail}")));
+        if let Some(r) = f.restart_s {
             out.push((at(r), Level::Info, role.clone(), format!("{kind}: restarted or continued")));
         }
-        if let (Some(how), Some(e)) = (f["ended"].as_str(), f["ended_s"].as_f64()) {
+        if let (Some(how), Some(e)) = (&f.ended, f.ended_s) {
             out.push((at(e), Level::Info, role, format!("stop ended: {how}")));
         }
     }
     let last = run.states.last().and_then(|k| run.states.get(k));
     let end =
         last.map_or(t0, |l| if l.publish_ns != 0 { l.publish_ns } else { (l.t_s * 1e9) as u64 });
-    for w in s["storage_errors"].as_array().into_iter().flatten().filter_map(Value::as_str) {
-        out.push((end, Level::Warning, "monitor".into(), w.to_owned()));
+    for w in &s.storage_errors {
+        out.push((end, Level::Warning, "monitor".into(), w.clone()));
     }
-    for w in s["warnings"].as_array().into_iter().flatten().filter_map(Value::as_str) {
-        out.push((end, Level::Warning, "launcher".into(), w.to_owned()));
+    for w in &s.warnings {
+        out.push((end, Level::Warning, "launcher".into(), w.clone()));
     }
     out.sort_by_key(|e| e.0);
     out
@@ -1027,9 +1018,7 @@ fn metadata(run: &Run, first: Option<&StateSample>, plan: Plan) -> BTreeMap<Stri
     if let Some(s) = &run.summary {
         for key in ["scenario", "mode", "rate_hz", "ticks", "completed", "wall_clock_start_unix_ns"]
         {
-            if !s[key].is_null() {
-                m.insert(key.into(), s[key].to_string().trim_matches('"').to_owned());
-            }
+            m.extend(s.text(key).map(|v| (key.to_owned(), v)));
         }
     }
     if let Some(s) = first {

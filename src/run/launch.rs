@@ -378,11 +378,10 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
 
 /// Adds `w` to `summary.json`'s `warnings` (made if need be).
 fn warn_in_summary(out: &std::path::Path, w: &str) {
-    let warned =
-        rotorloop_common::output::patch_summary(out, |j| match j["warnings"].as_array_mut() {
-            Some(all) => all.push(w.into()),
-            None => j["warnings"] = serde_json::json!([w]),
-        });
+    let warned = rotorloop_monitor::summary::patch(out, |j| match j["warnings"].as_array_mut() {
+        Some(all) => all.push(w.into()),
+        None => j["warnings"] = serde_json::json!([w]),
+    });
     if let Err(e) = warned {
         eprintln!("warning: not in summary.json ({e:#}): {w}");
     }
@@ -441,7 +440,7 @@ fn report(
     let lockstep = args.role.mode == Mode::Lockstep;
     launch.report_without_monitor(scenario, flight);
     let schedule: Vec<serde_json::Value> = launch.faults.iter().map(|f| f.scheduled()).collect();
-    if let Err(e) = rotorloop_common::output::patch_summary(&args.out, |j| {
+    if let Err(e) = rotorloop_monitor::summary::patch(&args.out, |j| {
         j["fault_schedule"] = serde_json::json!(schedule);
         j["plant_stall"] = serde_json::json!(args.plant_stall.to_string());
     }) {

@@ -181,7 +181,7 @@ pub fn run(dir: &Path) -> anyhow::Result<()> {
     let summary = rotorloop_monitor::assemble::report(dir, &kept, &records, how, &hosts, None);
     let fallback = rotorloop_monitor::recording::fallback_dir(role.domain());
     rotorloop_monitor::report::write_summary(dir, &fallback, &summary)?;
-    rotorloop_common::output::patch_summary(dir, |j| {
+    rotorloop_monitor::summary::patch(dir, |j| {
         j["recovered"] = serde_json::json!({
             "by": "rotorloop recover",
             "launcher_pid": launch.launcher_pid,

@@ -140,7 +140,7 @@ pub(crate) fn add_resources(
     out: &std::path::Path,
     rss: &BTreeMap<String, RssTrack>,
 ) -> anyhow::Result<()> {
-    rotorloop_common::output::patch_summary(out, |j| {
+    rotorloop_monitor::summary::patch(out, |j| {
         j["resources"] = serde_json::json!({ "rss": rss, "rss_csv": "rss.csv" })
     })
 }

@@ -238,7 +238,7 @@ impl Launch<'_> {
             eprintln!("warning: the flight records stay in {s}: cannot move them into {k}: {e}");
             return Some(staged);
         }
-        let _ = rotorloop_common::output::patch_summary(&self.args.out, |j| {
+        let _ = rotorloop_monitor::summary::patch(&self.args.out, |j| {
             if j["flight"].is_object() {
                 j["flight"]["dir"] = kept.display().to_string().into();
             }

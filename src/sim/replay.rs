@@ -22,11 +22,12 @@ use std::rc::Rc;
 
 use anyhow::Context;
 use glam::DVec3;
-use rotorloop_common::scenario::{Actuation, Scenario};
+use rotorloop_common::scenario::Actuation;
 use rotorloop_common::wire::FLAG_SAFE_MODE;
 use rotorloop_monitor::derive::{Csv, DerivedRows};
 use rotorloop_monitor::metrics::{Metrics, TraceRow};
 use rotorloop_monitor::rows::TickRows;
+use rotorloop_monitor::summary::Summary;
 use rotorloop_monitor::timing::{TimingRow, TimingRows};
 use rotorloop_monitor::trace::TraceWriter;
 use rotorloop_plant::actuator::{ActuationDelay, DelayLine, integrate_tick};
@@ -343,12 +344,8 @@ fn run_rows(dir: &Path) -> anyhow::Result<(RunTrace, RunTiming, String)> {
 /// Replays the real-time run in `dir` into `out` (module docs): its `trace.csv` where
 /// `write_trace`, and `replay.json`.
 pub fn run(dir: &Path, out: &Path, write_trace: bool) -> anyhow::Result<ReplaySummary> {
-    let summary: serde_json::Value = serde_json::from_str(
-        &std::fs::read_to_string(dir.join("summary.json"))
-            .map_err(|e| bad(dir, &format!("summary.json: {e}")))?,
-    )
-    .map_err(|e| bad(dir, &format!("summary.json: {e}")))?;
-    let scenario = Scenario::of_summary(&summary).map_err(|e| bad(dir, &e))?;
+    let summary = Summary::read(dir).map_err(|e| bad(dir, &e.to_string()))?;
+    let scenario = summary.scenario().map_err(|e| bad(dir, &e))?;
     let timing_err = |e: anyhow::Error| -> anyhow::Error { bad(dir, &format!("{e:#}")).into() };
     let (rows, mut timing, header) = run_rows(dir).map_err(timing_err)?;
     let columns = torque_columns(dir, &header)?;

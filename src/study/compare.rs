@@ -9,6 +9,8 @@ use std::path::{Path, PathBuf};
 
 use clap::Args;
 use rotorloop_common::role::UsageError;
+use rotorloop_monitor::latency::Hop;
+use rotorloop_monitor::summary::{Summary, SummaryError};
 
 use crate::study::bench::cell::{RATIOS, Row, ci_columns};
 use crate::study::stats::{Interval, median_interval};
@@ -24,7 +26,7 @@ pub struct CompareArgs {
 
 /// What a directory holds.
 enum Side {
-    Run(serde_json::Value),
+    Run(Box<Summary>),
     Bench(Vec<Row>),
 }
 
@@ -32,11 +34,10 @@ fn side(dir: &Path) -> Result<Side, UsageError> {
     if let Ok(text) = std::fs::read_to_string(dir.join("bench.csv")) {
         return Ok(Side::Bench(text.lines().skip(1).filter_map(Row::parse).collect()));
     }
-    let summary = dir.join("summary.json");
-    match std::fs::read_to_string(&summary).map(|t| serde_json::from_str(&t)) {
-        Ok(Ok(j)) => Ok(Side::Run(j)),
-        Ok(Err(e)) => Err(UsageError(format!("compare: {} is not JSON: {e}", summary.display()))),
-        Err(_) => Err(UsageError(format!(
+    match Summary::read(dir) {
+        Ok(s) => Ok(Side::Run(Box::new(s))),
+        Err(e @ SummaryError::NotASummary(..)) => Err(UsageError(format!("compare: {e}"))),
+        Err(SummaryError::Read(..)) => Err(UsageError(format!(
             "compare: {} is not allowed: a run directory (summary.json) or a bench directory \
              (bench.csv)",
             dir.display()
@@ -63,25 +64,24 @@ pub fn run(a: &CompareArgs) -> anyhow::Result<()> {
 }
 
 /// Two runs' figures side by side.
-fn runs(x: &serde_json::Value, y: &serde_json::Value) -> String {
+fn runs(x: &Summary, y: &Summary) -> String {
     let mut md = String::from(
         "\nOne run on each side: no interval can be given, and a difference may be the \
          variation between two runs of one loop (`bench --repeat N` or `bench --before-after \
          … --pairs N` measure it).\n\n| figure | A | B | B / A |\n|---|---|---|---|\n",
     );
-    let figures: [(&str, &[&str], f64); 7] = [
-        ("sense-to-actuate p50 (µs)", &["hops", "sense_to_actuate", "p50"], 1e-3),
-        ("sense-to-actuate p99 (µs)", &["hops", "sense_to_actuate", "p99"], 1e-3),
-        ("sense-to-actuate p99.9 (µs)", &["hops", "sense_to_actuate", "p99_9"], 1e-3),
-        ("tick lateness p50 (µs)", &["hops", "tick_lateness", "p50"], 1e-3),
-        ("tick lateness p99 (µs)", &["hops", "tick_lateness", "p99"], 1e-3),
-        ("misses", &["misses"], 1.0),
-        ("achieved rate (Hz)", &["achieved_rate_hz"], 1.0),
+    type Figure = fn(&Summary) -> Option<f64>;
+    let figures: [(&str, Figure, f64); 7] = [
+        ("sense-to-actuate p50 (µs)", |s| s.hop(Hop::SenseToActuate).p50, 1e-3),
+        ("sense-to-actuate p99 (µs)", |s| s.hop(Hop::SenseToActuate).p99, 1e-3),
+        ("sense-to-actuate p99.9 (µs)", |s| s.hop(Hop::SenseToActuate).p99_9, 1e-3),
+        ("tick lateness p50 (µs)", |s| s.hop(Hop::TickLateness).p50, 1e-3),
+        ("tick lateness p99 (µs)", |s| s.hop(Hop::TickLateness).p99, 1e-3),
+        ("misses", |s| s.misses.map(|m| m as f64), 1.0),
+        ("achieved rate (Hz)", |s| s.achieved_rate_hz, 1.0),
     ];
-    for (name, path, scale) in figures {
-        let get = |j: &serde_json::Value| {
-            path.iter().fold(j, |v, k| &v[*k]).as_f64().map_or(f64::NAN, |v| v * scale)
-        };
+    for (name, figure, scale) in figures {
+        let get = |s: &Summary| figure(s).map_or(f64::NAN, |v| v * scale);
         let (a, b) = (get(x), get(y));
         let _ = writeln!(md, "| {name} | {a:.2} | {b:.2} | {:.3} |", b / a);
     }

@@ -13,6 +13,9 @@ use crate::sim::{self, SimOptions, summary_table};
 use crate::study::gains;
 use rotorloop_common::role::UsageError;
 use rotorloop_common::role::args::scenario_with_overrides;
+use rotorloop_monitor::latency::Hop;
+use rotorloop_monitor::summary::{Incidents, Summary};
+use serde_json::json;
 
 /// The built-in scenarios of the paper, in its order.
 pub const PAPER_SCENARIOS: [&str; 3] = ["paper-zero", "paper-constant", "paper-sinusoid"];
@@ -125,37 +128,34 @@ fn four_process_run(
     );
     crate::run::launch::run(&crate::run::args::RunArgs::defaults(role, run_dir.clone()))
         .with_context(|| format!("four-process run of {name}"))?;
-    let j: serde_json::Value = serde_json::from_str(
-        &std::fs::read_to_string(run_dir.join("summary.json"))
-            .with_context(|| format!("no summary of the {name} run"))?,
-    )?;
-    let us = |hop: &str, q: &str| j["hops"][hop][q].as_f64().unwrap_or(f64::NAN) / 1e3;
-    let incident = worst_incident(name, &j["incidents"]);
+    let s = Summary::read(&run_dir).with_context(|| format!("no summary of the {name} run"))?;
+    let (s2a, late) = (s.hop(Hop::SenseToActuate), s.hop(Hop::TickLateness));
+    let us = |ns: Option<f64>| ns.unwrap_or(f64::NAN) / 1e3;
+    let incident = worst_incident(name, s.incidents.as_ref());
     let row = format!(
         "| {name} | {} | {} | {:.3} | {:.1} | {:.1} | {:.1} | {:.1} | {:.3e} |\n",
-        j["ticks"],
-        j["misses"],
-        j["achieved_rate_hz"].as_f64().unwrap_or(f64::NAN),
-        us("sense_to_actuate", "p50"),
-        us("sense_to_actuate", "p99"),
-        us("sense_to_actuate", "max"),
-        us("tick_lateness", "p99"),
-        j["err_deg_final"].as_f64().unwrap_or(f64::NAN),
+        json!(s.ticks),
+        json!(s.misses),
+        s.achieved_rate_hz.unwrap_or(f64::NAN),
+        us(s2a.p50),
+        us(s2a.p99),
+        us(s2a.max),
+        us(late.p99),
+        s.err_deg_final.unwrap_or(f64::NAN),
     );
     Ok((row, incident))
 }
 
 /// A run's worst incident (`summary.json`'s `incidents`), as a line of the report.
-fn worst_incident(name: &str, inc: &serde_json::Value) -> String {
-    let w = &inc["worst"];
-    if inc.is_null() {
+fn worst_incident(name: &str, inc: Option<&Incidents>) -> String {
+    let Some(inc) = inc else {
         return format!("- **{name}**: no incidents computed (see the run's messages).\n");
-    }
-    if w.is_null() {
+    };
+    let Some(w) = &inc.worst else {
         return format!("- **{name}**: no incident.\n");
-    }
-    let f = |k: &str| w[k].as_f64().unwrap_or(f64::NAN);
-    let cost = match (w["peak_deviation_deg"].as_f64(), w["recovery_s"].as_f64()) {
+    };
+    let f = |v: Option<f64>| v.unwrap_or(f64::NAN);
+    let cost = match (w.peak_deviation_deg, w.recovery_s) {
         (Some(p), Some(r)) => format!("peak deviation {p:.3}°, below a tenth of it after {r:.2} s"),
         (Some(p), None) => {
             format!("peak deviation {p:.3}°, not back below a tenth of it within the run")
@@ -164,13 +164,13 @@ fn worst_incident(name: &str, inc: &serde_json::Value) -> String {
     };
     format!(
         "- **{name}** ({} incidents): {} at {:.3} s for {:.1} ms, caused by {} ({}): {}. {}.\n",
-        inc["count"],
-        w["kind"].as_str().unwrap_or("?"),
-        f("start_s"),
-        f("duration_s") * 1e3,
-        w["cause_role"].as_str().unwrap_or("?"),
-        w["cause_stage"].as_str().unwrap_or("?"),
-        w["evidence"].as_str().unwrap_or(""),
+        json!(inc.count),
+        w.kind.as_deref().unwrap_or("?"),
+        f(w.start_s),
+        f(w.duration_s) * 1e3,
+        w.cause_role.as_deref().unwrap_or("?"),
+        w.cause_stage.as_deref().unwrap_or("?"),
+        w.evidence.as_deref().unwrap_or(""),
         cost
     )
 }

@@ -9,7 +9,9 @@ use std::sync::LazyLock;
 use rotorloop_common::graph::{Role, Topic};
 use rotorloop_common::wire::{NO_TICK, ReferenceSample, StateSample, TorqueSample};
 
-use super::load::{FaultRow, RunRecord, SchedRow};
+use rotorloop_monitor::summary::FaultRow;
+
+use super::load::{RunRecord, SchedRow};
 use super::ticks::{self, DELAY, LATE, MISS, NOT_FRESH, REFERENCE_LATE, REJECTED, SAFE, TickFlags};
 
 /// What an incident's cause is.

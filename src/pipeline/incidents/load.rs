@@ -9,52 +9,7 @@ use rotorloop_common::flight::{FlightLog, SPARE_SLOTS, Stream};
 use rotorloop_common::role::UsageError;
 use rotorloop_common::scenario::Scenario;
 use rotorloop_common::wire::{ReferenceSample, StateSample, TorqueSample};
-use serde::Deserialize;
-
-/// A fault the launcher saw (a row of `summary.json`'s `faults`).
-#[derive(Debug, Clone, Deserialize)]
-pub struct FaultRow {
-    /// The role.
-    pub role: String,
-    /// `kill`, `stop`, `killed`, `crash`, `exited`, `hang`, `link-lost`.
-    pub kind: String,
-    /// In words.
-    #[serde(default)]
-    pub detail: String,
-    /// When (s after the first state's publish).
-    pub kill_s: f64,
-    /// The tick the run had reached then.
-    #[serde(default)]
-    pub kill_tick: Option<u64>,
-    /// Restarted or continued (s).
-    pub restart_s: Option<f64>,
-    /// A stop's end (s).
-    #[serde(default)]
-    pub ended_s: Option<f64>,
-    /// The signal.
-    #[serde(default)]
-    pub signal: Option<String>,
-    /// Whether the `--fault` schedule asked for it (absent from a `summary.json` written
-    /// before the launcher said so).
-    #[serde(default)]
-    pub scheduled: Option<bool>,
-}
-
-/// A fault of the `--fault` schedule (`summary.json`'s `fault_schedule`): what the launcher
-/// was asked to do, the delays the controller applies itself among them.
-#[derive(Debug, Clone, Deserialize)]
-pub struct Scheduled {
-    /// The role.
-    pub role: String,
-    /// `kill`, `stop` or `delay`.
-    pub kind: String,
-    /// Its start (s after tick 0).
-    pub at_s: f64,
-    /// Its end, if any (s).
-    pub until_s: Option<f64>,
-    /// A delay's seconds.
-    pub value_s: Option<f64>,
-}
+use rotorloop_monitor::summary::{FaultRow, Scheduled, Summary};
 
 /// One row of `sched.csv` (`crate::pipeline::sched_csv`).
 #[derive(Debug, Clone, PartialEq)]
@@ -169,16 +124,8 @@ impl RunRecord {
         dir: &Path,
         visit: &mut dyn FnMut(u64, &StateSample),
     ) -> anyhow::Result<Self> {
-        let text = std::fs::read_to_string(dir.join("summary.json"))
-            .map_err(|e| bad(dir, format!("summary.json: {e} (is this a run directory?)")))?;
-        let summary: serde_json::Value =
-            serde_json::from_str(&text).map_err(|e| bad(dir, format!("summary.json: {e}")))?;
-        let scenario = Scenario::of_summary(&summary).map_err(|e| bad(dir, e))?;
-        let list = |key: &str| summary.get(key).cloned().unwrap_or(serde_json::json!([]));
-        let faults: Vec<FaultRow> = serde_json::from_value(list("faults"))
-            .map_err(|e| bad(dir, format!("summary.json faults: {e}")))?;
-        let schedule: Vec<Scheduled> = serde_json::from_value(list("fault_schedule"))
-            .map_err(|e| bad(dir, format!("summary.json fault_schedule: {e}")))?;
+        let summary = Summary::read(dir).map_err(|e| UsageError(e.to_string()))?;
+        let scenario = summary.scenario().map_err(|e| bad(dir, e))?;
         let flight = dir.join("flight");
         let plant_state = Stream::PlantState.path(&flight);
         if !plant_state.exists() {
@@ -227,8 +174,8 @@ impl RunRecord {
             states,
             torques,
             references,
-            faults,
-            schedule,
+            faults: summary.faults,
+            schedule: summary.fault_schedule,
             sched: Vec::new(),
             kernel_view,
             sched_path,

@@ -186,7 +186,7 @@ struct FaultsHeld {
 }
 
 impl FaultsHeld {
-    fn new(faults: &[load::FaultRow]) -> Self {
+    fn new(faults: &[rotorloop_monitor::summary::FaultRow]) -> Self {
         let kill_ticks: Vec<Option<u64>> = faults.iter().map(|f| f.kill_tick).collect();
         Self { caused: vec![None; faults.len()], holding: vec![None; faults.len()], kill_ticks }
     }
@@ -686,13 +686,14 @@ mod tests {
     /// whichever of the two comes first in time.
     #[test]
     fn a_faults_incident_is_the_one_it_caused_else_one_that_holds_its_tick() {
-        let f = |kill_tick| load::FaultRow {
+        let f = |kill_tick| rotorloop_monitor::summary::FaultRow {
             role: "controller".into(),
             kind: "kill".into(),
             detail: String::new(),
             kill_s: 0.0,
             kill_tick,
             restart_s: None,
+            ended: None,
             ended_s: None,
             signal: None,
             scheduled: Some(true),

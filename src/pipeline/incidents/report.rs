@@ -185,7 +185,7 @@ pub fn write(dir: &Path, found: &Explained) -> anyhow::Result<()> {
         .with_context(|| format!("cannot write {}", path.display()))?;
     figure(dir, found)?;
     let worst = found.worst().cloned();
-    rotorloop_common::output::patch_summary(dir, |j| {
+    rotorloop_monitor::summary::patch(dir, |j| {
         j["incidents"] = serde_json::json!({
             "count": found.count,
             "worst": worst,

@@ -4,7 +4,9 @@
 
 use rotorloop_common::wire::{FLAG_SAFE_MODE, StateSample, TorqueSample};
 
-use super::load::{FaultRow, RunRecord};
+use rotorloop_monitor::summary::FaultRow;
+
+use super::load::RunRecord;
 
 /// The plant woke for this tick later than the threshold after its grid time.
 pub const LATE: u16 = 1;

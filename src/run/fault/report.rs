@@ -8,6 +8,7 @@ use std::path::Path;
 
 use rotorloop_common::scenario::Scenario;
 use rotorloop_monitor::plot::{Series, YScale, line_chart};
+use rotorloop_monitor::summary::{SummaryError, read_json};
 use serde::Serialize;
 
 use crate::run::fault::FaultEvent;
@@ -191,22 +192,22 @@ pub fn report(
         });
     }
 
-    let summary_path = out.join("summary.json");
-    let mut j: serde_json::Value = match std::fs::read_to_string(&summary_path) {
-        Ok(text) => serde_json::from_str(&text)?,
+    let mut j = match read_json(&out.join("summary.json")) {
+        Ok(j) => j,
         // Stopped before the monitor had anything to report (a controller that failed at
         // once): the faults are the report.
-        Err(_) if no_timing => serde_json::json!({
+        Err(SummaryError::Read(..)) if no_timing => serde_json::json!({
             "name": scenario.file.name,
             "completed": false,
             "trace_rows": 0,
             "note": "the run stopped before the plant published its first tick: no loop to report, only its faults",
         }),
-        Err(_) => serde_json::json!({}),
+        Err(SummaryError::Read(..)) => serde_json::json!({}),
+        Err(e) => return Err(e.into()),
     };
     if j.as_object().is_some_and(|o| !o.is_empty()) {
         j["faults"] = serde_json::to_value(&reports)?;
-        rotorloop_common::output::write_json(&summary_path, &j)?;
+        rotorloop_common::output::write_json(&out.join("summary.json"), &j)?;
     }
 
     draw(out, scenario, &reports)?;

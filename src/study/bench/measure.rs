@@ -8,6 +8,8 @@ use std::process::{Command, Stdio};
 use anyhow::Context;
 use rotorloop_common::ipc::domain::Domain;
 use rotorloop_common::ipc::wait::Wait;
+use rotorloop_monitor::latency::Hop;
+use rotorloop_monitor::summary::Summary;
 
 use super::cell::{BeforeAfter, BenchArgs, Row, cores, skip_reason};
 use super::report::{hgrm_count, hgrm_quantile};
@@ -317,24 +319,17 @@ pub(super) fn measure_loop(
 
 /// Fills `row` from the `summary.json` of a loop's report in `out`.
 pub(super) fn read_loop_summary(row: &mut Row, out: &Path) -> anyhow::Result<()> {
-    let path = out.join("summary.json");
-    let text = std::fs::read_to_string(&path)
-        .with_context(|| format!("cannot read {}", path.display()))?;
-    let j: serde_json::Value = serde_json::from_str(&text)?;
-    let h = &j["hops"]["sense_to_actuate"];
-    let us = |v: &serde_json::Value| v.as_f64().unwrap_or(f64::NAN) / 1e3;
-    row.count = h["count"].as_u64().unwrap_or(0);
-    row.p50 = us(&h["p50"]);
-    row.p99 = us(&h["p99"]);
-    row.p99_9 = us(&h["p99_9"]);
-    row.max = us(&h["max"]);
-    row.misses = j["misses"].as_u64().unwrap_or(0);
-    row.achieved = j["achieved_rate_hz"].as_f64().unwrap_or(0.0);
-    row.lateness_p99 = us(&j["hops"]["tick_lateness"]["p99"]);
-    row.lateness_p50 = us(&j["hops"]["tick_lateness"]["p50"]);
-    row.lateness_p99_9 = us(&j["hops"]["tick_lateness"]["p99_9"]);
-    row.err_deg_final = j["err_deg_final"].as_f64().unwrap_or(f64::NAN);
-    row.err_deg_rms = j["err_deg_rms"].as_f64().unwrap_or(f64::NAN);
+    let s = Summary::read(out)?;
+    let (h, late) = (s.hop(Hop::SenseToActuate), s.hop(Hop::TickLateness));
+    let us = |ns: Option<f64>| ns.unwrap_or(f64::NAN) / 1e3;
+    row.count = h.count.unwrap_or(0);
+    (row.p50, row.p99, row.p99_9, row.max) = (us(h.p50), us(h.p99), us(h.p99_9), us(h.max));
+    row.misses = s.misses.unwrap_or(0);
+    row.achieved = s.achieved_rate_hz.unwrap_or(0.0);
+    (row.lateness_p50, row.lateness_p99, row.lateness_p99_9) =
+        (us(late.p50), us(late.p99), us(late.p99_9));
+    row.err_deg_final = s.err_deg_final.unwrap_or(f64::NAN);
+    row.err_deg_rms = s.err_deg_rms.unwrap_or(f64::NAN);
     Ok(())
 }
 

@@ -5,7 +5,10 @@
 use std::fmt::Write as _;
 use std::path::Path;
 
+use rotorloop_monitor::latency::Hop;
 use rotorloop_monitor::plot::{Series, YScale, line_chart};
+use rotorloop_monitor::stages::Stage;
+use rotorloop_monitor::summary::Summary;
 
 use super::cell::{BenchArgs, Row};
 
@@ -176,45 +179,39 @@ pub(super) fn zero_miss_md(a: &BenchArgs, rows: &[Row]) -> String {
 }
 
 /// The in-loop stages and the notifies, p50 in µs, in tick order.
-pub(super) const BREAKDOWN: [(&str, &str); 13] = [
-    ("state_send", "state send"),
-    ("state_delivery", "state delivery"),
-    ("controller_validate", "validate"),
-    ("controller_pair", "pair"),
-    ("controller_law", "law"),
-    ("controller_publish_prep", "publish prep"),
-    ("torque_send", "torque send"),
-    ("torque_delivery", "torque delivery"),
-    ("state_notify", "(state notify)"),
-    ("torque_notify", "(torque notify)"),
-    ("state_loan", "(state loan)"),
-    ("torque_loan", "(torque loan)"),
-    ("state_prep", "(plant wake → publish)"),
+pub(super) const BREAKDOWN: [(Stage, &str); 13] = [
+    (Stage::StateSend, "state send"),
+    (Stage::StateDelivery, "state delivery"),
+    (Stage::Validate, "validate"),
+    (Stage::Pair, "pair"),
+    (Stage::Law, "law"),
+    (Stage::PublishPrep, "publish prep"),
+    (Stage::TorqueSend, "torque send"),
+    (Stage::TorqueDelivery, "torque delivery"),
+    (Stage::StateNotify, "(state notify)"),
+    (Stage::TorqueNotify, "(torque notify)"),
+    (Stage::StateLoan, "(state loan)"),
+    (Stage::TorqueLoan, "(torque loan)"),
+    (Stage::StatePrep, "(plant wake → publish)"),
 ];
 
 /// The `summary.json` of the run a row is: with `--pairs`, the pair whose sense-to-actuate
 /// p50 is the row's (its median run), else the first.
-fn summary_of(a: &BenchArgs, r: &Row) -> Option<serde_json::Value> {
+fn summary_of(a: &BenchArgs, r: &Row) -> Option<Summary> {
     let cell = a.out.join("cells").join(&r.cell);
     let pairs = (1..a.pairs.max(1)).map(|i| cell.join(format!("pair{i}")));
-    let runs: Vec<serde_json::Value> = std::iter::once(cell.clone())
+    let runs: Vec<Summary> = std::iter::once(cell.clone())
         .chain(pairs)
-        .filter_map(|d| std::fs::read_to_string(d.join(&r.kind).join("summary.json")).ok())
-        .filter_map(|t| serde_json::from_str(&t).ok())
+        .filter_map(|d| Summary::read(&d.join(&r.kind)).ok())
         .collect();
-    let p50 = |j: &serde_json::Value| j["hops"]["sense_to_actuate"]["p50"].as_f64();
+    let p50 = |j: &Summary| j.hop(Hop::SenseToActuate).p50;
     let median = runs.iter().position(|j| p50(j).is_some_and(|ns| ns / 1e3 == r.p50));
     runs.into_iter().nth(median.unwrap_or(0))
 }
 
 /// The stage p50s (µs) of a loop measurement, from its `summary.json` (`j`).
-fn stage_p50s(j: &serde_json::Value) -> Option<Vec<f64>> {
-    let stages = j["stages"].as_array()?;
-    let p50 = |name: &str| {
-        let s = stages.iter().find(|s| s["stage"] == name)?;
-        s["p50"].as_f64().map(|ns| ns / 1e3)
-    };
-    BREAKDOWN.iter().map(|(name, _)| p50(name)).collect()
+fn stage_p50s(j: &Summary) -> Option<Vec<f64>> {
+    BREAKDOWN.iter().map(|(stage, _)| j.stage(*stage)?.p50.map(|ns| ns / 1e3)).collect()
 }
 
 /// Where the microseconds of sense-to-actuate go (`crate` monitor's `stages`).
@@ -239,8 +236,7 @@ pub(super) fn breakdown_md(a: &BenchArgs, rows: &[Row]) -> String {
     {
         let Some(j) = summary_of(a, r).filter(|_| r.skipped.is_empty()) else { continue };
         let Some(p50s) = stage_p50s(&j) else { continue };
-        let compute =
-            j["hops"]["controller_compute"]["p50"].as_f64().map_or(f64::NAN, |ns| ns / 1e3);
+        let compute = j.hop(Hop::ControllerCompute).p50.map_or(f64::NAN, |ns| ns / 1e3);
         let _ = write!(md, "| {} | {} | {:.1} | {compute:.2} |", r.cell, r.kind, r.p50);
         for v in p50s {
             let _ = write!(md, " {v:.2} |");
@@ -706,7 +702,7 @@ pub(super) fn controllers_md(rows: &[Row], a: &BenchArgs) -> String {
          | cell | controller | sense-to-actuate p50 / p99 | / bare iceoryx2 p50 | compute p50 / p99 | law p50 | misses |\n\
          |---|---|---|---|---|---|---|\n",
     );
-    let us = |v: &serde_json::Value| v.as_f64().map_or(f64::NAN, |ns| ns / 1e3);
+    let us = |v: Option<f64>| v.map_or(f64::NAN, |ns| ns / 1e3);
     for r in rows
         .iter()
         .filter(|r| ["loop", "loop-mrp-pid", "loop-python", "loop-c"].contains(&r.kind.as_str()))
@@ -718,16 +714,9 @@ pub(super) fn controllers_md(rows: &[Row], a: &BenchArgs) -> String {
         let bare =
             rows.iter().find(|b| b.cell == r.cell && b.kind == "iceoryx2" && b.skipped.is_empty());
         let ratio = bare.map_or("—".to_owned(), |b| format!("{:.2}", r.p50 / b.p50));
-        let summary = a.out.join("cells").join(&r.cell).join(&r.kind).join("summary.json");
-        let s: serde_json::Value = std::fs::read_to_string(summary)
-            .ok()
-            .and_then(|t| serde_json::from_str(&t).ok())
-            .unwrap_or_default();
-        let compute = &s["hops"]["controller_compute"];
-        let law = s["stages"]
-            .as_array()
-            .and_then(|st| st.iter().find(|x| x["stage"] == "controller_law"))
-            .map_or(f64::NAN, |l| us(&l["p50"]));
+        let s = Summary::read(&a.out.join("cells").join(&r.cell).join(&r.kind)).unwrap_or_default();
+        let compute = s.hop(Hop::ControllerCompute);
+        let law = us(s.stage(Stage::Law).and_then(|l| l.p50));
         let _ = writeln!(
             md,
             "| {} | {} | {:.1} / {:.1} | {ratio} | {:.1} / {:.1} | {:.2} | {} |",
@@ -735,8 +724,8 @@ pub(super) fn controllers_md(rows: &[Row], a: &BenchArgs) -> String {
             r.kind,
             r.p50,
             r.p99,
-            us(&compute["p50"]),
-            us(&compute["p99"]),
+            us(compute.p50),
+            us(compute.p99),
             law,
             r.misses
         );

@@ -23,7 +23,9 @@ use std::path::{Path, PathBuf};
 use anyhow::Context;
 use rotorloop_common::role::UsageError;
 use rotorloop_common::scenario::Scenario;
+use rotorloop_monitor::latency::Hop;
 use rotorloop_monitor::plot::{Series, YScale, line_chart};
+use rotorloop_monitor::summary::Summary;
 use rotorloop_plant::actuator::ActuationDelay;
 use serde::Serialize;
 
@@ -286,21 +288,20 @@ fn write_csv(path: &Path, runs: &[SweepRun]) -> anyhow::Result<()> {
 fn read_latency(path: &Path) -> Result<(f64, f64, f64), UsageError> {
     const MAX_NS: u64 = 3_600_000_000_000;
     let bad = |why: String| UsageError(format!("--latency-from {}: {why}", path.display()));
-    let text =
-        rotorloop_common::input::read_text(path, 64 << 20).map_err(|e| bad(e.to_string()))?;
-    let j: serde_json::Value =
-        serde_json::from_str(&text).map_err(|e| bad(format!("not a run's summary.json ({e})")))?;
-    let h = &j["hops"]["sense_to_actuate"];
-    let figure = |q: &str, lo: u64| match h[q].as_u64() {
-        Some(v) if (lo..=MAX_NS).contains(&v) => Ok(v),
+    let h = Summary::read_file(path)
+        .map_err(|e| UsageError(format!("--latency-from: {e}")))?
+        .hop(Hop::SenseToActuate);
+    let figure = |q: &str, v: Option<f64>, lo: u64| match v {
+        Some(v) if v.fract() == 0.0 && (lo as f64..=MAX_NS as f64).contains(&v) => Ok(v as u64),
         _ => Err(bad(format!(
             "hops.sense_to_actuate.{q} = {} is not allowed: a whole number from {lo} to \
              {MAX_NS} (ns)",
-            h[q]
+            v.map_or("null".to_owned(), |v| v.to_string())
         ))),
     };
-    figure("count", 1)?;
-    let (p50, p99, max) = (figure("p50", 0)?, figure("p99", 0)?, figure("max", 0)?);
+    figure("count", h.count.map(|c| c as f64), 1)?;
+    let (p50, p99, max) =
+        (figure("p50", h.p50, 0)?, figure("p99", h.p99, 0)?, figure("max", h.max, 0)?);
     if !(p50 <= p99 && p99 <= max) {
         return Err(bad(format!(
             "hops.sense_to_actuate p50 {p50}, p99 {p99}, max {max} are not allowed: \
