@@ -997,7 +997,7 @@ fn events(run: &Run, t0: u64) -> Vec<(u64, foxglove::messages::log::Level, Strin
     let end =
         last.map_or(t0, |l| if l.publish_ns != 0 { l.publish_ns } else { (l.t_s * 1e9) as u64 });
     for w in &s.storage_errors {
-        out.push((end, Level::Warning, "monitor".into(), w.clone()));
+        out.push((end, Level::Warning, Role::Monitor.name().into(), w.clone()));
     }
     for w in &s.warnings {
         out.push((end, Level::Warning, "launcher".into(), w.clone()));
