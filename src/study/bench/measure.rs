@@ -52,21 +52,10 @@ pub(super) fn before_after(
     dir: &Path,
     first: Row,
 ) -> anyhow::Result<(Row, Row)> {
-    let (b, f) = match change {
-        BeforeAfter::Record => (Variant::Before, Variant::Loop),
-        BeforeAfter::Foxglove => (Variant::Loop, Variant::Foxglove),
-        BeforeAfter::Sched => (Variant::NoSched, Variant::Loop),
-        BeforeAfter::TraceSched => (Variant::Loop, Variant::TraceSched),
-        BeforeAfter::HotPath => (Variant::PlainHotPath, Variant::Loop),
-        BeforeAfter::Pack => (Variant::RawSegments, Variant::Packed),
-        BeforeAfter::Gate => (Variant::NoGate, Variant::Loop),
-    };
+    let (b, f) = sides(change);
     // The plain loop already measured is the first run of its side (of neither for
     // `pack`: both sides run small rings).
-    let plain_after = matches!(
-        change,
-        BeforeAfter::Record | BeforeAfter::Sched | BeforeAfter::HotPath | BeforeAfter::Gate
-    );
+    let plain_after = f == Variant::Loop;
     let (mut before, mut after) = (Vec::new(), Vec::new());
     match (change, plain_after) {
         (BeforeAfter::Pack, _) => {}
@@ -88,6 +77,19 @@ pub(super) fn before_after(
         true => (after, before),
         false => (before, after),
     })
+}
+
+/// The loops `--before-after CHANGE` compares: (before, after).
+pub(super) fn sides(change: BeforeAfter) -> (Variant, Variant) {
+    match change {
+        BeforeAfter::Record => (Variant::Before, Variant::Loop),
+        BeforeAfter::Foxglove => (Variant::Loop, Variant::Foxglove),
+        BeforeAfter::Sched => (Variant::NoSched, Variant::Loop),
+        BeforeAfter::TraceSched => (Variant::Loop, Variant::TraceSched),
+        BeforeAfter::HotPath => (Variant::PlainHotPath, Variant::Loop),
+        BeforeAfter::Pack => (Variant::RawSegments, Variant::Packed),
+        BeforeAfter::Gate => (Variant::NoGate, Variant::Loop),
+    }
 }
 
 /// `before-after.json` of a cell: the after / before ratios of each pair at p50 and p99,

@@ -246,56 +246,42 @@ pub(super) fn breakdown_md(a: &BenchArgs, rows: &[Row]) -> String {
     md
 }
 
-/// The rows `bench --before-after CHANGE` compares (before, after) and what they are.
-fn sides(change: super::cell::BeforeAfter) -> (&'static str, &'static str, &'static str) {
+/// What `bench --before-after CHANGE` compares, in words (its loops: `measure::sides`).
+fn described(change: super::cell::BeforeAfter) -> &'static str {
     use super::cell::BeforeAfter;
     match change {
-        BeforeAfter::Record => (
-            "loop-before",
-            "loop",
+        BeforeAfter::Record => {
             "Before: the loop without flight recorders (`run --no-record`); after: with them \
-             (the default).",
-        ),
-        BeforeAfter::Foxglove => (
-            "loop",
-            "loop-foxglove",
+             (the default)."
+        }
+        BeforeAfter::Foxglove => {
             "Before: the loop alone; after: with the live Foxglove server (`run --foxglove`) \
-             and a viewer subscribed to every topic (on a thread of the bench).",
-        ),
-        BeforeAfter::Sched => (
-            "loop-nosched",
-            "loop",
+             and a viewer subscribed to every topic (on a thread of the bench)."
+        }
+        BeforeAfter::Sched => {
             "Before: the loop without the launcher's scheduling samples (`run \
              --no-sched-sample`); after: with them (the default: each role's schedstat every \
-             1 ms into `sched.csv`).",
-        ),
-        BeforeAfter::TraceSched => (
-            "loop",
-            "loop-tracesched",
+             1 ms into `sched.csv`)."
+        }
+        BeforeAfter::TraceSched => {
             "Before: the loop as it is; after: with the kernel's scheduler and IRQ events \
-             recorded (`run --trace-sched`, root).",
-        ),
-        BeforeAfter::HotPath => (
-            "loop-plain",
-            "loop",
+             recorded (`run --trace-sched`, root)."
+        }
+        BeforeAfter::HotPath => {
             "Before: the hot path as it was before its overhead was cut (`run \
              --plain-hot-path`: the reference woken by every state, the reference topic read \
              every tick, each sample loaned and the plant's state made between its wake-up and \
-             its publish); after: as it is.",
-        ),
-        BeforeAfter::Pack => (
-            "loop-raw",
-            "loop-packed",
+             its publish); after: as it is."
+        }
+        BeforeAfter::Pack => {
             "Before: rings of 4096 ticks, the launcher moving each finished half raw (`run \
-             --raw-segments`); after: the same, each half packed (the default).",
-        ),
-        BeforeAfter::Gate => (
-            "loop-nogate",
-            "loop",
+             --raw-segments`); after: the same, each half packed (the default)."
+        }
+        BeforeAfter::Gate => {
             "Before: the plant's tick loop without the lockstep fault gate's check (`run \
              --no-gate`, compiled without it); after: with it (the default: one comparison of \
-             two integers a tick).",
-        ),
+             two integers a tick)."
+        }
     }
 }
 
@@ -303,7 +289,8 @@ fn sides(change: super::cell::BeforeAfter) -> (&'static str, &'static str, &'sta
 pub(super) fn before_after_md(rows: &[Row], a: &BenchArgs) -> String {
     use super::cell::BeforeAfter;
     let Some(change) = a.before_after else { return String::new() };
-    let (before_kind, after_kind, what) = sides(change);
+    let (before, after) = super::measure::sides(change);
+    let (before_kind, after_kind, what) = (before.kind(), after.kind(), described(change));
     let mut md = String::new();
     let ok = |cell: &str, kind: &str| {
         rows.iter().find(|r| r.cell == cell && r.kind == kind && r.skipped.is_empty())
