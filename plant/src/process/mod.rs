@@ -1,6 +1,6 @@
 //! The `plant` process: a thin shell over [`PlantTicker`] (the rules, in
 //! [`crate::policy`]). Opens the services, resumes from the resume slot or waits for the
-//! subscribers that must see tick 0, then runs the tick loop ([`ticks::Loop`]).
+//! subscribers that must see tick 0, then runs the tick loop (`ticks::Loop`).
 
 pub mod args;
 mod gate;
