@@ -17,6 +17,7 @@ mod bench_smoke;
 mod c_controller;
 mod cli_outputs;
 mod controller_cmd;
+mod crash;
 mod delay;
 mod export;
 mod faults;

@@ -22,7 +22,7 @@ use rotorloop_common::wire::{ReferenceSample, StateSample, TorqueSample};
 use crate::hosts::Hosts;
 use crate::policy::RowJoiner;
 use crate::recording::{Recording, fallback_dir};
-use crate::report::{FlightSummary, RunSummary, StreamSummary, summary};
+use crate::report::{FlightSummary, LostSummary, RunSummary, StreamSummary, summary};
 
 /// Readers of a run's four records ([`FlightRecords::shared`]).
 pub type SharedRecords = (
@@ -41,6 +41,21 @@ pub struct FlightRecords {
     references: FlightLog<ReferenceSample>,
     /// The last tick the run could hold (its ticks and the reference's lead).
     limit: u64,
+    /// Why a stream the report needs could not be read at all (its reader is empty, the
+    /// problem named in it).
+    incomplete: Option<FlightError>,
+}
+
+/// `r`'s reader, or an empty one naming its error (the first kept in `first`).
+fn or_unreadable<T: rotorloop_common::flight::Record>(
+    r: Result<FlightLog<T>, FlightError>,
+    first: &mut Option<FlightError>,
+) -> FlightLog<T> {
+    r.unwrap_or_else(|e| {
+        let log = FlightLog::unreadable(&e);
+        first.get_or_insert(e);
+        log
+    })
 }
 
 impl StreamSummary {
@@ -67,17 +82,35 @@ impl StreamSummary {
 
 impl FlightRecords {
     /// Opens the records in `dir` of a run of `ticks` ticks (a block at a time: the
-    /// stream is never held). The plant's and the reference's are required; the
-    /// controller's is optional (the plant's record of what it received stands in).
+    /// stream is never held), reading whatever of them is sound: a stream whose files are
+    /// all missing or damaged reads as empty, named ([`Self::incomplete`]; the controller's
+    /// may be absent: the plant's record of what it received stands in). An error only
+    /// where nothing of any stream can be read.
     pub fn read(dir: &Path, ticks: u64) -> Result<Self, FlightError> {
         let limit = ticks.saturating_add(SPARE_SLOTS);
-        Ok(Self {
-            states: FlightLog::read(dir, Stream::PlantState, limit)?,
-            received: FlightLog::read(dir, Stream::PlantTorque, limit)?,
-            torques: FlightLog::read(dir, Stream::ControllerTorque, limit).ok(),
-            references: FlightLog::read(dir, Stream::Reference, limit)?,
-            limit,
-        })
+        let mut first = None;
+        let states = or_unreadable(FlightLog::read(dir, Stream::PlantState, limit), &mut first);
+        let received = or_unreadable(FlightLog::read(dir, Stream::PlantTorque, limit), &mut first);
+        let references = or_unreadable(FlightLog::read(dir, Stream::Reference, limit), &mut first);
+        let torques = match FlightLog::read(dir, Stream::ControllerTorque, limit) {
+            Ok(t) => Some(t),
+            Err(FlightError::Missing { .. }) => None, // a controller of the user's own
+            Err(e) => Some(FlightLog::unreadable(&e)),
+        };
+        let sound = states.is_sound()
+            || received.is_sound()
+            || references.is_sound()
+            || torques.as_ref().is_some_and(FlightLog::is_sound);
+        match first {
+            Some(e) if !sound => Err(e),
+            incomplete => Ok(Self { states, received, torques, references, limit, incomplete }),
+        }
+    }
+
+    /// Why a stream the report needs has no readable record at all (the monitor's live
+    /// view is then the better report of a run that is still its own).
+    pub fn incomplete(&self) -> Option<&FlightError> {
+        self.incomplete.as_ref()
     }
 
     /// Readers of the same four records sharing these readers' kept blocks
@@ -155,9 +188,47 @@ impl FlightRecords {
         FlightSummary {
             dir: dir.display().to_string(),
             assembled: true,
+            lost: self.lost(ticks),
             streams,
             ..Default::default()
         }
+    }
+
+    /// What of a run whose last tick is `ticks` the record lost to a
+    /// machine crash (its rings on tmpfs gone) or to damage; `None` where it lost nothing.
+    fn lost(&self, ticks: u64) -> Option<LostSummary> {
+        // Every ring gone, the segments and journals on disk: what a machine crash leaves
+        // (the rings were on tmpfs). One ring gone among others is damage.
+        let logs = [self.states.no_ring, self.received.no_ring, self.references.no_ring];
+        let crash = logs.iter().all(|n| *n);
+        let flags = [
+            (self.states.damaged, self.states.no_ring),
+            (self.received.damaged, self.received.no_ring),
+            (self.references.damaged, self.references.no_ring),
+        ];
+        let damaged = flags
+            .into_iter()
+            .chain(self.torques.iter().map(|t| (t.damaged, t.no_ring)))
+            .any(|(d, n)| d || (n && !crash));
+        if !crash && !damaged {
+            return None;
+        }
+        let reason = match (crash, damaged) {
+            (true, true) => "machine crash, record damaged",
+            (true, false) => "machine crash",
+            _ => "record damaged",
+        };
+        let recorded = self.states.last();
+        let count = self.states.count(recorded.unwrap_or(0));
+        let count = if recorded.is_some() { count } else { Default::default() };
+        let next = recorded.map_or(0, |k| k + 1);
+        Some(LostSummary {
+            reason,
+            last_tick_recorded: recorded,
+            ticks: count.missing,
+            ranges: count.missing_ranges,
+            after_last: (next <= ticks).then_some([next, ticks]),
+        })
     }
 }
 
@@ -238,7 +309,10 @@ pub fn final_report(
         wait_for_records(dir, joiner, role.mode == rotorloop_common::role::args::Mode::Lockstep);
     }
     let records = record.map(|d| (d, FlightRecords::read(d, scenario.ticks())));
-    if let Some((dir, Ok(records))) = &records {
+    // A stream with no record at all (a recorder that was off): the live view has more.
+    if let Some((dir, Ok(records))) = &records
+        && records.incomplete().is_none()
+    {
         let hosts = rec.hosts.clone();
         drop(rec); // its buffered rows go to disk before the files are rewritten
         return report(out, dir, records, (scenario, role, csv), &hosts, Some(joiner));
@@ -246,7 +320,12 @@ pub fn final_report(
     let (files, dir) = rec.finish(&scenario.file.name, fallback);
     let mut s = summary(scenario, role, joiner, &rec, files);
     s.report_dir = (dir != out).then(|| dir.display().to_string());
-    if let Some((dir, Err(e))) = &records {
+    let error = match &records {
+        Some((dir, Err(e))) => Some((dir, e)),
+        Some((dir, Ok(r))) => r.incomplete().map(|e| (dir, e)),
+        None => None,
+    };
+    if let Some((dir, e)) = error {
         eprintln!("monitor: the report is the live view only: {e}");
         s.flight = Some(unusable(dir, e));
     }

@@ -320,6 +320,27 @@ pub struct FlightSummary {
     pub streams: Vec<StreamSummary>,
     /// Torques taken from the plant's record because the controller's had none.
     pub torques_from_plant: u64,
+    /// What the record lost to a machine crash or to damage (absent where nothing).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub lost: Option<LostSummary>,
+}
+
+/// What a run's record lost (`summary.json` `flight.lost`): to a crash of the machine (the
+/// rings on tmpfs gone: the ticks after the last durable journal frame) or to damage (a
+/// file skipped or read in part, named in the stream's `problems`).
+#[derive(Debug, Clone, Serialize)]
+pub struct LostSummary {
+    /// `machine crash`, `record damaged`, or `machine crash, record damaged`.
+    pub reason: &'static str,
+    /// The newest tick of the plant's states on disk (`None`: none).
+    pub last_tick_recorded: Option<u64>,
+    /// Ticks up to it with no state recorded, `[first, last]` (the first 16 ranges).
+    pub ticks: Vec<[u64; 2]>,
+    /// How many such ranges there are in all.
+    pub ranges: u64,
+    /// The run's ticks after it, `[first, last]`: lost with the crash where the run had
+    /// reached them, else never run (`None`: the record reaches the run's last tick).
+    pub after_last: Option<[u64; 2]>,
 }
 
 /// One stream's record.

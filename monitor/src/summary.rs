@@ -98,6 +98,18 @@ pub struct StageFigures {
 pub struct Flight {
     /// Their directory.
     pub dir: PathBuf,
+    /// What of the run the record lost (a machine crash, damage); absent: nothing.
+    #[serde(default)]
+    pub lost: Option<Lost>,
+}
+
+/// What of the run its record lost ([`crate::report::LostSummary`]).
+#[derive(Debug, Clone, Deserialize)]
+pub struct Lost {
+    /// `machine crash`, `record damaged`, or both.
+    pub reason: String,
+    /// The newest tick of the plant's states on disk.
+    pub last_tick_recorded: Option<u64>,
 }
 
 /// A fault the launcher saw (a row of `faults`).

@@ -33,6 +33,7 @@ use foxglove::messages::{FrameTransform, Log, Quaternion, Timestamp, Vector3};
 use glam::{DMat3, DQuat};
 use rotorloop_common::flight::{FlightLog, SPARE_SLOTS, Stream};
 use rotorloop_common::graph::Role;
+use rotorloop_common::role::UsageError;
 use rotorloop_common::wire::{
     FLAG_REALTIME, FLAG_SAFE_MODE, NO_TICK, ReferenceSample, StateSample, TorqueSample,
 };
@@ -159,7 +160,10 @@ impl Run {
         // summary the records' own geometry bounds them).
         let ticks = summary.as_ref().and_then(|s| s.ticks).unwrap_or(u64::MAX);
         let limit = ticks.saturating_add(SPARE_SLOTS);
-        let states = FlightLog::read(&flight, Stream::PlantState, limit).with_context(missing)?;
+        // Whatever of the records is sound; refused (exit 2) only where the states are
+        // missing or damaged in every file.
+        let states = FlightLog::read(&flight, Stream::PlantState, limit)
+            .map_err(|e| UsageError(format!("{}: {e}", missing())))?;
         let (trace, trace_columns) = TraceSource::open(dir)?;
         // Rows derived from the records read them as the export goes: its readers share
         // their blocks, so each is unpacked once (it was most of an overview's time).
@@ -172,8 +176,10 @@ impl Run {
             None => (
                 states,
                 FlightLog::read(&flight, Stream::ControllerTorque, limit).ok(),
-                FlightLog::read(&flight, Stream::PlantTorque, limit).with_context(missing)?,
-                FlightLog::read(&flight, Stream::Reference, limit).with_context(missing)?,
+                FlightLog::read(&flight, Stream::PlantTorque, limit)
+                    .unwrap_or_else(|e| FlightLog::unreadable(&e)),
+                FlightLog::read(&flight, Stream::Reference, limit)
+                    .unwrap_or_else(|e| FlightLog::unreadable(&e)),
             ),
         };
         let trace = trace.into();

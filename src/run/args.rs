@@ -68,6 +68,11 @@ pub struct RunArgs {
     /// and for tests that write into a record's slots.
     #[arg(long, hide = true)]
     pub raw_segments: bool,
+    /// No journal of the newest ticks (`OUT/flight/*.journal`, made durable every 200 ms):
+    /// a machine crash then loses what is on tmpfs. Only to measure what the journal costs
+    /// the loop (`bench --before-after journal`).
+    #[arg(long, hide = true)]
+    pub no_journal: bool,
     /// Do not sample each role's scheduling (`/proc/PID/schedstat`, its state, the steal
     /// time) into `OUT/sched.csv`: the incidents then lack the kernel's view. For
     /// measuring what the sampling costs (`bench --before-after sched`).
@@ -228,6 +233,7 @@ impl RunArgs {
             no_mcap: false,
             no_csv: false,
             raw_segments: false,
+            no_journal: false,
             force: false,
             no_sched_sample: false,
             no_gate: false,

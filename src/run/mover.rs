@@ -2,14 +2,17 @@
 //! every ring into `OUT/flight`: megabytes written to disk, which under writeback pressure
 //! wait seconds in the kernel (seen in the repeat harness: `folio_wait_bit`,
 //! `submit_bio_wait`). On the supervision loop that wait delayed the fault schedule, the
-//! restarts and the watchdog with it; here only the copy waits.
+//! restarts and the watchdog with it; here only the copy waits. The same thread journals
+//! the newest ticks of every stream into `OUT/flight` every
+//! [`rotorloop_common::flight::JOURNAL_PERIOD`] and makes them durable (a crash of the
+//! machine loses at most the last second: `common::flight::journal`).
 
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::thread::JoinHandle;
-use std::time::Duration;
+use std::time::{Duration, Instant};
 
-use rotorloop_common::flight::{Mover, free_through};
+use rotorloop_common::flight::{JOURNAL_PERIOD, Mover, free_through};
 
 /// How often the thread looks for a newer plant tick.
 const POLL: Duration = Duration::from_millis(20);
@@ -37,10 +40,19 @@ impl MoverThread {
         let (t, s, f) = (tick.clone(), stop.clone(), free.clone());
         let handle = std::thread::Builder::new().name("flight-mover".into()).spawn(move || {
             let mut moved_at = 0;
+            let mut journaled_at = Instant::now();
             loop {
                 // The stop is read before the tick: the pass after it sees the last tick.
                 let stopping = s.load(Ordering::Acquire);
                 let newest = t.load(Ordering::Acquire);
+                if newest > 0 && journaled_at.elapsed() >= JOURNAL_PERIOD {
+                    // The newest ticks onto the disk, durably (a machine crash loses at
+                    // most about this period).
+                    journaled_at = Instant::now();
+                    for e in mover.journal(newest - 1) {
+                        eprintln!("warning: flight records: {e}; the loop goes on");
+                    }
+                }
                 if newest > moved_at {
                     if let Some(d) = stall.filter(|_| moved_at == 0) {
                         std::thread::sleep(d);

@@ -19,7 +19,7 @@ use std::path::{Path, PathBuf};
 
 use anyhow::Context;
 use clap::Parser;
-use rotorloop_common::flight::RUN_DIR_FILE;
+use rotorloop_common::flight::{RUN_DIR_FILE, Stream};
 use rotorloop_common::ipc::domain::Domain;
 use rotorloop_common::role::args::RoleArgs;
 use rotorloop_common::scenario::Scenario;
@@ -64,6 +64,13 @@ impl LaunchRecord {
     /// Writes `out/launch.json`, and the run directory's name into the staging directory.
     pub fn write(&self, out: &Path) -> anyhow::Result<()> {
         rotorloop_common::output::write_json(&out.join(LAUNCH_FILE), self)?;
+        // Durable before anything runs: after a machine crash it is what `recover` starts
+        // from (seen: a crash 2 s into a run left it empty, ext4's delayed allocation).
+        let durable = std::fs::File::open(out.join(LAUNCH_FILE))
+            .and_then(|f| f.sync_all())
+            .and_then(|()| std::fs::File::open(out)?.sync_all());
+        durable
+            .with_context(|| format!("cannot make {} durable", out.join(LAUNCH_FILE).display()))?;
         if let Some(staging) = &self.staging {
             let out = std::fs::canonicalize(out).unwrap_or_else(|_| out.to_path_buf());
             crate::run::spawn::make_staging(staging)?;
@@ -152,6 +159,12 @@ pub fn run(dir: &Path) -> anyhow::Result<()> {
         }
     }
     let mut kept = dir.join("flight");
+    // A machine that went down takes tmpfs with it: the staging directory is gone, and the
+    // record is what reached `RUN_DIR/flight` (the segments and the journal of the newest
+    // ticks, made durable every `flight::JOURNAL_PERIOD`).
+    let machine_crash = launch.moved
+        && launch.staging.as_ref().is_some_and(|s| !s.is_dir())
+        && Stream::ALL.iter().all(|s| !s.path(&kept).exists());
     match &launch.staging {
         Some(staged) if !launch.moved => kept = staged.clone(),
         Some(staged) if staged.is_dir() && *staged != kept => {
@@ -175,17 +188,32 @@ pub fn run(dir: &Path) -> anyhow::Result<()> {
             dir.display()
         ))),
     }
+    // Whatever of the records is sound is read (a missing or damaged file is skipped and
+    // named); refused only where nothing is.
     let records = rotorloop_monitor::assemble::FlightRecords::read(&kept, scenario.ticks())
-        .with_context(|| format!("cannot read the flight records in {}", kept.display()))?;
+        .map_err(|e| {
+            UsageError(format!(
+                "{}: nothing of the flight records can be read ({e}): nothing to recover",
+                kept.display()
+            ))
+        })?;
     let how = (&scenario, &role, launch.csv);
     let summary = rotorloop_monitor::assemble::report(dir, &kept, &records, how, &hosts, None);
     let fallback = rotorloop_monitor::recording::fallback_dir(role.domain());
     rotorloop_monitor::report::write_summary(dir, &fallback, &summary)?;
     rotorloop_monitor::summary::patch(dir, |j| {
+        let why = if machine_crash {
+            "the machine went down during the run (its staging directory on tmpfs is gone): \
+             the report is of the record that reached the disk; no fault report, no memory \
+             figures"
+        } else {
+            "the launcher did not end normally: no fault report, no memory figures"
+        };
         j["recovered"] = serde_json::json!({
             "by": "rotorloop recover",
             "launcher_pid": launch.launcher_pid,
-            "why": "the launcher did not end normally: no fault report, no memory figures",
+            "why": why,
+            "machine_crash": machine_crash,
         });
     })?;
     crate::pipeline::finish(

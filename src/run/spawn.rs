@@ -246,15 +246,26 @@ impl Launch<'_> {
         Some(kept)
     }
 
-    /// The mover of the records' finished halves, when the rings are shorter than the run
-    /// and the records are the launcher's to move (see `common::flight`).
+    /// The mover of the records into `OUT/flight` while the run goes on, when the records
+    /// are the launcher's to move (see `common::flight`): the finished halves of rings
+    /// shorter than the run, and the journal of every stream's newest ticks.
     pub(crate) fn mover(&self) -> Option<rotorloop_common::flight::Mover> {
         use rotorloop_common::flight::{Mover, ring_capacity, ring_wraps};
         let staged = self.role_args.record.as_ref()?;
         let ring = ring_capacity(self.ticks, self.role_args.flight_ring_ticks);
-        (ring_wraps(self.ticks, ring) && self.args.role.record.is_none())
-            .then(|| Mover::new(staged, &self.args.out.join("flight")).with_half(ring / 2))
+        let mover = Mover::new(staged, &self.args.out.join("flight"));
+        let mover = if ring_wraps(self.ticks, ring) {
+            mover.with_half(ring / 2)
+        } else {
+            mover.whole_run()
+        };
+        self.args
+            .role
+            .record
+            .is_none()
+            .then_some(mover)
             .map(|m| if self.args.raw_segments { m.raw() } else { m })
+            .map(|m| if self.args.no_journal { m.without_journal() } else { m })
     }
 
     /// The domain as `role`'s host sees it.

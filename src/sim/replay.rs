@@ -44,12 +44,27 @@ pub struct ReplaySummary {
     pub run: String,
     /// Rows replayed.
     pub rows: u64,
-    /// Whether the replayed trace equals the run's, byte for byte.
+    /// Whether the replayed trace equals the run's, byte for byte (where the replay
+    /// [`stopped`](Self::stopped) at a hole of the record: its rows up to there).
     pub identical: bool,
     /// The first row (tick) that differs, if any.
     pub first_difference: Option<u64>,
     /// Ticks in which more torques took effect than `timing.csv` records (not replayable).
     pub unrecorded_effects: Vec<u64>,
+    /// The tick after which the replay stopped because the run has no record of what
+    /// happened next (a file of its record missing or damaged: its rows are missing),
+    /// and why; the rows before it are compared. Absent where it replayed every row.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub stopped: Option<Stopped>,
+}
+
+/// Where and why a replay stopped before the run's last row ([`ReplaySummary::stopped`]).
+#[derive(Debug, Clone, Serialize)]
+pub struct Stopped {
+    /// The last tick replayed.
+    pub after_tick: u64,
+    /// What was missing, in words.
+    pub why: String,
 }
 
 impl ReplaySummary {
@@ -275,6 +290,11 @@ impl Trace {
         let (u, tau) = self.recent.get(&j).copied().ok_or_else(|| {
             bad(dir, &format!("the torque of tick {j} took effect but its trace row is missing"))
         })?;
+        let used = if actuation == Actuation::Internal { u } else { tau };
+        if !used.is_finite() {
+            // The plant applies only finite torques: the record lost this one.
+            anyhow::bail!("the torque of tick {j} took effect but the record lost it");
+        }
         Ok(match actuation {
             Actuation::Internal => BodyInput { rotor_torque: u, body_torque: DVec3::ZERO },
             Actuation::External => BodyInput { rotor_torque: DVec3::ZERO, body_torque: tau },
@@ -305,12 +325,15 @@ impl Comparison {
         }
     }
 
-    /// The run's rows after the replay's last: each is a row the replay does not have.
-    /// Gives the run's rows in all (those skipped as out of order included).
-    fn finish(&mut self, mut run: Trace) -> u64 {
+    /// The run's rows after the replay's last: each is a row the replay does not have
+    /// (but where it `stopped` at a hole of the record: those are not compared). Gives
+    /// the run's rows in all (those skipped as out of order included).
+    fn finish(&mut self, mut run: Trace, stopped: bool) -> u64 {
         while let Some((t, _)) = run.rows.next_row() {
             run.taken += 1;
-            self.first.get_or_insert(t);
+            if !stopped {
+                self.first.get_or_insert(t);
+            }
         }
         run.taken + run.rows.skipped()
     }
@@ -376,12 +399,14 @@ pub fn run(dir: &Path, out: &Path, write_trace: bool) -> anyhow::Result<ReplaySu
         identical: true,
         first_difference: None,
         unrecorded_effects: Vec::new(),
+        stopped: None,
     };
     let mut work = 0.0;
     // A run that ended early (its launcher killed, then `rotorloop recover`) is replayed
     // up to its last recorded tick: the tick with no timing row after it (a timing.csv
     // without rows is refused at tick 1).
     let no_timing = timing.is_empty();
+    let lost = summary.flight.as_ref().and_then(|f| f.lost.as_ref()).map(|l| l.reason.as_str());
     for k in 0..=ticks {
         let t = k as f64 * dt;
         let x = body.state();
@@ -390,24 +415,60 @@ pub fn run(dir: &Path, out: &Path, write_trace: bool) -> anyhow::Result<ReplaySu
         let u_traced = if actuation == Actuation::Internal { u } else { DVec3::ZERO };
         let mut row = metrics.observe_work(k, t, &x, &rd, u_traced, tau, work);
         let last = k == ticks || (!no_timing && !timing.more_after(k));
+        if let Some(reason) = lost.filter(|_| last && k > 0 && k < ticks) {
+            // The record lost what came after tick k (its summary says so), the timing row
+            // of tick k + 1 among it: what took effect in tick k, and so its row's delay,
+            // is unknown. The rows before it are compared.
+            let why = format!("the record has no timing row after tick {k} ({reason})");
+            result.stopped = Some(Stopped { after_tick: k - 1, why });
+            break;
+        }
         if !last {
-            // What happened in tick k, as the state of tick k + 1 recorded it.
-            let next = timing
-                .row(k + 1)
-                .map_err(timing_err)?
-                .ok_or_else(|| bad(dir, &format!("timing.csv has no row for tick {}", k + 1)))?;
-            if next.flags & FLAG_SAFE_MODE != 0 {
-                line.clear();
+            // What happened in tick k, as the state of tick k + 1 recorded it. A run whose
+            // record lacks it (a file missing or damaged) is replayed up to here.
+            let next = timing.row(k + 1).map_err(timing_err)?;
+            let inputs: Result<Vec<_>, _> = next.as_ref().map_or(Ok(Vec::new()), |n| {
+                n.recorded()
+                    .iter()
+                    .map(|(s, o)| Ok((*s, *o, run_trace.input(dir, *s, actuation)?)))
+                    .collect::<anyhow::Result<Vec<_>>>()
+            });
+            match (next, inputs) {
+                (Some(next), Ok(inputs)) => {
+                    if next.flags & FLAG_SAFE_MODE != 0 {
+                        line.clear();
+                    }
+                    if next.effects > next.recorded().len() as u64 {
+                        result.unrecorded_effects.push(k);
+                    }
+                    for (source, offset, input) in inputs {
+                        line.schedule(k, offset, source, input);
+                    }
+                    let step =
+                        integrate_tick(&mut body, &mut line, k, &limits, scenario.disturbance);
+                    work = step.work;
+                    row.delay_s = step.effects.first_delay_s(k, dt);
+                }
+                (None, _) if no_timing => {
+                    // Nothing of the run's timing: nothing to replay.
+                    return Err(bad(dir, "timing.csv has no row for tick 1").into());
+                }
+                (next, inputs) => {
+                    let why = match (next, inputs) {
+                        (None, _) => format!("timing.csv has no row for tick {}", k + 1),
+                        (_, Err(e)) => format!("{e:#}"),
+                        _ => String::new(),
+                    };
+                    // Row k's delay (what took effect in tick k) is unknown too: the rows
+                    // before it are compared.
+                    let Some(after_tick) = k.checked_sub(1) else {
+                        return Err(bad(dir, &format!("nothing to replay: {why}")).into());
+                    };
+                    eprintln!("replay: stopped after tick {after_tick}: {why}");
+                    result.stopped = Some(Stopped { after_tick, why });
+                    break;
+                }
             }
-            if next.effects > next.recorded().len() as u64 {
-                result.unrecorded_effects.push(k);
-            }
-            for (source, offset) in next.recorded() {
-                line.schedule(k, *offset, *source, run_trace.input(dir, *source, actuation)?);
-            }
-            let step = integrate_tick(&mut body, &mut line, k, &limits, scenario.disturbance);
-            work = step.work;
-            row.delay_s = step.effects.first_delay_s(k, dt);
         }
         reference.step(t, dt);
         written.clear();
@@ -424,9 +485,12 @@ pub fn run(dir: &Path, out: &Path, write_trace: bool) -> anyhow::Result<ReplaySu
     }
     file.flush()?;
     drop((file, timing));
-    let rows = compared.finish(run_trace);
+    let rows = compared.finish(run_trace, result.stopped.is_some());
     result.first_difference = compared.first;
-    result.identical = compared.first.is_none() && result.rows == rows;
+    // A replay that stopped at a hole of the record compares the rows before it. A trace
+    // short of rows otherwise is not the run's.
+    result.identical =
+        compared.first.is_none() && (result.rows == rows || result.stopped.is_some());
     let text = serde_json::to_string_pretty(&result)?;
     rotorloop_common::outdir::write_file(&out.join("replay.json"), text + "\n")
         .with_context(|| format!("cannot write {}", out.display()))?;

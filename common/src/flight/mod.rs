@@ -40,8 +40,10 @@ use iceoryx2::prelude::ZeroCopySend;
 
 use crate::wire::{LAYOUT_VERSION, ReferenceSample, StateSample, TorqueSample};
 
+mod journal;
 mod pack;
 mod read;
+pub use journal::{JOURNAL_PERIOD, journal_path, journals};
 pub use read::{FlightLog, StreamCount};
 
 const MAGIC: u64 = 0x7468_6769_6c66_6c72; // "rlflight"
@@ -114,7 +116,9 @@ pub const RUN_DIR_FILE: &str = "run-dir";
 /// move cut short leaves each record whole in one of the two), then removes `from` with
 /// its [`RUN_DIR_FILE`]. Returns how many files it moved. Where `packed`, each ring
 /// (`STREAM.flight`) is packed as it is moved, as the segments are (`pack.rs`: a quarter of
-/// its bytes); one that cannot be is moved raw.
+/// its bytes); one that cannot be is moved raw. Each moved file is made durable
+/// (`fdatasync`, then the directory's `fsync`), and then the journals of `to`
+/// ([`journal`]), whose ticks the rings hold, are removed.
 pub fn move_records(from: &Path, to: &Path, packed: bool) -> std::io::Result<usize> {
     std::fs::create_dir_all(to)?;
     let mut moved = 0;
@@ -135,6 +139,15 @@ pub fn move_records(from: &Path, to: &Path, packed: bool) -> std::io::Result<usi
             std::fs::remove_file(&path)?;
         }
         moved += 1;
+        // Durable before the journal of its newest ticks goes (below).
+        std::fs::File::open(&dest)?.sync_data()?;
+    }
+    journal::sync_dir(to)?;
+    // The rings moved hold every tick the journals held, and are durable now.
+    for stream in Stream::ALL {
+        for (_, journal) in journals(to, stream) {
+            std::fs::remove_file(journal)?;
+        }
     }
     let _ = std::fs::remove_file(from.join(RUN_DIR_FILE));
     std::fs::remove_dir(from)?;
@@ -513,6 +526,27 @@ pub struct Mover {
     pub half: Option<u64>,
     /// Whether segments are packed ([`pack`]; raw only to measure what packing costs).
     packed: bool,
+    /// Whether the rings come round and their halves are moved (else the rings are the
+    /// whole run's and only journaled).
+    halves: bool,
+    /// Per stream, the first tick the next journal frame writes ([`journal`]).
+    jnext: [u64; 4],
+    /// The journal files open to append to: stream index, half, file, whether written since
+    /// they were last made durable.
+    jfiles: Vec<(usize, u64, std::fs::File, bool)>,
+    /// Segments written since the last time they were made durable: stream index, half,
+    /// file.
+    unsynced: Vec<(usize, u64, std::fs::File)>,
+    /// Whether a file was made or renamed in the run directory since its last `fsync`.
+    dir_dirty: bool,
+    /// Whether the journal's last attempt failed (said once, until it works again).
+    journal_failing: bool,
+    /// Whether it journals at all (not only to measure what the journal costs).
+    journaling: bool,
+    /// Journal frames written.
+    pub frames: u64,
+    /// Bytes of journal frames written.
+    pub journal_bytes: u64,
 }
 
 impl Mover {
@@ -530,7 +564,28 @@ impl Mover {
             moved: None,
             half: None,
             packed: true,
+            halves: true,
+            jnext: [0; 4],
+            jfiles: Vec::new(),
+            unsynced: Vec::new(),
+            dir_dirty: false,
+            journal_failing: false,
+            journaling: true,
+            frames: 0,
+            journal_bytes: 0,
         }
+    }
+
+    /// The mover that keeps no journal (`run --no-journal`: to measure what the journal
+    /// costs the loop).
+    pub fn without_journal(self) -> Self {
+        Self { journaling: false, ..self }
+    }
+
+    /// The mover of rings that hold the whole run (they never come round): it moves no
+    /// half, and only journals the newest ticks ([`Mover::journal`]).
+    pub fn whole_run(self) -> Self {
+        Self { halves: false, ..self }
     }
 
     /// The mover that writes raw segments instead of packed ones (`run --raw-segments`:
@@ -561,7 +616,7 @@ impl Mover {
     /// lockstep run). Then it tells the plant how far it got (header word 6 of its state ring).
     pub fn pass(&mut self, plant_tick: u64) -> Vec<String> {
         let mut errors = Vec::new();
-        if plant_tick < self.due_at {
+        if !self.halves || plant_tick < self.due_at {
             return errors;
         }
         let mut read = Vec::new();
@@ -600,12 +655,22 @@ impl Mover {
                 })
                 .flatten()
                 .map(|((s, ..), _)| *s);
-            let done = self.write_segment(*stream, *j, bytes, same);
-            if let Err(e) = &done {
-                errors.push(format!("{}: {e}", segment_path(&self.kept, *stream, *j).display()));
-            }
-            self.segments += u64::from(done.is_ok());
-            written.push(done.is_ok());
+            let done = match self.write_segment(*stream, *j, bytes, same) {
+                Ok(file) => {
+                    // Made durable with the next journal frames (`make_durable`).
+                    let n = Stream::ALL.iter().position(|s| s == stream).unwrap_or(0);
+                    self.unsynced.push((n, *j, file));
+                    self.dir_dirty = true;
+                    true
+                }
+                Err(e) => {
+                    let path = segment_path(&self.kept, *stream, *j);
+                    errors.push(format!("{}: {e}", path.display()));
+                    false
+                }
+            };
+            self.segments += u64::from(done);
+            written.push(done);
         }
         // Nothing is due before the lowest next half is (a ring's size is known once read).
         if let Some(h) = self.half {
@@ -617,6 +682,13 @@ impl Mover {
         }
         if let Some(m) = &self.moved {
             m.store(self.copied());
+        }
+        // Many small segments (lockstep's small rings): durable now, not hundreds of open
+        // files until the next journal frames.
+        if self.unsynced.len() > 64
+            && let Err(e) = self.make_durable()
+        {
+            errors.push(format!("{}: making the record durable: {e}", self.kept.display()));
         }
         errors
     }
@@ -663,7 +735,7 @@ impl Mover {
         j: u64,
         bytes: &[u8],
         same: Option<Stream>,
-    ) -> std::io::Result<()> {
+    ) -> std::io::Result<std::fs::File> {
         std::fs::create_dir_all(&self.kept)?;
         let path = segment_path(&self.kept, stream, j);
         let part = path.with_extension("part");
@@ -689,8 +761,135 @@ impl Mover {
             }
             (None, false) => None,
         };
-        std::fs::write(&part, packed.as_deref().unwrap_or(bytes))?;
-        std::fs::rename(&part, &path)
+        let mut file = journal::create_private(&part)?;
+        std::io::Write::write_all(&mut file, packed.as_deref().unwrap_or(bytes))?;
+        std::fs::rename(&part, &path)?;
+        Ok(file)
+    }
+
+    /// Journals the newest ticks of every stream (those past its last segment, since the
+    /// last frame, and the last few of that frame again) and makes what was written since
+    /// the last call durable: the frames, the segments the passes wrote ([`journal`]
+    /// module docs). The mover's thread calls it every [`JOURNAL_PERIOD`], `plant_tick`
+    /// the plant's newest tick. Returns what went wrong, in words (once, until it works
+    /// again).
+    pub fn journal(&mut self, plant_tick: u64) -> Vec<String> {
+        let mut errors = Vec::new();
+        if !self.journaling {
+            return errors;
+        }
+        for (n, stream) in Stream::ALL.into_iter().enumerate() {
+            if let Err(e) = self.journal_stream(n, stream, plant_tick) {
+                errors.push(format!("{} (journal): {e}", stream.path(&self.staged).display()));
+            }
+        }
+        if let Err(e) = self.make_durable() {
+            errors.push(format!("{}: making the record durable: {e}", self.kept.display()));
+        }
+        let failing = !errors.is_empty();
+        if std::mem::replace(&mut self.journal_failing, failing) {
+            errors.clear(); // said already
+        }
+        errors
+    }
+
+    /// Appends a frame of `stream`'s newest ticks to its journal (module docs of
+    /// [`journal`]).
+    fn journal_stream(&mut self, n: usize, stream: Stream, plant_tick: u64) -> std::io::Result<()> {
+        let Ok(ring) = std::fs::File::open(stream.path(&self.staged)) else { return Ok(()) };
+        let Ok((header, w)) = read_header(&ring) else { return Ok(()) };
+        let (capacity, slot) = (w[word::CAPACITY], journal::slot_of(w[word::SIZE]));
+        let whole = HEADER as u128 + u128::from(capacity) * slot as u128;
+        if w[word::MAGIC] != MAGIC || capacity < 2 || u128::from(ring.metadata()?.len()) != whole {
+            return Ok(()); // no ring being written (yet)
+        }
+        let half = if self.halves { capacity / 2 } else { u64::MAX };
+        let past_segments = if self.halves { self.next[n].saturating_mul(half) } else { 0 };
+        let to = plant_tick.saturating_add(SPARE_SLOTS);
+        // Ticks older than a round are the ring's no more.
+        let from = self.jnext[n].max(past_segments).max((to + 1).saturating_sub(capacity));
+        let mut k = from;
+        while k <= to {
+            // A frame lies in one half's journal, and holds 16 384 slots at most.
+            let j = k / half;
+            let end = to.min(j.saturating_add(1).saturating_mul(half) - 1).min(k + 16_383);
+            let Some(mut body) = journal::read_ticks(&ring, (capacity, slot), k, end) else {
+                return Err(std::io::Error::other("cannot read the ring"));
+            };
+            let held = body.chunks_exact(slot).rposition(|s| s[..8] != [0; 8]);
+            if let Some(last) = held {
+                body.truncate((last + 1) * slot);
+                let bytes = journal::frame(&header, k, &body, slot)?;
+                self.append(n, stream, if self.halves { j } else { 0 }, &bytes)?;
+            }
+            k = end + 1;
+        }
+        self.jnext[n] = from.max(plant_tick.saturating_sub(journal::OVERLAP));
+        Ok(())
+    }
+
+    /// Appends `bytes` to the journal of half `j` of `stream`: whole, or not at all (a
+    /// failed write is cut off again, so the frames after it stay readable).
+    fn append(&mut self, n: usize, stream: Stream, j: u64, bytes: &[u8]) -> std::io::Result<()> {
+        let at = match self.jfiles.iter().position(|(i, h, ..)| (*i, *h) == (n, j)) {
+            Some(at) => at,
+            None => {
+                std::fs::create_dir_all(&self.kept)?;
+                let (file, made) =
+                    journal::open_private_append(&journal_path(&self.kept, stream, j))?;
+                self.dir_dirty |= made;
+                self.jfiles.push((n, j, file, false));
+                self.jfiles.len() - 1
+            }
+        };
+        let (_, _, file, dirty) = &mut self.jfiles[at];
+        let len = file.metadata()?.len();
+        if let Err(e) = std::io::Write::write_all(file, bytes) {
+            let _ = file.set_len(len);
+            return Err(e);
+        }
+        *dirty = true;
+        self.frames += 1;
+        self.journal_bytes += bytes.len() as u64;
+        Ok(())
+    }
+
+    /// Makes durable what was written since the last call (`fdatasync` of each file, one
+    /// `syncfs` where they are many; the directory's `fsync` where a file was made or
+    /// renamed), then removes the journal of every half whose segment is durable now.
+    fn make_durable(&mut self) -> std::io::Result<()> {
+        let dirty = self.jfiles.iter().filter(|f| f.3).count() + self.unsynced.len();
+        if dirty > 16 {
+            let dir = std::fs::File::open(&self.kept)?;
+            // SAFETY: a plain system call on an open descriptor.
+            if unsafe { libc::syncfs(dir.as_raw_fd()) } != 0 {
+                return Err(std::io::Error::last_os_error());
+            }
+        } else {
+            for (_, _, file, _) in self.jfiles.iter().filter(|f| f.3) {
+                file.sync_data()?;
+            }
+            for (.., file) in &self.unsynced {
+                file.sync_data()?;
+            }
+        }
+        self.jfiles.iter_mut().for_each(|f| f.3 = false);
+        if std::mem::take(&mut self.dir_dirty) {
+            journal::sync_dir(&self.kept)?;
+            // The run directory's entry of `flight/` itself (made by the first file).
+            if let Some(run_dir) = self.kept.parent() {
+                journal::sync_dir(run_dir)?;
+            }
+        }
+        for (n, j, _) in std::mem::take(&mut self.unsynced) {
+            self.jfiles.retain(|(i, h, ..)| (*i, *h) != (n, j));
+            let path = journal_path(&self.kept, Stream::ALL[n], j);
+            match std::fs::remove_file(&path) {
+                Err(e) if e.kind() != std::io::ErrorKind::NotFound => return Err(e),
+                _ => {}
+            }
+        }
+        Ok(())
     }
 }
 

@@ -24,6 +24,7 @@ use std::os::unix::fs::FileExt;
 use std::path::{Path, PathBuf};
 use std::rc::Rc;
 
+use super::journal::{journals, read_frames};
 use super::pack::{CHUNK_SLOTS, chunk_table, unpack, unpack_ticks};
 use super::{
     FlightError, HEADER, MAGIC, PACKED_MAGIC, Record, SAME_MAGIC, SPARE_SLOTS, Stream, read_header,
@@ -102,6 +103,9 @@ pub struct FlightLog<T: Record> {
     ring: Option<Source>,
     /// The segments that are sound, by half index, in order.
     segments: Vec<(u64, Source)>,
+    /// The journal's frames that are sound, by first tick, in the order written
+    /// ([`super::journal`]): the newest ticks of a run whose ring is gone.
+    frames: Vec<(u64, Source)>,
     /// Ticks per segment.
     half: u64,
     /// Samples held in memory instead of files ([`FlightLog::of`]).
@@ -120,6 +124,10 @@ pub struct FlightLog<T: Record> {
     pub problems: Vec<String>,
     /// Problems beyond those.
     pub more_problems: u64,
+    /// Whether the ring was missing (a machine crash takes tmpfs with it).
+    pub no_ring: bool,
+    /// Whether a file of the record was skipped, or read only in part, as damaged.
+    pub damaged: bool,
     /// The blocks kept: shared with the readers made by [`FlightLog::shared`].
     cache: Rc<RefCell<Cache>>,
 }
@@ -208,6 +216,7 @@ impl<T: Record> FlightLog<T> {
         Self {
             ring: self.ring.clone(),
             segments: self.segments.clone(),
+            frames: self.frames.clone(),
             half: self.half,
             memory: self.memory.clone(),
             limit: self.limit,
@@ -217,40 +226,68 @@ impl<T: Record> FlightLog<T> {
             beyond: self.beyond,
             problems: self.problems.clone(),
             more_problems: self.more_problems,
+            no_ring: self.no_ring,
+            damaged: self.damaged,
             cache: Rc::clone(&self.cache),
         }
     }
 
-    /// Opens `stream`'s record in `dir` (the ring and the segments the launcher moved
-    /// there during the run) for a run whose ticks end at `limit` (the scenario's last
-    /// tick and the spare slots: a later tick is not the run's). The ring must be sound;
-    /// a segment that is not is skipped and named in [`Self::problems`].
+    /// Opens `stream`'s record in `dir` (the ring, the segments the launcher moved there
+    /// during the run, and the journal of the newest ticks) for a run whose ticks end at
+    /// `limit` (the scenario's last tick and the spare slots: a later tick is not the
+    /// run's). Whatever of it is sound is read: a ring, a segment or a journal frame that is
+    /// missing, torn or foreign is skipped and named in [`Self::problems`], its ticks read
+    /// as missing. An error only where nothing of the stream is sound (the ring's error).
     pub fn read(dir: &Path, stream: Stream, limit: u64) -> Result<Self, FlightError> {
-        let (w, ring) = check_header::<T>(&stream.path(dir))?;
-        if ring.same_as.is_some() {
-            return Err(FlightError::Foreign {
+        let mut log = Self::empty();
+        log.limit = limit;
+        let ring = check_header::<T>(&stream.path(dir)).and_then(|(w, ring)| match ring.same_as {
+            Some(_) => Err(FlightError::Foreign {
                 path: ring.path.display().to_string(),
                 why: "a ring naming another stream's segment (damaged)".into(),
-            });
-        }
-        let capacity = ring.capacity;
-        let mut log = Self {
-            ring: Some(ring),
-            opens: w[word::OPENS],
-            beyond: w[word::BEYOND],
-            ..Self::empty()
+            }),
+            None => Ok((w, ring)),
+        });
+        let ring_error = match ring {
+            Ok((w, ring)) => {
+                (log.opens, log.beyond) = (w[word::OPENS], w[word::BEYOND]);
+                log.half = if ring.capacity % 2 == 0 { ring.capacity / 2 } else { 0 };
+                log.ring = Some(ring);
+                None
+            }
+            Err(e) => Some(e),
         };
-        log.limit = limit;
-        log.half = if capacity % 2 == 0 { capacity / 2 } else { 0 };
         log.open_segments(dir, stream);
+        log.open_journal(dir, stream);
+        let Some(e) = ring_error else {
+            log.bound_and_find_last();
+            return Ok(log);
+        };
+        if log.segments.is_empty() && log.frames.is_empty() {
+            return Err(e);
+        }
+        log.no_ring = matches!(e, FlightError::Missing { .. });
+        log.damaged |= !log.no_ring;
+        log.problem(format!(
+            "{e}: skipped; the stream is read from its segments and its journal, the ticks \
+             they do not hold read as missing"
+        ));
+        log.bound_and_find_last();
+        Ok(log)
+    }
+
+    /// Bounds the run's ticks by the record's own geometry, then finds its newest tick.
+    fn bound_and_find_last(&mut self) {
         // Whatever a run's files claim, its ring holds no tick beyond two rounds past the
         // last segment moved out of it (the writers end with the mover): a bound that
         // needs no file but the records themselves.
-        let after = log.segments.last().map_or(0, |(j, _)| j + 1);
-        let bound = after.saturating_add(2).saturating_mul(capacity).saturating_add(SPARE_SLOTS);
-        log.limit = log.limit.min(bound);
-        log.last = log.find_last();
-        Ok(log)
+        let capacity = self.ring.as_ref().map_or(2 * self.half, |r| r.capacity);
+        if capacity > 0 {
+            let after = self.segments.last().map_or(0, |(j, _)| j + 1);
+            let rounds = after.saturating_add(2).saturating_mul(capacity);
+            self.limit = self.limit.min(rounds.saturating_add(SPARE_SLOTS));
+        }
+        self.last = self.find_last();
     }
 
     /// The same reader keeping up to `blocks` blocks within `bytes` (at least the
@@ -273,6 +310,7 @@ impl<T: Record> FlightLog<T> {
         Self {
             ring: None,
             segments: Vec::new(),
+            frames: Vec::new(),
             half: 0,
             memory: Vec::new(),
             limit: u64::MAX,
@@ -282,8 +320,28 @@ impl<T: Record> FlightLog<T> {
             beyond: 0,
             problems: Vec::new(),
             more_problems: 0,
+            no_ring: false,
+            damaged: false,
             cache: Rc::default(),
         }
+    }
+
+    /// A stream whose record could not be read at all (`e` says why): no sample, the
+    /// problem named.
+    pub fn unreadable(e: &FlightError) -> Self {
+        let mut log = Self::empty();
+        log.no_ring = matches!(e, FlightError::Missing { .. });
+        log.damaged = !log.no_ring;
+        log.problem(format!("{e}: nothing of this stream is read"));
+        log
+    }
+
+    /// Whether any sample of the stream could be read (a ring, a segment or a frame).
+    pub fn is_sound(&self) -> bool {
+        self.ring.is_some()
+            || !self.segments.is_empty()
+            || !self.frames.is_empty()
+            || !self.memory.is_empty()
     }
 
     /// A stream of the samples `records`, tick `k` at index `k`, held in memory (tests;
@@ -334,6 +392,7 @@ impl<T: Record> FlightLog<T> {
             let source = match check_header::<T>(&path).and_then(|(_, s)| same::<T>(s, j)) {
                 Ok(source) => source,
                 Err(e) => {
+                    self.damaged = true;
                     self.problem(format!("{e}: skipped, its ticks read as missing"));
                     continue;
                 }
@@ -343,6 +402,7 @@ impl<T: Record> FlightLog<T> {
                 self.half = capacity;
             }
             if capacity != self.half {
+                self.damaged = true;
                 self.problem(format!(
                     "{}: segment of {capacity} ticks where the ring's halves hold {}: skipped",
                     path.display(),
@@ -362,6 +422,32 @@ impl<T: Record> FlightLog<T> {
                 continue; // the same half in the staging directory and the run directory
             }
             self.segments.push((j, source));
+        }
+    }
+
+    /// Reads the frames of the stream's journal files ([`super::journal`]): each file is
+    /// read up to its first frame that does not fit (a crash while it was appended), named.
+    fn open_journal(&mut self, dir: &Path, stream: Stream) {
+        for (_, path) in journals(dir, stream) {
+            let (frames, stop) = read_frames(&path, size_of::<T>() as u64);
+            for f in frames {
+                let source = Source {
+                    path: path.clone(),
+                    capacity: f.slots,
+                    chunks: Some(f.chunks),
+                    same_as: None,
+                };
+                if self.ring.is_none() && self.frames.is_empty() && self.segments.is_empty() {
+                    (self.opens, self.beyond) = (f.words[word::OPENS], f.words[word::BEYOND]);
+                }
+                if self.ring.is_none() {
+                    self.opens = self.opens.max(f.words[word::OPENS]);
+                }
+                self.frames.push((f.first, source));
+            }
+            if let Some(why) = stop {
+                self.problem(why);
+            }
         }
     }
 
@@ -400,6 +486,22 @@ impl<T: Record> FlightLog<T> {
                 }
             });
             if newest.is_some() {
+                last = last.max(newest);
+                break;
+            }
+        }
+        if self.ring.is_some() {
+            return last; // the journal holds nothing newer than the ring
+        }
+        // The journal's frames, newest first: the first that holds a tick holds the newest.
+        for (first, frame) in self.frames.iter().rev() {
+            let mut newest = None;
+            scan::<T>(frame, |slot, k, _| {
+                if k == first + slot && k <= self.limit {
+                    newest = newest.max(Some(k));
+                }
+            });
+            if newest.is_some() {
                 return last.max(newest);
             }
         }
@@ -429,20 +531,27 @@ impl<T: Record> FlightLog<T> {
         if k > self.limit || self.last.is_none_or(|l| k > l) {
             return None;
         }
-        let Some(ring) = self.ring.as_ref() else {
+        if self.ring.is_none() && self.segments.is_empty() && self.frames.is_empty() {
             return in_memory(self.memory.get(usize::try_from(k).ok()?).copied().flatten());
-        };
-        if k >= self.ring_first
+        }
+        if let Some(ring) = &self.ring
+            && k >= self.ring_first
             && let Some(r) = probe(0, ring, k % ring.capacity)
         {
             return Some(r);
         }
-        if self.half == 0 {
-            return None;
+        if let Some(j) = k.checked_div(self.half)
+            && let Ok(i) = self.segments.binary_search_by_key(&j, |(j, _)| *j)
+            && let Some(r) = probe(i + 1, &self.segments[i].1, k % self.half)
+        {
+            return Some(r);
         }
-        let j = k / self.half;
-        let i = self.segments.binary_search_by_key(&j, |(j, _)| *j).ok()?;
-        probe(i + 1, &self.segments[i].1, k % self.half)
+        // The journal's newest frame that holds the tick (frames are few: a second's each).
+        let base = 1 + self.segments.len();
+        self.frames.iter().enumerate().rev().find_map(|(i, (first, frame))| {
+            let slot = k.checked_sub(*first).filter(|s| *s < frame.capacity)?;
+            probe(base + i, frame, slot)
+        })
     }
 
     /// The sample in `slot` of `source` if it is tick `k`'s.

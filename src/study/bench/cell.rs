@@ -32,6 +32,9 @@ pub enum BeforeAfter {
     /// The plant's tick loop without and with the lockstep fault gate's check (`run
     /// --no-gate` before): one comparison of two integers a tick, in real time too.
     Gate,
+    /// Without and with the journal of the newest ticks, made durable every 200 ms
+    /// (`run --no-journal` before).
+    Journal,
 }
 
 /// `rotorloop bench` arguments.
@@ -97,7 +100,8 @@ pub struct BenchArgs {
     /// its overhead was cut (`run --plain-hot-path`, `loop-plain` rows) and after; `pack`
     /// rings of 4096 ticks moved raw (`run --raw-segments`, `loop-raw` rows) and packed
     /// (`loop-packed` rows); `gate` the plant's tick loop without the lockstep fault
-    /// gate's check (`loop-nogate` rows) and with it.
+    /// gate's check (`loop-nogate` rows) and with it; `journal` without the durable
+    /// journal of the newest ticks (`run --no-journal`, `loop-nojournal` rows) and with it.
     #[arg(long, num_args = 0..=1, default_missing_value = "record", value_name = "CHANGE")]
     pub before_after: Option<BeforeAfter>,
     /// With `--before-after`: measure before and after this many times each, alternating

@@ -89,6 +89,7 @@ pub(super) fn sides(change: BeforeAfter) -> (Variant, Variant) {
         BeforeAfter::HotPath => (Variant::PlainHotPath, Variant::Loop),
         BeforeAfter::Pack => (Variant::RawSegments, Variant::Packed),
         BeforeAfter::Gate => (Variant::NoGate, Variant::Loop),
+        BeforeAfter::Journal => (Variant::NoJournal, Variant::Loop),
     }
 }
 
@@ -148,6 +149,8 @@ pub(super) enum Variant {
     RawSegments,
     /// With `--no-gate`: the plant's tick loop before the lockstep fault gate.
     NoGate,
+    /// With `--no-journal`: the loop before the durable journal of the newest ticks.
+    NoJournal,
     /// With the second law (`--controllers mrp-pid`).
     MrpPid,
     /// With the Python example controller (`--controllers python`).
@@ -169,6 +172,7 @@ impl Variant {
             Variant::Packed => "loop-packed",
             Variant::RawSegments => "loop-raw",
             Variant::NoGate => "loop-nogate",
+            Variant::NoJournal => "loop-nojournal",
             Variant::MrpPid => "loop-mrp-pid",
             Variant::Python => "loop-python",
             Variant::C => "loop-c",
@@ -259,6 +263,7 @@ pub(super) fn measure_loop(
         Variant::Packed => "k",
         Variant::RawSegments => "r",
         Variant::NoGate => "g",
+        Variant::NoJournal => "j",
         Variant::MrpPid => "m",
         Variant::Python => "p",
         Variant::C => "c",
@@ -272,6 +277,7 @@ pub(super) fn measure_loop(
     run.trace_sched = variant == Variant::TraceSched;
     run.role.plain_hot_path = variant == Variant::PlainHotPath;
     run.no_gate = variant == Variant::NoGate;
+    run.no_journal = variant == Variant::NoJournal;
     if matches!(variant, Variant::Packed | Variant::RawSegments) {
         run.role.flight_ring_ticks = PACK_RING;
         run.raw_segments = variant == Variant::RawSegments;

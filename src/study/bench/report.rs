@@ -282,6 +282,11 @@ fn described(change: super::cell::BeforeAfter) -> &'static str {
              --no-gate`, compiled without it); after: with it (the default: one comparison of \
              two integers a tick)."
         }
+        BeforeAfter::Journal => {
+            "Before: the loop without the journal of the newest ticks (`run --no-journal`); \
+             after: with it (the default: every stream's newest ticks appended to \
+             `OUT/flight/*.journal` and made durable every 200 ms)."
+        }
     }
 }
 
