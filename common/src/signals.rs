@@ -35,8 +35,7 @@ fn away_from_a_hung_up_terminal() {
         let mut null = -1;
         for fd in 0..3 {
             let mut t: libc::termios = std::mem::zeroed();
-            if libc::ioctl(fd, libc::TCGETS, &mut t) == 0
-                || *libc::__errno_location() != libc::EIO
+            if libc::ioctl(fd, libc::TCGETS, &mut t) == 0 || *libc::__errno_location() != libc::EIO
             {
                 continue;
             }

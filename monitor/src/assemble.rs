@@ -201,15 +201,16 @@ impl FlightRecords {
         // (the rings were on tmpfs). One ring gone among others is damage.
         let logs = [self.states.no_ring, self.received.no_ring, self.references.no_ring];
         let crash = logs.iter().all(|n| *n);
-        let flags = [
-            (self.states.damaged, self.states.no_ring),
-            (self.received.damaged, self.received.no_ring),
-            (self.references.damaged, self.references.no_ring),
-        ];
+        // So is the newest segment torn or empty: what the crash did to the one being
+        // written (the journal holds its ticks), damage where the machine did not crash.
+        let s = &self.states;
+        let (r, f) = (&self.received, &self.references);
+        let flags = [(s.damaged, s.no_ring, s.torn_last), (r.damaged, r.no_ring, r.torn_last)];
         let damaged = flags
             .into_iter()
-            .chain(self.torques.iter().map(|t| (t.damaged, t.no_ring)))
-            .any(|(d, n)| d || (n && !crash));
+            .chain([(f.damaged, f.no_ring, f.torn_last)])
+            .chain(self.torques.iter().map(|t| (t.damaged, t.no_ring, t.torn_last)))
+            .any(|(d, n, t)| d || ((n || t) && !crash));
         if !crash && !damaged {
             return None;
         }

@@ -126,8 +126,13 @@ pub struct FlightLog<T: Record> {
     pub more_problems: u64,
     /// Whether the ring was missing (a machine crash takes tmpfs with it).
     pub no_ring: bool,
-    /// Whether a file of the record was skipped, or read only in part, as damaged.
+    /// Whether a file of the record was skipped, or read only in part, as damaged (but
+    /// for [`Self::torn_last`]).
     pub damaged: bool,
+    /// Whether the newest segment was skipped as torn or empty: what a crash of the
+    /// machine leaves of the segment being written (its data not yet durable), damage
+    /// otherwise.
+    pub torn_last: bool,
     /// The blocks kept: shared with the readers made by [`FlightLog::shared`].
     cache: Rc<RefCell<Cache>>,
 }
@@ -228,6 +233,7 @@ impl<T: Record> FlightLog<T> {
             more_problems: self.more_problems,
             no_ring: self.no_ring,
             damaged: self.damaged,
+            torn_last: self.torn_last,
             cache: Rc::clone(&self.cache),
         }
     }
@@ -322,6 +328,7 @@ impl<T: Record> FlightLog<T> {
             more_problems: 0,
             no_ring: false,
             damaged: false,
+            torn_last: false,
             cache: Rc::default(),
         }
     }
@@ -382,7 +389,9 @@ impl<T: Record> FlightLog<T> {
     /// ones are kept, the others named.
     fn open_segments(&mut self, dir: &Path, stream: Stream) {
         let prefix = format!("{}.", stream.name());
-        for path in segments(dir, stream) {
+        let paths = segments(dir, stream);
+        let newest = paths.last().cloned();
+        for path in paths {
             let name = path.file_name().map(|n| n.to_string_lossy().into_owned());
             let Some(j) = name.as_deref().and_then(|n| {
                 n.strip_prefix(&prefix)?.strip_suffix(".flight")?.parse::<u64>().ok()
@@ -392,7 +401,11 @@ impl<T: Record> FlightLog<T> {
             let source = match check_header::<T>(&path).and_then(|(_, s)| same::<T>(s, j)) {
                 Ok(source) => source,
                 Err(e) => {
-                    self.damaged = true;
+                    if Some(&path) == newest.as_ref() {
+                        self.torn_last = true;
+                    } else {
+                        self.damaged = true;
+                    }
                     self.problem(format!("{e}: skipped, its ticks read as missing"));
                     continue;
                 }
