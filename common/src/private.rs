@@ -49,6 +49,20 @@ impl PrivateError {
     }
 }
 
+/// Maps `len` bytes of `file` shared, to read and write (`flags`: `MAP_` flags beside
+/// `MAP_SHARED`); the system's error where it cannot.
+pub fn map_shared(file: &File, len: usize, flags: libc::c_int) -> std::io::Result<*mut u8> {
+    use std::os::fd::AsRawFd;
+    let (prot, fd) = (libc::PROT_READ | libc::PROT_WRITE, file.as_raw_fd());
+    // SAFETY: a new mapping of an open descriptor; the kernel checks the length and mode.
+    let map =
+        unsafe { libc::mmap(std::ptr::null_mut(), len, prot, libc::MAP_SHARED | flags, fd, 0) };
+    match map == libc::MAP_FAILED {
+        true => Err(std::io::Error::last_os_error()),
+        false => Ok(map.cast()),
+    }
+}
+
 /// The effective user id of this process.
 pub fn euid() -> u32 {
     // SAFETY: a plain getter.

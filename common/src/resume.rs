@@ -9,7 +9,6 @@
 //! and an atomic store, no system call.
 
 use std::marker::PhantomData;
-use std::os::fd::AsRawFd;
 use std::path::PathBuf;
 use std::sync::atomic::{AtomicU64, Ordering, fence};
 
@@ -73,21 +72,9 @@ impl<T: Copy + ZeroCopySend> ResumeSlot<T> {
             }
             file.set_len(len as u64).map_err(|e| err("size", e))?;
         }
-        // SAFETY: maps `len` bytes of a file of exactly that size; checked for failure.
-        let map = unsafe {
-            libc::mmap(
-                std::ptr::null_mut(),
-                len,
-                libc::PROT_READ | libc::PROT_WRITE,
-                libc::MAP_SHARED,
-                file.as_raw_fd(),
-                0,
-            )
-        };
-        if map == libc::MAP_FAILED {
-            return Err(err("mmap", std::io::Error::last_os_error()));
-        }
-        let slot = Self { map: map.cast(), len, _t: PhantomData };
+        // `len` bytes of a file of exactly that size.
+        let map = crate::private::map_shared(&file, len, 0).map_err(|e| err("mmap", e))?;
+        let slot = Self { map, len, _t: PhantomData };
         let (magic, size, version) = (slot.word(0), slot.word(1), slot.word(2));
         if magic.load(Ordering::Acquire) != MAGIC
             || size.load(Ordering::Relaxed) != size_of::<T>() as u64

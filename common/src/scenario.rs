@@ -438,27 +438,14 @@ impl Scenario {
     /// Validates a parsed file.
     pub fn from_file(file: ScenarioFile) -> Result<Self, ScenarioError> {
         let mut warnings = Vec::new();
-        let (plant, plant_moments) = body_params(
-            "plant.inertia",
-            &file.plant.inertia,
-            "plant.rotor_inertia",
-            &file.plant.rotor_inertia,
-        )?;
-        let (reference, ref_moments) = body_params(
-            "reference.inertia",
+        let (plant, plant_moments) =
+            body_params("plant", &file.plant.inertia, &file.plant.rotor_inertia, &mut warnings)?;
+        let (reference, _) = body_params(
+            "reference",
             &file.reference.inertia,
-            "reference.rotor_inertia",
             &file.reference.rotor_inertia,
+            &mut warnings,
         )?;
-        for (field, m) in [("plant.inertia", plant_moments), ("reference.inertia", ref_moments)] {
-            if m[0] + m[1] < m[2] {
-                warnings.push(format!(
-                    "{field}: principal moments {:.4}, {:.4}, {:.4} violate the triangle inequality \
-                     ({:.4} + {:.4} < {:.4}): no physical rigid body has this inertia; running it anyway",
-                    m[0], m[1], m[2], m[0], m[1], m[2]
-                ));
-            }
-        }
 
         let r0 = rotation("plant.attitude", &file.plant.attitude)?;
         let omega0 = rate_pair("plant", file.plant.omega, file.plant.i_omega, &plant.inertia_inv)?;
@@ -668,21 +655,30 @@ fn spd(field: &str, rows: &Mat3Rows) -> Result<(DMat3, [f64; 3]), ScenarioError>
     Ok((to_glam(&m), [eig[0], eig[1], eig[2]]))
 }
 
+/// The body of section `body` (`plant`, `reference`) and its principal moments; a warning
+/// where they violate the triangle inequality.
 fn body_params(
-    inertia_field: &str,
+    body: &str,
     inertia: &Mat3Rows,
-    rotor_field: &str,
     rotor: &Row3,
+    warnings: &mut Vec<String>,
 ) -> Result<(BodyParams, [f64; 3]), ScenarioError> {
-    let (i, moments) = spd(inertia_field, inertia)?;
+    let (i, m) = spd(&format!("{body}.inertia"), inertia)?;
     if rotor.iter().any(|k| !k.is_finite() || *k <= 0.0 || *k > MAX_MAGNITUDE) {
         return Err(ScenarioError::invalid(
-            rotor_field,
+            &format!("{body}.rotor_inertia"),
             rotor,
             "the diagonal of K: three finite numbers > 0 and ≤ 1e6 (K must be positive diagonal)",
         ));
     }
-    Ok((BodyParams::new(i, DVec3::from_array(*rotor)), moments))
+    if m[0] + m[1] < m[2] {
+        warnings.push(format!(
+            "{body}.inertia: principal moments {:.4}, {:.4}, {:.4} violate the triangle inequality \
+             ({:.4} + {:.4} < {:.4}): no physical rigid body has this inertia; running it anyway",
+            m[0], m[1], m[2], m[0], m[1], m[2]
+        ));
+    }
+    Ok((BodyParams::new(i, DVec3::from_array(*rotor)), m))
 }
 
 /// An attitude within [`ORTHONORMAL_TOL`] of SO(3), projected onto it (polar/SVD).

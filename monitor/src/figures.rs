@@ -120,72 +120,57 @@ pub fn tracking_figures(
     rec: &Recorder,
     effort: Option<(&Recorder, &Recorder)>,
 ) -> Result<Vec<String>, PlotError> {
-    let mut files = Vec::new();
-
-    files.push(attitude_entries(dir, name, rec)?);
+    let mut files = vec![attitude_entries(dir, name, rec)?];
+    // One chart against t, written as `file` and named in the list.
+    let mut chart = |file: &str, title: &str, y: &str, series: &[Series<'_>], scale| {
+        line_chart(&dir.join(file), &format!("{name}: {title}"), "t (s)", y, series, scale)?;
+        files.push(file.to_owned());
+        Ok::<_, PlotError>(())
+    };
+    fn one(points: &[(f64, f64)]) -> [Series<'_>; 1] {
+        [Series { label: "", points, dashed: false }]
+    }
 
     let err = rec.xy(|i| rec.err_deg[i]);
-    let file = "attitude_error.png";
-    line_chart(
-        &dir.join(file),
-        &format!("{name}: attitude error angle"),
-        "t (s)",
+    chart(
+        "attitude_error.png",
+        "attitude error angle",
         "error (deg, log)",
-        &[Series { label: "", points: &err, dashed: false }],
+        &one(&err),
         YScale::Log { floor: 1e-12 },
     )?;
-    files.push(file.to_owned());
 
     let rates: Vec<Vec<(f64, f64)>> = (0..3).map(|j| rec.xy(|i| rec.omega_r[i][j])).collect();
-    let file = "rotor_rates.png";
-    line_chart(
-        &dir.join(file),
-        &format!("{name}: rotor rates relative to the body"),
-        "t (s)",
+    let rate = |j: usize, label| Series { label, points: &rates[j], dashed: false };
+    chart(
+        "rotor_rates.png",
+        "rotor rates relative to the body",
         "rad/s",
-        &[
-            Series { label: "Wr1", points: &rates[0], dashed: false },
-            Series { label: "Wr2", points: &rates[1], dashed: false },
-            Series { label: "Wr3", points: &rates[2], dashed: false },
-        ],
+        &[rate(0, "Wr1"), rate(1, "Wr2"), rate(2, "Wr3")],
         YScale::Linear,
     )?;
-    files.push(file.to_owned());
 
     let drift = rec.xy(|i| rec.h_drift_rel[i]);
-    let file = "momentum_drift.png";
-    line_chart(
-        &dir.join(file),
-        &format!("{name}: spatial momentum drift |h(t) - h(0)| / |h(0)|"),
-        "t (s)",
+    chart(
+        "momentum_drift.png",
+        "spatial momentum drift |h(t) - h(0)| / |h(0)|",
         "relative drift",
-        &[Series { label: "", points: &drift, dashed: false }],
+        &one(&drift),
         YScale::Linear,
     )?;
-    files.push(file.to_owned());
 
     if rec.energy_residual.iter().any(|v| v.is_finite()) {
         let res = rec.xy(|i| rec.energy_residual[i]);
-        let file = "energy_residual.png";
-        line_chart(
-            &dir.join(file),
-            &format!("{name}: energy change minus rotor work"),
-            "t (s)",
-            "J",
-            &[Series { label: "", points: &res, dashed: false }],
-            YScale::Linear,
-        )?;
-        files.push(file.to_owned());
+        let title = "energy change minus rotor work";
+        chart("energy_residual.png", title, "J", &one(&res), YScale::Linear)?;
     }
 
     if let Some((internal, external)) = effort {
         let u = internal.xy(|i| internal.u_norm[i]);
         let tau = external.xy(|i| external.tau_norm[i]);
-        let file = "control_effort.png";
-        line_chart(
-            &dir.join(file),
-            &format!("{name}: control effort, rotors vs gas jets (same reference)"),
-            "t (s)",
+        chart(
+            "control_effort.png",
+            "control effort, rotors vs gas jets (same reference)",
             "N m",
             &[
                 Series { label: "|u| rotor torque (internal)", points: &u, dashed: false },
@@ -193,7 +178,6 @@ pub fn tracking_figures(
             ],
             YScale::Linear,
         )?;
-        files.push(file.to_owned());
     }
     Ok(files)
 }

@@ -224,22 +224,10 @@ impl AtomicLink {
             .truncate(false)
             .open(&path)?;
         f.set_len(4096)?;
-        use std::os::fd::AsRawFd;
-        // SAFETY: maps 4 KiB of a file we just sized; checked for MAP_FAILED below.
-        let map = unsafe {
-            libc::mmap(
-                std::ptr::null_mut(),
-                4096,
-                libc::PROT_READ | libc::PROT_WRITE,
-                libc::MAP_SHARED,
-                f.as_raw_fd(),
-                0,
-            )
-        };
-        if map == libc::MAP_FAILED {
+        let Ok(map) = rotorloop_common::private::map_shared(&f, 4096, 0) else {
             bail!("cannot map {}", path.display());
-        }
-        Ok(Self { map: map.cast(), side, path })
+        };
+        Ok(Self { map, side, path })
     }
     fn cell(&self, which: usize) -> &AtomicU64 {
         // SAFETY: offsets 0 and 128 lie within the 4 KiB mapping and are 8-byte aligned;

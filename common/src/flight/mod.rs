@@ -311,27 +311,8 @@ impl<T: Record> FlightRecorder<T> {
             let _ = std::fs::remove_file(&path);
             return Err(std::io::Error::new(e.kind(), format!("reserving {len} bytes: {e}")));
         }
-        // SAFETY: maps `len` bytes of a file of exactly that size; checked for failure.
-        let map = unsafe {
-            libc::mmap(
-                std::ptr::null_mut(),
-                len,
-                libc::PROT_READ | libc::PROT_WRITE,
-                libc::MAP_SHARED | libc::MAP_POPULATE,
-                file.as_raw_fd(),
-                0,
-            )
-        };
-        if map == libc::MAP_FAILED {
-            return Err(std::io::Error::last_os_error());
-        }
-        let r = Self {
-            map: map.cast(),
-            len,
-            capacity,
-            unrecorded: Default::default(),
-            _t: PhantomData,
-        };
+        let map = crate::private::map_shared(&file, len, libc::MAP_POPULATE)?;
+        let r = Self { map, len, capacity, unrecorded: Default::default(), _t: PhantomData };
         let same = r.word(word::MAGIC).load(Ordering::Acquire) == MAGIC
             && r.word(word::VERSION).load(Ordering::Relaxed) == u64::from(LAYOUT_VERSION)
             && r.word(word::SIZE).load(Ordering::Relaxed) == size_of::<T>() as u64
@@ -919,18 +900,8 @@ impl MovedWord {
         if f.metadata().ok()?.len() < HEADER as u64 {
             return None;
         }
-        // SAFETY: maps the first page of a file at least HEADER bytes long; checked.
-        let map = unsafe {
-            libc::mmap(
-                std::ptr::null_mut(),
-                HEADER,
-                libc::PROT_READ | libc::PROT_WRITE,
-                libc::MAP_SHARED,
-                f.as_raw_fd(),
-                0,
-            )
-        };
-        (map != libc::MAP_FAILED).then(|| Self { map: map.cast() })
+        // The first page of a file at least HEADER bytes long.
+        crate::private::map_shared(&f, HEADER, 0).ok().map(|map| Self { map })
     }
 
     fn store(&self, copied: u64) {

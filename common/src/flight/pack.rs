@@ -368,25 +368,17 @@ pub(super) fn chunk_table(
 }
 
 /// The slots of chunk `i` (of a segment of `capacity` slots of `slot_len` bytes) from its
-/// packed bytes, into `out` (its allocation reused).
+/// packed bytes, into `out` (its allocation reused); with `ticks`, only the first two words
+/// of each slot (its tag and its sample's tick): a few columns decoded of a slot's dozens.
 pub(super) fn unpack(
     chunk: &[u8],
     (i, capacity, slot_len): (u64, u64, usize),
+    ticks: bool,
     out: &mut Vec<u8>,
 ) -> Result<(), String> {
     let rows = CHUNK_SLOTS.min(capacity.saturating_sub(i * CHUNK_SLOTS)) as usize;
-    unpack_chunk(chunk, rows, (slot_len / 8, slot_len / 8), out)
-}
-
-/// The first two words of each slot of chunk `i` (its tag and its sample's tick), as
-/// [`unpack`] would give them, into `out`: a few columns decoded of a slot's dozens.
-pub(super) fn unpack_ticks(
-    chunk: &[u8],
-    (i, capacity, slot_len): (u64, u64, usize),
-    out: &mut Vec<u8>,
-) -> Result<(), String> {
-    let rows = CHUNK_SLOTS.min(capacity.saturating_sub(i * CHUNK_SLOTS)) as usize;
-    unpack_chunk(chunk, rows, (slot_len / 8, 2), out)
+    let words = slot_len / 8;
+    unpack_chunk(chunk, rows, (words, if ticks { 2 } else { words }), out)
 }
 
 #[cfg(test)]
@@ -485,7 +477,7 @@ mod tests {
         for (i, (at, l)) in table.iter().enumerate() {
             let chunk = &file[*at as usize..(*at + *l) as usize];
             let mut out = Vec::new();
-            unpack(chunk, (i as u64, rows as u64, words * 8), &mut out).expect("chunk");
+            unpack(chunk, (i as u64, rows as u64, words * 8), false, &mut out).expect("chunk");
             back.extend(out);
         }
         assert_eq!(back, raw);
@@ -505,10 +497,10 @@ mod tests {
         let mid = chunk.len() / 2;
         chunk[mid] ^= 0xff;
         chunk.truncate(chunk.len() - 3);
-        assert!(unpack(&chunk, (1, rows as u64, words * 8), &mut Vec::new()).is_err());
+        assert!(unpack(&chunk, (1, rows as u64, words * 8), false, &mut Vec::new()).is_err());
         let mut chunk = file[at as usize..(at + l) as usize].to_vec();
         chunk[0] = 200;
-        assert!(unpack(&chunk, (1, rows as u64, words * 8), &mut Vec::new()).is_err());
+        assert!(unpack(&chunk, (1, rows as u64, words * 8), false, &mut Vec::new()).is_err());
     }
 
     /// What packing costs and saves on a run's raw segments: `ROTORLOOP_PACK_DIR=DIR cargo
@@ -539,7 +531,7 @@ mod tests {
             let (mut back, mut out) = (Vec::with_capacity(body.len()), Vec::new());
             for (i, (at, l)) in table.iter().enumerate() {
                 let chunk = &file[*at as usize..(*at + *l) as usize];
-                unpack(chunk, (i as u64, slots, slot), &mut out).expect("unpacks");
+                unpack(chunk, (i as u64, slots, slot), false, &mut out).expect("unpacks");
                 back.extend_from_slice(&out);
             }
             let unpacked_s = t1.elapsed().as_secs_f64();

@@ -25,7 +25,7 @@ use std::path::{Path, PathBuf};
 use std::rc::Rc;
 
 use super::journal::{journals, read_frames};
-use super::pack::{CHUNK_SLOTS, chunk_table, unpack, unpack_ticks};
+use super::pack::{CHUNK_SLOTS, chunk_table, unpack};
 use super::{
     FlightError, HEADER, MAGIC, PACKED_MAGIC, Record, SAME_MAGIC, SPARE_SLOTS, Stream, read_header,
     segment_path, segments, slot_len, word,
@@ -720,9 +720,8 @@ fn read_block<T>(source: &Source, (index, ticks): (u64, bool), bytes: &mut Vec<u
     if let Some(chunks) = &source.chunks {
         let Some(&(at, l)) = chunks.get(index as usize) else { return };
         let mut packed = vec![0u8; l as usize]; // within the file's length: checked
-        let unpack = if ticks { unpack_ticks } else { unpack };
         if f.read_exact_at(&mut packed, at).is_err()
-            || unpack(&packed, (index, source.capacity, len), bytes).is_err()
+            || unpack(&packed, (index, source.capacity, len), ticks, bytes).is_err()
         {
             bytes.clear();
         }

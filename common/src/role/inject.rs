@@ -1,6 +1,7 @@
 //! The faults a role injects into itself when asked: a corrupted sample at a chosen tick
 //! (`rotorloop run --corrupt`, [`corrupted`]) and the tests' hooks ([`TestHooks`]).
 
+use crate::flight::Record;
 use crate::wire::{ReferenceSample, StateSample, TorqueSample};
 
 /// Misbehaviour the tests ask of a role at a chosen moment, as hidden flags every role
@@ -130,36 +131,25 @@ impl std::fmt::Display for Corrupt {
     }
 }
 
-/// A sample that fault injection can corrupt.
-pub trait Corruptible: Copy {
-    /// The sample's tick.
-    fn tick(&self) -> u64;
+/// A sample that fault injection can corrupt (at its tick: [`Record::tick`]).
+pub trait Corruptible: Record {
     /// The vector a receiver reads first, and the attitude (if the sample has one).
     fn targets(&mut self) -> (&mut [f64; 3], Option<&mut [f64; 9]>);
 }
 
 impl Corruptible for StateSample {
-    fn tick(&self) -> u64 {
-        self.tick
-    }
     fn targets(&mut self) -> (&mut [f64; 3], Option<&mut [f64; 9]>) {
         (&mut self.omega_body_rad_s, Some(&mut self.r_row_major))
     }
 }
 
 impl Corruptible for ReferenceSample {
-    fn tick(&self) -> u64 {
-        self.tick
-    }
     fn targets(&mut self) -> (&mut [f64; 3], Option<&mut [f64; 9]>) {
         (&mut self.omega_d_rad_s, Some(&mut self.r_d_row_major))
     }
 }
 
 impl Corruptible for TorqueSample {
-    fn tick(&self) -> u64 {
-        self.tick
-    }
     fn targets(&mut self) -> (&mut [f64; 3], Option<&mut [f64; 9]>) {
         (&mut self.rotor_torque_nm, None)
     }

@@ -160,22 +160,28 @@ pub(super) enum Variant {
 }
 
 impl Variant {
+    /// Its row's kind.
     pub(super) fn kind(self) -> &'static str {
+        self.names().0
+    }
+
+    /// Its row's kind and the letter its domain's name ends with.
+    fn names(self) -> (&'static str, &'static str) {
         match self {
-            Variant::Loop => "loop",
-            Variant::NoMonitor => "loop-nomon",
-            Variant::Before => "loop-before",
-            Variant::Foxglove => "loop-foxglove",
-            Variant::NoSched => "loop-nosched",
-            Variant::TraceSched => "loop-tracesched",
-            Variant::PlainHotPath => "loop-plain",
-            Variant::Packed => "loop-packed",
-            Variant::RawSegments => "loop-raw",
-            Variant::NoGate => "loop-nogate",
-            Variant::NoJournal => "loop-nojournal",
-            Variant::MrpPid => "loop-mrp-pid",
-            Variant::Python => "loop-python",
-            Variant::C => "loop-c",
+            Variant::Loop => ("loop", ""),
+            Variant::NoMonitor => ("loop-nomon", "n"),
+            Variant::Before => ("loop-before", "b"),
+            Variant::Foxglove => ("loop-foxglove", "f"),
+            Variant::NoSched => ("loop-nosched", "s"),
+            Variant::TraceSched => ("loop-tracesched", "t"),
+            Variant::PlainHotPath => ("loop-plain", "h"),
+            Variant::Packed => ("loop-packed", "k"),
+            Variant::RawSegments => ("loop-raw", "r"),
+            Variant::NoGate => ("loop-nogate", "g"),
+            Variant::NoJournal => ("loop-nojournal", "j"),
+            Variant::MrpPid => ("loop-mrp-pid", "m"),
+            Variant::Python => ("loop-python", "p"),
+            Variant::C => ("loop-c", "c"),
         }
     }
 
@@ -238,7 +244,7 @@ pub(super) fn measure_loop(
     variant: Variant,
 ) -> anyhow::Result<Row> {
     let ncores = t.allowed.len();
-    let kind = variant.kind();
+    let (kind, suffix) = variant.names();
     let without_monitor = variant == Variant::NoMonitor;
     let mut row = Row { kind: kind.into(), ..base.clone() };
     let wait: Wait = base.wait.parse().unwrap_or(Wait::Event);
@@ -252,22 +258,6 @@ pub(super) fn measure_loop(
         return Ok(row);
     }
     let out = dir.join(kind);
-    let suffix = match variant {
-        Variant::Loop => "",
-        Variant::NoMonitor => "n",
-        Variant::Before => "b",
-        Variant::Foxglove => "f",
-        Variant::NoSched => "s",
-        Variant::TraceSched => "t",
-        Variant::PlainHotPath => "h",
-        Variant::Packed => "k",
-        Variant::RawSegments => "r",
-        Variant::NoGate => "g",
-        Variant::NoJournal => "j",
-        Variant::MrpPid => "m",
-        Variant::Python => "p",
-        Variant::C => "c",
-    };
     let domain = format!("bl{}-{}{suffix}", std::process::id(), base.index);
     let one = place(t, 1, Shape::of_placement(&base.placement));
     let mut run = loop_run_args(a, base, &one.loops[0], domain, out.clone());
@@ -471,15 +461,7 @@ pub(super) fn measure_baseline(
         row.skipped = format!("baseline failed ({ping})");
         return Ok(row);
     }
-    let j: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(stem.with_extension("json"))?)?;
-    let us = |v: &serde_json::Value| v.as_f64().unwrap_or(f64::NAN) / 1e3;
-    let r = &j["rtt"];
-    row.count = r["count"].as_u64().unwrap_or(0);
-    row.p50 = us(&r["p50"]);
-    row.p99 = us(&r["p99"]);
-    row.p99_9 = us(&r["p99_9"]);
-    row.max = us(&r["max"]);
+    let j = read_baseline(&mut row, &stem, "rtt")?;
     row.misses = j["misses"].as_u64().unwrap_or(0);
     row.achieved = j["achieved_rate_hz"].as_f64().unwrap_or(0.0);
     (row.lateness_p99, row.err_deg_final, row.err_deg_rms) = (f64::NAN, f64::NAN, f64::NAN);
@@ -531,16 +513,23 @@ fn measure_timer(
         row.skipped = format!("timer baseline failed ({status})");
         return Ok(row);
     }
-    let j: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(stem.with_extension("json"))?)?;
-    let us = |v: &serde_json::Value| v.as_f64().unwrap_or(f64::NAN) / 1e3;
-    let l = &j["lateness"];
-    row.count = l["count"].as_u64().unwrap_or(0);
-    (row.p50, row.p99, row.p99_9, row.max) =
-        (us(&l["p50"]), us(&l["p99"]), us(&l["p99_9"]), us(&l["max"]));
+    read_baseline(&mut row, &stem, "lateness")?;
     (row.lateness_p50, row.lateness_p99, row.lateness_p99_9) = (row.p50, row.p99, row.p99_9);
     (row.achieved, row.err_deg_final, row.err_deg_rms) = (base.rate, f64::NAN, f64::NAN);
     Ok(row)
+}
+
+/// Fills `row`'s count and latencies (µs) from the figures `stats` of a baseline's
+/// `stem.json`, and returns the file.
+fn read_baseline(row: &mut Row, stem: &Path, stats: &str) -> anyhow::Result<serde_json::Value> {
+    let j: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(stem.with_extension("json"))?)?;
+    let us = |v: &serde_json::Value| v.as_f64().unwrap_or(f64::NAN) / 1e3;
+    let h = &j[stats];
+    row.count = h["count"].as_u64().unwrap_or(0);
+    (row.p50, row.p99, row.p99_9, row.max) =
+        (us(&h["p50"]), us(&h["p99"]), us(&h["p99_9"]), us(&h["max"]));
+    Ok(j)
 }
 
 /// A viewer subscribed to every topic of a `--foxglove` run's server, on a thread of the
