@@ -4,9 +4,10 @@
 //! nothing behind.
 //!
 //! **SIGHUP is a stop like SIGINT** (docs/running.md): the terminal of the run is gone (an
-//! SSH connection dropped, `tmux kill-session`). What the processes still say goes through
-//! their output relay (`relay`), which discards what a terminal that hung up refuses
-//! (`EIO`) instead of failing. A run meant to outlive its terminal is started under
+//! SSH connection dropped, `tmux kill-session`). What the processes still say goes to
+//! `/dev/null` where it went to that terminal (the handler points it there: a print that
+//! fails with `EIO` would panic), and an output relay (`relay`) discards what its real
+//! output refuses. A run meant to outlive its terminal is started under
 //! `nohup` (a SIGHUP that is ignored when the process starts stays ignored), `setsid` or a
 //! terminal multiplexer.
 

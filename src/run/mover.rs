@@ -10,9 +10,9 @@
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::thread::JoinHandle;
-use std::time::{Duration, Instant};
+use std::time::Duration;
 
-use rotorloop_common::flight::{JOURNAL_PERIOD, Mover, free_through};
+use rotorloop_common::flight::{Mover, free_through};
 
 /// How often the thread looks for a newer plant tick.
 const POLL: Duration = Duration::from_millis(20);
@@ -32,23 +32,22 @@ pub(crate) struct MoverThread {
 impl MoverThread {
     /// Starts `mover` on a thread named `flight-mover`; with `stall`, its first pass
     /// waits that long (the tests' stand-in for a copy held up by writeback).
-    pub(crate) fn spawn(mut mover: Mover, stall: Option<Duration>) -> std::io::Result<Self> {
+    pub(crate) fn spawn(mover: Mover, stall: Option<Duration>) -> std::io::Result<Self> {
         let tick = Arc::new(AtomicU64::new(0));
         let stop = Arc::new(AtomicBool::new(false));
         let free = mover.half.map_or(u64::MAX, |h| free_through(mover.copied(), h));
         let free = Arc::new(AtomicU64::new(free));
         let (t, s, f) = (tick.clone(), stop.clone(), free.clone());
+        let mut mover = mover.following(tick.clone());
         let handle = std::thread::Builder::new().name("flight-mover".into()).spawn(move || {
             let mut moved_at = 0;
-            let mut journaled_at = Instant::now();
             loop {
                 // The stop is read before the tick: the pass after it sees the last tick.
                 let stopping = s.load(Ordering::Acquire);
                 let newest = t.load(Ordering::Acquire);
-                if newest > 0 && journaled_at.elapsed() >= JOURNAL_PERIOD {
+                if newest > 0 && mover.journal_due() {
                     // The newest ticks onto the disk, durably (a machine crash loses at
-                    // most about this period).
-                    journaled_at = Instant::now();
+                    // most about this period; a pass journals too, between its segments).
                     for e in mover.journal(newest - 1) {
                         eprintln!("warning: flight records: {e}; the loop goes on");
                     }

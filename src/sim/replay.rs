@@ -345,6 +345,40 @@ fn same_values(a: &TraceRow, b: &TraceRow) -> bool {
     a.iter().zip(&b).all(|(x, y)| x.to_bits() == y.to_bits() || (x.is_nan() && y.is_nan()))
 }
 
+/// The replay's `trace.csv` in `out` (made), or nowhere.
+fn trace_file(out: &Path, write_trace: bool) -> anyhow::Result<std::io::BufWriter<Box<dyn Write>>> {
+    let made = rotorloop_common::outdir::OutDir::make(out)?;
+    Ok(std::io::BufWriter::new(if write_trace {
+        Box::new(
+            made.create("trace.csv")
+                .with_context(|| format!("cannot write {}", out.join("trace.csv").display()))?,
+        )
+    } else {
+        Box::new(std::io::sink())
+    }))
+}
+
+/// A tick's timing row and the inputs its effects schedule (source tick, offset, input).
+type Effects = (TimingRow, Vec<(u64, f64, BodyInput)>);
+
+/// The timing row `next` of the tick after the one replayed, with the input each of its
+/// effects schedules; why not where the record lacks either (`None`: the row).
+fn effects(
+    next: Option<TimingRow>,
+    run: &Trace,
+    dir: &Path,
+    actuation: Actuation,
+) -> Result<Effects, Option<String>> {
+    let next = next.ok_or(None)?;
+    let inputs = next
+        .recorded()
+        .iter()
+        .map(|(s, o)| Ok((*s, *o, run.input(dir, *s, actuation)?)))
+        .collect::<anyhow::Result<Vec<_>>>()
+        .map_err(|e| Some(format!("{e:#}")))?;
+    Ok((next, inputs))
+}
+
 /// The run's trace and timing rows and the trace's header: its files, each derived from
 /// the records where it is missing, and both derived once together where neither is
 /// there (a run made with `--no-csv`).
@@ -382,15 +416,7 @@ pub fn run(dir: &Path, out: &Path, write_trace: bool) -> anyhow::Result<ReplaySu
     let mut metrics = Metrics::new(params, &body.state()).with_disturbance(scenario.disturbance);
     let limits = scenario.limits_for(actuation);
     let mut line = DelayLine::new(ActuationDelay::Instant, dt);
-    let made = rotorloop_common::outdir::OutDir::make(out)?;
-    let mut file: std::io::BufWriter<Box<dyn Write>> = std::io::BufWriter::new(if write_trace {
-        Box::new(
-            made.create("trace.csv")
-                .with_context(|| format!("cannot write {}", out.join("trace.csv").display()))?,
-        )
-    } else {
-        Box::new(std::io::sink())
-    });
+    let mut file = trace_file(out, write_trace)?;
     writeln!(file, "{}", rotorloop_monitor::trace::HEADER)?;
     let mut written = Vec::new();
     let mut result = ReplaySummary {
@@ -427,14 +453,8 @@ pub fn run(dir: &Path, out: &Path, write_trace: bool) -> anyhow::Result<ReplaySu
             // What happened in tick k, as the state of tick k + 1 recorded it. A run whose
             // record lacks it (a file missing or damaged) is replayed up to here.
             let next = timing.row(k + 1).map_err(timing_err)?;
-            let inputs: Result<Vec<_>, _> = next.as_ref().map_or(Ok(Vec::new()), |n| {
-                n.recorded()
-                    .iter()
-                    .map(|(s, o)| Ok((*s, *o, run_trace.input(dir, *s, actuation)?)))
-                    .collect::<anyhow::Result<Vec<_>>>()
-            });
-            match (next, inputs) {
-                (Some(next), Ok(inputs)) => {
+            match effects(next, &run_trace, dir, actuation) {
+                Ok((next, inputs)) => {
                     if next.flags & FLAG_SAFE_MODE != 0 {
                         line.clear();
                     }
@@ -449,16 +469,13 @@ pub fn run(dir: &Path, out: &Path, write_trace: bool) -> anyhow::Result<ReplaySu
                     work = step.work;
                     row.delay_s = step.effects.first_delay_s(k, dt);
                 }
-                (None, _) if no_timing => {
+                Err(_) if no_timing => {
                     // Nothing of the run's timing: nothing to replay.
                     return Err(bad(dir, "timing.csv has no row for tick 1").into());
                 }
-                (next, inputs) => {
-                    let why = match (next, inputs) {
-                        (None, _) => format!("timing.csv has no row for tick {}", k + 1),
-                        (_, Err(e)) => format!("{e:#}"),
-                        _ => String::new(),
-                    };
+                Err(why) => {
+                    let why =
+                        why.unwrap_or_else(|| format!("timing.csv has no row for tick {}", k + 1));
                     // Row k's delay (what took effect in tick k) is unknown too: the rows
                     // before it are compared.
                     let Some(after_tick) = k.checked_sub(1) else {
