@@ -118,7 +118,7 @@ pub const RUN_DIR_FILE: &str = "run-dir";
 /// (`STREAM.flight`) is packed as it is moved, as the segments are (`pack.rs`: a quarter of
 /// its bytes); one that cannot be is moved raw. Each moved file is made durable
 /// (`fdatasync`, then the directory's `fsync`), and then the journals of `to`
-/// ([`journal`]), whose ticks the rings hold, are removed.
+/// (`journal`), whose ticks the rings hold, are removed.
 pub fn move_records(from: &Path, to: &Path, packed: bool) -> std::io::Result<usize> {
     std::fs::create_dir_all(to)?;
     let mut moved = 0;
@@ -510,7 +510,7 @@ pub struct Mover {
     /// Whether the rings come round and their halves are moved (else the rings are the
     /// whole run's and only journaled).
     halves: bool,
-    /// Per stream, the first tick the next journal frame writes ([`journal`]).
+    /// Per stream, the first tick the next journal frame writes (`journal`).
     jnext: [u64; 4],
     /// The journal files open to append to: stream index, half, file, whether written since
     /// they were last made durable.
@@ -775,7 +775,7 @@ impl Mover {
 
     /// Journals the newest ticks of every stream (those past its last segment, since the
     /// last frame, and the last few of that frame again) and makes what was written since
-    /// the last call durable: the frames, the segments the passes wrote ([`journal`]
+    /// the last call durable: the frames, the segments the passes wrote (`journal`
     /// module docs). The mover's thread calls it every [`JOURNAL_PERIOD`], `plant_tick`
     /// the plant's newest tick. Returns what went wrong, in words (once, until it works
     /// again).
@@ -801,7 +801,7 @@ impl Mover {
     }
 
     /// Appends a frame of `stream`'s newest ticks to its journal (module docs of
-    /// [`journal`]).
+    /// `journal`).
     fn journal_stream(&mut self, n: usize, stream: Stream, plant_tick: u64) -> std::io::Result<()> {
         let Ok(ring) = std::fs::File::open(stream.path(&self.staged)) else { return Ok(()) };
         let Ok((header, w)) = read_header(&ring) else { return Ok(()) };

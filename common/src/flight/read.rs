@@ -104,7 +104,7 @@ pub struct FlightLog<T: Record> {
     /// The segments that are sound, by half index, in order.
     segments: Vec<(u64, Source)>,
     /// The journal's frames that are sound, by first tick, in the order written
-    /// ([`super::journal`]): the newest ticks of a run whose ring is gone.
+    /// (`super::journal`): the newest ticks of a run whose ring is gone.
     frames: Vec<(u64, Source)>,
     /// Ticks per segment.
     half: u64,
@@ -438,7 +438,7 @@ impl<T: Record> FlightLog<T> {
         }
     }
 
-    /// Reads the frames of the stream's journal files ([`super::journal`]): each file is
+    /// Reads the frames of the stream's journal files (`super::journal`): each file is
     /// read up to its first frame that does not fit (a crash while it was appended), named.
     fn open_journal(&mut self, dir: &Path, stream: Stream) {
         for (_, path) in journals(dir, stream) {
