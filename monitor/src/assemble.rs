@@ -84,8 +84,8 @@ impl FlightRecords {
     /// Opens the records in `dir` of a run of `ticks` ticks (a block at a time: the
     /// stream is never held), reading whatever of them is sound: a stream whose files are
     /// all missing or damaged reads as empty, named ([`Self::incomplete`]; the controller's
-    /// may be absent: the plant's record of what it received stands in). An error only
-    /// where nothing of any stream can be read.
+    /// may be absent: the plant's record of what it received stands in). An error where
+    /// nothing of the plant's states, or of any stream, can be read.
     pub fn read(dir: &Path, ticks: u64) -> Result<Self, FlightError> {
         let limit = ticks.saturating_add(SPARE_SLOTS);
         let mut first = None;
@@ -101,8 +101,10 @@ impl FlightRecords {
             || received.is_sound()
             || references.is_sound()
             || torques.as_ref().is_some_and(FlightLog::is_sound);
+        // The plant's states are the record's spine (its clock, every row of the trace):
+        // without one sound, nothing of the run can be reported.
         match first {
-            Some(e) if !sound => Err(e),
+            Some(e) if !sound || !states.is_sound() => Err(e),
             incomplete => Ok(Self { states, received, torques, references, limit, incomplete }),
         }
     }
