@@ -65,8 +65,9 @@ impl Transform {
     }
 
     /// The prediction of row `r`'s word from the column's earlier words `col[..r]` and
-    /// the row's word to the left (`left`).
-    #[inline]
+    /// the row's word to the left (`left`): what [`Transform::encode`] computes, a row at a
+    /// time (the tests' reference).
+    #[cfg(test)]
     fn predict(self, col: &[u64], r: usize, left: u64) -> u64 {
         let at = |back: usize| if r >= back { col[r - back] } else { 0 };
         let f = |back: usize| f64::from_bits(at(back));
@@ -101,44 +102,46 @@ fn significant_bytes(z: u64) -> u64 {
 }
 
 /// Packs the slots `slots` (whole slots of `words` words each) into one chunk.
+///
+/// The words are first laid out column by column; each transform's residuals of a column
+/// are then one tight loop ([`encode`]), given up as soon as they cost more than the best
+/// so far. The bytes are those of the straightforward search (every transform of
+/// [`Transform::predict`] row by row, the first of the cheapest kept): a unit test holds
+/// the two together. 2.6 times faster than that search here (`pack::tests::speed`).
 fn pack_chunk(slots: &[u8], words: usize) -> std::io::Result<Vec<u8>> {
     let rows = slots.len() / (8 * words);
-    let word = |r: usize, c: usize| {
-        let at = (r * words + c) * 8;
-        u64::from_ne_bytes(slots[at..at + 8].try_into().unwrap_or_default())
-    };
+    let mut cols = vec![0u64; rows * words];
+    for (r, slot) in slots.chunks_exact(8 * words).enumerate() {
+        for (c, w) in slot.chunks_exact(8).enumerate() {
+            cols[c * rows + r] = u64::from_ne_bytes(w.try_into().unwrap_or_default());
+        }
+    }
+    let zeros = vec![0u64; rows];
     let mut codes = Vec::with_capacity(words);
     let mut residuals = vec![0u64; rows * words];
-    let (mut col, mut left, mut best) = (vec![0u64; rows], vec![0u64; rows], vec![0u64; rows]);
     let mut trial = vec![0u64; rows];
     for c in 0..words {
-        for r in 0..rows {
-            col[r] = word(r, c);
-            left[r] = if c > 0 { word(r, c - 1) } else { 0 };
-        }
+        let col = &cols[c * rows..(c + 1) * rows];
+        let left = if c > 0 { &cols[(c - 1) * rows..c * rows] } else { &zeros[..] };
+        let best = &mut residuals[c * rows..(c + 1) * rows];
         let mut best_cost = u64::MAX;
         let mut chosen = Transform::Raw;
         for t in TRANSFORMS {
-            let mut cost = 0;
-            for r in 0..rows {
-                trial[r] = zigzag(col[r].wrapping_sub(t.predict(&col, r, left[r])));
-                cost += significant_bytes(trial[r]);
-            }
+            let cost = t.encode(col, left, &mut trial, best_cost);
             if cost < best_cost {
                 (best_cost, chosen) = (cost, t);
-                std::mem::swap(&mut best, &mut trial);
+                best.copy_from_slice(&trial);
             }
         }
         codes.push(chosen as u8);
-        residuals[c * rows..(c + 1) * rows].copy_from_slice(&best);
     }
     // Byte planes: each column's byte 0 of every row, then its byte 1, …
     let mut shuffled = vec![0u8; rows * words * 8];
-    for c in 0..words {
+    for (c, col) in residuals.chunks_exact(rows.max(1)).enumerate().take(words) {
         for b in 0..8 {
             let plane = &mut shuffled[(c * 8 + b) * rows..(c * 8 + b + 1) * rows];
-            for (r, out) in plane.iter_mut().enumerate() {
-                *out = residuals[c * rows + r].to_le_bytes()[b];
+            for (out, z) in plane.iter_mut().zip(col) {
+                *out = (z >> (8 * b)) as u8;
             }
         }
     }
@@ -147,6 +150,76 @@ fn pack_chunk(slots: &[u8], words: usize) -> std::io::Result<Vec<u8>> {
     z.set_parameter(zstd::zstd_safe::CParameter::ChecksumFlag(true))?;
     codes.extend_from_slice(&z.compress(&shuffled)?);
     Ok(codes)
+}
+
+impl Transform {
+    /// Writes the zigzagged residuals of `col` under this transform (`left`: the column to
+    /// its left) into `out` and returns their cost ([`significant_bytes`]), or `u64::MAX`
+    /// as soon as the cost reaches `limit` (`out` then half written). The predictions are
+    /// [`Transform::predict`]'s, in a loop of its own per transform.
+    fn encode(self, col: &[u64], left: &[u64], out: &mut [u64], limit: u64) -> u64 {
+        let float = |p: f64| if p.is_finite() { p.to_bits() } else { 0 };
+        let f = f64::from_bits;
+        match self {
+            Self::Raw => encode_with(col, out, limit, |_| 0),
+            Self::Delta => encode_with(col, out, limit, |x| x[0]),
+            Self::Delta2 => {
+                encode_with(col, out, limit, |x| x[0].wrapping_add(x[0].wrapping_sub(x[1])))
+            }
+            Self::Left => {
+                let mut cost = 0;
+                let blocks = out.chunks_mut(512).zip(col.chunks(512)).zip(left.chunks(512));
+                for ((o, w), l) in blocks {
+                    for ((o, w), l) in o.iter_mut().zip(w).zip(l) {
+                        let z = zigzag(w.wrapping_sub(*l));
+                        *o = z;
+                        cost += significant_bytes(z);
+                    }
+                    if cost >= limit {
+                        return u64::MAX;
+                    }
+                }
+                cost
+            }
+            Self::Float2 => encode_with(col, out, limit, |x| float(2.0 * f(x[0]) - f(x[1]))),
+            Self::Float3 => {
+                encode_with(col, out, limit, |x| float(3.0 * f(x[0]) - 3.0 * f(x[1]) + f(x[2])))
+            }
+            Self::Float4 => encode_with(col, out, limit, |x| {
+                float(4.0 * f(x[0]) - 6.0 * f(x[1]) + 4.0 * f(x[2]) - f(x[3]))
+            }),
+        }
+    }
+}
+
+/// [`Transform::encode`] of a transform that predicts from the column's words before the
+/// row, newest first (0 before the first row).
+#[inline(always)]
+fn encode_with(col: &[u64], out: &mut [u64], limit: u64, predict: impl Fn([u64; 4]) -> u64) -> u64 {
+    let (mut x, mut cost) = ([0u64; 4], 0);
+    let head = col.len().min(4);
+    for (o, w) in out[..head].iter_mut().zip(&col[..head]) {
+        let z = zigzag(w.wrapping_sub(predict(x)));
+        *o = z;
+        cost += significant_bytes(z);
+        x = [*w, x[0], x[1], x[2]];
+    }
+    // Then each row's four words before it, in a window: no value carried from one row to
+    // the next but the cost.
+    let mut r = head;
+    while r < col.len() {
+        let end = (r + 512).min(col.len());
+        for (o, w) in out[r..end].iter_mut().zip(col[r - 4..end].windows(5)) {
+            let z = zigzag(w[4].wrapping_sub(predict([w[3], w[2], w[1], w[0]])));
+            *o = z;
+            cost += significant_bytes(z);
+        }
+        if cost >= limit {
+            return u64::MAX;
+        }
+        r = end;
+    }
+    cost
 }
 
 /// Turns a column's residuals (`col`, unzigzagged) into its words, in place, as
@@ -452,6 +525,89 @@ mod tests {
                 assert_eq!(res, col, "column {c}, {t:?}");
             }
         }
+    }
+
+    /// The search as first written: every transform's prediction row by row, the first of
+    /// the cheapest kept, then the byte planes and zstd.
+    fn pack_chunk_by_rows(slots: &[u8], words: usize) -> Vec<u8> {
+        let rows = slots.len() / (8 * words);
+        let word = |r: usize, c: usize| {
+            let at = (r * words + c) * 8;
+            u64::from_ne_bytes(slots[at..at + 8].try_into().expect("8"))
+        };
+        let (mut codes, mut residuals) = (Vec::new(), Vec::new());
+        for c in 0..words {
+            let col: Vec<u64> = (0..rows).map(|r| word(r, c)).collect();
+            let left: Vec<u64> =
+                (0..rows).map(|r| if c > 0 { word(r, c - 1) } else { 0 }).collect();
+            let mut best: Option<(u64, Transform, Vec<u64>)> = None;
+            for t in TRANSFORMS {
+                let res: Vec<u64> = (0..rows)
+                    .map(|r| zigzag(col[r].wrapping_sub(t.predict(&col, r, left[r]))))
+                    .collect();
+                let cost = res.iter().map(|z| significant_bytes(*z)).sum();
+                if best.as_ref().is_none_or(|b| cost < b.0) {
+                    best = Some((cost, t, res));
+                }
+            }
+            let (_, t, res) = best.expect("a transform");
+            codes.push(t as u8);
+            residuals.extend(res);
+        }
+        let mut shuffled = Vec::new();
+        for c in 0..words {
+            for b in 0..8 {
+                shuffled.extend((0..rows).map(|r| residuals[c * rows + r].to_le_bytes()[b]));
+            }
+        }
+        let mut z = zstd::bulk::Compressor::new(LEVEL).expect("zstd");
+        z.set_parameter(zstd::zstd_safe::CParameter::ChecksumFlag(true)).expect("checksum");
+        codes.extend_from_slice(&z.compress(&shuffled).expect("compresses"));
+        codes
+    }
+
+    /// The packer's column loops choose the same transforms and write the same bytes as the
+    /// row-by-row search they replace (slots of every kind of word; random words, where
+    /// every trial is given up early but the first).
+    #[test]
+    fn the_column_loops_pack_what_the_row_by_row_search_packed() {
+        for (rows, words, seed) in [(4096, 66, 2), (1500, 25, 3), (100, 8, 4), (1, 8, 5), (2, 3, 6)]
+        {
+            let raw = slots(rows, words, seed);
+            assert_eq!(pack_chunk(&raw, words).expect("packs"), pack_chunk_by_rows(&raw, words));
+        }
+        let raw: Vec<u8> =
+            (0..4096 * 8 * 8).map(|i| ((i as u64 * 0x9e37_79b9) >> 13) as u8).collect();
+        assert_eq!(pack_chunk(&raw, 8).expect("packs"), pack_chunk_by_rows(&raw, 8));
+    }
+
+    /// What the packer's search costs, against the row-by-row search it replaced, on a
+    /// chunk of 4096 slots of 70 words (a plant state's): `cargo test -p rotorloop-common
+    /// pack::tests::speed -- --ignored --nocapture`.
+    #[test]
+    #[ignore = "a measurement"]
+    fn speed() {
+        let raw = slots(4096, 70, 9);
+        let time = |f: &dyn Fn() -> Vec<u8>| {
+            let mut runs: Vec<f64> = (0..7)
+                .map(|_| {
+                    let t = std::time::Instant::now();
+                    std::hint::black_box(f());
+                    t.elapsed().as_secs_f64()
+                })
+                .collect();
+            runs.sort_by(f64::total_cmp);
+            runs[3]
+        };
+        let new = time(&|| pack_chunk(&raw, 70).expect("packs"));
+        let old = time(&|| pack_chunk_by_rows(&raw, 70));
+        println!(
+            "a chunk of 4096x70 words: column loops {:.2} ms, row by row {:.2} ms (median of 7): \
+             {:.1}x",
+            new * 1e3,
+            old * 1e3,
+            old / new
+        );
     }
 
     #[test]
