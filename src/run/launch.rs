@@ -368,8 +368,15 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
     let flight = launch.keep_flight_records();
     // A failure stops the run, but its report (the faults that led to it among them) is
     // written as for any other end.
-    let (events, failure) = supervised?;
+    let crate::run::supervise::Supervised { events, failure, durable_lag_max } = supervised?;
     let reported = report(&launch, &scenario, &rss, (&events, launched_ns), flight.as_deref());
+    if let Some(lag) = durable_lag_max {
+        let _ = rotorloop_monitor::summary::patch(&args.out, |j| {
+            if j["flight"].is_object() {
+                j["flight"]["durable_lag_max_s"] = lag.as_secs_f64().into();
+            }
+        });
+    }
     match failure {
         Some(f) => Err(refusal_or(f)),
         None => reported,

@@ -138,10 +138,21 @@ impl Watch {
     }
 
     /// After the supervision loop: the last records moved, the stops still open ended.
-    fn finish(&mut self, progress: &Progress) {
+    /// Returns the longest the newest ticks were from the disk (`Mover::durable_lag_max`).
+    fn finish(&mut self, progress: &Progress) -> Option<std::time::Duration> {
         // What became due in the last pass, then the thread's end.
         let tick = progress.0.plant().map(|p| p.tick);
         let mover = self.mover.take().and_then(|m| m.finish(tick));
+        let lag = mover.as_ref().and_then(|m| m.durable_lag_max);
+        if let Some(l) = lag.filter(|l| *l > rotorloop_common::flight::DURABLE_BOUND) {
+            eprintln!(
+                "warning: flight records: the newest ticks were up to {:.2} s from the disk \
+                 (a machine crash then would have lost that much; the bound is {} s): the \
+                 disk's syncs or the launcher's thread were slow",
+                l.as_secs_f64(),
+                rotorloop_common::flight::DURABLE_BOUND.as_secs_f64()
+            );
+        }
         if let Some(m) = mover.filter(|m| m.lost > 0) {
             eprintln!(
                 "warning: flight records: {} record(s) lost: the rings came round before the \
@@ -153,19 +164,30 @@ impl Watch {
         for pid in self.open_stops.keys().copied().collect::<Vec<_>>() {
             end_stop(self, pid, "still stopped when the launcher ended");
         }
+        lag
     }
+}
+
+/// How the supervision loop ended.
+pub(crate) struct Supervised {
+    /// The faults, as they happened.
+    pub events: Vec<FaultEvent>,
+    /// The failure that stopped the run, if one did.
+    pub failure: Option<anyhow::Error>,
+    /// The longest the newest ticks of the record were from the disk (`None`: no journal).
+    pub durable_lag_max: Option<std::time::Duration>,
 }
 
 /// Runs the fault schedule, the restart policy and the watchdog, samples memory, and
 /// waits for every child; on a signal or a failure, forwards SIGTERM, then SIGKILL after
-/// 10 s. Returns the faults as they happened, and the failure that stopped the run, if
-/// one did.
+/// 10 s. Returns the faults as they happened, the failure that stopped the run, if one
+/// did, and how far the record's newest ticks were from the disk.
 pub(crate) fn supervise(
     launch: &Launch,
     children: &mut Children,
     rss: &mut RssLog,
     mut schedule: FaultSchedule,
-) -> anyhow::Result<(Vec<FaultEvent>, Option<anyhow::Error>)> {
+) -> anyhow::Result<Supervised> {
     // The fault schedule runs on the plant's ticks: in real time its newest published
     // tick (its resume slot is written just before each publish), in lockstep the gate it
     // stands stopped at (`FaultSchedule::gate_ticks`). The launcher's own clock (`now_s`,
@@ -249,10 +271,10 @@ pub(crate) fn supervise(
     for f in schedule.not_done() {
         eprintln!("launcher: --fault {f}: not carried out, the run was stopped first");
     }
-    w.finish(&progress);
+    let durable_lag_max = w.finish(&progress);
     let failure = (!w.failures.is_empty())
         .then(|| anyhow::anyhow!("the run was stopped: {}", w.failures.join("; ")));
-    Ok((w.events, failure))
+    Ok(Supervised { events: w.events, failure, durable_lag_max })
 }
 
 /// Real time: the plant's newest tick surely published. Its resume slot is written just

@@ -37,6 +37,11 @@ pub(super) const JOURNAL_MAGIC: u64 = 0x6c6e_726a_6c66_6c72;
 /// writes take to reach the disk (measured in docs/flight-recorders.md).
 pub const JOURNAL_PERIOD: Duration = Duration::from_millis(200);
 
+/// What a machine crash may cost a run at most: the last second of its record. A run
+/// whose newest ticks were ever further from the disk says so (`summary.json`
+/// `flight.durable_lag_max_s`, and a warning).
+pub const DURABLE_BOUND: Duration = Duration::from_secs(1);
+
 /// Ticks of the frame before that a frame writes again (a torque recorded just after its
 /// state; a sample recorded a moment after the frame read its slot).
 pub(super) const OVERLAP: u64 = 8;

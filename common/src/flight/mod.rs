@@ -43,7 +43,7 @@ use crate::wire::{LAYOUT_VERSION, ReferenceSample, StateSample, TorqueSample};
 mod journal;
 mod pack;
 mod read;
-pub use journal::{JOURNAL_PERIOD, journal_path, journals};
+pub use journal::{DURABLE_BOUND, JOURNAL_PERIOD, journal_path, journals};
 pub use read::{FlightLog, StreamCount};
 
 const MAGIC: u64 = 0x7468_6769_6c66_6c72; // "rlflight"
@@ -530,6 +530,13 @@ pub struct Mover {
     pub journal_bytes: u64,
     /// When the newest ticks were last journaled.
     journaled: Option<std::time::Instant>,
+    /// When the last journal made durable began: every tick recorded before it is on the
+    /// disk (`None` before the first, which begins within a poll of the first tick).
+    durable_from: Option<std::time::Instant>,
+    /// The longest the newest ticks were from the disk: at each journal made durable, the
+    /// time since the one before began. A machine crash at any moment of the run would
+    /// have lost at most this much; `None` without a journal (or before the first).
+    pub durable_lag_max: Option<std::time::Duration>,
     /// The plant's newest tick, plus one, as the loop goes on ([`Mover::following`]): what
     /// a pass journals between its segments.
     live: Option<std::sync::Arc<std::sync::atomic::AtomicU64>>,
@@ -560,6 +567,8 @@ impl Mover {
             frames: 0,
             journal_bytes: 0,
             journaled: None,
+            durable_from: None,
+            durable_lag_max: None,
             live: None,
         }
     }
@@ -784,7 +793,8 @@ impl Mover {
         if !self.journaling {
             return errors;
         }
-        self.journaled = Some(std::time::Instant::now());
+        let began = std::time::Instant::now();
+        self.journaled = Some(began);
         for (n, stream) in Stream::ALL.into_iter().enumerate() {
             if let Err(e) = self.journal_stream(n, stream, plant_tick) {
                 errors.push(format!("{} (journal): {e}", stream.path(&self.staged).display()));
@@ -794,6 +804,12 @@ impl Mover {
             errors.push(format!("{}: making the record durable: {e}", self.kept.display()));
         }
         let failing = !errors.is_empty();
+        if !failing {
+            // Until now, the ticks since the last durable journal began were only in memory.
+            let lag = self.durable_from.unwrap_or(began).elapsed();
+            self.durable_lag_max = Some(self.durable_lag_max.map_or(lag, |m| m.max(lag)));
+            self.durable_from = Some(began);
+        }
         if std::mem::replace(&mut self.journal_failing, failing) {
             errors.clear(); // said already
         }
