@@ -10,7 +10,7 @@
 //! The image file lies on a tmpfs of its own: a disk whose flush is done at once, so that
 //! what is measured is the record's own promise (what it makes durable, and when), not the
 //! host disk's `fsync` latency under the other tests' writes (on the host disk, beside the
-//! whole suite, one `fdatasync` of the image took 1.07 s, and a crash lost 2.1 s).
+//! whole suite, one journal and its `fdatasync` took 1.07 s, and a crash lost 2.1 s).
 //! Needs root, loop devices and `mkfs.ext4`; skipped with a message without them.
 
 use std::path::{Path, PathBuf};
@@ -21,23 +21,9 @@ use rand::Rng;
 use rotorloop_common::flight::{FlightLog, Stream};
 use rotorloop_common::wire::StateSample;
 
-use crate::common::harness::{Harness, ROTORLOOP, group, json, live_timing_rows, ok};
+use crate::common::harness::{Harness, ROTORLOOP, group, json, live_timing_rows, ok, processes_of};
 
 const LIMIT: Duration = Duration::from_secs(180);
-
-/// The processes of a domain (by their command line).
-fn processes_of(domain: &str) -> Vec<u32> {
-    let mut out = Vec::new();
-    for e in std::fs::read_dir("/proc").expect("/proc").flatten() {
-        let Ok(pid) = e.file_name().to_string_lossy().parse::<u32>() else { continue };
-        let Ok(cmdline) = std::fs::read(e.path().join("cmdline")) else { continue };
-        let args: Vec<&[u8]> = cmdline.split(|b| *b == 0).collect();
-        if args.windows(2).any(|w| w[0] == b"--domain" && w[1] == domain.as_bytes()) {
-            out.push(pid);
-        }
-    }
-    out
-}
 
 fn signal_all(pids: &[u32], sig: libc::c_int) {
     for &pid in pids {

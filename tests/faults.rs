@@ -5,7 +5,8 @@
 use std::time::Duration;
 
 use crate::common::harness::{
-    Harness, TimingRow, assert_same_trace, json, live_timing_rows, ok, pid_of_role, timing_rows,
+    Harness, TimingRow, assert_same_trace, json, live_timing_rows, ok, pid_of_role, processes_of,
+    timing_rows,
 };
 use rotorloop_common::wire::FLAG_SAFE_MODE;
 
@@ -428,20 +429,6 @@ fn a_tick_the_controller_skipped_at_the_end_does_not_stall_the_report() {
     let row300 = timing_rows(&out).into_iter().find(|r| r.tick == 300).expect("row 300");
     assert!(row300.applied < 299, "the plant applied a torque for the skipped tick: {row300:?}");
     h.assert_no_leftovers();
-}
-
-/// The processes of a domain (by their command line).
-fn processes_of(domain: &str) -> Vec<u32> {
-    let mut out = Vec::new();
-    for e in std::fs::read_dir("/proc").expect("/proc").flatten() {
-        let Ok(pid) = e.file_name().to_string_lossy().parse::<u32>() else { continue };
-        let Ok(cmdline) = std::fs::read(e.path().join("cmdline")) else { continue };
-        let args: Vec<&[u8]> = cmdline.split(|b| *b == 0).collect();
-        if args.windows(2).any(|w| w[0] == b"--domain" && w[1] == domain.as_bytes()) {
-            out.push(pid);
-        }
-    }
-    out
 }
 
 /// `kill -9` of the launcher itself: its roles get SIGTERM from the kernel (parent-death

@@ -391,20 +391,31 @@ pub fn exit_of(pid: u32) -> String {
     format!("pid {pid} still not exited 10 s after SIGKILL, via {seen:?}")
 }
 
-/// The pid of the newest `rotorloop role ROLE` process of `domain`.
-pub fn pid_of_role(domain: &str, role: &str) -> Option<u32> {
-    let mut newest = None;
+/// The processes of `domain` (by their command line: `--domain DOMAIN`), each with its
+/// arguments.
+fn domain_processes(domain: &str) -> Vec<(u32, Vec<Vec<u8>>)> {
+    let mut out = Vec::new();
     for e in std::fs::read_dir("/proc").expect("/proc").flatten() {
         let Ok(pid) = e.file_name().to_string_lossy().parse::<u32>() else { continue };
         let Ok(cmdline) = std::fs::read(e.path().join("cmdline")) else { continue };
-        let args: Vec<&[u8]> = cmdline.split(|b| *b == 0).collect();
-        let ours = args.windows(2).any(|w| w[0] == b"--domain" && w[1] == domain.as_bytes());
-        let is_role = args.windows(2).any(|w| w[0] == b"role" && w[1] == role.as_bytes());
-        if ours && is_role && newest.is_none_or(|n| pid > n) {
-            newest = Some(pid);
+        let args: Vec<Vec<u8>> = cmdline.split(|b| *b == 0).map(<[u8]>::to_vec).collect();
+        if args.windows(2).any(|w| w[0] == b"--domain" && w[1] == domain.as_bytes()) {
+            out.push((pid, args));
         }
     }
-    newest
+    out
+}
+
+/// The pids of the processes of `domain` (by their command line).
+pub fn processes_of(domain: &str) -> Vec<u32> {
+    domain_processes(domain).into_iter().map(|(pid, _)| pid).collect()
+}
+
+/// The pid of the newest `rotorloop role ROLE` process of `domain`.
+pub fn pid_of_role(domain: &str, role: &str) -> Option<u32> {
+    let is_role =
+        |args: &[Vec<u8>]| args.windows(2).any(|w| w[0] == b"role" && w[1] == role.as_bytes());
+    domain_processes(domain).into_iter().filter(|(_, a)| is_role(a)).map(|(pid, _)| pid).max()
 }
 
 /// The state letter of a process (`/proc/PID/stat`'s third field): `T` when stopped.

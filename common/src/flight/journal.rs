@@ -42,6 +42,10 @@ pub const JOURNAL_PERIOD: Duration = Duration::from_millis(200);
 /// `flight.durable_lag_max_s`, and a warning).
 pub const DURABLE_BOUND: Duration = Duration::from_secs(1);
 
+/// A stream's journal frames search for their transforms once in this many; the others
+/// take the last search's (`pack::pack_reusing`): 5 s of frames.
+pub(super) const RESEARCH: u64 = 25;
+
 /// Ticks of the frame before that a frame writes again (a torque recorded just after its
 /// state; a sample recorded a moment after the frame read its slot).
 pub(super) const OVERLAP: u64 = 8;
@@ -107,12 +111,13 @@ pub(super) fn sync_dir(dir: &Path) -> std::io::Result<()> {
 }
 
 /// A frame's bytes: the ring's header `ring_header` (its words kept but the magic, the
-/// capacity and the two below), the slots `body` of ticks `first…`, packed.
+/// capacity and the two below), the slots `body` of ticks `first…`, packed with the
+/// stream's transforms `codes` (searched for where it is empty: `pack::pack_reusing`).
 pub(super) fn frame(
     ring_header: &[u8],
     first: u64,
-    body: &[u8],
-    slot_len: usize,
+    (body, slot_len): (&[u8], usize),
+    codes: &mut Vec<u8>,
 ) -> std::io::Result<Vec<u8>> {
     let mut header = ring_header[..HEADER].to_vec();
     let set =
@@ -120,7 +125,7 @@ pub(super) fn frame(
     set(&mut header, word::MAGIC, JOURNAL_MAGIC);
     set(&mut header, word::CAPACITY, (body.len() / slot_len) as u64);
     set(&mut header, word::MOVED, first);
-    let mut bytes = super::pack::pack(&header, body, slot_len)?;
+    let mut bytes = super::pack::pack_reusing(&header, body, slot_len, codes)?;
     let len = bytes.len() as u64;
     set(&mut bytes, word::BASE, len);
     Ok(bytes)
@@ -221,12 +226,29 @@ pub(super) fn read_ticks(
         done += run;
         k += run as u64;
     }
-    for (i, s) in bytes.chunks_exact_mut(slot).enumerate() {
+    let sound = |s: &[u8], want: u64| {
         let tag = u64::from_ne_bytes(s[..8].try_into().unwrap_or_default());
-        let want = from + i as u64;
         let tick = u64::from_ne_bytes(s[8..16].try_into().unwrap_or_default());
-        if tag != want + 1 || tick != want {
-            s.fill(0);
+        tag == want + 1 && tick == want
+    };
+    let mut newest = None;
+    for (i, s) in bytes.chunks_exact_mut(slot).enumerate() {
+        match sound(s, from + i as u64) {
+            true => newest = Some(i),
+            false => s.fill(0),
+        }
+    }
+    // A slot found empty before one found written may have been written after the read
+    // passed it and before it reached the later one (a writer records in tick order): read
+    // again, it holds its tick now, unless the tick was never recorded (a miss).
+    for i in 0..newest.unwrap_or(0) {
+        let s = &mut bytes[i * slot..(i + 1) * slot];
+        if s[..8] == [0; 8] {
+            let k = from + i as u64;
+            ring.read_exact_at(s, (HEADER + (k % capacity) as usize * slot) as u64).ok()?;
+            if !sound(s, k) {
+                s.fill(0);
+            }
         }
     }
     Some(bytes)

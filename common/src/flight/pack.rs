@@ -109,6 +109,16 @@ fn significant_bytes(z: u64) -> u64 {
 /// [`Transform::predict`] row by row, the first of the cheapest kept): a unit test holds
 /// the two together. 2.6 times faster than that search here (`pack::tests::speed`).
 fn pack_chunk(slots: &[u8], words: usize) -> std::io::Result<Vec<u8>> {
+    pack_chunk_as(slots, words, None)
+}
+
+/// [`pack_chunk`], with `given` (a transform per column, as a chunk's first bytes hold
+/// them) taken as they are instead of searched for: what a journal frame does with the
+/// transforms its stream's last search chose ([`pack_reusing`]).
+fn pack_chunk_as(slots: &[u8], words: usize, given: Option<&[u8]>) -> std::io::Result<Vec<u8>> {
+    let given: Option<Vec<Transform>> = given
+        .filter(|g| g.len() == words)
+        .and_then(|g| g.iter().map(|b| Transform::from_u8(*b)).collect());
     let rows = slots.len() / (8 * words);
     let mut cols = vec![0u64; rows * words];
     for (r, slot) in slots.chunks_exact(8 * words).enumerate() {
@@ -126,6 +136,11 @@ fn pack_chunk(slots: &[u8], words: usize) -> std::io::Result<Vec<u8>> {
         let best = &mut residuals[c * rows..(c + 1) * rows];
         let mut best_cost = u64::MAX;
         let mut chosen = Transform::Raw;
+        if let Some(g) = &given {
+            g[c].encode(col, left, best, u64::MAX);
+            codes.push(g[c] as u8);
+            continue;
+        }
         for t in TRANSFORMS {
             let cost = t.encode(col, left, &mut trial, best_cost);
             if cost < best_cost {
@@ -345,6 +360,28 @@ pub(super) fn pack(header: &[u8], body: &[u8], slot_len: usize) -> std::io::Resu
     let chunks: Vec<Vec<u8>> =
         body.chunks(chunk_len).map(|c| pack_chunk(c, slot_len / 8)).collect::<Result<_, _>>()?;
     Ok(assemble(header, &chunks))
+}
+
+/// [`pack`] for a journal frame, which is packed every period: with `codes` (the
+/// transforms of the stream's frame before, one per column) they are taken as they are,
+/// without the search that is most of a small frame's cost; `codes` empty, they are
+/// searched for and kept in it. Frames of more than a chunk search each chunk.
+pub(super) fn pack_reusing(
+    header: &[u8],
+    body: &[u8],
+    slot_len: usize,
+    codes: &mut Vec<u8>,
+) -> std::io::Result<Vec<u8>> {
+    let (words, chunk_len) = (slot_len / 8, CHUNK_SLOTS as usize * slot_len);
+    if body.len() > chunk_len || codes.len() != words {
+        let packed = pack(header, body, slot_len)?;
+        // The first chunk's transforms: after the header and one table entry.
+        let first = header.len() + 16 * body.len().div_ceil(chunk_len).max(1);
+        codes.clear();
+        codes.extend_from_slice(packed.get(first..first + words).unwrap_or_default());
+        return Ok(packed);
+    }
+    Ok(assemble(header, &[pack_chunk_as(body, words, Some(codes))?]))
 }
 
 /// Packs the raw record file `from` (a ring: its header and its slots, as
@@ -608,6 +645,28 @@ mod tests {
             old * 1e3,
             old / new
         );
+    }
+
+    /// A journal frame packed with the transforms its stream's last search chose unpacks
+    /// bit for bit; the search (no transforms yet) packs as a segment does and keeps the
+    /// transforms it chose.
+    #[test]
+    fn a_frame_packed_with_the_last_searchs_transforms_comes_back_bit_for_bit() {
+        let (words, header) = (25, [7u8; super::super::HEADER]);
+        let mut codes = Vec::new();
+        let first = slots(300, words, 1);
+        let searched = pack_reusing(&header, &first, words * 8, &mut codes).expect("packs");
+        assert_eq!(searched, pack(&header, &first, words * 8).expect("packs"));
+        assert_eq!(codes.len(), words);
+        let next = slots(200, words, 2);
+        let reused = pack_reusing(&header, &next, words * 8, &mut codes).expect("packs");
+        let len = reused.len() as u64;
+        let table = chunk_table(&reused[header.len()..], (200, words * 8), len).expect("table");
+        let (at, l) = (table[0].0 as usize, table[0].1 as usize);
+        assert_eq!(reused[at..at + words], codes[..], "the transforms given");
+        let mut out = Vec::new();
+        unpack(&reused[at..at + l], (0, 200, words * 8), false, &mut out).expect("unpacks");
+        assert_eq!(out, next);
     }
 
     #[test]
