@@ -3,14 +3,14 @@
 //! rings on tmpfs are gone) loses at most the last second of the record.
 //!
 //! The rings stay the hot path (a role's record is a `memcpy` into tmpfs); the mover's
-//! thread ([`super::Mover::journal`]), every [`JOURNAL_PERIOD`], reads each ring's ticks
-//! past its last segment (those not yet in a segment file) that it has not journaled yet,
-//! packs them ([`super::pack`]) into a **frame** and appends the frame to
+//! thread ([`super::Mover::journal`]), every [`JOURNAL_PERIOD`], first makes the segments
+//! written since the last time durable and removes the journals of their halves, then reads
+//! each ring's ticks past its last durable segment that it has not journaled yet (the
+//! range at once), packs them ([`super::pack`]) into a **frame** and appends the frame to
 //! `OUT/flight/STREAM.NNNNNN.journal` (`NNNNNN`: the half of the ring the ticks belong to,
-//! 0 for a ring that never comes round); then it makes what it wrote since the last time
-//! durable (`fdatasync` of each file, an `fsync` of the directory after a file is made)
-//! before the next period's frames, and removes the journal of every half whose segment is
-//! now durable. A frame rewrites the last few ticks of the one before (a torque recorded
+//! 0 for a ring that never comes round); then it makes the frames durable (`fdatasync` of
+//! each file, an `fsync` of the directory after a file is made) before the next period's.
+//! So no frame reaches the disk before the segments written ahead of it. A frame rewrites the last few ticks of the one before (a torque recorded
 //! just after its state, the reference ahead of the plant): a reader takes, for a tick, the
 //! ring's slot, else its segment's, else the newest frame that holds it.
 //!
