@@ -370,17 +370,22 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
     // written as for any other end.
     let crate::run::supervise::Supervised { events, failure, durable_lag_max } = supervised?;
     let reported = report(&launch, &scenario, &rss, (&events, launched_ns), flight.as_deref());
-    if let Some(lag) = durable_lag_max {
-        let _ = rotorloop_monitor::summary::patch(&args.out, |j| {
-            if j["flight"].is_object() {
-                j["flight"]["durable_lag_max_s"] = lag.as_secs_f64().into();
-            }
-        });
-    }
+    note_durable_lag(&args.out, durable_lag_max);
     match failure {
         Some(f) => Err(refusal_or(f)),
         None => reported,
     }
+}
+
+/// `summary.json` `flight.durable_lag_max_s`: the longest the record's newest ticks were
+/// from the disk (`Mover::durable_lag_max`), where the run kept a journal.
+fn note_durable_lag(out: &std::path::Path, lag: Option<std::time::Duration>) {
+    let Some(lag) = lag else { return };
+    let _ = rotorloop_monitor::summary::patch(out, |j| {
+        if j["flight"].is_object() {
+            j["flight"]["durable_lag_max_s"] = lag.as_secs_f64().into();
+        }
+    });
 }
 
 /// Adds `w` to `summary.json`'s `warnings` (made if need be).

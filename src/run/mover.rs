@@ -17,8 +17,38 @@ use rotorloop_common::flight::{Mover, free_through};
 /// How often the thread looks for a newer plant tick.
 const POLL: Duration = Duration::from_millis(20);
 
-/// The thread's nice value in real time (`MoverThread::spawn`).
-const YIELDING_NICE: libc::c_int = 10;
+/// How the thread yields the cores to a real-time loop: `SCHED_IDLE`, so that a role woken
+/// by its sample always preempts it (at nice 0, and at nice 10 alike, the journal cost a
+/// 1 kHz run with event waits on two vCPUs about twice its misses, in each of five pairs,
+/// though it takes about 1 ms of CPU in 200: the woken role waited out the thread's
+/// slice). On a machine too busy to leave it any time, it falls behind; once its journal
+/// is late ([`Mover::journal_late`]) it runs as an ordinary thread until it has caught up,
+/// so the bound holds under any load.
+struct Yielding {
+    /// Whether it runs as an ordinary thread now (catching up).
+    ordinary: bool,
+}
+
+impl Yielding {
+    fn start() -> Self {
+        let mut y = Self { ordinary: true };
+        y.keep_up(false);
+        y
+    }
+
+    /// `SCHED_IDLE` while the journal keeps up, `SCHED_OTHER` while it is `late`.
+    fn keep_up(&mut self, late: bool) {
+        if late == self.ordinary {
+            return;
+        }
+        let policy = if late { libc::SCHED_OTHER } else { libc::SCHED_IDLE };
+        let param = libc::sched_param { sched_priority: 0 };
+        // SAFETY: a plain system call on the calling thread (pid 0), with a valid param.
+        if unsafe { libc::sched_setscheduler(0, policy, &param) } == 0 {
+            self.ordinary = late;
+        }
+    }
+}
 
 /// A [`Mover`] that runs on its own thread, told the plant's newest tick by the
 /// supervision loop.
@@ -35,12 +65,7 @@ pub(crate) struct MoverThread {
 impl MoverThread {
     /// Starts `mover` on a thread named `flight-mover`; with `stall`, its first pass
     /// waits that long (the tests' stand-in for a copy held up by writeback). With
-    /// `yielding` (real time) the thread runs at nice [`YIELDING_NICE`]: on cores the loop
-    /// shares with it, a role woken by its sample preempts the thread's packing at once
-    /// (at nice 0, the journal cost a 1 kHz run with event waits on two vCPUs about 2.5
-    /// times its misses, in each of five pairs). A real-time journal frame is a few
-    /// milliseconds of work, done within its period even at that weight on a loaded
-    /// machine; lockstep, with no deadline and frames of thousands of ticks, keeps nice 0.
+    /// `yielding` (real time) the thread yields the cores to the loop ([`Yielding`]).
     pub(crate) fn spawn(
         mover: Mover,
         stall: Option<Duration>,
@@ -53,18 +78,12 @@ impl MoverThread {
         let (t, s, f) = (tick.clone(), stop.clone(), free.clone());
         let mut mover = mover.following(tick.clone());
         let handle = std::thread::Builder::new().name("flight-mover".into()).spawn(move || {
-            if yielding {
-                // SAFETY: plain system calls on this thread's own id.
-                let _ = unsafe {
-                    libc::setpriority(
-                        libc::PRIO_PROCESS,
-                        libc::gettid() as libc::id_t,
-                        YIELDING_NICE,
-                    )
-                };
-            }
+            let mut policy = yielding.then(Yielding::start);
             let mut moved_at = 0;
             loop {
+                if let Some(p) = &mut policy {
+                    p.keep_up(mover.journal_late());
+                }
                 // The stop is read before the tick: the pass after it sees the last tick.
                 let stopping = s.load(Ordering::Acquire);
                 let newest = t.load(Ordering::Acquire);

@@ -590,6 +590,12 @@ impl Mover {
         Self { live: Some(live), ..self }
     }
 
+    /// Whether the journal is late: more than one and a half [`JOURNAL_PERIOD`]s since
+    /// it last began (a thread starved of CPU: `MoverThread`'s yielding ends then).
+    pub fn journal_late(&self) -> bool {
+        self.journaled.is_some_and(|t| t.elapsed() >= JOURNAL_PERIOD * 3 / 2)
+    }
+
     /// Whether [`JOURNAL_PERIOD`] has passed since the newest ticks were last journaled.
     pub fn journal_due(&self) -> bool {
         self.journaled.is_none_or(|t| t.elapsed() >= JOURNAL_PERIOD)

@@ -160,11 +160,28 @@ fn pack_chunk_as(slots: &[u8], words: usize, given: Option<&[u8]>) -> std::io::R
             }
         }
     }
-    // With its checksum: damage inside a frame is an error, not other samples.
-    let mut z = zstd::bulk::Compressor::new(LEVEL)?;
-    z.set_parameter(zstd::zstd_safe::CParameter::ChecksumFlag(true))?;
-    codes.extend_from_slice(&z.compress(&shuffled)?);
-    Ok(codes)
+    // With its checksum: damage inside a frame is an error, not other samples. The
+    // compressor is the thread's, kept: a fresh one's workspace, five times a second for the
+    // journal, was most of the journal's page faults.
+    COMPRESSOR.with(|z| {
+        let mut z = z.borrow_mut();
+        let z = match &mut *z {
+            Some(z) => z,
+            none => {
+                let mut fresh = zstd::bulk::Compressor::new(LEVEL)?;
+                fresh.set_parameter(zstd::zstd_safe::CParameter::ChecksumFlag(true))?;
+                none.insert(fresh)
+            }
+        };
+        codes.extend_from_slice(&z.compress(&shuffled)?);
+        Ok(codes)
+    })
+}
+
+thread_local! {
+    /// The thread's compressor ([`pack_chunk_as`]).
+    static COMPRESSOR: std::cell::RefCell<Option<zstd::bulk::Compressor<'static>>> =
+        const { std::cell::RefCell::new(None) };
 }
 
 impl Transform {
