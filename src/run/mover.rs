@@ -23,17 +23,25 @@ const POLL: Duration = Duration::from_millis(20);
 /// though it takes about 1 ms of CPU in 200: the woken role waited out the thread's
 /// slice). On a machine too busy to leave it any time, it falls behind; once its journal
 /// is late ([`Mover::journal_late`]) it runs as an ordinary thread until it has caught up,
-/// so the bound holds under any load.
+/// so the bound holds under any load. A user who may not leave `SCHED_IDLE` again keeps an
+/// ordinary thread.
 struct Yielding {
     /// Whether it runs as an ordinary thread now (catching up).
     ordinary: bool,
 }
 
 impl Yielding {
-    fn start() -> Self {
-        let mut y = Self { ordinary: true };
-        y.keep_up(false);
-        y
+    /// The yielding of a thread that may leave `SCHED_IDLE` again; `None` where it may not
+    /// (a user without `CAP_SYS_NICE` and with the default `RLIMIT_NICE` of 0: the thread
+    /// would stay idle, and starve, on a busy machine), tried on a thread of its own.
+    fn start() -> Option<Self> {
+        let set = |policy| {
+            let param = libc::sched_param { sched_priority: 0 };
+            // SAFETY: a plain system call on the calling thread (pid 0), with a valid param.
+            unsafe { libc::sched_setscheduler(0, policy, &param) == 0 }
+        };
+        let may = std::thread::spawn(move || set(libc::SCHED_IDLE) && set(libc::SCHED_OTHER));
+        may.join().unwrap_or(false).then_some(Self { ordinary: true })
     }
 
     /// `SCHED_IDLE` while the journal keeps up, `SCHED_OTHER` while it is `late`.
@@ -78,7 +86,7 @@ impl MoverThread {
         let (t, s, f) = (tick.clone(), stop.clone(), free.clone());
         let mut mover = mover.following(tick.clone());
         let handle = std::thread::Builder::new().name("flight-mover".into()).spawn(move || {
-            let mut policy = yielding.then(Yielding::start);
+            let mut policy = yielding.then(Yielding::start).flatten();
             let mut moved_at = 0;
             loop {
                 if let Some(p) = &mut policy {
@@ -143,6 +151,31 @@ mod tests {
     use rotorloop_common::flight::{FlightRecorder, MIN_RING_TICKS, Stream, segments};
     use rotorloop_common::params::RotorBodyState;
     use rotorloop_common::wire::{ReferenceSample, StateSample, TorqueSample};
+
+    /// A yielding thread is `SCHED_IDLE` while its journal keeps up and an ordinary thread
+    /// while it is late; where this user may not leave `SCHED_IDLE` (no `CAP_SYS_NICE`),
+    /// it stays ordinary (said, and checked as such).
+    #[test]
+    fn a_yielding_thread_is_idle_while_it_keeps_up_and_ordinary_while_late() {
+        std::thread::spawn(|| {
+            // SAFETY: a plain getter on the calling thread.
+            let policy = || unsafe { libc::sched_getscheduler(0) };
+            let Some(mut y) = Yielding::start() else {
+                eprintln!("this user may not leave SCHED_IDLE: the thread stays ordinary");
+                assert_eq!(policy(), libc::SCHED_OTHER);
+                return;
+            };
+            assert_eq!(policy(), libc::SCHED_OTHER, "ordinary until told");
+            y.keep_up(false);
+            assert_eq!(policy(), libc::SCHED_IDLE);
+            y.keep_up(true);
+            assert_eq!(policy(), libc::SCHED_OTHER);
+            y.keep_up(false);
+            assert_eq!(policy(), libc::SCHED_IDLE);
+        })
+        .join()
+        .expect("no panic");
+    }
 
     /// The thread moves the halves the loop has finished, and on `finish` the ones the
     /// last tick finished. The writers (the plant's state, the reference 16 ticks ahead,
