@@ -536,8 +536,6 @@ pub struct Mover {
     pub journal_bytes: u64,
     /// When the newest ticks were last journaled.
     journaled: Option<std::time::Instant>,
-    /// When the mover was made (the journal is late from then, before its first).
-    made: std::time::Instant,
     /// When the last journal made durable began: every tick recorded before it is on the
     /// disk (`None` before the first, which begins within a poll of the first tick).
     durable_from: Option<std::time::Instant>,
@@ -578,7 +576,6 @@ impl Mover {
             frames: 0,
             journal_bytes: 0,
             journaled: None,
-            made: std::time::Instant::now(),
             durable_from: None,
             durable_lag_max: None,
             live: None,
@@ -591,13 +588,6 @@ impl Mover {
     /// machine, and a machine crash meanwhile would lose all that time (1.19 s seen).
     pub fn following(self, live: std::sync::Arc<std::sync::atomic::AtomicU64>) -> Self {
         Self { live: Some(live), ..self }
-    }
-
-    /// Whether the journal is late: more than one and a half [`JOURNAL_PERIOD`]s since
-    /// it last began, or since the mover was made before its first (a thread starved of
-    /// CPU: `MoverThread`'s yielding ends then).
-    pub fn journal_late(&self) -> bool {
-        self.journaled.unwrap_or(self.made).elapsed() >= JOURNAL_PERIOD * 3 / 2
     }
 
     /// Whether [`JOURNAL_PERIOD`] has passed since the newest ticks were last journaled.
