@@ -17,58 +17,6 @@ use rotorloop_common::flight::{Mover, free_through};
 /// How often the thread looks for a newer plant tick.
 const POLL: Duration = Duration::from_millis(20);
 
-/// How the thread yields the cores to a real-time loop: `SCHED_IDLE`, so that a role woken
-/// by its sample always preempts it (at nice 0, and at nice 10 alike, the journal cost a
-/// 1 kHz run with event waits on two vCPUs about twice its misses, in each of five pairs,
-/// though it takes about 1 ms of CPU in 200: the woken role waited out the thread's
-/// slice). On a machine too busy to leave it any time, it falls behind; once its journal
-/// is late ([`LATE`]) the supervision loop, an ordinary thread that looks every 2 ms, makes
-/// it an ordinary thread until it has caught up, so the bound holds under any load (the
-/// thread itself, starved, would notice too late: a loaded run lost 0.95 s so). A user who
-/// may not leave `SCHED_IDLE` again keeps an ordinary thread.
-struct Yielding {
-    /// The mover thread's id.
-    tid: libc::pid_t,
-    /// Whether it runs as an ordinary thread now (catching up).
-    ordinary: std::cell::Cell<bool>,
-}
-
-/// How late the journal may begin (since the last began, or since the thread started
-/// before the first) before its thread stops yielding.
-const LATE: Duration = Duration::from_millis(300);
-
-impl Yielding {
-    /// The yielding of thread `tid`, where a thread of this user may leave `SCHED_IDLE`
-    /// again (tried on a thread of its own); `None` where it may not (no `CAP_SYS_NICE` and
-    /// the default `RLIMIT_NICE` of 0: the thread would stay idle, and starve, on a busy
-    /// machine).
-    fn of(tid: libc::pid_t) -> Option<Self> {
-        let may = std::thread::spawn(|| {
-            set_policy(0, libc::SCHED_IDLE) && set_policy(0, libc::SCHED_OTHER)
-        });
-        let ordinary = std::cell::Cell::new(true);
-        may.join().unwrap_or(false).then_some(Self { tid, ordinary })
-    }
-
-    /// `SCHED_IDLE` while the journal keeps up, `SCHED_OTHER` while it is `late`.
-    fn keep_up(&self, late: bool) {
-        if late != self.ordinary.get() && set_policy(self.tid, policy_for(late)) {
-            self.ordinary.set(late);
-        }
-    }
-}
-
-fn policy_for(late: bool) -> libc::c_int {
-    if late { libc::SCHED_OTHER } else { libc::SCHED_IDLE }
-}
-
-/// Sets thread `tid`'s policy (0: the calling thread's), priority 0; whether it took.
-fn set_policy(tid: libc::pid_t, policy: libc::c_int) -> bool {
-    let param = libc::sched_param { sched_priority: 0 };
-    // SAFETY: a plain system call with a valid param.
-    unsafe { libc::sched_setscheduler(tid, policy, &param) == 0 }
-}
-
 /// A [`Mover`] that runs on its own thread, told the plant's newest tick by the
 /// supervision loop.
 pub(crate) struct MoverThread {
@@ -79,41 +27,25 @@ pub(crate) struct MoverThread {
     free: Arc<AtomicU64>,
     stop: Arc<AtomicBool>,
     handle: JoinHandle<Mover>,
-    /// When the thread last began a journal, in ms since `started` (0: not yet).
-    began_ms: Arc<AtomicU64>,
-    started: std::time::Instant,
-    /// In real time, the thread's yielding ([`Yielding`]).
-    yielding: Option<Yielding>,
 }
 
 impl MoverThread {
     /// Starts `mover` on a thread named `flight-mover`; with `stall`, its first pass
-    /// waits that long (the tests' stand-in for a copy held up by writeback). With
-    /// `yielding` (real time) the thread yields the cores to the loop ([`Yielding`]).
-    pub(crate) fn spawn(
-        mover: Mover,
-        stall: Option<Duration>,
-        yielding: bool,
-    ) -> std::io::Result<Self> {
+    /// waits that long (the tests' stand-in for a copy held up by writeback).
+    pub(crate) fn spawn(mover: Mover, stall: Option<Duration>) -> std::io::Result<Self> {
         let tick = Arc::new(AtomicU64::new(0));
         let stop = Arc::new(AtomicBool::new(false));
         let free = mover.half.map_or(u64::MAX, |h| free_through(mover.copied(), h));
         let free = Arc::new(AtomicU64::new(free));
         let (t, s, f) = (tick.clone(), stop.clone(), free.clone());
         let mut mover = mover.following(tick.clone());
-        let (started, began_ms) = (std::time::Instant::now(), Arc::new(AtomicU64::new(0)));
-        let began = began_ms.clone();
-        let (tid_tx, tid_rx) = std::sync::mpsc::channel();
         let handle = std::thread::Builder::new().name("flight-mover".into()).spawn(move || {
-            // SAFETY: a plain getter.
-            let _ = tid_tx.send(unsafe { libc::gettid() });
             let mut moved_at = 0;
             loop {
                 // The stop is read before the tick: the pass after it sees the last tick.
                 let stopping = s.load(Ordering::Acquire);
                 let newest = t.load(Ordering::Acquire);
                 if newest > 0 && mover.journal_due() {
-                    began.store(started.elapsed().as_millis() as u64, Ordering::Release);
                     // The newest ticks onto the disk, durably (a machine crash loses at
                     // most about this period; a pass journals too, between its segments).
                     for e in mover.journal(newest - 1) {
@@ -138,11 +70,7 @@ impl MoverThread {
                 std::thread::sleep(POLL);
             }
         })?;
-        let yielding = match yielding {
-            true => tid_rx.recv().ok().and_then(Yielding::of),
-            false => None,
-        };
-        Ok(Self { tick, free, stop, handle, began_ms, started, yielding })
+        Ok(Self { tick, free, stop, handle })
     }
 
     /// Whether a lockstep plant whose newest published tick is `plant_tick` waits for
@@ -151,15 +79,9 @@ impl MoverThread {
         plant_tick + 1 > self.free.load(Ordering::Acquire)
     }
 
-    /// The plant has published `plant_tick`: what became due is moved soon. In real time,
-    /// the thread yields while its journal keeps up ([`Yielding`]).
+    /// The plant has published `plant_tick`: what became due is moved soon.
     pub(crate) fn saw(&self, plant_tick: u64) {
         self.tick.fetch_max(plant_tick + 1, Ordering::Release);
-        if let Some(y) = &self.yielding {
-            let since = self.started.elapsed().as_millis() as u64;
-            let late = since.saturating_sub(self.began_ms.load(Ordering::Acquire));
-            y.keep_up(late >= LATE.as_millis() as u64);
-        }
     }
 
     /// Moves what is due after `plant_tick`, stops the thread and returns the mover (its
@@ -179,37 +101,6 @@ mod tests {
     use rotorloop_common::flight::{FlightRecorder, MIN_RING_TICKS, Stream, segments};
     use rotorloop_common::params::RotorBodyState;
     use rotorloop_common::wire::{ReferenceSample, StateSample, TorqueSample};
-
-    /// A yielding thread is `SCHED_IDLE` while its journal keeps up and an ordinary thread
-    /// while it is late, set from another thread (the supervision loop); where this user
-    /// may not leave `SCHED_IDLE` (no `CAP_SYS_NICE`), it stays ordinary (said).
-    #[test]
-    fn a_yielding_thread_is_idle_while_it_keeps_up_and_ordinary_while_late() {
-        let (tx, rx) = std::sync::mpsc::channel();
-        let (done_tx, done_rx) = std::sync::mpsc::channel::<()>();
-        let thread = std::thread::spawn(move || {
-            // SAFETY: a plain getter.
-            tx.send(unsafe { libc::gettid() }).expect("send");
-            let _ = done_rx.recv();
-        });
-        let tid = rx.recv().expect("tid");
-        // SAFETY: a plain getter on a live thread of this process.
-        let policy = || unsafe { libc::sched_getscheduler(tid) };
-        match Yielding::of(tid) {
-            None => eprintln!("this user may not leave SCHED_IDLE: the thread stays ordinary"),
-            Some(y) => {
-                assert_eq!(policy(), libc::SCHED_OTHER, "ordinary until told");
-                y.keep_up(false);
-                assert_eq!(policy(), libc::SCHED_IDLE);
-                y.keep_up(true);
-                assert_eq!(policy(), libc::SCHED_OTHER);
-                y.keep_up(false);
-                assert_eq!(policy(), libc::SCHED_IDLE);
-            }
-        }
-        done_tx.send(()).expect("done");
-        thread.join().expect("no panic");
-    }
 
     /// The thread moves the halves the loop has finished, and on `finish` the ones the
     /// last tick finished. The writers (the plant's state, the reference 16 ticks ahead,
@@ -237,7 +128,7 @@ mod tests {
             theta: glam::DVec3::ZERO,
         };
         let mover = Mover::new(&staged, &kept).with_half(half);
-        let mover = MoverThread::spawn(mover, None, false).expect("thread");
+        let mover = MoverThread::spawn(mover, None).expect("thread");
         assert!(mover.holds(free_through(0, half)), "the first tick past the room waits");
         assert!(!mover.holds(free_through(0, half) - 1));
         let ticks = 4 * capacity;

@@ -125,8 +125,7 @@ impl Watch {
             torques_received: 0,
             mover: launch.mover().and_then(|m| {
                 let stall = launch.role_args.hooks.test_mover_stall_ms;
-                let yielding = launch.role_args.mode == Mode::Realtime;
-                MoverThread::spawn(m, stall.map(std::time::Duration::from_millis), yielding)
+                MoverThread::spawn(m, stall.map(std::time::Duration::from_millis))
                     .map_err(|e| eprintln!("warning: flight records: no mover thread ({e})"))
                     .ok()
             }),
