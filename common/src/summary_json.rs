@@ -162,6 +162,12 @@ const MAIN: &[Key] = &[
         "integer",
         "torques taken from the plant's record because the controller's had none (a controller of the user's own records none)",
     ),
+    when(
+        "flight.durable_lag_max_s",
+        "number, s",
+        "when the launcher moved the records and kept their journal (not after `recover`)",
+        "the longest the record's newest ticks were from the disk: what a machine crash at the worst moment of the run would have lost (docs/flight-recorders.md)",
+    ),
     always("monitor_kept_up", "boolean", "whether the live monitor saw every tick"),
     always(
         "misses",

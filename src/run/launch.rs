@@ -369,8 +369,8 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
     // A failure stops the run, but its report (the faults that led to it among them) is
     // written as for any other end.
     let crate::run::supervise::Supervised { events, failure, durable_lag_max } = supervised?;
-    let reported = report(&launch, &scenario, &rss, (&events, launched_ns), flight.as_deref());
-    note_durable_lag(&args.out, durable_lag_max);
+    let ran = (&events[..], launched_ns, durable_lag_max);
+    let reported = report(&launch, &scenario, &rss, ran, flight.as_deref());
     match failure {
         Some(f) => Err(refusal_or(f)),
         None => reported,
@@ -445,12 +445,14 @@ fn report(
     launch: &Launch,
     scenario: &rotorloop_common::scenario::Scenario,
     rss: &RssLog,
-    (events, launched_ns): (&[FaultEvent], u64),
+    (events, launched_ns, durable_lag): (&[FaultEvent], u64, Option<std::time::Duration>),
     flight: Option<&std::path::Path>,
 ) -> anyhow::Result<()> {
     let args = launch.args;
     let lockstep = args.role.mode == Mode::Lockstep;
     launch.report_without_monitor(scenario, flight);
+    // Before `run.mcap`, which attaches the summary.
+    note_durable_lag(&args.out, durable_lag);
     let schedule: Vec<serde_json::Value> = launch.faults.iter().map(|f| f.scheduled()).collect();
     if let Err(e) = rotorloop_monitor::summary::patch(&args.out, |j| {
         j["fault_schedule"] = serde_json::json!(schedule);
