@@ -145,7 +145,10 @@ impl Watch {
         let mover = self.mover.take().and_then(|m| m.finish(tick));
         let lag = mover.as_ref().and_then(|m| m.durable_lag_max);
         if let Some(l) = lag.filter(|l| *l > rotorloop_common::flight::DURABLE_BOUND) {
-            eprintln!(
+            // Not `eprintln!`: a terminal gone (SIGHUP) must not make this a panic.
+            use std::io::Write;
+            let _ = writeln!(
+                std::io::stderr(),
                 "warning: flight records: the newest ticks were up to {:.2} s from the disk \
                  (a machine crash then would have lost that much; the bound is {} s): the \
                  disk's syncs or the launcher's thread were slow",
