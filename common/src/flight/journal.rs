@@ -11,8 +11,9 @@
 //! 0 for a ring that never comes round); then it makes the frames durable (`fdatasync` of
 //! each file, an `fsync` of the directory after a file is made) before the next period's.
 //! So no frame reaches the disk before the segments written ahead of it. A frame rewrites
-//! the last few ticks of the one before (a torque recorded just after its state, the reference ahead of the plant): a reader takes, for a tick, the
-//! ring's slot, else its segment's, else the newest frame that holds it.
+//! the last few ticks of the one before (a torque recorded just after its state, the
+//! reference ahead of the plant): a reader takes, for a tick, the ring's slot, else its
+//! segment's, else the newest frame that holds it.
 //!
 //! **A frame** is a packed segment ([`super::pack`]) whose header has the magic
 //! `rlfljrnl`, the ring's header words (its writer's opens among them), its slots as
