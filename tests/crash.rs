@@ -55,10 +55,13 @@ fn a_closed_terminal_stops_the_run_like_sigint_with_a_partial_report_and_nothing
         assert_eq!(libc::ptsname_r(master, name.as_mut_ptr(), name.len()), 0);
         (master, std::ffi::CStr::from_ptr(name.as_ptr()).to_owned())
     };
+    // Each process that ends normally (not by a panic) says so in this file.
+    let ends = h.path("ends");
     let mut cmd = Command::new(ROTORLOOP);
     cmd.args(["run", "--scenario", "paper-zero", "--duration", "60", "--mode", "realtime"])
         .args(["--domain", &h.domain, "--out"])
-        .arg(&out);
+        .arg(&out)
+        .env("ROTORLOOP_PEAK_RSS", &ends);
     // SAFETY: between fork and exec only async-signal-safe calls: the child leads a session
     // of its own whose controlling terminal is the pseudo-terminal, its stdio on it.
     unsafe {
@@ -105,6 +108,13 @@ fn a_closed_terminal_stops_the_run_like_sigint_with_a_partial_report_and_nothing
     assert_eq!(s["completed"], false, "{s}");
     let rows = s["trace_rows"].as_u64().expect("rows");
     assert!(rows >= 1000, "a partial report of what ran: {rows} rows");
+    // Every process ended normally, none of a print to the hung-up terminal (which
+    // panics: the monitor's last line did, and the launcher assembled the report for it).
+    let ends = std::fs::read_to_string(&ends).unwrap_or_default();
+    for who in ["run ", "role plant ", "role reference ", "role controller ", "role monitor "] {
+        let n = ends.lines().filter(|l| l.starts_with(who)).count();
+        assert_eq!(n, 1, "`{who}` ended normally once:\n{ends}");
+    }
     while !processes_of(&h.domain).is_empty() {
         assert!(Instant::now() < until, "roles outlived the launcher");
         std::thread::sleep(Duration::from_millis(20));

@@ -5,8 +5,9 @@
 //!
 //! **SIGHUP is a stop like SIGINT** (docs/running.md): the terminal of the run is gone (an
 //! SSH connection dropped, `tmux kill-session`). What the processes still say goes to
-//! `/dev/null` where it went to that terminal (the handler points it there: a print that
-//! fails with `EIO` would panic), and an output relay (`relay`) discards what its real
+//! `/dev/null` where it went to that terminal (the handler of each of the three signals
+//! points it there, the roles' too, which learn of the stop by their launcher's SIGTERM: a
+//! print that fails with `EIO` would panic), and an output relay (`relay`) discards what its real
 //! output refuses. A run meant to outlive its terminal is started under
 //! `nohup` (a SIGHUP that is ignored when the process starts stays ignored), `setsid` or a
 //! terminal multiplexer.
@@ -15,11 +16,12 @@ use std::sync::atomic::{AtomicBool, Ordering};
 
 static SHUTDOWN: AtomicBool = AtomicBool::new(false);
 
-extern "C" fn on_signal(sig: libc::c_int) {
+extern "C" fn on_signal(_sig: libc::c_int) {
+    // Before the flag: another thread that sees it may print its way out at once. And on
+    // every signal, not SIGHUP alone: the kernel sends SIGHUP to the session's leader (the
+    // launcher), whose roles then learn of the stop by SIGINT, their terminal as gone.
+    away_from_a_hung_up_terminal();
     SHUTDOWN.store(true, Ordering::SeqCst);
-    if sig == libc::SIGHUP {
-        away_from_a_hung_up_terminal();
-    }
 }
 
 /// Points stdin, stdout and stderr that are a terminal which hung up at `/dev/null`: what
