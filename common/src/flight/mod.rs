@@ -122,15 +122,25 @@ pub const RUN_DIR_FILE: &str = "run-dir";
 pub fn move_records(from: &Path, to: &Path, packed: bool) -> std::io::Result<usize> {
     std::fs::create_dir_all(to)?;
     let mut moved = 0;
-    for entry in std::fs::read_dir(from)? {
-        let path = entry?.path();
+    let mut paths: Vec<PathBuf> =
+        std::fs::read_dir(from)?.map(|e| e.map(|e| e.path())).collect::<Result<_, _>>()?;
+    // The controller's ring last: where its slots are the plant's, byte for byte, it is
+    // kept as a header naming the plant's ring (as its segments are: `Mover::pass`), which
+    // is then in place.
+    let (plant, controller) = (Stream::PlantTorque.path(from), Stream::ControllerTorque.path(from));
+    paths.sort_by_key(|p| *p == controller);
+    let same = packed && same_slots(&plant, &controller);
+    for path in paths {
         if path.extension().is_none_or(|e| e != "flight") {
             continue;
         }
         let Some(name) = path.file_name() else { continue };
         let dest = to.join(name);
         let ring = Stream::ALL.iter().any(|s| s.path(from) == path);
-        if packed && ring && pack::pack_file(&path, &dest).is_ok() {
+        let base_moved = Stream::PlantTorque.path(to).exists() && !plant.exists();
+        if same && path == controller && base_moved && write_same(&path, &dest).is_ok() {
+            std::fs::remove_file(&path)?;
+        } else if packed && ring && pack::pack_file(&path, &dest).is_ok() {
             std::fs::remove_file(&path)?;
         } else if std::fs::rename(&path, &dest).is_err() {
             let part = to.join(format!(".{}.part", name.to_string_lossy()));
@@ -152,6 +162,44 @@ pub fn move_records(from: &Path, to: &Path, packed: bool) -> std::io::Result<usi
     let _ = std::fs::remove_file(from.join(RUN_DIR_FILE));
     std::fs::remove_dir(from)?;
     Ok(moved)
+}
+
+/// Whether the rings `a` and `b` hold the same slots, byte for byte (their header words
+/// aside but the sample size and the capacity).
+fn same_slots(a: &Path, b: &Path) -> bool {
+    use std::os::unix::fs::FileExt;
+    let (Ok(fa), Ok(fb)) = (std::fs::File::open(a), std::fs::File::open(b)) else {
+        return false;
+    };
+    let (Ok((_, wa)), Ok((_, wb))) = (read_header(&fa), read_header(&fb)) else { return false };
+    let (Ok(ma), Ok(mb)) = (fa.metadata(), fb.metadata()) else { return false };
+    let geometry = |w: [u64; 8]| (w[word::MAGIC], w[word::SIZE], w[word::CAPACITY]);
+    if geometry(wa) != geometry(wb) || wa[word::MAGIC] != MAGIC || ma.len() != mb.len() {
+        return false;
+    }
+    let (mut ba, mut bb) = (vec![0u8; 1 << 20], vec![0u8; 1 << 20]);
+    let mut at = HEADER as u64;
+    while at < ma.len() {
+        let n = (ma.len() - at).min(ba.len() as u64) as usize;
+        let read = fa.read_exact_at(&mut ba[..n], at).and(fb.read_exact_at(&mut bb[..n], at));
+        if read.is_err() || ba[..n] != bb[..n] {
+            return false;
+        }
+        at += n as u64;
+    }
+    true
+}
+
+/// Writes `to` as the header of the ring `from` that is the plant's torque ring's, byte
+/// for byte ([`SAME_MAGIC`]): whole or not at all (a `.part` renamed).
+fn write_same(from: &Path, to: &Path) -> std::io::Result<()> {
+    let (mut header, _) = read_header(&std::fs::File::open(from)?)?;
+    let index = Stream::ALL.iter().position(|s| *s == Stream::PlantTorque).unwrap_or(0);
+    header[8 * word::MAGIC..8 * word::MAGIC + 8].copy_from_slice(&SAME_MAGIC.to_ne_bytes());
+    header[8 * word::BASE..8 * word::BASE + 8].copy_from_slice(&(index as u64).to_ne_bytes());
+    let part = to.with_extension("part");
+    std::io::Write::write_all(&mut journal::create_private(&part)?, &header)?;
+    std::fs::rename(&part, to)
 }
 
 /// The streams of a run, one file each.

@@ -247,13 +247,10 @@ impl<T: Record> FlightLog<T> {
     pub fn read(dir: &Path, stream: Stream, limit: u64) -> Result<Self, FlightError> {
         let mut log = Self::empty();
         log.limit = limit;
-        let ring = check_header::<T>(&stream.path(dir)).and_then(|(w, ring)| match ring.same_as {
-            Some(_) => Err(FlightError::Foreign {
-                path: ring.path.display().to_string(),
-                why: "a ring naming another stream's segment (damaged)".into(),
-            }),
-            None => Ok((w, ring)),
-        });
+        // A ring that is another's (the controller's torques, moved in at the end): that
+        // stream's ring, with this one's header words.
+        let ring = check_header::<T>(&stream.path(dir))
+            .and_then(|(w, ring)| Ok((w, same::<T>(ring, |base| base.path(dir))?)));
         let ring_error = match ring {
             Ok((w, ring)) => {
                 (log.opens, log.beyond) = (w[word::OPENS], w[word::BEYOND]);
@@ -398,7 +395,8 @@ impl<T: Record> FlightLog<T> {
             }) else {
                 continue;
             };
-            let source = match check_header::<T>(&path).and_then(|(_, s)| same::<T>(s, j)) {
+            let of = |base: Stream| segment_path(dir, base, j);
+            let source = match check_header::<T>(&path).and_then(|(_, s)| same::<T>(s, of)) {
                 Ok(source) => source,
                 Err(e) => {
                     if Some(&path) == newest.as_ref() {
@@ -686,22 +684,20 @@ impl<T: Record> FlightLog<T> {
     }
 }
 
-/// The source of segment `j` whose header is `source`: itself, or the segment of the
-/// same half of the stream it names when it is another's (which must be a segment of its
-/// own, of as many slots).
-fn same<T>(source: Source, j: u64) -> Result<Source, FlightError> {
+/// The source of a ring or segment whose header is `source`: itself, or the file `of` the
+/// stream it names when it is another's (its ring, or its segment of the same half), which
+/// must be a file of its own, of as many slots.
+fn same<T>(source: Source, of: impl FnOnce(Stream) -> PathBuf) -> Result<Source, FlightError> {
     let Some(base) = source.same_as else { return Ok(source) };
-    let dir = source.path.parent().unwrap_or(Path::new(""));
-    let (_, of) =
-        check_header::<T>(&segment_path(dir, base, j)).map_err(|e| FlightError::Foreign {
-            path: source.path.display().to_string(),
-            why: format!("the same as {}, which cannot be read: {e}", base.name()),
-        })?;
+    let (_, of) = check_header::<T>(&of(base)).map_err(|e| FlightError::Foreign {
+        path: source.path.display().to_string(),
+        why: format!("the same as {}, which cannot be read: {e}", base.name()),
+    })?;
     if of.same_as.is_some() || of.capacity != source.capacity {
         return Err(FlightError::Foreign {
             path: source.path.display().to_string(),
             why: format!(
-                "the same as {}, which is not a segment of {} slots of its own",
+                "the same as {}, which is not a record of {} slots of its own",
                 of.path.display(),
                 source.capacity
             ),
@@ -950,11 +946,60 @@ mod tests {
             controller.problems
         );
         assert!(
-            controller.problems[1].contains("not a segment of 256 slots of its own"),
+            controller.problems[1].contains("not a record of 256 slots of its own"),
             "{:?}",
             controller.problems
         );
         let _ = std::fs::remove_dir_all(&base);
+    }
+
+    /// The rings moved in at the end: the controller's, where the plant's holds the same
+    /// slots byte for byte, is a header naming it, and reads every tick with its own
+    /// header words; where they differ (tick 300 lost on its way) it is packed on its own.
+    /// Without the plant's ring it is refused, named.
+    #[test]
+    fn a_controller_ring_the_plant_has_byte_for_byte_is_kept_once() {
+        for lost in [None, Some(300)] {
+            let base = std::env::temp_dir()
+                .join(format!("rotorloop-read-{}-ring-same-{lost:?}", std::process::id()));
+            let _ = std::fs::remove_dir_all(&base);
+            let (staged, kept) = (base.join("staged"), base.join("kept"));
+            let cap = ring_capacity(600, 1 << 12);
+            let open = |s| FlightRecorder::<TorqueSample>::open(Some(&staged), s, cap, "t");
+            let (plant, controller) = (open(Stream::PlantTorque), open(Stream::ControllerTorque));
+            for k in 0..600 {
+                controller.record(&torque(k));
+                if Some(k) != lost {
+                    plant.record(&torque(k));
+                }
+            }
+            drop((plant, controller));
+            assert_eq!(super::super::move_records(&staged, &kept, true).expect("moved"), 2);
+            let ring = Stream::ControllerTorque.path(&kept);
+            let (w, _) = check_header::<TorqueSample>(&ring).expect("a sound header");
+            let magic = if lost.is_some() { PACKED_MAGIC } else { SAME_MAGIC };
+            assert_eq!(w[word::MAGIC], magic, "{lost:?}");
+            let len = std::fs::metadata(&ring).expect("ring").len();
+            assert_eq!(len == HEADER as u64, lost.is_none(), "{len} bytes");
+            let c = FlightLog::<TorqueSample>::read(&kept, Stream::ControllerTorque, 663);
+            let c = c.expect("read");
+            assert!(c.problems.is_empty(), "{:?}", c.problems);
+            assert_eq!((c.opens, c.count(599).records), (1, 600));
+            assert!(c.iter().eq((0..600).map(torque)), "every tick the controller published");
+            let p = read(&kept, 663).count(599).missing;
+            assert_eq!(p, lost.map(|k| vec![[k, k]]).unwrap_or_default());
+            std::fs::remove_file(Stream::PlantTorque.path(&kept)).expect("rm");
+            let c = FlightLog::<TorqueSample>::read(&kept, Stream::ControllerTorque, 663);
+            match (lost, c) {
+                (Some(_), c) => assert_eq!(c.expect("its own").count(599).records, 600),
+                (None, Err(e)) => assert!(
+                    e.to_string().contains("the same as plant-torque, which cannot be read"),
+                    "{e}"
+                ),
+                (None, Ok(_)) => panic!("read without the ring it names"),
+            }
+            let _ = std::fs::remove_dir_all(&base);
+        }
     }
 
     /// A tick far beyond the run written into the ring (tag and sample agreeing, as a
