@@ -28,6 +28,8 @@ pub const CHUNK_SLOTS: u64 = 4096;
 /// The zstd level: level 1 leaves about 1.5 % more bytes at twice the speed; higher
 /// levels gain under 1 %.
 const LEVEL: i32 = 3;
+/// The zstd level of a journal frame packed with its stream's last transforms.
+const FRAME_LEVEL: i32 = -1;
 
 /// A column's predictor (module docs). The residual is `zigzag(word − prediction)` for
 /// the integer ones and `zigzag(bits(x) − bits(prediction))` for the float ones.
@@ -163,16 +165,22 @@ fn pack_chunk_as(slots: &[u8], words: usize, given: Option<&[u8]>) -> std::io::R
     // With its checksum: damage inside a frame is an error, not other samples. The
     // compressor is the thread's, kept: a fresh one's workspace, five times a second for the
     // journal, was most of the journal's page faults.
+    let level = if given.is_some() { FRAME_LEVEL } else { LEVEL };
     COMPRESSOR.with(|z| {
         let mut z = z.borrow_mut();
-        let z = match &mut *z {
-            Some(z) => z,
+        let (at, z) = match &mut *z {
+            Some(z) => (&mut z.0, &mut z.1),
             none => {
-                let mut fresh = zstd::bulk::Compressor::new(LEVEL)?;
+                let mut fresh = zstd::bulk::Compressor::new(level)?;
                 fresh.set_parameter(zstd::zstd_safe::CParameter::ChecksumFlag(true))?;
-                none.insert(fresh)
+                let z = none.insert((level, fresh));
+                (&mut z.0, &mut z.1)
             }
         };
+        if *at != level {
+            z.set_parameter(zstd::zstd_safe::CParameter::CompressionLevel(level))?;
+            *at = level;
+        }
         codes.extend_from_slice(&z.compress(&shuffled)?);
         Ok(codes)
     })
@@ -180,7 +188,7 @@ fn pack_chunk_as(slots: &[u8], words: usize, given: Option<&[u8]>) -> std::io::R
 
 thread_local! {
     /// The thread's compressor ([`pack_chunk_as`]).
-    static COMPRESSOR: std::cell::RefCell<Option<zstd::bulk::Compressor<'static>>> =
+    static COMPRESSOR: std::cell::RefCell<Option<(i32, zstd::bulk::Compressor<'static>)>> =
         const { std::cell::RefCell::new(None) };
 }
 
