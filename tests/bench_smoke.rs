@@ -325,7 +325,23 @@ fn before_after_foxglove_measures_the_loop_with_a_viewer_attached() {
         };
         assert_eq!(r["verdict"], verdict, "{q}: {r}");
     }
+    // Every pair's misses, as each run's summary has them, and their sums.
+    let misses = |run: &str| {
+        let s = crate::common::harness::json(&cell.join(run).join("summary.json"));
+        s["misses"].as_u64().expect("misses")
+    };
+    let m = &ba["misses"];
+    let (before, after) = (
+        [misses("loop"), misses("pair1/loop")],
+        [misses("loop-foxglove"), misses("pair1/loop-foxglove")],
+    );
+    assert_eq!((m["before"].clone(), m["after"].clone()), (before.into(), after.into()), "{m}");
+    assert_eq!(m["before_total"], before.iter().sum::<u64>(), "{m}");
+    assert_eq!(m["after_total"], after.iter().sum::<u64>(), "{m}");
+    let more = before.iter().zip(&after).filter(|(b, a)| a > b).count();
+    assert_eq!(m["pairs_after_more"], more, "{m}");
     let md = std::fs::read_to_string(out.join("bench.md")).expect("bench.md");
+    assert!(md.contains(": misses over 2 pair(s): before "), "{md}");
     assert!(md.contains("with the live Foxglove server"), "{md}");
     assert!(md.contains("| r500-event-cross-core-none |"), "{md}");
 }

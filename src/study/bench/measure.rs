@@ -94,7 +94,8 @@ pub(super) fn sides(change: BeforeAfter) -> (Variant, Variant) {
 }
 
 /// `before-after.json` of a cell: the after / before ratios of each pair at p50 and p99,
-/// their median, interval and verdict ([`crate::study::stats`], as `--repeat`).
+/// their median, interval and verdict ([`crate::study::stats`], as `--repeat`), and each
+/// pair's misses with their sums.
 fn write_pair_intervals(dir: &Path, before: &[Row], after: &[Row]) -> anyhow::Result<()> {
     use crate::study::stats::{Verdict, median_interval, paired_ratios};
     let mut j = serde_json::json!({ "pairs": before.len().min(after.len()) });
@@ -110,6 +111,15 @@ fn write_pair_intervals(dir: &Path, before: &[Row], after: &[Row]) -> anyhow::Re
             None => serde_json::Value::Null,
         };
     }
+    // Misses, which the median rows alone show by one run each: every pair's, summed.
+    let (b, a): (Vec<u64>, Vec<u64>) =
+        before.iter().zip(after).map(|(b, a)| (b.misses, a.misses)).unzip();
+    j["misses"] = serde_json::json!({
+        "before": b, "after": a,
+        "before_total": b.iter().sum::<u64>(), "after_total": a.iter().sum::<u64>(),
+        "pairs_after_more": b.iter().zip(&a).filter(|(b, a)| a > b).count(),
+        "pairs_after_fewer": b.iter().zip(&a).filter(|(b, a)| a < b).count(),
+    });
     let path = dir.join("before-after.json");
     rotorloop_common::outdir::write_file(&path, format!("{j:#}\n"))
         .with_context(|| format!("cannot write {}", path.display()))

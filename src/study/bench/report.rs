@@ -376,6 +376,15 @@ fn pair_intervals_md(rows: &[Row], a: &BenchArgs, after_kind: &str) -> String {
                 i["verdict"].as_str().unwrap_or("?")
             );
         }
+        let m = &j["misses"];
+        if let (Some(b), Some(a)) = (m["before_total"].as_u64(), m["after_total"].as_u64()) {
+            let _ = writeln!(
+                md,
+                "\n{}: misses over {} pair(s): before {b}, after {a}; after more in {} pair(s), \
+                 fewer in {}.",
+                r.cell, j["pairs"], m["pairs_after_more"], m["pairs_after_fewer"]
+            );
+        }
     }
     md
 }
