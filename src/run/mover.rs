@@ -5,14 +5,16 @@
 //! restarts and the watchdog with it; here only the copy waits. The same thread journals
 //! the newest ticks of every stream into `OUT/flight` every
 //! [`rotorloop_common::flight::JOURNAL_PERIOD`] and makes them durable (a crash of the
-//! machine loses at most the last second: `common::flight::journal`).
+//! machine loses at most the last second: `common::flight::journal`), in the background
+//! (`SCHED_IDLE`) while it keeps up: `Mover::in_background`.
 
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::thread::JoinHandle;
 use std::time::Duration;
 
-use rotorloop_common::flight::{Mover, free_through};
+use rotorloop_common::flight::{CATCH_UP, Mover, free_through};
+use rotorloop_common::rt::Background;
 
 /// How often the thread looks for a newer plant tick.
 const POLL: Duration = Duration::from_millis(20);
@@ -26,6 +28,8 @@ pub(crate) struct MoverThread {
     /// (`flight::free_through`; `u64::MAX` until a ring's size is known).
     free: Arc<AtomicU64>,
     stop: Arc<AtomicBool>,
+    /// The thread's policy: in the background while it keeps up (`Mover::in_background`).
+    background: Arc<Background>,
     handle: JoinHandle<Mover>,
 }
 
@@ -38,8 +42,11 @@ impl MoverThread {
         let free = mover.half.map_or(u64::MAX, |h| free_through(mover.copied(), h));
         let free = Arc::new(AtomicU64::new(free));
         let (t, s, f) = (tick.clone(), stop.clone(), free.clone());
-        let mut mover = mover.following(tick.clone());
+        let background = Arc::new(Background::default());
+        let mut mover = mover.following(tick.clone()).in_background(background.clone());
+        let b = background.clone();
         let handle = std::thread::Builder::new().name("flight-mover".into()).spawn(move || {
+            b.here();
             let mut moved_at = 0;
             loop {
                 // The stop is read before the tick: the pass after it sees the last tick.
@@ -70,7 +77,7 @@ impl MoverThread {
                 std::thread::sleep(POLL);
             }
         })?;
-        Ok(Self { tick, free, stop, handle })
+        Ok(Self { tick, free, stop, background, handle })
     }
 
     /// Whether a lockstep plant whose newest published tick is `plant_tick` waits for
@@ -79,9 +86,12 @@ impl MoverThread {
         plant_tick + 1 > self.free.load(Ordering::Acquire)
     }
 
-    /// The plant has published `plant_tick`: what became due is moved soon.
+    /// The plant has published `plant_tick`: what became due is moved soon. A thread in
+    /// the background that has fallen behind (the newest ticks [`CATCH_UP`] from the disk)
+    /// is made ordinary until it has caught up.
     pub(crate) fn saw(&self, plant_tick: u64) {
         self.tick.fetch_max(plant_tick + 1, Ordering::Release);
+        self.background.catch_up(CATCH_UP);
     }
 
     /// Moves what is due after `plant_tick`, stops the thread and returns the mover (its

@@ -38,6 +38,10 @@ pub(super) const JOURNAL_MAGIC: u64 = 0x6c6e_726a_6c66_6c72;
 /// writes take to reach the disk (measured in docs/flight-recorders.md).
 pub const JOURNAL_PERIOD: Duration = Duration::from_millis(200);
 
+/// How far from the disk the newest ticks may fall before a mover in the background
+/// ([`super::Mover::in_background`]) is made an ordinary thread again: two periods.
+pub const CATCH_UP: Duration = Duration::from_millis(400);
+
 /// What a machine crash may cost a run at most: the last second of its record. A run
 /// whose newest ticks were ever further from the disk says so (`summary.json`
 /// `flight.durable_lag_max_s`, and a warning).

@@ -43,7 +43,7 @@ use crate::wire::{LAYOUT_VERSION, ReferenceSample, StateSample, TorqueSample};
 mod journal;
 mod pack;
 mod read;
-pub use journal::{DURABLE_BOUND, JOURNAL_PERIOD, journal_path, journals};
+pub use journal::{CATCH_UP, DURABLE_BOUND, JOURNAL_PERIOD, journal_path, journals};
 pub use read::{FlightLog, StreamCount};
 
 const MAGIC: u64 = 0x7468_6769_6c66_6c72; // "rlflight"
@@ -594,6 +594,10 @@ pub struct Mover {
     /// The plant's newest tick, plus one, as the loop goes on ([`Mover::following`]): what
     /// a pass journals between its segments.
     live: Option<std::sync::Arc<std::sync::atomic::AtomicU64>>,
+    /// The thread's policy while it journals ([`Mover::in_background`]).
+    background: Option<std::sync::Arc<crate::rt::Background>>,
+    /// Whether a pass is writing segments (the thread stays ordinary until it ends).
+    in_pass: bool,
 }
 
 impl Mover {
@@ -627,6 +631,8 @@ impl Mover {
             durable_from: None,
             durable_lag_max: None,
             live: None,
+            background: None,
+            in_pass: false,
         }
     }
 
@@ -636,6 +642,22 @@ impl Mover {
     /// machine, and a machine crash meanwhile would lose all that time (1.19 s seen).
     pub fn following(self, live: std::sync::Arc<std::sync::atomic::AtomicU64>) -> Self {
         Self { live: Some(live), ..self }
+    }
+
+    /// The mover whose thread journals in the background (`SCHED_IDLE`: real time lost
+    /// ticks to the journal's packing and syncs on a 2-vCPU machine, docs/flight-recorders.md)
+    /// and writes its segments as an ordinary thread; `background` says when the newest
+    /// ticks were last made durable, so that the launcher's loop makes the thread ordinary
+    /// again once they are [`CATCH_UP`] from the disk (a saturated machine would starve it).
+    pub fn in_background(self, background: std::sync::Arc<crate::rt::Background>) -> Self {
+        Self { background: Some(background), ..self }
+    }
+
+    /// The mover's thread in the background or ordinary ([`Mover::in_background`]).
+    fn background(&self, idle: bool) {
+        if let Some(b) = &self.background {
+            b.set(idle);
+        }
     }
 
     /// Whether [`JOURNAL_PERIOD`] has passed since the newest ticks were last journaled.
@@ -708,6 +730,10 @@ impl Mover {
                 }
             }
         }
+        // Halves are written as an ordinary thread: in the background on a saturated
+        // machine they would wait until their ring came round.
+        self.in_pass = !read.is_empty();
+        self.background(!self.in_pass);
         let mut written = Vec::with_capacity(read.len());
         for (stream, j, bytes) in &read {
             // The controller's half is the plant's, byte for byte, unless a sample went
@@ -722,7 +748,12 @@ impl Mover {
                 })
                 .flatten()
                 .map(|((s, ..), _)| *s);
-            let done = match self.write_segment(*stream, *j, bytes, same) {
+            // The newest ticks journaled between its chunks too (a large ring's half takes
+            // long to pack: 0.15 s for the plant's states, idle, three times that beside a
+            // build, and a machine crash meanwhile loses it all).
+            let (kept, packed) = (self.kept.clone(), self.packed);
+            let between = &mut || self.journal_if_due(&mut errors);
+            let done = match write_segment(&kept, packed, (*stream, *j, bytes, same), between) {
                 Ok(file) => {
                     // Made durable with the next journal frames (`make_durable`).
                     let n = Stream::ALL.iter().position(|s| s == stream).unwrap_or(0);
@@ -738,12 +769,10 @@ impl Mover {
             };
             self.segments += u64::from(done);
             written.push(done);
-            // The newest ticks meanwhile (a large ring's halves take long to pack).
-            let live = self.live.as_ref().map(|t| t.load(std::sync::atomic::Ordering::Acquire));
-            if let Some(newest) = live.filter(|t| *t > 0 && self.journal_due()) {
-                errors.extend(self.journal(newest - 1));
-            }
+            self.journal_if_due(&mut errors);
         }
+        self.in_pass = false;
+        self.background(true);
         // Nothing is due before the lowest next half is (a ring's size is known once read).
         if let Some(h) = self.half {
             let lowest = self.next.iter().min().copied().unwrap_or(0);
@@ -799,44 +828,14 @@ impl Mover {
         Ok(Half::Read(bytes))
     }
 
-    /// Writes half `j` of `stream` into its segment file (whole or not at all), packed
-    /// ([`pack`]), or as the header of a segment that is `same`'s segment `j`.
-    fn write_segment(
-        &self,
-        stream: Stream,
-        j: u64,
-        bytes: &[u8],
-        same: Option<Stream>,
-    ) -> std::io::Result<std::fs::File> {
-        std::fs::create_dir_all(&self.kept)?;
-        let path = segment_path(&self.kept, stream, j);
-        let part = path.with_extension("part");
-        let (header, body) = bytes.split_at(HEADER);
-        let size = u64::from_ne_bytes(
-            header[8 * word::SIZE..8 * word::SIZE + 8].try_into().unwrap_or_default(),
-        );
-        let mut header = header.to_vec();
-        let set = |header: &mut [u8], w: usize, v: u64| {
-            header[8 * w..8 * w + 8].copy_from_slice(&v.to_ne_bytes());
-        };
-        let packed = match (same, self.packed) {
-            (Some(base), _) => {
-                let index = Stream::ALL.iter().position(|s| *s == base).unwrap_or(0);
-                set(&mut header, word::MAGIC, SAME_MAGIC);
-                set(&mut header, word::BASE, index as u64);
-                Some(header)
-            }
-            (None, true) => {
-                set(&mut header, word::MAGIC, PACKED_MAGIC);
-                // A segment that cannot be packed (never seen) is kept raw: readers take both.
-                pack::pack(&header, body, 8 + (size as usize).next_multiple_of(8)).ok()
-            }
-            (None, false) => None,
-        };
-        let mut file = journal::create_private(&part)?;
-        std::io::Write::write_all(&mut file, packed.as_deref().unwrap_or(bytes))?;
-        std::fs::rename(&part, &path)?;
-        Ok(file)
+    /// Journals the newest ticks ([`Mover::journal`]) if [`JOURNAL_PERIOD`] has passed,
+    /// where the loop's newest tick is known ([`Mover::following`]): between the segments
+    /// of a pass and the chunks of each.
+    fn journal_if_due(&mut self, errors: &mut Vec<String>) {
+        let live = self.live.as_ref().map(|t| t.load(std::sync::atomic::Ordering::Acquire));
+        if let Some(newest) = live.filter(|t| *t > 0 && self.journal_due()) {
+            errors.extend(self.journal(newest - 1));
+        }
     }
 
     /// Journals the newest ticks of every stream (those past its last segment, since the
@@ -869,6 +868,12 @@ impl Mover {
             let lag = self.durable_from.unwrap_or(began).elapsed();
             self.durable_lag_max = Some(self.durable_lag_max.map_or(lag, |m| m.max(lag)));
             self.durable_from = Some(began);
+            if let Some(b) = &self.background {
+                b.durable_at(began);
+            }
+        }
+        if !self.in_pass {
+            self.background(true);
         }
         if std::mem::replace(&mut self.journal_failing, failing) {
             errors.clear(); // said already
@@ -1007,6 +1012,46 @@ impl Mover {
         }
         Ok(())
     }
+}
+
+/// Writes half `j` of `stream` (its segment file's `bytes`) into its segment file in `kept`
+/// (whole or not at all): packed ([`pack`]) where `packed`, calling `between` after each
+/// chunk, or as the header of a segment that is `same`'s segment `j`.
+fn write_segment(
+    kept: &Path,
+    packed: bool,
+    (stream, j, bytes, same): (Stream, u64, &[u8], Option<Stream>),
+    between: &mut dyn FnMut(),
+) -> std::io::Result<std::fs::File> {
+    std::fs::create_dir_all(kept)?;
+    let path = segment_path(kept, stream, j);
+    let part = path.with_extension("part");
+    let (header, body) = bytes.split_at(HEADER);
+    let size = u64::from_ne_bytes(
+        header[8 * word::SIZE..8 * word::SIZE + 8].try_into().unwrap_or_default(),
+    );
+    let mut header = header.to_vec();
+    let set = |header: &mut [u8], w: usize, v: u64| {
+        header[8 * w..8 * w + 8].copy_from_slice(&v.to_ne_bytes());
+    };
+    let packed = match (same, packed) {
+        (Some(base), _) => {
+            let index = Stream::ALL.iter().position(|s| *s == base).unwrap_or(0);
+            set(&mut header, word::MAGIC, SAME_MAGIC);
+            set(&mut header, word::BASE, index as u64);
+            Some(header)
+        }
+        (None, true) => {
+            set(&mut header, word::MAGIC, PACKED_MAGIC);
+            // A segment that cannot be packed (never seen) is kept raw: readers take both.
+            pack::pack_between(&header, body, 8 + (size as usize).next_multiple_of(8), between).ok()
+        }
+        (None, false) => None,
+    };
+    let mut file = journal::create_private(&part)?;
+    std::io::Write::write_all(&mut file, packed.as_deref().unwrap_or(bytes))?;
+    std::fs::rename(&part, &path)?;
+    Ok(file)
 }
 
 /// `fdatasync` of each of `files` in `dir`, or one `syncfs` where they are more than 16

@@ -381,9 +381,23 @@ fn unpack_chunk(
 /// Packs a raw segment's slots (`body`, whole slots of `slot_len` bytes) behind `header`
 /// (the raw segment's header with the packed magic in it): the packed file's bytes.
 pub(super) fn pack(header: &[u8], body: &[u8], slot_len: usize) -> std::io::Result<Vec<u8>> {
+    pack_between(header, body, slot_len, &mut || {})
+}
+
+/// [`pack`], calling `between` after each chunk (where the mover journals the newest
+/// ticks: a half of the plant's states is 8 chunks, 0.15 s).
+pub(super) fn pack_between(
+    header: &[u8],
+    body: &[u8],
+    slot_len: usize,
+    between: &mut dyn FnMut(),
+) -> std::io::Result<Vec<u8>> {
     let chunk_len = CHUNK_SLOTS as usize * slot_len;
-    let chunks: Vec<Vec<u8>> =
-        body.chunks(chunk_len).map(|c| pack_chunk(c, slot_len / 8)).collect::<Result<_, _>>()?;
+    let mut chunks = Vec::with_capacity(body.len().div_ceil(chunk_len.max(1)));
+    for c in body.chunks(chunk_len) {
+        chunks.push(pack_chunk(c, slot_len / 8)?);
+        between();
+    }
     Ok(assemble(header, &chunks))
 }
 
