@@ -138,9 +138,9 @@ pub fn move_records(from: &Path, to: &Path, packed: bool) -> std::io::Result<usi
         let dest = to.join(name);
         let ring = Stream::ALL.iter().any(|s| s.path(from) == path);
         let base_moved = Stream::PlantTorque.path(to).exists() && !plant.exists();
-        if same && path == controller && base_moved && write_same(&path, &dest).is_ok() {
-            std::fs::remove_file(&path)?;
-        } else if packed && ring && pack::pack_file(&path, &dest).is_ok() {
+        let kept_once =
+            same && path == controller && base_moved && write_same(&path, &dest).is_ok();
+        if kept_once || (packed && ring && pack::pack_file(&path, &dest).is_ok()) {
             std::fs::remove_file(&path)?;
         } else if std::fs::rename(&path, &dest).is_err() {
             let part = to.join(format!(".{}.part", name.to_string_lossy()));
