@@ -1,5 +1,5 @@
 //! Real-time set-up of a process: core pinning, SCHED_FIFO, mlock and timer slack; and
-//! background threads ([`idle_thread`]).
+//! background threads ([`Background`]).
 
 /// Real-time set-up of a process. Each step that the OS refuses gives a one-line warning
 /// and the process runs on.
