@@ -452,6 +452,13 @@ fn crash(h: &Harness, n: usize, mode: &str, ring: Option<u64>, at_s: f64) -> Opt
         assert!(after + 2 >= first_hole || why.contains("lost"), "{r}");
         loss_s = loss_s.max(lost_since(after.min(last)));
     }
+    // `ROTORLOOP_CRASH_KEEP=DIR`: the recovered run of a crash over the bound is kept
+    // there (`DIR/crash-N`), to be read after the harness has gone.
+    if let Some(keep) = std::env::var_os("ROTORLOOP_CRASH_KEEP").filter(|_| loss_s > 1.0) {
+        let to = Path::new(&keep).join(format!("crash-{n}"));
+        let _ = Command::new("cp").arg("-a").arg(&run).arg(&to).status();
+        eprintln!("crash {n}: lost {loss_s:.3} s; its recovered run is in {}", to.display());
+    }
     Some(Crash { loss_s, last })
 }
 
@@ -479,7 +486,7 @@ fn a_machine_crash_at_any_moment_loses_at_most_a_second() {
 
 /// The measurement of the bound (not a test of behaviour: run by hand, `cargo test --test
 /// tests crash::bound -- --ignored --nocapture`): 20 seeded crash moments per mode, the
-/// largest loss printed.
+/// largest loss printed (with `ROTORLOOP_CRASH_KEEP=DIR`, each run over the bound kept).
 #[test]
 #[ignore = "a measurement: several minutes"]
 fn bound() {

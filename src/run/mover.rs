@@ -35,16 +35,28 @@ pub(crate) struct MoverThread {
 
 impl MoverThread {
     /// Starts `mover` on a thread named `flight-mover`; with `stall`, its first pass
-    /// waits that long (the tests' stand-in for a copy held up by writeback).
-    pub(crate) fn spawn(mover: Mover, stall: Option<Duration>) -> std::io::Result<Self> {
+    /// waits that long (the tests' stand-in for a copy held up by writeback). In
+    /// `background` (real time) it journals as `SCHED_IDLE` while it keeps up
+    /// (`Mover::in_background`). Not in lockstep, whose loop keeps every CPU busy as long as
+    /// it runs and has no deadline to miss: there a background journal only ever ran once it
+    /// had fallen [`CATCH_UP`] behind, and beside a build the newest ticks were then over a
+    /// second from the disk (1.08 s, docs/flight-recorders.md).
+    pub(crate) fn spawn(
+        mover: Mover,
+        stall: Option<Duration>,
+        background: bool,
+    ) -> std::io::Result<Self> {
         let tick = Arc::new(AtomicU64::new(0));
         let stop = Arc::new(AtomicBool::new(false));
         let free = mover.half.map_or(u64::MAX, |h| free_through(mover.copied(), h));
         let free = Arc::new(AtomicU64::new(free));
         let (t, s, f) = (tick.clone(), stop.clone(), free.clone());
-        let background = Arc::new(Background::default());
-        let mut mover = mover.following(tick.clone()).in_background(background.clone());
-        let b = background.clone();
+        let background_of = Arc::new(Background::default());
+        let mut mover = mover.following(tick.clone());
+        if background {
+            mover = mover.in_background(background_of.clone());
+        }
+        let b = background_of.clone();
         let handle = std::thread::Builder::new().name("flight-mover".into()).spawn(move || {
             b.here();
             let mut moved_at = 0;
@@ -77,7 +89,7 @@ impl MoverThread {
                 std::thread::sleep(POLL);
             }
         })?;
-        Ok(Self { tick, free, stop, background, handle })
+        Ok(Self { tick, free, stop, background: background_of, handle })
     }
 
     /// Whether a lockstep plant whose newest published tick is `plant_tick` waits for
@@ -138,7 +150,7 @@ mod tests {
             theta: glam::DVec3::ZERO,
         };
         let mover = Mover::new(&staged, &kept).with_half(half);
-        let mover = MoverThread::spawn(mover, None).expect("thread");
+        let mover = MoverThread::spawn(mover, None, true).expect("thread");
         assert!(mover.holds(free_through(0, half)), "the first tick past the room waits");
         assert!(!mover.holds(free_through(0, half) - 1));
         let ticks = 4 * capacity;

@@ -125,7 +125,8 @@ impl Watch {
             torques_received: 0,
             mover: launch.mover().and_then(|m| {
                 let stall = launch.role_args.hooks.test_mover_stall_ms;
-                MoverThread::spawn(m, stall.map(std::time::Duration::from_millis))
+                let realtime = launch.role_args.mode == Mode::Realtime;
+                MoverThread::spawn(m, stall.map(std::time::Duration::from_millis), realtime)
                     .map_err(|e| eprintln!("warning: flight records: no mover thread ({e})"))
                     .ok()
             }),
