@@ -402,9 +402,10 @@ pub(super) fn pack_between(
 }
 
 /// [`pack`] for a journal frame, which is packed every period: with `codes` (the
-/// transforms of the stream's frame before, one per column) they are taken as they are,
-/// without the search that is most of a small frame's cost; `codes` empty, they are
-/// searched for and kept in it. Frames of more than a chunk search each chunk.
+/// transforms of the stream's frame before, one per column) they are taken as they are
+/// for each chunk, without the search that is most of a frame's cost; `codes` empty, they
+/// are searched for and the first chunk's kept in it. (Lockstep's frames are of more than
+/// a chunk: searched each time, they took most of the journal's time.)
 pub(super) fn pack_reusing(
     header: &[u8],
     body: &[u8],
@@ -412,15 +413,19 @@ pub(super) fn pack_reusing(
     codes: &mut Vec<u8>,
 ) -> std::io::Result<Vec<u8>> {
     let (words, chunk_len) = (slot_len / 8, CHUNK_SLOTS as usize * slot_len);
-    if body.len() > chunk_len || codes.len() != words {
+    if codes.len() != words {
         let packed = pack(header, body, slot_len)?;
-        // The first chunk's transforms: after the header and one table entry.
+        // The first chunk's transforms: after the header and the table.
         let first = header.len() + 16 * body.len().div_ceil(chunk_len).max(1);
         codes.clear();
         codes.extend_from_slice(packed.get(first..first + words).unwrap_or_default());
         return Ok(packed);
     }
-    Ok(assemble(header, &[pack_chunk_as(body, words, Some(codes))?]))
+    let chunks: Vec<Vec<u8>> = body
+        .chunks(chunk_len)
+        .map(|c| pack_chunk_as(c, words, Some(codes)))
+        .collect::<Result<_, _>>()?;
+    Ok(assemble(header, &chunks))
 }
 
 /// Packs the raw record file `from` (a ring: its header and its slots, as
@@ -706,6 +711,21 @@ mod tests {
         let mut out = Vec::new();
         unpack(&reused[at..at + l], (0, 200, words * 8), false, &mut out).expect("unpacks");
         assert_eq!(out, next);
+        // A frame of more than a chunk (lockstep's): each chunk with the transforms given.
+        let n = CHUNK_SLOTS + 904;
+        let long = slots(n as usize, words, 3);
+        let reused = pack_reusing(&header, &long, words * 8, &mut codes).expect("packs");
+        let len = reused.len() as u64;
+        let table = chunk_table(&reused[header.len()..], (n, words * 8), len).expect("table");
+        assert_eq!(table.len(), 2);
+        let mut all = Vec::new();
+        for (i, (at, l)) in table.iter().map(|(a, l)| (*a as usize, *l as usize)).enumerate() {
+            assert_eq!(reused[at..at + words], codes[..], "chunk {i}: the transforms given");
+            let rows = if i == 0 { CHUNK_SLOTS } else { 904 };
+            unpack(&reused[at..at + l], (0, rows, words * 8), false, &mut out).expect("unpacks");
+            all.extend_from_slice(&out);
+        }
+        assert_eq!(all, long);
     }
 
     #[test]
