@@ -911,18 +911,17 @@ impl Mover {
             // A frame lies in one half's journal, and holds 16 384 slots at most.
             let j = k / half;
             let end = to.min(j.saturating_add(1).saturating_mul(half) - 1).min(k + 16_383);
-            let mut body =
-                all[(k - from) as usize * slot..(end + 1 - from) as usize * slot].to_vec();
+            let body = &all[(k - from) as usize * slot..(end + 1 - from) as usize * slot];
             let held = body.chunks_exact(slot).rposition(|s| s[..8] != [0; 8]);
             if let Some(last) = held {
-                body.truncate((last + 1) * slot);
+                let body = &body[..(last + 1) * slot];
                 // The transforms searched for again every `RESEARCH` frames (a stream's
                 // columns change their character seldom; the search is most of the cost).
                 if self.jframes[n] % journal::RESEARCH == 0 {
                     self.jcodes[n].clear();
                 }
                 self.jframes[n] += 1;
-                let bytes = journal::frame(&header, k, (&body, slot), &mut self.jcodes[n])?;
+                let bytes = journal::frame(&header, k, (body, slot), &mut self.jcodes[n])?;
                 self.append(n, stream, if self.halves { j } else { 0 }, &bytes)?;
             }
             k = end + 1;
