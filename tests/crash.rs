@@ -440,8 +440,12 @@ fn crash(h: &Harness, n: usize, mode: &str, ring: Option<u64>, at_s: f64) -> Opt
     }
     // Replay of what the record holds: byte for byte.
     let replay = h.path(&format!("replay-{n}"));
-    let said =
-        ok(&h.rotorloop(&["sim", "--replay", &d, "--out", &replay.display().to_string()], LIMIT));
+    let replayed =
+        h.rotorloop(&["sim", "--replay", &d, "--out", &replay.display().to_string()], LIMIT);
+    if !replayed.status.success() {
+        keep(&run, n, "its replay failed");
+    }
+    let said = ok(&replayed);
     let r = json(&replay.join("replay.json"));
     assert_eq!(r["identical"], true, "{said} {r}");
     // Replayed to the last row the record explains (a torque that took effect and was
@@ -452,14 +456,20 @@ fn crash(h: &Harness, n: usize, mode: &str, ring: Option<u64>, at_s: f64) -> Opt
         assert!(after + 2 >= first_hole || why.contains("lost"), "{r}");
         loss_s = loss_s.max(lost_since(after.min(last)));
     }
-    // `ROTORLOOP_CRASH_KEEP=DIR`: the recovered run of a crash over the bound is kept
-    // there (`DIR/crash-N`), to be read after the harness has gone.
-    if let Some(keep) = std::env::var_os("ROTORLOOP_CRASH_KEEP").filter(|_| loss_s > 1.0) {
-        let to = Path::new(&keep).join(format!("crash-{n}"));
-        let _ = Command::new("cp").arg("-a").arg(&run).arg(&to).status();
-        eprintln!("crash {n}: lost {loss_s:.3} s; its recovered run is in {}", to.display());
+    if loss_s > 1.0 {
+        keep(&run, n, &format!("lost {loss_s:.3} s"));
     }
     Some(Crash { loss_s, last })
+}
+
+/// `ROTORLOOP_CRASH_KEEP=DIR`: the recovered run `run` of crash `n` (over the bound, or
+/// whose replay failed) is kept there (`DIR/crash-N`), to be read after the harness has
+/// gone.
+fn keep(run: &Path, n: usize, why: &str) {
+    let Some(dir) = std::env::var_os("ROTORLOOP_CRASH_KEEP") else { return };
+    let to = Path::new(&dir).join(format!("crash-{n}"));
+    let _ = Command::new("cp").arg("-a").arg(run).arg(&to).status();
+    eprintln!("crash {n}: {why}; its recovered run is in {}", to.display());
 }
 
 /// A crash of the whole machine at seeded random moments of runs in both modes, with the
@@ -486,7 +496,8 @@ fn a_machine_crash_at_any_moment_loses_at_most_a_second() {
 
 /// The measurement of the bound (not a test of behaviour: run by hand, `cargo test --test
 /// tests crash::bound -- --ignored --nocapture`): 20 seeded crash moments per mode, the
-/// largest loss printed (with `ROTORLOOP_CRASH_KEEP=DIR`, each run over the bound kept).
+/// largest loss printed (with `ROTORLOOP_CRASH_KEEP=DIR`, each run over the bound or whose
+/// replay failed kept).
 #[test]
 #[ignore = "a measurement: several minutes"]
 fn bound() {
