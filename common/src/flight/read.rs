@@ -250,7 +250,7 @@ impl<T: Record> FlightLog<T> {
         // A ring that is another's (the controller's torques, moved in at the end): that
         // stream's ring, with this one's header words.
         let ring = check_header::<T>(&stream.path(dir))
-            .and_then(|(w, ring)| Ok((w, same::<T>(ring, |base| base.path(dir))?)));
+            .and_then(|(w, ring)| Ok((w, same::<T>(ring, |dir, base| base.path(dir))?)));
         let ring_error = match ring {
             Ok((w, ring)) => {
                 (log.opens, log.beyond) = (w[word::OPENS], w[word::BEYOND]);
@@ -395,7 +395,7 @@ impl<T: Record> FlightLog<T> {
             }) else {
                 continue;
             };
-            let of = |base: Stream| segment_path(dir, base, j);
+            let of = |dir: &Path, base: Stream| segment_path(dir, base, j);
             let source = match check_header::<T>(&path).and_then(|(_, s)| same::<T>(s, of)) {
                 Ok(source) => source,
                 Err(e) => {
@@ -685,11 +685,16 @@ impl<T: Record> FlightLog<T> {
 }
 
 /// The source of a ring or segment whose header is `source`: itself, or the file `of` the
-/// stream it names when it is another's (its ring, or its segment of the same half), which
-/// must be a file of its own, of as many slots.
-fn same<T>(source: Source, of: impl FnOnce(Stream) -> PathBuf) -> Result<Source, FlightError> {
+/// stream it names when it is another's (its ring, or its segment of the same half, in the
+/// same directory), which must be a file of its own, of as many slots.
+fn same<T>(
+    source: Source,
+    of: impl FnOnce(&Path, Stream) -> PathBuf,
+) -> Result<Source, FlightError> {
     let Some(base) = source.same_as else { return Ok(source) };
-    let (_, of) = check_header::<T>(&of(base)).map_err(|e| FlightError::Foreign {
+    // Beside it: the segments may lie elsewhere than the ring (`OUT/flight` and tmpfs).
+    let dir = source.path.parent().unwrap_or(Path::new(""));
+    let (_, of) = check_header::<T>(&of(dir, base)).map_err(|e| FlightError::Foreign {
         path: source.path.display().to_string(),
         why: format!("the same as {}, which cannot be read: {e}", base.name()),
     })?;
