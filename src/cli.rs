@@ -248,6 +248,7 @@ pub fn main() -> ExitCode {
     // becomes the `rotorloop-link` binary (exec), and relays its own.
     let relay = match cli.command {
         Command::Link { .. } => rotorloop_common::relay::Stdio::none(),
+        Command::Run(_) => rotorloop_common::relay::Stdio::relay_terminals_too(),
         _ => rotorloop_common::relay::Stdio::relay(),
     };
     let code = dispatch(cli);

@@ -97,13 +97,16 @@ impl State {
 static RELAYS: Mutex<Vec<Arc<Shared>>> = Mutex::new(Vec::new());
 
 impl Relay {
-    /// Relays stdout and stderr where they are pipes (module docs); `None` for one that is
-    /// not, or cannot be relayed (a closed descriptor, no threads left): it stays as it was.
-    /// A terminal is left alone (programs ask whether their output is one), and so is a
-    /// file (a write to it does not wait for a reader).
-    pub fn install_stdio() -> [Option<Relay>; 2] {
-        [libc::STDOUT_FILENO, libc::STDERR_FILENO]
-            .map(|fd| is_pipe(fd).then(|| Self::install(fd))?)
+    /// Relays stdout and stderr where they are pipes (module docs), and where `terminals`
+    /// also where they are terminals; `None` for one that is not, or cannot be relayed (a
+    /// closed descriptor, no threads left): it stays as it was. A file is left alone (a
+    /// write to it does not wait for a reader).
+    pub fn install_stdio(terminals: bool) -> [Option<Relay>; 2] {
+        [libc::STDOUT_FILENO, libc::STDERR_FILENO].map(|fd| {
+            // SAFETY: isatty on a descriptor number.
+            let tty = terminals && unsafe { libc::isatty(fd) } == 1;
+            (is_pipe(fd) || tty).then(|| Self::install(fd))?
+        })
     }
 
     /// Relays descriptor `fd` (module docs).
@@ -169,6 +172,17 @@ fn is_pipe(fd: RawFd) -> bool {
     (unsafe { libc::fstat(fd, &mut st) }) == 0 && st.st_mode & libc::S_IFMT == libc::S_IFIFO
 }
 
+/// Whether stderr was a terminal before [`Stdio::relay_terminals_too`] relayed it (else
+/// whether it is one now).
+pub fn stderr_was_terminal() -> bool {
+    use std::io::IsTerminal;
+    STDERR_WAS_TERMINAL.load(std::sync::atomic::Ordering::Relaxed)
+        || std::io::stderr().is_terminal()
+}
+
+static STDERR_WAS_TERMINAL: std::sync::atomic::AtomicBool =
+    std::sync::atomic::AtomicBool::new(false);
+
 /// Stdout and stderr relayed (see [`Relay::install_stdio`]) until [`Stdio::finish`].
 #[derive(Debug)]
 pub struct Stdio([Option<Relay>; 2]);
@@ -176,7 +190,21 @@ pub struct Stdio([Option<Relay>; 2]);
 impl Stdio {
     /// Relays this process's stdout and stderr where they are pipes.
     pub fn relay() -> Self {
-        Self(Relay::install_stdio())
+        Self(Relay::install_stdio(false))
+    }
+
+    /// Relays this process's stdout and stderr where they are pipes or terminals: a run's
+    /// launcher, whose roles inherit its output. Only the relay's thread then writes to a
+    /// terminal, and when the terminal hangs up (an SSH connection dropped: every write
+    /// then fails with `EIO`) it discards the output; a process that printed to the
+    /// terminal itself would panic, and one did: the launcher or the monitor in the window
+    /// between the hangup and the stop it signals. Whether stderr was a terminal is kept
+    /// ([`stderr_was_terminal`]): the monitor's live status line is for one.
+    pub fn relay_terminals_too() -> Self {
+        // SAFETY: isatty on a descriptor number.
+        let tty = unsafe { libc::isatty(libc::STDERR_FILENO) } == 1;
+        STDERR_WAS_TERMINAL.store(tty, std::sync::atomic::Ordering::Relaxed);
+        Self(Relay::install_stdio(true))
     }
 
     /// Nothing relayed (output stays as it is).

@@ -8,7 +8,9 @@
 //! `/dev/null` where it went to that terminal (the handler of each of the three signals
 //! points it there, the roles' too, which learn of the stop by their launcher's SIGTERM: a
 //! print that fails with `EIO` would panic), and an output relay (`relay`) discards what its real
-//! output refuses. A run meant to outlive its terminal is started under
+//! output refuses. A run's launcher relays its terminal too (`Stdio::relay_terminals_too`),
+//! so that no process of a run writes to the terminal itself: the hangup comes before the
+//! signal, and a print in between panicked (the launcher, in the suite). A run meant to outlive its terminal is started under
 //! `nohup` (a SIGHUP that is ignored when the process starts stays ignored), `setsid` or a
 //! terminal multiplexer.
 

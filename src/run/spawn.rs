@@ -144,7 +144,8 @@ impl Launch<'_> {
                 if let Some(hosts) = self.monitor_hosts() {
                     cmd.arg("--hosts").arg(hosts);
                 }
-                if !args.quiet {
+                // On a terminal (the launcher's stderr is a relay's pipe by now).
+                if !args.quiet && rotorloop_common::relay::stderr_was_terminal() {
                     cmd.arg("--status");
                 }
             }

@@ -7,8 +7,6 @@
 pub mod args;
 mod ports;
 
-use std::io::IsTerminal;
-
 use rotorloop_common::clock::now_ns;
 use rotorloop_common::signals::shutdown_requested;
 
@@ -37,7 +35,9 @@ pub fn run(args: &args::MonitorArgs) -> anyhow::Result<()> {
         eprintln!("monitor: restarted; continuing the report from tick {}", r.next_row);
     }
     rec.begin(&joiner);
-    let status = args.status && std::io::stderr().is_terminal();
+    // As asked: its launcher asks only where its own output is a terminal (the monitor's
+    // stderr is then the launcher's relay, a pipe).
+    let status = args.status;
     role.hooks.start_stall(resumed.is_none());
     // Started after the plant's last state: a shorter quiet period settles the rest (not
     // none: the controller's last answer may still be coming, policy::END_QUIET_AFTER_END_NS).
