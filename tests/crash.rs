@@ -44,11 +44,14 @@ fn a_closed_terminal_stops_the_run_like_sigint_with_a_partial_report_and_nothing
     let out = h.path("rt");
     // SAFETY: plain system calls making a pseudo-terminal; checked.
     let (master, slave) = unsafe {
-        let master = libc::posix_openpt(libc::O_RDWR | libc::O_NOCTTY);
+        // Closed on exec from the start: the hangup comes when the last master descriptor
+        // closes, so neither the run nor a process another test starts meanwhile (the
+        // tests run in threads of one process) may inherit it. With `FD_CLOEXEC` set just
+        // after, one did in the suite: the terminal never hung up and the run ended normally
+        // 60 s later (exit 0).
+        let master = libc::posix_openpt(libc::O_RDWR | libc::O_NOCTTY | libc::O_CLOEXEC);
         assert!(master >= 0, "posix_openpt");
-        // Not inherited: the run must not hold the master open itself (the hangup comes
-        // when the last master descriptor closes).
-        assert_eq!(libc::fcntl(master, libc::F_SETFD, libc::FD_CLOEXEC), 0);
+        assert_ne!(libc::fcntl(master, libc::F_GETFD) & libc::FD_CLOEXEC, 0, "close on exec");
         assert_eq!(libc::grantpt(master), 0);
         assert_eq!(libc::unlockpt(master), 0);
         let mut name = [0 as libc::c_char; 128];
