@@ -58,6 +58,7 @@ fn a_closed_terminal_stops_the_run_like_sigint_with_a_partial_report_and_nothing
         assert_eq!(libc::ptsname_r(master, name.as_mut_ptr(), name.len()), 0);
         (master, std::ffi::CStr::from_ptr(name.as_ptr()).to_owned())
     };
+    let slave_name = slave.clone();
     // Each process that ends normally (not by a panic) says so in this file.
     let ends = h.path("ends");
     let mut cmd = Command::new(ROTORLOOP);
@@ -92,9 +93,20 @@ fn a_closed_terminal_stops_the_run_like_sigint_with_a_partial_report_and_nothing
         assert!(launcher.try_wait().expect("wait").is_none(), "the run ended early");
         std::thread::sleep(Duration::from_millis(50));
     }
-    // The terminal goes away.
-    // SAFETY: closes the master this test opened.
-    unsafe { libc::close(master) };
+    // The terminal goes away: the master closed, and the hangup forced (`TIOCVHANGUP`,
+    // what the master's close does to the slave), since a process another test of this
+    // one spawned may hold a copy of the master between its fork and its exec: in the
+    // suite the terminal then never hung up and the run ended normally after 60 s.
+    // SAFETY: closes the master this test opened; opens the slave without making it a
+    // controlling terminal, hangs it up and closes it.
+    unsafe {
+        libc::close(master);
+        let fd = libc::open(slave_name.as_ptr(), libc::O_RDWR | libc::O_NOCTTY | libc::O_CLOEXEC);
+        if fd >= 0 {
+            libc::ioctl(fd, libc::TIOCVHANGUP, 0);
+            libc::close(fd);
+        }
+    }
     let status = loop {
         if let Some(s) = launcher.try_wait().expect("wait") {
             break s;
