@@ -90,7 +90,6 @@ impl Background {
     pub fn here(&self) {
         // SAFETY: plain system calls; `getrlimit` fills a struct of ours.
         let (tid, nice, limit) = unsafe {
-            *libc::__errno_location() = 0;
             let nice = libc::getpriority(libc::PRIO_PROCESS, 0);
             let mut limit = libc::rlimit { rlim_cur: 0, rlim_max: 0 };
             libc::getrlimit(libc::RLIMIT_NICE, &mut limit);

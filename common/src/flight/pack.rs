@@ -392,10 +392,21 @@ pub(super) fn pack_between(
     slot_len: usize,
     between: &mut dyn FnMut(),
 ) -> std::io::Result<Vec<u8>> {
+    pack_chunks(header, (body, slot_len), None, between)
+}
+
+/// `body`'s chunks packed ([`pack_chunk_as`], with the transforms `given` where there are),
+/// `between` called after each, behind `header`.
+fn pack_chunks(
+    header: &[u8],
+    (body, slot_len): (&[u8], usize),
+    given: Option<&[u8]>,
+    between: &mut dyn FnMut(),
+) -> std::io::Result<Vec<u8>> {
     let chunk_len = CHUNK_SLOTS as usize * slot_len;
     let mut chunks = Vec::with_capacity(body.len().div_ceil(chunk_len.max(1)));
     for c in body.chunks(chunk_len) {
-        chunks.push(pack_chunk(c, slot_len / 8)?);
+        chunks.push(pack_chunk_as(c, slot_len / 8, given)?);
         between();
     }
     Ok(assemble(header, &chunks))
@@ -421,11 +432,7 @@ pub(super) fn pack_reusing(
         codes.extend_from_slice(packed.get(first..first + words).unwrap_or_default());
         return Ok(packed);
     }
-    let chunks: Vec<Vec<u8>> = body
-        .chunks(chunk_len)
-        .map(|c| pack_chunk_as(c, words, Some(codes)))
-        .collect::<Result<_, _>>()?;
-    Ok(assemble(header, &chunks))
+    pack_chunks(header, (body, slot_len), Some(codes), &mut || {})
 }
 
 /// Packs the raw record file `from` (a ring: its header and its slots, as
