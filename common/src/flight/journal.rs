@@ -60,7 +60,15 @@ pub fn journal_path(dir: &Path, stream: Stream, j: u64) -> PathBuf {
     dir.join(format!("{}.{j:06}.journal", stream.name()))
 }
 
-/// The journal files of `stream` in `dir`, by half, in order.
+/// The journal of half `j` of `stream` in `dir` kept beside its segment: the ring had come
+/// round over some of the half's ticks before the mover read it, so the segment lacks ticks
+/// the journal holds (a realtime mover held up, seen when a `fdatasync` took 2 s beside a
+/// build). Readers read it as any journal; moving the rings in at the end leaves it.
+pub fn kept_journal_path(dir: &Path, stream: Stream, j: u64) -> PathBuf {
+    dir.join(format!("{}.{j:06}.kept.journal", stream.name()))
+}
+
+/// The journal files of `stream` in `dir` (kept ones among them), by half, in order.
 pub fn journals(dir: &Path, stream: Stream) -> Vec<(u64, PathBuf)> {
     let prefix = format!("{}.", stream.name());
     let mut out: Vec<(u64, PathBuf)> = std::fs::read_dir(dir)
@@ -69,7 +77,8 @@ pub fn journals(dir: &Path, stream: Stream) -> Vec<(u64, PathBuf)> {
         .flatten()
         .filter_map(|e| {
             let name = e.file_name().into_string().ok()?;
-            let j = name.strip_prefix(&prefix)?.strip_suffix(".journal")?.parse().ok()?;
+            let half = name.strip_prefix(&prefix)?.strip_suffix(".journal")?;
+            let j = half.strip_suffix(".kept").unwrap_or(half).parse().ok()?;
             Some((j, e.path()))
         })
         .collect();
@@ -319,6 +328,52 @@ mod tests {
         assert_eq!(log.last(), Some(1999));
         assert_eq!(log.count(1999).missing, Vec::<[u64; 2]>::new());
         assert!(log.iter().eq((0..2000).map(torque)), "every tick as recorded");
+        let _ = std::fs::remove_dir_all(&b);
+    }
+
+    /// A mover held up until the ring came round over the first ticks of a half (a real-time
+    /// run's mover behind a `fdatasync` of 2 s): its segment lacks them, so the half's
+    /// journal, which holds them, is kept beside it, read after a crash, and left by the
+    /// move at the end. Without it a crash lost 212 ticks the disk had held.
+    #[test]
+    fn a_half_the_ring_came_round_over_keeps_its_journal() {
+        let b = base("overran");
+        let (staged, kept) = (b.join("staged"), b.join("kept"));
+        let r = FlightRecorder::<TorqueSample>::open(Some(&staged), Stream::PlantTorque, 512, "t");
+        let mut mover = Mover::new(&staged, &kept).with_half(256);
+        for k in 0..300 {
+            r.record(&torque(k));
+        }
+        assert!(mover.journal(299).is_empty());
+        // Held up: ticks 512–611 take the slots of ticks 0–99 before half 0 is read.
+        for k in 300..612 {
+            r.record(&torque(k));
+        }
+        assert!(mover.pass(611).is_empty());
+        assert!(mover.journal(611).is_empty());
+        let kept_journal = kept_journal_path(&kept, Stream::PlantTorque, 0);
+        assert!(kept_journal.exists(), "{:?}", journals(&kept, Stream::PlantTorque));
+        assert!(!journal_path(&kept, Stream::PlantTorque, 0).exists());
+        assert_eq!(segments(&kept, Stream::PlantTorque).len(), 1);
+        // A crash now: every tick to the last frame's.
+        let crashed = b.join("crashed");
+        std::fs::create_dir_all(&crashed).expect("dir");
+        for e in std::fs::read_dir(&kept).expect("kept").flatten() {
+            std::fs::copy(e.path(), crashed.join(e.file_name())).expect("copy");
+        }
+        let log =
+            FlightLog::<TorqueSample>::read(&crashed, Stream::PlantTorque, 700).expect("read");
+        assert_eq!(log.last(), Some(611));
+        assert!(log.iter().eq((0..612).map(torque)), "every tick, the first 100 from the journal");
+        // The end of the run: the ring moved in, the kept journal left.
+        for k in 612..700 {
+            r.record(&torque(k));
+        }
+        drop(r);
+        super::super::move_records(&staged, &kept, true).expect("moved");
+        assert_eq!(journals(&kept, Stream::PlantTorque), vec![(0, kept_journal)]);
+        let log = FlightLog::<TorqueSample>::read(&kept, Stream::PlantTorque, 700).expect("read");
+        assert!(log.iter().eq((0..700).map(torque)));
         let _ = std::fs::remove_dir_all(&b);
     }
 

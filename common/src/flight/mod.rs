@@ -43,7 +43,9 @@ use crate::wire::{LAYOUT_VERSION, ReferenceSample, StateSample, TorqueSample};
 mod journal;
 mod pack;
 mod read;
-pub use journal::{CATCH_UP, DURABLE_BOUND, JOURNAL_PERIOD, journal_path, journals};
+pub use journal::{
+    CATCH_UP, DURABLE_BOUND, JOURNAL_PERIOD, journal_path, journals, kept_journal_path,
+};
 pub use read::{FlightLog, StreamCount};
 
 const MAGIC: u64 = 0x7468_6769_6c66_6c72; // "rlflight"
@@ -153,10 +155,13 @@ pub fn move_records(from: &Path, to: &Path, packed: bool) -> std::io::Result<usi
         std::fs::File::open(&dest)?.sync_data()?;
     }
     journal::sync_dir(to)?;
-    // The rings moved hold every tick the journals held, and are durable now.
+    // The rings moved hold every tick the journals held, and are durable now; a kept journal
+    // (`journal::kept_journal_path`) holds ticks no ring or segment does.
     for stream in Stream::ALL {
-        for (_, journal) in journals(to, stream) {
-            std::fs::remove_file(journal)?;
+        for (j, journal) in journals(to, stream) {
+            if journal != journal::kept_journal_path(to, stream, j) {
+                std::fs::remove_file(journal)?;
+            }
         }
     }
     let _ = std::fs::remove_file(from.join(RUN_DIR_FILE));
@@ -598,6 +603,9 @@ pub struct Mover {
     background: Option<std::sync::Arc<crate::rt::Background>>,
     /// Whether a pass is writing segments (the thread stays ordinary until it ends).
     in_pass: bool,
+    /// The halves read after the ring had come round over some of their ticks, until their
+    /// segments are durable (their journals are then kept: `kept_journal_path`).
+    overran: Vec<(usize, u64)>,
 }
 
 impl Mover {
@@ -633,6 +641,7 @@ impl Mover {
             live: None,
             background: None,
             in_pass: false,
+            overran: Vec::new(),
         }
     }
 
@@ -712,8 +721,11 @@ impl Mover {
         for (n, stream) in Stream::ALL.into_iter().enumerate() {
             loop {
                 match self.read_half(stream, self.next[n], plant_tick) {
-                    Ok(Half::Read(bytes)) => {
+                    Ok(Half::Read(bytes, overran)) => {
                         self.rings[n] = true;
+                        if overran {
+                            self.overran.push((n, self.next[n]));
+                        }
                         read.push((stream, self.next[n], bytes));
                         self.next[n] += 1;
                     }
@@ -810,6 +822,7 @@ impl Mover {
         }
         let slot = 8 + size.next_multiple_of(8);
         let mut bytes = vec![0u8; HEADER + half as usize * slot];
+        let mut overran = false;
         let (seg_header, body) = bytes.split_at_mut(HEADER);
         let first_slot = (j % 2) * half;
         f.read_exact_at(body, (HEADER + first_slot as usize * slot) as u64)?;
@@ -819,13 +832,14 @@ impl Mover {
             if tag != want {
                 // Never written, torn, or already the next round's (lost: counted).
                 self.lost += u64::from(tag > want);
+                overran |= tag > want;
                 s.fill(0);
             }
         }
         seg_header.copy_from_slice(&header);
         seg_header[8 * word::CAPACITY..8 * word::CAPACITY + 8].copy_from_slice(&half.to_ne_bytes());
         seg_header[8 * word::OPENS..8 * word::MOVED + 8].fill(0);
-        Ok(Half::Read(bytes))
+        Ok(Half::Read(bytes, overran))
     }
 
     /// Journals the newest ticks ([`Mover::journal`]) if [`JOURNAL_PERIOD`] has passed,
@@ -992,7 +1006,13 @@ impl Mover {
             self.synced[n] = self.synced[n].max(j + 1);
             self.jfiles.retain(|(i, h, ..)| (*i, *h) != (n, j));
             let path = journal_path(&self.kept, Stream::ALL[n], j);
-            match std::fs::remove_file(&path) {
+            // A segment that lacks ticks its journal holds keeps the journal beside it.
+            let kept = self.overran.iter().position(|h| *h == (n, j)).map(|i| {
+                self.overran.swap_remove(i);
+                self.dir_dirty = true;
+                std::fs::rename(&path, kept_journal_path(&self.kept, Stream::ALL[n], j))
+            });
+            match kept.unwrap_or_else(|| std::fs::remove_file(&path)) {
                 Err(e) if e.kind() != std::io::ErrorKind::NotFound => return Err(e),
                 _ => {}
             }
@@ -1074,7 +1094,9 @@ enum Half {
     /// The half is not due yet; the ring's halves hold this many ticks.
     NotDue(u64),
     /// Read: the segment file's bytes.
-    Read(Vec<u8>),
+    /// Read: the segment file's bytes, and whether the ring had come round over some of
+    /// its ticks.
+    Read(Vec<u8>, bool),
 }
 
 /// The plant state ring's header, mapped by the mover to store [`word::MOVED`] where the
