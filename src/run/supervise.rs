@@ -159,9 +159,10 @@ impl Watch {
         }
         if let Some(m) = mover.filter(|m| m.lost > 0) {
             eprintln!(
-                "warning: flight records: {} record(s) lost: the rings came round before the \
-                 launcher moved them (it was not running for that long); a longer \
-                 --flight-ring-ticks keeps them",
+                "warning: flight records: {} record(s) lost from the rings: they came round \
+                 before the launcher moved them (it was not running for that long); the \
+                 journal kept those it had made durable (*.kept.journal beside their segment); \
+                 a longer --flight-ring-ticks keeps them all",
                 m.lost
             );
         }
