@@ -12,7 +12,7 @@ use rotorloop_common::scenario::Actuation;
 
 use crate::sim::{self, SimOptions, summary_table};
 use crate::study::gains;
-use crate::study::montecarlo::{self, McOptions};
+use crate::study::montecarlo::{self, McOptions, McSummary};
 use rotorloop_common::input::{number_in, whole_in};
 use rotorloop_common::role::UsageError;
 use rotorloop_common::role::args::{duration_s, rate_hz, scenario_with_overrides};
@@ -324,21 +324,15 @@ fn run_dir(command: &Command) -> Option<&std::path::Path> {
 /// directory it reads exists, and the output directory can be made or written into.
 fn check_paths(command: &Command) -> Result<(), UsageError> {
     if let Some(dir) = run_dir(command) {
-        match std::fs::metadata(dir) {
-            Ok(m) if m.is_dir() => {}
-            Ok(_) => {
-                return Err(UsageError(format!(
-                    "{} is not allowed: a run directory (the --out of `rotorloop run`); this \
-                     is not a directory",
-                    dir.display()
-                )));
-            }
-            Err(e) => {
-                return Err(UsageError(format!(
-                    "{} is not allowed: a run directory (the --out of `rotorloop run`): {e}",
-                    dir.display()
-                )));
-            }
+        let why = match std::fs::metadata(dir) {
+            Ok(m) if m.is_dir() => None,
+            Ok(_) => Some("; this is not a directory".to_owned()),
+            Err(e) => Some(format!(": {e}")),
+        };
+        if let Some(why) = why {
+            let d = dir.display();
+            let what = "a run directory (the --out of `rotorloop run`)";
+            return Err(UsageError(format!("{d} is not allowed: {what}{why}")));
         }
     }
     if let Some(out) = out_dir(command) {
@@ -485,18 +479,13 @@ fn montecarlo_command(a: &McArgs) -> anyhow::Result<()> {
         out: Some(a.out.clone()),
     };
     let (s, _) = montecarlo::run(&opts)?;
+    let McSummary { runs, near_pi_runs, closest_to_pi_deg: closest, duration_s, rate_hz, .. } = s;
+    let (converged, worst) = (100.0 * s.fraction_converged, s.worst_final_err_deg);
+    let (limit, out) = (montecarlo::CONVERGED_DEG, a.out.display());
     println!(
-        "{} runs ({} within 2° of 180°, closest {:.3}° from it), {} s each at {} Hz\n\
-         converged (final error < {}°): {:.1} %\nworst final error: {:.3e}°\noutput: {}",
-        s.runs,
-        s.near_pi_runs,
-        s.closest_to_pi_deg,
-        s.duration_s,
-        s.rate_hz,
-        montecarlo::CONVERGED_DEG,
-        100.0 * s.fraction_converged,
-        s.worst_final_err_deg,
-        a.out.display()
+        "{runs} runs ({near_pi_runs} within 2° of 180°, closest {closest:.3}° from it), \
+         {duration_s} s each at {rate_hz} Hz\nconverged (final error < {limit}°): {converged:.1} %\n\
+         worst final error: {worst:.3e}°\noutput: {out}"
     );
     Ok(())
 }

@@ -72,6 +72,19 @@ fn fail(status: RotorloopStatus, msg: impl std::fmt::Display) -> RotorloopStatus
     status
 }
 
+/// A call's status from its body, which returns a failure's status early (with `?`).
+fn status(body: impl FnOnce() -> Result<RotorloopStatus, RotorloopStatus>) -> RotorloopStatus {
+    body().unwrap_or_else(|s| s)
+}
+
+/// `p`, or an argument error naming the call and the argument where it is null.
+fn non_null<T>(p: *mut T, call: &str, what: &str) -> Result<*mut T, RotorloopStatus> {
+    match p.is_null() {
+        true => Err(fail(RotorloopStatus::ErrArgument, format!("{call}: {what} is NULL"))),
+        false => Ok(p),
+    }
+}
+
 /// An iceoryx2 error as a status.
 fn ipc_fail(e: &IpcError) -> RotorloopStatus {
     let status = match e {
@@ -170,20 +183,16 @@ pub unsafe extern "C" fn rotorloop_law_config_load(
     path: *const c_char,
     out: *mut RotorloopLawConfig,
 ) -> RotorloopStatus {
-    if out.is_null() {
-        return fail(RotorloopStatus::ErrArgument, "rotorloop_law_config_load: out is NULL");
-    }
-    // SAFETY: the caller's string.
-    let path = match unsafe { arg_or_env(path, "path", "ROTORLOOP_CONTROLLER_JSON") } {
-        Ok(p) => p,
-        Err(s) => return s,
-    };
-    match load_config(&path) {
+    status(|| {
+        let out = non_null(out, "rotorloop_law_config_load", "out")?;
+        // SAFETY: the caller's string.
+        let path = unsafe { arg_or_env(path, "path", "ROTORLOOP_CONTROLLER_JSON") }?;
+        let c = load_config(&path)
+            .map_err(|e| fail(RotorloopStatus::ErrConfig, format!("{path}: {e:#}")))?;
         // SAFETY: checked non-null; the caller's writable struct.
-        Ok(c) => unsafe { out.write(c) },
-        Err(e) => return fail(RotorloopStatus::ErrConfig, format!("{path}: {e:#}")),
-    }
-    RotorloopStatus::Ok
+        unsafe { out.write(c) };
+        Ok(RotorloopStatus::Ok)
+    })
 }
 
 /// `controller.json` at `path` as the C struct.
@@ -202,13 +211,7 @@ fn load_config(path: &str) -> anyhow::Result<RotorloopLawConfig> {
     for (d, s) in law.iter_mut().zip(j.law.bytes()) {
         *d = s as c_char;
     }
-    let rows = |m: [[f64; 3]; 3]| {
-        let mut r = [0.0; 9];
-        for (i, row) in m.iter().enumerate() {
-            r[i * 3..i * 3 + 3].copy_from_slice(row);
-        }
-        r
-    };
+    let rows = |m: [[f64; 3]; 3]| std::array::from_fn(|i| m[i / 3][i % 3]);
     Ok(RotorloopLawConfig {
         layout_version: u64::from(j.layout_version),
         law,
@@ -268,23 +271,16 @@ pub unsafe extern "C" fn rotorloop_controller_open(
     wait: *const c_char,
     out: *mut *mut RotorloopController,
 ) -> RotorloopStatus {
-    if out.is_null() {
-        return fail(RotorloopStatus::ErrArgument, "rotorloop_controller_open: out is NULL");
-    }
-    // SAFETY: the caller's strings.
-    let (name, wait) =
-        match unsafe { (arg_or_env(domain, "domain", "ROTORLOOP_DOMAIN"), wait_arg(wait)) } {
-            (Ok(n), Ok(w)) => (n, w),
-            (Err(s), _) | (_, Err(s)) => return s,
-        };
-    match open(&name, wait) {
-        Ok(c) => {
-            // SAFETY: checked non-null; the caller's writable pointer.
-            unsafe { out.write(Box::into_raw(c)) };
-            RotorloopStatus::Ok
-        }
-        Err(e) => ipc_fail(&e),
-    }
+    status(|| {
+        let out = non_null(out, "rotorloop_controller_open", "out")?;
+        // SAFETY: the caller's strings.
+        let (name, wait) =
+            unsafe { (arg_or_env(domain, "domain", "ROTORLOOP_DOMAIN"), wait_arg(wait)) };
+        let c = open(&name?, wait?).map_err(|e| ipc_fail(&e))?;
+        // SAFETY: checked non-null; the caller's writable pointer.
+        unsafe { out.write(Box::into_raw(c)) };
+        Ok(RotorloopStatus::Ok)
+    })
 }
 
 /// The wait mode argument, or `$ROTORLOOP_WAIT`, or `event`.
@@ -357,45 +353,37 @@ pub unsafe extern "C" fn rotorloop_controller_receive_state(
     state: *mut StateSample,
     recv_ns: *mut u64,
 ) -> RotorloopStatus {
-    // SAFETY: the caller's handle.
-    let c = match unsafe { handle(c, "rotorloop_controller_receive_state") } {
-        Ok(c) => c,
-        Err(s) => return s,
-    };
-    if state.is_null() {
-        return fail(
-            RotorloopStatus::ErrArgument,
-            "rotorloop_controller_receive_state: state is NULL",
-        );
-    }
-    let deadline = now_ns().saturating_add(timeout_ns);
-    let (mut received, mut skipped) = (0u64, 0u64);
-    let newest = c.states.wait_for(c.wait, deadline, |inbox| {
-        let mut newest: Option<StateSample> = None;
-        inbox.drain(|s| {
-            received += 1;
-            skipped += u64::from(newest.is_some());
-            newest = Some(s);
-        })?;
-        Ok(newest.map(|s| (s, now_ns())))
-    });
-    c.states_received += received;
-    c.states_skipped += skipped;
-    match newest {
-        Ok(Some((s, t))) => {
-            c.newest_state = s.tick;
-            // SAFETY: checked non-null; the caller's writable sample and stamp.
-            unsafe {
-                state.write(s);
-                if !recv_ns.is_null() {
-                    recv_ns.write(t);
-                }
+    const CALL: &str = "rotorloop_controller_receive_state";
+    status(|| {
+        // SAFETY: the caller's handle.
+        let c = unsafe { handle(c, CALL) }?;
+        let state = non_null(state, CALL, "state")?;
+        let deadline = now_ns().saturating_add(timeout_ns);
+        let (mut received, mut skipped) = (0u64, 0u64);
+        let newest = c.states.wait_for(c.wait, deadline, |inbox| {
+            let mut newest: Option<StateSample> = None;
+            inbox.drain(|s| {
+                received += 1;
+                skipped += u64::from(newest.is_some());
+                newest = Some(s);
+            })?;
+            Ok(newest.map(|s| (s, now_ns())))
+        });
+        c.states_received += received;
+        c.states_skipped += skipped;
+        let Some((s, t)) = newest.map_err(|e| ipc_fail(&e))? else {
+            return Ok(RotorloopStatus::Timeout);
+        };
+        c.newest_state = s.tick;
+        // SAFETY: checked non-null; the caller's writable sample and stamp.
+        unsafe {
+            state.write(s);
+            if !recv_ns.is_null() {
+                recv_ns.write(t);
             }
-            RotorloopStatus::Ok
         }
-        Ok(None) => RotorloopStatus::Timeout,
-        Err(e) => ipc_fail(&e),
-    }
+        Ok(RotorloopStatus::Ok)
+    })
 }
 
 /// Puts reference `r` into `ring`, unless it is beyond the newest state taken
@@ -444,38 +432,31 @@ pub unsafe extern "C" fn rotorloop_controller_reference(
     timeout_ns: u64,
     reference: *mut ReferenceSample,
 ) -> RotorloopStatus {
-    // SAFETY: the caller's handle.
-    let c = match unsafe { handle(c, "rotorloop_controller_reference") } {
-        Ok(c) => c,
-        Err(s) => return s,
-    };
-    if reference.is_null() {
-        return fail(
-            RotorloopStatus::ErrArgument,
-            "rotorloop_controller_reference: reference is NULL",
-        );
-    }
-    let deadline = now_ns().saturating_add(timeout_ns);
-    let RotorloopController { refs, ring, newest_state, references_rejected, wait, .. } = c;
-    // In hand: no look at the topic (the reference works ahead and publishes in batches).
-    let found = match lookup(ring, tick) {
-        Some(r) => Ok(Some(r)),
-        None => refs.wait_for(*wait, deadline, |inbox| {
-            inbox.drain(|r| store(ring, *newest_state, references_rejected, r))?;
-            Ok(lookup(ring, tick))
-        }),
-    };
-    let found = match found {
-        Ok(f) => f,
-        Err(e) => return ipc_fail(&e),
-    };
-    let out = found.unwrap_or_else(|| {
-        let earlier = c.ring.iter().filter(|r| r.tick != NO_TICK && r.tick < tick);
-        earlier.max_by_key(|r| r.tick).copied().unwrap_or(empty_reference())
-    });
-    // SAFETY: checked non-null; the caller's writable sample.
-    unsafe { reference.write(out) };
-    if found.is_some() { RotorloopStatus::Ok } else { RotorloopStatus::Timeout }
+    const CALL: &str = "rotorloop_controller_reference";
+    status(|| {
+        // SAFETY: the caller's handle.
+        let c = unsafe { handle(c, CALL) }?;
+        let reference = non_null(reference, CALL, "reference")?;
+        let deadline = now_ns().saturating_add(timeout_ns);
+        let RotorloopController { refs, ring, newest_state, references_rejected, wait, .. } = c;
+        // In hand: no look at the topic (the reference works ahead and publishes in batches).
+        let found = match lookup(ring, tick) {
+            Some(r) => Some(r),
+            None => refs
+                .wait_for(*wait, deadline, |inbox| {
+                    inbox.drain(|r| store(ring, *newest_state, references_rejected, r))?;
+                    Ok(lookup(ring, tick))
+                })
+                .map_err(|e| ipc_fail(&e))?,
+        };
+        let out = found.unwrap_or_else(|| {
+            let earlier = c.ring.iter().filter(|r| r.tick != NO_TICK && r.tick < tick);
+            earlier.max_by_key(|r| r.tick).copied().unwrap_or(empty_reference())
+        });
+        // SAFETY: checked non-null; the caller's writable sample.
+        unsafe { reference.write(out) };
+        Ok(if found.is_some() { RotorloopStatus::Ok } else { RotorloopStatus::Timeout })
+    })
 }
 
 /// A torque sample in shared memory for the next publish, every byte zero, in
@@ -493,30 +474,24 @@ pub unsafe extern "C" fn rotorloop_controller_loan(
     c: *mut RotorloopController,
     sample: *mut *mut TorqueSample,
 ) -> RotorloopStatus {
-    // SAFETY: the caller's handle.
-    let c = match unsafe { handle(c, "rotorloop_controller_loan") } {
-        Ok(c) => c,
-        Err(s) => return s,
-    };
-    if sample.is_null() {
-        return fail(RotorloopStatus::ErrArgument, "rotorloop_controller_loan: sample is NULL");
-    }
-    if c.loaned {
-        return fail(
-            RotorloopStatus::ErrOrder,
-            "rotorloop_controller_loan: the sample loaned before is not published yet",
-        );
-    }
-    if let Err(e) = c.out.prewrite(TorqueSample::default()) {
-        return ipc_fail(&e);
-    }
-    let Some(ptr) = c.out.prewritten_ptr() else {
-        return fail(RotorloopStatus::ErrIpc, "rotorloop_controller_loan: no sample was loaned");
-    };
-    c.loaned = true;
-    // SAFETY: checked non-null; the caller's writable pointer.
-    unsafe { sample.write(ptr) };
-    RotorloopStatus::Ok
+    const CALL: &str = "rotorloop_controller_loan";
+    status(|| {
+        // SAFETY: the caller's handle.
+        let c = unsafe { handle(c, CALL) }?;
+        let sample = non_null(sample, CALL, "sample")?;
+        if c.loaned {
+            let why = format!("{CALL}: the sample loaned before is not published yet");
+            return Err(fail(RotorloopStatus::ErrOrder, why));
+        }
+        c.out.prewrite(TorqueSample::default()).map_err(|e| ipc_fail(&e))?;
+        let Some(ptr) = c.out.prewritten_ptr() else {
+            return Err(fail(RotorloopStatus::ErrIpc, format!("{CALL}: no sample was loaned")));
+        };
+        c.loaned = true;
+        // SAFETY: checked non-null; the caller's writable pointer.
+        unsafe { sample.write(ptr) };
+        Ok(RotorloopStatus::Ok)
+    })
 }
 
 /// Publishes the loaned sample and wakes its readers (the plant, the monitor). Sets, just
@@ -531,40 +506,32 @@ pub unsafe extern "C" fn rotorloop_controller_loan(
 pub unsafe extern "C" fn rotorloop_controller_publish(
     c: *mut RotorloopController,
 ) -> RotorloopStatus {
-    // SAFETY: the caller's handle.
-    let c = match unsafe { handle(c, "rotorloop_controller_publish") } {
-        Ok(c) => c,
-        Err(s) => return s,
-    };
-    if !c.loaned {
-        return fail(
-            RotorloopStatus::ErrOrder,
-            "rotorloop_controller_publish: no sample is loaned",
-        );
-    }
-    c.loaned = false;
-    let (prev_tick, prev_cost) = c.last_publish;
-    let counts = (c.published + 1, c.states_received, c.states_skipped);
-    // SAFETY: the loaned sample, in shared memory, written by the caller; read only.
-    let tick = c.out.prewritten_ptr().map_or(NO_TICK, |p| unsafe { (*p).tick });
-    let patch = |s: &mut TorqueSample, t: u64| {
-        s.publish_ns = t;
-        (s.prev_tick, s.prev_publish) = (prev_tick, prev_cost);
-        (s.published, s.states_received, s.states_skipped) = counts;
-    };
-    match c.out.send_prewritten(TorqueSample::default(), patch, |_| ()) {
-        Ok(cost) => {
-            c.published += 1;
-            c.last_publish = (tick, cost);
-            // The next answer's sample, loaned now (after this one is on its way), as the
-            // built-in controller does: its loan then only zeroes it.
-            match c.out.prewrite(TorqueSample::default()) {
-                Ok(()) => RotorloopStatus::Ok,
-                Err(e) => ipc_fail(&e),
-            }
+    const CALL: &str = "rotorloop_controller_publish";
+    status(|| {
+        // SAFETY: the caller's handle.
+        let c = unsafe { handle(c, CALL) }?;
+        if !c.loaned {
+            return Err(fail(RotorloopStatus::ErrOrder, format!("{CALL}: no sample is loaned")));
         }
-        Err(e) => ipc_fail(&e),
-    }
+        c.loaned = false;
+        let (prev_tick, prev_cost) = c.last_publish;
+        let counts = (c.published + 1, c.states_received, c.states_skipped);
+        // SAFETY: the loaned sample, in shared memory, written by the caller; read only.
+        let tick = c.out.prewritten_ptr().map_or(NO_TICK, |p| unsafe { (*p).tick });
+        let patch = |s: &mut TorqueSample, t: u64| {
+            s.publish_ns = t;
+            (s.prev_tick, s.prev_publish) = (prev_tick, prev_cost);
+            (s.published, s.states_received, s.states_skipped) = counts;
+        };
+        let sent = c.out.send_prewritten(TorqueSample::default(), patch, |_| ());
+        let cost = sent.map_err(|e| ipc_fail(&e))?;
+        c.published += 1;
+        c.last_publish = (tick, cost);
+        // The next answer's sample, loaned now (after this one is on its way), as the
+        // built-in controller does: its loan then only zeroes it.
+        c.out.prewrite(TorqueSample::default()).map_err(|e| ipc_fail(&e))?;
+        Ok(RotorloopStatus::Ok)
+    })
 }
 
 /// Readers of the torque topic now connected (the plant and the monitor, and a link

@@ -163,21 +163,17 @@ impl Recording {
         (now_ns, stall): (u64, Option<std::time::Duration>),
         csv: bool,
     ) -> (Self, Option<MonitorResume>) {
-        let made = rotorloop_common::outdir::OutDir::make(out);
-        if let Ok(dir) = &made {
-            let _ = dir.remove("summary.json");
+        if let Ok(dir) = rotorloop_common::outdir::OutDir::make(out) {
+            // An earlier run's summary, and without `csv` its trace and timing.
+            let stale = ["summary.json", "trace.csv", "timing.csv"];
+            for f in &stale[..if csv { 1 } else { 3 }] {
+                let _ = dir.remove(f);
+            }
         }
         let resumed = slot
             .filter(|r| r.next_row <= scenario.ticks() && (!csv || out.join("trace.csv").exists()));
         let first_row = resumed.map_or(0, |r| r.next_row);
         let stall = stall.filter(|_| resumed.is_none());
-        if !csv {
-            for f in ["trace.csv", "timing.csv"] {
-                if let Ok(dir) = &made {
-                    let _ = dir.remove(f);
-                }
-            }
-        }
         let opened = if csv { Some(open_files(out, resumed.as_ref(), stall)) } else { None };
         let (files, lengths_at_open, loss) = match opened {
             None => (None, [0, 0], None),

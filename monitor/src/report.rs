@@ -247,20 +247,10 @@ pub fn kept_up(j: &RowJoiner, ticks: u64) -> bool {
 
 /// A cyclictest-like summary: one line per hop with count/min/avg/p99/max in µs.
 pub fn console_summary(s: &RunSummary) -> String {
+    let RunSummary { name, mode, wait, ticks, trace_rows, rows_lost, misses, rate_hz, .. } = s;
+    let (hz, e0, e1, rms) = (s.achieved_rate_hz, s.err_deg_initial, s.err_deg_final, s.err_deg_rms);
     let mut t = format!(
-        "{} ({}, {} wait): {} ticks, {} rows, {} lost, {} misses, achieved {:.3} Hz of {} Hz, error {:.4}° → {:.3e}° (rms {:.3}°)\n",
-        s.name,
-        s.mode,
-        s.wait,
-        s.ticks,
-        s.trace_rows,
-        s.rows_lost,
-        s.misses,
-        s.achieved_rate_hz,
-        s.rate_hz,
-        s.err_deg_initial,
-        s.err_deg_final,
-        s.err_deg_rms
+        "{name} ({mode}, {wait} wait): {ticks} ticks, {trace_rows} rows, {rows_lost} lost, {misses} misses, achieved {hz:.3} Hz of {rate_hz} Hz, error {e0:.4}° → {e1:.3e}° (rms {rms:.3}°)\n"
     );
     for e in &s.storage_errors {
         t.push_str(&format!("storage: {e}\n"));

@@ -41,6 +41,7 @@ pub const ROLE: &str = rotorloop_common::graph::Role::Plant.name();
 
 use glam::{DMat3, DVec3};
 use rotorloop_common::params::{BodyParams, RotorBodyState};
+use rotorloop_common::scenario::Actuation;
 use rotorloop_common::so3::{dexp_inv, exp};
 
 /// Inputs held constant over one tick (zero-order hold).
@@ -50,6 +51,17 @@ pub struct BodyInput {
     pub rotor_torque: DVec3,
     /// External torque on the body `τ_b` (N m, body frame): gas jets or a disturbance.
     pub body_torque: DVec3,
+}
+
+impl BodyInput {
+    /// What an answer of rotor torques `u` and body torque `τ` puts on a body of
+    /// `actuation`: `u` (internal) or `τ` (external), the other zero.
+    pub fn of(actuation: Actuation, u: DVec3, tau: DVec3) -> Self {
+        match actuation {
+            Actuation::Internal => Self { rotor_torque: u, body_torque: DVec3::ZERO },
+            Actuation::External => Self { rotor_torque: DVec3::ZERO, body_torque: tau },
+        }
+    }
 }
 
 /// A rigid body with three rotors, or without (`K = 0`: the gas-jet body), integrated

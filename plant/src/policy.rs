@@ -242,16 +242,8 @@ impl TorqueHold {
 
     /// The input a torque sample commands.
     pub fn input_of(&self, t: &TorqueSample) -> BodyInput {
-        match self.actuation {
-            Actuation::Internal => BodyInput {
-                rotor_torque: DVec3::from_array(t.rotor_torque_nm),
-                body_torque: DVec3::ZERO,
-            },
-            Actuation::External => BodyInput {
-                rotor_torque: DVec3::ZERO,
-                body_torque: DVec3::from_array(t.body_torque_nm),
-            },
-        }
+        let (u, tau) = (t.rotor_torque_nm, t.body_torque_nm);
+        BodyInput::of(self.actuation, DVec3::from_array(u), DVec3::from_array(tau))
     }
 
     /// Whether the plant is in safe mode.

@@ -496,10 +496,7 @@ pub fn write_with(dir: &Path, detail: Detail) -> anyhow::Result<McapCounts> {
         sink.finish()?;
         Ok((counts, kept))
     });
-    let (counts, kept) = match written {
-        Ok(c) => c,
-        Err(e) => return Err(e.context(format!("cannot write {}", path.display()))),
-    };
+    let (counts, kept) = written.with_context(|| format!("cannot write {}", path.display()))?;
     Ok(McapCounts {
         path: path.display().to_string(),
         messages: counts,

@@ -59,39 +59,24 @@ fn type_name<T: iceoryx2::prelude::ZeroCopySend>() -> &'static str {
 
 /// The contract's types, the nested one first (C and Python need it declared first).
 pub fn types() -> [WireType; 4] {
+    // A sample type sent on `topic` (`None`: only inside the samples).
+    macro_rules! wire_type {
+        ($t:ident, $topic:expr) => {
+            WireType {
+                name: stringify!($t),
+                type_name: $topic.map(|_: Topic| type_name::<$t>()),
+                topic: $topic.map(Topic::name),
+                size: size_of::<$t>(),
+                doc: $t::DOC,
+                fields: $t::FIELDS,
+            }
+        };
+    }
     [
-        WireType {
-            name: "SendCost",
-            type_name: None,
-            topic: None,
-            size: size_of::<SendCost>(),
-            doc: SendCost::DOC,
-            fields: SendCost::FIELDS,
-        },
-        WireType {
-            name: "StateSample",
-            type_name: Some(type_name::<StateSample>()),
-            topic: Some(Topic::State.name()),
-            size: size_of::<StateSample>(),
-            doc: StateSample::DOC,
-            fields: StateSample::FIELDS,
-        },
-        WireType {
-            name: "ReferenceSample",
-            type_name: Some(type_name::<ReferenceSample>()),
-            topic: Some(Topic::Reference.name()),
-            size: size_of::<ReferenceSample>(),
-            doc: ReferenceSample::DOC,
-            fields: ReferenceSample::FIELDS,
-        },
-        WireType {
-            name: "TorqueSample",
-            type_name: Some(type_name::<TorqueSample>()),
-            topic: Some(Topic::Torque.name()),
-            size: size_of::<TorqueSample>(),
-            doc: TorqueSample::DOC,
-            fields: TorqueSample::FIELDS,
-        },
+        wire_type!(SendCost, None),
+        wire_type!(StateSample, Some(Topic::State)),
+        wire_type!(ReferenceSample, Some(Topic::Reference)),
+        wire_type!(TorqueSample, Some(Topic::Torque)),
     ]
 }
 

@@ -100,24 +100,10 @@ fn proc_sched(pid: u32) -> (Option<u32>, Option<u32>, Option<String>, Option<Str
     // Fields after the parenthesised command name: state is field 3, so index = field − 3.
     let f: Vec<&str> = stat.rsplit_once(')').map_or("", |(_, r)| r).split_whitespace().collect();
     let field = |n: usize| f.get(n - 3).and_then(|v| v.parse::<u32>().ok());
-    let policy = field(41).map(|p| {
-        match p {
-            0 => "other",
-            1 => "fifo",
-            2 => "rr",
-            3 => "batch",
-            5 => "idle",
-            6 => "deadline",
-            _ => "?",
-        }
-        .to_owned()
-    });
-    let status = std::fs::read_to_string(format!("/proc/{pid}/status")).unwrap_or_default();
-    let allowed = status
-        .lines()
-        .find_map(|l| l.strip_prefix("Cpus_allowed_list:"))
-        .map(|v| v.trim().to_owned());
-    (field(39), field(40), policy, allowed)
+    // The policies by number (`SCHED_OTHER` = 0 to `SCHED_DEADLINE` = 6; 4 is unused).
+    const POLICIES: [&str; 7] = ["other", "fifo", "rr", "batch", "?", "idle", "deadline"];
+    let policy = field(41).map(|p| POLICIES.get(p as usize).copied().unwrap_or("?").to_owned());
+    (field(39), field(40), policy, crate::cpus::allowed_of(pid))
 }
 
 /// The nodes of `domain`.

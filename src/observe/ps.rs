@@ -43,7 +43,7 @@ pub struct ServiceView {
 }
 
 /// A domain's roles, progress and services.
-#[derive(Debug, Clone, Serialize)]
+#[derive(Debug, Clone, Default, Serialize)]
 pub struct DomainView {
     /// The domain.
     pub domain: String,
@@ -176,15 +176,7 @@ pub fn snapshot(name: &str, sample_ms: u64) -> Result<DomainView, UsageError> {
 fn listed(name: &str, sample_ms: u64) -> Result<DomainView, UsageError> {
     let domain = Domain::new(name).map_err(|e| UsageError(e.to_string()))?;
     let Some(why) = unreachable(&domain) else { return snapshot(name, sample_ms) };
-    Ok(DomainView {
-        domain: name.to_owned(),
-        roles: Vec::new(),
-        ticks: BTreeMap::new(),
-        rate_hz: None,
-        completed: false,
-        services: Vec::new(),
-        unreachable: Some(why),
-    })
+    Ok(DomainView { domain: name.to_owned(), unreachable: Some(why), ..Default::default() })
 }
 
 /// `rotorloop ps`.

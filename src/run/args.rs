@@ -11,7 +11,7 @@ use crate::cpus::{Shape, Topology, run_topology};
 
 use rotorloop_common::input::whole_in;
 use rotorloop_common::role::UsageError;
-use rotorloop_common::role::args::RoleArgs;
+use rotorloop_common::role::args::{RoleArgs, with_defaults};
 use rotorloop_common::role::args::{dma_latency_us, hold_ticks, spin_us};
 use rotorloop_plant::actuator::ActuationDelay;
 
@@ -222,39 +222,8 @@ pub(crate) fn with_preset(args: &RunArgs, explicit_wait: bool) -> Result<RunArgs
 impl RunArgs {
     /// The defaults of every launcher option, for `role` into `out` (paper, bench).
     pub fn defaults(role: RoleArgs, out: PathBuf) -> Self {
-        Self {
-            role,
-            pin: None,
-            cpus: None,
-            out,
-            no_monitor: false,
-            quiet: false,
-            no_record: false,
-            no_mcap: false,
-            no_csv: false,
-            raw_segments: false,
-            no_journal: false,
-            force: false,
-            no_sched_sample: false,
-            no_gate: false,
-            trace_sched: false,
-            spin_before_tick_us: 0,
-            cpu_dma_latency: None,
-            foxglove: None,
-            foxglove_allow_network: false,
-            controller_cmd: None,
-            hold_ticks: 50,
-            fault: Vec::new(),
-            corrupt: Vec::new(),
-            restart: "on-failure".into(),
-            restart_limit: "5/10".into(),
-            watchdog_ms: 3000,
-            actuation_delay: ActuationDelay::Measured,
-            plant_stall: rotorloop_plant::process::args::PlantStall::Hold,
-            preset: None,
-            split: None,
-            link_port: None,
-        }
+        // The two options that have no default are given, then replaced.
+        Self { role, out, ..with_defaults(&["--scenario=", "--out=."]) }
     }
 }
 
@@ -344,6 +313,30 @@ pub fn parse_pins(s: &str, allowed: &[usize]) -> Result<BTreeMap<Role, usize>, U
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The launcher options `paper` and `bench` start a run with are the command line's
+    /// defaults, the role's options as given.
+    #[test]
+    fn the_defaults_are_the_command_line_s() {
+        use rotorloop_common::ipc::wait::Wait;
+        use rotorloop_common::role::args::Mode;
+        let role = RoleArgs::realtime("-odd name", 2.0, 500.0, Wait::Spin);
+        assert_eq!(
+            (role.scenario.as_str(), role.duration, role.rate),
+            ("-odd name", Some(2.0), Some(500.0))
+        );
+        assert_eq!(
+            (role.mode, role.wait, role.flight_ring_ticks),
+            (Mode::Realtime, Wait::Spin, rotorloop_common::flight::DEFAULT_RING_TICKS)
+        );
+        assert_eq!((role.domain, role.record, role.hooks), (None, None, Default::default()));
+        let a = RunArgs::defaults(RoleArgs::realtime("x", 1.0, 1000.0, Wait::Event), "o".into());
+        assert_eq!((a.out.to_str(), a.role.scenario.as_str()), (Some("o"), "x"));
+        assert_eq!((a.hold_ticks, a.watchdog_ms, a.spin_before_tick_us), (50, 3000, 0));
+        assert_eq!((a.restart.as_str(), a.restart_limit.as_str()), ("on-failure", "5/10"));
+        assert_eq!(a.actuation_delay, ActuationDelay::Measured);
+        assert!(a.pin.is_none() && a.fault.is_empty() && !a.no_monitor && !a.no_record);
+    }
 
     /// `--pin plant=0,plant=1` was accepted and the last one won.
     #[test]

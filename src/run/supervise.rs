@@ -550,24 +550,16 @@ fn dying_from(status: &str, stat: &str) -> bool {
 
 /// The name of signal `sig` (`SIGSTOP`), or `signal N`.
 fn signal_name(sig: libc::c_int) -> &'static str {
-    match sig {
-        libc::SIGSTOP => "SIGSTOP",
-        libc::SIGTSTP => "SIGTSTP",
-        libc::SIGTTIN => "SIGTTIN",
-        libc::SIGTTOU => "SIGTTOU",
-        libc::SIGKILL => "SIGKILL",
-        libc::SIGTERM => "SIGTERM",
-        libc::SIGINT => "SIGINT",
-        libc::SIGSEGV => "SIGSEGV",
-        libc::SIGABRT => "SIGABRT",
-        libc::SIGBUS => "SIGBUS",
-        libc::SIGHUP => "SIGHUP",
-        libc::SIGPIPE => "SIGPIPE",
-        libc::SIGQUIT => "SIGQUIT",
-        libc::SIGFPE => "SIGFPE",
-        libc::SIGILL => "SIGILL",
-        _ => "another signal",
+    // Each name is the constant's, written once.
+    macro_rules! names {
+        ($($name:ident),*) => {
+            match sig { $(libc::$name => stringify!($name),)* _ => "another signal" }
+        };
     }
+    names![
+        SIGSTOP, SIGTSTP, SIGTTIN, SIGTTOU, SIGKILL, SIGTERM, SIGINT, SIGSEGV, SIGABRT, SIGBUS,
+        SIGHUP, SIGPIPE, SIGQUIT, SIGFPE, SIGILL
+    ]
 }
 
 /// After the last tick nobody is started again: the ports of a dead role would keep the

@@ -152,15 +152,9 @@ impl ClosedLoop {
             Some(u) => ControlOutput { rotor_torque: u, ..ControlOutput::default() },
         };
         // The motors deliver what their limits allow (the trace keeps the command).
-        let (input, u_traced) = match self.actuation {
-            Actuation::Internal => (
-                BodyInput { rotor_torque: out.rotor_torque, body_torque: DVec3::ZERO },
-                out.rotor_torque,
-            ),
-            Actuation::External => {
-                (BodyInput { rotor_torque: DVec3::ZERO, body_torque: out.body_torque }, DVec3::ZERO)
-            }
-        };
+        let input = BodyInput::of(self.actuation, out.rotor_torque, out.body_torque);
+        // The rotor torque commanded: none for a gas-jet body.
+        let u_traced = input.rotor_torque;
         let mut row =
             self.metrics.observe_work(k, t, &x, &rd, u_traced, out.body_torque, self.work);
         let drawn = self.drawn.as_mut().map(DrawnDelays::draw);

@@ -163,7 +163,7 @@ pub struct SimSummary {
 }
 
 /// Running statistics of one run.
-#[derive(Debug, Clone)]
+#[derive(Debug, Clone, Default)]
 struct Stats {
     /// The first row's attitude error (deg).
     first_err_deg: f64,
@@ -186,22 +186,8 @@ struct Stats {
 
 impl Stats {
     fn new(first: &TraceRow) -> Self {
-        Self {
-            first_err_deg: first.err_deg,
-            last_err: (first.err_deg, first.werr),
-            settle: None,
-            drift_max: 0.0,
-            energy_max: 0.0,
-            ortho_max: 0.0,
-            det_max: 0.0,
-            u_max: 0.0,
-            tau_max: 0.0,
-            u_sq: 0.0,
-            tau_sq: 0.0,
-            rotor_rate_max: 0.0,
-            saturated_ticks: 0,
-            rows: 0,
-        }
+        let last_err = (first.err_deg, first.werr);
+        Self { first_err_deg: first.err_deg, last_err, ..Self::default() }
     }
 
     fn add(&mut self, row: &TraceRow, lp: &ClosedLoop) {

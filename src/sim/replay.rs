@@ -295,10 +295,7 @@ impl Trace {
             // The plant applies only finite torques: the record lost this one.
             anyhow::bail!("the torque of tick {j} took effect but the record lost it");
         }
-        Ok(match actuation {
-            Actuation::Internal => BodyInput { rotor_torque: u, body_torque: DVec3::ZERO },
-            Actuation::External => BodyInput { rotor_torque: DVec3::ZERO, body_torque: tau },
-        })
+        Ok(BodyInput::of(actuation, u, tau))
     }
 }
 

@@ -91,14 +91,8 @@ fn runs(x: &Summary, y: &Summary) -> String {
 fn shown(i: &Option<Interval>) -> String {
     match i {
         Some(i) if i.n > 1 => {
-            format!(
-                "{:.2} [{:.2}, {:.2}] ({} runs, {:.1} %)",
-                i.median,
-                i.low,
-                i.high,
-                i.n,
-                100.0 * i.level
-            )
+            let (level, n) = (100.0 * i.level, i.n);
+            format!("{:.2} [{:.2}, {:.2}] ({n} runs, {level:.1} %)", i.median, i.low, i.high)
         }
         Some(i) => format!("{:.2} (one run)", i.median),
         None => "—".to_owned(),

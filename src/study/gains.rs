@@ -169,46 +169,23 @@ pub fn analyse(s: &Scenario) -> GainReport {
 /// The report as text.
 pub fn render(r: &GainReport) -> String {
     let yes = |b: bool| if b { "met" } else { "NOT met" };
+    let GainReport { scenario, kp, kd, ki, mu, lambda, paper_mu, paper_lambda, .. } = r;
+    let ([i1, i2, i3], [k0, k1]) = (r.principal_moments, r.kappa_interval);
+    let (b1, b2, bi) = (r.kp_bound_1, r.kp_bound_2, r.ki_bound);
+    let (met1, met2, meti) = (yes(r.kp_bound_1_met), yes(r.kp_bound_2_met), yes(r.ki_bound_met));
     let mut t = format!(
-        "gains of {}: k_p = {}, k_d = {}, k_I = {}\n\
-         principal moments of I: {:.4}, {:.4}, {:.4}\n\n\
+        "gains of {scenario}: k_p = {kp}, k_d = {kd}, k_I = {ki}\n\
+         principal moments of I: {i1:.4}, {i2:.4}, {i3:.4}\n\n\
          {:<24} {:>12} {:>12}\n\
-         {:<24} {:>12.4} {:>12}\n\
-         {:<24} {:>12.4} {:>12}\n\
-         {:<24} ({:.4}, {:.4})\n\n\
+         {:<24} {mu:>12.4} {paper_mu:>12}\n\
+         {:<24} {lambda:>12.4} {paper_lambda:>12}\n\
+         {:<24} ({k0:.4}, {k1:.4})\n\n\
          sufficient conditions (each at its most permissive κ):\n\
-         \x20 k_p > 2κ k_d²          : k_p = {} vs > {:.4}   {}\n\
-         \x20 k_p > λk_I²/(2k_d⁴)(…) : k_p = {} vs > {:.4}   {}\n\
-         \x20 0 < k_I < k_d³(1−σ²)/μ : k_I = {} vs < {:.4}   {}\n\n\
+         \x20 k_p > 2κ k_d²          : k_p = {kp} vs > {b1:.4}   {met1}\n\
+         \x20 k_p > λk_I²/(2k_d⁴)(…) : k_p = {kp} vs > {b2:.4}   {met2}\n\
+         \x20 0 < k_I < k_d³(1−σ²)/μ : k_I = {ki} vs < {bi:.4}   {meti}\n\n\
          linearised closed loop about E = I (λ³ + k_d λ² + k_p m λ + k_I m):\n",
-        r.scenario,
-        r.kp,
-        r.kd,
-        r.ki,
-        r.principal_moments[0],
-        r.principal_moments[1],
-        r.principal_moments[2],
-        "quantity",
-        "computed",
-        "paper prints",
-        "μ",
-        r.mu,
-        r.paper_mu,
-        "λ",
-        r.lambda,
-        r.paper_lambda,
-        "κ interval",
-        r.kappa_interval[0],
-        r.kappa_interval[1],
-        r.kp,
-        r.kp_bound_1,
-        yes(r.kp_bound_1_met),
-        r.kp,
-        r.kp_bound_2,
-        yes(r.kp_bound_2_met),
-        r.ki,
-        r.ki_bound,
-        yes(r.ki_bound_met),
+        "quantity", "computed", "paper prints", "μ", "λ", "κ interval",
     );
     for m in &r.modes {
         let poles: Vec<String> =

@@ -199,16 +199,11 @@ fn write_outputs(dir: &Path, summary: &McSummary, runs: &[McRun]) -> anyhow::Res
         "run,near_pi,err_deg_initial,omega0_norm,omega_r0_norm,err_deg_final,err_deg_max,converged\n",
     );
     for r in runs {
+        let McRun { run, near_pi, err_deg_initial, omega0_norm, omega_r0_norm, .. } = r;
+        let McRun { err_deg_final, err_deg_max, converged, .. } = r;
         csv.push_str(&format!(
-            "{},{},{},{},{},{},{},{}\n",
-            r.run,
-            r.near_pi,
-            r.err_deg_initial,
-            r.omega0_norm,
-            r.omega_r0_norm,
-            r.err_deg_final,
-            r.err_deg_max,
-            r.converged
+            "{run},{near_pi},{err_deg_initial},{omega0_norm},{omega_r0_norm},{err_deg_final},\
+             {err_deg_max},{converged}\n"
         ));
     }
     let path = dir.join("runs.csv");

@@ -9,7 +9,7 @@ use std::path::Path;
 
 use anyhow::Context;
 
-use crate::sim::{self, SimOptions, summary_table};
+use crate::sim::{self, EffortComparison, SimOptions, summary_table};
 use crate::study::gains;
 use rotorloop_common::role::UsageError;
 use rotorloop_common::role::args::scenario_with_overrides;
@@ -41,17 +41,14 @@ pub fn run(out: &Path, duration: f64, rate: f64, in_process: bool) -> anyhow::Re
         print!("{}", summary_table(&s));
         crate::export::mcap_after_run(&dir, false);
         let e = s.effort.as_ref().context("closed-loop runs have an effort comparison")?;
+        let settle = s.settle_time_0p1deg_s.map_or("—".into(), |t| format!("{t:.2}"));
+        let (e0, e1, drift) = (s.err_deg_initial, s.err_deg_final, s.momentum_drift_rel_max);
+        let EffortComparison { internal_u_rms, internal_u_max, .. } = e;
+        let EffortComparison { external_tau_rms, external_tau_max, .. } = e;
         let _ = writeln!(
             rows,
-            "| {name} | {:.2} | {:.3e} | {} | {:.3e} | {:.4} | {:.4} | {:.4} | {:.4} |",
-            s.err_deg_initial,
-            s.err_deg_final,
-            s.settle_time_0p1deg_s.map_or("—".into(), |t| format!("{t:.2}")),
-            s.momentum_drift_rel_max,
-            e.internal_u_rms,
-            e.internal_u_max,
-            e.external_tau_rms,
-            e.external_tau_max
+            "| {name} | {e0:.2} | {e1:.3e} | {settle} | {drift:.3e} | {internal_u_rms:.4} | \
+             {internal_u_max:.4} | {external_tau_rms:.4} | {external_tau_max:.4} |"
         );
         errs.push(rec);
     }

@@ -12,6 +12,14 @@ use super::UsageError;
 use crate::input::{number_in, whole_in};
 use crate::scenario::{DURATION_RANGE_S, RATE_RANGE_HZ};
 
+/// `T` as the command line `args` gives it, every other option at its default: clap's,
+/// the one place a default is written (for the runs `paper` and `bench` start).
+pub fn with_defaults<T: Args + clap::FromArgMatches>(args: &[&str]) -> T {
+    let command = T::augment_args(clap::Command::new("rotorloop"));
+    let matches = command.try_get_matches_from(std::iter::once("rotorloop").chain(args.to_vec()));
+    matches.and_then(|m| T::from_arg_matches(&m)).expect("the defaults of the command line")
+}
+
 /// The largest `--flight-ring-ticks` (2²⁴: about 20 GB of tmpfs for the four streams).
 /// Above 2⁶³ the power of two it is rounded up to wrapped to 0, and the plant crashed.
 pub const MAX_RING_TICKS: u64 = 1 << 24;
@@ -135,24 +143,8 @@ impl RoleArgs {
     /// A real-time run of `scenario` for `duration_s` at `rate_hz` with `wait`, every other
     /// option at its command-line default (what `paper` and `bench` start).
     pub fn realtime(scenario: &str, duration_s: f64, rate_hz: f64, wait: Wait) -> Self {
-        Self {
-            domain: None,
-            host: None,
-            scenario: scenario.to_owned(),
-            duration: Some(duration_s),
-            rate: Some(rate_hz),
-            actuation: None,
-            mode: Mode::Realtime,
-            wait,
-            core: None,
-            rt_priority: None,
-            mlock: false,
-            plain_hot_path: false,
-            record: None,
-            flight_ring_ticks: crate::flight::DEFAULT_RING_TICKS,
-            flight_moved: false,
-            hooks: Default::default(),
-        }
+        let (duration, rate, mode) = (Some(duration_s), Some(rate_hz), Mode::Realtime);
+        Self { duration, rate, mode, wait, ..with_defaults(&[&format!("--scenario={scenario}")]) }
     }
 
     /// The validated scenario with the overrides.

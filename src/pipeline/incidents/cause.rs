@@ -91,22 +91,10 @@ pub(super) fn stages(run: &RunRecord, k: u64) -> [Option<u64>; 5] {
     ]
 }
 
-/// Each stage's median over the run's fresh ticks (ns).
-pub fn stage_medians(run: &RunRecord, flags: &TickFlags) -> [f64; 5] {
-    let mut m = StageMedians::default();
-    for pass in 0..2 {
-        (0..run.last).for_each(|k| m.see(run, k, flags.get(run, k)));
-        if pass == 0 {
-            m.second_pass();
-        }
-    }
-    m.medians()
-}
-
-/// [`stage_medians`] a tick at a time, for passes over the ticks made for something else:
-/// every tick `0..last` is seen ([`StageMedians::see`]) in each of two passes, with
-/// [`StageMedians::second_pass`] between them. In bounded memory (`ticks::Medians`); the
-/// stages are in ns, the medians' keys in s.
+/// Each stage's median over the run's fresh ticks (ns), a tick at a time, for passes over
+/// the ticks made for something else: every tick `0..last` is seen ([`StageMedians::see`])
+/// in each of two passes, with [`StageMedians::second_pass`] between them. In bounded
+/// memory (`ticks::Medians`); the stages are in ns, the medians' keys in s.
 #[derive(Debug, Default)]
 pub struct StageMedians(ticks::Medians<5>);
 
@@ -483,12 +471,9 @@ fn kernel(run: &RunRecord, role: &str, [start, end]: [u64; 2]) -> Option<String>
 fn role_rows<'a>(sched: &'a [SchedRow], role: &str, [from, to]: [u64; 2]) -> Vec<&'a SchedRow> {
     let is = |r: &&SchedRow| r.role == role;
     let lo = sched.partition_point(|r| r.t_ns <= from);
-    let start = match sched[..lo].iter().rposition(|r| is(&r)) {
-        Some(i) => i,
-        None => match sched.iter().position(|r| is(&r)) {
-            Some(i) => i,
-            None => return Vec::new(),
-        },
+    let first = || sched.iter().position(|r| is(&r));
+    let Some(start) = sched[..lo].iter().rposition(|r| is(&r)).or_else(first) else {
+        return Vec::new();
     };
     let hi = sched.partition_point(|r| r.t_ns < to);
     let end = match sched[hi..].iter().position(|r| is(&r)) {
@@ -517,9 +502,24 @@ fn ran_instead(run: &RunRecord, cpu: u32, pids: &[u32], window: [u64; 2]) -> Str
 }
 
 #[cfg(test)]
-mod tests {
+pub(super) mod tests {
     use super::*;
     use rotorloop_common::scenario::Scenario;
+
+    /// Each stage's median over the run's fresh ticks (ns), in two passes of its own.
+    pub(in crate::pipeline::incidents) fn stage_medians(
+        run: &RunRecord,
+        flags: &TickFlags,
+    ) -> [f64; 5] {
+        let mut m = StageMedians::default();
+        for pass in 0..2 {
+            (0..run.last).for_each(|k| m.see(run, k, flags.get(run, k)));
+            if pass == 0 {
+                m.second_pass();
+            }
+        }
+        m.medians()
+    }
 
     /// A lockstep run of 20 ticks in which the plant rejected one torque while it waited
     /// for tick 10, and whose plant took 0.5 ms to publish state 10 (its median: 1 µs).

@@ -22,9 +22,8 @@ use std::collections::BTreeMap;
 
 use glam::DVec3;
 use rotorloop_common::params::ReferenceState;
-use rotorloop_common::scenario::Actuation;
 use rotorloop_common::wire::{FLAG_SAFE_MODE, StateSample};
-use rotorloop_controller::law::{AnyLaw, ControlOutput, Law};
+use rotorloop_controller::law::{AnyLaw, Law};
 use rotorloop_controller::policy::propagate;
 use rotorloop_plant::actuator::{ActuationDelay, DelayLine, integrate_tick};
 use rotorloop_plant::{Body, BodyInput};
@@ -170,13 +169,6 @@ pub fn deviation_deg(a: &StateSample, b: &Body) -> f64 {
     (2.0 * (f / (2.0 * std::f64::consts::SQRT_2)).min(1.0).asin()).to_degrees()
 }
 
-fn input_of(actuation: Actuation, o: &ControlOutput) -> BodyInput {
-    match actuation {
-        Actuation::Internal => BodyInput { rotor_torque: o.rotor_torque, body_torque: DVec3::ZERO },
-        Actuation::External => BodyInput { rotor_torque: DVec3::ZERO, body_torque: o.body_torque },
-    }
-}
-
 /// The cost of the incident `[start, end]` with the law's state `law` before `start`;
 /// `disturbed`: whether its abnormal ticks are the incident's (not for a fault outside
 /// the loop, whose counterfactual is the run itself).
@@ -207,14 +199,8 @@ pub fn cost(
     let mut answers: std::collections::VecDeque<(u64, BodyInput)> = Default::default();
     let recorded = |j: u64| {
         run.torque(j).map(|t| {
-            input_of(
-                actuation,
-                &ControlOutput {
-                    rotor_torque: DVec3::from_array(t.rotor_torque_nm),
-                    body_torque: DVec3::from_array(t.body_torque_nm),
-                    ..ControlOutput::default()
-                },
-            )
+            let (u, tau) = (t.rotor_torque_nm, t.body_torque_nm);
+            BodyInput::of(actuation, DVec3::from_array(u), DVec3::from_array(tau))
         })
     };
     let delay = flags.median_delay_s.max(0.0);
@@ -254,7 +240,7 @@ pub fn cost(
             if answers.len() == ANSWERS_KEPT {
                 answers.pop_front();
             }
-            answers.push_back((k, input_of(actuation, &o)));
+            answers.push_back((k, BodyInput::of(actuation, o.rotor_torque, o.body_torque)));
         }
         due.clear();
         if replaced {

@@ -638,7 +638,7 @@ mod tests {
         let mut scan = ticks::WindowScan::default();
         let first_window = flags.next_window(&run, &mut scan, GAP).map(|w| w[0]);
         assert_eq!(got.first.first_loop_tick, first_window);
-        let want = cause::stage_medians(&run, &flags);
+        let want = cause::tests::stage_medians(&run, &flags);
         assert_eq!(got.medians.map(f64::to_bits), want.map(f64::to_bits), "{want:?}");
         let mut each: [Vec<f64>; 5] = Default::default();
         for k in (0..run.last).filter(|k| flags.get(&run, *k) == 0) {

@@ -50,21 +50,14 @@ impl Rows {
 
     /// One incident's row.
     pub fn add(&mut self, i: &Incident) -> anyhow::Result<()> {
+        let Incident { start_tick, end_tick, start_s, duration_s, kind, cause_role, .. } = i;
+        let (stage, evidence) = (quoted(&i.cause_stage), quoted(&i.evidence));
+        let (flags, misses) = (quoted(&i.flags), i.misses);
+        let (peak, recovery) = (opt(i.peak_deviation_deg), opt(i.recovery_s));
         writeln!(
             self.out,
-            "{},{},{:.6},{:.6},{},{},{},{},{},{},{},{}",
-            i.start_tick,
-            i.end_tick,
-            i.start_s,
-            i.duration_s,
-            i.kind,
-            i.cause_role,
-            quoted(&i.cause_stage),
-            quoted(&i.evidence),
-            quoted(&i.flags),
-            i.misses,
-            opt(i.peak_deviation_deg),
-            opt(i.recovery_s),
+            "{start_tick},{end_tick},{start_s:.6},{duration_s:.6},{kind},{cause_role},{stage},\
+             {evidence},{flags},{misses},{peak},{recovery}"
         )
         .with_context(|| self.failed())
     }

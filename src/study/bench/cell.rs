@@ -286,29 +286,14 @@ impl Row {
             true => vec![String::new(); ci_columns().len()],
             false => self.ci.clone(),
         };
+        let Row { cell, kind, rate, wait, placement, load, count, p50, p99, p99_9, max, .. } = self;
+        let Row { misses, achieved, lateness_p99, err_deg_final, err_deg_rms, .. } = self;
+        let Row { lateness_p50, lateness_p99_9, repeat, .. } = self;
+        let (skipped, ci) = (self.skipped.replace(',', ";"), ci.join(","));
         format!(
-            "{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{}",
-            self.cell,
-            self.kind,
-            self.rate,
-            self.wait,
-            self.placement,
-            self.load,
-            self.count,
-            self.p50,
-            self.p99,
-            self.p99_9,
-            self.max,
-            self.misses,
-            self.achieved,
-            self.lateness_p99,
-            self.skipped.replace(',', ";"),
-            self.err_deg_final,
-            self.err_deg_rms,
-            self.lateness_p50,
-            self.lateness_p99_9,
-            self.repeat,
-            ci.join(",")
+            "{cell},{kind},{rate},{wait},{placement},{load},{count},{p50},{p99},{p99_9},{max},\
+             {misses},{achieved},{lateness_p99},{skipped},{err_deg_final},{err_deg_rms},\
+             {lateness_p50},{lateness_p99_9},{repeat},{ci}"
         )
     }
 }
