@@ -1093,7 +1093,6 @@ enum Half {
     NoRing,
     /// The half is not due yet; the ring's halves hold this many ticks.
     NotDue(u64),
-    /// Read: the segment file's bytes.
     /// Read: the segment file's bytes, and whether the ring had come round over some of
     /// its ticks.
     Read(Vec<u8>, bool),
