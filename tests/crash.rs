@@ -364,7 +364,8 @@ enum Published {
 /// durable or not: the page cache of the image the run wrote).
 struct Rings {
     states: [Option<FlightLog<StateSample>>; 2],
-    torques: [Option<FlightLog<TorqueSample>>; 4],
+    /// The plant's record of the torques it took, and the controller's.
+    torques: [[Option<FlightLog<TorqueSample>>; 2]; 2],
     references: [Option<FlightLog<ReferenceSample>>; 2],
 }
 
@@ -375,11 +376,9 @@ impl Rings {
         }
         let staged = rotorloop_common::flight::staging_dir(domain).expect("/dev/shm");
         let dirs = [staged.as_path(), written];
-        let [a, b] = both(dirs, Stream::PlantTorque);
-        let [c, d] = both(dirs, Stream::ControllerTorque);
         Self {
             states: both(dirs, Stream::PlantState),
-            torques: [a, b, c, d],
+            torques: [both(dirs, Stream::PlantTorque), both(dirs, Stream::ControllerTorque)],
             references: both(dirs, Stream::Reference),
         }
     }
@@ -399,8 +398,8 @@ impl Rings {
         match stream {
             Stream::PlantState => of(&self.states, k, |s| s.publish_ns),
             Stream::Reference => of(&self.references, k, |r| r.publish_ns),
-            Stream::PlantTorque => of(&self.torques[..2], k, |t| t.publish_ns),
-            Stream::ControllerTorque => of(&self.torques[2..], k, |t| t.publish_ns),
+            Stream::PlantTorque => of(&self.torques[0], k, |t| t.publish_ns),
+            Stream::ControllerTorque => of(&self.torques[1], k, |t| t.publish_ns),
         }
     }
 }

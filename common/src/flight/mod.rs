@@ -575,8 +575,9 @@ pub struct Mover {
     /// they were last made durable.
     jfiles: Vec<(usize, u64, std::fs::File, bool)>,
     /// Segments written since the last time they were made durable: stream index, half,
-    /// file.
-    unsynced: Vec<(usize, u64, std::fs::File)>,
+    /// file, whether the ring had come round over some of the half's ticks before it was
+    /// read (its journal is then kept: `kept_journal_path`).
+    unsynced: Vec<(usize, u64, std::fs::File, bool)>,
     /// Whether a file was made or renamed in the run directory since its last `fsync`.
     dir_dirty: bool,
     /// Whether the journal's last attempt failed (said once, until it works again).
@@ -603,9 +604,6 @@ pub struct Mover {
     background: Option<std::sync::Arc<crate::rt::Background>>,
     /// Whether a pass is writing segments (the thread stays ordinary until it ends).
     in_pass: bool,
-    /// The halves read after the ring had come round over some of their ticks, until their
-    /// segments are durable (their journals are then kept: `kept_journal_path`).
-    overran: Vec<(usize, u64)>,
 }
 
 impl Mover {
@@ -641,7 +639,6 @@ impl Mover {
             live: None,
             background: None,
             in_pass: false,
-            overran: Vec::new(),
         }
     }
 
@@ -723,10 +720,7 @@ impl Mover {
                 match self.read_half(stream, self.next[n], plant_tick) {
                     Ok(Half::Read(bytes, overran)) => {
                         self.rings[n] = true;
-                        if overran {
-                            self.overran.push((n, self.next[n]));
-                        }
-                        read.push((stream, self.next[n], bytes));
+                        read.push((stream, self.next[n], bytes, overran));
                         self.next[n] += 1;
                     }
                     Ok(Half::NotDue(h)) => {
@@ -747,12 +741,12 @@ impl Mover {
         self.in_pass = !read.is_empty();
         self.background(!self.in_pass);
         let mut written = Vec::with_capacity(read.len());
-        for (stream, j, bytes) in &read {
+        for (stream, j, bytes, overran) in &read {
             // The controller's half is the plant's, byte for byte, unless a sample went
             // missing on the way or a restart answered again: then it is packed on its own.
             let same = (*stream == Stream::ControllerTorque && self.packed)
                 .then(|| {
-                    read.iter().zip(&written).find(|((s, i, b), ok)| {
+                    read.iter().zip(&written).find(|((s, i, b, _), ok)| {
                         **ok && *s == Stream::PlantTorque
                             && i == j
                             && b[HEADER..] == bytes[HEADER..]
@@ -769,7 +763,7 @@ impl Mover {
                 Ok(file) => {
                     // Made durable with the next journal frames (`make_durable`).
                     let n = Stream::ALL.iter().position(|s| s == stream).unwrap_or(0);
-                    self.unsynced.push((n, *j, file));
+                    self.unsynced.push((n, *j, file, *overran));
                     self.dir_dirty = true;
                     true
                 }
@@ -999,20 +993,21 @@ impl Mover {
         if self.unsynced.is_empty() {
             return Ok(());
         }
-        let files: Vec<&std::fs::File> = self.unsynced.iter().map(|(.., file)| file).collect();
+        let files: Vec<&std::fs::File> = self.unsynced.iter().map(|(_, _, file, _)| file).collect();
         sync_all_of(&self.kept, &files)?;
         self.sync_dir_if_changed()?;
-        for (n, j, _) in std::mem::take(&mut self.unsynced) {
+        for (n, j, _, overran) in std::mem::take(&mut self.unsynced) {
             self.synced[n] = self.synced[n].max(j + 1);
             self.jfiles.retain(|(i, h, ..)| (*i, *h) != (n, j));
             let path = journal_path(&self.kept, Stream::ALL[n], j);
             // A segment that lacks ticks its journal holds keeps the journal beside it.
-            let kept = self.overran.iter().position(|h| *h == (n, j)).map(|i| {
-                self.overran.swap_remove(i);
+            let done = if overran {
                 self.dir_dirty = true;
                 std::fs::rename(&path, kept_journal_path(&self.kept, Stream::ALL[n], j))
-            });
-            match kept.unwrap_or_else(|| std::fs::remove_file(&path)) {
+            } else {
+                std::fs::remove_file(&path)
+            };
+            match done {
                 Err(e) if e.kind() != std::io::ErrorKind::NotFound => return Err(e),
                 _ => {}
             }
