@@ -4,7 +4,9 @@
 //! - `loop`: open-loop plant steps per second; closed-loop ticks per second (plant +
 //!   reference + law + metrics); and `sim_loop`, the ticks as `rotorloop sim` drives them
 //!   (its statistics, the figures' recorder, the trace's decimation), without the file:
-//!   the simulator's speed, which lost 11 % once without anyone seeing it.
+//!   the simulator's speed, which lost 11 % once without anyone seeing it; with the
+//!   reference ahead on a second thread (as `sim` runs) and on the loop's
+//!   (`sim_loop_one_thread`, `sim --one-thread`).
 //! - `controller_stages`: per state, the work of the controller's stages without their
 //!   clock reads and IPC: validation (the answer rule and the state's checks), pairing
 //!   with the reference, the law, and the publish preparation (resume record into its
@@ -59,13 +61,15 @@ fn ticks(c: &mut Criterion) {
             });
         });
     }
-    g.bench_function("sim_loop", |b| {
-        b.iter_batched(
-            || ClosedLoop::new(&s, Actuation::Internal, None).expect("the default law"),
-            |mut lp| rotorloop::sim::drive_unwritten(&mut lp, BATCH - 1, 100_000),
-            criterion::BatchSize::LargeInput,
-        );
-    });
+    for (name, one_thread) in [("sim_loop", false), ("sim_loop_one_thread", true)] {
+        g.bench_function(name, |b| {
+            b.iter_batched(
+                || ClosedLoop::new(&s, Actuation::Internal, None).expect("the default law"),
+                |mut lp| rotorloop::sim::drive_unwritten(&mut lp, BATCH - 1, 100_000, one_thread),
+                criterion::BatchSize::LargeInput,
+            );
+        });
+    }
     g.finish();
 }
 

@@ -163,6 +163,10 @@ struct SimArgs {
     /// Skip the PNG figures.
     #[arg(long)]
     no_figures: bool,
+    /// Step the reference on the loop's thread (by default it runs ahead on a second
+    /// thread: it depends on nothing the loop does); the rows are the same either way.
+    #[arg(long)]
+    one_thread: bool,
     /// Each torque takes effect this many seconds after its tick's time (delayed
     /// zero-order hold; 0 to 3600, longer than a tick is a queue; 0: the plain hold).
     #[arg(long, allow_hyphen_values = true, default_value = "0", conflicts_with = "delay_from")]
@@ -458,6 +462,7 @@ fn sim_command(a: &SimArgs) -> anyhow::Result<()> {
         progress: true,
         delay,
         drawn,
+        one_thread: a.one_thread,
     };
     let (summary, _) = sim::run(&opts).with_context(|| format!("sim of {name}"))?;
     print!("{}", summary_table(&summary));

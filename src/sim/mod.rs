@@ -49,6 +49,9 @@ pub struct SimOptions {
     pub delay: ActuationDelay,
     /// Each torque's delay drawn from a measured distribution instead.
     pub drawn: Option<DrawnDelays>,
+    /// Step the reference on the loop's own thread instead of a second one
+    /// ([`ClosedLoop::drive_ahead`]): the loop on one core, as Basilisk runs.
+    pub one_thread: bool,
 }
 
 impl SimOptions {
@@ -64,6 +67,7 @@ impl SimOptions {
             progress: false,
             delay: ActuationDelay::Instant,
             drawn: None,
+            one_thread: false,
         }
     }
 
@@ -215,15 +219,17 @@ impl Stats {
 }
 
 /// Runs a loop for the scenario's ticks (`ticks + 1` rows: the last state gets a row
-/// too), calling `each` per row. Returns the statistics.
+/// too), calling `each` per row, the reference stepped ahead on a thread of its own
+/// unless `one_thread` (the rows are the same, bit for bit). Returns the statistics.
 fn drive(
     lp: &mut ClosedLoop,
     ticks: u64,
+    one_thread: bool,
     mut each: impl FnMut(&TraceRow, bool) -> anyhow::Result<()>,
 ) -> anyhow::Result<Stats> {
     let mut stats: Option<Stats> = None;
-    for k in 0..=ticks {
-        let row = lp.tick();
+    let mut row_done = |lp: &mut ClosedLoop, row: TraceRow| -> anyhow::Result<()> {
+        let k = row.tick;
         if !lp.plant().is_finite() {
             return Err(diverged(k, row.t).into());
         }
@@ -233,7 +239,15 @@ fn drive(
             // The last tick's torque would act beyond the run: not counted (as in the plant).
             st.saturated_ticks = lp.saturated_ticks();
         }
-        each(&row, k == ticks)?;
+        each(&row, k == ticks)
+    };
+    if one_thread {
+        for _ in 0..=ticks {
+            let row = lp.tick();
+            row_done(lp, row)?;
+        }
+    } else {
+        lp.drive_ahead(ticks, row_done)?;
     }
     stats.context("a run has at least one row")
 }
@@ -242,11 +256,16 @@ fn drive(
 /// trace's decimation to every `trace_every`-th row) for `ticks` ticks, without writing
 /// the rows it picks: what `sim`'s ticks/s measures, less the trace file. Returns how many
 /// rows it picked. The benchmark that guards the simulator's speed runs this.
-pub fn drive_unwritten(lp: &mut ClosedLoop, ticks: u64, trace_every: u64) -> anyhow::Result<u64> {
+pub fn drive_unwritten(
+    lp: &mut ClosedLoop,
+    ticks: u64,
+    trace_every: u64,
+    one_thread: bool,
+) -> anyhow::Result<u64> {
     let mut rec = Recorder::new(ticks + 1);
     let mut traced = EveryNth::new(trace_every);
     let mut rows = 0u64;
-    drive(lp, ticks, |row, last| {
+    drive(lp, ticks, one_thread, |row, last| {
         rows += u64::from(traced.holds(row.tick) || last);
         rec.record(row, last);
         Ok(())
@@ -276,7 +295,7 @@ pub fn run(opts: &SimOptions) -> anyhow::Result<(SimSummary, Recorder)> {
 
     let mut lp = opts.closed_loop(actuation, opts.open_loop).map_err(UsageError::from)?;
     let start = Instant::now();
-    let stats = drive(&mut lp, ticks, |row, last| {
+    let stats = drive(&mut lp, ticks, opts.one_thread, |row, last| {
         if traced.holds(row.tick) || last {
             trace.write(row).with_context(|| format!("cannot write {}", trace_path.display()))?;
             trace_rows += 1;
@@ -440,7 +459,7 @@ fn effort_comparison(
     let mut orec = Recorder::new(ticks + 1);
     let mut err_diff = 0.0f64;
     let mut main_err = rec.err_deg.iter();
-    let ostats = drive(&mut olp, ticks, |row, last| {
+    let ostats = drive(&mut olp, ticks, opts.one_thread, |row, last| {
         let before = orec.t.len();
         orec.record(row, last);
         if orec.t.len() > before {
