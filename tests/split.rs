@@ -63,6 +63,136 @@ fn a_split_port_taken_first_is_never_dialled() {
     assert_nothing_left(&h);
 }
 
+/// A gateway started by hand, its stderr in a file; stopped when dropped.
+struct Gateway(std::process::Child, std::path::PathBuf);
+
+impl Gateway {
+    fn start(h: &Harness, name: &str, args: &[&str]) -> Self {
+        let bin = std::path::Path::new(crate::common::harness::ROTORLOOP)
+            .with_file_name("rotorloop-link");
+        assert!(bin.is_file(), "build the gateway first: cargo build -p rotorloop-link");
+        let err = h.path(&format!("{name}.err"));
+        let child = std::process::Command::new(bin)
+            .args(args)
+            .stdin(std::process::Stdio::null())
+            .stdout(std::process::Stdio::null())
+            .stderr(std::fs::File::create(&err).expect("stderr file"))
+            .spawn()
+            .expect("spawn the gateway");
+        Self(child, err)
+    }
+
+    fn said(&self) -> String {
+        std::fs::read_to_string(&self.1).unwrap_or_default()
+    }
+
+    /// Waits until the gateway exits (its code) or says `what` (`None`), at most `limit`.
+    fn until_exit_or(&mut self, what: &str, limit: Duration) -> Option<Option<i32>> {
+        let until = std::time::Instant::now() + limit;
+        while std::time::Instant::now() < until {
+            if let Some(st) = self.0.try_wait().expect("try_wait") {
+                return Some(st.code());
+            }
+            if self.said().contains(what) {
+                return None;
+            }
+            std::thread::sleep(Duration::from_millis(20));
+        }
+        panic!("the gateway neither exited nor said {what:?} within {limit:?}:\n{}", self.said());
+    }
+}
+
+impl Drop for Gateway {
+    /// SIGTERM (the gateway removes its iceoryx2 node), SIGKILL after 10 s.
+    fn drop(&mut self) {
+        // SAFETY: signals this test's own child, not yet waited for.
+        unsafe { libc::kill(self.0.id() as libc::pid_t, libc::SIGTERM) };
+        let until = std::time::Instant::now() + Duration::from_secs(10);
+        while self.0.try_wait().ok().flatten().is_none() && std::time::Instant::now() < until {
+            std::thread::sleep(Duration::from_millis(20));
+        }
+        let _ = self.0.kill();
+        let _ = self.0.wait();
+    }
+}
+
+/// Issue 62, point 5: a connecting gateway carries nothing to a peer that cannot prove it
+/// is the run's listening gateway. A peer that completed Zenoh's handshake without the
+/// run's password holds the port (as another user's could, taken while the run's listener
+/// is down, when the connecting side redials): the connecting gateway, with the run's
+/// credentials, stops with exit 1 naming the peer before any pass of the link. The same
+/// connecting gateway against the run's listener is proven and stays. Before, Zenoh's
+/// handshake checked the connecting side only, and nothing checked the listener.
+#[test]
+fn a_connecting_gateway_stops_at_a_listener_that_cannot_prove_it_is_the_runs() {
+    let h = Harness::new("split-proof");
+    let secret = "0123456789abcdef0123456789abcdef";
+    let (users, password) = (h.path("users"), h.path("password"));
+    std::fs::write(&users, format!("rotorloop:{secret}\n")).expect("users");
+    std::fs::write(&password, format!("{secret}\n")).expect("password");
+    for f in [&users, &password] {
+        std::fs::set_permissions(f, std::os::unix::fs::PermissionsExt::from_mode(0o600))
+            .expect("chmod");
+    }
+    let free_port = || {
+        let l = std::net::TcpListener::bind("127.0.0.1:0").expect("bind");
+        l.local_addr().expect("addr").port()
+    };
+    let s = |p: &std::path::Path| p.to_str().expect("utf8").to_owned();
+    let (users, password) = (s(&users), s(&password));
+    let dial = |h: &Harness, name: &str, port: u16| {
+        let at = format!("tcp/127.0.0.1:{port}");
+        let args = ["--domain", &h.domain, "--host", "b", "--connect", &at, "--user", "rotorloop"];
+        Gateway::start(h, name, &[&args[..], &["--password-file", &password]].concat())
+    };
+
+    // The squatter: a peer that completes Zenoh's handshake without the run's password
+    // (a Zenoh that does not check it; a stock one without the password does not let the
+    // session come up at all), played by a gateway with the users file and a test hook:
+    // no answer, then an answer made with another password.
+    for (i, hook) in ["silent", "wrong"].into_iter().enumerate() {
+        let port = free_port();
+        let at = format!("tcp/127.0.0.1:{port}");
+        let host = format!("s{i}");
+        let args = ["--domain", &h.domain, "--host", &host, "--listen", &at, "--users", &users];
+        let squatter = Gateway::start(&h, &host, &[&args[..], &["--test-proof", hook]].concat());
+        std::thread::sleep(Duration::from_millis(500));
+        let mut connecting = dial(&h, &format!("refused-{hook}"), port);
+        let code = connecting.until_exit_or("proved it is the run's", Duration::from_secs(60));
+        let said = connecting.said();
+        assert_eq!(code, Some(Some(1)), "{hook}: it went on with the squatter:\n{said}");
+        assert!(said.contains("did not prove") && said.contains("stopping"), "{hook}: {said}");
+        let squatter_said = squatter.said();
+        // The session came up: the question stopped it, not Zenoh's handshake.
+        assert!(squatter_said.contains("connected to 1 peer"), "{hook}: {squatter_said}");
+        drop((squatter, connecting));
+        clean(&h, &host);
+    }
+
+    // The run's listener, with the users file: proven, and the connecting side stays.
+    let port = free_port();
+    let at = format!("tcp/127.0.0.1:{port}");
+    let args = ["--domain", &h.domain, "--host", "a", "--listen", &at, "--users", &users];
+    let listener = Gateway::start(&h, "listener", &args);
+    std::thread::sleep(Duration::from_millis(500));
+    let mut connecting = dial(&h, "proven", port);
+    let code = connecting.until_exit_or("proved it is the run's", Duration::from_secs(60));
+    assert_eq!(code, None, "{}\nthe listener said:\n{}", connecting.said(), listener.said());
+    std::thread::sleep(Duration::from_millis(300));
+    assert!(connecting.0.try_wait().expect("try_wait").is_none(), "{}", connecting.said());
+    drop((connecting, listener));
+    // A gateway alone leaves its host's iceoryx2 file, as the launcher's clean-up knows.
+    clean(&h, "a");
+    clean(&h, "b");
+    assert_nothing_left(&h);
+}
+
+/// `rotorloop clean` of the test's domain on `host`, then nothing of it is left there.
+fn clean(h: &Harness, host: &str) {
+    ok(&h.rotorloop(&["clean", "--domain", &h.domain, "--host", host], Duration::from_secs(60)));
+    h.assert_no_leftovers_on(host);
+}
+
 /// Lockstep with the controller on the other host: the link carries every state,
 /// reference and torque, and the trace equals the in-process simulator's byte for byte.
 #[test]

@@ -47,6 +47,17 @@ pub enum ConfigError {
     Bad(String),
 }
 
+/// Test hook: how a listening gateway answers the connecting side's question
+/// ([`crate::proof`]), to play a peer that completed Zenoh's handshake without the run's
+/// password (a Zenoh that does not check it).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+pub enum TestProof {
+    /// No answer.
+    Silent,
+    /// An answer made with another password.
+    Wrong,
+}
+
 /// How a gateway waits for work (`--wait`).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
 pub enum GatewayWait {
@@ -101,6 +112,9 @@ pub struct LinkArgs {
     #[arg(long, allow_hyphen_values = true, default_value_t = 500,
           value_parser = rotorloop_common::input::whole_in(1u64, 60_000, "ms"))]
     pub discover_ms: u64,
+    /// Test hook: answer the connecting side's question so (see [`TestProof`]).
+    #[arg(long, hide = true, value_enum)]
+    pub test_proof: Option<TestProof>,
 }
 
 /// Whether a Zenoh endpoint (`proto/address[#…][?…]`) is on loopback.
@@ -302,6 +316,7 @@ mod tests {
             ready_file: None,
             wait: GatewayWait::Event,
             discover_ms: 500,
+            test_proof: None,
         }
     }
 

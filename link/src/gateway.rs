@@ -84,9 +84,15 @@ pub fn run(args: &LinkArgs) -> anyhow::Result<()> {
     // The node that holds this host's topics offered while a role here restarts (see
     // `Gateway::hold`); its own, because the link's node does not count as offering.
     let hold_node = domain.node("link-hold").context("link")?;
+    let zenoh_cfg_copy = zenoh_cfg.clone();
     let session = zenoh::open(zenoh_cfg)
         .wait()
         .map_err(|e| anyhow::anyhow!("cannot open the Zenoh session: {e}"))?;
+    // The listener's answer to the connecting side's question (`proof`), and the
+    // connecting side's gate: nothing crosses to a peer that has not answered it.
+    let _answerer =
+        crate::proof::Answerer::open(&session, &zenoh_cfg_copy, &args.domain, args.test_proof)?;
+    let mut gate = crate::proof::Gate::open(&session, &zenoh_cfg_copy, &args.domain)?;
     let carrier = ZenohCarrier::open(session.clone())
         .map_err(|e| anyhow::anyhow!("cannot create the Zenoh carrier: {e}"))?;
     let prefix = domain.service_prefix();
@@ -114,12 +120,33 @@ pub fn run(args: &LinkArgs) -> anyhow::Result<()> {
         errors: 0,
         discovery: Durations::default(),
         changed_at: 0,
+        proofs_said: 0,
     };
     let period = args.discover_ms.max(1) * 1_000_000;
     let mut next_discover = 0;
     let mut arrived = false;
     while !shutdown_requested() {
         let now = now_ns();
+        // Every pass: a transport that opened or closed since the peers were proven is
+        // asked about before anything more crosses.
+        let open = match gate.as_mut() {
+            Some(gate) => gate.open_now(&session).map_err(|e| anyhow::anyhow!("{}: {e}", g.who))?,
+            None => true,
+        };
+        if let Some(n) = gate.as_ref().map(|g| g.proofs()).filter(|n| *n > g.proofs_said) {
+            let again = if g.proofs_said > 0 { " (again: a new transport)" } else { "" };
+            eprintln!("{}: the listening gateway proved it is the run's{again}", g.who);
+            g.proofs_said = n;
+        }
+        if !open {
+            // No peer yet: nothing to carry, nothing offered; look again shortly.
+            g.peers_changed(&session, args)?;
+            if let Some(w) = g.alone.warning(g.peers, now_ns()) {
+                eprintln!("{}: warning: {w}", g.who);
+            }
+            std::thread::sleep(Duration::from_millis(5));
+            continue;
+        }
         if now >= next_discover {
             let cpu = thread_cpu_ns();
             g.discover(&mut link, &session, args)?;
@@ -171,6 +198,8 @@ struct Gateway {
     discovery: Durations,
     /// When the bridged set last changed.
     changed_at: u64,
+    /// The gate's proofs said so far.
+    proofs_said: u64,
 }
 
 /// What the discoveries took: count, total and longest, in wall-clock time (nothing
@@ -261,6 +290,23 @@ impl Gateway {
                 });
             }
         }
+        self.peers_changed(session, args)?;
+        let now = bridged(link, self.domain.config(), &self.prefix);
+        for (name, pattern) in now.difference(&self.bridged) {
+            eprintln!("{}: bridging {name} ({pattern})", self.who);
+        }
+        for (name, pattern) in self.bridged.difference(&now) {
+            eprintln!("{}: no longer bridging {name} ({pattern})", self.who);
+        }
+        if now != self.bridged {
+            self.changed_at = now_ns();
+        }
+        self.bridged = now;
+        Ok(())
+    }
+
+    /// Says when the peers came or went, and writes the ready file at the first.
+    fn peers_changed(&mut self, session: &zenoh::Session, args: &LinkArgs) -> anyhow::Result<()> {
         let peers = session.info().peers_zid().wait().count();
         if peers != self.peers {
             match peers {
@@ -278,17 +324,6 @@ impl Gateway {
             }
             self.peers = peers;
         }
-        let now = bridged(link, self.domain.config(), &self.prefix);
-        for (name, pattern) in now.difference(&self.bridged) {
-            eprintln!("{}: bridging {name} ({pattern})", self.who);
-        }
-        for (name, pattern) in self.bridged.difference(&now) {
-            eprintln!("{}: no longer bridging {name} ({pattern})", self.who);
-        }
-        if now != self.bridged {
-            self.changed_at = now_ns();
-        }
-        self.bridged = now;
         Ok(())
     }
 
