@@ -128,25 +128,20 @@ pub fn run(args: &LinkArgs) -> anyhow::Result<()> {
     while !shutdown_requested() {
         let now = now_ns();
         // Every pass: a transport that opened or closed since the peers were proven is
-        // asked about before anything more crosses.
-        let open = match gate.as_mut() {
-            Some(gate) => gate.open_now(&session).map_err(|e| anyhow::anyhow!("{}: {e}", g.who))?,
-            None => true,
-        };
-        if let Some(n) = gate.as_ref().map(|g| g.proofs()).filter(|n| *n > g.proofs_said) {
-            let again = if g.proofs_said > 0 { " (again: a new transport)" } else { "" };
-            eprintln!("{}: the listening gateway proved it is the run's{again}", g.who);
-            g.proofs_said = n;
-        }
-        if !open {
-            // No peer yet: nothing to carry, nothing offered; look again shortly.
-            g.peers_changed(&session, args)?;
-            if let Some(w) = g.alone.warning(g.peers, now_ns()) {
-                eprintln!("{}: warning: {w}", g.who);
+        // asked about before anything more crosses, and none opens during the pass.
+        let held = match gate.as_mut().map(|gate| gate.hold(&session)).transpose() {
+            Err(e) => return Err(anyhow::anyhow!("{}: {e}", g.who)),
+            Ok(Some(None)) => {
+                // No peer yet: nothing to carry, nothing offered; look again shortly.
+                g.peers_changed(&session, args)?;
+                if let Some(w) = g.alone.warning(g.peers, now_ns()) {
+                    eprintln!("{}: warning: {w}", g.who);
+                }
+                std::thread::sleep(Duration::from_millis(5));
+                continue;
             }
-            std::thread::sleep(Duration::from_millis(5));
-            continue;
-        }
+            Ok(held) => held.flatten(),
+        };
         if now >= next_discover {
             let cpu = thread_cpu_ns();
             g.discover(&mut link, &session, args)?;
@@ -165,6 +160,12 @@ pub fn run(args: &LinkArgs) -> anyhow::Result<()> {
         }
         if arrived {
             g.rewake_incoming();
+        }
+        drop(held);
+        if let Some(n) = gate.as_ref().map(|g| g.proofs()).filter(|n| *n > g.proofs_said) {
+            let again = if g.proofs_said > 0 { " (again: a new transport)" } else { "" };
+            eprintln!("{}: the listening gateway proved it is the run's{again}", g.who);
+            g.proofs_said = n;
         }
         if !spin {
             g.wait(&wake, next_discover.saturating_sub(now_ns()).min(LOOK_ANYWAY_NS))?;

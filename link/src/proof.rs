@@ -18,20 +18,19 @@
 //! another listener than the peer).
 
 use std::collections::HashMap;
-use std::sync::Arc;
-use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::{Arc, Mutex, MutexGuard};
 use std::time::{Duration, Instant};
 
 use hmac::{Hmac, Mac};
 use sha2::Sha256;
 use zenoh::Wait;
-use zenoh::query::Query;
+use zenoh::query::{ConsolidationMode, Query, QueryTarget};
 use zenoh::sample::Locality;
 
 use crate::config::TestProof;
 
 /// What the MAC covers first: an answer here is nothing else's (Zenoh's own handshake MAC
-/// is over its nonce alone).
+/// is keyed by its nonce, over the password; this one is keyed by the password).
 const CONTEXT: &[u8] = b"rotorloop-link listener proof 1\0";
 
 /// How long a connecting gateway waits for a new peer's proof before it stops. The
@@ -48,10 +47,17 @@ fn key(domain: &str) -> String {
     format!("rotorloop-link-proof/{domain}")
 }
 
-/// The MAC of an answer.
-fn mac(password: &str, domain: &str, nonce: &[u8], listener: &str, connector: &str) -> Vec<u8> {
+/// The MAC of an answer to `user`'s question.
+fn mac(
+    password: &str,
+    [domain, user]: [&str; 2],
+    nonce: &[u8],
+    listener: &str,
+    connector: &str,
+) -> Vec<u8> {
     let mut m = Hmac::<Sha256>::new_from_slice(password.as_bytes()).expect("any key length");
-    for part in [CONTEXT, domain.as_bytes(), nonce, listener.as_bytes(), connector.as_bytes()] {
+    let parts = [CONTEXT, domain.as_bytes(), user.as_bytes(), nonce];
+    for part in parts.into_iter().chain([listener.as_bytes(), connector.as_bytes()]) {
         m.update(&(part.len() as u64).to_le_bytes());
         m.update(part);
     }
@@ -80,14 +86,16 @@ fn config_string(config: &zenoh::Config, key: &str) -> Option<String> {
     v.as_str().filter(|s| !s.is_empty()).map(String::from)
 }
 
-/// The users of a users file (`user:password` lines, as Zenoh reads it).
+/// The users of a users file, read as Zenoh reads it: `user:password` lines, each line,
+/// user and password trimmed, empty lines skipped.
 fn users(path: &str) -> anyhow::Result<HashMap<String, String>> {
     let text = std::fs::read_to_string(path)
         .map_err(|e| anyhow::anyhow!("cannot read the users file {path}: {e}"))?;
     Ok(text
         .lines()
-        .filter_map(|l| l.split_once(':'))
-        .map(|(u, p)| (u.to_owned(), p.to_owned()))
+        .filter_map(|l| l.trim().split_once(':'))
+        .map(|(u, p)| (u.trim().to_owned(), p.trim().to_owned()))
+        .filter(|(u, p)| !u.is_empty() && !p.is_empty())
         .collect())
 }
 
@@ -135,10 +143,11 @@ impl Answerer {
 /// The answer to question `q`, or none (an unknown user or a malformed question).
 fn answer(q: &Query, users: &HashMap<String, String>, domain: &str, own: &str) -> Option<String> {
     let asked: serde_json::Value = serde_json::from_slice(&q.payload()?.to_bytes()).ok()?;
-    let password = users.get(field(&asked, "user")?)?;
+    let user = field(&asked, "user")?;
+    let password = users.get(user)?;
     let nonce = unhex(field(&asked, "nonce")?).filter(|n| n.len() == 32)?;
     let connector = field(&asked, "connector")?;
-    let m = mac(password, domain, &nonce, own, connector);
+    let m = mac(password, [domain, user], &nonce, own, connector);
     Some(serde_json::json!({ "listener": own, "mac": hex(&m) }).to_string())
 }
 
@@ -163,12 +172,17 @@ pub struct Unproven {
 
 /// The connecting side: carries nothing before every peer proved it is the run's
 /// listener, and asks again whenever a transport opened or closed since.
+///
+/// A pass of the link runs under [`Gate::hold`]'s guard, and the transport events take
+/// the same lock before they count: a transport that opens during a pass waits (its
+/// routing face is made after the event, so nothing reaches it or comes from it) until the
+/// pass ends, and the next pass asks first.
 pub struct Gate {
     user: String,
     password: String,
     domain: String,
-    /// Bumped by every transport that opens or closes.
-    changes: Arc<AtomicU64>,
+    /// How many transports opened or closed (counted under the lock passes hold).
+    changes: Arc<Mutex<u64>>,
     /// The count of changes when the peers were last proven.
     proven: Option<u64>,
     /// How many times peers were proven.
@@ -188,16 +202,14 @@ impl Gate {
         let user = config_string(config, "transport/auth/usrpwd/user");
         let password = config_string(config, "transport/auth/usrpwd/password");
         let (Some(user), Some(password)) = (user, password) else { return Ok(None) };
-        let changes = Arc::new(AtomicU64::new(1));
-        let bump = Arc::clone(&changes);
-        // Called as the transport is made, before any of the peer's declarations are
-        // taken: no pass after this reaches a new peer unasked.
+        let changes = Arc::new(Mutex::new(1));
+        let count = Arc::clone(&changes);
+        // Called as the transport is made, before its routing face (what routes samples
+        // to and from it): waits for a pass under way to end.
         let events = session
             .info()
             .transport_events_listener()
-            .callback(move |_| {
-                bump.fetch_add(1, Ordering::SeqCst);
-            })
+            .callback(move |_| *lock(&count) += 1)
             .wait()
             .map_err(|e| anyhow::anyhow!("cannot watch the session's transports: {e}"))?;
         Ok(Some(Self {
@@ -211,34 +223,52 @@ impl Gate {
         }))
     }
 
-    /// Whether the gateway may carry samples now: the peers are as they were when they
-    /// were last proven, or they are proven now (waiting at most [`PROOF_WAIT`] for a new
-    /// peer's proof). `Ok(false)` without a peer; an error for a peer that gave no proof.
-    pub fn open_now(&mut self, session: &zenoh::Session) -> Result<bool, Unproven> {
-        let changes = self.changes.load(Ordering::SeqCst);
-        if self.proven == Some(changes) {
-            return Ok(true);
-        }
-        let peers: Vec<String> = session.info().peers_zid().wait().map(|z| z.to_string()).collect();
-        if peers.is_empty() {
-            return Ok(false);
-        }
-        let deadline = Instant::now() + PROOF_WAIT;
-        let mut unproven = peers.clone();
-        while !unproven.is_empty() {
-            self.ask(session, &mut unproven);
-            if unproven.is_empty() || Instant::now() >= deadline {
-                break;
+    /// Holds the gate open for one pass of the link: `Some(guard)` once the transports
+    /// are as they were when they were last proven, or are proven now (waiting at most
+    /// [`PROOF_WAIT`] for a new one's answer); `None` without a transport, or when one came
+    /// while they were being proven (the next call asks again). An error for a transport
+    /// that gave no right answer.
+    pub fn hold(
+        &mut self,
+        session: &zenoh::Session,
+    ) -> Result<Option<MutexGuard<'_, u64>>, Unproven> {
+        let changes = *lock(&self.changes);
+        if self.proven != Some(changes) {
+            if !self.prove(session)? {
+                return Ok(None);
             }
-            std::thread::sleep(ASK_EVERY);
+            self.proven = Some(changes);
+            self.proofs += 1;
         }
-        if let Some(peer) = unproven.into_iter().next() {
-            return Err(Unproven { peer });
+        let guard = lock(&self.changes);
+        Ok((self.proven == Some(*guard)).then_some(guard))
+    }
+
+    /// Asks every transport (peer, router or client alike) until each gave a right
+    /// answer; the set is read again each round (one that closed is not waited for).
+    /// `Ok(false)` without a transport.
+    fn prove(&self, session: &zenoh::Session) -> Result<bool, Unproven> {
+        let deadline = Instant::now() + PROOF_WAIT;
+        let mut proven = Vec::new();
+        loop {
+            let now: Vec<String> =
+                session.info().transports().wait().map(|t| t.zid().to_string()).collect();
+            if now.is_empty() {
+                return Ok(false);
+            }
+            let mut unproven: Vec<String> =
+                now.into_iter().filter(|z| !proven.contains(z)).collect();
+            if unproven.is_empty() {
+                return Ok(true);
+            }
+            if Instant::now() >= deadline {
+                return Err(Unproven { peer: unproven.swap_remove(0) });
+            }
+            proven.extend(self.ask(session, &unproven));
+            if !unproven.iter().all(|z| proven.contains(z)) {
+                std::thread::sleep(ASK_EVERY);
+            }
         }
-        // Proven as of `changes`: a transport that came meanwhile is asked about next pass.
-        self.proven = Some(changes);
-        self.proofs += 1;
-        Ok(true)
     }
 
     /// How many times peers were proven (once at the start, again after each redial).
@@ -246,21 +276,26 @@ impl Gate {
         self.proofs
     }
 
-    /// Asks once, and removes from `unproven` each peer whose answer is right.
-    fn ask(&self, session: &zenoh::Session, unproven: &mut Vec<String>) {
-        let Ok(nonce) = rotorloop_common::private::random_bytes::<32>() else { return };
+    /// Asks once: the transports of `asked` that gave a right answer.
+    fn ask(&self, session: &zenoh::Session, asked: &[String]) -> Vec<String> {
+        let Ok(nonce) = rotorloop_common::private::random_bytes::<32>() else { return Vec::new() };
         let own = session.zid().to_string();
         let question =
             serde_json::json!({ "user": self.user, "nonce": hex(&nonce), "connector": own });
+        // Every answer, from every queryable (one that says it is complete takes none
+        // from the others, and answers on one key are not merged into one).
         let Ok(replies) = session
             .get(key(&self.domain))
             .payload(question.to_string())
             .allowed_destination(Locality::Remote)
+            .target(QueryTarget::All)
+            .consolidation(ConsolidationMode::None)
             .timeout(ASK_EVERY * 4)
             .wait()
         else {
-            return;
+            return Vec::new();
         };
+        let mut right = Vec::new();
         while let Ok(reply) = replies.recv() {
             let Ok(sample) = reply.result() else { continue };
             let Ok(said) =
@@ -272,12 +307,20 @@ impl Gate {
             else {
                 continue;
             };
-            let want = mac(&self.password, &self.domain, &nonce, listener, &own);
-            if unhex(got).is_some_and(|g| constant_time_eq(&g, &want)) {
-                unproven.retain(|p| p != listener);
+            let want = mac(&self.password, [&self.domain, &self.user], &nonce, listener, &own);
+            if asked.iter().any(|a| a == listener)
+                && unhex(got).is_some_and(|g| constant_time_eq(&g, &want))
+            {
+                right.push(listener.to_owned());
             }
         }
+        right
     }
+}
+
+/// The count's lock, whatever a panic elsewhere left in it (a count has no invariant).
+fn lock(m: &Mutex<u64>) -> MutexGuard<'_, u64> {
+    m.lock().unwrap_or_else(std::sync::PoisonError::into_inner)
 }
 
 impl std::fmt::Debug for Gate {
@@ -287,6 +330,7 @@ impl std::fmt::Debug for Gate {
             .field("user", &self.user)
             .field("domain", &self.domain)
             .field("proven", &self.proven)
+            .field("proofs", &self.proofs)
             .finish_non_exhaustive()
     }
 }
@@ -300,22 +344,38 @@ fn constant_time_eq(a: &[u8], b: &[u8]) -> bool {
 mod tests {
     use super::*;
 
-    /// The MAC binds every part: the password, the domain, the nonce and both ids.
+    /// The MAC binds every part: the password, the domain, the user, the nonce and both
+    /// ids.
     #[test]
     fn the_mac_changes_with_every_part() {
-        let base = mac("pw", "d", &[1; 32], "L", "C");
-        assert_eq!(base, mac("pw", "d", &[1; 32], "L", "C"));
+        let base = mac("pw", ["d", "u"], &[1; 32], "L", "C");
+        assert_eq!(base, mac("pw", ["d", "u"], &[1; 32], "L", "C"));
         for other in [
-            mac("pX", "d", &[1; 32], "L", "C"),
-            mac("pw", "e", &[1; 32], "L", "C"),
-            mac("pw", "d", &[2; 32], "L", "C"),
-            mac("pw", "d", &[1; 32], "S", "C"),
-            mac("pw", "d", &[1; 32], "L", "D"),
+            mac("pX", ["d", "u"], &[1; 32], "L", "C"),
+            mac("pw", ["e", "u"], &[1; 32], "L", "C"),
+            mac("pw", ["d", "v"], &[1; 32], "L", "C"),
+            mac("pw", ["d", "u"], &[2; 32], "L", "C"),
+            mac("pw", ["d", "u"], &[1; 32], "S", "C"),
+            mac("pw", ["d", "u"], &[1; 32], "L", "D"),
             // Lengths are part of it: moving a byte between parts is another message.
-            mac("pw", "dL", &[1; 32], "", "C"),
+            mac("pw", ["du", ""], &[1; 32], "L", "C"),
         ] {
             assert_ne!(base, other);
         }
+    }
+
+    /// The users file is read as Zenoh reads it (lines, users and passwords trimmed), so a
+    /// listener Zenoh lets a peer in with can answer that peer.
+    #[test]
+    fn the_users_file_is_read_as_zenoh_reads_it() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let path = dir.path().join("users");
+        std::fs::write(&path, "  rotorloop : s3cret \n\nbad line\nother:a:b\n:nouser\nnopass:\n")
+            .expect("write");
+        let u = users(path.to_str().expect("utf8")).expect("read");
+        assert_eq!(u.get("rotorloop").map(String::as_str), Some("s3cret"));
+        assert_eq!(u.get("other").map(String::as_str), Some("a:b"));
+        assert_eq!(u.len(), 2, "{u:?}");
     }
 
     #[test]
