@@ -7,15 +7,15 @@
 //! So a connecting gateway with credentials carries nothing to or from a peer before
 //! that peer proved it knows the run's password: it asks, on `rotorloop-link-proof/<D>`,
 //! with a fresh 32-byte nonce from the kernel, its user and its own Zenoh id; the
-//! listener answers with its Zenoh id and `HMAC-SHA256(password, CONTEXT ‖ D ‖ nonce ‖
-//! listener id ‖ connector id)`, the password being the user's in its users file. The
-//! connecting gateway accepts a peer once an answer names it and its MAC is right. Every
-//! transport that opens or closes (a redial after the listener was killed) makes it ask
-//! again before the next pass, and a peer that gives no right answer within
+//! listener answers with its Zenoh id and `HMAC-SHA256(password, CONTEXT ‖ D ‖ user ‖
+//! nonce ‖ listener id ‖ connector id)`, the password being the user's in its users
+//! file. The connecting gateway accepts a peer once an answer names it and its MAC is
+//! right. Every transport that opens or closes (a redial after the listener was killed)
+//! makes it ask again before the next pass, and a peer that gives no right answer within
 //! [`PROOF_WAIT`] stops the gateway (exit 1, naming the peer): it fails closed, and the
 //! launcher's policy decides what follows. The nonce makes an old answer useless; the
-//! ids bind the answer to the two ends of this session (one relayed from elsewhere names
-//! another listener than the peer).
+//! ids bind the answer to the two ends of this session as each declares itself (Zenoh
+//! ids are not proven: a relay of both handshakes is not caught, docs/security.md).
 
 use std::collections::HashMap;
 use std::sync::{Arc, Mutex, MutexGuard};
