@@ -275,6 +275,11 @@ pub fn random_bytes<const N: usize>() -> std::io::Result<[u8; N]> {
     Ok(buf)
 }
 
+/// `bytes` in lowercase hex, two digits each (a secret or a nonce written as text).
+pub fn hex(bytes: &[u8]) -> String {
+    bytes.iter().map(|b| format!("{b:02x}")).collect()
+}
+
 /// Random characters from `a-z 0-9` ([`random_bytes`]), for names another user cannot
 /// guess.
 pub fn random_name(len: usize) -> String {

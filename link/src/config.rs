@@ -163,10 +163,16 @@ fn set(config: &mut zenoh::Config, key: &str, json5: &str) -> Result<(), ConfigE
     config.insert_json5(key, json5).map_err(|e| bad(format!("Zenoh configuration `{key}`: {e}")))
 }
 
+/// A string value of the Zenoh configuration at `key`, if set and not empty.
+pub fn config_string(config: &zenoh::Config, key: &str) -> Option<String> {
+    let v: serde_json::Value = serde_json::from_str(&config.get_json(key).ok()?).ok()?;
+    v.as_str().filter(|s| !s.is_empty()).map(String::from)
+}
+
 /// Whether the session authenticates its peers: a user/password dictionary (listening),
 /// a user and password (connecting), or TLS client certificates.
 fn authenticates(config: &zenoh::Config) -> bool {
-    let set = |key: &str| config.get_json(key).is_ok_and(|v| v != "null" && v != "\"\"");
+    let set = |key: &str| config_string(config, key).is_some();
     let mtls = config.get_json("transport/link/tls/enable_mtls").is_ok_and(|v| v == "true");
     set("transport/auth/usrpwd/dictionary_file")
         || (set("transport/auth/usrpwd/user") && set("transport/auth/usrpwd/password"))
@@ -178,18 +184,16 @@ fn authenticates(config: &zenoh::Config) -> bool {
 /// holds a password itself.
 fn secret_files(args: &LinkArgs, config: &zenoh::Config) -> Vec<(&'static str, PathBuf)> {
     let mut out = Vec::new();
-    let dictionary = config.get_json("transport/auth/usrpwd/dictionary_file").ok();
-    let dictionary = dictionary.and_then(|v| serde_json::from_str::<String>(&v).ok());
+    let dictionary = config_string(config, "transport/auth/usrpwd/dictionary_file");
     match (&args.users, dictionary) {
         (Some(users), _) => out.push(("--users", users.clone())),
-        (None, Some(d)) if !d.is_empty() => out.push(("the users file", PathBuf::from(d))),
+        (None, Some(d)) => out.push(("the users file", PathBuf::from(d))),
         _ => {}
     }
     if let Some(file) = &args.password_file {
         out.push(("--password-file", file.clone()));
     } else if let Some(file) = &args.zenoh {
-        let password = config.get_json("transport/auth/usrpwd/password");
-        if password.is_ok_and(|v| v != "null" && v != "\"\"") {
+        if config_string(config, "transport/auth/usrpwd/password").is_some() {
             out.push(("--zenoh (it holds a password)", file.clone()));
         }
     }

@@ -69,8 +69,8 @@ pub fn run(args: &LinkArgs) -> anyhow::Result<()> {
         eprintln!("{who}: warning: {w}");
     }
     let connect = endpoints(&zenoh_cfg, "connect/endpoints");
-    let dictionary = zenoh_cfg.get_json("transport/auth/usrpwd/dictionary_file");
-    let refuses = dictionary.is_ok_and(|v| v != "null" && v != "\"\"");
+    let refuses =
+        crate::config::config_string(&zenoh_cfg, "transport/auth/usrpwd/dictionary_file").is_some();
     // iceoryx2's notice that no config file was loaded is noise (the domain makes its own);
     // the link's warnings (a dropped arrival, a failed bridge) are not.
     rotorloop_common::ipc::quiet_iceoryx_logs();

@@ -27,7 +27,9 @@ use zenoh::Wait;
 use zenoh::query::{ConsolidationMode, Query, QueryTarget};
 use zenoh::sample::Locality;
 
-use crate::config::TestProof;
+use rotorloop_common::private::hex;
+
+use crate::config::{TestProof, config_string};
 
 /// What the MAC covers first: an answer here is nothing else's (Zenoh's own handshake MAC
 /// is keyed by its nonce, over the password; this one is keyed by the password).
@@ -64,10 +66,6 @@ fn mac(
     m.finalize().into_bytes().to_vec()
 }
 
-fn hex(bytes: &[u8]) -> String {
-    bytes.iter().map(|b| format!("{b:02x}")).collect()
-}
-
 fn unhex(s: &str) -> Option<Vec<u8>> {
     if s.len() % 2 != 0 {
         return None;
@@ -78,12 +76,6 @@ fn unhex(s: &str) -> Option<Vec<u8>> {
 /// A string field of a JSON object.
 fn field<'a>(v: &'a serde_json::Value, name: &str) -> Option<&'a str> {
     v.get(name)?.as_str()
-}
-
-/// A JSON string value of the Zenoh configuration at `key`, if set and not empty.
-fn config_string(config: &zenoh::Config, key: &str) -> Option<String> {
-    let v: serde_json::Value = serde_json::from_str(&config.get_json(key).ok()?).ok()?;
-    v.as_str().filter(|s| !s.is_empty()).map(String::from)
 }
 
 /// The users of a users file, read as Zenoh reads it: `user:password` lines, each line,

@@ -405,7 +405,8 @@ impl LinkCredentials {
                 meta.uid()
             )));
         }
-        let password = hex(&rotorloop_common::private::random_bytes::<32>()?);
+        let password =
+            rotorloop_common::private::hex(&rotorloop_common::private::random_bytes::<32>()?);
         let write = |name: &str, text: String| {
             rotorloop_common::private::write_new(&made.dir.join(name), text.as_bytes())
                 .map_err(std::io::Error::other)
@@ -429,10 +430,6 @@ impl Drop for LinkCredentials {
         }
         let _ = std::fs::remove_dir(&self.dir);
     }
-}
-
-fn hex(bytes: &[u8]) -> String {
-    bytes.iter().map(|b| format!("{b:02x}")).collect()
 }
 
 /// Where `host`'s gateway says it is connected.
