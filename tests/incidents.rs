@@ -113,6 +113,10 @@ fn a_stopped_plant_is_a_simulator_stall_that_cost_a_deviation_and_recovered() {
     let reported = f["peak_deviation_deg"].as_f64().expect("the fault's cost");
     assert!((reported - peak).abs() <= 1e-12 * peak, "{reported} != {peak}: {f}");
     assert!(s["incidents"]["count"].as_u64().expect("count") >= 1, "{s}");
+    // The costing stepped within its share of the run: 16 s, a tick's more at most.
+    let stepped = s["incidents"]["counterfactual_ticks"].as_u64().expect("stepped");
+    let share = 16_001 * rotorloop::pipeline::incidents::COST_TICKS_PER_S / 1000;
+    assert!(stepped > 0 && stepped <= share, "{stepped} of {share}: {}", s["incidents"]);
     // Every answer was the law's, bit for bit: the counterfactual starts exactly.
     let [same, computed] = [0, 1].map(|i| s["incidents"]["law_reproduced"][i].as_u64());
     assert_eq!(same, computed, "{}", s["incidents"]);

@@ -396,6 +396,16 @@ const REST: &[Key] = &[
     ),
     always("incidents.count", "integer", "incidents found"),
     always(
+        "incidents.costed",
+        "integer",
+        "incidents costed: the launcher's faults' first, then the longest, as many as the costing's share of the run holds (docs/incidents.md)",
+    ),
+    always(
+        "incidents.counterfactual_ticks",
+        "integer",
+        "the ticks the costed incidents' counterfactuals stepped, in all",
+    ),
+    always(
         "incidents.worst",
         "object or null",
         "the worst incident: its row of `incidents.csv` as an object (docs/incidents.md)",
@@ -404,8 +414,8 @@ const REST: &[Key] = &[
     always("incidents.median_delay_s", "number, s", "the run's median sense-to-actuate"),
     always(
         "incidents.law_reproduced",
-        "boolean",
-        "whether the law run in process reproduced the controller's recorded answers (the counterfactual loop is then trusted)",
+        "2 integers",
+        "the controller's answers the law run in process reproduced bit for bit, and those it computed (equal: the counterfactual loop is trusted)",
     ),
     always(
         "incidents.kernel_view",

@@ -469,7 +469,7 @@ impl<T: Record> FlightLog<T> {
         let mut beyond_run = 0u64;
         let mut first = u64::MAX;
         if let Some(ring) = &self.ring {
-            scan::<T>(ring, |slot, k, _| {
+            scan::<T>(ring, |slot, k| {
                 if k % ring.capacity != slot {
                     return;
                 }
@@ -491,7 +491,7 @@ impl<T: Record> FlightLog<T> {
         }
         for (j, seg) in self.segments.iter().rev() {
             let mut newest = None;
-            scan::<T>(seg, |slot, k, _| {
+            scan::<T>(seg, |slot, k| {
                 if k == j * seg.capacity + slot {
                     newest = newest.max(Some(k));
                 }
@@ -507,7 +507,7 @@ impl<T: Record> FlightLog<T> {
         // The journal's frames, newest first: the first that holds a tick holds the newest.
         for (first, frame) in self.frames.iter().rev() {
             let mut newest = None;
-            scan::<T>(frame, |slot, k, _| {
+            scan::<T>(frame, |slot, k| {
                 if k == first + slot && k <= self.limit {
                     newest = newest.max(Some(k));
                 }
@@ -744,21 +744,21 @@ fn read_block<T>(source: &Source, (index, ticks): (u64, bool), bytes: &mut Vec<u
     }
 }
 
-/// Calls `f(slot, tick, sample)` for each slot of `source` whose tag and sample agree on
-/// a tick (one block in memory at a time).
-fn scan<T: Record>(source: &Source, mut f: impl FnMut(u64, u64, &T)) {
-    let len = slot_len::<T>();
+/// Calls `f(slot, tick)` for each slot of `source` whose tag and sample agree on a tick,
+/// from those two words alone (a packed chunk decodes two columns of its dozens; one
+/// block in memory at a time).
+fn scan<T: Record>(source: &Source, mut f: impl FnMut(u64, u64)) {
     let block_slots = source.block_slots();
     let mut bytes = Vec::new();
     for index in 0..source.capacity.div_ceil(block_slots) {
-        read_block::<T>(source, (index, false), &mut bytes);
-        for (i, s) in bytes.chunks_exact(len).enumerate() {
-            let tag = u64::from_ne_bytes(s[..8].try_into().unwrap_or_default());
-            let Some(k) = tag.checked_sub(1) else { continue };
-            // SAFETY: as in `lookup`.
-            let sample = unsafe { std::ptr::read_unaligned(s[8..].as_ptr() as *const T) };
-            if sample.tick() == k {
-                f(index * block_slots + i as u64, k, &sample);
+        read_block::<T>(source, (index, true), &mut bytes);
+        for (i, s) in bytes.chunks_exact(16).enumerate() {
+            let word =
+                |w: usize| u64::from_ne_bytes(s[8 * w..8 * w + 8].try_into().unwrap_or_default());
+            if let Some(k) = word(0).checked_sub(1)
+                && word(1) == k
+            {
+                f(index * block_slots + i as u64, k);
             }
         }
     }

@@ -60,6 +60,8 @@ pub struct Cost {
     /// The deviation, tick by tick from the incident's start (deg; the first
     /// 10 000), for the figure.
     pub curve: Vec<f64>,
+    /// The ticks the counterfactual stepped (at most [`most_ticks`]).
+    pub ticks: u64,
 }
 
 /// The reference an answer tracked: its own tick's, or (its own missing) an earlier one
@@ -99,9 +101,8 @@ pub fn law_pass(
     costed: &[[u64; 2]],
     visit: &mut dyn FnMut(u64),
 ) -> anyhow::Result<LawPass> {
-    let horizon = (HORIZON_S / run.dt).ceil() as u64 + 1;
     let mut reach = Spans::default();
-    costed.iter().for_each(|w| reach.add([w[0], w[1].saturating_add(horizon)]));
+    costed.iter().for_each(|w| reach.add([w[0], w[0] + most_ticks(*w, run.last, run.dt) - 1]));
     let starts: Vec<u64> = costed.iter().map(|w| w[0]).collect();
     let actuation = run.scenario.actuation();
     let mut law = AnyLaw::for_scenario(&run.scenario, actuation)?;
@@ -159,6 +160,13 @@ pub fn law_pass(
     }
     pass.before.extend(next.map(|_| law));
     Ok(pass)
+}
+
+/// The most ticks [`cost`] steps for the window `w` of a run whose last tick is `last`:
+/// from its start to the run's end, or to [`HORIZON_S`] past the window.
+pub fn most_ticks(w: [u64; 2], last: u64, dt: f64) -> u64 {
+    let horizon = (HORIZON_S / dt).ceil() as u64 + 1;
+    last.min(w[1].saturating_add(horizon)).saturating_sub(w[0]) + 1
 }
 
 /// The angle between two attitudes (deg), exactly zero for equal ones.
@@ -270,5 +278,6 @@ pub fn cost(
     }
     let recovery_s = below_since.filter(|_| peak > 0.0).map(|b| (b - start) as f64 * dt);
     let recovery_s = if peak == 0.0 { Some(0.0) } else { recovery_s };
-    Some(Cost { peak_deg: peak, peak_tick, recovery_s, curve })
+    let ticks = real.tick + 1 - start;
+    Some(Cost { peak_deg: peak, peak_tick, recovery_s, curve, ticks })
 }

@@ -131,7 +131,8 @@ impl RunRecord {
         // Whatever of the states is sound (a missing or torn ring, segment or journal frame
         // is skipped: its ticks are missing); refused only where nothing of it is.
         let states = FlightLog::<StateSample>::read(&flight, Stream::PlantState, limit)
-            .map_err(|e| bad(dir, format!("no plant state record can be read: {e}")))?;
+            .map_err(|e| bad(dir, format!("no plant state record can be read: {e}")))?
+            .keeping(KEPT_BLOCKS, KEPT_BYTES);
         // The controller's answers from its own record; a controller of the user's own
         // (`--controller-cmd`) keeps none, and its answers are then the plant's record of
         // the torques it received (the same samples, less any lost on the way).

@@ -29,9 +29,19 @@ use load::RunRecord;
 
 /// Abnormal windows at most this many normal ticks apart are one incident.
 pub const GAP: u64 = 2;
-/// The most incidents whose cost is computed (the longest ones); the others are listed
-/// without it.
+/// The most incidents whose cost is computed ([`Candidates`]: those of the launcher's
+/// faults, then the longest; within [`COST_TICKS_PER_S`]); the others are listed without
+/// it.
 pub const MAX_COSTED: usize = 200;
+
+/// The ticks of counterfactual the costing may step for each second of the run: of the
+/// [`MAX_COSTED`] candidates, in line, each is costed whose counterfactual's longest walk
+/// ([`cost::most_ticks`]) fits in what is left. In a loaded run a counterfactual's
+/// deviation is real and falls back at the loop's own pace (seconds: the median walk was
+/// 9 700 ticks), and 200 of them were 90 % of the analysis, 7 % of the run's length. A
+/// counterfactual's tick costs about 0.8 µs on this 2-vCPU machine, so this holds the
+/// costing to about 0.6 % of a run at 1 kHz.
+pub const COST_TICKS_PER_S: u64 = 8_000;
 
 /// How incidents are found.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -115,6 +125,10 @@ pub struct FaultIncident {
 pub struct Explained {
     /// How many incidents the run had.
     pub count: usize,
+    /// How many of them were costed ([`MAX_COSTED`], [`COST_TICKS_PER_S`]).
+    pub costed: usize,
+    /// The ticks their counterfactuals stepped, in all.
+    pub counterfactual_ticks: u64,
     /// The costliest [`KEPT`] incidents, the worst first, each with its row of
     /// `incidents.csv` (from 0).
     pub costliest: Vec<(usize, Incident)>,
@@ -274,8 +288,8 @@ impl Windows {
 struct FirstPass {
     /// How many windows there are.
     count: usize,
-    /// The [`MAX_COSTED`] longest ([`Longest`]).
-    longest: Vec<(usize, [u64; 2])>,
+    /// Those to cost, by index ([`Candidates`], [`within_budget`]).
+    costed: Vec<(usize, [u64; 2])>,
     /// The first tick of the loop's first window (`None`: the loop had none).
     first_loop_tick: Option<u64>,
 }
@@ -287,7 +301,7 @@ fn first_pass(
     flags: &ticks::TickFlags,
     stages: &mut cause::StageMedians,
 ) -> FirstPass {
-    let (mut count, mut longest, mut first_loop_tick) = (0, Longest::default(), None);
+    let (mut count, mut candidates, mut first_loop_tick) = (0, Candidates::default(), None);
     let mut windows = Windows::new(run, 0);
     let mut flag = |k| {
         let f = flags.get(run, k);
@@ -298,43 +312,64 @@ fn first_pass(
         if outside.is_none() {
             first_loop_tick.get_or_insert(w[0]);
         }
-        longest.see(count, w);
+        let fault = outside.is_some() || cause::fault_of(run, w).is_some();
+        candidates.see(count, w, fault);
         count += 1;
     }
     stages.second_pass();
-    FirstPass { count, longest: longest.kept(), first_loop_tick }
+    let costed = within_budget(&candidates.kept(), run.last, run.dt);
+    FirstPass { count, costed, first_loop_tick }
 }
 
-/// The [`MAX_COSTED`] longest windows of those seen one at a time, as a stable sort by
-/// length (longest first) would pick them: of two as long, the earlier.
+/// The [`MAX_COSTED`] windows first in line to be costed of those seen one at a time, as
+/// a stable sort would pick them: those that hold one of the launcher's faults, then the
+/// longest; of two alike, the earlier.
 #[derive(Debug, Default)]
-struct Longest {
-    /// A min-heap of those kept: the shortest, and of two as long the later, on top.
-    heap: std::collections::BinaryHeap<std::cmp::Reverse<ByLength>>,
+struct Candidates {
+    /// A min-heap of those kept: the last in line on top.
+    heap: std::collections::BinaryHeap<std::cmp::Reverse<Rank>>,
 }
 
-/// A window's length, its index (reversed: of two as long, the earlier is the greater),
-/// and the window.
-type ByLength = (u64, std::cmp::Reverse<usize>, [u64; 2]);
+/// A window's place in line: whether it holds a fault, its length, its index (reversed:
+/// of two alike, the earlier is the greater), and the window.
+type Rank = (bool, u64, std::cmp::Reverse<usize>, [u64; 2]);
 
-impl Longest {
-    /// Sees the window `w`, the `i`-th.
-    fn see(&mut self, i: usize, w: [u64; 2]) {
+impl Candidates {
+    /// Sees the window `w`, the `i`-th; `fault`: whether it holds one of the launcher's.
+    fn see(&mut self, i: usize, w: [u64; 2], fault: bool) {
         use std::cmp::Reverse;
-        self.heap.push(Reverse((w[1] - w[0], Reverse(i), w)));
+        self.heap.push(Reverse((fault, w[1] - w[0], Reverse(i), w)));
         if self.heap.len() > MAX_COSTED {
             self.heap.pop();
         }
     }
 
-    /// Those kept: each one's index and window, in the order of the windows.
+    /// Those kept, the first in line first: each one's index and window.
     fn kept(self) -> Vec<(usize, [u64; 2])> {
         use std::cmp::Reverse;
-        let mut kept: Vec<(usize, [u64; 2])> =
-            self.heap.into_iter().map(|Reverse((_, Reverse(i), w))| (i, w)).collect();
-        kept.sort_unstable();
-        kept
+        let sorted = self.heap.into_sorted_vec(); // ascending `Reverse`: first in line first
+        sorted.into_iter().map(|Reverse((_, _, Reverse(i), w))| (i, w)).collect()
     }
+}
+
+/// Of the `candidates` (first in line first), those to cost, by index: in line, each whose
+/// counterfactual's longest walk ([`cost::most_ticks`]) fits in what is left of
+/// [`COST_TICKS_PER_S`] for each second of a run whose last tick is `last`.
+fn within_budget(candidates: &[(usize, [u64; 2])], last: u64, dt: f64) -> Vec<(usize, [u64; 2])> {
+    let seconds = (last + 1) as f64 * dt;
+    let mut left = (seconds * COST_TICKS_PER_S as f64) as u64;
+    let mut costed: Vec<(usize, [u64; 2])> = (candidates.iter().copied())
+        .filter(|(_, w)| {
+            let walk = cost::most_ticks(*w, last, dt);
+            let fits = walk <= left;
+            if fits {
+                left -= walk;
+            }
+            fits
+        })
+        .collect();
+    costed.sort_unstable();
+    costed
 }
 
 /// What [`find`] needs before it explains the first incident.
@@ -353,12 +388,12 @@ struct Figures {
 fn figures(run: &RunRecord, delays: ticks::Delays, options: Options) -> anyhow::Result<Figures> {
     // 2. The median delay's second pass, which the flags need.
     let flags = ticks::flag_seen(run, options.threshold_ticks, delays);
-    // 3. The windows: how many, the longest to cost (none of them held: a day's run can
-    // have millions), and the first pass of the stages' medians.
+    // 3. The windows: how many, those to cost (none of them held: a day's run can have
+    // millions), and the first pass of the stages' medians.
     let mut stages = cause::StageMedians::default();
     let first = first_pass(run, &flags, &mut stages);
     // 4. The law over every answer, and the second pass of the stages' medians.
-    let windows: Vec<[u64; 2]> = first.longest.iter().map(|(_, w)| *w).collect();
+    let windows: Vec<[u64; 2]> = first.costed.iter().map(|(_, w)| *w).collect();
     let pass = cost::law_pass(run, &windows, &mut |k| {
         if k < run.last {
             stages.see(run, k, flags.get(run, k));
@@ -384,6 +419,8 @@ pub fn find(
     let mut held = FaultsHeld::new(&run.faults);
     let mut found = Explained {
         count: first.count,
+        costed: first.costed.len(),
+        counterfactual_ticks: 0,
         costliest: Vec::new(),
         worst: None,
         faults: Vec::new(), // each fault's incident, once all are seen
@@ -394,7 +431,7 @@ pub fn find(
         kernel_view: run.kernel_view,
         traced: run.traced,
     };
-    let mut costed = first.longest.into_iter().map(|(i, _)| i).peekable();
+    let mut costed = first.costed.into_iter().map(|(i, _)| i).peekable();
     let from = first.first_loop_tick.unwrap_or(run.last);
     let (mut windows, mut i) = (Windows::new(&run, from), 0);
     while let Some((w, outside)) = windows.next(&run, &flags) {
@@ -419,6 +456,7 @@ pub fn find(
         };
         let cost = law
             .and_then(|law| cost::cost(&run, &flags, w, law, &pass.propagated, outside.is_none()));
+        found.counterfactual_ticks += cost.as_ref().map_or(0, |c| c.ticks);
         let incident = Incident {
             start_tick: w[0],
             end_tick: w[1],
@@ -508,30 +546,61 @@ mod tests {
         }
     }
 
-    /// Of incidents seen one at a time, the kept ones are the first [`KEPT`] of a stable
-    /// sort of all by cost (ties in time order), and the worst is the one `max_by` picks
-    /// of all (of equals, the last), as when every incident was held: ties and uncosted
-    /// incidents included.
-    /// The longest windows kept one at a time are those a stable sort by length of all of
-    /// them picks (what `find` did while it held every window), ties included.
+    /// The candidates kept one at a time are those a stable sort of all of them picks,
+    /// faults' first, then by length (what `find` did while it held every window), ties
+    /// included, in that order.
     #[test]
-    fn the_longest_kept_one_at_a_time_are_those_a_sort_of_all_picks() {
+    fn the_candidates_kept_one_at_a_time_are_those_a_sort_of_all_picks() {
         let mut next = super::test_random(0x853c_49e6_748f_ea9b_u64);
         for n in [0, 1, MAX_COSTED, MAX_COSTED + 1, 5_000] {
-            let windows: Vec<[u64; 2]> = (0..n as u64)
+            let windows: Vec<([u64; 2], bool)> = (0..n as u64)
                 .map(|i| {
                     let len = next(4) * next(50); // many ties
-                    [10 * i, 10 * i + len]
+                    ([10 * i, 10 * i + len], next(40) == 0)
                 })
                 .collect();
-            let mut longest = Longest::default();
-            windows.iter().enumerate().for_each(|(i, w)| longest.see(i, *w));
-            let mut by_length: Vec<usize> = (0..windows.len()).collect();
-            by_length.sort_by_key(|i| std::cmp::Reverse(windows[*i][1] - windows[*i][0]));
-            let mut want: Vec<(usize, [u64; 2])> =
-                by_length.into_iter().take(MAX_COSTED).map(|i| (i, windows[i])).collect();
-            want.sort_unstable();
-            assert_eq!(longest.kept(), want, "{n} windows");
+            let mut candidates = Candidates::default();
+            windows.iter().enumerate().for_each(|(i, (w, f))| candidates.see(i, *w, *f));
+            let mut in_line: Vec<usize> = (0..windows.len()).collect();
+            in_line.sort_by_key(|i| {
+                let (w, fault) = windows[*i];
+                (std::cmp::Reverse(fault), std::cmp::Reverse(w[1] - w[0]))
+            });
+            let want: Vec<(usize, [u64; 2])> =
+                in_line.into_iter().take(MAX_COSTED).map(|i| (i, windows[i].0)).collect();
+            assert_eq!(candidates.kept(), want, "{n} windows");
+        }
+    }
+
+    /// The costed candidates' counterfactuals fit in the run's share, and each candidate
+    /// left out would not have fitted in what the others left: none is left out while
+    /// there was room for it.
+    #[test]
+    fn the_costed_fit_in_the_runs_share_and_leave_no_room_for_another() {
+        let mut next = super::test_random(0x3c6e_f372_fe94_f82b_u64);
+        let dt = 1e-3;
+        for round in 0..200 {
+            let last = 1 + next(300_000);
+            let candidates: Vec<(usize, [u64; 2])> = (0..next(MAX_COSTED as u64 + 1) as usize)
+                .map(|i| {
+                    let a = next(last + 1);
+                    (i, [a, (a + next(2_000)).min(last)])
+                })
+                .collect();
+            let costed = within_budget(&candidates, last, dt);
+            let walk = |w: [u64; 2]| cost::most_ticks(w, last, dt);
+            let share = ((last + 1) as f64 * dt * COST_TICKS_PER_S as f64) as u64;
+            let used: u64 = costed.iter().map(|(_, w)| walk(*w)).sum();
+            assert!(used <= share, "round {round}: {used} ticks of {share}");
+            for c in candidates.iter().filter(|c| !costed.contains(c)) {
+                assert!(
+                    walk(c.1) > share - used,
+                    "round {round}: {c:?} fitted in {}",
+                    share - used
+                );
+            }
+            assert!(costed.is_sorted(), "round {round}: by index");
+            assert!(costed.iter().all(|c| candidates.contains(c)), "round {round}");
         }
     }
 
@@ -574,7 +643,7 @@ mod tests {
     }
 
     /// The passes that do two things at once find what the passes of one thing each find:
-    /// the median delay, the windows, the longest of them, the stages' medians, on a run
+    /// the median delay, the windows, those to cost, the stages' medians, on a run
     /// of misses, late and missing answers, and stamps of every size.
     #[test]
     fn the_shared_passes_find_what_passes_of_their_own_find() {
@@ -624,17 +693,18 @@ mod tests {
         assert!(median > 0.0, "{median}");
         assert_eq!(got.flags.median_delay_s.to_bits(), median.to_bits());
         assert_eq!(flags.median_delay_s.to_bits(), median.to_bits());
-        let (count, longest) = {
-            let (mut count, mut longest, mut windows) =
-                (0, Longest::default(), Windows::new(&run, 0));
-            while let Some((w, _)) = windows.next(&run, &flags) {
-                longest.see(count, w);
+        let (count, costed) = {
+            let (mut count, mut candidates, mut windows) =
+                (0, Candidates::default(), Windows::new(&run, 0));
+            while let Some((w, outside)) = windows.next(&run, &flags) {
+                candidates.see(count, w, outside.is_some() || cause::fault_of(&run, w).is_some());
                 count += 1;
             }
-            (count, longest.kept())
+            (count, within_budget(&candidates.kept(), run.last, run.dt))
         };
         assert!(count > 20, "{count} windows: the run tests too little");
-        assert_eq!((got.first.count, &got.first.longest), (count, &longest));
+        assert!(!costed.is_empty(), "none costed: the run tests too little");
+        assert_eq!((got.first.count, &got.first.costed), (count, &costed));
         let mut scan = ticks::WindowScan::default();
         let first_window = flags.next_window(&run, &mut scan, GAP).map(|w| w[0]);
         assert_eq!(got.first.first_loop_tick, first_window);
@@ -661,6 +731,8 @@ mod tests {
             .collect();
         let mut found = Explained {
             count: all.len(),
+            costed: 0,
+            counterfactual_ticks: 0,
             costliest: Vec::new(),
             worst: None,
             faults: Vec::new(),

@@ -92,6 +92,15 @@ fn markdown(dir: &Path, found: &Explained) -> String {
     } else {
         let _ = writeln!(
             md,
+            "{} of them costed: the launcher's faults' first, then the longest, as many as \
+             {} ticks of counterfactual for each second of the run hold ({} stepped); the \
+             others are listed with their cause.\n",
+            found.costed,
+            super::COST_TICKS_PER_S,
+            found.counterfactual_ticks,
+        );
+        let _ = writeln!(
+            md,
             "The law in process reproduced {same} of the controller's {computed} answers bit for bit{}.\n",
             if same == computed {
                 ""
@@ -122,7 +131,7 @@ fn markdown(dir: &Path, found: &Explained) -> String {
             (None, _) if computed == 0 => {
                 "not computed (no record of the controller's answers)".to_owned()
             }
-            (None, _) => "not computed (only the longest incidents are)".to_owned(),
+            (None, _) => "not computed (beyond the costing's share of the run)".to_owned(),
             (Some(p), Some(r)) => {
                 format!("peak deviation {p:.4}°, below 10 % of it after {r:.3} s")
             }
@@ -181,6 +190,8 @@ pub fn write(dir: &Path, found: &Explained) -> anyhow::Result<()> {
     rotorloop_monitor::summary::patch(dir, |j| {
         j["incidents"] = serde_json::json!({
             "count": found.count,
+            "costed": found.costed,
+            "counterfactual_ticks": found.counterfactual_ticks,
             "worst": worst,
             "threshold_s": found.threshold_s,
             "median_delay_s": found.median_delay_s,
@@ -248,6 +259,8 @@ mod tests {
     fn a_run_without_the_controllers_answers_says_why_nothing_is_costed() {
         let mut found = Explained {
             count: 0,
+            costed: 0,
+            counterfactual_ticks: 0,
             costliest: Vec::new(),
             worst: None,
             faults: Vec::new(),
