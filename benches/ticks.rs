@@ -9,8 +9,9 @@
 //!   (`sim_loop_one_thread`, `sim --one-thread`).
 //! - `controller_stages`: per state, the work of the controller's stages without their
 //!   clock reads and IPC: validation (the answer rule and the state's checks), pairing
-//!   with the reference, the law, and the publish preparation (resume record into its
-//!   slot, the delay queue).
+//!   with the reference (with its taking, and the taking alone: the loop takes the
+//!   references after each publish), the law, and the publish preparation (resume record
+//!   into its slot, the delay queue).
 
 use std::hint::black_box;
 
@@ -116,6 +117,19 @@ fn controller_stages(c: &mut Criterion) {
                     }
                     let rd = pairing.pair(k, true, false, |_| Ok(false));
                     black_box(rd.expect("no wait to fail").expect("the tick's own reference"));
+                }
+            },
+            criterion::BatchSize::SmallInput,
+        );
+    });
+    // The references' own checks as they are taken (after the previous publish, off the
+    // path from a state to its answer): "pair" less this is the pairing's own work.
+    g.bench_function("reference_take", |b| {
+        b.iter_batched_ref(
+            || ReferencePairing::new(50, dt, BATCH),
+            |pairing| {
+                for r in &refs {
+                    pairing.take(*r, || None);
                 }
             },
             criterion::BatchSize::SmallInput,

@@ -123,9 +123,9 @@ impl ReferencePairing {
         };
     }
 
-    /// Tick `k`'s reference sample, if it is here.
-    pub fn lookup(&self, k: u64) -> Option<ReferenceSample> {
-        match self.ring[k as usize % RING] {
+    /// Tick `k`'s reference sample, if it is here (in the ring: not copied).
+    pub fn lookup(&self, k: u64) -> Option<&ReferenceSample> {
+        match &self.ring[k as usize % RING] {
             RefEntry::Valid(r) if r.tick == k => Some(r),
             _ => None,
         }
@@ -136,42 +136,32 @@ impl ReferencePairing {
         matches!(self.ring[k as usize % RING], RefEntry::Rejected(t) if t == k)
     }
 
-    /// Starts pairing tick `k` (whose state is `state_ok`): the reference if it is here.
+    /// Starts pairing tick `k` (whose state is `state_ok`): whether its reference is here.
     /// Missing for a valid state, it is counted as a reference miss; the caller may then
     /// wait for it (lockstep) before [`Self::finish`].
-    pub fn begin(&mut self, k: u64, state_ok: bool) -> Option<ReferenceSample> {
+    pub fn begin(&mut self, k: u64, state_ok: bool) -> bool {
         self.saw_state(k);
-        let r = self.lookup(k);
-        if r.is_none() && state_ok {
+        let here = self.lookup(k).is_some();
+        if !here && state_ok {
             self.misses += 1;
         } else {
             self.held = 0;
         }
-        r
+        here
     }
 
-    /// Ends pairing tick `k`: `found` if it came (after `begin`, or a wait), else the
-    /// last good reference propagated to `k` while the hold lasts (only after a miss
-    /// counted by `begin`), else nothing to track.
-    pub fn finish(
-        &mut self,
-        k: u64,
-        found: Option<ReferenceSample>,
-        missed: bool,
-    ) -> Option<ReferenceState> {
-        let mut rd = found.map(|r| r.reference_state());
-        if missed {
-            if let Some(r) = self.last.filter(|r| rd.is_none() && r.tick < k) {
-                self.held += 1;
-                if self.held <= self.hold_ticks {
-                    rd = Some(propagate(&r, k, self.dt));
-                }
-            }
-        }
+    /// Ends pairing tick `k`: its reference if it is here (after `begin`, or a wait), kept
+    /// as the last good one; else the last good one propagated to `k` while the hold
+    /// lasts (only after a miss counted by `begin`), else nothing to track.
+    pub fn finish(&mut self, k: u64, missed: bool) -> Option<ReferenceState> {
         if let Some(r) = self.lookup(k) {
-            self.last = Some(r);
+            let rd = r.reference_state();
+            self.last = Some(*r);
+            return Some(rd);
         }
-        rd
+        let r = self.last.filter(|r| missed && r.tick < k)?;
+        self.held += 1;
+        (self.held <= self.hold_ticks).then(|| propagate(&r, k, self.dt))
     }
 
     /// Pairs tick `k` (whose state is `state_ok`) as [`Self::begin`] and [`Self::finish`]
@@ -185,12 +175,9 @@ impl ReferencePairing {
         wait: bool,
         mut more: impl FnMut(&mut Self) -> anyhow::Result<bool>,
     ) -> anyhow::Result<Option<ReferenceState>> {
-        let mut found = self.begin(k, state_ok);
-        let missed = found.is_none() && state_ok;
-        while missed && wait && found.is_none() && !self.rejected_at(k) && more(self)? {
-            found = self.lookup(k);
-        }
-        Ok(self.finish(k, found, missed).filter(|_| state_ok))
+        let missed = !self.begin(k, state_ok) && state_ok;
+        while missed && wait && self.lookup(k).is_none() && !self.rejected_at(k) && more(self)? {}
+        Ok(self.finish(k, missed).filter(|_| state_ok))
     }
 
     /// States answered without their own reference sample at hand.
@@ -486,9 +473,8 @@ mod tests {
 
     /// Pairs tick `k` as the real-time shell does (no wait).
     fn pair(p: &mut ReferencePairing, k: u64) -> Option<ReferenceState> {
-        let found = p.begin(k, true);
-        let missed = found.is_none();
-        p.finish(k, found, missed)
+        let missed = !p.begin(k, true);
+        p.finish(k, missed)
     }
 
     #[test]
@@ -571,7 +557,7 @@ mod tests {
     #[test]
     fn a_rejected_state_does_not_count_a_reference_miss() {
         let mut p = ReferencePairing::new(1000, DT, LAST);
-        assert!(p.begin(0, false).is_none());
+        assert!(!p.begin(0, false));
         assert_eq!(p.misses(), 0);
     }
 

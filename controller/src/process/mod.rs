@@ -12,7 +12,7 @@ use rotorloop_common::role::UsageError;
 use rotorloop_common::role::args::Mode;
 use rotorloop_common::role::end::linger_publisher;
 use rotorloop_common::signals::shutdown_requested;
-use rotorloop_common::wire::FLAG_LAST;
+use rotorloop_common::wire::{FLAG_LAST, StateSample};
 
 use crate::ROLE;
 use crate::law::AnyLaw;
@@ -35,25 +35,24 @@ pub fn run(args: &args::ControllerArgs) -> anyhow::Result<()> {
     }
     let hooks = role.hooks.first_run(answers.last().is_none()); // the tests' hooks act once
     let mut sends = DelayedSends::new(args.inject_delay.clone());
+    let mut state = StateSample::of(0, 0.0, &scenario.plant_init); // each wait overwrites it
     loop {
         ports.send_due(&mut sends, &args.corrupt, false)?;
         let until = sends.next_due_ns().unwrap_or(u64::MAX).min(now_ns() + 100_000_000);
-        let Some((state, recv_ns)) = ports.newest_state(&mut answers, role.wait, until)? else {
+        let Some(recv_ns) = ports.newest_state(&mut answers, role.wait, until, &mut state)? else {
             if shutdown_requested() || ports.plant.run_over() {
                 break;
             }
             continue;
         };
         let k = state.tick;
-        ports.plant.saw_state(k, recv_ns);
         if hooks.test_stall_with_loan_at == Some(k) {
             ports.out.stall_holding_a_loan()?;
             break;
         }
         let Some(fault) = ports.act_on(answers.decide(&state), k)? else { continue };
         let validated = now_ns();
-        let lockstep = role.mode == Mode::Lockstep;
-        let rd = ports.pair(&mut pairing, k, fault.is_none(), lockstep)?;
+        let rd = ports.pair(&mut pairing, k, fault.is_none(), role.mode == Mode::Lockstep)?;
         if rd.is_none() && fault.is_none() && shutdown_requested() {
             break;
         }
@@ -67,6 +66,7 @@ pub fn run(args: &args::ControllerArgs) -> anyhow::Result<()> {
         if let Some(t) = sends.hold(sample, state.t_s, now_ns()) {
             ports.publish(t, &args.corrupt)?;
         }
+        ports.references_ahead(&mut pairing)?;
         if state.flags & FLAG_LAST != 0 {
             break;
         }

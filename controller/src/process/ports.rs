@@ -35,8 +35,8 @@ pub(super) struct Ports {
     /// Every torque published, in the run's flight record.
     flight: FlightRecorder<TorqueSample>,
     /// The hot path with its overhead cut (not `--plain-hot-path`): the reference topic
-    /// drained only when the reference of the tick is not in hand, and each torque's
-    /// sample loaned after the previous publish.
+    /// drained after each publish and at a pairing only when the reference of the tick
+    /// is not in hand, and each torque's sample loaned after the previous publish.
     cut: bool,
     /// The tick and cost of the last torque published (carried in the next one).
     last_publish: Cell<(u64, SendCost)>,
@@ -74,24 +74,30 @@ impl Ports {
     }
 
     /// Waits until `until` for states; every one goes through `answers` (older ones are
-    /// skipped, and counted), the newest comes back with its receive time: when the
-    /// controller has it and knows it is the newest (the receive that finds no more
-    /// samples is iceoryx2's delivery, not the controller's validation).
+    /// skipped, and counted), the newest is left in `newest` and its receive time comes
+    /// back: when the controller has it and knows it is the newest (the receive that finds
+    /// no more samples is iceoryx2's delivery, not the controller's validation). The
+    /// sample is in place before that stamp: nothing is moved after it. The plant watch
+    /// sees it.
     pub fn newest_state(
-        &self,
+        &mut self,
         answers: &mut TorqueAnswers,
         wait: Wait,
         until: u64,
-    ) -> anyhow::Result<Option<(StateSample, u64)>> {
-        let newest = self.states.wait_for(wait, until, |inbox| {
-            let mut newest: Option<StateSample> = None;
+        newest: &mut StateSample,
+    ) -> anyhow::Result<Option<u64>> {
+        let recv_ns = self.states.wait_for(wait, until, |inbox| {
+            let mut any = false;
             inbox.drain(|s| {
-                answers.take(&s, newest.is_some());
-                newest = Some(s);
+                answers.take(&s, any);
+                (*newest, any) = (s, true);
             })?;
-            Ok(newest.map(|s| (s, now_ns())))
+            Ok(any.then(now_ns))
         })?;
-        Ok(newest)
+        if let Some(t) = recv_ns {
+            self.plant.saw_state(newest.tick, t);
+        }
+        Ok(recv_ns)
     }
 
     /// Carries out what the answer rule decided for the state of tick `k`: `None` when
@@ -125,16 +131,34 @@ impl Ports {
         state_ok: bool,
         lockstep: bool,
     ) -> anyhow::Result<Option<ReferenceState>> {
-        let published = || self.plant_published.load().map(|s| s.tick);
         pairing.saw_state(k);
         if !self.cut || pairing.lookup(k).is_none() {
-            self.refs.drain(|r| pairing.take(r, published))?;
+            self.take_references(pairing)?;
         }
         pairing.pair(k, state_ok, lockstep, |p| {
             std::thread::sleep(std::time::Duration::from_micros(100));
-            self.refs.drain(|r| p.take(r, published))?;
+            self.take_references(p)?;
             Ok(!shutdown_requested())
         })
+    }
+
+    /// Takes every reference sample that came into `pairing` (each checked as it is
+    /// taken: the tick rule, then the wire contract's checks).
+    fn take_references(&self, pairing: &mut ReferencePairing) -> anyhow::Result<()> {
+        let published = || self.plant_published.load().map(|s| s.tick);
+        Ok(self.refs.drain(|r| pairing.take(r, published))?)
+    }
+
+    /// After an answer is on its way (the hot path cut): takes the references that came,
+    /// so that the next tick's is in hand when its state arrives, and its pairing is a
+    /// lookup. The reference works ahead, so the drain and each sample's checks are done
+    /// here, off the path from a state to its answer, rather than at the next tick's
+    /// pairing.
+    pub fn references_ahead(&self, pairing: &mut ReferencePairing) -> anyhow::Result<()> {
+        if self.cut {
+            self.take_references(pairing)?;
+        }
+        Ok(())
     }
 
     /// Publishes a torque (corrupted where fault injection says so), carrying what the
