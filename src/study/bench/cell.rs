@@ -198,6 +198,9 @@ pub struct Row {
     pub err_deg_final: f64,
     /// Root mean square of the tracking error over the run (degrees), loop only.
     pub err_deg_rms: f64,
+    /// The controller's law stage p50 (µs), loop only: the loop's p50 less it is the
+    /// loop with the law taken off ([`super::repeat`]; not in bench.csv, NaN there).
+    pub law_p50: f64,
     /// Cell number (for short domain names).
     pub index: usize,
     /// Which repetition of the cell (`--repeat`), from 0.
@@ -271,6 +274,7 @@ impl Row {
             err_deg_rms: num(16),
             lateness_p50: num(17),
             lateness_p99_9: num(18),
+            law_p50: f64::NAN,
             index: 0,
             repeat: f.get(19).and_then(|v| v.parse().ok()).unwrap_or(0),
             // The first ratios are empty where their baseline was not measured.

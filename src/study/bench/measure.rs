@@ -338,6 +338,7 @@ pub(super) fn read_loop_summary(row: &mut Row, out: &Path) -> anyhow::Result<()>
         (us(late.p50), us(late.p99), us(late.p99_9));
     row.err_deg_final = s.err_deg_final.unwrap_or(f64::NAN);
     row.err_deg_rms = s.err_deg_rms.unwrap_or(f64::NAN);
+    row.law_p50 = us(s.stage(rotorloop_monitor::stages::Stage::Law).and_then(|f| f.p50));
     Ok(())
 }
 

@@ -59,11 +59,30 @@ pub(super) fn fill(rows: &mut [Row]) {
     }
 }
 
+/// The loop over bare iceoryx2 at p50 with the law taken off, per repetition: the loop's
+/// sense-to-actuate p50 less its law stage's p50 (the work bare iceoryx2's echo does not
+/// do), over the bare round trip's p50 of the same repetition.
+pub(super) const LAWLESS: &str = "loop_less_law_over_iceoryx2_p50";
+
+/// [`LAWLESS`]'s interval over the repetitions of one cell's `rows`.
+fn lawless(rows: &[Row]) -> Option<Interval> {
+    let v: Vec<f64> = (rows.iter())
+        .filter(|l| l.kind == "loop" && l.skipped.is_empty())
+        .filter_map(|l| {
+            let b = rows
+                .iter()
+                .find(|r| r.kind == "iceoryx2" && r.repeat == l.repeat && r.skipped.is_empty())?;
+            Some((l.p50 - l.law_p50) / b.p50).filter(|r| r.is_finite())
+        })
+        .collect();
+    median_interval(&v)
+}
+
 /// The goal a ratio is held to (docs/measurements.md): the loop at most bare iceoryx2,
 /// the plant's tick lateness at most 1.2 × the timer's.
 fn goal_of(name: &str) -> Option<f64> {
     match name {
-        n if n.starts_with("loop_over_iceoryx2") => Some(1.0),
+        n if n.starts_with("loop_over_iceoryx2") || n == LAWLESS => Some(1.0),
         n if n.starts_with("plant_over_timer") => Some(1.2),
         _ => None,
     }
@@ -88,7 +107,10 @@ pub(super) fn repeat_md(rows: &[Row]) -> String {
                  distribution-free interval from order statistics (`study::stats`: 95 % from 6 \
                  repetitions; with fewer, the range, at the level said). Verdict: `faster` or \
                  `slower` when the whole interval is below or above 1. Goal: `met` or `missed` \
-                 when the whole interval is at or below, or above it; else `undecided`.\n\n\
+                 when the whole interval is at or below, or above it; else `undecided`. \
+                 `loop_less_law_over_iceoryx2_p50`: the loop's p50 less its law stage's p50 \
+                 (the work the bare echo does not do) over bare iceoryx2's (not in bench.csv: \
+                 from the runs' summaries).\n\n\
                  | cell | ratio | median | interval | level | repetitions | verdict | goal |\n\
                  |---|---|---|---|---|---|---|---|\n",
             );
@@ -97,13 +119,16 @@ pub(super) fn repeat_md(rows: &[Row]) -> String {
         let (level, reps) =
             (at("ci_level").unwrap_or_default(), at("repetitions").unwrap_or_default());
         let level: f64 = level.parse().unwrap_or(f64::NAN);
-        for (name, _, _) in RATIOS {
+        let of_cell: Vec<Row> = rows.iter().filter(|r| r.cell == l.cell).cloned().collect();
+        let extra = lawless(&of_cell).map(|i| (LAWLESS, i));
+        let found = RATIOS.iter().filter_map(|(name, _, _)| {
             let num = |s: &str| at(&format!("{name}_{s}")).and_then(|v| v.parse::<f64>().ok());
-            let (Some(m), Some(lo), Some(hi)) = (num("median"), num("ci_low"), num("ci_high"))
-            else {
-                continue;
-            };
+            let (m, lo, hi) = (num("median")?, num("ci_low")?, num("ci_high")?);
             let verdict = at(&format!("{name}_verdict")).unwrap_or_default();
+            Some((*name, m, lo, hi, verdict))
+        });
+        let extra = extra.map(|(n, i)| (n, i.median, i.low, i.high, Verdict::of(&i).name().into()));
+        for (name, m, lo, hi, verdict) in found.chain(extra) {
             let g = goal_of(name).map_or(String::new(), |g| {
                 let i = Interval { median: m, low: lo, high: hi, level, n: 0 };
                 format!("≤ {g}: {}", goal(&i, g))
@@ -117,4 +142,42 @@ pub(super) fn repeat_md(rows: &[Row]) -> String {
         }
     }
     md
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The law-less ratio is taken within each repetition, the law's p50 off the loop's,
+    /// and bench.md shows it with its goal; a repetition without its bare round trip, or a
+    /// loop without its law's figure (a row read back from bench.csv), gives none.
+    #[test]
+    fn the_loop_less_its_law_is_held_to_bare_iceoryx2_within_each_repetition() {
+        let row = |kind: &str, repeat, p50, law_p50| Row {
+            cell: "c".into(),
+            kind: kind.into(),
+            repeat,
+            p50,
+            law_p50,
+            ..Row::default()
+        };
+        let mut rows: Vec<Row> = (0..3)
+            .flat_map(|i| {
+                let bare = 4.0 + i as f64;
+                [row("loop", i, bare + 1.0 + 0.5, 1.0), row("iceoryx2", i, bare, f64::NAN)]
+            })
+            .collect();
+        let i = lawless(&rows).expect("three repetitions");
+        let want = [4.5 / 4.0, 5.5 / 5.0, 6.5 / 6.0];
+        assert_eq!((i.low, i.median, i.high), (want[2], want[1], want[0]));
+        fill(&mut rows);
+        let md = repeat_md(&rows);
+        let line =
+            md.lines().find(|l| l.starts_with(&format!("| c | {LAWLESS} |"))).expect("its row");
+        assert!(line.contains("| 1.10 |") && line.ends_with("≤ 1: missed |"), "{line}");
+        rows.retain(|r| !(r.kind == "iceoryx2" && r.repeat == 1));
+        assert_eq!(lawless(&rows).map(|i| i.n), Some(2));
+        rows.iter_mut().for_each(|r| r.law_p50 = f64::NAN);
+        assert!(lawless(&rows).is_none());
+    }
 }
