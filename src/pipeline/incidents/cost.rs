@@ -163,7 +163,7 @@ pub fn law_pass(
 }
 
 /// The most ticks [`cost`] steps for the window `w` of a run whose last tick is `last`:
-/// from its start to the run's end, or to [`HORIZON_S`] past the window.
+/// from its start to the run's end, or to a minute (`HORIZON_S`) past the window.
 pub fn most_ticks(w: [u64; 2], last: u64, dt: f64) -> u64 {
     let horizon = (HORIZON_S / dt).ceil() as u64 + 1;
     last.min(w[1].saturating_add(horizon)).saturating_sub(w[0]) + 1

@@ -29,9 +29,8 @@ use load::RunRecord;
 
 /// Abnormal windows at most this many normal ticks apart are one incident.
 pub const GAP: u64 = 2;
-/// The most incidents whose cost is computed ([`Candidates`]: those of the launcher's
-/// faults, then the longest; within [`COST_TICKS_PER_S`]); the others are listed without
-/// it.
+/// The most incidents whose cost is computed (those of the launcher's faults, then the
+/// longest; within [`COST_TICKS_PER_S`]); the others are listed without it.
 pub const MAX_COSTED: usize = 200;
 
 /// The ticks of counterfactual the costing may step for each second of the run: of the
