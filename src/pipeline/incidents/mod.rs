@@ -719,6 +719,10 @@ mod tests {
         assert!(want.iter().all(|m| m.is_finite()), "{want:?}");
     }
 
+    /// Of incidents seen one at a time, the kept ones are the first [`KEPT`] of a stable
+    /// sort of all by cost (ties in time order), and the worst is the one `max_by` picks
+    /// of all (of equals, the last), as when every incident was held: ties and uncosted
+    /// incidents included.
     #[test]
     fn the_costliest_kept_one_at_a_time_are_those_of_all() {
         let mut next = super::test_random(0x2545_f491_4f6c_dd1d_u64);
