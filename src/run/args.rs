@@ -6,6 +6,7 @@ use std::path::PathBuf;
 use clap::Args;
 
 use rotorloop_common::graph::Role;
+use rotorloop_common::ipc::wait::Wait;
 
 use crate::cpus::{Shape, Topology, run_topology};
 
@@ -205,7 +206,7 @@ pub(crate) fn with_preset(args: &RunArgs, explicit_wait: bool) -> Result<RunArgs
             dedicated_cores(&run_topology(args.cpus.as_deref())?)
                 .map_err(|e| UsageError(format!("--preset {e}")))?;
             if !explicit_wait {
-                a.role.wait = rotorloop_common::ipc::wait::Wait::Spin;
+                a.role.wait = Wait::Spin;
             }
             if a.spin_before_tick_us == 0 {
                 a.spin_before_tick_us = 50;
@@ -216,7 +217,25 @@ pub(crate) fn with_preset(args: &RunArgs, explicit_wait: bool) -> Result<RunArgs
             return Err(UsageError(format!("--preset `{other}` is not allowed: dedicated")));
         }
     }
+    check_spin_priority(&a)?;
     Ok(a)
+}
+
+/// Refuses spin waits at a real-time priority on fewer CPUs than the four roles: a role
+/// that never sleeps at SCHED_FIFO keeps every other role off its core. On 2 vCPUs
+/// (`bench --wait spin --rt-priority 80`) the reference was killed as hung after 3 s and a
+/// run of 5 s lasted 859 s.
+pub(crate) fn check_spin_priority(a: &RunArgs) -> Result<(), UsageError> {
+    let (Wait::Spin, Some(p)) = (a.role.wait, a.role.rt_priority) else { return Ok(()) };
+    let n = run_topology(a.cpus.as_deref())?.allowed.len();
+    if n >= 4 {
+        return Ok(());
+    }
+    Err(UsageError(format!(
+        "--wait spin is not allowed with --rt-priority {p} on {n} CPU(s): the four roles would \
+         spin at SCHED_FIFO and never sleep, and a role whose CPU another holds would not run; \
+         use --wait event or hybrid, or run on 4 CPUs or more"
+    )))
 }
 
 impl RunArgs {
@@ -318,7 +337,6 @@ mod tests {
     /// defaults, the role's options as given.
     #[test]
     fn the_defaults_are_the_command_line_s() {
-        use rotorloop_common::ipc::wait::Wait;
         use rotorloop_common::role::args::Mode;
         let role = RoleArgs::realtime("-odd name", 2.0, 500.0, Wait::Spin);
         assert_eq!(
@@ -406,5 +424,14 @@ mod tests {
         // `--host h` without `--split` left the domain's files behind (issue 45, 16).
         let e = check_role_flags(&parse(&["--host", "h"])).expect_err("--host").0;
         assert!(e.starts_with("--host h is not allowed with `rotorloop run`"), "{e}");
+        // Spinning at SCHED_FIFO on fewer CPUs than roles starves them: refused, whatever
+        // the machine (one CPU of its set), and the same run with event waits is not.
+        let cpu = crate::cpus::allowed_now()[0].to_string();
+        let spin = ["--wait", "spin", "--rt-priority", "80", "--cpus", &cpu];
+        let e = with_preset(&parse(&spin), true).expect_err("spin at FIFO on one CPU").0;
+        assert!(e.starts_with("--wait spin is not allowed with --rt-priority 80 on 1 CPU"), "{e}");
+        let event = ["--wait", "event", "--rt-priority", "80", "--cpus", &cpu];
+        assert!(with_preset(&parse(&event), true).is_ok());
+        assert!(with_preset(&parse(&spin[..2]), true).is_ok(), "spin at the normal policy");
     }
 }

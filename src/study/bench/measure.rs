@@ -271,6 +271,10 @@ pub(super) fn measure_loop(
     let domain = format!("bl{}-{}{suffix}", std::process::id(), base.index);
     let one = place(t, 1, Shape::of_placement(&base.placement));
     let mut run = loop_run_args(a, base, &one.loops[0], domain, out.clone());
+    if let Err(why) = crate::run::args::check_spin_priority(&run) {
+        row.skipped = why.0; // `run` refuses it: the roles would starve one another
+        return Ok(row);
+    }
     run.no_monitor = without_monitor;
     run.no_record = variant == Variant::Before;
     run.no_sched_sample = variant == Variant::NoSched;
