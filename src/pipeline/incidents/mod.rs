@@ -124,7 +124,7 @@ pub struct FaultIncident {
 pub struct Explained {
     /// How many incidents the run had.
     pub count: usize,
-    /// How many of them were costed ([`MAX_COSTED`], [`COST_TICKS_PER_S`]).
+    /// How many of them have a cost ([`MAX_COSTED`], [`COST_TICKS_PER_S`]).
     pub costed: usize,
     /// The ticks their counterfactuals stepped, in all.
     pub counterfactual_ticks: u64,
@@ -418,7 +418,7 @@ pub fn find(
     let mut held = FaultsHeld::new(&run.faults);
     let mut found = Explained {
         count: first.count,
-        costed: first.costed.len(),
+        costed: 0, // each with a cost, as found
         counterfactual_ticks: 0,
         costliest: Vec::new(),
         worst: None,
@@ -455,7 +455,10 @@ pub fn find(
         };
         let cost = law
             .and_then(|law| cost::cost(&run, &flags, w, law, &pass.propagated, outside.is_none()));
-        found.counterfactual_ticks += cost.as_ref().map_or(0, |c| c.ticks);
+        if let Some(c) = &cost {
+            found.costed += 1;
+            found.counterfactual_ticks += c.ticks;
+        }
         let incident = Incident {
             start_tick: w[0],
             end_tick: w[1],
