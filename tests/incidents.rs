@@ -192,7 +192,7 @@ fn a_busy_realtime_process_on_the_controllers_core_is_named_by_the_kernels_figur
         eprintln!("skipped: the kernel has no tracefs (/sys/kernel/tracing)");
         return;
     }
-    let h = Harness::new("inc-busy");
+    let h = Harness::alone("inc-busy");
     let out = h.path("busy");
     let pins = "plant=0,reference=0,monitor=0,controller=1";
     let args = [

@@ -9,7 +9,6 @@ use std::time::{Duration, Instant};
 
 pub const ROTORLOOP: &str = env!("CARGO_BIN_EXE_rotorloop");
 
-/// One test's domain, directory and children.
 /// A 2 MiB tmpfs mounted on a new directory of the harness (mode 0755: a tmpfs's root is
 /// 1777 otherwise, an OUT every user could write in, which a run refuses), unmounted when
 /// dropped: a disk that fills up a second into a run.
@@ -40,16 +39,68 @@ impl Drop for SmallDisk {
     }
 }
 
+/// The machine: shared by every harness, or held alone by a test that loads a CPU at a
+/// real-time priority on purpose ([`Harness::alone`]). Its 50 ms of SCHED_FIFO spin
+/// otherwise landed on the runs beside it (a C controller's run then had 993 of its 2 695
+/// answers reproduced, its references late), and their load on its figures.
+static MACHINE: (std::sync::Mutex<Machine>, std::sync::Condvar) = (
+    std::sync::Mutex::new(Machine { shared: 0, alone: false, waiting: 0 }),
+    std::sync::Condvar::new(),
+);
+
+/// Who holds [`MACHINE`]. A harness made while another is alive never waits (a test may
+/// hold two, or one and start another's thread), so none deadlocks; one waits only while
+/// a test runs alone, or when none is alive and one waits to run alone (which then goes
+/// first).
+struct Machine {
+    /// Harnesses alive that share it.
+    shared: usize,
+    /// Whether a test holds it alone.
+    alone: bool,
+    /// Tests waiting to hold it alone.
+    waiting: usize,
+}
+
+fn machine() -> std::sync::MutexGuard<'static, Machine> {
+    MACHINE.0.lock().unwrap_or_else(|p| p.into_inner())
+}
+
+/// One test's domain, directory and children, and its hold on the machine.
 pub struct Harness {
     pub domain: String,
     pub dir: tempfile::TempDir,
     children: Vec<Running>,
+    /// Whether it holds the machine alone (else it shares it).
+    alone: bool,
 }
 
 impl Harness {
     pub fn new(test: &str) -> Self {
+        let mut m = machine();
+        while m.alone || (m.waiting > 0 && m.shared == 0) {
+            m = MACHINE.1.wait(m).unwrap_or_else(|p| p.into_inner());
+        }
+        m.shared += 1;
+        drop(m);
+        Self::holding(test, false)
+    }
+
+    /// A harness whose test runs with no other harness beside it.
+    pub fn alone(test: &str) -> Self {
+        let mut m = machine();
+        m.waiting += 1;
+        while m.alone || m.shared > 0 {
+            m = MACHINE.1.wait(m).unwrap_or_else(|p| p.into_inner());
+        }
+        (m.waiting, m.alone) = (m.waiting - 1, true);
+        drop(m);
+        Self::holding(test, true)
+    }
+
+    fn holding(test: &str, alone: bool) -> Self {
         let domain = format!("t-{test}-{}", std::process::id());
-        Self { domain, dir: tempfile::tempdir().expect("tempdir"), children: Vec::new() }
+        let dir = tempfile::tempdir().expect("tempdir");
+        Self { domain, dir, children: Vec::new(), alone }
     }
 
     pub fn path(&self, name: &str) -> PathBuf {
@@ -167,6 +218,13 @@ impl Drop for Harness {
             let _ = c.child.kill();
             let _ = c.child.wait();
         }
+        let mut m = machine();
+        match self.alone {
+            true => m.alone = false,
+            false => m.shared -= 1,
+        }
+        drop(m);
+        MACHINE.1.notify_all();
     }
 }
 
