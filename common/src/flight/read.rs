@@ -582,16 +582,9 @@ impl<T: Record> FlightLog<T> {
     }
 
     /// Whether the slot in `source` holds tick `k`'s sample, as [`Self::lookup`] finds it,
-    /// from the slot's first two words alone (its tag and its sample's tick: every
-    /// [`Record`]'s first field).
+    /// from the slot's first two words alone ([`tick_of`]).
     fn holds(&self, id: usize, source: &Source, slot: u64, k: u64) -> bool {
-        self.with_slot(id, source, (slot, 16), |bytes| {
-            let word = |i: usize| {
-                u64::from_ne_bytes(bytes[8 * i..8 * i + 8].try_into().unwrap_or_default())
-            };
-            word(0) == k.wrapping_add(1) && word(1) == k
-        })
-        .unwrap_or(false)
+        self.with_slot(id, source, (slot, 16), |bytes| tick_of(bytes) == Some(k)).unwrap_or(false)
     }
 
     /// `f` of the bytes of `slot` of `source` (its first `len` bytes: a whole slot, or its
@@ -744,6 +737,13 @@ fn read_block<T>(source: &Source, (index, ticks): (u64, bool), bytes: &mut Vec<u
     }
 }
 
+/// The tick a slot holds, from its first two words (its tag, the tick + 1, and its
+/// sample's tick: every [`Record`]'s first field), where they agree.
+fn tick_of(slot: &[u8]) -> Option<u64> {
+    let word = |i: usize| u64::from_ne_bytes(slot[8 * i..8 * i + 8].try_into().unwrap_or_default());
+    word(0).checked_sub(1).filter(|k| word(1) == *k)
+}
+
 /// Calls `f(slot, tick)` for each slot of `source` whose tag and sample agree on a tick,
 /// from those two words alone (a packed chunk decodes two columns of its dozens; one
 /// block in memory at a time).
@@ -753,11 +753,7 @@ fn scan<T: Record>(source: &Source, mut f: impl FnMut(u64, u64)) {
     for index in 0..source.capacity.div_ceil(block_slots) {
         read_block::<T>(source, (index, true), &mut bytes);
         for (i, s) in bytes.chunks_exact(16).enumerate() {
-            let word =
-                |w: usize| u64::from_ne_bytes(s[8 * w..8 * w + 8].try_into().unwrap_or_default());
-            if let Some(k) = word(0).checked_sub(1)
-                && word(1) == k
-            {
+            if let Some(k) = tick_of(s) {
                 f(index * block_slots + i as u64, k);
             }
         }
