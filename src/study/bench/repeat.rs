@@ -9,29 +9,30 @@ use crate::study::stats::{Interval, Verdict, goal, median_interval};
 
 /// The ratio `name` of repetition `loop_row.repeat`: the loop's p50 or p99 over the
 /// baseline's of the same repetition (the timer: the plant's tick lateness over the
-/// timer's wake-up lateness).
+/// timer's wake-up lateness; `p50-law`: the loop's p50 less its law's, [`LAWLESS`]).
 fn ratio(rows: &[Row], l: &Row, base: &str, q: &str) -> Option<f64> {
     let b = rows.iter().find(|r| r.kind == base && r.repeat == l.repeat && r.skipped.is_empty())?;
     let (num, den) = match (base, q) {
         ("timer", "p50") => (l.lateness_p50, b.p50),
         ("timer", _) => (l.lateness_p99, b.p99),
         (_, "p50") => (l.p50, b.p50),
+        (_, "p50-law") => (l.p50 - l.law_p50, b.p50),
         _ => (l.p99, b.p99),
     };
     Some(num / den).filter(|r| r.is_finite())
 }
 
+/// The interval of the ratio of `base` at `q` ([`ratio`]) over the repetitions of one
+/// cell's `rows`.
+fn interval(rows: &[Row], base: &str, q: &str) -> Option<Interval> {
+    let loops = rows.iter().filter(|r| r.kind == "loop" && r.skipped.is_empty());
+    let v: Vec<f64> = loops.filter_map(|l| ratio(rows, l, base, q)).collect();
+    median_interval(&v)
+}
+
 /// Each ratio's interval over the repetitions of one cell's `rows`.
 pub(super) fn intervals(rows: &[Row]) -> Vec<(&'static str, Option<Interval>)> {
-    let loops: Vec<&Row> =
-        rows.iter().filter(|r| r.kind == "loop" && r.skipped.is_empty()).collect();
-    RATIOS
-        .iter()
-        .map(|(name, base, q)| {
-            let v: Vec<f64> = loops.iter().filter_map(|l| ratio(rows, l, base, q)).collect();
-            (*name, median_interval(&v))
-        })
-        .collect()
+    RATIOS.iter().map(|(name, base, q)| (*name, interval(rows, base, q))).collect()
 }
 
 /// Fills the interval columns of the loop rows of one cell measured more than once.
@@ -66,16 +67,7 @@ pub(super) const LAWLESS: &str = "loop_less_law_over_iceoryx2_p50";
 
 /// [`LAWLESS`]'s interval over the repetitions of one cell's `rows`.
 fn lawless(rows: &[Row]) -> Option<Interval> {
-    let v: Vec<f64> = (rows.iter())
-        .filter(|l| l.kind == "loop" && l.skipped.is_empty())
-        .filter_map(|l| {
-            let b = rows
-                .iter()
-                .find(|r| r.kind == "iceoryx2" && r.repeat == l.repeat && r.skipped.is_empty())?;
-            Some((l.p50 - l.law_p50) / b.p50).filter(|r| r.is_finite())
-        })
-        .collect();
-    median_interval(&v)
+    interval(rows, "iceoryx2", "p50-law")
 }
 
 /// The goal a ratio is held to (docs/measurements.md): the loop at most bare iceoryx2,
