@@ -76,28 +76,30 @@ pub struct Harness {
 
 impl Harness {
     pub fn new(test: &str) -> Self {
+        let h = Self::made(test, false);
         let mut m = machine();
         while m.alone || (m.waiting > 0 && m.shared == 0) {
             m = MACHINE.1.wait(m).unwrap_or_else(|p| p.into_inner());
         }
         m.shared += 1;
-        drop(m);
-        Self::holding(test, false)
+        h
     }
 
     /// A harness whose test runs with no other harness beside it.
     pub fn alone(test: &str) -> Self {
+        let h = Self::made(test, true);
         let mut m = machine();
         m.waiting += 1;
         while m.alone || m.shared > 0 {
             m = MACHINE.1.wait(m).unwrap_or_else(|p| p.into_inner());
         }
         (m.waiting, m.alone) = (m.waiting - 1, true);
-        drop(m);
-        Self::holding(test, true)
+        h
     }
 
-    fn holding(test: &str, alone: bool) -> Self {
+    /// The harness before its hold on the machine is taken (made first: nothing that can
+    /// fail comes between the hold and the harness whose drop gives it back).
+    fn made(test: &str, alone: bool) -> Self {
         let domain = format!("t-{test}-{}", std::process::id());
         let dir = tempfile::tempdir().expect("tempdir");
         Self { domain, dir, children: Vec::new(), alone }
