@@ -29,6 +29,7 @@ pub mod ipc;
 pub mod outdir;
 pub mod output;
 pub mod params;
+pub mod prefetch;
 pub mod private;
 pub mod relay;
 pub mod resume;

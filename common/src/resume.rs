@@ -116,6 +116,17 @@ impl<T: Copy + ZeroCopySend> ResumeSlot<T> {
         Some(unsafe { std::ptr::read_volatile(self.copy_ptr(generation)) })
     }
 
+    /// Asks for the cache lines the next [`ResumeSlot::store`] writes
+    /// ([`crate::prefetch`]).
+    #[inline]
+    pub fn prefetch_store(&self) {
+        let generation = self.word(3).load(Ordering::Relaxed) + 1;
+        // SAFETY: the copy lies within the mapping; it is only prefetched, never read.
+        crate::prefetch::lines(unsafe {
+            &*self.copy_ptr(generation).cast::<std::mem::MaybeUninit<T>>()
+        });
+    }
+
     /// Stores `value` (allocation- and syscall-free).
     #[inline]
     pub fn store(&self, value: &T) {

@@ -101,6 +101,14 @@ impl ReferencePairing {
         self.ticks.saw_state(t.tick);
     }
 
+    /// Asks for the cache lines pairing tick `k` reads and writes
+    /// ([`rotorloop_common::prefetch`]).
+    #[inline]
+    pub fn prefetch(&self, k: u64) {
+        rotorloop_common::prefetch::lines(self);
+        rotorloop_common::prefetch::lines(&self.ring[k as usize % RING]);
+    }
+
     /// The state of tick `k` was taken: the tick rule's newest state known.
     pub fn saw_state(&mut self, k: u64) {
         self.ticks.saw_state(k);
@@ -260,6 +268,13 @@ impl TorqueAnswers {
         self.rejected = t.states_rejected;
         self.seq = SeqCounter::resume(t.states_received, t.states_lost, t.tick);
         self.last = Some(*t);
+    }
+
+    /// Asks for the cache lines the rule and the law read and write for the next state
+    /// ([`rotorloop_common::prefetch`]).
+    #[inline]
+    pub fn prefetch(&self) {
+        rotorloop_common::prefetch::lines(self);
     }
 
     /// What the resume slot keeps after answer `last`: it and the law's state now.

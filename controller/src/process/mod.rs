@@ -39,7 +39,9 @@ pub fn run(args: &args::ControllerArgs) -> anyhow::Result<()> {
     loop {
         ports.send_due(&mut sends, &args.corrupt, false)?;
         let until = sends.next_due_ns().unwrap_or(u64::MAX).min(now_ns() + 100_000_000);
-        let Some(recv_ns) = ports.newest_state(&mut answers, role.wait, until, &mut state)? else {
+        let warm = ports::warm(&pairing, &hooks, &sends, &args.corrupt);
+        let Some(recv) = ports.newest_state(&mut answers, role.wait, until, &mut state, warm)?
+        else {
             if shutdown_requested() || ports.plant.run_over() {
                 break;
             }
@@ -57,13 +59,12 @@ pub fn run(args: &args::ControllerArgs) -> anyhow::Result<()> {
             break;
         }
         let paired = now_ns();
-        let mut sample = answers.answer(&state, recv_ns, rd.as_ref(), &pairing, dt);
+        let mut sample = answers.answer(&state, recv, rd.as_ref(), &pairing, dt);
         (sample.validated_ns, sample.paired_ns, sample.computed_ns) = (validated, paired, now_ns());
-        // Slot first: killed between the two, the restart re-sends this very answer when
-        // the plant asks again; the other order would resume with a stale law state.
+        // Slot first: killed between the two, a restart re-sends this answer (not a stale law)
         ports.slot.store(&answers.resume_record(&sample));
         hooks.stop_before_send(k);
-        if let Some(t) = sends.hold(sample, state.t_s, now_ns()) {
+        if let Some(t) = sends.hold(sample, state.t_s, sample.computed_ns) {
             ports.publish(t, &args.corrupt)?;
         }
         ports.references_ahead(&mut pairing)?;
@@ -72,8 +73,7 @@ pub fn run(args: &args::ControllerArgs) -> anyhow::Result<()> {
         }
     }
     ports.send_due(&mut sends, &args.corrupt, true)?; // the last answers held back
-    let Ports { out, states, refs, .. } = ports;
-    drop((states, refs));
-    linger_publisher(&out, role);
+    drop((ports.states, ports.refs)); // the publisher lingers alone
+    linger_publisher(&ports.out, role);
     Ok(())
 }

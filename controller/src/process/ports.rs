@@ -10,16 +10,34 @@ use rotorloop_common::graph::{Role, Topic};
 use rotorloop_common::ipc::ports::{Inbox, Outbox, RoleNode};
 use rotorloop_common::ipc::wait::Wait;
 use rotorloop_common::params::ReferenceState;
+use rotorloop_common::prefetch;
 use rotorloop_common::resume::ResumeSlot;
 use rotorloop_common::role::args::RoleArgs;
 use rotorloop_common::role::end::PlantWatch;
-use rotorloop_common::role::inject::{Corrupt, corrupted};
+use rotorloop_common::role::inject::{Corrupt, TestHooks, corrupted};
 use rotorloop_common::signals::shutdown_requested;
 use rotorloop_common::wire::SendCost;
 use rotorloop_common::wire::{NO_TICK, ReferenceSample, StateSample, TorqueSample, WireFault};
 
 use crate::ROLE;
 use crate::policy::{ControllerResume, Decision, DelayedSends, ReferencePairing, TorqueAnswers};
+
+/// What the first state of a tick asks for besides the rule's state and the resume slot
+/// ([`Ports::newest_state`]): the pairing and tick `k`'s reference entry, the test hooks,
+/// the delay queue and the corruption list.
+pub fn warm<'a>(
+    pairing: &'a ReferencePairing,
+    hooks: &'a TestHooks,
+    sends: &'a DelayedSends,
+    corrupt: &'a [Corrupt],
+) -> impl Fn(u64) + 'a {
+    move |k| {
+        pairing.prefetch(k);
+        prefetch::lines(hooks);
+        prefetch::lines(sends);
+        prefetch::lines(corrupt);
+    }
+}
 
 /// What the controller opens: its torque publisher, reference and state subscribers,
 /// resume slot, and its watch on the plant's end.
@@ -79,16 +97,29 @@ impl Ports {
     /// no more samples is iceoryx2's delivery, not the controller's validation). The
     /// sample is in place before that stamp: nothing is moved after it. The plant watch
     /// sees it.
+    ///
+    /// On the cut hot path, the first state taken asks for the cache lines its answer
+    /// will touch ([`rotorloop_common::prefetch`]): the rule's and the law's state, the
+    /// resume slot's next copy, and what `warm` asks for (given the tick);
+    /// they come while the inbox is read to its end, instead of one miss after another
+    /// as the answer reaches them.
     pub fn newest_state(
         &mut self,
         answers: &mut TorqueAnswers,
         wait: Wait,
         until: u64,
         newest: &mut StateSample,
+        warm: impl Fn(u64),
     ) -> anyhow::Result<Option<u64>> {
+        let (slot, cut) = (&self.slot, self.cut);
         let recv_ns = self.states.wait_for(wait, until, |inbox| {
             let mut any = false;
             inbox.drain(|s| {
+                if cut && !any {
+                    answers.prefetch();
+                    slot.prefetch_store();
+                    warm(s.tick);
+                }
                 answers.take(&s, any);
                 (*newest, any) = (s, true);
             })?;
