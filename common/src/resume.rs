@@ -116,11 +116,18 @@ impl<T: Copy + ZeroCopySend> ResumeSlot<T> {
         Some(unsafe { std::ptr::read_volatile(self.copy_ptr(generation)) })
     }
 
+    /// The generation the next [`ResumeSlot::store`] publishes (its copy: the one not
+    /// currently published).
+    #[inline]
+    fn next_generation(&self) -> u64 {
+        self.word(3).load(Ordering::Relaxed) + 1
+    }
+
     /// Asks for the cache lines the next [`ResumeSlot::store`] writes
     /// ([`crate::prefetch`]).
     #[inline]
     pub fn prefetch_store(&self) {
-        let generation = self.word(3).load(Ordering::Relaxed) + 1;
+        let generation = self.next_generation();
         // SAFETY: the copy lies within the mapping; it is only prefetched, never read.
         crate::prefetch::lines(unsafe {
             &*self.copy_ptr(generation).cast::<std::mem::MaybeUninit<T>>()
@@ -130,7 +137,7 @@ impl<T: Copy + ZeroCopySend> ResumeSlot<T> {
     /// Stores `value` (allocation- and syscall-free).
     #[inline]
     pub fn store(&self, value: &T) {
-        let generation = self.word(3).load(Ordering::Relaxed) + 1;
+        let generation = self.next_generation();
         // SAFETY: writes the copy not currently published; only this process writes.
         unsafe { std::ptr::write_volatile(self.copy_ptr(generation), *value) };
         fence(Ordering::Release);
