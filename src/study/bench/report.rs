@@ -195,15 +195,21 @@ pub(super) const BREAKDOWN: [(Stage, &str); 13] = [
     (Stage::StatePrep, "(plant wake → publish)"),
 ];
 
-/// The `summary.json` of the run a row is: with `--pairs`, the pair whose sense-to-actuate
-/// p50 is the row's (its median run), else the first.
-fn summary_of(a: &BenchArgs, r: &Row) -> Option<Summary> {
-    let cell = a.out.join("cells").join(&r.cell);
+/// The directories a row's run may be in: its repetition's (`--repeat`: the first in the
+/// cell's directory, repetition I in `repI`), then, with `--pairs`, each pair's.
+fn run_dirs(a: &BenchArgs, r: &Row) -> Vec<std::path::PathBuf> {
+    let cell = match r.repeat {
+        0 => a.out.join("cells").join(&r.cell),
+        i => a.out.join("cells").join(&r.cell).join(format!("rep{i}")),
+    };
     let pairs = (1..a.pairs.max(1)).map(|i| cell.join(format!("pair{i}")));
-    let runs: Vec<Summary> = std::iter::once(cell.clone())
-        .chain(pairs)
-        .filter_map(|d| Summary::read(&d.join(&r.kind)).ok())
-        .collect();
+    std::iter::once(cell.clone()).chain(pairs).map(|d| d.join(&r.kind)).collect()
+}
+
+/// The `summary.json` of the run a row is: with `--pairs`, the pair whose sense-to-actuate
+/// p50 is the row's (its median run), else its repetition's.
+fn summary_of(a: &BenchArgs, r: &Row) -> Option<Summary> {
+    let runs: Vec<Summary> = run_dirs(a, r).iter().filter_map(|d| Summary::read(d).ok()).collect();
     let p50 = |j: &Summary| j.hop(Hop::SenseToActuate).p50;
     let median = runs.iter().position(|j| p50(j).is_some_and(|ns| ns / 1e3 == r.p50));
     runs.into_iter().nth(median.unwrap_or(0))
@@ -237,7 +243,11 @@ pub(super) fn breakdown_md(a: &BenchArgs, rows: &[Row]) -> String {
         let Some(j) = summary_of(a, r).filter(|_| r.skipped.is_empty()) else { continue };
         let Some(p50s) = stage_p50s(&j) else { continue };
         let compute = j.hop(Hop::ControllerCompute).p50.map_or(f64::NAN, |ns| ns / 1e3);
-        let _ = write!(md, "| {} | {} | {:.1} | {compute:.2} |", r.cell, r.kind, r.p50);
+        let kind = match r.ci.is_empty() {
+            true => r.kind.clone(),
+            false => format!("{}, repetition {}", r.kind, r.repeat + 1),
+        };
+        let _ = write!(md, "| {} | {kind} | {:.1} | {compute:.2} |", r.cell, r.p50);
         for v in p50s {
             let _ = write!(md, " {v:.2} |");
         }
@@ -770,6 +780,56 @@ mod tests {
         }
         let once = timer_md(&rows[..2]);
         assert!(once.contains("| c | loop | 20.0"), "{once}");
+    }
+
+    /// With `--repeat`, each repetition's row of "Where the microseconds go" holds the
+    /// stages of its own run (`repI`): every row held the first repetition's (the 16-core
+    /// machine's `--repeat 6`, 2026-11-30: six rows, one set of stages).
+    #[test]
+    fn each_repetitions_stages_are_its_own_runs() {
+        #[derive(clap::Parser)]
+        struct Cli {
+            #[command(flatten)]
+            a: BenchArgs,
+        }
+        let dir = tempfile::tempdir().expect("tempdir");
+        let out = dir.path().to_str().expect("utf-8");
+        let a = <Cli as clap::Parser>::parse_from(["bench", "--out", out]).a;
+        let mut rows = Vec::new();
+        for rep in 0..3 {
+            let run = match rep {
+                0 => dir.path().join("cells/c/loop"),
+                r => dir.path().join(format!("cells/c/rep{r}/loop")),
+            };
+            std::fs::create_dir_all(&run).expect("run dir");
+            let law_ns = 100 * (rep + 1);
+            let stages: Vec<serde_json::Value> = BREAKDOWN
+                .iter()
+                .map(|(st, _)| {
+                    let p50 = if *st == Stage::Law { law_ns } else { 10 };
+                    serde_json::json!({"stage": st.name(), "p50": p50})
+                })
+                .collect();
+            let j = serde_json::json!({"hops": {"sense_to_actuate": {"p50": 4000 + rep}},
+                                       "stages": stages});
+            std::fs::write(run.join("summary.json"), j.to_string()).expect("summary");
+            rows.push(Row {
+                cell: "c".into(),
+                kind: "loop".into(),
+                p50: (4000 + rep) as f64 / 1e3,
+                repeat: rep,
+                ci: vec!["1".into()],
+                ..Row::default()
+            });
+        }
+        let md = breakdown_md(&a, &rows);
+        let lines: Vec<&str> = md.lines().filter(|l| l.starts_with("| c |")).collect();
+        assert_eq!(lines.len(), 3, "{md}");
+        for (rep, line) in lines.iter().enumerate() {
+            assert!(line.contains(&format!("loop, repetition {}", rep + 1)), "{line}");
+            let law = format!("| {:.2} |", 0.1 * (rep + 1) as f64);
+            assert!(line.contains(&law), "repetition {rep}'s law {law}: {line}");
+        }
     }
 
     /// With `--repeat`, a scale cell gets one section, the bare pair's limit the median
