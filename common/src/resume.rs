@@ -123,15 +123,17 @@ impl<T: Copy + ZeroCopySend> ResumeSlot<T> {
         self.word(3).load(Ordering::Relaxed) + 1
     }
 
-    /// Asks for the cache lines the next [`ResumeSlot::store`] writes
-    /// ([`crate::prefetch`]).
+    /// Asks for the cache lines the next [`ResumeSlot::store`] writes, for writing
+    /// ([`crate::prefetch::lines_for_write`]): its copy and the generation word, which
+    /// the launcher reads every 2 ms (a role's progress) from its own core.
     #[inline]
     pub fn prefetch_store(&self) {
         let generation = self.next_generation();
         // SAFETY: the copy lies within the mapping; it is only prefetched, never read.
-        crate::prefetch::lines(unsafe {
+        crate::prefetch::lines_for_write(unsafe {
             &*self.copy_ptr(generation).cast::<std::mem::MaybeUninit<T>>()
         });
+        crate::prefetch::lines_for_write(self.word(3));
     }
 
     /// Stores `value` (allocation- and syscall-free).

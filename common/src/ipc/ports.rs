@@ -82,6 +82,18 @@ impl<T: ZeroCopySend + Debug + Copy + 'static> Outbox<T> {
         Ok(())
     }
 
+    /// Asks for the lines of the sample [`Outbox::preloan`] holds, for writing
+    /// ([`crate::prefetch::lines_for_write`]): its chunk of shared memory was last read
+    /// by a subscriber on another core, and the send writes it. Nothing when none is held.
+    #[inline]
+    pub fn prefetch_loaned(&self) {
+        let held = self.preloaned.0.take();
+        if let Some((Held::Loaned(s), _)) = &held {
+            crate::prefetch::lines_for_write(s.payload());
+        }
+        self.preloaned.0.set(held);
+    }
+
     /// Loans a sample now, and what that cost (ns).
     #[inline]
     fn loan(&self) -> Result<(Uninit<T>, u64), IpcError> {

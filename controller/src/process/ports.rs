@@ -23,8 +23,9 @@ use crate::ROLE;
 use crate::policy::{ControllerResume, Decision, DelayedSends, ReferencePairing, TorqueAnswers};
 
 /// What the first state of a tick asks for besides the rule's state and the resume slot
-/// ([`Ports::newest_state`]): the pairing and tick `k`'s reference entry, the test hooks,
-/// the delay queue and the corruption list.
+/// ([`Ports::newest_state`]): the numbers the state's validation compares with, the
+/// pairing and tick `k`'s reference entry, the test hooks, the delay queue and the
+/// corruption list.
 pub fn warm<'a>(
     pairing: &'a ReferencePairing,
     hooks: &'a TestHooks,
@@ -32,6 +33,7 @@ pub fn warm<'a>(
     corrupt: &'a [Corrupt],
 ) -> impl Fn(u64) + 'a {
     move |k| {
+        rotorloop_common::wire::prefetch_sweep();
         pairing.prefetch(k);
         prefetch::lines(hooks);
         prefetch::lines(sends);
@@ -100,7 +102,9 @@ impl Ports {
     ///
     /// On the cut hot path, the first state taken asks for the cache lines its answer
     /// will touch ([`rotorloop_common::prefetch`]): the rule's and the law's state, the
-    /// resume slot's next copy, and what `warm` asks for (given the tick);
+    /// resume slot's next copy and the torque sample loaned ahead (both for writing: the
+    /// launcher and the plant read them last, from their cores), and what `warm` asks for
+    /// (given the tick);
     /// they come while the inbox is read to its end, instead of one miss after another
     /// as the answer reaches them.
     pub fn newest_state(
@@ -111,13 +115,14 @@ impl Ports {
         newest: &mut StateSample,
         warm: impl Fn(u64),
     ) -> anyhow::Result<Option<u64>> {
-        let (slot, cut) = (&self.slot, self.cut);
+        let (slot, out, cut) = (&self.slot, &self.out, self.cut);
         let recv_ns = self.states.wait_for(wait, until, |inbox| {
             let mut any = false;
             inbox.drain(|s| {
                 if cut && !any {
                     answers.prefetch();
                     slot.prefetch_store();
+                    out.prefetch_loaned();
                     warm(s.tick);
                 }
                 answers.take(&s, any);
