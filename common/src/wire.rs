@@ -913,6 +913,41 @@ mod tests {
         assert_eq!(refused, 4 * 31 + 9 * 2, "{refused} refused, {passed} passed");
     }
 
+    /// Near the tolerance the sweep's rotation test (`RᵀR − I` and `det R − 1` each
+    /// within it) and the field path's deviation (their largest magnitude) give the same
+    /// verdict (the sweep alone: where it refuses, `validate` asks the field path), for a stretched, a sheared and a rotated-then-stretched `R`, on both sides
+    /// of the tolerance, for the state and the reference.
+    #[test]
+    fn the_sweep_and_the_deviation_agree_on_a_rotation_at_the_tolerance() {
+        let (c, s) = (0.6_f64, 0.8_f64);
+        let turned = [c, -s, 0.0, s, c, 0.0, 0.0, 0.0, 1.0];
+        let (mut accepted, mut refused) = (0, 0);
+        for base in [[1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0], turned] {
+            for k in 0..=40 {
+                let e = WIRE_ORTHONORMAL_TOL * (k as f64) / 40.0;
+                for (i, scale) in [(4, 1.0 + e / 2.0), (0, 1.0 - e / 2.0), (1, 1.0), (8, 1.0 + e)] {
+                    let mut m = base;
+                    m[i] = if i == 1 { base[1] + e } else { base[i] * scale };
+                    let want = rotation_deviation(&m) <= WIRE_ORTHONORMAL_TOL;
+                    // The sweep by itself: a refusal of it falls back to the field path.
+                    assert_eq!(is_rotation(&m, &sweep()), want, "R = {m:?}");
+                    let mut st = good_state();
+                    st.r_row_major = m;
+                    assert_eq!(st.validate().is_ok(), want, "state, R = {m:?}");
+                    assert_eq!(st.validate(), st.first_fault(), "state, R = {m:?}");
+                    let mut r = ReferenceSample::zeroed(1);
+                    r.r_d_row_major = m;
+                    assert_eq!(r.validate(), r.first_fault(), "reference, R_d = {m:?}");
+                    if want { accepted += 1 } else { refused += 1 }
+                }
+            }
+        }
+        assert!(
+            accepted > 20 && refused > 20,
+            "both sides: {accepted} accepted, {refused} refused"
+        );
+    }
+
     #[test]
     fn torque_validation_scales_with_the_configured_limit() {
         let t = TorqueSample { tick: 1, rotor_torque_nm: [3.0, -2.0, 900.0], ..Default::default() };
