@@ -542,10 +542,11 @@ fn check_entries(field: &'static str, v: &[f64], limit: f64) -> Result<(), WireF
 }
 
 /// The numbers the sweep of a good sample compares with ([`StateSample::validate`],
-/// [`ReferenceSample::validate`]), each bound as `[-b, b]`, in one place read as data. Folded into the code as constants they were five loads from the binary's
-/// constant pool, on three pages shared with unrelated code: after a wait each was a
-/// miss of its own (the validation of a state took about 250 ns where its work alone is
-/// about 35). Two lines, asked for with the rest of the tick's ([`prefetch_sweep`]).
+/// [`ReferenceSample::validate`]), each bound as `[-b, b]`, in one place read as data.
+/// Folded into the code as constants they were five loads from the binary's constant
+/// pool, on three pages shared with unrelated code: after a wait each was a miss of its
+/// own (the validation of a state took about 250 ns where its work alone is about 35).
+/// Two lines, asked for with the rest of the tick's ([`prefetch_sweep`]).
 #[repr(C, align(64))]
 struct Sweep {
     magnitude: [f64; 2],
@@ -571,7 +572,7 @@ fn sweep() -> Sweep {
     unsafe { std::ptr::read_volatile(&SWEEP) }
 }
 
-/// Asks for the line of the numbers a sample's validation compares with
+/// Asks for the lines of the numbers a sample's validation compares with
 /// ([`crate::prefetch`]).
 #[inline(always)]
 pub fn prefetch_sweep() {
