@@ -206,6 +206,14 @@ fn run_dirs(a: &BenchArgs, r: &Row) -> Vec<std::path::PathBuf> {
     std::iter::once(cell.clone()).chain(pairs).map(|d| d.join(&r.kind)).collect()
 }
 
+/// A row's kind, with its repetition where its cell was measured more than once.
+fn labelled(r: &Row) -> String {
+    match r.ci.is_empty() {
+        true => r.kind.clone(),
+        false => format!("{}, repetition {}", r.kind, r.repeat + 1),
+    }
+}
+
 /// The `summary.json` of the run a row is: with `--pairs`, the pair whose sense-to-actuate
 /// p50 is the row's (its median run), else its repetition's.
 fn summary_of(a: &BenchArgs, r: &Row) -> Option<Summary> {
@@ -243,11 +251,7 @@ pub(super) fn breakdown_md(a: &BenchArgs, rows: &[Row]) -> String {
         let Some(j) = summary_of(a, r).filter(|_| r.skipped.is_empty()) else { continue };
         let Some(p50s) = stage_p50s(&j) else { continue };
         let compute = j.hop(Hop::ControllerCompute).p50.map_or(f64::NAN, |ns| ns / 1e3);
-        let kind = match r.ci.is_empty() {
-            true => r.kind.clone(),
-            false => format!("{}, repetition {}", r.kind, r.repeat + 1),
-        };
-        let _ = write!(md, "| {} | {kind} | {:.1} | {compute:.2} |", r.cell, r.p50);
+        let _ = write!(md, "| {} | {} | {:.1} | {compute:.2} |", r.cell, labelled(r), r.p50);
         for v in p50s {
             let _ = write!(md, " {v:.2} |");
         }
@@ -722,17 +726,18 @@ pub(super) fn controllers_md(rows: &[Row], a: &BenchArgs) -> String {
             let _ = writeln!(md, "| {} | {} | skipped: {} | | | | |", r.cell, r.kind, r.skipped);
             continue;
         }
-        let bare =
-            rows.iter().find(|b| b.cell == r.cell && b.kind == "iceoryx2" && b.skipped.is_empty());
+        let bare = rows.iter().find(|b| {
+            b.cell == r.cell && b.repeat == r.repeat && b.kind == "iceoryx2" && b.skipped.is_empty()
+        });
         let ratio = bare.map_or("—".to_owned(), |b| format!("{:.2}", r.p50 / b.p50));
-        let s = Summary::read(&a.out.join("cells").join(&r.cell).join(&r.kind)).unwrap_or_default();
+        let s = summary_of(a, r).unwrap_or_default();
         let compute = s.hop(Hop::ControllerCompute);
         let law = us(s.stage(Stage::Law).and_then(|l| l.p50));
         let _ = writeln!(
             md,
             "| {} | {} | {:.1} / {:.1} | {ratio} | {:.1} / {:.1} | {:.2} | {} |",
             r.cell,
-            r.kind,
+            labelled(r),
             r.p50,
             r.p99,
             us(compute.p50),
@@ -782,9 +787,10 @@ mod tests {
         assert!(once.contains("| c | loop | 20.0"), "{once}");
     }
 
-    /// With `--repeat`, each repetition's row of "Where the microseconds go" holds the
-    /// stages of its own run (`repI`): every row held the first repetition's (the 16-core
-    /// machine's `--repeat 6`, 2026-11-30: six rows, one set of stages).
+    /// With `--repeat`, each repetition's row of "Where the microseconds go" and of "What
+    /// each controller costs" holds the figures of its own run (`repI`), the latter over
+    /// its own repetition's bare round trip: every row held the first repetition's (the
+    /// 16-core machine's `--repeat 6`, 2026-11-30: six rows, one set of stages).
     #[test]
     fn each_repetitions_stages_are_its_own_runs() {
         #[derive(clap::Parser)]
@@ -794,7 +800,7 @@ mod tests {
         }
         let dir = tempfile::tempdir().expect("tempdir");
         let out = dir.path().to_str().expect("utf-8");
-        let a = <Cli as clap::Parser>::parse_from(["bench", "--out", out]).a;
+        let a = <Cli as clap::Parser>::parse_from(["bench", "--out", out, "--controllers", "c"]).a;
         let mut rows = Vec::new();
         for rep in 0..3 {
             let run = match rep {
@@ -821,12 +827,30 @@ mod tests {
                 ci: vec!["1".into()],
                 ..Row::default()
             });
+            let bare_p50 = (rep + 1) as f64;
+            rows.push(Row {
+                cell: "c".into(),
+                kind: "iceoryx2".into(),
+                p50: bare_p50,
+                repeat: rep,
+                ..Row::default()
+            });
         }
         let md = breakdown_md(&a, &rows);
         let lines: Vec<&str> = md.lines().filter(|l| l.starts_with("| c |")).collect();
         assert_eq!(lines.len(), 3, "{md}");
         for (rep, line) in lines.iter().enumerate() {
             assert!(line.contains(&format!("loop, repetition {}", rep + 1)), "{line}");
+            let law = format!("| {:.2} |", 0.1 * (rep + 1) as f64);
+            assert!(line.contains(&law), "repetition {rep}'s law {law}: {line}");
+        }
+        // "What each controller costs": each repetition's law, and its own bare round trip.
+        let md = controllers_md(&rows, &a);
+        let lines: Vec<&str> = md.lines().filter(|l| l.starts_with("| c |")).collect();
+        assert_eq!(lines.len(), 3, "{md}");
+        for (rep, (line, ratio)) in lines.iter().zip(["4.00", "2.00", "1.33"]).enumerate() {
+            assert!(line.contains(&format!("loop, repetition {}", rep + 1)), "{line}");
+            assert!(line.contains(&format!("| {ratio} |")), "over its own bare: {line}");
             let law = format!("| {:.2} |", 0.1 * (rep + 1) as f64);
             assert!(line.contains(&law), "repetition {rep}'s law {law}: {line}");
         }
