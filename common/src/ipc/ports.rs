@@ -55,15 +55,24 @@ pub(super) struct Preloaned<T: ZeroCopySend + Debug + Copy + 'static>(
     pub(super) Cell<Option<(Held<T>, u64)>>,
 );
 
+impl<T: ZeroCopySend + Debug + Copy + 'static> Preloaned<T> {
+    /// `f` on the sample held, in place (the cell is taken and put back around it).
+    #[inline]
+    fn with<R>(&self, f: impl FnOnce(&mut Option<(Held<T>, u64)>) -> R) -> R {
+        let mut held = self.0.take();
+        let r = f(&mut held);
+        self.0.set(held);
+        r
+    }
+}
+
 impl<T: ZeroCopySend + Debug + Copy + 'static> Debug for Preloaned<T> {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        let held = self.0.take();
-        let what = match &held {
+        let what = self.with(|held| match held {
             None => "none",
             Some((Held::Loaned(_), _)) => "a sample",
             Some((Held::Written(_), _)) => "a written sample",
-        };
-        self.0.set(held);
+        });
         write!(f, "Preloaned({what})")
     }
 }
@@ -73,8 +82,7 @@ impl<T: ZeroCopySend + Debug + Copy + 'static> Outbox<T> {
     /// controller after it published): the send then costs no loan, and its
     /// [`SendCost::loan_ns`] is what this loan cost. Keeps a sample already held.
     pub fn preloan(&self) -> Result<(), IpcError> {
-        if let Some(held) = self.preloaned.0.take() {
-            self.preloaned.0.set(Some(held));
+        if self.preloaned.with(|held| held.is_some()) {
             return Ok(());
         }
         let (sample, loan_ns) = self.loan()?;
@@ -87,11 +95,11 @@ impl<T: ZeroCopySend + Debug + Copy + 'static> Outbox<T> {
     /// by a subscriber on another core, and the send writes it. Nothing when none is held.
     #[inline]
     pub fn prefetch_loaned(&self) {
-        let held = self.preloaned.0.take();
-        if let Some((Held::Loaned(s), _)) = &held {
-            crate::prefetch::lines_for_write(s.payload());
-        }
-        self.preloaned.0.set(held);
+        self.preloaned.with(|held| {
+            if let Some((Held::Loaned(s), _)) = held {
+                crate::prefetch::lines_for_write(s.payload());
+            }
+        });
     }
 
     /// Loans a sample now, and what that cost (ns).
@@ -126,13 +134,10 @@ impl<T: ZeroCopySend + Debug + Copy + 'static> Outbox<T> {
     /// held. The pointer stays valid until that send (the sample's memory does not move
     /// with the handle that owns it).
     pub fn prewritten_ptr(&self) -> Option<*mut T> {
-        let mut held = self.preloaned.0.take();
-        let ptr = match &mut held {
+        self.preloaned.with(|held| match held {
             Some((Held::Written(s), _)) => Some(std::ptr::from_mut(s.payload_mut())),
             _ => None,
-        };
-        self.preloaned.0.set(held);
-        ptr
+        })
     }
 
     /// Sends the sample [`Outbox::prewrite`] wrote, `patch`ed with the publish stamp it is
