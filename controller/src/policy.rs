@@ -270,11 +270,12 @@ impl TorqueAnswers {
         self.last = Some(*t);
     }
 
-    /// Asks for the cache lines the rule and the law read and write for the next state
-    /// ([`rotorloop_common::prefetch`]).
+    /// Asks for the cache lines the rule and the law read and write for the next state,
+    /// and the numbers its validation compares with ([`rotorloop_common::prefetch`]).
     #[inline]
     pub fn prefetch(&self) {
         rotorloop_common::prefetch::lines(self);
+        rotorloop_common::wire::prefetch_sweep();
     }
 
     /// What the resume slot keeps after answer `last`: it and the law's state now.

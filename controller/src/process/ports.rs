@@ -22,10 +22,9 @@ use rotorloop_common::wire::{NO_TICK, ReferenceSample, StateSample, TorqueSample
 use crate::ROLE;
 use crate::policy::{ControllerResume, Decision, DelayedSends, ReferencePairing, TorqueAnswers};
 
-/// What the first state of a tick asks for besides the rule's state and the resume slot
-/// ([`Ports::newest_state`]): the numbers the state's validation compares with, the
-/// pairing and tick `k`'s reference entry, the test hooks, the delay queue and the
-/// corruption list.
+/// What the first state of a tick asks for besides the rule's state, the resume slot and
+/// the loaned torque ([`Ports::newest_state`]): the pairing and tick `k`'s reference
+/// entry, the test hooks, the delay queue and the corruption list.
 pub fn warm<'a>(
     pairing: &'a ReferencePairing,
     hooks: &'a TestHooks,
@@ -33,7 +32,6 @@ pub fn warm<'a>(
     corrupt: &'a [Corrupt],
 ) -> impl Fn(u64) + 'a {
     move |k| {
-        rotorloop_common::wire::prefetch_sweep();
         pairing.prefetch(k);
         prefetch::lines(hooks);
         prefetch::lines(sends);
@@ -101,12 +99,11 @@ impl Ports {
     /// sees it.
     ///
     /// On the cut hot path, the first state taken asks for the cache lines its answer
-    /// will touch ([`rotorloop_common::prefetch`]): the rule's and the law's state, the
-    /// resume slot's next copy and the torque sample loaned ahead (both for writing: the
-    /// launcher and the plant read them last, from their cores), and what `warm` asks for
-    /// (given the tick);
-    /// they come while the inbox is read to its end, instead of one miss after another
-    /// as the answer reaches them.
+    /// will touch ([`rotorloop_common::prefetch`]): the rule's and the law's state and
+    /// the validation's bounds, the resume slot's next copy and the torque sample loaned
+    /// ahead (both for writing: the launcher and the plant read them last, from their
+    /// cores), and what `warm` asks for (given the tick); they come while the inbox is
+    /// read to its end, instead of one miss after another as the answer reaches them.
     pub fn newest_state(
         &mut self,
         answers: &mut TorqueAnswers,
