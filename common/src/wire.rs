@@ -587,12 +587,24 @@ fn within(v: &[f64], [lo, hi]: [f64; 2]) -> bool {
     v.iter().fold(true, |ok, &x| ok & (lo <= x) & (x <= hi))
 }
 
+/// What SO(3) asks to be zero of `R` (row-major `m`): the nine entries of `RᵀR − I`
+/// and `det R − 1`, with `one` for 1 (the sweep's own, [`Sweep::one`], read as data).
+#[inline(always)]
+fn rotation_residuals(m: &[f64; 9], one: f64) -> [f64; 10] {
+    let r = mat(m);
+    let g = (r.transpose() * r).to_cols_array();
+    let mut res = [g[0], g[1], g[2], g[3], g[4], g[5], g[6], g[7], g[8], r.determinant()];
+    for i in [0, 4, 8, 9] {
+        res[i] -= one;
+    }
+    res
+}
+
 /// `R`'s deviation from SO(3): the largest entry of `|RᵀR − I|` and `|det R − 1|`.
 #[inline]
 fn rotation_deviation(m: &[f64; 9]) -> f64 {
-    let r = mat(m);
-    let g = r.transpose() * r - DMat3::IDENTITY;
-    g.to_cols_array().iter().fold((r.determinant() - 1.0).abs(), |a, x| a.max(x.abs()))
+    let res = rotation_residuals(m, 1.0);
+    res[..9].iter().fold(res[9].abs(), |a, x| a.max(x.abs()))
 }
 
 /// Whether [`check_rotation`] accepts `m` (entries within 2 and on SO(3)), without a
@@ -601,15 +613,7 @@ fn rotation_deviation(m: &[f64; 9]) -> f64 {
 /// through.
 #[inline(always)]
 fn is_rotation(m: &[f64; 9], b: &Sweep) -> bool {
-    if !within(m, b.rotation_entry) {
-        return false;
-    }
-    let r = mat(m);
-    let mut g = (r.transpose() * r).to_cols_array();
-    for i in [0, 4, 8] {
-        g[i] -= b.one;
-    }
-    within(&g, b.orthonormal) & within(&[r.determinant() - b.one], b.orthonormal)
+    within(m, b.rotation_entry) && within(&rotation_residuals(m, b.one), b.orthonormal)
 }
 
 #[inline]
