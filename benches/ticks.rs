@@ -157,8 +157,8 @@ fn controller_stages(c: &mut Criterion) {
         let mut sends = DelayedSends::new(Vec::new());
         b.iter(|| {
             for (t, st) in torques.iter().zip(&states) {
-                slot.store(&answers.resume_record(black_box(t)));
-                black_box(sends.hold(*t, st.t_s, 0));
+                slot.store_with(|r| answers.write_resume_record(r, black_box(t)));
+                black_box(sends.holds_back(t, st.t_s, 0));
             }
         });
     });
@@ -189,7 +189,7 @@ fn resume_slot(c: &mut Criterion) {
     g.bench_function("store_answer_and_law_state", |b| {
         b.iter(|| {
             for _ in 0..BATCH {
-                after.store(&answers.resume_record(black_box(&answer)));
+                after.store_with(|r| answers.write_resume_record(r, black_box(&answer)));
             }
         });
     });

@@ -146,6 +146,22 @@ impl<T: Copy + ZeroCopySend> ResumeSlot<T> {
         self.word(3).store(generation, Ordering::Release);
     }
 
+    /// [`ResumeSlot::store`] of a value written in place: `write` is given the copy not
+    /// currently published (it holds an older value: `write` sets every field), which is
+    /// then published. A value assembled from parts (the controller's answer and its
+    /// law's state) is written once, not built aside and copied.
+    #[inline]
+    pub fn store_with(&self, write: impl FnOnce(&mut T)) {
+        let generation = self.next_generation();
+        // SAFETY: the copy not currently published is only this process's to write; it
+        // lies in the mapping, is aligned (page-aligned base, 64-byte stride) and holds
+        // initialised bytes (a file's), and T is plain old data valid for any bit pattern
+        // of its f64/u64 fields (as `load` reads it).
+        write(unsafe { &mut *self.copy_ptr(generation) });
+        fence(Ordering::Release);
+        self.word(3).store(generation, Ordering::Release);
+    }
+
     /// Forgets the stored sample (a finished run is not resumed).
     pub fn clear(&self) {
         self.word(3).store(0, Ordering::Release);

@@ -283,6 +283,14 @@ impl TorqueAnswers {
         ControllerResume { last: *last, law: self.law.state().0 }
     }
 
+    /// [`Self::resume_record`] written into `r` in place (a resume slot's copy:
+    /// [`rotorloop_common::resume::ResumeSlot::store_with`]).
+    #[inline]
+    pub fn write_resume_record(&self, r: &mut ControllerResume, last: &TorqueSample) {
+        r.last = *last;
+        r.law = self.law.state().0;
+    }
+
     /// Whether this controller resumed from (or has sent) an answer.
     pub fn last(&self) -> Option<TorqueSample> {
         self.last
@@ -409,19 +417,31 @@ impl DelayedSends {
     /// The answer `t` to the state of time `t_s`, ready at `now_ns`: `Some(t)` to send now,
     /// or `None` when it is held back.
     pub fn hold(&mut self, t: TorqueSample, t_s: f64, now_ns: u64) -> Option<TorqueSample> {
+        (!self.holds_back(&t, t_s, now_ns)).then_some(t)
+    }
+
+    /// [`Self::hold`] by reference: whether `t` was held back (then it was copied into
+    /// the queue); false to send it now. Without injected delays (the queue is then
+    /// empty) a test of one length, inline: no copy of the answer, no call.
+    #[inline]
+    pub fn holds_back(&mut self, t: &TorqueSample, t_s: f64, now_ns: u64) -> bool {
+        !self.delays.is_empty() && self.queue_if_delayed(t, t_s, now_ns)
+    }
+
+    fn queue_if_delayed(&mut self, t: &TorqueSample, t_s: f64, now_ns: u64) -> bool {
         let active =
             self.delays.iter().find(|d| t_s >= d.from_s && d.until_s.is_none_or(|u| t_s < u));
         match active {
             Some(d) => {
-                self.queue.push_back((now_ns + (d.delay_s * 1e9) as u64, t));
-                None
+                self.queue.push_back((now_ns + (d.delay_s * 1e9) as u64, *t));
+                true
             }
-            None if self.queue.is_empty() => Some(t),
+            None if self.queue.is_empty() => false,
             None => {
                 // Behind answers still held: keep the order.
                 let due = self.queue.back().map_or(now_ns, |b| b.0);
-                self.queue.push_back((due, t));
-                None
+                self.queue.push_back((due, *t));
+                true
             }
         }
     }

@@ -159,6 +159,13 @@ impl Corruptible for TorqueSample {
 /// its tick. The caller keeps (and stores for a restart) the true sample.
 #[inline]
 pub fn corrupted<T: Corruptible>(corrupt: &[Corrupt], mut sample: T) -> T {
+    corrupt_in_place(corrupt, &mut sample);
+    sample
+}
+
+/// [`corrupted`] in place.
+#[inline]
+pub fn corrupt_in_place<T: Corruptible>(corrupt: &[Corrupt], sample: &mut T) {
     let tick = sample.tick();
     for c in corrupt.iter().filter(|c| c.tick == tick) {
         let (v, r) = sample.targets();
@@ -170,5 +177,4 @@ pub fn corrupted<T: Corruptible>(corrupt: &[Corrupt], mut sample: T) -> T {
             (CorruptKind::Skew, None) => v[0] = f64::NAN,
         }
     }
-    sample
 }

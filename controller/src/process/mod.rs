@@ -62,10 +62,10 @@ pub fn run(args: &args::ControllerArgs) -> anyhow::Result<()> {
         let mut sample = answers.answer(&state, recv, rd.as_ref(), &pairing, dt);
         (sample.validated_ns, sample.paired_ns, sample.computed_ns) = (validated, paired, now_ns());
         // Slot first: killed between the two, a restart re-sends this answer (not a stale law)
-        ports.slot.store(&answers.resume_record(&sample));
+        ports.slot.store_with(|r| answers.write_resume_record(r, &sample));
         hooks.stop_before_send(k);
-        if let Some(t) = sends.hold(sample, state.t_s, sample.computed_ns) {
-            ports.publish(t, &args.corrupt)?;
+        if !sends.holds_back(&sample, state.t_s, sample.computed_ns) {
+            ports.publish(&sample, &args.corrupt)?;
         }
         ports.references_ahead(&mut pairing)?;
         if state.flags & FLAG_LAST != 0 {

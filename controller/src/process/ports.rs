@@ -14,7 +14,7 @@ use rotorloop_common::prefetch;
 use rotorloop_common::resume::ResumeSlot;
 use rotorloop_common::role::args::RoleArgs;
 use rotorloop_common::role::end::PlantWatch;
-use rotorloop_common::role::inject::{Corrupt, TestHooks, corrupted};
+use rotorloop_common::role::inject::{Corrupt, TestHooks, corrupt_in_place};
 use rotorloop_common::signals::shutdown_requested;
 use rotorloop_common::wire::SendCost;
 use rotorloop_common::wire::{NO_TICK, ReferenceSample, StateSample, TorqueSample, WireFault};
@@ -195,11 +195,15 @@ impl Ports {
     }
 
     /// Publishes a torque (corrupted where fault injection says so), carrying what the
-    /// previous publish cost.
-    pub fn publish(&self, mut t: TorqueSample, corrupt: &[Corrupt]) -> anyhow::Result<()> {
-        (t.prev_tick, t.prev_publish) = self.last_publish.get();
-        let stamp = |s: &mut TorqueSample, t1: u64| s.publish_ns = t1;
-        let sent = self.out.send_stamped(corrupted(corrupt, t), stamp, |s| self.flight.record(s));
+    /// previous publish cost. Taken by reference, and filled in after the publish stamp
+    /// ([`Outbox::send_patched`]): nothing of it is copied before that stamp.
+    pub fn publish(&self, t: &TorqueSample, corrupt: &[Corrupt]) -> anyhow::Result<()> {
+        let prev = self.last_publish.get();
+        let patch = |s: &mut TorqueSample, t1: u64| {
+            (s.prev_tick, s.prev_publish, s.publish_ns) = (prev.0, prev.1, t1);
+            corrupt_in_place(corrupt, s);
+        };
+        let sent = self.out.send_patched(t, patch, |s| self.flight.record(s));
         self.last_publish.set((t.tick, sent.context("controller: publishing torque")?));
         if self.cut {
             // The next answer's sample, loaned now (after this one is on its way) rather
@@ -218,7 +222,7 @@ impl Ports {
     ) -> anyhow::Result<()> {
         loop {
             while let Some(t) = sends.due(now_ns()) {
-                self.publish(t, corrupt)?;
+                self.publish(&t, corrupt)?;
             }
             match sends.next_due_ns() {
                 Some(due) if all => std::thread::sleep(std::time::Duration::from_nanos(
