@@ -58,12 +58,23 @@ enum RefEntry {
     Rejected(u64),
 }
 
+/// The last reference paired (held over a miss): by its tick while its ring entry still
+/// holds it, so that a pairing copies no sample; copied out only when a later sample
+/// takes that entry ([`ReferencePairing::take`]), off the path from a state to its answer.
+#[derive(Debug, Clone, Copy)]
+#[allow(clippy::large_enum_variant)]
+enum LastPaired {
+    None,
+    InRing(u64),
+    Kept(ReferenceSample),
+}
+
 /// The pairing rule (module docs).
 #[derive(Debug, Clone)]
 pub struct ReferencePairing {
     ring: Vec<RefEntry>,
     ticks: TickBound,
-    last: Option<ReferenceSample>,
+    last: LastPaired,
     held: u64,
     hold_ticks: u64,
     dt: f64,
@@ -86,7 +97,7 @@ impl ReferencePairing {
         Self {
             ring: vec![RefEntry::Empty; RING],
             ticks: TickBound::new(last),
-            last: None,
+            last: LastPaired::None,
             held: 0,
             hold_ticks,
             dt,
@@ -122,7 +133,13 @@ impl ReferencePairing {
             self.rejected += 1;
             return;
         }
-        self.ring[r.tick as usize % RING] = match r.validate() {
+        let i = r.tick as usize % RING;
+        if let (LastPaired::InRing(t), RefEntry::Valid(kept)) = (self.last, &self.ring[i])
+            && kept.tick == t
+        {
+            self.last = LastPaired::Kept(*kept);
+        }
+        self.ring[i] = match r.validate() {
             Ok(()) => RefEntry::Valid(r),
             Err(_) => {
                 self.rejected += 1;
@@ -164,10 +181,15 @@ impl ReferencePairing {
     pub fn finish(&mut self, k: u64, missed: bool) -> Option<ReferenceState> {
         if let Some(r) = self.lookup(k) {
             let rd = r.reference_state();
-            self.last = Some(*r);
+            self.last = LastPaired::InRing(k);
             return Some(rd);
         }
-        let r = self.last.filter(|r| missed && r.tick < k)?;
+        let r = match self.last {
+            LastPaired::None => None,
+            LastPaired::InRing(t) => self.lookup(t).copied(),
+            LastPaired::Kept(r) => Some(r),
+        };
+        let r = r.filter(|r| missed && r.tick < k)?;
         self.held += 1;
         (self.held <= self.hold_ticks).then(|| propagate(&r, k, self.dt))
     }
@@ -520,6 +542,27 @@ mod tests {
         p.take(reference(4, 0.7), no_plant);
         assert_eq!(pair(&mut p, 4).expect("paired").omega_d.z, 0.7);
         assert_eq!(p.misses(), 0);
+    }
+
+    #[test]
+    fn the_reference_held_over_a_miss_survives_its_ring_entry_being_taken() {
+        let last = 10 * RING as u64;
+        let mut p = ReferencePairing::new(5, DT, last);
+        p.take(reference(1, 2.0), no_plant);
+        pair(&mut p, 1).expect("tick 1");
+        // Tick 1's entry is taken by a later tick (the tick rule asks the plant, which
+        // has published that far), then by a rejected one.
+        let far = 1 + RING as u64;
+        p.take(reference(far, 9.0), || Some(far));
+        let bad =
+            ReferenceSample { omega_d_rad_s: [f64::NAN; 3], ..reference(far + RING as u64, 9.0) };
+        p.take(bad, || Some(far + RING as u64));
+        assert!(p.rejected_at(far + RING as u64), "the entry now marks a rejected tick");
+        assert_eq!(p.lookup(1).map(|r| r.tick), None, "tick 1's entry holds another tick");
+        let rd = pair(&mut p, 3).expect("tick 1's reference, held");
+        let expected = exp(2.0 * DT * glam::DVec3::new(0.0, 0.0, 2.0));
+        assert!(rd.r_d.abs_diff_eq(expected, 1e-15), "R_d ← R_d exp(2 Δt Ω_d), from tick 1's");
+        assert_eq!(rd.omega_d.z, 2.0, "tick 1's Ω_d, not the later samples'");
     }
 
     #[test]

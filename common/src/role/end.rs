@@ -60,11 +60,18 @@ impl PlantWatch {
 
     /// A state of tick `tick` arrived, received at `recv_ns` (the receiver's own clock
     /// read: no second one on the hot path).
+    #[inline]
     pub fn saw_state(&mut self, tick: u64, recv_ns: u64) {
         self.last_state_ns = recv_ns;
         if std::mem::take(&mut self.gone) {
-            eprintln!("{}: plant back at tick {tick}", self.role);
+            self.back(tick);
         }
+    }
+
+    /// The plant is back (its line, out of the tick's code).
+    #[cold]
+    fn back(&self, tick: u64) {
+        eprintln!("{}: plant back at tick {tick}", self.role);
     }
 
     /// A wait ended without a state: whether the run is over (stop).
