@@ -65,12 +65,6 @@ impl<T: ZeroCopySend + Debug + Copy + 'static> Preloaned<T> {
         // reach the cell again, so this is its only reference while `f` runs.
         f(unsafe { &mut *self.0.as_ptr() })
     }
-
-    /// Whether a sample loaned ahead and not written is held.
-    #[inline]
-    fn has_loaned(&self) -> bool {
-        self.with(|held| matches!(held, Some((Held::Loaned(_), _))))
-    }
 }
 
 impl<T: ZeroCopySend + Debug + Copy + 'static> Debug for Preloaned<T> {
@@ -230,29 +224,30 @@ impl<T: ZeroCopySend + Debug + Copy + 'static> Outbox<T> {
     }
 
     /// [`Outbox::send_stamped`] of a value taken by reference: after the clock read that
-    /// starts the send (the publish stamp), it is copied, `patch`ed with that stamp and
-    /// written into the sample. Nothing is copied before the stamp, so the value need
-    /// not be built for the send (the controller's answer, kept for its resume slot).
+    /// starts the send (the publish stamp), it is written into the sample and `patch`ed
+    /// there with that stamp; `after` gets a copy patched the same way, once the
+    /// listeners are notified. Nothing of the value is copied before the stamp, and
+    /// nothing but the copy into the sample before the send, so the value need not be
+    /// built for the send (the controller's answer, kept for its resume slot).
     #[inline]
     pub fn send_patched(
         &self,
         value: &T,
-        patch: impl FnOnce(&mut T, u64),
+        patch: impl Fn(&mut T, u64),
         after: impl FnOnce(&T),
     ) -> Result<SendCost, IpcError> {
-        // The sample loaned ahead is moved out of its cell after the stamp: the move is
-        // a copy of the cell, part of the send.
-        let stamp = self.preloaned.has_loaned().then(now_ns);
         let (sample, loan_ns) = match self.preloaned.0.take() {
             Some((Held::Loaned(s), ns)) => (s, ns),
             // A send of another value: a sample written ahead goes back.
             Some((Held::Written(_), _)) | None => self.loan()?,
         };
-        let t1 = stamp.unwrap_or_else(now_ns);
-        let mut value = *value;
-        patch(&mut value, t1);
-        let cost = self.send_and_notify(sample.write_payload(value), loan_ns, t1)?;
-        after(&value);
+        let t1 = now_ns();
+        let mut sample = sample.write_payload(*value);
+        patch(sample.payload_mut(), t1);
+        let cost = self.send_and_notify(sample, loan_ns, t1)?;
+        let mut sent = *value;
+        patch(&mut sent, t1);
+        after(&sent);
         Ok(cost)
     }
 
