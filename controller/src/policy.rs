@@ -58,23 +58,16 @@ enum RefEntry {
     Rejected(u64),
 }
 
-/// The last reference paired (held over a miss): by its tick while its ring entry still
-/// holds it, so that a pairing copies no sample; copied out only when a later sample
-/// takes that entry ([`ReferencePairing::take`]), off the path from a state to its answer.
-#[derive(Debug, Clone, Copy)]
-#[allow(clippy::large_enum_variant)]
-enum LastPaired {
-    None,
-    InRing(u64),
-    Kept(ReferenceSample),
-}
-
 /// The pairing rule (module docs).
 #[derive(Debug, Clone)]
 pub struct ReferencePairing {
     ring: Vec<RefEntry>,
     ticks: TickBound,
-    last: LastPaired,
+    /// The last reference paired, held over a miss: a copy made after the answer
+    /// ([`ReferencePairing::settle`]), not at the pairing, which only notes its tick
+    /// (`paired`); the ring still holds that tick's sample until the copy is made.
+    last: Option<ReferenceSample>,
+    paired: Option<u64>,
     held: u64,
     hold_ticks: u64,
     dt: f64,
@@ -97,7 +90,8 @@ impl ReferencePairing {
         Self {
             ring: vec![RefEntry::Empty; RING],
             ticks: TickBound::new(last),
-            last: LastPaired::None,
+            last: None,
+            paired: None,
             held: 0,
             hold_ticks,
             dt,
@@ -133,19 +127,26 @@ impl ReferencePairing {
             self.rejected += 1;
             return;
         }
-        let i = r.tick as usize % RING;
-        if let (LastPaired::InRing(t), RefEntry::Valid(kept)) = (self.last, &self.ring[i])
-            && kept.tick == t
-        {
-            self.last = LastPaired::Kept(*kept);
-        }
-        self.ring[i] = match r.validate() {
+        self.ring[r.tick as usize % RING] = match r.validate() {
             Ok(()) => RefEntry::Valid(r),
             Err(_) => {
                 self.rejected += 1;
                 RefEntry::Rejected(r.tick)
             }
         };
+    }
+
+    /// After an answer (before any more references are taken): the reference just paired
+    /// is copied out of the ring, where a later sample may take its entry, to be held
+    /// over a miss. Off the path from a state to its answer, where a pairing copied the
+    /// 240-byte sample before.
+    #[inline]
+    pub fn settle(&mut self) {
+        if let Some(t) = self.paired.take()
+            && let Some(r) = self.lookup(t)
+        {
+            self.last = Some(*r);
+        }
     }
 
     /// Tick `k`'s reference sample, if it is here (in the ring: not copied).
@@ -181,15 +182,11 @@ impl ReferencePairing {
     pub fn finish(&mut self, k: u64, missed: bool) -> Option<ReferenceState> {
         if let Some(r) = self.lookup(k) {
             let rd = r.reference_state();
-            self.last = LastPaired::InRing(k);
+            self.paired = Some(k);
             return Some(rd);
         }
-        let r = match self.last {
-            LastPaired::None => None,
-            LastPaired::InRing(t) => self.lookup(t).copied(),
-            LastPaired::Kept(r) => Some(r),
-        };
-        let r = r.filter(|r| missed && r.tick < k)?;
+        let unsettled = self.paired.and_then(|t| self.lookup(t)).copied();
+        let r = unsettled.or(self.last).filter(|r| missed && r.tick < k)?;
         self.held += 1;
         (self.held <= self.hold_ticks).then(|| propagate(&r, k, self.dt))
     }
@@ -550,6 +547,7 @@ mod tests {
         let mut p = ReferencePairing::new(5, DT, last);
         p.take(reference(1, 2.0), no_plant);
         pair(&mut p, 1).expect("tick 1");
+        p.settle(); // after the answer, as the shell does
         // Tick 1's entry is taken by a later tick (the tick rule asks the plant, which
         // has published that far), then by a rejected one.
         let far = 1 + RING as u64;
