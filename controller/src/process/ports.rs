@@ -185,9 +185,9 @@ impl Ports {
     /// After an answer is on its way: the reference just paired is settled (copied out
     /// of the ring: [`ReferencePairing::settle`]); on the hot path cut, the references
     /// that came are taken, so that the next tick's is in hand when its state arrives,
-    /// and its pairing is a lookup. The reference works ahead, so the drain and each sample's checks are done
-    /// here, off the path from a state to its answer, rather than at the next tick's
-    /// pairing.
+    /// and its pairing is a lookup. The reference works ahead, so the drain and each
+    /// sample's checks are done here, off the path from a state to its answer, rather
+    /// than at the next tick's pairing.
     pub fn references_ahead(&self, pairing: &mut ReferencePairing) -> anyhow::Result<()> {
         pairing.settle(); // before a sample taken can reuse the entry of the one just paired
         if self.cut {
