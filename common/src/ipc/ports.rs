@@ -211,7 +211,11 @@ impl<T: ZeroCopySend + Debug + Copy + 'static> Outbox<T> {
         stamp: impl FnOnce(&mut T, u64),
         after: impl FnOnce(&T),
     ) -> Result<SendCost, IpcError> {
-        let (sample, loan_ns) = self.loaned_for_send()?;
+        let (sample, loan_ns) = match self.preloaned.0.take() {
+            Some((Held::Loaned(s), ns)) => (s, ns),
+            // A send of another value: a sample written ahead goes back.
+            Some((Held::Written(_), _)) | None => self.loan()?,
+        };
         let t1 = now_ns();
         stamp(&mut value, t1);
         let cost = self.send_and_notify(sample.write_payload(value), loan_ns, t1)?;
@@ -232,7 +236,11 @@ impl<T: ZeroCopySend + Debug + Copy + 'static> Outbox<T> {
         patch: impl Fn(&mut T, u64),
         after: impl FnOnce(&T),
     ) -> Result<SendCost, IpcError> {
-        let (sample, loan_ns) = self.loaned_for_send()?;
+        let (sample, loan_ns) = match self.preloaned.0.take() {
+            Some((Held::Loaned(s), ns)) => (s, ns),
+            // A send of another value: a sample written ahead goes back.
+            Some((Held::Written(_), _)) | None => self.loan()?,
+        };
         let t1 = now_ns();
         let mut sample = sample.write_payload(*value);
         patch(sample.payload_mut(), t1);
@@ -241,16 +249,6 @@ impl<T: ZeroCopySend + Debug + Copy + 'static> Outbox<T> {
         patch(&mut sent, t1);
         after(&sent);
         Ok(cost)
-    }
-
-    /// The sample a send of a new value writes: the one loaned ahead, else one loaned now
-    /// (a sample written ahead, for another value, goes back), and what its loan cost.
-    #[inline]
-    fn loaned_for_send(&self) -> Result<(Uninit<T>, u64), IpcError> {
-        match self.preloaned.0.take() {
-            Some((Held::Loaned(s), ns)) => Ok((s, ns)),
-            Some((Held::Written(_), _)) | None => self.loan(),
-        }
     }
 
     /// Sends a written sample and notifies the listeners: what the loan cost (`loan_ns`),
