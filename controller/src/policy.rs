@@ -297,12 +297,16 @@ impl TorqueAnswers {
         rotorloop_common::wire::prefetch_sweep();
     }
 
-    /// What the resume slot keeps after answer `last`: it and the law's state now.
+    /// What the resume slot keeps after answer `last` ([`Self::write_resume_record`], the
+    /// one definition, which the slot's store uses in place), as a value.
     pub fn resume_record(&self, last: &TorqueSample) -> ControllerResume {
-        ControllerResume { last: *last, law: self.law.state().0 }
+        let mut r = ControllerResume { last: *last, law: [0.0; LawState::LEN] };
+        self.write_resume_record(&mut r, last);
+        r
     }
 
-    /// [`Self::resume_record`] written into `r` in place (a resume slot's copy:
+    /// What the resume slot keeps after answer `last`: it and the law's state now, written
+    /// into `r` in place (a resume slot's copy:
     /// [`rotorloop_common::resume::ResumeSlot::store_with`]).
     #[inline]
     pub fn write_resume_record(&self, r: &mut ControllerResume, last: &TorqueSample) {
