@@ -943,12 +943,17 @@ done; done"#,
 /// lands in a directory of root's alone (0700, a random name). Before, root chmodded the
 /// planted directory 0700, the other user still read the summary, and the link was written
 /// through. Needs root with `mount` and a second user; skipped with a message elsewhere.
+///
+/// Once the loop runs (the trace has rows), the test takes OUT's last inodes: a full disk
+/// alone left room now and then (a journal's frame that did not fit is cut off again), and
+/// a loaded machine's monitor once wrote its whole report into OUT there (CI, stop 76).
 #[test]
 fn the_fallback_report_directory_cannot_be_planted() {
     let Some(user) = TempUser::for_test("the_fallback_report_directory_…") else { return };
     let mut h = Harness::new("fallback");
     let secret = Secret::new(&h);
-    let Some(disk) = crate::common::harness::SmallDisk::mount(&h, "full") else {
+    let Some(disk) = crate::common::harness::SmallDisk::mount_with(&h, "full", ",nr_inodes=64")
+    else {
         eprintln!("SKIPPED the_fallback_report_directory_…: cannot mount a tmpfs here");
         return;
     };
@@ -981,8 +986,16 @@ fn the_fallback_report_directory_cannot_be_planted() {
     .map(str::to_owned)
     .collect();
     let run = h.spawn(ROTORLOOP, &args);
+    let trace = out.join("trace.csv");
+    let started = Instant::now();
+    while !std::fs::metadata(&trace).is_ok_and(|m| m.len() > 0) && started.elapsed() < LIMIT {
+        std::thread::sleep(Duration::from_millis(10));
+    }
+    let taken = disk.take_every_inode();
     let status = h.wait_all(3 * LIMIT);
     let err = h.stderr_of(run);
+    assert!(trace.exists(), "the monitor never wrote its trace: {err}");
+    eprintln!("took OUT's last {taken} inodes once the trace had rows");
     let planted: Vec<String> = std::fs::read_dir(&old)
         .expect("the planted directory stays")
         .flatten()

@@ -18,10 +18,15 @@ impl SmallDisk {
     /// Mounts it on `h.path(name)`; `None` where `mount` is not allowed (not root, or no
     /// CAP_SYS_ADMIN): the caller skips with a message.
     pub fn mount(h: &Harness, name: &str) -> Option<Self> {
+        Self::mount_with(h, name, "")
+    }
+
+    /// As [`SmallDisk::mount`], with more of tmpfs's options (`,nr_inodes=64`).
+    pub fn mount_with(h: &Harness, name: &str, more: &str) -> Option<Self> {
         let dir = h.path(name);
         std::fs::create_dir_all(&dir).expect("dir");
         let mounted = Command::new("mount")
-            .args(["-t", "tmpfs", "-o", "size=2m,mode=0755", "tmpfs"])
+            .args(["-t", "tmpfs", "-o", &format!("size=2m,mode=0755{more}"), "tmpfs"])
             .arg(&dir)
             .output()
             .is_ok_and(|o| o.status.success());
@@ -30,6 +35,20 @@ impl SmallDisk {
 
     pub fn path(&self) -> &Path {
         &self.0
+    }
+
+    /// Makes empty files (`.inode-N`) until the disk has no inode left, so that no file can
+    /// be made on it any more whatever space is freed (a run's full disk frees some now and
+    /// then: a journal's frame that did not fit is cut off again). Returns how many it made.
+    pub fn take_every_inode(&self) -> usize {
+        for n in 0.. {
+            let made = std::fs::File::create_new(self.0.join(format!(".inode-{n}")));
+            if let Err(e) = made {
+                assert_eq!(e.raw_os_error(), Some(28), "not ENOSPC: {e}");
+                return n;
+            }
+        }
+        unreachable!()
     }
 }
 
