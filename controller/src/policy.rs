@@ -348,7 +348,9 @@ impl TorqueAnswers {
 
     /// The answer to state `s` (received at `recv_ns`), tracking `rd`; with `None` (a
     /// rejected state or nothing to track) a skipped answer. The counts of `pairing` go
-    /// into the sample; `publish_ns` is left for the send.
+    /// into the sample; `publish_ns` is left for the send. The answer rule learns of it
+    /// from [`TorqueAnswers::gave`], once it is sent: its copy is not the law's work, and
+    /// was inside the law's stage (`computed_ns` is when the torques were computed).
     pub fn answer(
         &mut self,
         s: &StateSample,
@@ -383,8 +385,15 @@ impl TorqueAnswers {
             prev_tick: NO_TICK,
             prev_publish: Default::default(),
         };
-        self.last = Some(sample);
         sample
+    }
+
+    /// Answer `t` was given (sent, or held back to be sent): a state of its tick again
+    /// gets it again, without its stage stamps (theirs were this sending's), and an older
+    /// one nothing. Called after the publish, off the hop.
+    #[inline]
+    pub fn gave(&mut self, t: &TorqueSample) {
+        self.last = Some(TorqueSample { validated_ns: 0, paired_ns: 0, computed_ns: 0, ..*t });
     }
 }
 
@@ -659,10 +668,13 @@ mod tests {
         let rd = reference(0, 0.1).reference_state();
         assert_eq!(a.decide(&s0), Decision::Answer { fault: None, first_rejection: false });
         let first = a.answer(&s0, 5, Some(&rd), &p, DT);
-        assert_eq!(a.decide(&s0), Decision::AnswerAgain(first));
+        assert!(matches!(a.decide(&s0), Decision::Answer { .. }), "not given yet");
+        a.gave(&TorqueSample { validated_ns: 7, paired_ns: 8, computed_ns: 9, ..first });
+        assert_eq!(a.decide(&s0), Decision::AnswerAgain(first), "without this sending's stamps");
         let older = StateSample { tick: 0, ..s0 };
         let s1 = StateSample { tick: 1, ..s0 };
-        a.answer(&s1, 6, Some(&rd), &p, DT);
+        let second = a.answer(&s1, 6, Some(&rd), &p, DT);
+        a.gave(&second);
         assert_eq!(a.decide(&older), Decision::Ignore);
         assert_eq!(a.last().expect("answered").published, 2, "no second integration");
     }

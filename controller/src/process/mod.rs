@@ -67,6 +67,7 @@ pub fn run(args: &args::ControllerArgs) -> anyhow::Result<()> {
         if !sends.holds_back(&sample, state.t_s, sample.computed_ns) {
             ports.publish(&sample, &args.corrupt)?;
         }
+        answers.gave(&sample);
         ports.references_ahead(&mut pairing)?;
         if state.flags & FLAG_LAST != 0 {
             break;
