@@ -66,26 +66,41 @@ impl<T: ZeroCopySend + Debug + Copy + 'static> Preloaned<T> {
         f(unsafe { &mut *self.0.as_ptr() })
     }
 
-    /// The loaned sample held, if it is one, taken out of the cell with one copy of it
-    /// (`Cell::take` copied the whole cell, and the match on it copied the sample twice
-    /// more: three moves of about 200 bytes before a send's stamp). A written sample held
-    /// is dropped (a send of another value: it goes back).
+    /// The sample held, taken out of the cell with one copy of it, where `pick` finds it
+    /// (the kind wanted); else the cell is left as it is. `Cell::take` copied the whole
+    /// cell, and a match on it the sample twice more: three moves of about 200 bytes
+    /// before a send's stamp.
     #[inline(always)]
-    fn take_loaned(&self) -> Option<(Uninit<T>, u64)> {
+    fn take_picked<S>(&self, pick: impl FnOnce(&Held<T>) -> Option<&S>) -> Option<(S, u64)> {
         let cell = self.0.as_ptr();
-        // SAFETY: as `with`'s: this is the cell's only reference while it lives. The
-        // sample is read out of it once, and the cell then overwritten with `None`
-        // without dropping what was there, so that sample has exactly one owner: the one
-        // returned.
+        // SAFETY: as `with`'s: this is the cell's only reference while it lives. `pick`
+        // returns a part of the held sample (its lifetime is the cell's reference's), which
+        // is read out once; the cell is then overwritten with `None` without dropping what
+        // was there, so the sample has exactly one owner: the one returned.
         unsafe {
-            if let Some((Held::Loaned(sample), ns)) = &*cell {
-                let taken = (std::ptr::read(sample), *ns);
-                std::ptr::write(cell, None);
-                return Some(taken);
+            if let Some((held, ns)) = &*cell {
+                if let Some(sample) = pick(held) {
+                    let taken = (std::ptr::read(sample), *ns);
+                    std::ptr::write(cell, None);
+                    return Some(taken);
+                }
             }
         }
-        drop(self.0.take());
         None
+    }
+
+    /// The loaned sample held, if it is one ([`Preloaned::take_picked`]). A written
+    /// sample held is dropped (a send of another value: it goes back).
+    #[inline(always)]
+    fn take_loaned(&self) -> Option<(Uninit<T>, u64)> {
+        let held = self.take_picked(|h| match h {
+            Held::Loaned(s) => Some(s),
+            Held::Written(_) => None,
+        });
+        if held.is_none() {
+            drop(self.0.take());
+        }
+        held
     }
 }
 
@@ -174,12 +189,12 @@ impl<T: ZeroCopySend + Debug + Copy + 'static> Outbox<T> {
         patch: impl Fn(&mut T, u64),
         after: impl FnOnce(&T),
     ) -> Result<SendCost, IpcError> {
-        let (mut sample, loan_ns) = match self.preloaned.0.take() {
-            Some((Held::Written(s), ns)) => (s, ns),
-            other => {
-                self.preloaned.0.set(other);
-                return self.send_then(value, |v| patch(v, now_ns()), after);
-            }
+        let written = self.preloaned.take_picked(|h| match h {
+            Held::Written(s) => Some(s),
+            Held::Loaned(_) => None,
+        });
+        let Some((mut sample, loan_ns)) = written else {
+            return self.send_then(value, |v| patch(v, now_ns()), after);
         };
         let t1 = now_ns();
         patch(sample.payload_mut(), t1);
