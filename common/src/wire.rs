@@ -577,6 +577,88 @@ fn sweep() -> Sweep {
 #[inline(always)]
 pub fn prefetch_sweep() {
     crate::prefetch::lines(&SWEEP);
+    crate::prefetch::lines(&STATE_BOUNDS);
+}
+
+/// The bound of each number of a state's sweep ([`StateSample::validate`]), entry by
+/// entry so that the sweep compares two at a time (`within_each`): `R` through `τ`
+/// (24 numbers in a row from `r_row_major`), `h` and `p` (6 in a row), and `RᵀR − I`
+/// with `det R − 1` (10). Read as data, like [`SWEEP`]; six lines, prefetched with it.
+#[repr(C, align(64))]
+struct StateBounds {
+    /// `-0.0`: the sign bit `|x|` clears.
+    sign: [f64; 2],
+    core: [f64; 24],
+    internal: [f64; 6],
+    orthonormal: [f64; 10],
+}
+
+const M: f64 = MAX_WIRE_MAGNITUDE;
+const A: f64 = MAX_WIRE_ACCUMULATED;
+static STATE_BOUNDS: StateBounds = StateBounds {
+    sign: [-0.0, -0.0],
+    #[rustfmt::skip]
+    core: [
+        2.0, 2.0, 2.0, 2.0, 2.0, 2.0, 2.0, 2.0, 2.0, // R's entries
+        M, M, M, // ω
+        M, M, M, // Ω
+        A, A, A, // θ
+        M, M, M, // u applied
+        M, M, M, // τ applied
+    ],
+    internal: [A; 6],
+    orthonormal: [WIRE_ORTHONORMAL_TOL; 10],
+};
+
+// The state's numbers the two runs of bounds cover lie in a row, as `within_each` reads them.
+const _: () = {
+    use std::mem::offset_of;
+    assert!(
+        offset_of!(StateSample, applied_body_torque_nm) + 24
+            == offset_of!(StateSample, r_row_major) + 8 * 24
+    );
+    assert!(offset_of!(StateSample, internal_p) == offset_of!(StateSample, internal_h) + 24);
+};
+
+/// Whether every `|v[i]| ≤ b[i]` (NaN and ±∞ fail): the same test as [`within`]'s
+/// `[-b, b]`, two entries at a time with SSE2 (x86-64's baseline), one mask at the end.
+/// `sign` is [`StateBounds::sign`]. Elsewhere, entry by entry.
+#[inline(always)]
+fn within_each<const N: usize>(v: &[f64; N], b: &[f64; N], sign: &[f64; 2]) -> bool {
+    const { assert!(N % 2 == 0) };
+    #[cfg(target_arch = "x86_64")]
+    {
+        use std::arch::x86_64::{
+            _mm_and_pd, _mm_andnot_pd, _mm_cmple_pd, _mm_loadu_pd, _mm_movemask_pd,
+        };
+        // SAFETY: SSE2 is part of x86-64; every load reads two f64 within `v`, `b` or
+        // `sign` (N is even).
+        unsafe {
+            let s = _mm_loadu_pd(sign.as_ptr());
+            let pair = |i: usize| {
+                let x = _mm_andnot_pd(s, _mm_loadu_pd(v.as_ptr().add(i)));
+                _mm_cmple_pd(x, _mm_loadu_pd(b.as_ptr().add(i)))
+            };
+            let mut ok = pair(0);
+            let mut i = 2;
+            while i < N {
+                ok = _mm_and_pd(ok, pair(i));
+                i += 2;
+            }
+            _mm_movemask_pd(ok) == 3
+        }
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    {
+        let _ = sign;
+        v.iter().zip(b).fold(true, |ok, (x, b)| ok & (x.abs() <= *b))
+    }
+}
+
+/// [`STATE_BOUNDS`], its lines read (not folded into the code as constants).
+#[inline(always)]
+fn state_bounds() -> &'static StateBounds {
+    std::hint::black_box(&STATE_BOUNDS)
 }
 
 /// Whether [`check_entries`] accepts `v` (every entry finite and within `b`: `[-limit,
@@ -632,16 +714,24 @@ impl StateSample {
     /// refused one is checked field by field for the first fault, which names the field.
     #[inline]
     pub fn validate(&self) -> Result<(), WireFault> {
-        let b = sweep();
+        let (b, e) = (sweep(), state_bounds());
+        let base = std::ptr::from_ref(self).cast::<u8>();
+        // SAFETY: the numbers from `r_row_major` through `applied_body_torque_nm`, and
+        // `internal_h` with `internal_p`, are f64 fields in a row (asserted at
+        // `STATE_BOUNDS`), read through a pointer to the whole sample.
+        let (core, internal) = unsafe {
+            (
+                &*base.add(std::mem::offset_of!(Self, r_row_major)).cast::<[f64; 24]>(),
+                &*base.add(std::mem::offset_of!(Self, internal_h)).cast::<[f64; 6]>(),
+            )
+        };
         let good = within(&[self.t_s], b.accumulated)
-            & within(&self.omega_body_rad_s, b.magnitude)
-            & within(&self.omega_rotor_rad_s, b.magnitude)
-            & within(&self.theta_rotor_rad, b.accumulated)
-            & within(&self.applied_rotor_torque_nm, b.magnitude)
-            & within(&self.applied_body_torque_nm, b.magnitude)
-            & within(&self.internal_h, b.accumulated)
-            & within(&self.internal_p, b.accumulated);
-        if good && is_rotation(&self.r_row_major, &b) {
+            & within_each(core, &e.core, &e.sign)
+            & within_each(internal, &e.internal, &e.sign);
+        // `R`'s entries are within [-2, 2] (in `core`), as `is_rotation` asks first.
+        if good
+            && within_each(&rotation_residuals(&self.r_row_major, b.one), &e.orthonormal, &e.sign)
+        {
             return Ok(());
         }
         self.first_fault()

@@ -364,7 +364,7 @@ impl TorqueAnswers {
             None => Default::default(),
         };
         self.published += 1;
-        let sample = TorqueSample {
+        TorqueSample {
             tick: s.tick,
             rotor_torque_nm: out.rotor_torque.to_array(),
             body_torque_nm: out.body_torque.to_array(),
@@ -384,8 +384,7 @@ impl TorqueAnswers {
             computed_ns: 0,
             prev_tick: NO_TICK,
             prev_publish: Default::default(),
-        };
-        sample
+        }
     }
 
     /// Answer `t` was given (sent, or held back to be sent): a state of its tick again
