@@ -8,9 +8,7 @@ pub mod args;
 mod ports;
 
 use rotorloop_common::clock::now_ns;
-use rotorloop_common::role::UsageError;
-use rotorloop_common::role::args::Mode;
-use rotorloop_common::role::end::linger_publisher;
+use rotorloop_common::role::{UsageError, args::Mode, end::linger_publisher};
 use rotorloop_common::signals::shutdown_requested;
 use rotorloop_common::wire::{FLAG_LAST, StateSample};
 
