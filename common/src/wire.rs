@@ -593,21 +593,23 @@ struct StateBounds {
     orthonormal: [f64; 10],
 }
 
-const M: f64 = MAX_WIRE_MAGNITUDE;
-const A: f64 = MAX_WIRE_ACCUMULATED;
-static STATE_BOUNDS: StateBounds = StateBounds {
-    sign: [-0.0, -0.0],
-    #[rustfmt::skip]
-    core: [
-        2.0, 2.0, 2.0, 2.0, 2.0, 2.0, 2.0, 2.0, 2.0, // R's entries
-        M, M, M, // ω
-        M, M, M, // Ω
-        A, A, A, // θ
-        M, M, M, // u applied
-        M, M, M, // τ applied
-    ],
-    internal: [A; 6],
-    orthonormal: [WIRE_ORTHONORMAL_TOL; 10],
+static STATE_BOUNDS: StateBounds = {
+    const M: f64 = MAX_WIRE_MAGNITUDE;
+    const A: f64 = MAX_WIRE_ACCUMULATED;
+    StateBounds {
+        sign: [-0.0, -0.0],
+        #[rustfmt::skip]
+        core: [
+            2.0, 2.0, 2.0, 2.0, 2.0, 2.0, 2.0, 2.0, 2.0, // R's entries
+            M, M, M, // ω
+            M, M, M, // Ω
+            A, A, A, // θ
+            M, M, M, // u applied
+            M, M, M, // τ applied
+        ],
+        internal: [A; 6],
+        orthonormal: [WIRE_ORTHONORMAL_TOL; 10],
+    }
 };
 
 // The state's numbers the two runs of bounds cover lie in a row, as `within_each` reads them.
