@@ -835,7 +835,7 @@ mod tests {
         let domain = Domain::new(&format!("ipc-pl{}", std::process::id())).expect("domain");
         let node = domain.node("plant").expect("node");
         let outbox = domain.outbox::<u64>(&node, Topic::State).expect("outbox");
-        let inbox = domain.inbox::<u64>(&node, Topic::State, 4, false).expect("inbox");
+        let inbox = domain.inbox::<u64>(&node, Topic::State, 8, false).expect("inbox");
         outbox.update_connections();
         let held = |o: &Outbox<u64>| format!("{o:?}").contains("Preloaned(a sample)");
         assert!(!held(&outbox));
@@ -857,9 +857,13 @@ mod tests {
         // Nothing written ahead: the value patched, sent the plain way.
         outbox.send_prewritten(200, patch, |v| seen = *v).expect("send");
         assert_eq!(seen, 201);
+        // Loaned ahead but not written (a placeholder): the value written, then patched.
+        outbox.preloan().expect("loan");
+        outbox.send_prewritten(300, patch, |v| seen = *v).expect("send");
+        assert_eq!(seen, 301);
         let mut got = Vec::new();
         inbox.drain(|v| got.push(v)).expect("receive");
-        assert_eq!(got, [7, 8, 101, 201]);
+        assert_eq!(got, [7, 8, 101, 201, 301]);
         drop((inbox, outbox, node));
         domain.cleanup().expect("cleanup");
     }

@@ -39,68 +39,45 @@ pub struct Outbox<T: ZeroCopySend + Debug + Copy + 'static> {
     pub(super) preloaned: Preloaned<T>,
 }
 
-/// A loaned sample not written yet.
+/// A loaned sample not written yet: 200 bytes (its flat-buffer builder).
 type Uninit<T> = SampleMutUninit<ipc::Service, MaybeUninit<T>, ()>;
 
-/// A sample an [`Outbox`] loaned ahead of its send.
-pub(super) enum Held<T: ZeroCopySend + Debug + Copy + 'static> {
-    /// Loaned, not written.
-    Loaned(Uninit<T>),
-    /// Loaned and written.
-    Written(SampleMut<ipc::Service, T, ()>),
-}
+/// A loaned sample written: 48 bytes, moved inline (no call to `memcpy`).
+type Written<T> = SampleMut<ipc::Service, T, ()>;
 
-/// The sample an [`Outbox`] holds for its next send, if any, and what its loan cost (ns).
+/// The sample an [`Outbox`] loaned and wrote ahead of its next send, if any, and what its
+/// loan cost (ns). It is held written ([`Outbox::preloan`] writes a default value, which
+/// the send overwrites): taking an unwritten one out of the cell copied its 200 bytes with
+/// a call to `memcpy` before the publish stamp (18 ns of the controller's preparation at
+/// p50, by `rdtscp` marks).
 pub(super) struct Preloaned<T: ZeroCopySend + Debug + Copy + 'static>(
-    pub(super) Cell<Option<(Held<T>, u64)>>,
+    pub(super) Cell<Option<Held<T>>>,
 );
 
+/// A sample an [`Outbox`] holds for its next send.
+pub(super) struct Held<T: ZeroCopySend + Debug + Copy + 'static> {
+    sample: Written<T>,
+    /// What its loan cost (ns).
+    loan_ns: u64,
+    /// Written with the value to send ([`Outbox::prewrite`]), not a placeholder
+    /// ([`Outbox::preloan`]).
+    prewritten: bool,
+}
+
 impl<T: ZeroCopySend + Debug + Copy + 'static> Preloaned<T> {
-    /// `f` on the sample held, in place: not taken out and put back, two copies of the
-    /// 208-byte cell (each a call to `memcpy`) on the tick's path.
+    /// `f` on the sample held, in place: not taken out and put back.
     #[inline]
-    fn with<R>(&self, f: impl FnOnce(&mut Option<(Held<T>, u64)>) -> R) -> R {
+    fn with<R>(&self, f: impl FnOnce(&mut Option<Held<T>>) -> R) -> R {
         // SAFETY: the cell is this outbox's alone and not `Sync`; no reference into it
-        // outlives a call of `with` or `take`, and `f` (this module's closures) does not
-        // reach the cell again, so this is its only reference while `f` runs.
+        // outlives a call of `with`, and `f` (this module's closures) does not reach the
+        // cell again, so this is its only reference while `f` runs.
         f(unsafe { &mut *self.0.as_ptr() })
     }
 
-    /// The sample held, taken out of the cell with one copy of it, where `pick` finds it
-    /// (the kind wanted); else the cell is left as it is. `Cell::take` copied the whole
-    /// cell, and a match on it the sample twice more: three moves of about 200 bytes
-    /// before a send's stamp.
+    /// The sample held, taken out (the cell is left empty).
     #[inline(always)]
-    fn take_picked<S>(&self, pick: impl FnOnce(&Held<T>) -> Option<&S>) -> Option<(S, u64)> {
-        let cell = self.0.as_ptr();
-        // SAFETY: as `with`'s: this is the cell's only reference while it lives. `pick`
-        // returns a part of the held sample (its lifetime is the cell's reference's), which
-        // is read out once; the cell is then overwritten with `None` without dropping what
-        // was there, so the sample has exactly one owner: the one returned.
-        unsafe {
-            if let Some((held, ns)) = &*cell {
-                if let Some(sample) = pick(held) {
-                    let taken = (std::ptr::read(sample), *ns);
-                    std::ptr::write(cell, None);
-                    return Some(taken);
-                }
-            }
-        }
-        None
-    }
-
-    /// The loaned sample held, if it is one ([`Preloaned::take_picked`]). A written
-    /// sample held is dropped (a send of another value: it goes back).
-    #[inline(always)]
-    fn take_loaned(&self) -> Option<(Uninit<T>, u64)> {
-        let held = self.take_picked(|h| match h {
-            Held::Loaned(s) => Some(s),
-            Held::Written(_) => None,
-        });
-        if held.is_none() {
-            drop(self.0.take());
-        }
-        held
+    fn take(&self) -> Option<Held<T>> {
+        self.0.take()
     }
 }
 
@@ -108,8 +85,8 @@ impl<T: ZeroCopySend + Debug + Copy + 'static> Debug for Preloaned<T> {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         let what = self.with(|held| match held {
             None => "none",
-            Some((Held::Loaned(_), _)) => "a sample",
-            Some((Held::Written(_), _)) => "a written sample",
+            Some(h) if h.prewritten => "a written sample",
+            Some(_) => "a sample",
         });
         write!(f, "Preloaned({what})")
     }
@@ -117,25 +94,32 @@ impl<T: ZeroCopySend + Debug + Copy + 'static> Debug for Preloaned<T> {
 
 impl<T: ZeroCopySend + Debug + Copy + 'static> Outbox<T> {
     /// Loans the sample the next send writes, now, off the path that send is on (the
-    /// controller after it published): the send then costs no loan, and its
-    /// [`SendCost::loan_ns`] is what this loan cost. Keeps a sample already held.
-    pub fn preloan(&self) -> Result<(), IpcError> {
+    /// controller after it published), and writes `T::default()` into it (the send
+    /// overwrites it whole): the send then costs no loan, its [`SendCost::loan_ns`] is
+    /// what this loan cost, and it takes a written sample's 48-byte handle (see
+    /// [`Preloaned`]). Keeps a sample already held.
+    pub fn preloan(&self) -> Result<(), IpcError>
+    where
+        T: Default,
+    {
         if self.preloaned.with(|held| held.is_some()) {
             return Ok(());
         }
         let (sample, loan_ns) = self.loan()?;
-        self.preloaned.0.set(Some((Held::Loaned(sample), loan_ns)));
+        let sample = sample.write_payload(T::default());
+        self.preloaned.0.set(Some(Held { sample, loan_ns, prewritten: false }));
         Ok(())
     }
 
-    /// Asks for the lines of the sample [`Outbox::preloan`] holds, for writing
-    /// ([`crate::prefetch::lines_for_write`]): its chunk of shared memory was last read
-    /// by a subscriber on another core, and the send writes it. Nothing when none is held.
+    /// Asks for the lines of the sample held ([`Outbox::preloan`], [`Outbox::prewrite`]),
+    /// for writing ([`crate::prefetch::lines_for_write`]): its chunk of shared memory
+    /// was last read by a subscriber on another core, and the send writes it. Nothing
+    /// when none is held.
     #[inline]
     pub fn prefetch_loaned(&self) {
         self.preloaned.with(|held| {
-            if let Some((Held::Loaned(s), _)) = held {
-                crate::prefetch::lines_for_write(s.payload());
+            if let Some(h) = held {
+                crate::prefetch::lines_for_write(h.sample.payload());
             }
         });
     }
@@ -150,20 +134,20 @@ impl<T: ZeroCopySend + Debug + Copy + 'static> Outbox<T> {
 
     /// Loans a sample and writes `value` into it now, ahead of its send (the plant before
     /// it sleeps to its tick): [`Outbox::send_prewritten`] then writes only what its patch
-    /// changes (the stamps), and the copy is not between the wake-up and the send.
+    /// changes (the stamps), and the copy is not between the wake-up and the send. A
+    /// sample already held is written again.
     pub fn prewrite(&self, value: T) -> Result<(), IpcError> {
-        let (sample, loan_ns) = match self.preloaned.0.take() {
-            Some((Held::Loaned(s), ns)) => (s.write_payload(value), ns),
-            Some((Held::Written(mut s), ns)) => {
-                *s.payload_mut() = value;
-                (s, ns)
+        let (sample, loan_ns) = match self.preloaned.take() {
+            Some(Held { mut sample, loan_ns, .. }) => {
+                *sample.payload_mut() = value;
+                (sample, loan_ns)
             }
             None => {
                 let (s, ns) = self.loan()?;
                 (s.write_payload(value), ns)
             }
         };
-        self.preloaned.0.set(Some((Held::Written(sample), loan_ns)));
+        self.preloaned.0.set(Some(Held { sample, loan_ns, prewritten: true }));
         Ok(())
     }
 
@@ -173,15 +157,16 @@ impl<T: ZeroCopySend + Debug + Copy + 'static> Outbox<T> {
     /// with the handle that owns it).
     pub fn prewritten_ptr(&self) -> Option<*mut T> {
         self.preloaned.with(|held| match held {
-            Some((Held::Written(s), _)) => Some(std::ptr::from_mut(s.payload_mut())),
+            Some(h) if h.prewritten => Some(std::ptr::from_mut(h.sample.payload_mut())),
             _ => None,
         })
     }
 
     /// Sends the sample [`Outbox::prewrite`] wrote, `patch`ed with the publish stamp it is
     /// given, and notifies; `after` gets `value` (what was prewritten) patched the same way,
-    /// as published. With no sample written ahead, a plain [`Outbox::send_then`] of
-    /// `value` patched.
+    /// as published. A sample held but not written ahead ([`Outbox::preloan`]) is written
+    /// with `value` first; with none held, a plain [`Outbox::send_then`] of `value`
+    /// patched.
     #[inline]
     pub fn send_prewritten(
         &self,
@@ -189,13 +174,12 @@ impl<T: ZeroCopySend + Debug + Copy + 'static> Outbox<T> {
         patch: impl Fn(&mut T, u64),
         after: impl FnOnce(&T),
     ) -> Result<SendCost, IpcError> {
-        let written = self.preloaned.take_picked(|h| match h {
-            Held::Written(s) => Some(s),
-            Held::Loaned(_) => None,
-        });
-        let Some((mut sample, loan_ns)) = written else {
+        let Some(Held { mut sample, loan_ns, prewritten }) = self.preloaned.take() else {
             return self.send_then(value, |v| patch(v, now_ns()), after);
         };
+        if !prewritten {
+            *sample.payload_mut() = value;
+        }
         let t1 = now_ns();
         patch(sample.payload_mut(), t1);
         let cost = self.send_and_notify(sample, loan_ns, t1)?;
@@ -248,13 +232,11 @@ impl<T: ZeroCopySend + Debug + Copy + 'static> Outbox<T> {
         stamp: impl FnOnce(&mut T, u64),
         after: impl FnOnce(&T),
     ) -> Result<SendCost, IpcError> {
-        let (sample, loan_ns) = match self.preloaned.take_loaned() {
-            Some(held) => held,
-            None => self.loan()?,
-        };
-        let t1 = now_ns();
-        stamp(&mut value, t1);
-        let cost = self.send_and_notify(sample.write_payload(value), loan_ns, t1)?;
+        let (sample, loan_ns, t1) = self.write_sample(|t1| {
+            stamp(&mut value, t1);
+            value
+        })?;
+        let cost = self.send_and_notify(sample, loan_ns, t1)?;
         after(&value);
         Ok(cost)
     }
@@ -272,18 +254,35 @@ impl<T: ZeroCopySend + Debug + Copy + 'static> Outbox<T> {
         patch: impl Fn(&mut T, u64),
         after: impl FnOnce(&T),
     ) -> Result<SendCost, IpcError> {
-        let (sample, loan_ns) = match self.preloaned.take_loaned() {
-            Some(held) => held,
-            None => self.loan()?,
-        };
-        let t1 = now_ns();
-        let mut sample = sample.write_payload(*value);
+        let (mut sample, loan_ns, t1) = self.write_sample(|_| *value)?;
         patch(sample.payload_mut(), t1);
         let cost = self.send_and_notify(sample, loan_ns, t1)?;
         let mut sent = *value;
         patch(&mut sent, t1);
         after(&sent);
         Ok(cost)
+    }
+
+    /// The sample a send goes out in (the one held, else one loaned now), written with
+    /// `value(t1)`, and what its loan cost; `t1`, the publish stamp, is read once the
+    /// sample is in hand, before it is written.
+    #[inline(always)]
+    fn write_sample(
+        &self,
+        value: impl FnOnce(u64) -> T,
+    ) -> Result<(Written<T>, u64, u64), IpcError> {
+        Ok(match self.preloaned.take() {
+            Some(Held { mut sample, loan_ns, .. }) => {
+                let t1 = now_ns();
+                *sample.payload_mut() = value(t1);
+                (sample, loan_ns, t1)
+            }
+            None => {
+                let (s, loan_ns) = self.loan()?;
+                let t1 = now_ns();
+                (s.write_payload(value(t1)), loan_ns, t1)
+            }
+        })
     }
 
     /// Sends a written sample and notifies the listeners: what the loan cost (`loan_ns`),
