@@ -8,6 +8,7 @@
 //! killed in the middle of a write leaves the previous copy valid. Writing is a `memcpy`
 //! and an atomic store, no system call.
 
+use std::cell::Cell;
 use std::marker::PhantomData;
 use std::path::PathBuf;
 use std::sync::atomic::{AtomicU64, Ordering, fence};
@@ -27,6 +28,32 @@ pub struct ResumeSlot<T: Copy + ZeroCopySend> {
     map: *mut u8,
     len: usize,
     _t: PhantomData<T>,
+    /// How many [`Stored`] borrows of the copy last stored are alive: a store meanwhile
+    /// would write that copy under them (the one after next does), so it panics.
+    lent: Cell<u32>,
+}
+
+/// The value a [`ResumeSlot`] stored last, borrowed in place ([`ResumeSlot::stored`]).
+#[derive(Debug)]
+pub struct Stored<'a, T: Copy + ZeroCopySend> {
+    slot: &'a ResumeSlot<T>,
+    value: &'a T,
+}
+
+impl<T: Copy + ZeroCopySend> std::ops::Deref for Stored<'_, T> {
+    type Target = T;
+
+    #[inline]
+    fn deref(&self) -> &T {
+        self.value
+    }
+}
+
+impl<T: Copy + ZeroCopySend> Drop for Stored<'_, T> {
+    #[inline]
+    fn drop(&mut self) {
+        self.slot.lent.set(self.slot.lent.get() - 1);
+    }
 }
 
 impl<T: Copy + ZeroCopySend> ResumeSlot<T> {
@@ -74,7 +101,7 @@ impl<T: Copy + ZeroCopySend> ResumeSlot<T> {
         }
         // `len` bytes of a file of exactly that size.
         let map = crate::private::map_shared(&file, len, 0).map_err(|e| err("mmap", e))?;
-        let slot = Self { map, len, _t: PhantomData };
+        let slot = Self { map, len, _t: PhantomData, lent: Cell::new(0) };
         let (magic, size, version) = (slot.word(0), slot.word(1), slot.word(2));
         if magic.load(Ordering::Acquire) != MAGIC
             || size.load(Ordering::Relaxed) != size_of::<T>() as u64
@@ -139,7 +166,7 @@ impl<T: Copy + ZeroCopySend> ResumeSlot<T> {
     /// Stores `value` (allocation- and syscall-free).
     #[inline]
     pub fn store(&self, value: &T) {
-        let generation = self.next_generation();
+        let generation = self.next_writable();
         // SAFETY: writes the copy not currently published; only this process writes.
         unsafe { std::ptr::write_volatile(self.copy_ptr(generation), *value) };
         fence(Ordering::Release);
@@ -152,7 +179,7 @@ impl<T: Copy + ZeroCopySend> ResumeSlot<T> {
     /// law's state) is written once, not built aside and copied.
     #[inline]
     pub fn store_with(&self, write: impl FnOnce(&mut T)) {
-        let generation = self.next_generation();
+        let generation = self.next_writable();
         // SAFETY: the copy not currently published is only this process's to write; it
         // lies in the mapping, is aligned (page-aligned base, 64-byte stride) and holds
         // initialised bytes (a file's), and T is plain old data valid for any bit pattern
@@ -160,6 +187,29 @@ impl<T: Copy + ZeroCopySend> ResumeSlot<T> {
         write(unsafe { &mut *self.copy_ptr(generation) });
         fence(Ordering::Release);
         self.word(3).store(generation, Ordering::Release);
+    }
+
+    /// The generation the next store publishes, whose copy no [`Stored`] borrows.
+    #[inline]
+    fn next_writable(&self) -> u64 {
+        assert!(self.lent.get() == 0, "a resume slot stored to while its value is borrowed");
+        self.next_generation()
+    }
+
+    /// The value this process stored last, in place (the copy published), without a
+    /// copy: the controller stores its answer with [`ResumeSlot::store_with`] and sends
+    /// it from there. A store while it is borrowed panics (the store after next writes
+    /// that copy). Before any store it holds whatever the file held.
+    #[inline]
+    pub fn stored(&self) -> Stored<'_, T> {
+        let generation = self.word(3).load(Ordering::Relaxed);
+        self.lent.set(self.lent.get() + 1);
+        // SAFETY: the copy lies in the mapping, aligned, with initialised bytes, and T is
+        // plain old data valid for any bit pattern (as in `store_with`). Only this
+        // process writes the copies (the slot is its role's, owner-only), and not while
+        // a `Stored` lives (`next_writable`), so nothing writes it under this borrow.
+        let value = unsafe { &*self.copy_ptr(generation) };
+        Stored { slot: self, value }
     }
 
     /// Forgets the stored sample (a finished run is not resumed).
@@ -314,5 +364,30 @@ mod tests {
         drop(slot);
         remove_slots(&domain);
         assert!(!ResumeSlot::<TorqueSample>::path(&domain, "controller").exists());
+    }
+
+    /// The value stored last is read in place, as stored (each store alternates between
+    /// the two copies), and a store while it is borrowed panics rather than write the
+    /// copy under the borrow.
+    #[test]
+    fn the_value_stored_last_is_borrowed_in_place_and_no_store_writes_under_it() {
+        let domain = Domain::new(&format!("slotin{}", std::process::id())).expect("domain");
+        let slot = ResumeSlot::<TorqueSample>::open(&domain, "controller").expect("open");
+        for k in 1..=3 {
+            slot.store_with(|t| *t = TorqueSample { tick: k, ..Default::default() });
+            let stored = slot.stored();
+            assert_eq!((stored.tick, slot.load().map(|s| s.tick)), (k, Some(k)));
+        }
+        let stored = slot.stored();
+        let again = slot.stored(); // two borrows: the first one's end does not end both
+        drop(stored);
+        let store = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| slot.store(&*again)));
+        assert!(store.is_err(), "a store while the value is borrowed must panic");
+        assert_eq!(again.tick, 3, "the borrowed value is unchanged");
+        drop(again);
+        slot.store(&TorqueSample { tick: 4, ..Default::default() });
+        assert_eq!(slot.stored().tick, 4);
+        drop(slot);
+        remove_slots(&domain);
     }
 }

@@ -311,6 +311,13 @@ impl TorqueAnswers {
     #[inline]
     pub fn write_resume_record(&self, r: &mut ControllerResume, last: &TorqueSample) {
         r.last = *last;
+        self.write_law_state(r);
+    }
+
+    /// The law's state now, into the resume slot's copy `r` (after the `computed` stamp:
+    /// the publish preparation's part of the slot's store).
+    #[inline]
+    pub fn write_law_state(&self, r: &mut ControllerResume) {
         r.law = self.law.state().0;
     }
 
@@ -351,6 +358,7 @@ impl TorqueAnswers {
     /// into the sample; `publish_ns` is left for the send. The answer rule learns of it
     /// from [`TorqueAnswers::gave`], once it is sent: its copy is not the law's work, and
     /// was inside the law's stage (`computed_ns` is when the torques were computed).
+    #[inline(always)]
     pub fn answer(
         &mut self,
         s: &StateSample,
@@ -385,6 +393,24 @@ impl TorqueAnswers {
             prev_tick: NO_TICK,
             prev_publish: Default::default(),
         }
+    }
+
+    /// [`Self::answer`] written in place into the resume slot's next copy `r` (the answer
+    /// is sent from there: not built aside and copied), with its stage stamps (`validated`
+    /// and `paired` given, `computed` read from `clock` once the law is done) and the
+    /// law's state after it.
+    #[inline]
+    pub fn answer_into(
+        &mut self,
+        r: &mut ControllerResume,
+        (s, recv_ns): (&StateSample, u64),
+        (rd, pairing): (Option<&ReferenceState>, &ReferencePairing),
+        dt: f64,
+        (validated, paired, clock): (u64, u64, fn() -> u64),
+    ) {
+        r.last = self.answer(s, recv_ns, rd, pairing, dt);
+        (r.last.validated_ns, r.last.paired_ns, r.last.computed_ns) = (validated, paired, clock());
+        self.write_law_state(r);
     }
 
     /// Answer `t` was given (sent, or held back to be sent): a state of its tick again
@@ -658,6 +684,23 @@ mod tests {
             TorqueAnswers::new(AnyLaw::GeometricPid(pid)),
             StateSample::of(0, 0.0, &scenario.plant_init),
         )
+    }
+
+    /// The answer written in place into the resume slot's copy is the one `answer`
+    /// gives, with the stage stamps (the computed one read after the law) and the law's
+    /// state after it: every field of the record set, whatever the copy held.
+    #[test]
+    fn the_answer_written_into_the_slot_is_the_answer_with_its_stamps_and_the_laws_state() {
+        let ((mut a, s0), (mut b, _)) = (answers(), answers());
+        let p = ReferencePairing::new(10, DT, LAST);
+        let rd = reference(0, 0.1).reference_state();
+        let want = a.answer(&s0, 5, Some(&rd), &p, DT);
+        let junk = TorqueSample { tick: 99, rotor_torque_nm: [f64::NAN; 3], ..want };
+        let mut r = ControllerResume { last: junk, law: [f64::NAN; LawState::LEN] };
+        b.answer_into(&mut r, (&s0, 5), (Some(&rd), &p), DT, (7, 8, || 9));
+        let stamped = TorqueSample { validated_ns: 7, paired_ns: 8, computed_ns: 9, ..want };
+        assert_eq!(r.last, stamped);
+        assert_eq!(r.law, a.resume_record(&want).law, "the law's state after this answer");
     }
 
     #[test]

@@ -56,16 +56,17 @@ pub fn run(args: &args::ControllerArgs) -> anyhow::Result<()> {
         if rd.is_none() && fault.is_none() && shutdown_requested() {
             break;
         }
-        let paired = now_ns();
-        let mut sample = answers.answer(&state, recv, rd.as_ref(), &pairing, dt);
-        (sample.validated_ns, sample.paired_ns, sample.computed_ns) = (validated, paired, now_ns());
-        // Slot first: killed between the two, a restart re-sends this answer (not a stale law)
-        ports.slot.store_with(|r| answers.write_resume_record(r, &sample));
+        let stamps = (validated, now_ns(), now_ns as fn() -> u64); // paired, computed later
+        // Into the resume slot, sent from there. Slot first: killed between the two, a
+        // restart re-sends this answer (not a stale law)
+        let (s, rd) = ((&state, recv), (rd.as_ref(), &pairing));
+        ports.slot.store_with(|r| answers.answer_into(r, s, rd, dt, stamps));
+        let sample = &ports.slot.stored().last;
         hooks.stop_before_send(k);
-        if !sends.holds_back(&sample, state.t_s, sample.computed_ns) {
-            ports.publish(&sample, &args.corrupt)?;
+        if !sends.holds_back(sample, state.t_s, sample.computed_ns) {
+            ports.publish(sample, &args.corrupt)?;
         }
-        answers.gave(&sample);
+        answers.gave(sample);
         ports.references_ahead(&mut pairing)?;
         if state.flags & FLAG_LAST != 0 {
             break;
