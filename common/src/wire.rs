@@ -583,14 +583,15 @@ pub fn prefetch_sweep() {
 /// The bound of each number of a state's sweep ([`StateSample::validate`]), entry by
 /// entry so that the sweep compares two at a time (`within_each`): `R` through `τ`
 /// (24 numbers in a row from `r_row_major`), `h` and `p` (6 in a row), and `RᵀR − I`
-/// with `det R − 1` (10). Read as data, like [`SWEEP`]; six lines, prefetched with it.
+/// on and below its diagonal with `det R − 1` and a 0 (8: [`rotation_residuals_lower`]).
+/// Read as data, like [`SWEEP`]; five lines, prefetched with it.
 #[repr(C, align(64))]
 struct StateBounds {
     /// `-0.0`: the sign bit `|x|` clears.
     sign: [f64; 2],
     core: [f64; 24],
     internal: [f64; 6],
-    orthonormal: [f64; 10],
+    orthonormal: [f64; 8],
 }
 
 static STATE_BOUNDS: StateBounds = {
@@ -608,7 +609,7 @@ static STATE_BOUNDS: StateBounds = {
             M, M, M, // τ applied
         ],
         internal: [A; 6],
-        orthonormal: [WIRE_ORTHONORMAL_TOL; 10],
+        orthonormal: [WIRE_ORTHONORMAL_TOL; 8],
     }
 };
 
@@ -684,6 +685,16 @@ fn rotation_residuals(m: &[f64; 9], one: f64) -> [f64; 10] {
     res
 }
 
+/// [`rotation_residuals`] on and below the diagonal of `RᵀR − I`, then `det R − 1` and a
+/// 0 (eight, for the sweep's pairs). The three left out are the same numbers bit for bit:
+/// entries `(i, j)` and `(j, i)` are the same three products summed in the same order, so
+/// the verdict is the same, and their products are not computed.
+#[inline(always)]
+fn rotation_residuals_lower(m: &[f64; 9], one: f64) -> [f64; 8] {
+    let r = rotation_residuals(m, one);
+    [r[0], r[1], r[2], r[4], r[5], r[8], r[9], 0.0]
+}
+
 /// `R`'s deviation from SO(3): the largest entry of `|RᵀR − I|` and `|det R − 1|`.
 #[inline]
 fn rotation_deviation(m: &[f64; 9]) -> f64 {
@@ -732,7 +743,11 @@ impl StateSample {
             & within_each(internal, &e.internal, &e.sign);
         // `R`'s entries are within [-2, 2] (in `core`), as `is_rotation` asks first.
         if good
-            && within_each(&rotation_residuals(&self.r_row_major, b.one), &e.orthonormal, &e.sign)
+            && within_each(
+                &rotation_residuals_lower(&self.r_row_major, b.one),
+                &e.orthonormal,
+                &e.sign,
+            )
         {
             return Ok(());
         }
@@ -1022,9 +1037,13 @@ mod tests {
         for base in [[1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0], turned] {
             for k in 0..=40 {
                 let e = WIRE_ORTHONORMAL_TOL * (k as f64) / 40.0;
-                for (i, scale) in [(4, 1.0 + e / 2.0), (0, 1.0 - e / 2.0), (1, 1.0), (8, 1.0 + e)] {
+                let stretched = [(4, 1.0 + e / 2.0), (0, 1.0 - e / 2.0), (8, 1.0 + e)];
+                // Sheared by up to twice the tolerance: each entry of `RᵀR` off the
+                // diagonal (and its mirror) beyond it in turn.
+                let sheared = [(1, f64::NAN), (2, f64::NAN), (5, f64::NAN)];
+                for (i, scale) in stretched.into_iter().chain(sheared) {
                     let mut m = base;
-                    m[i] = if i == 1 { base[1] + e } else { base[i] * scale };
+                    m[i] = if scale.is_nan() { base[i] + 2.0 * e } else { base[i] * scale };
                     let want = rotation_deviation(&m) <= WIRE_ORTHONORMAL_TOL;
                     // The sweep by itself: a refusal of it falls back to the field path.
                     assert_eq!(is_rotation(&m, &sweep()), want, "R = {m:?}");
@@ -1043,6 +1062,26 @@ mod tests {
             accepted > 20 && refused > 20,
             "both sides: {accepted} accepted, {refused} refused"
         );
+    }
+
+    /// `RᵀR − I` is symmetric bit for bit (what lets the sweep leave out the three
+    /// entries above the diagonal), for matrices near and far from SO(3).
+    #[test]
+    fn the_residuals_above_the_diagonal_are_those_below_bit_for_bit() {
+        let mut x = 0x2545_f491_4f6c_dd1d_u64;
+        let mut next = || {
+            x ^= x << 13;
+            x ^= x >> 7;
+            x ^= x << 17;
+            (x >> 11) as f64 / (1u64 << 53) as f64 * 4.0 - 2.0
+        };
+        for _ in 0..10_000 {
+            let m: [f64; 9] = std::array::from_fn(|_| next());
+            let r = rotation_residuals(&m, 1.0);
+            for (below, above) in [(1, 3), (2, 6), (5, 7)] {
+                assert_eq!(r[below].to_bits(), r[above].to_bits(), "R = {m:?}");
+            }
+        }
     }
 
     #[test]
