@@ -96,8 +96,8 @@ impl<T: ZeroCopySend + Debug + Copy + 'static> Outbox<T> {
     /// Loans the sample the next send writes, now, off the path that send is on (the
     /// controller after it published), and writes `T::default()` into it (the send
     /// overwrites it whole): the send then costs no loan, its [`SendCost::loan_ns`] is
-    /// what this loan cost, and it takes a written sample's 48-byte handle (see
-    /// [`Preloaned`]). Keeps a sample already held.
+    /// what this loan cost, and it takes a written sample's 48-byte handle out of the
+    /// outbox, where an unwritten one's is 200 bytes. Keeps a sample already held.
     pub fn preloan(&self) -> Result<(), IpcError>
     where
         T: Default,
