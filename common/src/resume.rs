@@ -31,6 +31,9 @@ pub struct ResumeSlot<T: Copy + ZeroCopySend> {
     /// How many [`Stored`] borrows of the copy last stored are alive: a store meanwhile
     /// would write that copy under them (the one after next does), so it panics.
     lent: Cell<u32>,
+    /// The generation this process published last (0: none), which [`ResumeSlot::stored`]
+    /// reads: not the file's word, which another process could change meanwhile.
+    mine: Cell<u64>,
 }
 
 /// The value a [`ResumeSlot`] stored last, borrowed in place ([`ResumeSlot::stored`]).
@@ -101,7 +104,7 @@ impl<T: Copy + ZeroCopySend> ResumeSlot<T> {
         }
         // `len` bytes of a file of exactly that size.
         let map = crate::private::map_shared(&file, len, 0).map_err(|e| err("mmap", e))?;
-        let slot = Self { map, len, _t: PhantomData, lent: Cell::new(0) };
+        let slot = Self { map, len, _t: PhantomData, lent: Cell::new(0), mine: Cell::new(0) };
         let (magic, size, version) = (slot.word(0), slot.word(1), slot.word(2));
         if magic.load(Ordering::Acquire) != MAGIC
             || size.load(Ordering::Relaxed) != size_of::<T>() as u64
@@ -171,6 +174,7 @@ impl<T: Copy + ZeroCopySend> ResumeSlot<T> {
         unsafe { std::ptr::write_volatile(self.copy_ptr(generation), *value) };
         fence(Ordering::Release);
         self.word(3).store(generation, Ordering::Release);
+        self.mine.set(generation);
     }
 
     /// [`ResumeSlot::store`] of a value written in place: `write` is given the copy not
@@ -187,6 +191,7 @@ impl<T: Copy + ZeroCopySend> ResumeSlot<T> {
         write(unsafe { &mut *self.copy_ptr(generation) });
         fence(Ordering::Release);
         self.word(3).store(generation, Ordering::Release);
+        self.mine.set(generation);
     }
 
     /// The generation the next store publishes, whose copy no [`Stored`] borrows.
@@ -202,7 +207,7 @@ impl<T: Copy + ZeroCopySend> ResumeSlot<T> {
     /// that copy). Before any store it holds whatever the file held.
     #[inline]
     pub fn stored(&self) -> Stored<'_, T> {
-        let generation = self.word(3).load(Ordering::Relaxed);
+        let generation = self.mine.get();
         self.lent.set(self.lent.get() + 1);
         // SAFETY: the copy lies in the mapping, aligned, with initialised bytes, and T is
         // plain old data valid for any bit pattern (as in `store_with`). Only this
@@ -378,6 +383,10 @@ mod tests {
             let stored = slot.stored();
             assert_eq!((stored.tick, slot.load().map(|s| s.tick)), (k, Some(k)));
         }
+        // What this process stored, whatever the file's word says now (another process
+        // could change it: here, a clear).
+        slot.clear();
+        assert_eq!(slot.stored().tick, 3);
         let stored = slot.stored();
         let again = slot.stored(); // two borrows: the first one's end does not end both
         drop(stored);
