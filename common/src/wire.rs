@@ -1037,13 +1037,15 @@ mod tests {
         for base in [[1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0], turned] {
             for k in 0..=40 {
                 let e = WIRE_ORTHONORMAL_TOL * (k as f64) / 40.0;
-                let stretched = [(4, 1.0 + e / 2.0), (0, 1.0 - e / 2.0), (8, 1.0 + e)];
-                // Sheared by up to twice the tolerance: each entry of `RᵀR` off the
-                // diagonal (and its mirror) beyond it in turn.
-                let sheared = [(1, f64::NAN), (2, f64::NAN), (5, f64::NAN)];
-                for (i, scale) in stretched.into_iter().chain(sheared) {
+                // Entry `i` scaled by `f` and moved by `d`: three stretched, then three
+                // sheared by up to twice the tolerance (each entry of `RᵀR` off the
+                // diagonal, and its mirror, beyond it in turn).
+                let (grow, shear) = (|f: f64| (f, 0.0), (1.0, 2.0 * e));
+                let moves =
+                    [(4, grow(1.0 + e / 2.0)), (0, grow(1.0 - e / 2.0)), (8, grow(1.0 + e))];
+                for (i, (f, d)) in moves.into_iter().chain([(1, shear), (2, shear), (5, shear)]) {
                     let mut m = base;
-                    m[i] = if scale.is_nan() { base[i] + 2.0 * e } else { base[i] * scale };
+                    m[i] = base[i] * f + d;
                     let want = rotation_deviation(&m) <= WIRE_ORTHONORMAL_TOL;
                     // The sweep by itself: a refusal of it falls back to the field path.
                     assert_eq!(is_rotation(&m, &sweep()), want, "R = {m:?}");

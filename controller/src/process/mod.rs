@@ -59,8 +59,8 @@ pub fn run(args: &args::ControllerArgs) -> anyhow::Result<()> {
         let stamps = (validated, now_ns(), now_ns as fn() -> u64); // paired, computed later
         // Into the resume slot, sent from there. Slot first: killed between the two, a
         // restart re-sends this answer (not a stale law)
-        let (s, rd) = ((&state, recv), (rd.as_ref(), &pairing));
-        ports.slot.store_with(|r| answers.answer_into(r, s, rd, dt, stamps));
+        let (received, tracked) = ((&state, recv), (rd.as_ref(), &pairing));
+        ports.slot.store_with(|r| answers.answer_into(r, received, tracked, dt, stamps));
         let sample = &ports.slot.stored().last;
         hooks.stop_before_send(k);
         if !sends.holds_back(sample, state.t_s, sample.computed_ns) {
